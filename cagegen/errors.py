@@ -1,0 +1,32 @@
+"""Exception classes shared by every cage backend and the verifier."""
+
+from __future__ import annotations
+
+
+class NestmgError(Exception):
+    """Base class of every error nestmg raises on purpose (bad input, failed certification...)."""
+
+
+class MeshInputError(NestmgError, ValueError):
+    """The input surface is not a closed, manifold, single-piece, finite, non-degenerate triangle mesh."""
+
+
+class CageError(NestmgError, RuntimeError):
+    """A cage layer could not be built or could not be certified.
+
+    Attributes
+    ----------
+    layer : int or None
+        Index of the failing layer (0 = input surface, 1 = first cage, ...).
+    reason : str
+        Human readable explanation.
+    """
+
+    def __init__(self, message: str, layer: int | None = None, reason: str | None = None):
+        super().__init__(message)
+        self.layer = layer
+        self.reason = reason if reason is not None else message
+
+
+class BackendUnavailableError(NestmgError, ImportError):
+    """A cage backend needs an optional dependency that is not installed."""

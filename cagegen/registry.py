@@ -1,0 +1,76 @@
+"""Backend registry: name -> callable, imported lazily (like trimesh's boolean engines).
+
+A backend is a function ::
+
+    backend(V, F, face_counts, **opts) -> (layers, info)
+
+* ``V`` (n,3) float64, ``F`` (m,3) int64: the closed input surface (layer 0), already audited.
+* ``face_counts``: target face counts of the cages, finest first (len = levels - 1).
+* ``layers``: list of ``(V_i, F_i)`` for the *cages only* (len = len(face_counts)), finest first.
+* ``info``: dict of backend figures (timings per phase, recovery actions, ...), JSON-serialisable.
+
+The backend does not certify: :func:`cagegen.build_cages` runs the verifier on every consecutive
+pair and raises :class:`cagegen.CageError` for the first failing layer.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Callable
+
+from .errors import BackendUnavailableError
+
+# name -> "module:function" (imported on first use so optional dependencies stay optional)
+_BACKENDS: dict[str, str] = {
+    "decimate": "cagegen.decimate:decimate_backend",
+    "nested": "cagegen.nested:nested_backend",
+    "lazy": "cagegen.copyleft.lazy:lazy_backend",
+}
+
+
+def register_backend(name: str, target: str | Callable) -> None:
+    """Register a backend under ``name``.
+
+    Parameters
+    ----------
+    name : str
+        Method name used in ``build_cages(..., method=name)``.
+    target : str or callable
+        Either ``"module:function"`` (imported lazily) or the backend function itself.
+    """
+    _BACKENDS[name] = target  # type: ignore[assignment]
+
+
+def get_backend(name: str) -> Callable:
+    """Return the backend callable registered under ``name``.
+
+    Raises
+    ------
+    ValueError
+        If no backend of that name is registered.
+    BackendUnavailableError
+        If the backend's module (or one of its optional dependencies) cannot be imported.
+    """
+    if name not in _BACKENDS:
+        raise ValueError(f"unknown cage method {name!r}; registered: {sorted(_BACKENDS)}")
+    target = _BACKENDS[name]
+    if callable(target):
+        return target
+    module, func = target.split(":")
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:  # optional dependency missing
+        raise BackendUnavailableError(f"cage method {name!r} is unavailable: {exc}") from exc
+    return getattr(mod, func)
+
+
+def available_backends() -> list[str]:
+    """Names of the registered backends whose imports succeed on this machine."""
+    out = []
+    for name in _BACKENDS:
+        try:
+            get_backend(name)
+        except (BackendUnavailableError, AttributeError):
+            continue
+        out.append(name)
+    return out

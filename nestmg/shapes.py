@@ -1,0 +1,216 @@
+"""Procedural closed surfaces for the demo and the tests (implicit function + marching cubes).
+
+Every shape is described by a signed distance (or distance-like) function ``sdf(P) -> (n,)``,
+negative inside, and meshed with :func:`skimage.measure.marching_cubes`. The result is a closed,
+manifold, single-component, outward-oriented triangle mesh ``(V, F)``.
+
+:func:`nested_isosurfaces` meshes the iso-surfaces ``sdf = d_0 < d_1 < ...`` of one function at
+decreasing resolution: a *procedurally nested* hierarchy (each coarser surface strictly contains the
+finer one when the offsets exceed the marching-cubes error), used to test multigrid without a cage
+backend.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+SDF = Callable[[np.ndarray], np.ndarray]
+
+__all__ = [
+    "SHAPES",
+    "genus2",
+    "mesh_implicit",
+    "neck_blobs",
+    "nested_isosurfaces",
+    "shape_sdf",
+    "sphere",
+    "thin_plate",
+    "torus",
+]
+
+
+# ----------------------------------------------------------------------------- implicit functions
+def _smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    """Polynomial smooth minimum (blend radius ``k``); equals min(a, b) where |a-b| > k."""
+    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b * (1 - h) + a * h - k * h * (1 - h)
+
+
+def _sphere_sdf(P: np.ndarray, c=(0.0, 0.0, 0.0), r: float = 1.0) -> np.ndarray:
+    return np.linalg.norm(P - np.asarray(c), axis=1) - r
+
+
+def _torus_sdf(P: np.ndarray, c=(0.0, 0.0, 0.0), R: float = 1.0, r: float = 0.35) -> np.ndarray:
+    Q = P - np.asarray(c)
+    q = np.hypot(Q[:, 0], Q[:, 1]) - R
+    return np.hypot(q, Q[:, 2]) - r
+
+
+def _capsule_sdf(P: np.ndarray, a, b, r: float) -> np.ndarray:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+    t = np.clip((P - a) @ ab / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(P - (a + t[:, None] * ab), axis=1) - r
+
+
+def _rounded_box_sdf(P: np.ndarray, half=(1.0, 0.7, 0.08), rounding: float = 0.05) -> np.ndarray:
+    q = np.abs(P) - (np.asarray(half) - rounding)
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0.0)
+    return outside + inside - rounding
+
+
+def shape_sdf(name: str) -> tuple[SDF, np.ndarray]:
+    """Implicit function and bounding box of a named procedural shape.
+
+    Parameters
+    ----------
+    name : str
+        One of ``sphere``, ``torus``, ``genus2``, ``neck_blobs``, ``thin_plate``.
+
+    Returns
+    -------
+    sdf : callable
+        ``sdf(P)`` for ``P`` (n,3) returns (n,) values, negative inside.
+    bounds : (2,3) float array
+        Box that contains the zero level set with a margin.
+    """
+    if name == "sphere":
+        return _sphere_sdf, np.array([[-1.0] * 3, [1.0] * 3])
+    if name == "torus":
+        return _torus_sdf, np.array([[-1.35, -1.35, -0.35], [1.35, 1.35, 0.35]])
+    if name == "genus2":
+        def f(P):
+            return _smooth_min(_torus_sdf(P, (-0.8, 0, 0), 0.8, 0.3), _torus_sdf(P, (0.8, 0, 0), 0.8, 0.3), 0.1)
+        return f, np.array([[-1.9, -1.1, -0.3], [1.9, 1.1, 0.3]])
+    if name == "neck_blobs":
+        def f(P):
+            blobs = np.minimum(_sphere_sdf(P, (-0.9, 0, 0), 0.6), _sphere_sdf(P, (0.9, 0, 0), 0.6))
+            return _smooth_min(blobs, _capsule_sdf(P, (-0.9, 0, 0), (0.9, 0, 0), 0.12), 0.08)
+        return f, np.array([[-1.5, -0.6, -0.6], [1.5, 0.6, 0.6]])
+    if name == "thin_plate":
+        return _rounded_box_sdf, np.array([[-1.0, -0.7, -0.08], [1.0, 0.7, 0.08]])
+    raise ValueError(f"unknown shape {name!r}; choose from {sorted(SHAPES)}")
+
+
+# ----------------------------------------------------------------------------- meshing
+def mesh_implicit(sdf: SDF, bounds: np.ndarray, res: int = 40, level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh the level set ``sdf = level`` by marching cubes.
+
+    Parameters
+    ----------
+    sdf : callable
+        ``sdf(P)`` for ``P`` (n,3) returns (n,) values, negative inside.
+    bounds : (2,3) float array
+        Box containing the level set; it is padded by ``|level|`` plus two grid cells so the surface
+        never touches the grid boundary (hence is closed).
+    res : int
+        Number of grid cells along the longest side of the box.
+    level : float
+        Iso-value (an outward offset when ``sdf`` is a signed distance).
+
+    Returns
+    -------
+    V : (n,3) float64 array
+    F : (m,3) int64 array
+        Closed, outward-oriented, single-component triangle mesh.
+    """
+    from skimage.measure import marching_cubes
+
+    bounds = np.asarray(bounds, dtype=float)
+    if res < 4:
+        raise ValueError(f"res must be >= 4, got {res}")
+    h = float((bounds[1] - bounds[0]).max()) / res
+    lo = bounds[0] - abs(level) - 2 * h
+    hi = bounds[1] + abs(level) + 2 * h
+    n = np.ceil((hi - lo) / h).astype(int) + 1
+    axes = [lo[i] + h * np.arange(n[i]) for i in range(3)]
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    vol = sdf(G).reshape(n) - level
+    verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(h, h, h), allow_degenerate=False)
+    V, F = _clean(verts + lo, faces.astype(np.int64))
+    return V, F
+
+
+def _clean(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge coincident vertices, drop degenerate faces, keep the largest piece, orient outward."""
+    import trimesh
+
+    m = trimesh.Trimesh(V, F, process=True, validate=True)
+    if len(m.split(only_watertight=False)) > 1:
+        parts = m.split(only_watertight=False)
+        m = max(parts, key=lambda p: len(p.faces))
+    trimesh.repair.fix_normals(m)
+    if m.volume < 0:
+        m.invert()
+    return np.ascontiguousarray(m.vertices, dtype=np.float64), np.ascontiguousarray(m.faces, dtype=np.int64)
+
+
+def _named(name: str, res: int, level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    f, b = shape_sdf(name)
+    return mesh_implicit(f, b, res=res, level=level)
+
+
+def sphere(res: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """Unit sphere. Returns ``(V, F)``; ``res`` = grid cells across the bounding box."""
+    return _named("sphere", res)
+
+
+def torus(res: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Torus (major radius 1, minor 0.35), genus 1. Returns ``(V, F)``."""
+    return _named("torus", res)
+
+
+def genus2(res: int = 56) -> tuple[np.ndarray, np.ndarray]:
+    """Two smoothly joined tori: a genus-2 solid. Returns ``(V, F)``."""
+    return _named("genus2", res)
+
+
+def neck_blobs(res: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Two balls (radius 0.6) joined by a thin neck (radius 0.12). Returns ``(V, F)``."""
+    return _named("neck_blobs", res)
+
+
+def thin_plate(res: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """A thin rounded plate 2 x 1.4 x 0.16. Returns ``(V, F)``."""
+    return _named("thin_plate", res)
+
+
+SHAPES: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {
+    "sphere": sphere,
+    "torus": torus,
+    "genus2": genus2,
+    "neck_blobs": neck_blobs,
+    "thin_plate": thin_plate,
+}
+
+
+def nested_isosurfaces(
+    name: str, offsets: list[float], resolutions: list[int]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Iso-surfaces of one shape's implicit function at increasing offsets (finest first).
+
+    Parameters
+    ----------
+    name : str
+        Shape name (see :data:`SHAPES`).
+    offsets : list of float
+        Increasing iso-values ``d_0 < d_1 < ...``; layer ``i`` is ``sdf = d_i``.
+    resolutions : list of int
+        Marching-cubes resolution per layer (decreasing for a coarsening hierarchy).
+
+    Returns
+    -------
+    list of (V, F)
+        Finest first. Layer ``i+1`` contains layer ``i`` when ``d_{i+1} - d_i`` exceeds both
+        layers' marching-cubes error (about a grid cell squared times the curvature); check with
+        :func:`cagegen.verify_nesting`.
+    """
+    if len(offsets) != len(resolutions):
+        raise ValueError("offsets and resolutions must have the same length")
+    if np.any(np.diff(offsets) <= 0):
+        raise ValueError("offsets must be strictly increasing (coarser layers outside)")
+    f, b = shape_sdf(name)
+    return [mesh_implicit(f, b, res=r, level=d) for d, r in zip(offsets, resolutions)]

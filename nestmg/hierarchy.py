@@ -1,0 +1,301 @@
+"""Build a multigrid hierarchy from a closed surface: cages -> tet layers -> prolongations.
+
+``build_hierarchy(V, F, levels=3, method="nested")`` runs the three stages of the pipeline
+
+1. ``cagegen.build_cages``: surfaces ``(V_k, F_k)``, finest (the input) first, each cage certified to
+   contain the previous layer (except for ``method="decimate"``, the naive baseline);
+2. :func:`nestmg.tetmesh.tetrahedralize` on every layer, target edge length ``h_0 * 2**k``;
+3. :func:`nestmg.prolongation.prolongation` between consecutive tet layers.
+
+Certification happens at the tet level too: TetWild's boundary is only within ``epsilon`` of a cage,
+so a fine node can fall just outside the coarse tet mesh. For certified methods the coarse layer is
+then re-meshed with a 4x smaller envelope (at most ``tet_retries`` times); whatever remains is
+extrapolated and reported as ``n_outside`` per level.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from .cache import cache_key, load_entry, save_entry
+from .progress import Timer, stages
+from .prolongation import ProlongationReport, prolongation
+from .tetmesh import tetrahedralize
+
+__all__ = ["Hierarchy", "build_hierarchy", "tet_hierarchy"]
+
+
+@dataclass
+class Hierarchy:
+    """A geometric multigrid hierarchy (finest level first).
+
+    Attributes
+    ----------
+    surfaces : list of (V, F)
+        Layer surfaces; ``surfaces[0]`` is the input.
+    tets : list of (V, T)
+        Tet mesh of every layer: ``V`` (n_k,3) float, ``T`` (t_k,4) int.
+    P : list of (n_k, n_{k+1}) csr_matrix
+        ``P[k]`` prolongs level ``k+1`` to level ``k``; restriction is ``P[k].T``.
+    prolongation_reports : list of ProlongationReport
+        ``n_outside`` and extrapolation distance per level.
+    method : str
+        Cage backend used.
+    cage_info : dict
+        Backend figures and the nesting verifier's report.
+    timings : dict
+        Seconds per stage (``cages``, ``tets``, ``prolongation``).
+    """
+
+    surfaces: list[tuple[np.ndarray, np.ndarray]]
+    tets: list[tuple[np.ndarray, np.ndarray]]
+    P: list[sp.csr_matrix]
+    prolongation_reports: list[ProlongationReport]
+    method: str
+    cage_info: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
+
+    @property
+    def levels(self) -> int:
+        """Number of levels."""
+        return len(self.tets)
+
+    @property
+    def n_outside(self) -> list[int]:
+        """Fine nodes extrapolated (outside every coarse tet), per level pair."""
+        return [r.n_outside for r in self.prolongation_reports]
+
+    @property
+    def surfaces_nested(self) -> bool | None:
+        """Whether the cage verifier certified every surface pair (None when not run)."""
+        ver = self.cage_info.get("verification")
+        return None if ver is None else bool(ver.get("ok"))
+
+    @property
+    def certified(self) -> bool:
+        """True when the surfaces are certified nested *and* no fine node lies outside a coarse tet mesh."""
+        return bool(self.surfaces_nested) and all(n == 0 for n in self.n_outside)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable summary (no arrays)."""
+        return {
+            "method": self.method,
+            "levels": self.levels,
+            "surface_faces": [int(len(F)) for _, F in self.surfaces],
+            "nodes": [int(len(V)) for V, _ in self.tets],
+            "tets": [int(len(T)) for _, T in self.tets],
+            "prolongation": [r.to_dict() for r in self.prolongation_reports],
+            "n_outside": self.n_outside,
+            "surfaces_nested": self.surfaces_nested,
+            "certified": self.certified,
+            "timings": self.timings,
+            "cage_info": self.cage_info,
+            "options": self.options,
+        }
+
+    def __repr__(self) -> str:
+        lines = [f"Hierarchy(method={self.method!r}, levels={self.levels}, certified={self.certified})",
+                 "level  faces     nodes      tets   nnz(P)  n_outside"]
+        for k, ((_, F), (V, T)) in enumerate(zip(self.surfaces, self.tets)):
+            nnz = self.P[k].nnz if k < len(self.P) else 0
+            nout = self.n_outside[k] if k < len(self.P) else 0
+            lines.append(f"{k:>5} {len(F):>6} {len(V):>9} {len(T):>9} {nnz:>8} {nout:>10}")
+        return "\n".join(lines)
+
+
+def _bbox_diag(V: np.ndarray) -> float:
+    return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+
+
+def _mesh_layer(V, F, mesher, h, epsilon, use_cache):
+    """Tet-mesh one layer, through the cache."""
+    opts = {"stage": "tets", "mesher": mesher, "h": round(h, 12), "epsilon": epsilon}
+    key = cache_key([V, F], opts)
+    if use_cache:
+        hit = load_entry(key)
+        if hit is not None:
+            return hit[0]["V"], hit[0]["T"]
+    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=h, epsilon=epsilon)
+    if use_cache:
+        save_entry(key, {"V": Vt, "T": T}, opts)
+    return Vt, T
+
+
+def tet_hierarchy(
+    surfaces: list[tuple[np.ndarray, np.ndarray]],
+    *,
+    mesher: str = "tetwild",
+    edge_length_fac: float = 0.05,
+    epsilon: float = 1e-3,
+    extrapolation: str = "clamped",
+    tet_retries: int = 2,
+    cache: bool = True,
+    progress: bool | None = None,
+) -> tuple[list, list, list, dict]:
+    """Tet-mesh every surface layer and build the prolongations between consecutive layers.
+
+    Parameters
+    ----------
+    surfaces : list of (V, F)
+        Closed surfaces, finest first (each coarser one meant to contain the previous).
+    mesher, edge_length_fac, epsilon
+        See :func:`nestmg.tetmesh.tetrahedralize`; layer ``k`` gets edge length
+        ``edge_length_fac * diag(surfaces[0]) * 2**k``.
+    extrapolation : str
+        Rule for fine nodes outside the coarse tet mesh (see :mod:`nestmg.prolongation`).
+    tet_retries : int
+        With TetWild, re-mesh a coarse layer with a 4x smaller envelope up to this many times while
+        fine nodes remain outside it (0 disables).
+    cache : bool
+        Reuse tet meshes from the on-disk cache.
+    progress : bool or None
+        Show a progress bar (None: only on a terminal).
+
+    Returns
+    -------
+    tets : list of (V, T)
+    P : list of csr_matrix
+    reports : list of ProlongationReport
+    timings : dict
+        ``tets`` and ``prolongation`` seconds, and ``tet_retries`` per level.
+    """
+    timer = Timer()
+    h0 = edge_length_fac * _bbox_diag(surfaces[0][0])
+    tets: list = []
+    eps = [epsilon] * len(surfaces)
+    retries = [0] * len(surfaces)
+    with stages(len(surfaces), "tet layers", progress) as bar:
+        for k, (V, F) in enumerate(surfaces):
+            bar.describe(f"tet layer {k} ({len(F)} faces, {mesher})")
+            with timer("tets"):
+                tets.append(_mesh_layer(V, F, mesher, h0 * 2**k, eps[k], cache))
+            bar.advance()
+    Ps, reps = [], []
+    for k in range(len(surfaces) - 1):
+        with timer("prolongation"):
+            P, rep = prolongation(tets[k][0], tets[k + 1][0], tets[k + 1][1], extrapolation=extrapolation)
+        while rep.n_outside > 0 and mesher == "tetwild" and retries[k + 1] < tet_retries:
+            retries[k + 1] += 1
+            eps[k + 1] /= 4
+            with timer("tets"):
+                tets[k + 1] = _mesh_layer(*surfaces[k + 1], mesher, h0 * 2 ** (k + 1), eps[k + 1], cache)
+            with timer("prolongation"):
+                P, rep = prolongation(tets[k][0], tets[k + 1][0], tets[k + 1][1], extrapolation=extrapolation)
+        Ps.append(P)
+        reps.append(rep)
+    timings = dict(timer.seconds)
+    timings["tet_retries"] = retries
+    timings["epsilon"] = eps
+    return tets, Ps, reps, timings
+
+
+def build_hierarchy(
+    V: np.ndarray,
+    F: np.ndarray,
+    levels: int = 3,
+    *,
+    method: str = "nested",
+    face_counts: list[int] | None = None,
+    mesher: str = "tetwild",
+    edge_length_fac: float = 0.05,
+    epsilon: float = 1e-3,
+    extrapolation: str = "clamped",
+    tet_retries: int | None = None,
+    cache: bool = True,
+    progress: bool | None = None,
+    cage_opts: dict | None = None,
+) -> Hierarchy:
+    """Cages, tet layers and prolongations for the closed surface ``(V, F)``.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        Closed, manifold, single-component surface (audited; a clear error otherwise).
+    levels : int
+        Number of levels (input + ``levels - 1`` cages), >= 2.
+    method : str
+        Cage backend (``nested``, ``decimate``, ...; see ``cagegen.available_backends()``).
+    face_counts : list of int, optional
+        Cage face counts, finest first (default: 4x fewer faces per level).
+    mesher, edge_length_fac, epsilon, extrapolation
+        See :func:`tet_hierarchy`.
+    tet_retries : int, optional
+        Default 2 for certified methods, 0 for ``decimate`` (its layers are not nested anyway).
+    cache : bool
+        Reuse cages and tet meshes from the on-disk cache (``$NESTMG_CACHE``).
+    progress : bool or None
+        Progress bars (None: only on a terminal).
+    cage_opts : dict, optional
+        Extra options for the cage backend.
+
+    Returns
+    -------
+    Hierarchy
+
+    Raises
+    ------
+    cagegen.MeshInputError
+        Bad input surface.
+    cagegen.CageError
+        A cage layer could not be built or certified (names the layer).
+    """
+    import cagegen
+
+    if levels < 2:
+        raise ValueError(f"levels must be >= 2, got {levels}")
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    cage_opts = dict(cage_opts or {})
+    timer = Timer()
+    opts = {"stage": "cages", "method": method, "levels": levels, "face_counts": face_counts, **cage_opts}
+    key = cache_key([V, F], opts)
+    hit = load_entry(key) if cache else None
+    with timer("cages"):
+        if hit is not None:
+            arrays, info = hit
+            surfaces = [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(levels)]
+            info = dict(info, cached=True)
+        else:
+            t0 = time.perf_counter()
+            surfaces, info = cagegen.build_cages(
+                V, F, levels, method=method, face_counts=face_counts, return_info=True, progress=progress, **cage_opts
+            )
+            info = dict(info, seconds=time.perf_counter() - t0)
+            if cache:
+                arrays = {}
+                for k, (Vk, Fk) in enumerate(surfaces):
+                    arrays[f"V{k}"], arrays[f"F{k}"] = Vk, Fk
+                save_entry(key, arrays, info)
+    if tet_retries is None:
+        tet_retries = 0 if method == "decimate" else 2
+    tets, Ps, reps, tt = tet_hierarchy(
+        surfaces,
+        mesher=mesher,
+        edge_length_fac=edge_length_fac,
+        epsilon=epsilon,
+        extrapolation=extrapolation,
+        tet_retries=tet_retries,
+        cache=cache,
+        progress=progress,
+    )
+    timings = {**timer.seconds, **tt}
+    return Hierarchy(
+        surfaces=surfaces,
+        tets=tets,
+        P=Ps,
+        prolongation_reports=reps,
+        method=method,
+        cage_info=info,
+        timings=timings,
+        options={
+            "levels": levels, "face_counts": face_counts, "mesher": mesher, "edge_length_fac": edge_length_fac,
+            "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": cage_opts,
+        },
+    )

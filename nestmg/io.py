@@ -1,0 +1,116 @@
+"""Mesh input/output: read OBJ/OFF/PLY/STL, normalise, write atomically.
+
+Reading keeps the file's vertices as they are (no silent merging): OBJ/OFF/PLY go through libigl's
+reader, which, unlike trimesh with ``process=False``, does not split vertices along texture seams
+(trimesh opens ``spot.obj`` that way). STL stores a triangle soup by design, so its exactly
+coincident corners are merged (documented repair). Other formats go through trimesh.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from cagegen.errors import MeshInputError
+
+from .cache import atomic_write_bytes
+
+__all__ = ["denormalize", "load_mesh", "normalize", "save_mesh", "save_tets"]
+
+_IGL_FORMATS = {".obj", ".off", ".ply"}
+
+
+def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle mesh.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        OBJ, OFF, PLY, STL (or anything trimesh reads).
+
+    Returns
+    -------
+    V : (n,3) float64 array
+    F : (m,3) int64 array
+
+    Raises
+    ------
+    MeshInputError
+        Missing or unreadable file, no triangles, or non-triangle faces.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeshInputError(f"mesh file not found: {path}")
+    ext = path.suffix.lower()
+    try:
+        if ext in _IGL_FORMATS:
+            import igl
+
+            V, F = igl.read_triangle_mesh(str(path))
+        else:
+            import trimesh
+
+            m = trimesh.load(str(path), force="mesh", process=(ext == ".stl"))
+            V, F = m.vertices, m.faces
+    except MeshInputError:
+        raise
+    except Exception as exc:
+        raise MeshInputError(f"could not read {path.name}: {exc}") from exc
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise MeshInputError(f"{path.name}: no triangles read (faces array of shape {F.shape})")
+    return V, F
+
+
+def normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre the bounding box at the origin and scale its diagonal to 1.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+
+    Returns
+    -------
+    Vn : (n,3) float64 array
+        New array (``V`` is not modified).
+    center : (3,) float array
+    scale : float
+        ``Vn = (V - center) / scale``; undo with :func:`denormalize`.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
+        raise MeshInputError(f"vertices must be a non-empty (n,3) array, got shape {V.shape}")
+    if not np.isfinite(V).all():
+        raise MeshInputError(f"{int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    scale = float(np.linalg.norm(hi - lo))
+    if scale <= 0:
+        raise MeshInputError("all vertices coincide (zero bounding box)")
+    center = (lo + hi) / 2
+    return (V - center) / scale, center, scale
+
+
+def denormalize(Vn: np.ndarray, center: np.ndarray, scale: float) -> np.ndarray:
+    """Inverse of :func:`normalize`: ``Vn * scale + center``."""
+    return np.asarray(Vn) * scale + np.asarray(center)
+
+
+def save_mesh(path: str | os.PathLike, V: np.ndarray, F: np.ndarray) -> None:
+    """Write a triangle mesh (format from the extension) atomically (temp file + rename)."""
+    import trimesh
+
+    path = Path(path)
+    m = trimesh.Trimesh(np.asarray(V), np.asarray(F), process=False)
+    data = m.export(file_type=path.suffix.lstrip(".").lower() or "obj")
+    atomic_write_bytes(path, data.encode() if isinstance(data, str) else data)
+
+
+def save_tets(path: str | os.PathLike, V: np.ndarray, T: np.ndarray) -> None:
+    """Write a tet mesh as ``.npz`` (arrays ``V``, ``T``) atomically."""
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, V=np.asarray(V), T=np.asarray(T))
+    atomic_write_bytes(path, buf.getvalue())

@@ -1,0 +1,67 @@
+"""Progress reporting shared by the pipeline stages (rich), silent when disabled or not a terminal."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from typing import Iterator
+
+
+class Stage:
+    """Handle yielded by :func:`stages`; call ``advance(label)`` after each step."""
+
+    def __init__(self, progress, task):
+        self._progress, self._task = progress, task
+
+    def advance(self, label: str | None = None) -> None:
+        """Mark one step done; optionally change the displayed label."""
+        if self._progress is not None:
+            kw = {"description": label} if label else {}
+            self._progress.update(self._task, advance=1, **kw)
+
+    def describe(self, label: str) -> None:
+        """Change the displayed label without advancing."""
+        if self._progress is not None:
+            self._progress.update(self._task, description=label)
+
+
+@contextlib.contextmanager
+def stages(total: int, label: str, enabled: bool | None = True) -> Iterator[Stage]:
+    """Context manager showing a rich progress bar of ``total`` steps on stderr.
+
+    ``enabled=None`` shows it only when stderr is a terminal.
+    """
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    if not enabled:
+        yield Stage(None, None)
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=False,
+    ) as progress:
+        task = progress.add_task(label, total=total)
+        yield Stage(progress, task)
+
+
+class Timer:
+    """Accumulate wall times per named stage: ``with timer("tets"): ...``; ``timer.seconds`` dict."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0

@@ -1,0 +1,134 @@
+"""Tet meshing of one closed surface layer (TetWild by default, TetGen optional).
+
+Sizing rule for a hierarchy: layer ``k`` is meshed with target edge length ``edge_length * 2**k``
+(``edge_length`` = ``edge_length_fac`` x the *input's* bounding-box diagonal). Halving the
+resolution per level gives ~8x fewer tets per coarser layer when the layers enclose similar volumes;
+the cage backends use 4x fewer surface faces per level to match (``cagegen.default_face_counts``).
+
+TetWild's boundary is only within ``epsilon`` (relative to the layer's bounding-box diagonal) of the
+input surface, so a cage that touches the finer surface can leave a few fine nodes outside the coarse
+tet mesh: the prolongation extrapolates and counts them (``n_outside``). TetGen keeps the input
+boundary exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cagegen.errors import NestmgError
+
+__all__ = ["MESHERS", "TetMeshError", "orient_tets", "tetrahedralize", "tet_volumes"]
+
+MESHERS = ("tetwild", "tetgen")
+
+
+class TetMeshError(NestmgError, RuntimeError):
+    """The mesher failed or produced an unusable tet mesh."""
+
+
+def tet_volumes(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Signed volumes (t,) of tets ``T`` (t,4) of nodes ``V`` (n,3); positive = right-handed."""
+    a, b, c, d = (V[T[:, i]] for i in range(4))
+    return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+
+
+def orient_tets(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Return a copy of ``T`` with every tet positively oriented (swap two indices where negative)."""
+    T = np.array(T, dtype=np.int64, copy=True)
+    neg = tet_volumes(V, T) < 0
+    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
+    return T
+
+
+def _compact(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    used = np.unique(T)
+    if len(used) == len(V):
+        return V, T
+    remap = -np.ones(len(V), dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[T]
+
+
+def tetrahedralize(
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    mesher: str = "tetwild",
+    edge_length: float | None = None,
+    edge_length_fac: float = 0.05,
+    epsilon: float = 1e-3,
+    minratio: float = 1.5,
+    threads: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tet-mesh the solid bounded by the closed surface ``(V, F)``.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        Closed, outward-oriented surface.
+    mesher : {"tetwild", "tetgen"}
+        ``tetwild`` (pytetwild / fTetWild, robust, boundary within ``epsilon``) or ``tetgen``
+        (fast, keeps the boundary exactly; needs the ``tetgen`` extra and a clean input).
+    edge_length : float, optional
+        Absolute target edge length. Defaults to ``edge_length_fac`` x bounding-box diagonal of ``V``.
+    edge_length_fac : float
+        Target edge length relative to the bounding-box diagonal when ``edge_length`` is None.
+    epsilon : float
+        TetWild envelope, relative to the bounding-box diagonal (ignored by tetgen).
+    minratio : float
+        TetGen radius-edge quality bound (ignored by tetwild).
+    threads : int
+        TetWild threads (0 = all cores).
+
+    Returns
+    -------
+    Vt : (p,3) float64 array
+        Nodes (every node used by a tet).
+    T : (t,4) int64 array
+        Positively oriented tets.
+
+    Raises
+    ------
+    TetMeshError
+        If the mesher fails or returns an empty / degenerate mesh.
+    """
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    if mesher not in MESHERS:
+        raise ValueError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    h = float(edge_length) if edge_length is not None else edge_length_fac * diag
+    if not np.isfinite(h) or h <= 0:
+        raise ValueError(f"edge length must be positive, got {h}")
+    try:
+        if mesher == "tetwild":
+            import pytetwild
+
+            Vt, T = pytetwild.tetrahedralize(
+                V, F.astype(np.int32), edge_length_abs=h, epsilon=epsilon, num_threads=threads, quiet=True
+            )
+        else:
+            try:
+                import tetgen
+            except ImportError as exc:  # optional extra
+                raise TetMeshError("mesher='tetgen' needs the optional 'tetgen' package (pip install tetgen)") from exc
+            # TetGen's maxvolume is only honoured with fixedvolume=True (ENVIRONMENT.md); the volume of a
+            # regular tet of edge h is h^3 / (6 sqrt 2).
+            Vt, T, _, _ = tetgen.TetGen(V, F.astype(np.int32)).tetrahedralize(
+                quality=True, minratio=minratio, fixedvolume=True, maxvolume=h**3 / (6 * np.sqrt(2)), steinerleft=-1
+            )
+    except TetMeshError:
+        raise
+    except Exception as exc:  # the meshers raise RuntimeError / their own types on bad input
+        raise TetMeshError(f"{mesher} failed on a surface with {len(V)} vertices / {len(F)} faces: {exc}") from exc
+    Vt = np.asarray(Vt, dtype=np.float64)
+    T = np.asarray(T, dtype=np.int64)
+    if len(T) == 0:
+        raise TetMeshError(f"{mesher} returned no tets (surface {len(V)} vertices / {len(F)} faces)")
+    Vt, T = _compact(Vt, T)
+    T = orient_tets(Vt, T)
+    vol = tet_volumes(Vt, T)
+    if vol.min() <= 0:
+        raise TetMeshError(f"{mesher} returned {int((vol <= 0).sum())} degenerate tets")
+    return Vt, T

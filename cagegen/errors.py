@@ -30,3 +30,7 @@ class CageError(NestmgError, RuntimeError):
 
 class BackendUnavailableError(NestmgError, ImportError):
     """A cage backend needs an optional dependency that is not installed."""
+
+
+class LevelsError(NestmgError, ValueError):
+    """The requested hierarchy (number of levels, face counts) cannot be built from this input."""

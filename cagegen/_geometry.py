@@ -1,0 +1,193 @@
+"""Vectorised mesh primitives shared by the audit, the verifier and the decimation backend.
+
+Everything here takes plain arrays and returns plain arrays or numbers; nothing modifies its input.
+Edge statistics come from one ``np.unique`` over integer edge keys (no per-element Python loops);
+exact intersection tests come from libigl's CGAL bindings (``igl.copyleft.cgal``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import MeshInputError
+
+
+def as_mesh_arrays(V, F, name: str = "input") -> tuple[np.ndarray, np.ndarray]:
+    """Validate shapes and dtypes and return C-contiguous float64 / int64 *copies*.
+
+    Only structural problems are checked here (what makes every other check impossible):
+    array-ness, shapes, dtypes, emptiness and index range.
+
+    Parameters
+    ----------
+    V : (n,3) array_like of real numbers
+    F : (m,3) array_like of integers
+    name : str
+        Name used in error messages.
+
+    Returns
+    -------
+    V : (n,3) float64 array (a copy)
+    F : (m,3) int64 array (a copy)
+
+    Raises
+    ------
+    MeshInputError
+        Wrong shape or dtype, empty arrays, or face indices out of ``range(n)``.
+    """
+    try:
+        Va = np.asarray(V)
+        Fa = np.asarray(F)
+    except Exception as exc:  # ragged lists and the like
+        raise MeshInputError(f"{name}: V and F must be array-like ({exc})") from exc
+    if Va.dtype == object or Fa.dtype == object:
+        raise MeshInputError(f"{name}: V and F must be numeric arrays, got dtype object (ragged input?)")
+    if Va.ndim != 2 or Va.shape[1] != 3:
+        raise MeshInputError(f"{name}: V must have shape (n, 3), got {Va.shape}")
+    if Fa.ndim != 2 or Fa.shape[1] != 3:
+        raise MeshInputError(f"{name}: F must have shape (m, 3) (triangles), got {Fa.shape}")
+    if Va.shape[0] == 0:
+        raise MeshInputError(f"{name}: empty mesh (no vertices)")
+    if Fa.shape[0] == 0:
+        raise MeshInputError(f"{name}: empty mesh (no faces)")
+    if Va.dtype == bool or not (np.issubdtype(Va.dtype, np.floating) or np.issubdtype(Va.dtype, np.integer)):
+        raise MeshInputError(f"{name}: V must hold real numbers, got dtype {Va.dtype}")
+    if Fa.dtype == bool or not np.issubdtype(Fa.dtype, np.integer):
+        raise MeshInputError(f"{name}: F must be an integer array, got dtype {Fa.dtype}")
+    Vc = np.array(Va, dtype=np.float64, order="C", copy=True)
+    Fc = np.array(Fa, dtype=np.int64, order="C", copy=True)
+    lo, hi = int(Fc.min()), int(Fc.max())
+    if lo < 0 or hi >= Vc.shape[0]:
+        bad = int(np.count_nonzero((Fc < 0) | (Fc >= Vc.shape[0])))
+        raise MeshInputError(
+            f"{name}: {bad} face indices out of range [0, {Vc.shape[0]}) (min {lo}, max {hi})"
+        )
+    return Vc, Fc
+
+
+def bbox_diagonal(V: np.ndarray) -> float:
+    """Length of the axis-aligned bounding-box diagonal of ``V`` (n,3)."""
+    return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+
+
+def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Signed enclosed volume of a closed triangle mesh (divergence theorem).
+
+    Sum over faces of ``det(a-c, b-c, d-c) / 6`` with ``c`` the centroid of ``V`` (subtracting it
+    keeps the sum accurate for meshes far from the origin). Positive for outward-oriented faces.
+    """
+    c = V.mean(axis=0)
+    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
+    return float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
+
+
+def double_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Twice the area of each face, (m,) float64."""
+    return np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+
+
+@dataclass
+class EdgeStats:
+    """Edge-face incidence summary of a triangle mesh.
+
+    Attributes
+    ----------
+    n_edges : int
+        Number of distinct undirected edges.
+    n_boundary_edges : int
+        Edges with exactly one incident face (an open surface).
+    n_nonmanifold_edges : int
+        Edges with three or more incident faces.
+    n_inconsistent_edges : int
+        Two-face edges traversed twice in the same direction (inconsistent orientation).
+    edges : (e,2) int64 array
+        The distinct undirected edges, ``edges[:, 0] < edges[:, 1]``.
+    counts : (e,) int64 array
+        Number of incident faces per edge.
+    """
+
+    n_edges: int
+    n_boundary_edges: int
+    n_nonmanifold_edges: int
+    n_inconsistent_edges: int
+    edges: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def closed_manifold(self) -> bool:
+        """True when every edge has exactly two incident faces, traversed in opposite directions."""
+        return self.n_boundary_edges == 0 and self.n_nonmanifold_edges == 0 and self.n_inconsistent_edges == 0
+
+
+def edge_stats(F: np.ndarray, n_vertices: int | None = None) -> EdgeStats:
+    """Count boundary, non-manifold and inconsistently oriented edges of ``F`` (m,3).
+
+    Half-edges ``(F[:,k], F[:,k+1])`` are encoded as integer keys ``i*n + j``; one ``np.unique`` on
+    the undirected keys gives face counts per edge, one on the directed keys finds edges that two
+    faces traverse in the same direction.
+    """
+    n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
+    he = np.stack([F, np.roll(F, -1, axis=1)], axis=2).reshape(-1, 2)  # (3m,2) directed half-edges
+    lo = he.min(axis=1)
+    hi = he.max(axis=1)
+    und_key = lo * n + hi
+    ukeys, uinv, counts = np.unique(und_key, return_inverse=True, return_counts=True)
+    edges = np.stack([ukeys // n, ukeys % n], axis=1)
+    # directed duplicates on edges with exactly two faces: both faces use i->j (orientation flip)
+    dir_key = he[:, 0] * n + he[:, 1]
+    two = counts[uinv] == 2
+    dk = np.sort(dir_key[two])
+    n_incons = int(np.count_nonzero(dk[1:] == dk[:-1])) if dk.size > 1 else 0
+    return EdgeStats(
+        n_edges=int(ukeys.size),
+        n_boundary_edges=int(np.count_nonzero(counts == 1)),
+        n_nonmanifold_edges=int(np.count_nonzero(counts > 2)),
+        n_inconsistent_edges=n_incons,
+        edges=edges,
+        counts=counts,
+    )
+
+
+def n_components(F: np.ndarray, n_vertices: int) -> int:
+    """Number of edge-connected components of the faces ``F`` (unreferenced vertices ignored)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    ref = np.unique(F)
+    i = F.ravel()
+    j = np.roll(F, -1, axis=1).ravel()
+    A = sp.coo_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(n_vertices, n_vertices)).tocsr()
+    _, labels = connected_components(A, directed=False)
+    return int(np.unique(labels[ref]).size)
+
+
+def self_intersection_pairs(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Pairs of faces of one mesh that intersect (exact predicates, CGAL via libigl).
+
+    Faces sharing a vertex or an edge are only reported if they overlap beyond that shared part.
+
+    Returns
+    -------
+    (k,2) int64 array of face indices into ``F``.
+    """
+    from igl.copyleft import cgal
+
+    out = cgal.remesh_self_intersections(V, F, detect_only=True)
+    return np.asarray(out[2], dtype=np.int64).reshape(-1, 2)
+
+
+def cross_intersection_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray) -> np.ndarray:
+    """Pairs ``(a, b)`` of faces of mesh A and mesh B that intersect or touch (exact, CGAL via libigl).
+
+    Touching (a vertex of one surface exactly on the other) counts as an intersection.
+
+    Returns
+    -------
+    (k,2) int64 array: column 0 indexes ``FA``, column 1 indexes ``FB``.
+    """
+    from igl.copyleft import cgal
+
+    out = cgal.intersect_other(VA, FA, VB, FB, detect_only=True)
+    return np.asarray(out[0], dtype=np.int64).reshape(-1, 2)

@@ -1,0 +1,351 @@
+"""Nesting verifier: does each cage strictly contain the previous (finer) layer?
+
+Containment rule
+----------------
+Let ``S_f`` (fine) and ``S_c`` (coarse) be closed, oriented, self-intersection-free surfaces
+bounding the solids ``Ω_f`` and ``Ω_c``. The pair is certified *nested* (``Ω_f ⊂ interior Ω_c``)
+when all of the following hold:
+
+1. **No crossing**: no triangle of ``S_f`` intersects or touches a triangle of ``S_c`` (exact CGAL
+   predicates, ``igl.copyleft.cgal.intersect_other``). Touching counts as failing: a contact has
+   zero gap, which tet meshers and point location cannot tell from a crossing.
+2. **Fine inside coarse**: every fine vertex has generalized winding number ``w_c >= 1/2`` with
+   respect to ``S_c`` (``igl.fast_winding_number``).
+3. **Coarse outside fine**: every coarse vertex has ``w_f < 1/2`` with respect to ``S_f``.
+
+Why this suffices: given (1), each connected piece of ``S_f`` avoids ``S_c``, so it lies in a single
+region of ``R^3 \\ S_c`` where the winding number is a constant *integer* -- (2) then puts it
+inside ``Ω_c``. By the same argument (3) keeps every piece of ``S_c`` out of ``Ω_f`` (this catches
+a coarse layer with an inner cavity hidden inside the fine solid, which (1)+(2) alone accept).
+Then ``Ω_f`` is a bounded set whose boundary lies in the interior of ``Ω_c`` and which contains no
+point of ``S_c``: it cannot reach the outside of ``Ω_c``.
+
+Because of (1) the winding numbers of the tested vertices are integers (1 inside, 0 outside), so
+the ``1/2`` thresholds leave a margin of 1/2 for the floating-point and far-field error of the fast
+winding number, even for vertices 1e-6 of the diagonal away from the other surface (the reference
+nested cages touch the input that closely). A vertex *on* the other surface would have winding 1/2,
+but it is already reported by (1).
+
+The report also gives the smallest gap between the surfaces: the minimum over the vertices of each
+surface of the distance to the other surface (``igl.point_mesh_squared_distance`` both ways). This
+equals the true surface-to-surface distance unless the closest pair is two edges' interiors, where
+it is an upper bound. ``min_gap`` (relative to the bounding-box diagonal of layer 0) lets a caller
+demand clearance, e.g. for a tet mesher whose boundary is only within ``epsilon`` of its input.
+
+Each layer must also be closed (every edge with two faces) and, with ``check_self``, free of
+self-intersections; otherwise winding numbers lose their meaning.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ._geometry import (
+    as_mesh_arrays,
+    bbox_diagonal,
+    cross_intersection_pairs,
+    edge_stats,
+    self_intersection_pairs,
+    signed_volume,
+)
+from .errors import CageError, MeshInputError
+
+__all__ = ["NestingReport", "PairReport", "verify_nesting"]
+
+WINDING_THRESHOLD = 0.5
+
+
+@dataclass
+class PairReport:
+    """Nesting figures of one consecutive pair (fine layer ``fine``, coarse layer ``fine + 1``).
+
+    Attributes
+    ----------
+    fine : int
+        Index of the fine layer (0 = input); the coarse layer is ``fine + 1``.
+    n_faces_fine, n_faces_coarse : int
+    min_winding : float
+        Smallest winding number of a fine vertex w.r.t. the coarse surface (1 when nested).
+    n_outside_vertices : int
+        Fine vertices with winding < 1/2 w.r.t. the coarse surface.
+    n_coarse_inside_vertices : int
+        Coarse vertices with winding >= 1/2 w.r.t. the fine surface.
+    n_intersecting_pairs : int
+        Intersecting or touching (fine face, coarse face) pairs, exact.
+    min_gap : float
+        Smallest vertex-to-surface distance between the two surfaces (both directions).
+    min_gap_rel : float
+        ``min_gap`` divided by the bounding-box diagonal of layer 0.
+    self_intersections_fine, self_intersections_coarse : int or None
+        Self-intersecting face pairs in each layer (None when ``check_self=False``).
+    boundary_edges_fine, boundary_edges_coarse : int
+        Open edges in each layer (must be 0).
+    volume_fine, volume_coarse : float
+        Signed volumes (negative = inside-out).
+    seconds : float
+        Wall time of this pair's checks.
+    ok : bool
+    reason : str
+        Empty when ``ok``; otherwise every failed condition, naming the layers.
+    """
+
+    fine: int
+    n_faces_fine: int
+    n_faces_coarse: int
+    min_winding: float = float("nan")
+    n_outside_vertices: int = 0
+    n_coarse_inside_vertices: int = 0
+    n_intersecting_pairs: int = 0
+    min_gap: float = float("nan")
+    min_gap_rel: float = float("nan")
+    self_intersections_fine: int | None = None
+    self_intersections_coarse: int | None = None
+    boundary_edges_fine: int = 0
+    boundary_edges_coarse: int = 0
+    volume_fine: float = float("nan")
+    volume_coarse: float = float("nan")
+    seconds: float = 0.0
+    ok: bool = False
+    reason: str = ""
+    failing_layer: int | None = None
+
+    @property
+    def coarse(self) -> int:
+        """Index of the coarse layer."""
+        return self.fine + 1
+
+
+@dataclass
+class NestingReport:
+    """Result of :func:`verify_nesting` over a hierarchy, finest first.
+
+    Attributes
+    ----------
+    ok : bool
+        Every consecutive pair is nested.
+    pairs : list of PairReport
+        One entry per consecutive pair ``(i, i+1)``.
+    bbox_diagonal : float
+        Bounding-box diagonal of layer 0 (the unit of ``min_gap_rel``).
+    min_gap_required : float
+        The ``min_gap`` the pairs were held to (relative).
+    seconds : float
+        Total wall time.
+    """
+
+    ok: bool
+    pairs: list[PairReport] = field(default_factory=list)
+    bbox_diagonal: float = float("nan")
+    min_gap_required: float = 0.0
+    seconds: float = 0.0
+
+    def first_failure(self) -> PairReport | None:
+        """The first failing pair, or None."""
+        return next((p for p in self.pairs if not p.ok), None)
+
+    def raise_if_failed(self) -> None:
+        """Raise :class:`CageError` for the first failing pair, naming the layer and the reason."""
+        p = self.first_failure()
+        if p is None:
+            return
+        layer = p.failing_layer if p.failing_layer is not None else p.coarse
+        raise CageError(f"nesting check failed at layer {layer}: {p.reason}", layer=layer, reason=p.reason)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable dict (NaN and inf become None)."""
+
+        def clean(x):
+            if isinstance(x, float) and not np.isfinite(x):
+                return None
+            if isinstance(x, dict):
+                return {k: clean(v) for k, v in x.items()}
+            if isinstance(x, list):
+                return [clean(v) for v in x]
+            return x
+
+        d = {
+            "ok": bool(self.ok),
+            "bbox_diagonal": self.bbox_diagonal,
+            "min_gap_required": self.min_gap_required,
+            "seconds": self.seconds,
+            "pairs": [asdict(p) for p in self.pairs],
+        }
+        return clean(d)
+
+    def __str__(self) -> str:
+        hdr = (
+            f"{'pair':>6} {'faces':>13} {'min_w':>7} {'out':>6} {'c_in':>5} {'cross':>6} "
+            f"{'self f/c':>9} {'gap_rel':>9} {'sec':>6}  ok"
+        )
+        rows = [f"NestingReport: {'nested' if self.ok else 'NOT nested'} ({len(self.pairs)} pairs, "
+                f"{self.seconds:.2f} s)", hdr]
+        for p in self.pairs:
+            sf = "-" if p.self_intersections_fine is None else str(p.self_intersections_fine)
+            sc = "-" if p.self_intersections_coarse is None else str(p.self_intersections_coarse)
+            rows.append(
+                f"{p.fine:>2}->{p.coarse:<3} {p.n_faces_fine:>6}/{p.n_faces_coarse:<6} {p.min_winding:7.3f} "
+                f"{p.n_outside_vertices:>6} {p.n_coarse_inside_vertices:>5} {p.n_intersecting_pairs:>6} "
+                f"{sf + '/' + sc:>9} {p.min_gap_rel:9.2e} {p.seconds:6.2f}  {'yes' if p.ok else 'NO'}"
+            )
+            if not p.ok:
+                rows.append(f"       reason: {p.reason}")
+        return "\n".join(rows)
+
+
+@dataclass
+class _Layer:
+    V: np.ndarray
+    F: np.ndarray
+    finite: bool
+    boundary_edges: int
+    nonmanifold_edges: int
+    volume: float
+    self_pairs: int | None
+
+
+def _prepare(i: int, V, F, check_self: bool) -> _Layer:
+    try:
+        V, F = as_mesh_arrays(V, F, f"layer {i}")
+    except MeshInputError as exc:
+        raise CageError(str(exc), layer=i, reason=str(exc)) from exc
+    finite = bool(np.isfinite(V).all())
+    es = edge_stats(F, V.shape[0])
+    vol = signed_volume(V, F) if finite else float("nan")
+    self_pairs = None
+    if check_self and finite:
+        self_pairs = int(len(self_intersection_pairs(V, F)))
+    return _Layer(V, F, finite, es.n_boundary_edges, es.n_nonmanifold_edges, vol, self_pairs)
+
+
+def _check_pair(i: int, f: _Layer, c: _Layer, diag: float, min_gap: float) -> PairReport:
+    import igl
+
+    t0 = time.perf_counter()
+    p = PairReport(
+        fine=i,
+        n_faces_fine=int(f.F.shape[0]),
+        n_faces_coarse=int(c.F.shape[0]),
+        self_intersections_fine=f.self_pairs,
+        self_intersections_coarse=c.self_pairs,
+        boundary_edges_fine=f.boundary_edges,
+        boundary_edges_coarse=c.boundary_edges,
+        volume_fine=f.volume,
+        volume_coarse=c.volume,
+    )
+    fine_bad, coarse_bad = [], []
+    for lay, idx, bad in ((f, i, fine_bad), (c, i + 1, coarse_bad)):
+        if not lay.finite:
+            bad.append(f"layer {idx} has NaN or infinite coordinates")
+            continue
+        if lay.boundary_edges or lay.nonmanifold_edges:
+            bad.append(
+                f"layer {idx} is not a closed manifold surface ({lay.boundary_edges} boundary, "
+                f"{lay.nonmanifold_edges} non-manifold edges)"
+            )
+        if lay.self_pairs:
+            bad.append(f"layer {idx} self-intersects ({lay.self_pairs} face pairs)")
+        if lay.volume <= 0:
+            bad.append(f"layer {idx} is inside-out or flat (signed volume {lay.volume:.3g})")
+
+    cross = []
+    if f.finite and c.finite:
+        w_f = igl.fast_winding_number(c.V, c.F, f.V)  # fine vertices w.r.t. the coarse surface
+        w_c = igl.fast_winding_number(f.V, f.F, c.V)  # coarse vertices w.r.t. the fine surface
+        p.min_winding = float(w_f.min())
+        p.n_outside_vertices = int(np.count_nonzero(w_f < WINDING_THRESHOLD))
+        p.n_coarse_inside_vertices = int(np.count_nonzero(w_c >= WINDING_THRESHOLD))
+        p.n_intersecting_pairs = int(len(cross_intersection_pairs(f.V, f.F, c.V, c.F)))
+        d_fc = igl.point_mesh_squared_distance(f.V, c.V, c.F)[0].min()
+        d_cf = igl.point_mesh_squared_distance(c.V, f.V, f.F)[0].min()
+        p.min_gap = float(np.sqrt(max(min(d_fc, d_cf), 0.0)))
+        p.min_gap_rel = p.min_gap / diag if diag > 0 else float("nan")
+        if p.n_intersecting_pairs:
+            cross.append(
+                f"layer {i + 1} intersects layer {i}: {p.n_intersecting_pairs} intersecting or touching "
+                "triangle pairs"
+            )
+        if p.n_outside_vertices:
+            cross.append(
+                f"layer {i + 1} does not contain layer {i}: {p.n_outside_vertices} of {f.V.shape[0]} fine "
+                f"vertices outside (min winding number {p.min_winding:.3f})"
+            )
+        if p.n_coarse_inside_vertices:
+            cross.append(
+                f"layer {i + 1} has {p.n_coarse_inside_vertices} vertices inside layer {i}"
+            )
+        if not p.n_intersecting_pairs and min_gap > 0 and not (p.min_gap_rel >= min_gap):
+            cross.append(
+                f"layer {i + 1} is closer than min_gap to layer {i}: gap {p.min_gap_rel:.3g} < {min_gap:.3g} "
+                "of the diagonal"
+            )
+    reasons = fine_bad + coarse_bad + cross
+    p.ok = not reasons
+    p.reason = "; ".join(reasons)
+    if reasons:
+        # blame the fine layer only if the fine layer alone is broken
+        p.failing_layer = i if (fine_bad and not coarse_bad and not cross) else i + 1
+    p.seconds = time.perf_counter() - t0
+    return p
+
+
+def verify_nesting(
+    layers,
+    *,
+    min_gap: float = 0.0,
+    check_self: bool = True,
+) -> NestingReport:
+    """Certify that every layer of a hierarchy strictly contains the previous one.
+
+    See the module docstring for the exact rule (no crossing, fine vertices inside, coarse vertices
+    outside) and why it is robust for surfaces that nearly touch.
+
+    Parameters
+    ----------
+    layers : sequence of (V_i, F_i)
+        ``V_i`` (n_i,3) float, ``F_i`` (m_i,3) int; finest first (layer 0 is usually the input).
+    min_gap : float
+        Required clearance between consecutive surfaces, relative to the bounding-box diagonal of
+        layer 0. The default 0 accepts any positive gap (touching is always a failure).
+    check_self : bool
+        Also test each layer for self-intersections (exact CGAL test; a self-intersecting layer fails).
+
+    Returns
+    -------
+    NestingReport
+        ``report.ok``, per-pair figures in ``report.pairs``; ``report.raise_if_failed()`` raises
+        :class:`CageError` naming the first failing layer.
+
+    Raises
+    ------
+    CageError
+        A layer is not a pair of arrays of the right shapes (structural problem).
+    ValueError
+        Fewer than two layers.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> s = trimesh.creation.icosphere(subdivisions=2)
+    >>> rep = verify_nesting([(s.vertices, s.faces), (1.5 * s.vertices, s.faces)])
+    >>> rep.ok, round(rep.pairs[0].min_winding, 3)
+    (True, 1.0)
+    """
+    layers = list(layers)
+    if len(layers) < 2:
+        raise ValueError(f"verify_nesting needs at least two layers, got {len(layers)}")
+    t0 = time.perf_counter()
+    prepared = [_prepare(i, V, F, check_self) for i, (V, F) in enumerate(layers)]
+    diag = bbox_diagonal(prepared[0].V) if prepared[0].finite else float("nan")
+    pairs = [
+        _check_pair(i, prepared[i], prepared[i + 1], diag, float(min_gap)) for i in range(len(prepared) - 1)
+    ]
+    return NestingReport(
+        ok=all(p.ok for p in pairs),
+        pairs=pairs,
+        bbox_diagonal=diag,
+        min_gap_required=float(min_gap),
+        seconds=time.perf_counter() - t0,
+    )

@@ -1,0 +1,372 @@
+"""P1 finite elements on tet meshes: stiffness, mass, boundary nodes, Dirichlet/Neumann helpers.
+
+Conventions
+-----------
+* ``V : (n, 3) float64`` node positions, ``T : (t, 4) int64`` tets (any orientation).
+* The stiffness ``K = -igl.cotmatrix(V, T)`` is symmetric positive semi-definite with
+  ``K @ ones == 0``; ``u @ K @ u = ∫ |∇u|²`` for the P1 function with nodal values ``u``.
+* Poisson ``-Δu = f``  →  ``K u = M f`` (``M`` the mass matrix, ``f`` nodal values).
+* Diffusion / implicit heat step ``(λ K + M) x = M b``  (symmetric positive definite for ``λ >= 0``).
+* Pure Neumann ``K u = b`` is solvable iff ``sum(b) == 0`` (the null space of the symmetric ``K`` is the
+  constants); its solution is fixed by a zero-mean condition (see :func:`remove_mean`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import igl
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import IncompatibleRHSError, SolverInputError
+
+__all__ = [
+    "check_tet_mesh",
+    "stiffness_matrix",
+    "mass_matrix",
+    "load_vector",
+    "diffusion_matrix",
+    "boundary_nodes",
+    "DirichletSystem",
+    "eliminate_dirichlet",
+    "check_compatible",
+    "project_rhs",
+    "remove_mean",
+]
+
+_MASS_TYPES = {
+    "barycentric": igl.MASSMATRIX_TYPE_BARYCENTRIC,
+    "voronoi": igl.MASSMATRIX_TYPE_VORONOI,
+    "full": igl.MASSMATRIX_TYPE_FULL,
+}
+
+
+def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a tet mesh and return contiguous float64/int64 copies.
+
+    Parameters
+    ----------
+    V : (n, 3) array_like of float
+    T : (t, 4) array_like of int
+
+    Returns
+    -------
+    V : (n, 3) float64, T : (t, 4) int64
+
+    Raises
+    ------
+    SolverInputError
+        Wrong shapes, non-finite coordinates, non-integer or out-of-range indices, repeated indices in a
+        tet, or zero-volume tets.
+    """
+    V = np.asarray(V)
+    T = np.asarray(T)
+    if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < 4:
+        raise SolverInputError(f"V must be an (n>=4, 3) array of positions, got shape {V.shape}")
+    if T.ndim != 2 or T.shape[1] != 4 or T.shape[0] < 1:
+        raise SolverInputError(f"T must be a (t>=1, 4) array of tets, got shape {T.shape}")
+    if not np.issubdtype(V.dtype, np.number) or np.issubdtype(V.dtype, np.complexfloating):
+        raise SolverInputError(f"V must be real, got dtype {V.dtype}")
+    if not np.issubdtype(T.dtype, np.integer):
+        if np.issubdtype(T.dtype, np.floating) and np.all(np.isfinite(T)) and np.all(T == np.round(T)):
+            pass
+        else:
+            raise SolverInputError(f"T must hold integer node indices, got dtype {T.dtype}")
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    T = np.ascontiguousarray(T, dtype=np.int64)
+    if not np.all(np.isfinite(V)):
+        raise SolverInputError(f"V contains {np.count_nonzero(~np.isfinite(V))} NaN/inf coordinates")
+    if T.min() < 0 or T.max() >= V.shape[0]:
+        raise SolverInputError(f"T indices must be in [0, {V.shape[0]}), got range [{T.min()}, {T.max()}]")
+    Ts = np.sort(T, axis=1)
+    if np.any(Ts[:, 1:] == Ts[:, :-1]):
+        bad = np.flatnonzero(np.any(Ts[:, 1:] == Ts[:, :-1], axis=1))
+        raise SolverInputError(f"{bad.size} tets repeat a node index (first: tet {bad[0]} = {T[bad[0]]})")
+    vol = np.abs(igl.volume(V, T)).ravel()
+    scale = np.ptp(V, axis=0).max() ** 3
+    tiny = vol <= 1e-14 * scale
+    if np.any(tiny):
+        bad = np.flatnonzero(tiny)
+        raise SolverInputError(f"{bad.size} tets have zero volume (first: tet {bad[0]})")
+    return V, T
+
+
+def stiffness_matrix(V, T) -> sp.csr_matrix:
+    """P1 stiffness (negative cotangent Laplacian) of a tet mesh.
+
+    Parameters
+    ----------
+    V : (n, 3) float, T : (t, 4) int
+
+    Returns
+    -------
+    K : (n, n) csr_matrix
+        Symmetric positive semi-definite, rows sum to 0, ``K_ij = ∫ ∇φ_i·∇φ_j``.
+    """
+    V, T = check_tet_mesh(V, T)
+    K = -igl.cotmatrix(V, T)
+    K = sp.csr_matrix(K)
+    K.sum_duplicates()
+    K.sort_indices()
+    return K
+
+
+def mass_matrix(V, T, kind: str = "barycentric") -> sp.csr_matrix:
+    """P1 mass matrix of a tet mesh.
+
+    Parameters
+    ----------
+    V : (n, 3) float, T : (t, 4) int
+    kind : {"barycentric", "voronoi", "full"}
+        ``"barycentric"`` (default): lumped, diagonal, node gets 1/4 of each incident tet's volume.
+        ``"voronoi"``: lumped, libigl's Voronoi areas. ``"full"``: consistent mass ``∫ φ_i φ_j``
+        (``vol/10`` on the diagonal, ``vol/20`` off it, per tet).
+
+    Returns
+    -------
+    M : (n, n) csr_matrix
+        Symmetric positive definite; ``M.sum()`` is the mesh volume for every kind.
+    """
+    if kind not in _MASS_TYPES:
+        raise SolverInputError(f"mass kind must be one of {sorted(_MASS_TYPES)}, got {kind!r}")
+    V, T = check_tet_mesh(V, T)
+    M = sp.csr_matrix(igl.massmatrix(V, T, _MASS_TYPES[kind]))
+    M.sum_duplicates()
+    M.sort_indices()
+    return M
+
+
+def load_vector(M: sp.spmatrix, f) -> np.ndarray:
+    """Right-hand side ``M @ f`` of ``-Δu = f`` for nodal values (or a constant) ``f``.
+
+    Parameters
+    ----------
+    M : (n, n) sparse mass matrix
+    f : float or (n,) array_like
+
+    Returns
+    -------
+    b : (n,) float64
+    """
+    n = M.shape[0]
+    f = np.broadcast_to(np.asarray(f, dtype=np.float64), (n,)) if np.ndim(f) == 0 else np.asarray(f, float)
+    if f.shape != (n,):
+        raise SolverInputError(f"f must be a scalar or have shape ({n},), got {f.shape}")
+    if not np.all(np.isfinite(f)):
+        raise SolverInputError("f contains NaN/inf")
+    return np.asarray(M @ f, dtype=np.float64)
+
+
+def diffusion_matrix(K: sp.spmatrix, M: sp.spmatrix, lam: float) -> sp.csr_matrix:
+    """Operator ``λ K + M`` of the diffusion / implicit heat step ``(λK + M) x = M b``.
+
+    Parameters
+    ----------
+    K, M : (n, n) sparse stiffness and mass
+    lam : float, >= 0 (time step times diffusivity)
+
+    Returns
+    -------
+    A : (n, n) csr_matrix, symmetric positive definite.
+    """
+    lam = float(lam)
+    if not np.isfinite(lam) or lam < 0:
+        raise SolverInputError(f"lam must be a finite number >= 0, got {lam}")
+    if K.shape != M.shape:
+        raise SolverInputError(f"K and M shapes differ: {K.shape} vs {M.shape}")
+    A = sp.csr_matrix(lam * K + M)
+    A.sort_indices()
+    return A
+
+
+def boundary_nodes(T, n: int | None = None) -> np.ndarray:
+    """Sorted indices of the nodes on the boundary surface of a tet mesh.
+
+    Parameters
+    ----------
+    T : (t, 4) int
+    n : int, optional
+        Number of nodes, only used to validate ``T``.
+
+    Returns
+    -------
+    b : (nb,) int64, sorted unique indices of nodes on a boundary facet (a face of exactly one tet).
+    """
+    T = np.asarray(T)
+    if T.ndim != 2 or T.shape[1] != 4 or not np.issubdtype(T.dtype, np.integer):
+        raise SolverInputError(f"T must be a (t, 4) integer array, got {T.shape} {T.dtype}")
+    if n is not None and (T.min() < 0 or T.max() >= n):
+        raise SolverInputError(f"T indices out of range [0, {n})")
+    F = igl.boundary_facets(np.ascontiguousarray(T, dtype=np.int64))[0]
+    return np.unique(np.asarray(F, dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class DirichletSystem:
+    """A linear system with Dirichlet values eliminated (see :func:`eliminate_dirichlet`).
+
+    Attributes
+    ----------
+    A : (n_free, n_free) csr_matrix
+        ``A[free][:, free]``.
+    b : (n_free,) float64
+        ``b[free] - A[free][:, fixed] @ values``.
+    free : (n_free,) int64, fixed : (n_fixed,) int64
+        Sorted node indices.
+    values : (n_fixed,) float64
+        Prescribed values at ``fixed``.
+    n : int
+        Size of the full system.
+    """
+
+    A: sp.csr_matrix
+    b: np.ndarray
+    free: np.ndarray
+    fixed: np.ndarray
+    values: np.ndarray
+    n: int
+
+    def expand(self, x_free) -> np.ndarray:
+        """Full solution: ``x_free`` on free nodes, the prescribed values on fixed ones.
+
+        Parameters
+        ----------
+        x_free : (n_free,) array_like
+
+        Returns
+        -------
+        x : (n,) float64
+        """
+        x_free = np.asarray(x_free, dtype=np.float64)
+        if x_free.shape != self.free.shape:
+            raise SolverInputError(f"x_free must have shape {self.free.shape}, got {x_free.shape}")
+        x = np.empty(self.n, dtype=np.float64)
+        x[self.free] = x_free
+        x[self.fixed] = self.values
+        return x
+
+    def restrict(self, x) -> np.ndarray:
+        """Free entries ``x[free]`` of a full vector ``x`` of shape (n,)."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.n,):
+            raise SolverInputError(f"x must have shape ({self.n},), got {x.shape}")
+        return x[self.free].copy()
+
+
+def eliminate_dirichlet(A: sp.spmatrix, b, fixed, values=0.0) -> DirichletSystem:
+    """Eliminate Dirichlet conditions ``x[fixed] = values`` from ``A x = b``.
+
+    Works for any subset of nodes (the whole boundary from :func:`boundary_nodes`, part of it, or
+    interior nodes).
+
+    Parameters
+    ----------
+    A : (n, n) sparse matrix
+    b : (n,) array_like
+    fixed : (k,) int array_like or (n,) bool mask
+        Constrained nodes (duplicates allowed; must leave at least one free node).
+    values : float or (k,) array_like
+        Prescribed values, in the order of ``fixed`` (or of ``np.flatnonzero(mask)``).
+
+    Returns
+    -------
+    DirichletSystem
+        Reduced SPD system (if ``A`` is SPD on the free nodes) and the index bookkeeping.
+
+    Examples
+    --------
+    >>> import numpy as np, scipy.sparse as sp
+    >>> A = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(5, 5), format="csr")
+    >>> ds = eliminate_dirichlet(A, np.zeros(5), [0, 4], [1.0, 1.0])
+    >>> np.round(ds.expand(sp.linalg.spsolve(ds.A.tocsc(), ds.b)), 12)
+    array([1., 1., 1., 1., 1.])
+    """
+    A = sp.csr_matrix(A)
+    n = A.shape[0]
+    if A.shape != (n, n):
+        raise SolverInputError(f"A must be square, got {A.shape}")
+    b = np.asarray(b, dtype=np.float64)
+    if b.shape != (n,):
+        raise SolverInputError(f"b must have shape ({n},), got {b.shape}")
+    fixed = np.asarray(fixed)
+    if fixed.dtype == bool:
+        if fixed.shape != (n,):
+            raise SolverInputError(f"a boolean fixed mask must have shape ({n},), got {fixed.shape}")
+        fixed = np.flatnonzero(fixed)
+    if fixed.size and not np.issubdtype(fixed.dtype, np.integer):
+        raise SolverInputError(f"fixed must hold integer node indices, got dtype {fixed.dtype}")
+    fixed = fixed.astype(np.int64).ravel()
+    if fixed.size and (fixed.min() < 0 or fixed.max() >= n):
+        raise SolverInputError(f"fixed indices must be in [0, {n})")
+    vals = np.broadcast_to(np.asarray(values, dtype=np.float64), fixed.shape)
+    if not np.all(np.isfinite(vals)):
+        raise SolverInputError("Dirichlet values contain NaN/inf")
+    order = np.argsort(fixed, kind="stable")
+    fixed_s, first = np.unique(fixed[order], return_index=True)
+    vals_s = vals[order][first]
+    # duplicates must agree
+    if fixed_s.size != fixed.size:
+        full = np.zeros(n)
+        full[fixed[order]] = vals[order]
+        if not np.allclose(full[fixed], vals):
+            raise SolverInputError("a node is fixed twice with different Dirichlet values")
+    mask = np.ones(n, dtype=bool)
+    mask[fixed_s] = False
+    free = np.flatnonzero(mask)
+    if free.size == 0:
+        raise SolverInputError("every node is fixed: nothing left to solve for")
+    A_ff = A[free][:, free].tocsr()
+    A_ff.sort_indices()
+    b_f = b[free] - A[free][:, fixed_s] @ vals_s
+    return DirichletSystem(A_ff, np.asarray(b_f, dtype=np.float64), free, fixed_s, vals_s.copy(), n)
+
+
+def check_compatible(b, rtol: float = 1e-10) -> None:
+    """Raise unless ``b`` is in the range of an operator whose null space is the constants.
+
+    Parameters
+    ----------
+    b : (n,) array_like
+    rtol : float
+        ``b`` is accepted when ``|sum(b)| <= rtol * sum(|b|)``.
+
+    Raises
+    ------
+    IncompatibleRHSError
+    """
+    b = np.asarray(b, dtype=np.float64)
+    s, scale = float(np.sum(b)), float(np.sum(np.abs(b)))
+    if abs(s) > rtol * max(scale, np.finfo(float).tiny):
+        raise IncompatibleRHSError(
+            f"pure Neumann right-hand side is incompatible: sum(b) = {s:.3e} but must be 0 "
+            f"(relative {abs(s) / scale:.2e} > rtol={rtol:g}); the load must balance the boundary flux. "
+            "Pass project=True to solve the least-squares problem with the mean of b removed."
+        )
+
+
+def project_rhs(b) -> np.ndarray:
+    """Return ``b - mean(b)``, the orthogonal projection onto the range ``{sum = 0}`` of the Neumann operator."""
+    b = np.asarray(b, dtype=np.float64)
+    return b - b.mean()
+
+
+def remove_mean(u, M: sp.spmatrix | None = None) -> np.ndarray:
+    """Return ``u`` shifted by a constant to have zero mean.
+
+    Parameters
+    ----------
+    u : (n,) array_like
+    M : (n, n) sparse mass matrix, optional
+        If given, the integral ``1ᵀ M u`` is made zero (the continuous mean); otherwise the plain
+        nodal mean.
+
+    Returns
+    -------
+    (n,) float64, a new array.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    if M is None:
+        return u - u.mean()
+    w = np.asarray(M.sum(axis=0)).ravel()
+    return u - (w @ u) / w.sum()

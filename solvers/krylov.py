@@ -1,0 +1,155 @@
+"""Preconditioned conjugate gradients with a residual history (wrapping ``pyamg.krylov.cg``)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from pyamg.krylov import cg as _pyamg_cg
+
+from .errors import DivergenceError, SolverInputError
+
+__all__ = ["KrylovResult", "pcg", "mg_pcg"]
+
+
+class _NonFiniteStop(Exception):
+    pass
+
+
+@dataclass
+class KrylovResult:
+    """Outcome of :func:`pcg`.
+
+    Attributes
+    ----------
+    x : (n,) float64
+    iterations : int
+    residuals : list of float
+        Relative residuals ``||r_i|| / ||b||``, initial one first (CG's recursively updated residual).
+    converged : bool
+    seconds : float
+    nonfinite : bool
+        True if the iteration produced NaN/inf (only returned with ``raise_on_nonfinite=False``).
+    """
+
+    x: np.ndarray
+    iterations: int
+    residuals: list = field(default_factory=list)
+    converged: bool = False
+    seconds: float = 0.0
+    nonfinite: bool = False
+
+
+def pcg(
+    A,
+    b,
+    M=None,
+    *,
+    x0=None,
+    tol: float = 1e-8,
+    maxiter: int | None = None,
+    nullspace: str | None = None,
+    divtol: float = 1e5,
+) -> KrylovResult:
+    """Preconditioned CG for a symmetric positive (semi-)definite system.
+
+    Parameters
+    ----------
+    A : (n, n) sparse matrix or LinearOperator
+    b : (n,) array_like
+    M : (n, n) LinearOperator, optional
+        Preconditioner (approximate inverse), e.g. ``MultigridSolver.aspreconditioner()``.
+    x0 : (n,) array_like, optional
+    tol : float
+        Stop when ``||r|| <= tol ||b||``.
+    maxiter : int, optional (default ``n``)
+    nullspace : None or "constant"
+        Keep iterates and ``b`` in the zero-mean subspace (pure Neumann operators).
+    divtol : float
+        Flag divergence when the residual grows past ``divtol`` times the initial one.
+
+    Returns
+    -------
+    KrylovResult
+        ``nonfinite=True`` instead of an exception when NaN/inf appears, so callers can locate it
+        (``MultigridSolver.solve`` does); otherwise divergence raises :class:`DivergenceError`.
+    """
+    n = A.shape[0]
+    b = np.array(np.asarray(b).reshape(-1), dtype=np.float64)
+    if b.shape != (n,) or not np.all(np.isfinite(b)):
+        raise SolverInputError(f"b must be a finite array of shape ({n},)")
+    x = np.zeros(n) if x0 is None else np.array(np.asarray(x0).reshape(-1), dtype=np.float64)
+    if x.shape != (n,):
+        raise SolverInputError(f"x0 must have shape ({n},)")
+    if nullspace == "constant":
+        b -= b.mean()
+        x -= x.mean()
+    maxiter = n if maxiter is None else int(maxiter)
+    t0 = time.perf_counter()
+    normb = float(np.linalg.norm(b))
+    if normb == 0.0:
+        return KrylovResult(np.zeros(n), 0, [0.0], True, 0.0)
+    res: list[float] = []
+    calls = [0]
+    Mop = None
+    if M is not None:
+        M = spla.aslinearoperator(M)
+
+        def _checked(r):
+            # stop at the first non-finite preconditioned residual instead of iterating on NaN
+            calls[0] += 1
+            z = M.matvec(r)
+            if not np.all(np.isfinite(z)):
+                raise _NonFiniteStop
+            return z
+
+        Mop = spla.LinearOperator((n, n), matvec=_checked, dtype=np.float64)
+    try:
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            x, _ = _pyamg_cg(A, b, x0=x, tol=tol, criteria="rr", maxiter=maxiter, M=Mop, residuals=res)
+    except _NonFiniteStop:
+        rel = [float(r) / normb for r in res] + [float("nan")]
+        return KrylovResult(x, calls[0], rel, False, time.perf_counter() - t0, nonfinite=True)
+    rel = [float(r) / normb for r in res]
+    seconds = time.perf_counter() - t0
+    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(rel)):
+        return KrylovResult(x, len(rel) - 1, rel, False, seconds, nonfinite=True)
+    if max(rel) > divtol * rel[0]:
+        raise DivergenceError(
+            f"CG diverged: residual grew by {max(rel) / rel[0]:.3g} (> divtol={divtol:g}); "
+            "is the preconditioner symmetric positive definite?",
+            cycle=int(np.argmax(rel)), residuals=rel,
+        )
+    if nullspace == "constant":
+        x = x - x.mean()
+    # report the true final residual (CG's recursive one can drift from it)
+    rtrue = float(np.linalg.norm(b - A @ x)) / normb
+    rel[-1] = max(rel[-1], rtrue) if len(rel) > 1 else rtrue
+    return KrylovResult(x, len(rel) - 1, rel, rel[-1] <= tol * 1.0000001 or rtrue <= tol, seconds)
+
+
+def mg_pcg(ml, b, *, x0=None, tol: float = 1e-8, maxiter: int = 200, cycle: str = "V") -> KrylovResult:
+    """CG preconditioned by one multigrid cycle of ``ml`` (a :class:`solvers.MultigridSolver`).
+
+    Parameters
+    ----------
+    ml : MultigridSolver
+    b : (n,) array_like
+    x0, tol, maxiter : see :func:`pcg`
+    cycle : {"V", "W", "F"}
+
+    Returns
+    -------
+    KrylovResult
+        Iteration count, relative residual history, converged flag and solve time.
+
+    Raises
+    ------
+    DivergenceError
+        NaN/inf during the iteration (naming the level, via ``ml.solve``).
+    """
+    x, info = ml.solve(b, x0=x0, tol=tol, maxiter=maxiter, cycle=cycle, accel="cg", return_info=True)
+    return KrylovResult(x, info["iterations"], info["residuals"], info["converged"], info["seconds"])

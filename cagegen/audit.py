@@ -17,8 +17,8 @@ Example
 >>> F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
 >>> audit_mesh(V, F).ok
 True
->>> audit_mesh(V, F[:3]).problems[0].split(":")[0]
-'open boundary'
+>>> [p.split(":")[0] for p in audit_mesh(V, F[:3]).problems]
+['too few faces', 'open boundary']
 """
 
 from __future__ import annotations

@@ -1,0 +1,138 @@
+"""cagegen.build_cages: audit first, backend from the registry, certification of every layer."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+import cagegen
+from cagegen import registry
+from cagegen.errors import BackendUnavailableError, CageError, LevelsError, MeshInputError
+
+
+def _ico(sub: int, r: float = 1.0):
+    s = trimesh.creation.icosphere(subdivisions=sub, radius=r)
+    return np.asarray(s.vertices, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return _ico(4)  # 5120 faces
+
+
+def _scaled_spheres(V, F, face_counts, *, scales=None, progress=None):
+    """Test backend: icospheres of growing radius (nested unless ``scales`` says otherwise)."""
+    scales = scales or [1.2 + 0.2 * k for k in range(len(face_counts))]
+    subs = {1280: 3, 320: 2, 80: 1}
+    layers = [_ico(subs[c], s) for c, s in zip(face_counts, scales)]
+    if progress:
+        progress("scaled spheres done")
+    return layers, {"scales": scales}
+
+
+@pytest.fixture
+def spheres_backend(monkeypatch):
+    monkeypatch.setitem(registry._BACKENDS, "spheres", _scaled_spheres)
+    return "spheres"
+
+
+def test_certified_hierarchy(ball, spheres_backend):
+    V0, F0 = ball[0].copy(), ball[1].copy()
+    msgs = []
+    layers, info = cagegen.build_cages(
+        *ball, method="spheres", face_counts=[1280, 320], return_info=True, progress=msgs.append
+    )
+    assert np.array_equal(ball[0], V0) and np.array_equal(ball[1], F0)  # caller's arrays untouched
+    assert len(layers) == 3 and np.array_equal(layers[0][0], V0) and np.array_equal(layers[0][1], F0)
+    assert info["certified"] is True and info["nested"] is True
+    assert info["achieved_face_counts"] == [1280, 320]
+    assert info["backend"] == {"scales": [1.2, 1.4]}
+    pairs = info["verification"]["pairs"]
+    assert [p["ok"] for p in pairs] == [True, True]
+    assert pairs[0]["min_winding"] == pytest.approx(1.0, abs=1e-2)
+    assert info["audit"]["ok"] is True and info["audit"]["genus"] == 0
+    json.dumps(info)
+    assert "scaled spheres done" in msgs and any("verification: nested" in m for m in msgs)
+    assert cagegen.build_cages(*ball, 3, method="spheres", face_counts=[1280, 320])[2][1].shape == (320, 3)
+
+
+def test_default_face_counts_used(ball, spheres_backend):
+    # 5120 faces, 3 levels -> [1280, 320]
+    layers = cagegen.build_cages(*ball, 3, method="spheres")
+    assert [F.shape[0] for _, F in layers] == [5120, 1280, 320]
+
+
+def test_non_nested_layer_raises_naming_it(ball, monkeypatch):
+    def backend(V, F, face_counts):
+        return _scaled_spheres(V, F, face_counts, scales=[1.4, 1.2])  # layer 2 inside layer 1
+
+    monkeypatch.setitem(registry._BACKENDS, "bad", backend)
+    with pytest.raises(CageError) as ei:
+        cagegen.build_cages(*ball, method="bad", face_counts=[1280, 320])
+    assert ei.value.layer == 2 and "does not contain layer 1" in str(ei.value)
+    # verify=False skips the gate but the result is then not certified
+    layers, info = cagegen.build_cages(*ball, method="bad", face_counts=[1280, 320], verify=False,
+                                       return_info=True)
+    assert info["certified"] is False and info["verification"] is None and len(layers) == 3
+
+
+def test_min_gap_is_passed_to_the_verifier(ball, spheres_backend):
+    diag = np.linalg.norm(ball[0].max(0) - ball[0].min(0))
+    with pytest.raises(CageError, match="min_gap") as ei:
+        cagegen.build_cages(*ball, method="spheres", face_counts=[1280], min_gap=0.25 / diag)
+    assert ei.value.layer == 1
+    assert len(cagegen.build_cages(*ball, method="spheres", face_counts=[1280], min_gap=0.15 / diag)) == 2
+
+
+def test_input_is_audited_before_the_backend(ball, monkeypatch):
+    called = []
+    monkeypatch.setitem(registry._BACKENDS, "spy", lambda *a, **k: called.append(1))
+    with pytest.raises(MeshInputError, match="open boundary"):
+        cagegen.build_cages(ball[0], ball[1][1:], 2, method="spy")
+    with pytest.raises(MeshInputError, match="inside-out"):
+        cagegen.build_cages(ball[0], ball[1][:, ::-1], 2, method="spy")
+    assert not called
+    # repair=True flips the inside-out input, then the backend runs
+    monkeypatch.setitem(registry._BACKENDS, "spheres", _scaled_spheres)
+    layers = cagegen.build_cages(ball[0], ball[1][:, ::-1], method="spheres", face_counts=[1280], repair=True)
+    assert np.array_equal(layers[0][1], ball[1])
+
+
+def test_bad_backend_output(ball, monkeypatch):
+    monkeypatch.setitem(registry._BACKENDS, "short", lambda V, F, c: ([_ico(3, 1.2)], {}))
+    with pytest.raises(CageError, match="returned 1 layers for 2"):
+        cagegen.build_cages(*ball, method="short", face_counts=[1280, 320])
+    monkeypatch.setitem(registry._BACKENDS, "junk", lambda V, F, c: ([(np.zeros((3, 2)), np.zeros((1, 3)))], {}))
+    with pytest.raises(CageError) as ei:
+        cagegen.build_cages(*ball, method="junk", face_counts=[1280])
+    assert ei.value.layer == 1
+
+
+def test_levels_and_method_errors(ball, spheres_backend):
+    with pytest.raises(LevelsError, match="needs 2 face counts"):
+        cagegen.build_cages(*ball, 3, method="spheres", face_counts=[1280])
+    with pytest.raises(LevelsError, match="levels"):
+        cagegen.build_cages(*ball, method="spheres")
+    with pytest.raises(LevelsError, match="at most"):
+        cagegen.build_cages(*ball, 6, method="spheres")
+    with pytest.raises(ValueError, match="unknown cage method"):
+        cagegen.build_cages(*ball, 2, method="no-such-method")
+    monkeypatch_target = "cagegen.no_such_module:fn"
+    registry._BACKENDS["missing"] = monkeypatch_target
+    try:
+        with pytest.raises(BackendUnavailableError):
+            cagegen.build_cages(*ball, 2, method="missing")
+        assert "missing" not in cagegen.available_backends()
+    finally:
+        del registry._BACKENDS["missing"]
+    assert "decimate" in cagegen.available_backends()
+
+
+def test_public_exports():
+    for name in ["build_cages", "verify_nesting", "NestingReport", "audit_mesh", "check_mesh",
+                 "default_face_counts", "register_backend", "available_backends", "errors"]:
+        assert hasattr(cagegen, name)
+    assert cagegen.errors.CageError is CageError

@@ -1,0 +1,201 @@
+"""cagegen.verify: the nesting verifier certifies nested layers and names the layer that is not."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from cagegen.errors import CageError
+from cagegen.verify import verify_nesting
+
+
+def _ico(sub: int, r: float = 1.0, c=(0.0, 0.0, 0.0)):
+    s = trimesh.creation.icosphere(subdivisions=sub, radius=r)
+    return np.asarray(s.vertices, dtype=np.float64) + np.asarray(c), np.asarray(s.faces, dtype=np.int64)
+
+
+@pytest.fixture(scope="module")
+def fine():
+    return _ico(4, 1.0)  # 2562 vertices, 5120 faces
+
+
+def _fail(rep, layer: int, *words):
+    assert not rep.ok
+    with pytest.raises(CageError) as ei:
+        rep.raise_if_failed()
+    assert ei.value.layer == layer
+    msg = str(ei.value)
+    assert f"layer {layer}" in msg
+    for w in words:
+        assert w in msg, f"{w!r} not in {msg!r}"
+    return ei.value
+
+
+def test_concentric_spheres_are_nested(fine):
+    coarse = _ico(3, 1.3)
+    rep = verify_nesting([fine, coarse])
+    assert rep.ok, str(rep)
+    p = rep.pairs[0]
+    assert p.min_winding == pytest.approx(1.0, abs=1e-9)  # exact winding number
+    assert p.n_outside_vertices == 0 and p.n_coarse_inside_vertices == 0 and p.n_intersecting_pairs == 0
+    assert p.self_intersections_fine == 0 and p.self_intersections_coarse == 0
+    # radial gap 0.3 minus the chordal sag of the 1280-face coarse sphere (< 0.01)
+    assert p.min_gap == pytest.approx(0.3, abs=1e-2)
+    assert p.min_gap < 0.3
+    diag = np.linalg.norm(fine[0].max(0) - fine[0].min(0))
+    assert rep.bbox_diagonal == pytest.approx(diag)
+    assert p.min_gap_rel == pytest.approx(p.min_gap / diag, rel=1e-12)
+    rep.raise_if_failed()  # no error
+    assert p.volume_coarse > p.volume_fine > 0
+
+
+def test_three_concentric_layers_and_report_formats(fine):
+    rep = verify_nesting([fine, _ico(3, 1.2), _ico(2, 1.5)])
+    assert rep.ok and len(rep.pairs) == 2
+    assert [p.fine for p in rep.pairs] == [0, 1]
+    d = json.loads(json.dumps(rep.to_dict()))
+    assert d["ok"] is True and len(d["pairs"]) == 2
+    assert d["pairs"][1]["n_faces_coarse"] == 320
+    text = str(rep)
+    assert "nested" in text and text.count("yes") == 2
+
+
+def test_poking_layer_is_rejected(fine):
+    coarse = _ico(3, 1.1, c=(0.3, 0.0, 0.0))  # shifted: pokes through on the -x side
+    rep = verify_nesting([fine, coarse])
+    p = rep.pairs[0]
+    assert p.n_intersecting_pairs > 0
+    assert p.n_outside_vertices > 0 and p.min_winding < 0.1
+    err = _fail(rep, 1, "intersects layer 0", "does not contain layer 0")
+    assert "intersecting" in err.reason
+
+
+def test_smaller_cage_does_not_contain(fine):
+    rep = verify_nesting([fine, _ico(3, 0.5)])
+    p = rep.pairs[0]
+    assert p.min_winding == pytest.approx(0.0, abs=1e-2)
+    assert p.n_outside_vertices == len(fine[0])
+    assert p.n_intersecting_pairs == 0
+    _fail(rep, 1, "does not contain layer 0")
+
+
+def test_second_pair_failure_names_layer_2(fine):
+    rep = verify_nesting([fine, _ico(3, 1.5), _ico(2, 1.2)])
+    assert rep.pairs[0].ok and not rep.pairs[1].ok
+    _fail(rep, 2, "does not contain layer 1")
+
+
+def test_self_intersecting_layer(fine):
+    Va, Fa = _ico(3, 1.5, c=(-0.3, 0, 0))
+    Vb, Fb = _ico(3, 1.5, c=(0.3, 0, 0))
+    coarse = (np.vstack([Va, Vb]), np.vstack([Fa, Fb + len(Va)]))  # one F, two overlapping spheres
+    rep = verify_nesting([fine, coarse])
+    p = rep.pairs[0]
+    assert p.self_intersections_coarse > 0 and p.self_intersections_fine == 0
+    # every fine vertex is inside both spheres: winding 2, not a containment failure
+    assert p.min_winding == pytest.approx(2.0, abs=2e-2) and p.n_outside_vertices == 0
+    _fail(rep, 1, "layer 1 self-intersects")
+    # with check_self=False the same (overlapping) layer passes the containment rule
+    assert verify_nesting([fine, coarse], check_self=False).ok
+
+
+def test_fine_layer_self_intersection_blames_fine_layer():
+    Va, Fa = _ico(2, 1.0, c=(-0.3, 0, 0))
+    Vb, Fb = _ico(2, 1.0, c=(0.3, 0, 0))
+    bad_fine = (np.vstack([Va, Vb]), np.vstack([Fa, Fb + len(Va)]))
+    rep = verify_nesting([bad_fine, _ico(3, 2.0)])
+    _fail(rep, 0, "layer 0 self-intersects")
+
+
+def test_cavity_inside_fine_solid_is_caught(fine):
+    # coarse = big sphere + an inward-facing small sphere (a cavity) hidden inside the fine solid:
+    # no crossing and every fine vertex has winding 1, yet the fine solid is not inside the coarse one
+    Vo, Fo = _ico(3, 2.0)
+    Vi, Fi = _ico(2, 0.3)
+    coarse = (np.vstack([Vo, Vi]), np.vstack([Fo, Fi[:, ::-1] + len(Vo)]))
+    rep = verify_nesting([fine, coarse])
+    p = rep.pairs[0]
+    assert p.n_intersecting_pairs == 0 and p.n_outside_vertices == 0
+    assert p.n_coarse_inside_vertices == len(Vi)
+    _fail(rep, 1, f"{len(Vi)} vertices inside layer 0")
+
+
+def test_touching_layers_fail_and_clearance_passes():
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    Vf, Ff = np.asarray(box.vertices, float), np.asarray(box.faces, np.int64)
+    # coarse box shares three face planes with the fine box: touching is not strict nesting
+    touching = (2.0 * Vf + 0.5, Ff)
+    rep = verify_nesting([(Vf, Ff), touching])
+    assert rep.pairs[0].n_intersecting_pairs > 0 and rep.pairs[0].min_gap == 0.0
+    _fail(rep, 1, "touching")
+    clear = (1.2 * Vf, Ff)  # 0.1 clearance on every side
+    rep = verify_nesting([(Vf, Ff), clear])
+    assert rep.ok and rep.pairs[0].min_gap == pytest.approx(0.1, abs=1e-12)
+
+
+def test_min_gap_requirement(fine):
+    layers = [fine, _ico(3, 1.3)]
+    diag = np.linalg.norm(fine[0].max(0) - fine[0].min(0))
+    assert verify_nesting(layers, min_gap=0.25 / diag).ok
+    rep = verify_nesting(layers, min_gap=0.35 / diag)
+    assert rep.min_gap_required == pytest.approx(0.35 / diag)
+    _fail(rep, 1, "closer than min_gap")
+
+
+def test_inside_out_and_open_coarse_layers(fine):
+    V, F = _ico(3, 1.3)
+    rep = verify_nesting([fine, (V, F[:, ::-1])])
+    assert rep.pairs[0].min_winding == pytest.approx(-1.0, abs=1e-2)
+    _fail(rep, 1, "inside-out")
+    rep = verify_nesting([fine, (V, F[1:])])
+    assert rep.pairs[0].boundary_edges_coarse == 3
+    _fail(rep, 1, "not a closed manifold")
+
+
+def test_bad_arguments(fine):
+    with pytest.raises(ValueError, match="at least two layers"):
+        verify_nesting([fine])
+    with pytest.raises(CageError) as ei:
+        verify_nesting([fine, (np.zeros((4, 2)), np.zeros((4, 3), int))])
+    assert ei.value.layer == 1
+    V, F = _ico(3, 1.3)
+    V = V.copy()
+    V[0] = np.nan
+    _fail(verify_nesting([fine, (V, F)]), 1, "NaN")
+
+
+def test_inputs_not_modified(fine):
+    V, F = _ico(3, 1.3)
+    V0, F0 = V.copy(), F.copy()
+    verify_nesting([fine, (V, F)])
+    assert np.array_equal(V, V0) and np.array_equal(F, F0)
+
+
+def test_procedural_nested_isosurfaces_of_a_torus():
+    from nestmg.shapes import nested_isosurfaces
+
+    layers = nested_isosurfaces("torus", offsets=[0.0, 0.08, 0.2], resolutions=[40, 24, 14])
+    rep = verify_nesting(layers)
+    assert rep.ok, str(rep)
+    for p in rep.pairs:
+        assert p.min_winding > 0.99
+    # the offset step bounds the gap from above (vertex-to-surface distances of level sets)
+    assert 0 < rep.pairs[0].min_gap < 0.08 + 1e-3
+
+
+@pytest.mark.parametrize("eps", [2e-6, 1e-10])
+def test_nearly_touching_layers_are_certified(eps):
+    # nested cages come within ~2e-6 of the diagonal; the exact winding number stays 1 far below that
+    V, F = _ico(4, 1.0)
+    rep = verify_nesting([(V, F), ((1.0 + eps) * V, F)])
+    assert rep.ok, str(rep)
+    p = rep.pairs[0]
+    assert p.min_winding == pytest.approx(1.0, abs=1e-9)
+    # distance from a fine vertex to the planes of the coarse faces around its scaled copy: eps * cos(tilt)
+    assert p.min_gap == pytest.approx(eps * 0.9989, rel=1e-3)
+    if eps <= 1e-8:
+        # the Barnes-Hut approximation misclassifies points this close: the reason exact is the default
+        assert not verify_nesting([(V, F), ((1.0 + eps) * V, F)], exact_winding=False).ok

@@ -12,6 +12,7 @@ Backends are looked up by name in :mod:`cagegen.registry` and imported lazily.
 from __future__ import annotations
 
 import inspect
+import sys
 import time
 from typing import Callable
 
@@ -65,7 +66,7 @@ def build_cages(
     face_counts=None,
     verify: bool = True,
     return_info: bool = False,
-    progress: Callable[[str], None] | None = None,
+    progress: bool | Callable[[str], None] | None = None,
     *,
     repair: bool = False,
     min_gap: float = 0.0,
@@ -93,8 +94,9 @@ def build_cages(
         ``verify=False`` skips it (``info["certified"]`` is then False).
     return_info : bool
         Also return the info dict.
-    progress : callable, optional
-        ``progress(message)`` called at each stage (and passed to the backend if it accepts it).
+    progress : bool or callable, optional
+        ``progress(message)`` is called at each stage; ``True`` prints the messages to stderr;
+        ``None``/``False`` is silent. Backends that accept a ``progress`` keyword get the callable.
     repair : bool
         Merge duplicate vertices, drop unreferenced ones and orient outward before the audit.
     min_gap : float
@@ -125,7 +127,16 @@ def build_cages(
         The backend failed, or (certified methods) a layer does not nest; ``.layer`` names it.
     """
     t0 = time.perf_counter()
-    say = progress if progress is not None else (lambda msg: None)
+    if progress is None or progress is False:
+        report_to = None
+    elif progress is True:
+        def report_to(msg: str) -> None:
+            print(f"[cagegen] {msg}", file=sys.stderr, flush=True)
+    elif callable(progress):
+        report_to = progress
+    else:
+        raise TypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
+    say = report_to if report_to is not None else (lambda msg: None)
 
     V, F, audit = check_mesh(V, F, repair=repair, name="input", return_audit=True)
     t_audit = time.perf_counter() - t0
@@ -147,8 +158,8 @@ def build_cages(
 
     backend = get_backend(method)
     kwargs = dict(opts)
-    if progress is not None and _accepts(backend, "progress"):
-        kwargs["progress"] = progress
+    if report_to is not None and _accepts(backend, "progress"):
+        kwargs["progress"] = report_to
     say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
     t1 = time.perf_counter()
     # the backend gets its own copies: it may not modify the layer we return

@@ -42,7 +42,7 @@ __all__ = ["MeshAudit", "audit_mesh", "check_mesh", "repair_mesh"]
 
 # Defaults, all relative to the bounding-box diagonal ``d`` of the mesh.
 MERGE_TOL = 1e-10  # vertices closer than MERGE_TOL * d are "coincident"
-AREA_TOL = 1e-14  # faces with 2*area < AREA_TOL * d**2 are "degenerate"
+AREA_TOL = 1e-10  # faces with 2*area < AREA_TOL * (longest edge)**2 are "degenerate" (collinear)
 VOLUME_TOL = 1e-12  # |volume| < VOLUME_TOL * d**3 is "zero volume"
 MIN_DIAG, MAX_DIAG = 1e-8, 1e8  # absurd scales (float64 geometry predicates lose meaning)
 MAX_OFFSET = 1e6  # max |coordinate| / d beyond which the mesh is too far from the origin
@@ -180,7 +180,10 @@ def audit_mesh(
     merge_tol : float
         Vertices closer than ``merge_tol`` times the bounding-box diagonal count as duplicates.
     area_tol : float
-        Faces with twice their area below ``area_tol`` times the squared diagonal are degenerate.
+        Faces whose height is below ``area_tol`` times their longest edge (``2 * area < area_tol *
+        longest**2``: collinear corners up to rounding) are degenerate, as are faces with a repeated
+        index or all corners within ``merge_tol`` of each other. The test is scale-free: thin but
+        valid slivers from marching cubes (height ~1% of the longest edge) pass.
     max_faces : int
         Larger meshes are refused as absurdly large (decimate them first).
 
@@ -233,7 +236,13 @@ def audit_mesh(
     # --- faces
     repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
     if geometric:
-        degenerate = repeated | (double_areas(V, F) < area_tol * d * d)
+        E = V[F[:, [1, 2, 0]]] - V[F]  # (m,3,3) edge vectors
+        longest2 = np.einsum("ijk,ijk->ij", E, E).max(axis=1)
+        degenerate = (
+            repeated
+            | (double_areas(V, F) < area_tol * longest2)
+            | (longest2 <= (merge_tol * d) ** 2)
+        )
         a.n_degenerate_faces = int(np.count_nonzero(degenerate))
     else:
         degenerate = repeated

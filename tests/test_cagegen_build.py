@@ -111,6 +111,16 @@ def test_bad_backend_output(ball, monkeypatch):
     assert ei.value.layer == 1
 
 
+def test_progress_true_prints_to_stderr(ball, spheres_backend, capsys):
+    cagegen.build_cages(*ball, method="spheres", face_counts=[1280], progress=True)
+    err = capsys.readouterr().err
+    assert "[cagegen] input: 2562 vertices, 5120 faces" in err and "scaled spheres done" in err
+    cagegen.build_cages(*ball, method="spheres", face_counts=[1280], progress=False)
+    assert capsys.readouterr().err == ""
+    with pytest.raises(TypeError, match="progress"):
+        cagegen.build_cages(*ball, method="spheres", face_counts=[1280], progress="yes")
+
+
 def test_levels_and_method_errors(ball, spheres_backend):
     with pytest.raises(LevelsError, match="needs 2 face counts"):
         cagegen.build_cages(*ball, 3, method="spheres", face_counts=[1280])

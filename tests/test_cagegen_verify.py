@@ -199,3 +199,21 @@ def test_nearly_touching_layers_are_certified(eps):
     if eps <= 1e-8:
         # the Barnes-Hut approximation misclassifies points this close: the reason exact is the default
         assert not verify_nesting([(V, F), ((1.0 + eps) * V, F)], exact_winding=False).ok
+
+
+def test_figures_invariant_under_similarity_transforms(fine):
+    from scipy.spatial.transform import Rotation
+
+    layers = [fine, _ico(3, 1.3)]
+    ref = verify_nesting(layers).pairs[0]
+    rng = np.random.default_rng(7)
+    for _ in range(2):
+        R = Rotation.random(random_state=rng).as_matrix()
+        s = 10.0 ** rng.uniform(-3, 3)
+        t = rng.uniform(-5, 5, size=3) * s
+        moved = [(s * V @ R.T + t, F) for V, F in layers]
+        p = verify_nesting(moved).pairs[0]
+        assert p.ok and p.min_winding == pytest.approx(1.0, abs=1e-9)
+        assert p.min_gap == pytest.approx(s * ref.min_gap, rel=1e-6)
+        # relative to layer 0's axis-aligned box, which rotates: same order of magnitude only
+        assert 0.5 * ref.min_gap_rel < p.min_gap_rel < 1.5 * ref.min_gap_rel

@@ -171,7 +171,11 @@ def prolongation(
                 w /= w.sum(axis=1, keepdims=True)
             W[out] = w
 
-    # exact zeros from points on faces are dropped by the CSR constructor's sum_duplicates/eliminate
+    # Nodes on a coarse face/edge get round-off weights (~1e-17) on the opposite corners; left in, they
+    # make coarse columns that are reached only by round-off, i.e. near-zero rows in P^T A P (a
+    # near-singular coarse operator). Drop them and renormalise so rows still sum to 1.
+    W[np.abs(W) < 1e-10] = 0.0
+    W /= W.sum(axis=1, keepdims=True)
     P = sp.csr_matrix((W.ravel(), (rows.ravel(), cols.ravel())), shape=(nf, nc))
     P.eliminate_zeros()
     diag = float(np.linalg.norm(Vf.max(axis=0) - Vf.min(axis=0))) if nf else 1.0

@@ -1,0 +1,117 @@
+"""One call from a hierarchy to a measured multigrid solve (used by the CLI and the benchmarks)."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+
+from solvers import DivergenceError, MultigridSolver, convergence_factor
+
+from .problems import setup_problem
+
+__all__ = ["measure_cycle_cost", "solve_on_hierarchy"]
+
+
+def measure_cycle_cost(ml: MultigridSolver, cycle: str = "V", repeats: int = 5) -> dict[str, float]:
+    """Wall-clock cost of one cycle in units of one fine SpMV, beside the counted (flop) complexity.
+
+    Returns
+    -------
+    dict
+        ``spmv_seconds``, ``cycle_seconds``, ``measured_spmv_units`` (cycle / SpMV time) and
+        ``counted_spmv_units`` (:meth:`MultigridSolver.cycle_complexity`).
+    """
+    A = ml.levels[0].A
+    x = np.random.default_rng(0).standard_normal(A.shape[0])
+    M = ml.aspreconditioner(cycle)
+    M.matvec(x)  # warm-up
+    n_spmv = max(20, repeats * 20)
+    t0 = time.perf_counter()
+    for _ in range(n_spmv):
+        A @ x
+    t_spmv = (time.perf_counter() - t0) / n_spmv
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        M.matvec(x)
+    t_cyc = (time.perf_counter() - t0) / repeats
+    return {
+        "spmv_seconds": t_spmv,
+        "cycle_seconds": t_cyc,
+        "measured_spmv_units": t_cyc / t_spmv,
+        "counted_spmv_units": ml.cycle_complexity(cycle),
+    }
+
+
+def solve_on_hierarchy(
+    tets: list,
+    P: list,
+    problem: str = "poisson-dirichlet",
+    *,
+    coarse: str = "galerkin",
+    smoother: str = "symmetric_gauss_seidel",
+    nu: int = 1,
+    cycle: str = "V",
+    accel: str | None = None,
+    tol: float = 1e-8,
+    maxiter: int = 60,
+    lam: float = 1e-2,
+    cost: bool = True,
+) -> dict[str, Any]:
+    """Assemble ``problem`` on ``tets[0]``, build the multigrid solver from ``P`` and solve.
+
+    Divergence is a *result* here (the naive hierarchy with re-discretised operators is expected to
+    diverge): it is returned as ``diverged=True`` with the message and the residuals so far.
+
+    Parameters
+    ----------
+    tets, P
+        ``Hierarchy.tets`` and ``Hierarchy.P``.
+    problem, coarse, lam
+        See :func:`nestmg.problems.setup_problem`.
+    smoother : str
+        Smoother name (``solvers.SMOOTHERS``); ``nu`` sweeps before and after: V(nu, nu).
+    cycle, accel, tol, maxiter
+        See :meth:`solvers.MultigridSolver.solve`.
+    cost : bool
+        Also measure the cost of one cycle in fine SpMVs.
+
+    Returns
+    -------
+    dict
+        ``residuals``, ``factor``, ``iterations``, ``converged``, ``diverged``, ``message``,
+        ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
+    """
+    t0 = time.perf_counter()
+    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam)
+    t_asm = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    ml = MultigridSolver(
+        prob.A, prob.P, coarse_operators=prob.coarse_ops, presmoother=(smoother, {"iterations": nu}),
+        nullspace=prob.nullspace,
+    )
+    t_setup = time.perf_counter() - t0
+    out: dict[str, Any] = {
+        "problem": problem, "coarse": coarse, "smoother": smoother, "nu": nu, "cycle": cycle,
+        "accel": accel, "lam": prob.params["lam"], "tol": tol,
+        "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
+        "operator_complexity": ml.operator_complexity(),
+    }
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            x, info = ml.solve(prob.b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)
+        out.update(residuals=info["residuals"], iterations=info["iterations"], converged=info["converged"],
+                   diverged=False, message="")
+        out["solution_norm"] = float(np.linalg.norm(x))
+    except DivergenceError as exc:
+        out.update(residuals=exc.residuals, iterations=exc.cycle, converged=False, diverged=True, message=str(exc))
+    t_solve = time.perf_counter() - t0
+    out["factor"] = convergence_factor(out["residuals"])
+    out["seconds"] = {"assembly": t_asm, "setup": t_setup, "solve": t_solve}
+    if cost:
+        out["cycle_cost"] = measure_cycle_cost(ml, cycle)
+    return out

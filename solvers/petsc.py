@@ -229,7 +229,8 @@ def _fine_owner(PETSc, A_nat, partition, n: int, size: int, comm) -> np.ndarray 
         except PETSc.Error as e:
             raise SolverInputError(f"PETSc has no partitioner {partition!r} ({e}); try 'ptscotch' or 'natural'") from None
         part.setAdjacency(A_nat)
-        is_ = part.apply()
+        is_ = PETSc.IS()
+        part.apply(is_)
         owner = is_.allGather().getIndices().astype(np.int64)
         is_.destroy()
         part.destroy()
@@ -490,8 +491,13 @@ class PetscMultigrid:
         with _options(PETSc, options_prefix, top):
             ksp.setFromOptions()
             for lev in range(1, nlev):
-                self._setup_smoother(pc.getMGSmootherDown(lev), self.presmooth)
+                down = pc.getMGSmootherDown(lev)
+                self._setup_smoother(down, self.presmooth)
                 self._setup_smoother(pc.getMGSmootherUp(lev), self.postsmooth)
+                if cycle == "W" and lev < nlev - 1:
+                    # PCMG's pre-smoothers assume a zero initial guess (true in a V-cycle); on the second
+                    # visit of a W-cycle they must start from the current iterate, or W == V.
+                    down.setInitialGuessNonzero(True)
             self._setup_coarse(pc.getMGCoarseSolve() if nlev > 1 else None, ksp)
             ksp.setUp()
         self.ksp = ksp
@@ -527,9 +533,6 @@ class PetscMultigrid:
         sksp.setNormType(PETSc.KSP.NormType.NONE)
         with _options(PETSc, sksp.getOptionsPrefix() or "", opts):
             sksp.setFromOptions()
-        if steps == 0:
-            sksp.setType("preonly")
-            spc.setType("none")
 
     def _setup_coarse(self, cksp, ksp) -> None:
         """Exact coarsest solve: LU (SVD pseudo-inverse for a singular Neumann operator), redundant in parallel."""

@@ -101,7 +101,8 @@ def restrict_prolongations(Ps, free, coarse_free="support"):
       All other coarse nodes would give an all-zero row and column in ``Pᵀ A P`` (a singular coarse
       operator). This keeps every useful coarse node, including cage nodes outside the fine domain and
       coarse boundary nodes, and is always correct for Galerkin operators. (Keeping *all* coarse nodes
-      is not: e.g. on the Kuhn cube the corner ``(1,0,0)`` touches no interior fine node.)
+      is not: on the Kuhn cube the nodes on 6 of the 12 cube edges, including 6 of the 8 corners, touch
+      no interior fine node, because the Kuhn tets along those edges have no interior fine vertex.)
     * a list of per-level index arrays or boolean masks (length ``len(Ps)``, level 1 first): e.g. the
       coarse interior nodes, which is what re-discretised coarse operators with Dirichlet boundary
       on a same-domain hierarchy need (restrict those operators with the returned indices too).
@@ -126,8 +127,8 @@ def restrict_prolongations(Ps, free, coarse_free="support"):
     >>> V, T = meshes[0]
     >>> interior = np.setdiff1d(np.arange(len(V)), boundary_nodes(T))
     >>> Pf, frees = restrict_prolongations(Ps, interior)
-    >>> Pf[0].shape    # 27 fine interior nodes; 27 - 2 coarse nodes (two cube corners touch none)
-    (27, 25)
+    >>> Pf[0].shape    # 27 fine interior nodes; the 12 coarse nodes on 6 cube edges touch none
+    (27, 15)
     """
     Ps = [sp.csr_matrix(P, dtype=np.float64) for P in Ps]
 

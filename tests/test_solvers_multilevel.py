@@ -1,0 +1,361 @@
+"""Tests of solvers.multilevel.MultigridSolver on the exactly nested Kuhn cube hierarchy.
+
+Convergence is measured by rates (factor per cycle, iteration counts flat in the number of levels),
+not stored values.
+"""
+
+import doctest
+import warnings
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+import solvers.multilevel
+from solvers import (
+    ConvergenceWarning,
+    DivergenceError,
+    IncompatibleRHSError,
+    MultigridSolver,
+    SolverError,
+    SolverInputError,
+    convergence_factor,
+    restrict_prolongations,
+)
+from solvers import fem
+from solvers.gallery import kuhn_cube_hierarchy
+
+N = 16  # 17^3 = 4913 nodes, 3375 interior
+
+
+@pytest.fixture(scope="module")
+def cube():
+    meshes, Ps = kuhn_cube_hierarchy(N, 4)
+    V, T = meshes[0]
+    K, M = fem.stiffness_matrix(V, T), fem.mass_matrix(V, T)
+    return meshes, Ps, K, M
+
+
+def _dirichlet(cube, levels):
+    meshes, Ps, K, M = cube
+    V, T = meshes[0]
+    ds = fem.eliminate_dirichlet(K, fem.load_vector(M, 1.0), fem.boundary_nodes(T))
+    Pf, frees = restrict_prolongations(Ps[: levels - 1], ds.free)
+    return ds, Pf, frees
+
+
+def _factor(ml, b, cycle="V", tol=1e-11, **kw):
+    res = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        ml.solve(b, tol=tol, maxiter=60, cycle=cycle, residuals=res, **kw)
+    return convergence_factor(res, last=5), res
+
+
+def _random_rhs(n, seed=0):
+    return np.random.default_rng(seed).standard_normal(n)
+
+
+def test_galerkin_operators_symmetric_and_psd(cube):
+    meshes, Ps, K, M = cube
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    for k, L in enumerate(ml.levels[1:], start=1):
+        A = L.A
+        assert abs(A - A.T).max() == 0.0  # symmetrised exactly
+        ev = np.linalg.eigvalsh(A.toarray()) if A.shape[0] <= 800 else spla.eigsh(A, 2, sigma=-1e-3)[0]
+        assert ev.min() > -1e-10 * abs(A).max()
+        assert np.abs(A @ np.ones(A.shape[0])).max() < 1e-12  # constants preserved (rows of P sum to 1)
+    ds, Pf, _ = _dirichlet(cube, 4)
+    mld = MultigridSolver(ds.A, Pf)
+    for L in mld.levels[1:]:
+        if L.A.shape[0] <= 800:
+            assert np.linalg.eigvalsh(L.A.toarray()).min() > 0  # SPD after restriction
+
+
+def test_dirichlet_vcycle_factor_small_and_flat(cube):
+    factors = {}
+    for levels in (2, 3, 4):
+        ds, Pf, _ = _dirichlet(cube, levels)
+        ml = MultigridSolver(ds.A, Pf)
+        assert len(ml.levels) == levels
+        factors[levels], res = _factor(ml, _random_rhs(ds.A.shape[0]))
+        assert res[-1] < 1e-11
+    assert max(factors.values()) <= 0.3, factors
+    assert max(factors.values()) - min(factors.values()) <= 0.05, factors
+
+
+def test_dirichlet_solution_matches_direct(cube):
+    ds, Pf, _ = _dirichlet(cube, 4)
+    ml = MultigridSolver(ds.A, Pf)
+    x = ml.solve(ds.b, tol=1e-10)
+    xd = spla.spsolve(ds.A.tocsc(), ds.b)
+    assert np.abs(x - xd).max() < 1e-8 * np.abs(xd).max()
+
+
+def test_neumann_converges_with_zero_mean(cube):
+    meshes, Ps, K, M = cube
+    V = meshes[0][0]
+    f = np.cos(np.pi * V[:, 0]) * np.cos(2 * np.pi * V[:, 1])
+    b = fem.project_rhs(fem.load_vector(M, f))
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    res = []
+    x = ml.solve(b, tol=1e-9, residuals=res)
+    assert convergence_factor(res) < 0.7
+    assert res[-1] < 1e-8
+    assert np.linalg.norm(b - K @ x) / np.linalg.norm(b) < 1e-8
+    assert abs(x.mean()) < 1e-14
+    # same solution as a direct solve with the constant removed
+    keep = np.arange(1, len(V))
+    xd = np.zeros(len(V))
+    xd[keep] = spla.spsolve(K[keep][:, keep].tocsc(), b[keep])
+    xd -= xd.mean()
+    assert np.abs(x - xd).max() < 1e-7 * np.abs(xd).max()
+
+
+def test_incompatible_neumann_rhs_raises_or_projects(cube):
+    meshes, Ps, K, M = cube
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    b = fem.load_vector(M, 1.0)  # ∫1 ≠ 0: no solution
+    with pytest.raises(IncompatibleRHSError, match="incompatible"):
+        ml.solve(b)
+    x = ml.solve(b + 0.0, project=True, tol=1e-10)
+    assert np.linalg.norm(K @ x - fem.project_rhs(b)) < 1e-9 * np.linalg.norm(b)
+    assert isinstance(IncompatibleRHSError("x"), ValueError)
+
+
+@pytest.mark.parametrize("problem", ["dirichlet", "neumann"])
+def test_w_and_f_cycles_at_least_as_fast_as_v(cube, problem):
+    meshes, Ps, K, M = cube
+    if problem == "dirichlet":
+        ds, Pf, _ = _dirichlet(cube, 4)
+        ml, b = MultigridSolver(ds.A, Pf), _random_rhs(ds.A.shape[0], 1)
+    else:
+        ml = MultigridSolver(K, Ps, nullspace="constant")
+        b = fem.project_rhs(_random_rhs(K.shape[0], 1))
+    fv, _ = _factor(ml, b, "V")
+    fw, _ = _factor(ml, b, "W")
+    ff, _ = _factor(ml, b, "F")
+    # measured (4 levels): Dirichlet V 0.224, W 0.203, F 0.203; Neumann V 0.243, W 0.217, F 0.217
+    assert fw <= fv - 0.01 and ff <= fv - 0.01, (fv, fw, ff)
+    assert ml.cycle_complexity("V") < ml.cycle_complexity("F") < ml.cycle_complexity("W")
+
+
+@pytest.mark.parametrize("cycle, visits", [("V", [1, 1, 1]), ("W", [1, 2, 4]), ("F", [1, 2, 3])])
+def test_cycle_visits_each_level_as_documented(cube, cycle, visits):
+    """Count smoother calls per level in one cycle (5 levels: 4 smoothed + coarsest solve)."""
+    meshes, Ps = kuhn_cube_hierarchy(16, 5)
+    K = fem.stiffness_matrix(*meshes[0])
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    calls = np.zeros(len(ml.levels) - 1, dtype=int)
+    for k, L in enumerate(ml.levels[:-1]):
+        inner = L.presmoother.apply
+
+        def counted(A, x, b, k=k, inner=inner):
+            calls[k] += 1
+            inner(A, x, b)
+
+        L.presmoother.apply = counted
+    ml.aspreconditioner(cycle) @ fem.project_rhs(_random_rhs(K.shape[0]))
+    # levels 0..2 as listed; level 3 (next to the coarsest): V 1, W 8, F 4 (level 2's F visit
+    # calls F and V on level 3, each of its two V visits calls V once)
+    expected = visits + [{"V": 1, "W": 8, "F": 4}[cycle]]
+    np.testing.assert_array_equal(calls, expected)
+    np.testing.assert_array_equal(ml._visits(cycle)[:-1], expected)
+
+
+def test_pcg_iterations_independent_of_levels(cube):
+    its = {}
+    for levels in (2, 3, 4):
+        ds, Pf, _ = _dirichlet(cube, levels)
+        ml = MultigridSolver(ds.A, Pf)
+        x, info = ml.solve(ds.b, tol=1e-8, accel="cg", return_info=True)
+        assert info["converged"] and np.linalg.norm(ds.b - ds.A @ x) <= 1e-8 * np.linalg.norm(ds.b)
+        its[levels] = info["iterations"]
+    assert max(its.values()) - min(its.values()) <= 2, its
+    assert max(its.values()) <= 12, its
+
+
+def test_aspreconditioner_with_scipy_cg(cube):
+    ds, Pf, _ = _dirichlet(cube, 4)
+    ml = MultigridSolver(ds.A, Pf)
+    M = ml.aspreconditioner()
+    assert isinstance(M, spla.LinearOperator) and M.shape == ds.A.shape
+    counts = {"mg": 0, "none": 0}
+
+    def cb(key):
+        def f(xk):
+            counts[key] += 1
+        return f
+
+    x, info = spla.cg(ds.A, ds.b, M=M, rtol=1e-8, callback=cb("mg"))
+    assert info == 0 and np.linalg.norm(ds.b - ds.A @ x) <= 1e-8 * np.linalg.norm(ds.b)
+    spla.cg(ds.A, ds.b, rtol=1e-8, callback=cb("none"))
+    assert counts["mg"] <= 12 and counts["none"] > 4 * counts["mg"], counts
+    # the preconditioner is symmetric: <M u, v> = <u, M v>
+    rng = np.random.default_rng(3)
+    u, v = rng.standard_normal((2, ds.A.shape[0]))
+    assert abs((M @ u) @ v - u @ (M @ v)) < 1e-10 * abs(u @ (M @ v))
+
+
+@pytest.mark.parametrize("lam", [1e-3, 1e-2, 1e-1, 1.0, 10.0])
+def test_diffusion_converges_galerkin_and_rediscretised(cube, lam):
+    meshes, Ps, K, M = cube
+    A = fem.diffusion_matrix(K, M, lam)
+    coarse = [fem.diffusion_matrix(fem.stiffness_matrix(V, T), fem.mass_matrix(V, T), lam) for V, T in meshes[1:]]
+    b = M @ _random_rhs(K.shape[0], 2)
+    for ml in (MultigridSolver(A, Ps), MultigridSolver(A, Ps, coarse_operators=coarse)):
+        f, res = _factor(ml, b)
+        assert res[-1] < 1e-11 and f < 0.3, (lam, ml.coarse, f)
+
+
+def test_rediscretised_coarse_operators_converge(cube):
+    meshes, Ps, K, M = cube
+    Ks = [fem.stiffness_matrix(V, T) for V, T in meshes]
+    # Neumann: coarse stiffness matrices on the coarse Kuhn meshes
+    ml = MultigridSolver(K, Ps, coarse_operators=Ks[1:], nullspace="constant")
+    assert ml.coarse == "rediscretised"
+    f, res = _factor(ml, fem.project_rhs(_random_rhs(K.shape[0], 4)), tol=1e-10)
+    assert f < 0.7 and res[-1] < 1e-10
+    # Dirichlet: eliminate the boundary on every level, coarse interior nodes free
+    free = [np.setdiff1d(np.arange(len(V)), fem.boundary_nodes(T)) for V, T in meshes]
+    Pf, frees = restrict_prolongations(Ps, free[0], coarse_free=free[1:])
+    for fr, f_expected in zip(frees, free):
+        np.testing.assert_array_equal(fr, f_expected)
+    ml = MultigridSolver(Ks[0][free[0]][:, free[0]], Pf, coarse_operators=[k[f][:, f] for k, f in zip(Ks[1:], free[1:])])
+    f, res = _factor(ml, _random_rhs(free[0].size, 5))
+    assert f < 0.3 and res[-1] < 1e-11
+
+
+def test_nan_raises_divergence_error_naming_cycle_and_level(cube):
+    ds, Pf, _ = _dirichlet(cube, 3)
+    for accel in (None, "cg"):
+        ml = MultigridSolver(ds.A, Pf)
+        ml.levels[1].A.data[7] = np.nan  # corrupt the level-1 operator after setup
+        with pytest.raises(DivergenceError, match="level 1") as ei:
+            ml.solve(ds.b, accel=accel)
+        assert ei.value.level == 1 and ei.value.cycle == 1
+
+
+def test_growing_residual_raises_divergence_error(cube):
+    ds, Pf, _ = _dirichlet(cube, 3)
+    g = MultigridSolver(ds.A, Pf)
+    # coarse operators 0.3x too weak: the coarse correction overshoots ~3x, the cycle diverges
+    bad = MultigridSolver(ds.A, Pf, coarse_operators=[0.3 * L.A for L in g.levels[1:]])
+    with pytest.raises(DivergenceError, match="diverges") as ei:
+        bad.solve(ds.b, maxiter=200)
+    assert 2 <= ei.value.cycle < 200 and ei.value.residuals[-1] > 1e5
+
+
+def test_bad_inputs(cube):
+    meshes, Ps, K, M = cube
+    ds, Pf, _ = _dirichlet(cube, 3)
+    with pytest.raises(SolverInputError, match="rows"):
+        MultigridSolver(ds.A, Ps[:1])  # unrestricted P: wrong number of rows
+    with pytest.raises(SolverInputError, match="coarse_operators"):
+        MultigridSolver(ds.A, Pf, coarse_operators=[ds.A])
+    with pytest.raises(SolverInputError, match="sum"):
+        MultigridSolver(K, [0.9 * Ps[0]], nullspace="constant")
+    with pytest.raises(SolverError, match="constants"):
+        MultigridSolver(K, Ps[:1], coarse_operators=[fem.mass_matrix(*meshes[1])], nullspace="constant")
+    with pytest.raises(SolverInputError, match="NaN"):
+        MultigridSolver(ds.A, Pf).solve(np.full(ds.A.shape[0], np.nan))
+    with pytest.raises(SolverInputError, match="shape"):
+        MultigridSolver(ds.A, Pf).solve(np.ones(3))
+    with pytest.raises(SolverInputError, match="cycle"):
+        MultigridSolver(ds.A, Pf).solve(ds.b, cycle="X")
+    with pytest.raises(SolverInputError, match="smoother"):
+        MultigridSolver(ds.A, Pf, presmoother="ilu")
+
+
+def test_keeping_every_coarse_node_is_caught(cube):
+    """Restricting only the fine rows leaves cube corners with empty coarse rows: clear error."""
+    ds, _, _ = _dirichlet(cube, 2)
+    meshes, Ps, K, M = cube
+    with pytest.raises(SolverError, match="restrict_prolongations"):
+        MultigridSolver(ds.A, [Ps[0][ds.free]])
+
+
+def test_inputs_untouched_and_x0(cube):
+    ds, Pf, _ = _dirichlet(cube, 3)
+    A0, P0, b0 = ds.A.copy(), Pf[0].copy(), ds.b.copy()
+    ml = MultigridSolver(ds.A, Pf)
+    x0 = np.ones(ds.A.shape[0])
+    x = ml.solve(ds.b, x0=x0, tol=1e-9)
+    assert np.array_equal(x0, np.ones_like(x0)) and np.array_equal(ds.b, b0)
+    assert abs(ds.A - A0).max() == 0 and abs(Pf[0] - P0).max() == 0
+    res = []
+    ml.solve(ds.b, x0=x, residuals=res, tol=1e-9)
+    assert len(res) <= 2  # already converged from the previous solution
+
+
+def test_maxiter_warns(cube):
+    ds, Pf, _ = _dirichlet(cube, 3)
+    ml = MultigridSolver(ds.A, Pf)
+    with pytest.warns(ConvergenceWarning):
+        x, info = ml.solve(ds.b, tol=1e-14, maxiter=2, return_info=True)
+    assert info["iterations"] == 2 and not info["converged"]
+
+
+def test_single_level_is_a_direct_solve(cube):
+    ds, _, _ = _dirichlet(cube, 2)
+    ml = MultigridSolver(ds.A, [])
+    res = []
+    x = ml.solve(ds.b, residuals=res)
+    assert len(res) == 2 and res[-1] < 1e-13
+    meshes, Ps, K, M = cube
+    mln = MultigridSolver(K, [], nullspace="constant")
+    b = fem.project_rhs(_random_rhs(K.shape[0]))
+    x = mln.solve(b)
+    assert np.linalg.norm(K @ x - b) < 1e-10 * np.linalg.norm(b) and abs(x.mean()) < 1e-14
+
+
+def test_complexities_and_repr(cube):
+    ds, Pf, _ = _dirichlet(cube, 4)
+    ml = MultigridSolver(ds.A, Pf)
+    nnz = [L.A.nnz for L in ml.levels]
+    assert ml.operator_complexity() == pytest.approx(sum(nnz) / nnz[0])
+    assert 1.0 < ml.operator_complexity() < 1.4
+    # V(1,1) with symmetric GS: 2+2 sweeps + residual ≈ 5 SpMV on level 0, plus coarser levels and P's
+    assert 5.0 < ml.cycle_complexity("V") < 9.0
+    r = repr(ml)
+    assert "Number of levels:    4" in r and f"{ml.levels[0].A.shape[0]:10d}" in r and "nnz(P)" in r
+
+
+def test_forward_gauss_seidel_gets_adjoint_postsmoother(cube):
+    ds, Pf, _ = _dirichlet(cube, 3)
+    ml = MultigridSolver(ds.A, Pf, presmoother="gauss_seidel")
+    assert ml.levels[0].postsmoother.params["sweep"] == "backward" and ml.symmetric_cycle
+    x, info = ml.solve(ds.b, accel="cg", return_info=True)
+    assert info["converged"] and info["iterations"] <= 15
+    nonsym = MultigridSolver(ds.A, Pf, presmoother="gauss_seidel", postsmoother="gauss_seidel")
+    assert not nonsym.symmetric_cycle
+    with pytest.warns(UserWarning, match="non-symmetric"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            nonsym.solve(ds.b, accel="cg", maxiter=5)
+
+
+def test_restrict_prolongations_support_rule(cube):
+    meshes, Ps, K, M = cube
+    ds, Pf, frees = _dirichlet(cube, 4)
+    for k, P in enumerate(Pf):
+        assert P.shape == (frees[k].size, frees[k + 1].size)
+        assert np.all(np.diff(P.tocsc().indptr) > 0)  # every kept coarse node touches a free fine node
+    # dropped coarse nodes really have no support on free fine nodes
+    dropped = np.setdiff1d(np.arange(Ps[0].shape[1]), frees[1])
+    assert dropped.size > 0 and Ps[0][ds.free][:, dropped].nnz == 0
+    with pytest.raises(SolverInputError):
+        restrict_prolongations(Ps, ds.free, coarse_free=[frees[1]])
+
+
+def test_convergence_factor_helper():
+    r = [1.0 * 0.5**k for k in range(10)]
+    assert convergence_factor(r) == pytest.approx(0.5)
+    assert convergence_factor([1.0, 0.1, 0.01, 1e-17, 1e-18]) == pytest.approx(0.1)  # round-off tail ignored
+    assert np.isnan(convergence_factor([1.0]))
+
+
+def test_docstring_examples():
+    failures, tests = doctest.testmod(solvers.multilevel, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert tests >= 4 and failures == 0

@@ -80,7 +80,8 @@ class PairReport:
     n_intersecting_pairs : int
         Intersecting or touching (fine face, coarse face) pairs, exact.
     min_gap : float
-        Smallest vertex-to-surface distance between the two surfaces (both directions).
+        Smallest vertex-to-surface distance between the two surfaces (both directions); 0 when they
+        intersect or touch.
     min_gap_rel : float
         ``min_gap`` divided by the bounding-box diagonal of layer 0.
     self_intersections_fine, self_intersections_coarse : int or None
@@ -264,9 +265,12 @@ def _check_pair(i: int, f: _Layer, c: _Layer, diag: float, min_gap: float, exact
         p.n_outside_vertices = int(np.count_nonzero(w_f < WINDING_THRESHOLD))
         p.n_coarse_inside_vertices = int(np.count_nonzero(w_c >= WINDING_THRESHOLD))
         p.n_intersecting_pairs = int(len(cross_intersection_pairs(f.V, f.F, c.V, c.F)))
-        d_fc = igl.point_mesh_squared_distance(f.V, c.V, c.F)[0].min()
-        d_cf = igl.point_mesh_squared_distance(c.V, f.V, f.F)[0].min()
-        p.min_gap = float(np.sqrt(max(min(d_fc, d_cf), 0.0)))
+        if p.n_intersecting_pairs:
+            p.min_gap = 0.0  # crossing or touching surfaces are at distance 0
+        else:
+            d_fc = igl.point_mesh_squared_distance(f.V, c.V, c.F)[0].min()
+            d_cf = igl.point_mesh_squared_distance(c.V, f.V, f.F)[0].min()
+            p.min_gap = float(np.sqrt(max(min(d_fc, d_cf), 0.0)))
         p.min_gap_rel = p.min_gap / diag if diag > 0 else float("nan")
         if p.n_intersecting_pairs:
             cross.append(

@@ -69,6 +69,7 @@ def test_poking_layer_is_rejected(fine):
     p = rep.pairs[0]
     assert p.n_intersecting_pairs > 0
     assert p.n_outside_vertices > 0 and p.min_winding < 0.1
+    assert p.min_gap == 0.0  # crossing surfaces are at distance 0
     err = _fail(rep, 1, "intersects layer 0", "does not contain layer 0")
     assert "intersecting" in err.reason
 

@@ -100,7 +100,7 @@ def main() -> dict:
         },
         "crossing_pair": {
             "cgal_intersect_other": t_cross_c,
-            "cgal_pairs_found": int(len(out_c[0])),
+            "cgal_pairs_found": len(out_c[0]),
             "ipctk_has_intersections_combined": best_of(lambda: ipc_self(V3, F2), r)[0],
         },
     }
@@ -116,7 +116,7 @@ def main() -> dict:
         vals = list(parts.values()) + [t_exact, t_fast]
         fig, ax = plt.subplots(figsize=(7, 3.2))
         ax.barh(labels, vals, color="tab:blue")
-        ax.set_xlabel("seconds (best of %d)" % r)
+        ax.set_xlabel(f"seconds (best of {r})")
         ax.set_title(f"verify_nesting on {len(Ff)} / {len(Fc)} faces")
         fig.tight_layout()
         fig.savefig(Path(__file__).with_suffix(".png"), dpi=120)

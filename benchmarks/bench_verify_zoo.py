@@ -59,7 +59,7 @@ def main() -> dict:
         path = next(ZOO.glob(f"{name}.*"))
         V, F = igl.read_triangle_mesh(str(path))
         F = F.astype(np.int64)
-        res: dict = {"faces": int(len(F))}
+        res: dict = {"faces": len(F)}
         hierarchies = {}
         if nested_cages is not None:
             t = time.perf_counter()

@@ -14,7 +14,7 @@ from __future__ import annotations
 import inspect
 import sys
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from . import errors
 from ._geometry import as_mesh_arrays
@@ -25,25 +25,25 @@ from .sizes import check_face_counts, default_face_counts
 from .verify import NestingReport, PairReport, verify_nesting
 
 __all__ = [
-    "build_cages",
-    "verify_nesting",
+    "UNCERTIFIED_METHODS",
+    "BackendUnavailableError",
+    "CageError",
+    "LevelsError",
+    "MeshAudit",
+    "MeshInputError",
     "NestingReport",
+    "NestmgError",
     "PairReport",
     "audit_mesh",
-    "check_mesh",
-    "repair_mesh",
-    "MeshAudit",
-    "default_face_counts",
-    "check_face_counts",
-    "register_backend",
     "available_backends",
+    "build_cages",
+    "check_face_counts",
+    "check_mesh",
+    "default_face_counts",
     "errors",
-    "NestmgError",
-    "MeshInputError",
-    "CageError",
-    "BackendUnavailableError",
-    "LevelsError",
-    "UNCERTIFIED_METHODS",
+    "register_backend",
+    "repair_mesh",
+    "verify_nesting",
 ]
 
 #: Methods whose layers are not expected to nest (baselines): reported, not gated.

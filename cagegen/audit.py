@@ -319,7 +319,7 @@ def audit_mesh(
         a.skipped.append("self-intersections (non-finite coordinates or degenerate faces)")
     else:
         pairs = self_intersection_pairs(V, F)
-        a.n_self_intersections = int(len(pairs))
+        a.n_self_intersections = len(pairs)
         if len(pairs):
             P.append(
                 f"self-intersections: {len(pairs)} intersecting face pairs (first: {pairs[0].tolist()})"

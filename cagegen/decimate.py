@@ -18,14 +18,14 @@ other decimator is tried, then both again with libigl's intersection-blocking co
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from ._geometry import edge_stats, self_intersection_pairs, signed_volume
 from .errors import CageError
 
-__all__ = ["decimate_surface", "decimate_backend"]
+__all__ = ["decimate_backend", "decimate_surface"]
 
 _ALGORITHMS = ("qslim", "decimate")
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import LevelsError
 
-__all__ = ["default_face_counts", "check_face_counts"]
+__all__ = ["check_face_counts", "default_face_counts"]
 
 MIN_FACES = 100
 

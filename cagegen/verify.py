@@ -185,8 +185,8 @@ class NestingReport:
             f"{'pair':>6} {'faces':>13} {'min_w':>7} {'out':>6} {'c_in':>5} {'cross':>6} "
             f"{'self f/c':>9} {'gap_rel':>9} {'sec':>6}  ok"
         )
-        rows = [f"NestingReport: {'nested' if self.ok else 'NOT nested'} ({len(self.pairs)} pairs, "
-                f"{self.seconds:.2f} s)", hdr]
+        title = f"NestingReport: {'nested' if self.ok else 'NOT nested'} ({len(self.pairs)} pairs, {self.seconds:.2f} s)"
+        rows = [title, hdr]
         for p in self.pairs:
             sf = "-" if p.self_intersections_fine is None else str(p.self_intersections_fine)
             sc = "-" if p.self_intersections_coarse is None else str(p.self_intersections_coarse)
@@ -221,7 +221,7 @@ def _prepare(i: int, V, F, check_self: bool) -> _Layer:
     vol = signed_volume(V, F) if finite else float("nan")
     self_pairs = None
     if check_self and finite:
-        self_pairs = int(len(self_intersection_pairs(V, F)))
+        self_pairs = len(self_intersection_pairs(V, F))
     return _Layer(V, F, finite, es.n_boundary_edges, es.n_nonmanifold_edges, vol, self_pairs)
 
 
@@ -264,7 +264,7 @@ def _check_pair(i: int, f: _Layer, c: _Layer, diag: float, min_gap: float, exact
         p.min_winding = float(w_f.min())
         p.n_outside_vertices = int(np.count_nonzero(w_f < WINDING_THRESHOLD))
         p.n_coarse_inside_vertices = int(np.count_nonzero(w_c >= WINDING_THRESHOLD))
-        p.n_intersecting_pairs = int(len(cross_intersection_pairs(f.V, f.F, c.V, c.F)))
+        p.n_intersecting_pairs = len(cross_intersection_pairs(f.V, f.F, c.V, c.F))
         if p.n_intersecting_pairs:
             p.min_gap = 0.0  # crossing or touching surfaces are at distance 0
         else:

@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import contextlib
 import time
+import warnings
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from .errors import IncompatibleRHSError, SolverError, SolverInputError
-from .multilevel import convergence_factor
+from .multilevel import ConvergenceWarning, convergence_factor
 
 __all__ = [
     "PetscUnavailableError",
@@ -107,6 +108,12 @@ def _check_hierarchy(A, Ps, coarse_ops) -> tuple[sp.csr_matrix, list[sp.csr_matr
             raise SolverInputError(f"Ps[{k}] has shape {P.shape}; expected {sizes[-1]} rows (level {k} size)")
         if not 0 < P.shape[1] < P.shape[0]:
             raise SolverInputError(f"Ps[{k}] has shape {P.shape}: a coarse level must have 1..n_{k}-1 nodes")
+        empty = np.flatnonzero(np.diff(sp.csc_matrix(P).indptr) == 0)
+        if empty.size:
+            raise SolverInputError(
+                f"Ps[{k}] has {empty.size} all-zero columns (first {empty[0]}): those coarse nodes would get a "
+                "zero row in P^T A P; drop them (solvers.restrict_prolongations does)"
+            )
         sizes.append(P.shape[1])
         out.append(P)
     ops = None
@@ -115,6 +122,20 @@ def _check_hierarchy(A, Ps, coarse_ops) -> tuple[sp.csr_matrix, list[sp.csr_matr
             raise SolverInputError(f"coarse_ops needs {len(out)} matrices (levels 1..), got {len(coarse_ops)}")
         ops = [_as_csr(Ac, f"coarse_ops[{k}]", (sizes[k + 1], sizes[k + 1])) for k, Ac in enumerate(coarse_ops)]
     return A, out, ops
+
+
+def _check_diagonal(M: sp.csr_matrix, name: str) -> None:
+    """SOR/Jacobi/Chebyshev smoothing divides by the diagonal: refuse it here, not deep inside PETSc.
+
+    (An error raised inside PETSc's KSPSolve leaves Debian's PETSc 3.18 in a state that crashes at exit.)
+    """
+    d = M.diagonal()
+    bad = np.flatnonzero(~(d > 0))
+    if bad.size:
+        raise SolverInputError(
+            f"{name} has {bad.size} non-positive diagonal entries (first at row {bad[0]}: {d[bad[0]]:g}); "
+            "the smoothers need a positive diagonal (an SPD operator)"
+        )
 
 
 def _check_vector(b, n: int, name: str = "b") -> np.ndarray:
@@ -419,6 +440,9 @@ class PetscMultigrid:
         A, Ps, coarse_ops = _check_hierarchy(A, Ps, coarse_ops)
         if not galerkin and Ps and coarse_ops is None:
             raise SolverInputError("galerkin=False needs coarse_ops=[A_1, ..., A_L]")
+        _check_diagonal(A, "A")
+        for k, Ac in enumerate(coarse_ops or []):
+            _check_diagonal(Ac, f"coarse_ops[{k}]")
         self.comm = PETSc.COMM_WORLD if comm is None else comm
         self.comm_size = self.comm.getSize()
         self.cycle, self.smoother, self.krylov = cycle, smoother, krylov
@@ -499,7 +523,10 @@ class PetscMultigrid:
                     # visit of a W-cycle they must start from the current iterate, or W == V.
                     down.setInitialGuessNonzero(True)
             self._setup_coarse(pc.getMGCoarseSolve() if nlev > 1 else None, ksp)
-            ksp.setUp()
+            try:
+                ksp.setUp()
+            except PETSc.Error as e:
+                raise SolverError(f"PETSc PCMG setup failed: {_petsc_message(e)}") from None
         self.ksp = ksp
         self.levels = []
         for lev in range(nlev - 1, -1, -1):
@@ -641,7 +668,10 @@ class PetscMultigrid:
             xv.set(0.0)
             hist, reason, its = [0.0], "CONVERGED_ATOL", 0
         else:
-            ksp.solve(bv, xv)
+            try:
+                ksp.solve(bv, xv)
+            except PETSc.Error as e:
+                raise SolverError(f"PETSc KSPSolve failed: {_petsc_message(e)}") from None
             hist = _history(ksp, normb)
             its = ksp.getIterationNumber()
             code = ksp.getConvergedReason()
@@ -656,9 +686,7 @@ class PetscMultigrid:
         final = float(rv.norm()) / normb if normb > 0 else 0.0
         for v in (xv, bv, rv):
             v.destroy()
-        if reason.startswith("DIVERGED") and reason != "DIVERGED_ITS":
-            raise SolverError(f"PETSc KSP {self.krylov}+PCMG failed: {reason} after {its} iterations "
-                              f"(relative residual {hist[-1]:.3e})")
+        _check_reason(reason, its, hist, f"PETSc KSP {self.krylov}+PCMG", tol)
         return x, {
             "iterations": int(its),
             "converged": reason.startswith("CONVERGED"),
@@ -685,13 +713,31 @@ class PetscMultigrid:
         self.destroy()
 
 
+def _check_reason(reason: str, its: int, hist: list[float], what: str, tol: float) -> None:
+    """Raise on breakdown/divergence; warn (as the in-process solver does) when maxiter was reached."""
+    if reason == "DIVERGED_ITS":
+        warnings.warn(f"{what} stopped after {its} iterations at relative residual {hist[-1]:.3e} > tol={tol:g}",
+                      ConvergenceWarning, stacklevel=3)
+    elif reason.startswith("DIVERGED"):
+        raise SolverError(f"{what} failed: {reason} after {its} iterations (relative residual {hist[-1]:.3e})")
+
+
+def _petsc_message(err) -> str:
+    """The last lines of PETSc's error traceback (the message proper) on one line."""
+    lines = [ln.split("] ", 1)[-1] for ln in str(err).splitlines() if ln.strip()]
+    return " / ".join(lines[-2:]) if lines else repr(err)
+
+
 def _noop_monitor(ksp, its, rnorm) -> None:
     """Empty KSP monitor (see PetscMultigrid: keeps KSPRICHARDSON on its generic, history-logging path)."""
 
 
 def _reason_name(PETSc, code: int) -> str:
+    """KSPConvergedReason as PETSc prints it with -ksp_converged_reason (e.g. "DIVERGED_ITS")."""
+    if code == PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT:
+        return "DIVERGED_ITS"
     for name, val in vars(PETSc.KSP.ConvergedReason).items():
-        if not name.startswith("_") and val == code and name not in ("ITERATING",):
+        if not name.startswith("_") and val == code and name != "ITERATING":
             return name
     return f"REASON_{code}"
 
@@ -783,7 +829,10 @@ def petsc_amg_solve(
     ksp.setTolerances(rtol=tol, atol=1e-300, max_it=maxiter)
     with _options(PETSc, prefix, dict(options or {})):
         ksp.setFromOptions()
-        ksp.setUp()
+        try:
+            ksp.setUp()
+        except PETSc.Error as e:
+            raise SolverError(f"PETSc {kind} setup failed: {_petsc_message(e)}") from None
     setup_seconds = _barrier_time(comm) - t0
     rows = lay.local_rows(comm.getRank())
     xv, bv = Ap.createVecs()
@@ -793,7 +842,10 @@ def petsc_amg_solve(
     ksp.setConvergenceHistory(length=maxiter + 1, reset=True)
     t0 = _barrier_time(comm)
     if normb > 0:
-        ksp.solve(bv, xv)
+        try:
+            ksp.solve(bv, xv)
+        except PETSc.Error as e:
+            raise SolverError(f"PETSc KSPSolve (CG+{kind}) failed: {_petsc_message(e)}") from None
         hist = _history(ksp, normb)
         its = ksp.getIterationNumber()
         reason = _reason_name(PETSc, ksp.getConvergedReason())
@@ -809,8 +861,7 @@ def petsc_amg_solve(
     final = float(rv.norm()) / normb if normb > 0 else 0.0
     for obj in (xv, bv, rv, ksp, Ap) + ((ns,) if ns is not None else ()):
         obj.destroy()
-    if reason.startswith("DIVERGED") and reason != "DIVERGED_ITS":
-        raise SolverError(f"PETSc CG+{kind} failed: {reason} after {its} iterations")
+    _check_reason(reason, its, hist, f"PETSc CG+{kind}", tol)
     return x, {
         "kind": kind,
         "iterations": int(its),

@@ -131,7 +131,7 @@ def tet_hierarchy(
     surfaces: list[tuple[np.ndarray, np.ndarray]],
     *,
     mesher: str = "tetwild",
-    edge_length_fac: float = 0.05,
+    edge_length_fac: float | None = None,
     epsilon: float = 1e-3,
     extrapolation: str = "clamped",
     tet_retries: int = 2,
@@ -144,9 +144,12 @@ def tet_hierarchy(
     ----------
     surfaces : list of (V, F)
         Closed surfaces, finest first (each coarser one meant to contain the previous).
-    mesher, edge_length_fac, epsilon
-        See :func:`nestmg.tetmesh.tetrahedralize`; layer ``k`` gets edge length
-        ``edge_length_fac * diag(surfaces[0]) * 2**k``.
+    mesher, epsilon
+        See :func:`nestmg.tetmesh.tetrahedralize`.
+    edge_length_fac : float, optional
+        Layer ``k`` gets target edge length ``h_0 * 2**k`` with ``h_0 = edge_length_fac *
+        diag(surfaces[0])``; default (None): ``h_0`` = mean edge length of the input surface, so the
+        fine tets match the input's resolution.
     extrapolation : str
         Rule for fine nodes outside the coarse tet mesh (see :mod:`nestmg.prolongation`).
     tet_retries : int
@@ -166,7 +169,11 @@ def tet_hierarchy(
         ``tets`` and ``prolongation`` seconds, and ``tet_retries`` per level.
     """
     timer = Timer()
-    h0 = edge_length_fac * _bbox_diag(surfaces[0][0])
+    V0, F0 = surfaces[0]
+    if edge_length_fac is None:  # match the input surface's resolution
+        h0 = float(np.linalg.norm(V0[F0[:, 1]] - V0[F0[:, 0]], axis=1).mean())
+    else:
+        h0 = edge_length_fac * _bbox_diag(V0)
     tets: list = []
     eps = [epsilon] * len(surfaces)
     retries = [0] * len(surfaces)
@@ -203,7 +210,7 @@ def build_hierarchy(
     method: str = "nested",
     face_counts: list[int] | None = None,
     mesher: str = "tetwild",
-    edge_length_fac: float = 0.05,
+    edge_length_fac: float | None = None,
     epsilon: float = 1e-3,
     extrapolation: str = "clamped",
     tet_retries: int | None = None,

@@ -1,0 +1,266 @@
+"""Command line: ``nestmg demo | cages | solve | compare``.
+
+MESH arguments are a file (OBJ/OFF/PLY/STL) or ``shape:NAME`` for a built-in procedural shape
+(``sphere``, ``torus``, ``genus2``, ``neck_blobs``, ``thin_plate``). Inputs are normalised to a unit
+bounding-box diagonal before any work; outputs are written atomically and never over the input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cagegen.errors import NestmgError
+
+from .cache import atomic_write_bytes
+
+__all__ = ["main"]
+
+
+def _load(mesh: str) -> tuple[np.ndarray, np.ndarray, str]:
+    from .io import load_mesh, normalize
+    from .shapes import SHAPES
+
+    if mesh.startswith("shape:"):
+        name = mesh.split(":", 1)[1]
+        if name not in SHAPES:
+            raise NestmgError(f"unknown built-in shape {name!r}; choose from {sorted(SHAPES)}")
+        V, F = SHAPES[name](res=24)
+    else:
+        V, F = load_mesh(mesh)
+        name = Path(mesh).stem
+    Vn, _, _ = normalize(V)
+    return Vn, F, name
+
+
+def _write_json(path: str | Path, obj: Any) -> None:
+    atomic_write_bytes(Path(path), json.dumps(obj, indent=1, default=_json_default).encode())
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def _hierarchy(V, F, args, method=None):
+    from .hierarchy import build_hierarchy
+
+    return build_hierarchy(
+        V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
+        mesher=args.mesher, edge_length_fac=args.edge_length, epsilon=args.epsilon,
+        extrapolation=args.extrapolation, cache=not args.no_cache, progress=None if args.quiet is False else False,
+    )
+
+
+def _solve(h, args) -> dict:
+    from .run import solve_on_hierarchy
+
+    return solve_on_hierarchy(
+        h.tets, h.P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
+        accel=args.accel, tol=args.tol, maxiter=args.maxiter, lam=args.lam,
+    )
+
+
+def _print_solve(label: str, h, r: dict) -> None:
+    status = "DIVERGED" if r["diverged"] else ("converged" if r["converged"] else "not converged")
+    print(f"{label:<10} levels={h.levels} tets={[len(T) for _, T in h.tets]} n_outside={h.n_outside} "
+          f"certified={h.certified}")
+    print(f"{'':<10} {r['problem']} ({r['coarse']}, {r['smoother']} V({r['nu']},{r['nu']})): factor "
+          f"{r['factor']:.3f}, {r['iterations']} cycles, {status}, final residual {r['residuals'][-1]:.2e}")
+
+
+def _png_layers(h, path, title):
+    from .render import render_layers
+
+    render_layers(h.surfaces, path, title=title)
+
+
+def cmd_demo(args) -> int:
+    from .render import plot_convergence
+
+    V, F, name = _load(f"shape:{args.shape}")
+    out = Path(args.out)
+    print(f"nestmg demo: {args.shape} ({len(F)} faces), {args.levels} levels, cages by {args.method!r}")
+    h = _hierarchy(V, F, args)
+    print(repr(h))
+    results = {}
+    for problem in ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann"):
+        args.problem = problem
+        r = _solve(h, args)
+        results[problem] = r
+        _print_solve(args.method, h, r)
+    _write_json(out / "report.json", {"shape": args.shape, "hierarchy": h.to_dict(), "solves": results})
+    if not args.no_png:
+        _png_layers(h, out / "layers.png", f"{args.shape}: {args.method} cages")
+        plot_convergence({p: r["residuals"] for p, r in results.items()}, out / "convergence.png",
+                         title=f"{args.shape}, {h.levels} levels, {args.method} cages, V({args.nu},{args.nu})")
+    print(f"wrote {out / 'report.json'}" + ("" if args.no_png else f", {out / 'layers.png'}, {out / 'convergence.png'}"))
+    return 0
+
+
+def cmd_cages(args) -> int:
+    from .io import save_mesh
+
+    import cagegen
+
+    V, F, name = _load(args.mesh)
+    out = Path(args.out)
+    layers, info = cagegen.build_cages(
+        V, F, args.levels, method=args.method, face_counts=args.face_counts, return_info=True,
+        progress=None if args.quiet is False else False,
+    )
+    for k, (Vk, Fk) in enumerate(layers):
+        save_mesh(out / f"layer_{k}.obj", Vk, Fk)
+    _write_json(out / "report.json", {"mesh": args.mesh, "method": args.method,
+                                      "faces": [int(len(Fk)) for _, Fk in layers], **info})
+    ver = info.get("verification", {})
+    print(f"{name}: {len(layers)} layers {[len(Fk) for _, Fk in layers]} faces; verifier ok={ver.get('ok')}")
+    if args.png:
+        from .render import render_layers
+
+        render_layers(layers, out / "layers.png", title=f"{name}: {args.method}")
+    print(f"wrote {out}/layer_*.obj and report.json")
+    return 0
+
+
+def cmd_solve(args) -> int:
+    from .render import plot_convergence
+
+    V, F, name = _load(args.mesh)
+    h = _hierarchy(V, F, args)
+    r = _solve(h, args)
+    _print_solve(args.method, h, r)
+    report = {"mesh": args.mesh, "hierarchy": h.to_dict(), "solve": r}
+    if args.json:
+        _write_json(args.json, report)
+    if args.png:
+        png = Path(args.png)
+        _png_layers(h, png / "layers.png", f"{name}: {args.method}")
+        plot_convergence({args.method: r["residuals"]}, png / "convergence.png", title=f"{name}: {args.problem}")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from .render import plot_convergence
+
+    V, F, name = _load(args.mesh)
+    report: dict[str, Any] = {"mesh": args.mesh, "problem": args.problem, "methods": {}}
+    hists = {}
+    for m in args.methods:
+        h = _hierarchy(V, F, args, method=m)
+        r = _solve(h, args)
+        _print_solve(m, h, r)
+        report["methods"][m] = {"hierarchy": h.to_dict(), "solve": r}
+        hists[f"{m} ({r['factor']:.2f}/cycle)"] = r["residuals"]
+        if args.png:
+            _png_layers(h, Path(args.png) / f"layers_{m}.png", f"{name}: {m}")
+    if args.json:
+        _write_json(args.json, report)
+    if args.png:
+        plot_convergence(hists, Path(args.png) / "convergence.png",
+                         title=f"{name}: {args.problem}, {args.coarse} coarse operators")
+    return 0
+
+
+def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
+    g = p.add_argument_group("hierarchy")
+    g.add_argument("--levels", type=int, default=levels, help="levels incl. the input (default %(default)s)")
+    g.add_argument("--face-counts", type=int, nargs="+", default=None, help="cage face counts, finest first")
+    g.add_argument("--mesher", choices=["tetwild", "tetgen"], default="tetwild")
+    g.add_argument("--edge-length", type=float, default=None,
+                   help="fine tet edge length / bbox diagonal, doubling per level (default: the input's mean edge)")
+    g.add_argument("--epsilon", type=float, default=1e-3, help="TetWild envelope / bbox diagonal")
+    g.add_argument("--extrapolation", choices=["clamped", "linear", "closest_point", "nearest_vertex"],
+                   default="clamped", help="rule for fine nodes outside the coarse tets")
+    g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")
+    g.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _solver_opts(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("solver")
+    g.add_argument("--coarse", choices=["galerkin", "rediscretized"], default="galerkin")
+    g.add_argument("--smoother", default="symmetric_gauss_seidel",
+                   help="symmetric_gauss_seidel | gauss_seidel | jacobi | chebyshev")
+    g.add_argument("--nu", type=int, default=1, help="pre/post smoothing sweeps")
+    g.add_argument("--cycle", choices=["V", "W", "F"], default="V")
+    g.add_argument("--accel", choices=["cg"], default=None, help="use MG-preconditioned CG")
+    g.add_argument("--tol", type=float, default=1e-8)
+    g.add_argument("--maxiter", type=int, default=60)
+    g.add_argument("--lam", type=float, default=1e-2, help="λ of diffusion-neumann")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``nestmg`` argument parser."""
+    p = argparse.ArgumentParser(prog="nestmg", description="Geometric multigrid on nested cages.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="hierarchy + three solves on a built-in shape, with pictures")
+    d.add_argument("--shape", default="torus", choices=["sphere", "torus", "genus2", "neck_blobs", "thin_plate"])
+    d.add_argument("--method", default="nested")
+    d.add_argument("--out", default="nestmg-demo")
+    d.add_argument("--no-png", action="store_true")
+    _common(d)
+    _solver_opts(d)
+    d.set_defaults(func=cmd_demo)
+
+    c = sub.add_parser("cages", help="build and certify a cage hierarchy")
+    c.add_argument("mesh")
+    c.add_argument("--method", default="nested")
+    c.add_argument("--out", required=True)
+    c.add_argument("--png", action="store_true", help="render the layers to OUT/layers.png")
+    _common(c)
+    c.set_defaults(func=cmd_cages)
+
+    s = sub.add_parser("solve", help="solve a model problem by multigrid on a hierarchy")
+    s.add_argument("mesh")
+    s.add_argument("--problem", default="poisson-dirichlet",
+                   choices=["poisson-dirichlet", "poisson-neumann", "diffusion-neumann"])
+    s.add_argument("--method", default="nested")
+    s.add_argument("--json", default=None, help="write the report here")
+    s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")
+    _common(s)
+    _solver_opts(s)
+    s.set_defaults(func=cmd_solve)
+
+    m = sub.add_parser("compare", help="the same problem on hierarchies of several cage methods")
+    m.add_argument("mesh")
+    m.add_argument("--methods", nargs="+", default=["nested", "decimate"])
+    m.add_argument("--problem", default="poisson-neumann",
+                   choices=["poisson-dirichlet", "poisson-neumann", "diffusion-neumann"])
+    m.add_argument("--json", default=None)
+    m.add_argument("--png", default=None, help="folder for the pictures")
+    _common(m)
+    _solver_opts(m)
+    m.set_defaults(func=cmd_compare)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``nestmg`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except NestmgError as exc:
+        print(f"nestmg: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # solver errors carry their own messages
+        from solvers.errors import SolverError
+
+        if isinstance(exc, SolverError):
+            print(f"nestmg: solver error: {exc}", file=sys.stderr)
+            return 3
+        raise
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

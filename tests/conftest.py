@@ -1,0 +1,29 @@
+"""Shared fixtures: procedural shapes and hierarchies (no files from outside the repository)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def _isolated_cache(tmp_path_factory, monkeypatch):
+    """Every test session writes its cache entries into a temporary folder."""
+    monkeypatch.setenv("NESTMG_CACHE", str(tmp_path_factory.getbasetemp() / "nestmg-cache"))
+
+
+@pytest.fixture(scope="session")
+def rng():
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def torus_iso_tets():
+    """A procedurally nested 4-level torus hierarchy (iso-surfaces at growing offsets), meshed by TetGen."""
+    pytest.importorskip("tetgen")
+    from nestmg import shapes
+    from nestmg.hierarchy import tet_hierarchy
+
+    S = shapes.nested_isosurfaces("torus", [0.0, 0.06, 0.15, 0.35], [40, 24, 14, 8])
+    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", edge_length_fac=0.03, cache=False, progress=False)
+    return S, tets, P, reps

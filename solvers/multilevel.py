@@ -368,7 +368,10 @@ class MultigridSolver:
         for k, Ak in enumerate(ops):
             if k < len(Ps):
                 P = Ps[k]
-                lvl = Level(Ak, P, sp.csr_matrix(P.T), make_smoother(Ak, pre_spec), make_smoother(Ak, post_spec))
+                pre = make_smoother(Ak, pre_spec)
+                # a self-adjoint smoother is shared (one spectral radius estimate per level)
+                post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec)
+                lvl = Level(Ak, P, sp.csr_matrix(P.T), pre, post)
             else:
                 lvl = Level(Ak)
             self.levels.append(lvl)

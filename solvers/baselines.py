@@ -25,16 +25,16 @@ import scipy.sparse.linalg as spla
 from .errors import SolverError, SolverInputError
 
 __all__ = [
+    "BASELINES",
     "BaselineResult",
     "BaselineUnavailableError",
-    "pyamg_sa",
-    "pyamg_rs",
-    "scipy_direct",
     "cholmod",
     "cholmod_available",
     "geometric_mg",
-    "BASELINES",
+    "pyamg_rs",
+    "pyamg_sa",
     "run_baselines",
+    "scipy_direct",
 ]
 
 
@@ -187,7 +187,7 @@ def cholmod_available() -> bool:
     """True if scikit-sparse's CHOLMOD binding imports."""
     try:
         import sksparse.cholmod  # noqa: F401
-    except Exception:
+    except (ImportError, OSError):
         return False
     return True
 
@@ -196,7 +196,7 @@ def cholmod(A, b, *, nullspace: str | None = None) -> BaselineResult:
     """Sparse Cholesky with CHOLMOD (scikit-sparse); raises :class:`BaselineUnavailableError` if absent."""
     try:
         from sksparse.cholmod import cholesky
-    except Exception as e:
+    except (ImportError, OSError) as e:
         raise BaselineUnavailableError(
             "CHOLMOD baseline needs scikit-sparse (apt-get install libsuitesparse-dev; "
             f"pip install scikit-sparse==0.4.16): {e}"

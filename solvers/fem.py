@@ -22,17 +22,17 @@ import scipy.sparse as sp
 from .errors import IncompatibleRHSError, SolverInputError
 
 __all__ = [
-    "check_tet_mesh",
-    "stiffness_matrix",
-    "mass_matrix",
-    "load_vector",
-    "diffusion_matrix",
-    "boundary_nodes",
     "DirichletSystem",
-    "eliminate_dirichlet",
+    "boundary_nodes",
     "check_compatible",
+    "check_tet_mesh",
+    "diffusion_matrix",
+    "eliminate_dirichlet",
+    "load_vector",
+    "mass_matrix",
     "project_rhs",
     "remove_mean",
+    "stiffness_matrix",
 ]
 
 _MASS_TYPES = {

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from .errors import SolverInputError
 
-__all__ = ["kuhn_cube_mesh", "kuhn_cube_hierarchy", "kuhn_prolongation"]
+__all__ = ["kuhn_cube_hierarchy", "kuhn_cube_mesh", "kuhn_prolongation"]
 
 # The 6 axis permutations; odd permutations give negatively oriented tets and are flipped below.
 _PERMS = np.array(list(itertools.permutations(range(3))), dtype=np.int64)

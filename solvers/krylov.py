@@ -6,13 +6,12 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from pyamg.krylov import cg as _pyamg_cg
 
 from .errors import DivergenceError, SolverInputError
 
-__all__ = ["KrylovResult", "pcg", "mg_pcg"]
+__all__ = ["KrylovResult", "mg_pcg", "pcg"]
 
 
 class _NonFiniteStop(Exception):

@@ -32,9 +32,9 @@ from .smoothing import Smoother, make_smoother
 __all__ = [
     "Level",
     "MultigridSolver",
-    "restrict_prolongations",
     "convergence_factor",
     "galerkin_operators",
+    "restrict_prolongations",
 ]
 
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
@@ -149,9 +149,10 @@ def restrict_prolongations(Ps, free, coarse_free="support"):
 
     if not Ps:
         raise SolverInputError("restrict_prolongations needs at least one prolongation")
-    if not (isinstance(coarse_free, str) and coarse_free == "support"):
-        if len(coarse_free) != len(Ps):
-            raise SolverInputError(f"coarse_free needs {len(Ps)} entries (levels 1..), got {len(coarse_free)}")
+    if isinstance(coarse_free, str) and coarse_free != "support":
+        raise SolverInputError(f"coarse_free must be 'support' or a list of index arrays, got {coarse_free!r}")
+    if not isinstance(coarse_free, str) and len(coarse_free) != len(Ps):
+        raise SolverInputError(f"coarse_free needs {len(Ps)} entries (levels 1..), got {len(coarse_free)}")
     frees = [_idx(free, Ps[0].shape[0], "free")]
     out = []
     for k, P in enumerate(Ps):

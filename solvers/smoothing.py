@@ -12,8 +12,8 @@ Names (see :data:`SMOOTHERS`): ``"gauss_seidel"`` (``sweep="forward"|"backward"|
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,7 +23,7 @@ from pyamg.util.linalg import approximate_spectral_radius
 
 from .errors import SolverInputError
 
-__all__ = ["Smoother", "SMOOTHERS", "make_smoother", "spectral_radius"]
+__all__ = ["SMOOTHERS", "Smoother", "make_smoother", "spectral_radius"]
 
 
 @dataclass

@@ -50,7 +50,7 @@ def test_all_baselines_agree_on_dirichlet(problems):
 
 
 def test_neumann_baselines_zero_mean(problems):
-    ds, K, bn, Ps = problems
+    _ds, K, bn, Ps = problems
     xs = {}
     for f in (pyamg_sa, pyamg_rs, scipy_direct):
         r = f(K, bn, nullspace="constant")

@@ -205,3 +205,10 @@ def test_eliminate_dirichlet_errors():
         fem.eliminate_dirichlet(A, np.zeros(4), [4])
     with pytest.raises(SolverInputError, match="shape"):
         fem.eliminate_dirichlet(A, np.zeros(3), [0])
+
+
+def test_docstring_examples():
+    import doctest
+
+    failures, tests = doctest.testmod(fem)
+    assert tests >= 3 and failures == 0

@@ -57,3 +57,12 @@ def test_hierarchy_sizes_and_errors():
         kuhn_cube_hierarchy(4, 0)
     with pytest.raises(SolverInputError):
         kuhn_cube_mesh(0)
+
+
+def test_docstring_examples():
+    import doctest
+
+    import solvers.gallery
+
+    failures, tests = doctest.testmod(solvers.gallery)
+    assert tests >= 3 and failures == 0

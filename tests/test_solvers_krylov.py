@@ -43,7 +43,7 @@ def test_mg_pcg_wrapper(system):
 
 
 def test_pcg_neumann_nullspace(system):
-    ds, Pf, K, Ps, M = system
+    _ds, _Pf, K, Ps, _M = system
     ml = MultigridSolver(K, Ps, nullspace="constant")
     b = fem.project_rhs(np.random.default_rng(0).standard_normal(K.shape[0]))
     r = pcg(K, b, M=ml.aspreconditioner(), tol=1e-9, nullspace="constant")
@@ -51,7 +51,7 @@ def test_pcg_neumann_nullspace(system):
 
 
 def test_pcg_reports_nonfinite_preconditioner(system):
-    ds, Pf, *_ = system
+    ds, _Pf, *_ = system
     bad = sp.linalg.LinearOperator(ds.A.shape, matvec=lambda v: np.asarray(v, dtype=float) * np.nan)
     r = pcg(ds.A, ds.b, M=bad)
     assert r.nonfinite and not r.converged and r.iterations == 1

@@ -1,0 +1,215 @@
+"""PETSc backend benchmark: PCMG with nestmg's nested prolongations vs GAMG vs hypre vs the in-process solver.
+
+Dirichlet P1 Poisson on the unit cube, Kuhn tets with ``n`` cells per side (n=56: 1,053,696 tets,
+166,375 interior unknowns), exactly nested hierarchy halving ``n`` per level, random right-hand side,
+CG to a relative residual of 1e-8. The script runs the in-process :class:`solvers.MultigridSolver`
+(and pyamg SA) itself, then launches itself under ``mpirun -n R`` for every ``R`` in ``--ranks`` (each
+rank builds the same global problem and copies its rows into PETSc). Prints one JSON object and saves
+a PNG bar chart of setup and solve times. Run from the repository root:
+
+    PYTHONPATH=. python benchmarks/petsc.py [--n 56] [--levels 4] [--ranks 1 2] [--repeat 3] \\
+        [--out benchmarks/petsc.png]
+
+Timings are wall-clock: setup = copying the scipy matrices into PETSc + KSPSetUp (Galerkin products,
+AMG coarsening, coarse factorisation); solve = best of ``--repeat`` KSPSolve calls (max over ranks).
+On a 2-core machine ``-n 2`` uses both cores; other jobs on the machine inflate the numbers
+(``loadavg`` is recorded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from solvers.fem import boundary_nodes, stiffness_matrix  # noqa: E402
+from solvers.gallery import kuhn_cube_hierarchy  # noqa: E402
+from solvers.multilevel import restrict_prolongations  # noqa: E402
+
+
+def kuhn_dirichlet(n: int, levels: int, seed: int = 0) -> dict:
+    """Interior-node Poisson system on the Kuhn cube, Galerkin-ready and re-discretised hierarchies."""
+    meshes, Ps = kuhn_cube_hierarchy(n, levels)
+    V, T = meshes[0]
+    free = np.setdiff1d(np.arange(len(V)), boundary_nodes(T))
+    A = sp.csr_matrix(stiffness_matrix(V, T)[free][:, free])
+    Pg, _ = restrict_prolongations(Ps, free)
+    interiors = [np.setdiff1d(np.arange(len(Vk)), boundary_nodes(Tk)) for Vk, Tk in meshes[1:]]
+    Pi, frees = restrict_prolongations(Ps, free, coarse_free=interiors)
+    coarse = [sp.csr_matrix(stiffness_matrix(Vk, Tk)[f][:, f]) for (Vk, Tk), f in zip(meshes[1:], frees[1:])]
+    b = np.random.default_rng(seed).standard_normal(A.shape[0])
+    return {"A": A, "Ps": Pg, "Ps_int": Pi, "coarse_ops": coarse, "b": b, "tets": int(T.shape[0])}
+
+
+def _keep(info: dict) -> dict:
+    keys = ("iterations", "converged", "final_residual", "factor", "setup_seconds", "solve_seconds")
+    return {k: info[k] for k in keys if k in info}
+
+
+def worker(args) -> None:
+    """One mpirun job: every solver on the same matrices; rank 0 prints the JSON line."""
+    import petsc4py
+
+    petsc4py.init([sys.argv[0]])
+    from petsc4py import PETSc
+
+    from solvers.petsc import PetscMultigrid, petsc_amg_solve
+
+    comm = PETSc.COMM_WORLD
+    t0 = time.perf_counter()
+    prob = kuhn_dirichlet(args.n, args.levels)
+    build = time.perf_counter() - t0
+    A, b = prob["A"], prob["b"]
+    res: dict = {"ranks": comm.getSize(), "build_seconds": build, "solvers": {}}
+
+    def pcmg(name, Ps, reps, **kw):
+        with PetscMultigrid(A, Ps, **kw) as mg:
+            best = None
+            for _ in range(reps):
+                x, info = mg.solve(b, tol=1e-8, maxiter=200)
+                if best is None or info["solve_seconds"] < best["solve_seconds"]:
+                    best = info
+            best["nnz"] = [L["nnz"] for L in mg.levels]
+            res["solvers"][name] = _keep(best) | {"nnz": best["nnz"]}
+
+    pcmg("pcmg_galerkin", prob["Ps"], args.repeat)
+    pcmg("pcmg_rediscretised", prob["Ps_int"], args.repeat, galerkin=False, coarse_ops=prob["coarse_ops"])
+    pcmg("pcmg_stationary", prob["Ps"], 1, krylov="richardson")
+    if comm.getSize() > 1:
+        pcmg("pcmg_ptscotch", prob["Ps"], args.repeat, partition="ptscotch")
+    for kind in ("gamg", "hypre"):
+        best = None
+        for _ in range(args.repeat):
+            x, info = petsc_amg_solve(A, b, kind, tol=1e-8, maxiter=500)
+            if best is None or info["setup_seconds"] + info["solve_seconds"] < (
+                    best["setup_seconds"] + best["solve_seconds"]):
+                best = info
+        res["solvers"][kind] = _keep(best)
+    if comm.getRank() == 0:
+        print(json.dumps(res), flush=True)
+
+
+def inprocess(prob: dict, repeat: int) -> dict:
+    """nestmg's own MultigridSolver (Galerkin, V(1,1) symmetric GS, CG) and pyamg SA, one core."""
+    from solvers.baselines import pyamg_sa
+    from solvers.multilevel import MultigridSolver
+
+    out = {}
+    for name, kw, Ps in (("inprocess_galerkin", {}, prob["Ps"]),
+                         ("inprocess_rediscretised", {"coarse_operators": prob["coarse_ops"]}, prob["Ps_int"])):
+        t0 = time.perf_counter()
+        ml = MultigridSolver(prob["A"], Ps, **kw)
+        setup = time.perf_counter() - t0
+        best = None
+        for _ in range(repeat):
+            x, info = ml.solve(prob["b"], tol=1e-8, maxiter=200, accel="cg", return_info=True)
+            if best is None or info["seconds"] < best["seconds"]:
+                best = info
+        r = np.linalg.norm(prob["b"] - prob["A"] @ x) / np.linalg.norm(prob["b"])
+        out[name] = {"iterations": best["iterations"], "converged": best["converged"], "final_residual": float(r),
+                     "setup_seconds": setup, "solve_seconds": best["seconds"]}
+    ml = MultigridSolver(prob["A"], prob["Ps"])
+    _, st = ml.solve(prob["b"], tol=1e-8, maxiter=200, return_info=True)
+    out["inprocess_stationary"] = {"iterations": st["iterations"], "factor": st["factor"],
+                                   "solve_seconds": st["seconds"], "converged": st["converged"]}
+    r = pyamg_sa(prob["A"], prob["b"], tol=1e-8)
+    out["pyamg_sa"] = {"iterations": r.iterations, "converged": r.converged, "setup_seconds": r.setup_seconds,
+                       "solve_seconds": r.solve_seconds}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=56)
+    ap.add_argument("--levels", type=int, default=4)
+    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--out", default="benchmarks/petsc.png")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        worker(args)
+        return
+
+    load0 = os.getloadavg()
+    t0 = time.perf_counter()
+    prob = kuhn_dirichlet(args.n, args.levels)
+    out = {"problem": {"n": args.n, "levels": args.levels, "tets": prob["tets"], "unknowns": int(prob["A"].shape[0]),
+                       "nnz": int(prob["A"].nnz), "build_seconds": time.perf_counter() - t0},
+           "inprocess": inprocess(prob, args.repeat), "petsc": {}}
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1",
+               OPENBLAS_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                         env.get("PYTHONPATH", "")])
+    for r in args.ranks:
+        cmd = ["mpirun", "-n", str(r), sys.executable, os.path.abspath(__file__), "--worker", "--n", str(args.n),
+               "--levels", str(args.levels), "--repeat", str(args.repeat)]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+        if proc.returncode != 0 or not lines:
+            raise SystemExit(f"mpirun -n {r} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+        out["petsc"][str(r)] = json.loads(lines[-1])
+    out["loadavg"] = {"before": load0, "after": os.getloadavg()}
+
+    # ratios against the in-process geometric multigrid (setup + solve)
+    ref = out["inprocess"]["inprocess_galerkin"]
+    ref_total = ref["setup_seconds"] + ref["solve_seconds"]
+    ratios = {}
+    for r, res in out["petsc"].items():
+        for name, s in res["solvers"].items():
+            if "setup_seconds" in s:
+                ratios[f"{name}@{r}"] = {
+                    "solve_vs_inprocess": s["solve_seconds"] / ref["solve_seconds"],
+                    "total_vs_inprocess": (s["setup_seconds"] + s["solve_seconds"]) / ref_total,
+                }
+    out["ratios"] = ratios
+    plot(out, args.out)
+    print(json.dumps(out, indent=2, default=float))
+
+
+def plot(out: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels, setup, solve, its = [], [], [], []
+    for name in ("inprocess_galerkin", "pyamg_sa"):
+        s = out["inprocess"][name]
+        labels.append(f"{name}\n(1 core)")
+        setup.append(s["setup_seconds"])
+        solve.append(s["solve_seconds"])
+        its.append(s["iterations"])
+    for r, res in out["petsc"].items():
+        for name in ("pcmg_galerkin", "pcmg_rediscretised", "pcmg_ptscotch", "gamg", "hypre"):
+            if name in res["solvers"]:
+                s = res["solvers"][name]
+                labels.append(f"{name}\n({r} rank{'s' if r != '1' else ''})")
+                setup.append(s["setup_seconds"])
+                solve.append(s["solve_seconds"])
+                its.append(s["iterations"])
+    x = np.arange(len(labels))
+    fig, ax = plt.subplots(figsize=(max(8, 0.9 * len(labels)), 4.5))
+    ax.bar(x, setup, label="setup", color="#9ecae1")
+    ax.bar(x, solve, bottom=setup, label="solve (CG to 1e-8)", color="#3182bd")
+    for xi, s0, s1, it in zip(x, setup, solve, its):
+        ax.text(xi, s0 + s1, f"{it} it", ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel("seconds (wall)")
+    p = out["problem"]
+    ax.set_title(f"Kuhn cube Poisson, {p['tets']:,} tets, {p['unknowns']:,} unknowns, {p['levels']} levels")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()

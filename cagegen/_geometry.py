@@ -191,3 +191,82 @@ def cross_intersection_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB:
 
     out = cgal.intersect_other(VA, FA, VB, FB, detect_only=True)
     return np.asarray(out[0], dtype=np.int64).reshape(-1, 2)
+
+
+def segment_segment_sqdist(P0: np.ndarray, P1: np.ndarray, Q0: np.ndarray, Q1: np.ndarray) -> np.ndarray:
+    """Squared distances between segments ``P0P1`` and ``Q0Q1``, row by row (all (k,3)).
+
+    Minimises ``|P0 + s d1 - Q0 - t d2|^2`` over ``s, t`` in [0, 1]: the unconstrained ``s`` is
+    clamped, ``t`` follows from it and, when ``t`` leaves [0, 1], is clamped and ``s`` recomputed
+    (the standard clamped closest-point construction). Parallel segments take ``s = 0``.
+    """
+    d1 = P1 - P0
+    d2 = Q1 - Q0
+    r = P0 - Q0
+    a = np.einsum("ij,ij->i", d1, d1)
+    e = np.einsum("ij,ij->i", d2, d2)
+    b = np.einsum("ij,ij->i", d1, d2)
+    c = np.einsum("ij,ij->i", d1, r)
+    f = np.einsum("ij,ij->i", d2, r)
+    tiny = np.finfo(float).tiny
+    a_s = np.maximum(a, tiny)
+    e_s = np.maximum(e, tiny)
+    denom = a * e - b * b
+    parallel = denom <= 1e-14 * a * e
+    s = np.where(parallel, 0.0, np.clip((b * f - c * e) / np.where(parallel, 1.0, denom), 0.0, 1.0))
+    t = (b * s + f) / e_s
+    lo, hi = t < 0.0, t > 1.0
+    s = np.where(lo, np.clip(-c / a_s, 0.0, 1.0), np.where(hi, np.clip((b - c) / a_s, 0.0, 1.0), s))
+    t = np.clip(t, 0.0, 1.0)
+    D = r + s[:, None] * d1 - t[:, None] * d2
+    return np.einsum("ij,ij->i", D, D)
+
+
+def min_edge_edge_distance(
+    VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray, bound: float, chunk: int = 2_000_000
+) -> float:
+    """Smallest distance between an edge of mesh A and an edge of mesh B, if below ``bound``.
+
+    Candidate pairs come from a k-d tree on edge midpoints: two segments with midpoints ``m_a, m_b``
+    and half-lengths ``h_a, h_b`` are at least ``|m_a - m_b| - h_a - h_b`` apart, so only pairs with
+    ``|m_a - m_b| < bound + h_a + max(h_b)`` can beat ``bound``. Distances are evaluated vectorised in
+    chunks of at most ``chunk`` pairs.
+
+    Returns
+    -------
+    float
+        ``min(bound, smallest edge-edge distance)``.
+    """
+    from scipy.spatial import cKDTree
+
+    def unique_edges(F):
+        E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        return np.unique(E, axis=0)
+
+    EA, EB = unique_edges(FA), unique_edges(FB)
+    A0, A1 = VA[EA[:, 0]], VA[EA[:, 1]]
+    B0, B1 = VB[EB[:, 0]], VB[EB[:, 1]]
+    mA, mB = 0.5 * (A0 + A1), 0.5 * (B0 + B1)
+    hA = 0.5 * np.linalg.norm(A1 - A0, axis=1)
+    hB = 0.5 * np.linalg.norm(B1 - B0, axis=1)
+    if hB.max() > hA.max():  # query with the long edges, store the short ones: smaller balls
+        A0, A1, B0, B1, mA, mB, hA, hB, EA = B0, B1, A0, A1, mB, mA, hB, hA, EB
+    tree = cKDTree(mB)
+    radius = bound + hA + hB.max()
+    counts = tree.query_ball_point(mA, r=radius, return_length=True)
+    best = float(bound) ** 2
+    start = 0
+    ends = np.cumsum(counts)
+    while start < len(EA):
+        # largest block of A-edges whose candidate lists fit in one chunk (at least one edge)
+        base = ends[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(ends, base + chunk, side="right")))
+        lists = tree.query_ball_point(mA[start:stop], r=radius[start:stop])
+        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+        if lens.sum():
+            ia = np.repeat(np.arange(start, stop), lens)
+            ib = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
+            d2 = segment_segment_sqdist(A0[ia], A1[ia], B0[ib], B1[ib])
+            best = min(best, float(d2.min()))
+        start = stop
+    return float(np.sqrt(best))

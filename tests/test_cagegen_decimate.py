@@ -9,13 +9,14 @@ from cagegen import build_cages
 from cagegen._geometry import edge_stats, signed_volume
 from cagegen.audit import audit_mesh
 from cagegen.decimate import decimate_backend, decimate_surface
+from cagegen.sizes import default_face_counts
 
 
 @pytest.fixture(scope="module")
 def genus2():
     from nestmg import shapes
 
-    return shapes.genus2()  # 9840 faces, genus 2
+    return shapes.genus2()  # ~10k faces, genus 2
 
 
 @pytest.mark.parametrize("algorithm", ["qslim", "decimate"])
@@ -55,7 +56,8 @@ def test_each_layer_decimates_the_previous(genus2):
 def test_build_cages_decimate_reports_but_does_not_gate(genus2):
     V, F = genus2
     layers, info = build_cages(V, F, 3, method="decimate", return_info=True)
-    assert [G.shape[0] for _, G in layers] == [9840, 2460, 616]
+    m = len(F)
+    assert [G.shape[0] for _, G in layers] == [m] + default_face_counts(m, 3)  # QEM hits even targets
     assert info["certified"] is False
     # a QEM decimation of a curved surface cuts through it: the verifier figures say so
     v = info["verification"]

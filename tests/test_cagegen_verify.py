@@ -218,3 +218,41 @@ def test_figures_invariant_under_similarity_transforms(fine):
         assert p.min_gap == pytest.approx(s * ref.min_gap, rel=1e-6)
         # relative to layer 0's axis-aligned box, which rotates: same order of magnitude only
         assert 0.5 * ref.min_gap_rel < p.min_gap_rel < 1.5 * ref.min_gap_rel
+
+
+def _tet(V):
+    from cagegen._geometry import signed_volume
+
+    F = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    return F if signed_volume(V, F) > 0 else F[:, ::-1].copy()
+
+
+@pytest.mark.parametrize("delta", [1e-3, 1e-6, 0.01])
+def test_gap_found_between_edge_interiors(delta):
+    # two tetrahedra whose closest features are crossing edges: the vertex-to-surface distances
+    # (0.71) miss it; the edge-edge search finds delta exactly when below 1e-3 of the diagonal (3)
+    VA = np.array([[-1.0, 0, 0], [1, 0, 0], [0, -1, -1], [0, 1, -1]])  # top edge along x at z = 0
+    VB = np.array([[0.0, -1, delta], [0, 1, delta], [-1, 0, 1 + delta], [1, 0, 1 + delta]])  # along y
+    p = verify_nesting([(VA, _tet(VA)), (VB, _tet(VB))]).pairs[0]
+    assert p.n_intersecting_pairs == 0
+    if delta < 3e-3:
+        assert p.min_gap_exact and p.min_gap == pytest.approx(delta, rel=1e-9)
+    else:  # beyond the exact-search threshold: reported as an upper bound
+        assert not p.min_gap_exact and p.min_gap == pytest.approx(0.7142, abs=1e-3)
+        # ...unless clearance is demanded, which searches up to min_gap and finds the edge pair
+        rep = verify_nesting([(VA, _tet(VA)), (VB, _tet(VB))], min_gap=0.02 / 3)
+        assert rep.pairs[0].min_gap == pytest.approx(delta, rel=1e-9) and rep.pairs[0].min_gap_exact
+        assert "closer than min_gap" in rep.pairs[0].reason
+
+
+def test_segment_distances_match_ipctk():
+    import ipctk
+
+    from cagegen._geometry import segment_segment_sqdist
+
+    rng = np.random.default_rng(3)
+    P0, P1, Q0, Q1 = (rng.normal(size=(400, 3)) for _ in range(4))
+    Q1[:100] = Q0[:100] + (P1[:100] - P0[:100]) * rng.uniform(0.1, 2.0, size=(100, 1))  # parallel
+    d = segment_segment_sqdist(P0, P1, Q0, Q1)
+    ref = np.array([ipctk.edge_edge_distance(P0[i], P1[i], Q0[i], Q1[i]) for i in range(400)])
+    assert np.allclose(d, ref, rtol=1e-10, atol=1e-13)

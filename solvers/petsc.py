@@ -294,6 +294,24 @@ def _gather(PETSc, vec) -> np.ndarray:
     return out
 
 
+def _allgather(PETSc, comm, value: float) -> np.ndarray:
+    """One float from every rank, on every rank (without mpi4py)."""
+    size = comm.getSize()
+    vec = PETSc.Vec().createMPI((1, size), comm=comm)
+    vec.setValue(comm.getRank(), float(value))
+    vec.assemble()
+    out = _gather(PETSc, vec)
+    vec.destroy()
+    return out
+
+
+def _ghost_count(M: sp.csr_matrix, lay: _Layout, rank: int) -> int:
+    """Distinct off-rank columns coupled to this rank's rows (the halo a SpMV must receive)."""
+    rows = lay.local_rows(rank)
+    cols = lay.to_new(np.unique(M[rows].indices))
+    return int(np.count_nonzero((cols < lay.offsets[rank]) | (cols >= lay.offsets[rank + 1])))
+
+
 @contextlib.contextmanager
 def _options(PETSc, prefix: str, values: dict[str, Any]):
     """Put ``values`` into PETSc's options database under ``prefix`` unless the user set them already.
@@ -382,6 +400,9 @@ class PetscMultigrid:
     levels : list of dict
         ``{"n": global unknowns, "nnz": global non-zeros}`` of each level's operator, finest first.
     comm_size : int
+    rows_per_rank, ghosts_per_rank : list of int
+        Fine rows owned by each rank, and the distinct off-rank unknowns each rank's rows couple to (the
+        halo received in every fine SpMV / SOR sweep): a measure of the partition's quality.
 
     Examples
     --------
@@ -470,6 +491,9 @@ class PetscMultigrid:
                 owner = _coarse_owner(P, owner, size)
             layouts.append(_Layout(owner, P.shape[1], size))
         self._layouts = layouts
+        ghosts = _allgather(PETSc, self.comm, _ghost_count(A, layouts[0], self.comm.getRank()))
+        self.rows_per_rank = np.diff(layouts[0].offsets).tolist()
+        self.ghosts_per_rank = ghosts.astype(np.int64).tolist()
 
         mats = [_to_petsc(PETSc, A, layouts[0], layouts[0], self.comm)]
         interp = [_to_petsc(PETSc, P, layouts[k], layouts[k + 1], self.comm) for k, P in enumerate(Ps)]
@@ -588,7 +612,8 @@ class PetscMultigrid:
             f"Krylov / cycle:     {self.krylov} / {self.cycle}({self.presmooth},{self.postsmooth})",
             f"Smoother:           {self.smoother} (omega={self.omega})",
             f"Coarse operators:   {'Galerkin (PETSc MatPtAP)' if self.galerkin else 'given'}",
-            f"Partition:          {self.partition}",
+            f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}, "
+            f"off-rank couplings {self.ghosts_per_rank})",
             f"Null space:         {self.nullspace}",
             "  level   unknowns     nonzeros   nnz/row",
         ]
@@ -698,6 +723,9 @@ class PetscMultigrid:
             "solve_seconds": solve_seconds,
             "ranks": self.comm_size,
             "levels": [dict(L) for L in self.levels],
+            "partition": self.partition,
+            "rows_per_rank": list(self.rows_per_rank),
+            "ghosts_per_rank": list(self.ghosts_per_rank),
         }
 
     def destroy(self) -> None:

@@ -58,6 +58,13 @@ def neumann_problem(n: int, levels: int, seed: int = 1) -> dict:
     return {"A": stiffness_matrix(V, T), "Ps": Ps, "b": b}
 
 
+def permuted(prob: dict, seed: int = 5) -> dict:
+    """The same system with its fine unknowns in random order (what an unordered mesh looks like)."""
+    p = np.random.default_rng(seed).permutation(prob["A"].shape[0])
+    Ps = [sp.csr_matrix(prob["Ps"][0][p])] + list(prob["Ps"][1:])
+    return {"A": sp.csr_matrix(prob["A"][p][:, p]), "Ps": Ps, "b": prob["b"][p], "perm": p}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=16, help="cells per side of the finest Kuhn mesh")
@@ -77,6 +84,7 @@ def main(argv=None) -> int:
     size = comm.getSize()
     D = dirichlet_problem(args.n, args.levels)
     N = neumann_problem(args.n, args.levels)
+    R = permuted(D)
     # a non-contiguous partition: slabs along x although the numbering runs along z (renumbering path)
     by_x = np.minimum((D["xyz"][:, 0] * size).astype(np.int64), size - 1)
 
@@ -89,6 +97,8 @@ def main(argv=None) -> int:
         "rich_neumann": (N, dict(krylov="richardson", nullspace="constant")),
         "cg_ptscotch": (D, dict(krylov="cg", partition="ptscotch")),
         "rich_byx": (D, dict(krylov="richardson", partition=by_x)),
+        "rich_perm_natural": (R, dict(krylov="richardson")),
+        "rich_perm_ptscotch": (R, dict(krylov="richardson", partition="ptscotch")),
     }
     out = {"ranks": size, "n": int(D["A"].shape[0]), "runs": {}}
     xs = {}
@@ -101,7 +111,8 @@ def main(argv=None) -> int:
             x, info = mg.solve(prob["b"], tol=args.tol, maxiter=100)
         xs[f"x_{name}"] = x
         out["runs"][name] = {k: info[k] for k in ("iterations", "factor", "final_residual", "converged", "reason",
-                                                  "residuals", "setup_seconds", "solve_seconds")}
+                                                  "residuals", "setup_seconds", "solve_seconds",
+                                                  "ghosts_per_rank", "rows_per_rank")}
         out["runs"][name]["levels"] = info["levels"]
     for kind in ("gamg", "hypre"):
         x, info = petsc_amg_solve(D["A"], D["b"], kind, tol=args.tol)

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from .errors import SolverInputError
 
-__all__ = ["kuhn_cube_hierarchy", "kuhn_cube_mesh", "kuhn_prolongation"]
+__all__ = ["kuhn_cube_hierarchy", "kuhn_cube_mesh", "kuhn_interpolation", "kuhn_prolongation"]
 
 # The 6 axis permutations; odd permutations give negatively oriented tets and are flipped below.
 _PERMS = np.array(list(itertools.permutations(range(3))), dtype=np.int64)
@@ -84,6 +84,62 @@ def _parity(p: np.ndarray) -> bool:
     return inv % 2 == 1
 
 
+def kuhn_interpolation(Q, n: int, tol: float = 1e-12) -> sp.csr_matrix:
+    """Barycentric interpolation matrix from the Kuhn mesh with ``n`` cells per side to points ``Q``.
+
+    Parameters
+    ----------
+    Q : (m, 3) array_like of float
+        Points in the closed unit cube (up to ``tol``).
+    n : int
+        Cells per side of the Kuhn mesh (nodes numbered as in :func:`kuhn_cube_mesh`).
+    tol : float
+        Points farther than ``tol`` outside the cube raise; points within it are clamped.
+
+    Returns
+    -------
+    P : (m, (n+1)**3) csr_matrix
+        Row ``i`` holds the barycentric coordinates of ``Q[i]`` in the Kuhn tet containing it
+        (at most 4 non-zeros, non-negative, summing to 1).
+
+    Examples
+    --------
+    >>> P = kuhn_interpolation([[0.5, 0.25, 0.0]], 2)
+    >>> P.toarray().nonzero()[1].tolist(), P.data.tolist()
+    ([1, 4], [0.5, 0.5])
+    """
+    n = int(n)
+    if n < 1:
+        raise SolverInputError(f"kuhn_interpolation: n must be >= 1, got {n}")
+    Q = np.asarray(Q, dtype=np.float64)
+    if Q.ndim != 2 or Q.shape[1] != 3:
+        raise SolverInputError(f"Q must be an (m, 3) array of points, got shape {Q.shape}")
+    if not np.all(np.isfinite(Q)):
+        raise SolverInputError("Q contains NaN/inf")
+    outside = np.any((Q < -tol) | (Q > 1 + tol), axis=1)
+    if np.any(outside):
+        raise SolverInputError(f"{np.count_nonzero(outside)} points lie outside the unit cube (first: {Q[outside][0]})")
+    q = np.clip(Q, 0.0, 1.0) * n  # in grid units
+    cell = np.minimum(np.floor(q).astype(np.int64), n - 1)
+    t = q - cell  # local coordinates in [0, 1]^3
+    # Freudenthal barycentric coordinates: sort t decreasingly, t_p0 >= t_p1 >= t_p2.
+    order = np.argsort(-t, axis=1, kind="stable")
+    ts = np.take_along_axis(t, order, axis=1)
+    w = np.column_stack([1.0 - ts[:, 0], ts[:, 0] - ts[:, 1], ts[:, 1] - ts[:, 2], ts[:, 2]])
+    eye = np.eye(3, dtype=np.int64)
+    v0 = cell
+    v1 = v0 + eye[order[:, 0]]
+    v2 = v1 + eye[order[:, 1]]
+    v3 = v0 + 1
+    cols = np.column_stack([_grid_index(v, n) for v in (v0, v1, v2, v3)])
+    rows = np.repeat(np.arange(Q.shape[0]), 4)
+    P = sp.csr_matrix((w.ravel(), (rows, cols.ravel())), shape=(Q.shape[0], (n + 1) ** 3))
+    P.sum_duplicates()
+    P.data[np.abs(P.data) < 1e-14] = 0.0
+    P.eliminate_zeros()
+    return P
+
+
 def kuhn_prolongation(n_coarse: int) -> sp.csr_matrix:
     """Exact P1 prolongation from the Kuhn mesh with ``n_coarse`` cells per side to ``2*n_coarse``.
 
@@ -101,27 +157,8 @@ def kuhn_prolongation(n_coarse: int) -> sp.csr_matrix:
     nc = int(n_coarse)
     if nc < 1:
         raise SolverInputError(f"kuhn_prolongation: n_coarse must be >= 1, got {nc}")
-    nf = 2 * nc
-    Vf, _ = kuhn_cube_mesh(nf)
-    q = Vf * nc  # fine nodes in coarse grid units
-    cell = np.minimum(np.floor(q).astype(np.int64), nc - 1)
-    t = q - cell  # local coordinates in [0, 1]^3
-    # Freudenthal barycentric coordinates: sort t decreasingly, t_p0 >= t_p1 >= t_p2.
-    order = np.argsort(-t, axis=1, kind="stable")
-    ts = np.take_along_axis(t, order, axis=1)
-    w = np.column_stack([1.0 - ts[:, 0], ts[:, 0] - ts[:, 1], ts[:, 1] - ts[:, 2], ts[:, 2]])
-    eye = np.eye(3, dtype=np.int64)
-    v0 = cell
-    v1 = v0 + eye[order[:, 0]]
-    v2 = v1 + eye[order[:, 1]]
-    v3 = v0 + 1
-    cols = np.column_stack([_grid_index(v, nc) for v in (v0, v1, v2, v3)])
-    rows = np.repeat(np.arange(Vf.shape[0]), 4)
-    P = sp.csr_matrix((w.ravel(), (rows, cols.ravel())), shape=(Vf.shape[0], (nc + 1) ** 3))
-    P.sum_duplicates()
-    P.data[np.abs(P.data) < 1e-14] = 0.0
-    P.eliminate_zeros()
-    return P
+    Vf, _ = kuhn_cube_mesh(2 * nc)
+    return kuhn_interpolation(Vf, nc)
 
 
 def kuhn_cube_hierarchy(n: int, levels: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[sp.csr_matrix]]:

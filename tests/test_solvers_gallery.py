@@ -66,3 +66,22 @@ def test_docstring_examples():
 
     failures, tests = doctest.testmod(solvers.gallery)
     assert tests >= 3 and failures == 0
+
+
+def test_kuhn_interpolation_at_random_points_matches_libigl():
+    from solvers.gallery import kuhn_interpolation
+
+    n = 3
+    Vc, Tc = kuhn_cube_mesh(n)
+    Q = np.random.default_rng(5).uniform(0, 1, (400, 3))
+    P = kuhn_interpolation(Q, n)
+    assert P.shape == (400, len(Vc)) and np.all(P.data >= 0) and P.getnnz(axis=1).max() <= 4
+    np.testing.assert_allclose(P @ Vc, Q, atol=1e-14)  # reproduces the coordinates
+    tree = igl.AABB()
+    tree.init(Vc, Tc)
+    I = igl.in_element(Vc, Tc, Q, tree)
+    tc = Tc[I]
+    B = igl.barycentric_coordinates(Q, *[np.ascontiguousarray(Vc[tc[:, k]]) for k in range(4)])
+    np.testing.assert_allclose(P.toarray()[np.arange(len(Q))[:, None], tc], B, atol=1e-12)
+    with pytest.raises(SolverInputError, match="outside"):
+        kuhn_interpolation([[0.5, 0.5, 1.01]], n)

@@ -207,3 +207,25 @@ def test_check_mesh_returns_copies(ball):
     assert np.array_equal(V, V0) and np.array_equal(F, F0)
     d = audit.to_dict()
     assert d["ok"] is True and d["n_faces"] == 320
+
+
+def test_edge_counts_match_trimesh_on_random_holes():
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from cagegen._geometry import edge_stats
+
+    V, F = _ico(2)
+
+    @settings(max_examples=25, deadline=None)
+    @given(st.sets(st.integers(0, len(F) - 1), min_size=1, max_size=60))
+    def check(removed):
+        G = np.delete(F, sorted(removed), axis=0)
+        es = edge_stats(G, len(V))
+        m = trimesh.Trimesh(V, G, process=False)
+        n_boundary = len(trimesh.grouping.group_rows(m.edges_sorted, require_count=1))
+        assert es.n_boundary_edges == n_boundary
+        assert es.n_edges == len(m.edges_unique)
+        assert es.n_inconsistent_edges == 0 and es.n_nonmanifold_edges == 0
+
+    check()

@@ -538,11 +538,14 @@ class PetscMultigrid:
         top.update(options or {})
         with _options(PETSc, options_prefix, top):
             ksp.setFromOptions()
+            # the user may have asked for another cycle through -<prefix>pc_mg_cycle_type
+            user_cycle = PETSc.Options().getString(f"{options_prefix}pc_mg_cycle_type", cycle)
+            self.cycle = "W" if str(user_cycle).lower().startswith("w") else "V"
             for lev in range(1, nlev):
                 down = pc.getMGSmootherDown(lev)
                 self._setup_smoother(down, self.presmooth)
                 self._setup_smoother(pc.getMGSmootherUp(lev), self.postsmooth)
-                if cycle == "W" and lev < nlev - 1:
+                if self.cycle == "W" and lev < nlev - 1:
                     # PCMG's pre-smoothers assume a zero initial guess (true in a V-cycle); on the second
                     # visit of a W-cycle they must start from the current iterate, or W == V.
                     down.setInitialGuessNonzero(True)

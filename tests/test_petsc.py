@@ -259,6 +259,22 @@ def test_refuses_what_would_fail_inside_petsc(dirichlet):
         PetscMultigrid(dirichlet["A"], [sp.csr_matrix(P), dirichlet["Ps"][1]])
 
 
+def test_w_cycle_from_options_database(dirichlet):
+    """-nestmg_pc_mg_cycle_type w must give a real W-cycle too (the pre-smoother fix follows the option)."""
+    from petsc4py import PETSc
+
+    _, ref = _inprocess(dirichlet, cycle="W")
+    db = PETSc.Options()
+    db.setValue("nestmgw_pc_mg_cycle_type", "w")
+    try:
+        with PetscMultigrid(dirichlet["A"], dirichlet["Ps"], krylov="richardson", options_prefix="nestmgw_") as mg:
+            _, info = mg.solve(dirichlet["b"])
+            assert mg.cycle == "W"
+    finally:
+        db.delValue("nestmgw_pc_mg_cycle_type")
+    assert abs(info["factor"] - ref["factor"]) < 1e-6
+
+
 def test_options_database_overrides(dirichlet):
     """User options under the prefix win over the constructor's choices, and ours do not leak."""
     from petsc4py import PETSc

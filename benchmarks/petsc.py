@@ -9,6 +9,12 @@ a PNG bar chart of setup and solve times. Run from the repository root:
 
     PYTHONPATH=. python benchmarks/petsc.py [--n 56] [--levels 4] [--ranks 1 2] [--repeat 3] \\
         [--out benchmarks/petsc.png]
+    # or a hierarchy from the nestmg pipeline (cages -> tets -> prolongations) of a surface mesh:
+    PYTHONPATH=. python benchmarks/petsc.py --mesh ../shared/data/meshes/gargo.off --levels 3 \\
+        [--method nested] [--mesher tetgen] [--edge-fac 0.01]
+
+The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_hierarchy`;
+every MPI rank reads it with ``load_hierarchy`` (the pattern docs/petsc.md recommends on a cluster).
 
 Timings are wall-clock: setup = copying the scipy matrices into PETSc + KSPSetUp (Galerkin products,
 AMG coarsening, coarse factorisation); solve = best of ``--repeat`` KSPSolve calls (max over ranks).
@@ -46,7 +52,23 @@ def kuhn_dirichlet(n: int, levels: int, seed: int = 0) -> dict:
     Pi, frees = restrict_prolongations(Ps, free, coarse_free=interiors)
     coarse = [sp.csr_matrix(stiffness_matrix(Vk, Tk)[f][:, f]) for (Vk, Tk), f in zip(meshes[1:], frees[1:])]
     b = np.random.default_rng(seed).standard_normal(A.shape[0])
-    return {"A": A, "Ps": Pg, "Ps_int": Pi, "coarse_ops": coarse, "b": b, "tets": int(T.shape[0])}
+    return {"A": A, "Ps": Pg, "Ps_int": Pi, "coarse_ops": coarse, "b": b, "tets": int(T.shape[0]),
+            "label": f"Kuhn cube n={n}"}
+
+
+def pipeline_dirichlet(path: str, levels: int, method: str, mesher: str, edge_fac: float | None) -> dict:
+    """Dirichlet Poisson on a nestmg hierarchy (cages, tet layers, prolongations) of a surface mesh."""
+    from nestmg.hierarchy import build_hierarchy
+    from nestmg.io import load_mesh
+    from nestmg.problems import setup_problem
+
+    V, F = load_mesh(path)
+    h = build_hierarchy(V, F, levels, method=method, mesher=mesher, edge_length_fac=edge_fac, progress=False)
+    gal = setup_problem(h.tets, h.P, "poisson-dirichlet", coarse="galerkin")
+    red = setup_problem(h.tets, h.P, "poisson-dirichlet", coarse="rediscretized")
+    return {"A": gal.A, "Ps": gal.P, "Ps_int": red.P, "coarse_ops": red.coarse_ops, "b": gal.b,
+            "tets": int(h.tets[0][1].shape[0]), "label": f"{os.path.basename(path)} ({method} cages, {mesher})",
+            "n_outside": [int(r.n_outside) for r in h.prolongation_reports]}
 
 
 def _keep(info: dict) -> dict:
@@ -63,12 +85,15 @@ def worker(args) -> None:
 
     from solvers.petsc import PetscMultigrid, petsc_amg_solve
 
+    from solvers.petsc import load_hierarchy
+
     comm = PETSc.COMM_WORLD
     t0 = time.perf_counter()
-    prob = kuhn_dirichlet(args.n, args.levels)
-    build = time.perf_counter() - t0
+    gal, red = load_hierarchy(args.worker + "_galerkin.npz"), load_hierarchy(args.worker + "_rediscretised.npz")
+    prob = {"A": gal["A"], "b": gal["b"], "Ps": gal["Ps"], "Ps_int": red["Ps"], "coarse_ops": red["coarse_ops"]}
+    load = time.perf_counter() - t0
     A, b = prob["A"], prob["b"]
-    res: dict = {"ranks": comm.getSize(), "build_seconds": build, "solvers": {}}
+    res: dict = {"ranks": comm.getSize(), "load_seconds": load, "solvers": {}}
 
     def pcmg(name, Ps, reps, **kw):
         with PetscMultigrid(A, Ps, **kw) as mg:
@@ -133,25 +158,42 @@ def main() -> None:
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", default="benchmarks/petsc.png")
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--mesh", help="surface mesh: build the hierarchy with nestmg.build_hierarchy instead")
+    ap.add_argument("--method", default="nested", help="cage backend for --mesh")
+    ap.add_argument("--mesher", default="tetgen", help="tet mesher for --mesh (tetgen or tetwild)")
+    ap.add_argument("--edge-fac", type=float, default=None, help="fine edge length / bbox diagonal for --mesh")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         worker(args)
         return
 
+    import tempfile
+
+    from solvers.petsc import save_hierarchy
+
     load0 = os.getloadavg()
     t0 = time.perf_counter()
-    prob = kuhn_dirichlet(args.n, args.levels)
-    out = {"problem": {"n": args.n, "levels": args.levels, "tets": prob["tets"], "unknowns": int(prob["A"].shape[0]),
-                       "nnz": int(prob["A"].nnz), "build_seconds": time.perf_counter() - t0},
+    if args.mesh:
+        prob = pipeline_dirichlet(args.mesh, args.levels, args.method, args.mesher, args.edge_fac)
+    else:
+        prob = kuhn_dirichlet(args.n, args.levels)
+    out = {"problem": {"label": prob["label"], "levels": args.levels, "tets": prob["tets"],
+                       "unknowns": int(prob["A"].shape[0]), "nnz": int(prob["A"].nnz),
+                       "coarse_unknowns": [int(P.shape[1]) for P in prob["Ps"]],
+                       "n_outside": prob.get("n_outside"), "build_seconds": time.perf_counter() - t0},
            "inprocess": inprocess(prob, args.repeat), "petsc": {}}
+    tmp = tempfile.TemporaryDirectory()
+    stem = os.path.join(tmp.name, "h")
+    save_hierarchy(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"])
+    save_hierarchy(stem + "_rediscretised.npz", prob["A"], prob["Ps_int"], coarse_ops=prob["coarse_ops"], b=prob["b"])
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1",
                OPENBLAS_NUM_THREADS="1")
     env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                          env.get("PYTHONPATH", "")])
     for r in args.ranks:
-        cmd = ["mpirun", "-n", str(r), sys.executable, os.path.abspath(__file__), "--worker", "--n", str(args.n),
-               "--levels", str(args.levels), "--repeat", str(args.repeat)]
+        cmd = ["mpirun", "-n", str(r), sys.executable, os.path.abspath(__file__), "--worker", stem,
+               "--repeat", str(args.repeat)]
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
         if proc.returncode != 0 or not lines:
@@ -205,7 +247,8 @@ def plot(out: dict, path: str) -> None:
     ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
     ax.set_ylabel("seconds (wall)")
     p = out["problem"]
-    ax.set_title(f"Kuhn cube Poisson, {p['tets']:,} tets, {p['unknowns']:,} unknowns, {p['levels']} levels")
+    ax.set_title(f"{p['label']}: Dirichlet Poisson, {p['tets']:,} tets, {p['unknowns']:,} unknowns, "
+                 f"{p['levels']} levels", fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)

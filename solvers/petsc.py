@@ -29,6 +29,7 @@ user set win over the constructor's choices. To read command-line options, initi
 from __future__ import annotations
 
 import contextlib
+import re
 import time
 import warnings
 from typing import Any
@@ -449,8 +450,6 @@ class PetscMultigrid:
         for name, v in (("presmooth", presmooth), ("postsmooth", postsmooth)):
             if int(v) != v or v < 0:
                 raise SolverInputError(f"{name} must be a non-negative integer, got {v!r}")
-        if smoother == "chebyshev" and (presmooth == 0) != (postsmooth == 0):
-            pass  # allowed: one-sided Chebyshev smoothing
         if omega is not None and not (np.isfinite(omega) and 0 < omega < 2):
             raise SolverInputError(f"omega must lie in (0, 2), got {omega!r}")
         if not isinstance(options_prefix, str) or not options_prefix or options_prefix.startswith("-"):
@@ -549,7 +548,7 @@ class PetscMultigrid:
                     # PCMG's pre-smoothers assume a zero initial guess (true in a V-cycle); on the second
                     # visit of a W-cycle they must start from the current iterate, or W == V.
                     down.setInitialGuessNonzero(True)
-            self._setup_coarse(pc.getMGCoarseSolve() if nlev > 1 else None, ksp)
+            self._setup_coarse(pc.getMGCoarseSolve())
             try:
                 ksp.setUp()
             except PETSc.Error as e:
@@ -588,25 +587,19 @@ class PetscMultigrid:
         with _options(PETSc, sksp.getOptionsPrefix() or "", opts):
             sksp.setFromOptions()
 
-    def _setup_coarse(self, cksp, ksp) -> None:
+    def _setup_coarse(self, cksp) -> None:
         """Exact coarsest solve: LU (SVD pseudo-inverse for a singular Neumann operator), redundant in parallel."""
-        PETSc = self._PETSc
         inner = "svd" if self.nullspace == "constant" else "lu"
-        if cksp is None:  # one level: the whole solve is the direct solve
-            cksp = ksp
-            if self.comm_size > 1 and inner == "lu":
-                inner = "redundant"
-        cksp.setType("preonly") if cksp is not ksp else None
+        cksp.setType("preonly")
         cpc = cksp.getPC()
-        prefix = cksp.getOptionsPrefix() or ""
+        opts = {}
         if self.comm_size == 1:
             cpc.setType(inner)
-            opts = {}
-        else:
+        else:  # every rank factorises the whole (small) coarsest operator
             cpc.setType("redundant")
-            opts = {"redundant_pc_type": "svd" if inner == "svd" else "lu"}
-        with _options(PETSc, prefix, opts):
-            cksp.setFromOptions() if cksp is not ksp else None
+            opts["redundant_pc_type"] = inner
+        with _options(self._PETSc, cksp.getOptionsPrefix() or "", opts):
+            cksp.setFromOptions()
 
     # ------------------------------------------------------------------ description
     def __repr__(self) -> str:
@@ -936,8 +929,8 @@ def save_hierarchy(path, A, Ps, *, coarse_ops=None, b=None, **arrays) -> None:
     if b is not None:
         out["b"] = _check_vector(b, A.shape[0])
     for name, arr in arrays.items():
-        if name in out or "_" in name and name.split("_")[0] in ("A",) or name.startswith(("P", "C")):
-            raise SolverInputError(f"extra array name {name!r} clashes with the hierarchy's keys")
+        if name in ("A", "Ps", "coarse_ops", "b", "n_levels") or re.fullmatch(r"(A|P\d+|C\d+)_\w+", name):
+            raise SolverInputError(f"extra array name {name!r} clashes with the hierarchy's own keys")
         out[name] = np.asarray(arr)
     np.savez(path, **out)
 

@@ -97,13 +97,16 @@ def main(argv=None) -> int:
         "rich_neumann": (N, dict(krylov="richardson", nullspace="constant")),
         "cg_ptscotch": (D, dict(krylov="cg", partition="ptscotch")),
         "rich_byx": (D, dict(krylov="richardson", partition=by_x)),
+        "direct": (D, dict(levels=1)),
         "rich_perm_natural": (R, dict(krylov="richardson")),
         "rich_perm_ptscotch": (R, dict(krylov="richardson", partition="ptscotch")),
     }
     out = {"ranks": size, "n": int(D["A"].shape[0]), "runs": {}}
     xs = {}
     for name, (prob, kw) in runs.items():
-        if kw.get("galerkin", True):
+        if kw.pop("levels", None) == 1:
+            Ps, extra = [], {}  # one level: PCMG's coarse solver alone (redundant LU in parallel)
+        elif kw.get("galerkin", True):
             Ps, extra = prob["Ps"], {}
         else:
             Ps, extra = prob["Ps_int"], {"coarse_ops": prob["coarse_ops"]}

@@ -302,6 +302,8 @@ def test_row_partition_and_npz_roundtrip(tmp_path, dirichlet):
     assert all((P != Q).nnz == 0 for P, Q in zip(h["Ps"], dirichlet["Ps_int"]))
     assert all((P != Q).nnz == 0 for P, Q in zip(h["coarse_ops"], dirichlet["coarse_ops"]))
     assert np.array_equal(h["b"], dirichlet["b"]) and np.array_equal(h["xyz"], dirichlet["xyz"])
+    with pytest.raises(SolverInputError, match="clashes"):
+        save_hierarchy(path, dirichlet["A"], dirichlet["Ps"], P0_data=np.zeros(2))
 
 
 # --------------------------------------------------------------------------------------- mpirun -n 2
@@ -345,18 +347,19 @@ def test_mpirun_two_ranks(tmp_path):
         assert abs(r["factor"] - ref["factor"]) <= FACTOR_TOL_2RANKS, (name, r["factor"], ref["factor"])
         assert abs(r["iterations"] - ref["iterations"]) <= 1, (name, r["iterations"], ref["iterations"])
         assert _rel(xs[f"x_{name}"], xr) < 1e-7, name
+    xd = spla.spsolve(sp.csc_matrix(dirichlet["A"]), dirichlet["b"])
+    assert runs["direct"]["iterations"] <= 1 and _rel(xs["x_direct"], xd) < 1e-10
     # partitioning: on randomly numbered unknowns the natural (contiguous) split couples nearly every row
     # to the other rank; PT-Scotch finds slabs again -> far fewer couplings and a better local-SOR cycle
     nat, pts = runs["rich_perm_natural"], runs["rich_perm_ptscotch"]
     assert sum(pts["ghosts_per_rank"]) < 0.2 * sum(nat["ghosts_per_rank"])
     assert pts["factor"] < nat["factor"] - 0.1
     p = permuted(dirichlet)["perm"]
-    xd_perm = spla.spsolve(sp.csc_matrix(dirichlet["A"]), dirichlet["b"])[p]
+    xd_perm = xd[p]
     for name in ("rich_perm_natural", "rich_perm_ptscotch"):
         assert runs[name]["converged"] and _rel(xs[f"x_{name}"], xd_perm) < 1e-7
     # the headline number, stationary V(1,1) on the natural partition: within the 0.02
     assert abs(runs["rich_V"]["factor"] - refs["rich_V"][1]["factor"]) <= 0.02
-    xd = spla.spsolve(sp.csc_matrix(dirichlet["A"]), dirichlet["b"])
     for kind, cap in (("gamg", 25), ("hypre", 10)):
         assert runs[kind]["converged"] and runs[kind]["iterations"] <= cap
         assert _rel(xs[f"x_{kind}"], xd) < 1e-6

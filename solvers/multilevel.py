@@ -23,6 +23,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -202,39 +203,94 @@ def convergence_factor(residuals, last: int = 5) -> float:
 
 
 class _CoarseSolver:
-    """Direct solve on the coarsest level, factorised once (SuperLU)."""
+    """Direct solve on the coarsest level, set up once.
 
-    def __init__(self, A: sp.csr_matrix, nullspace: str | None, level: int):
+    ``method="pinv"``: dense symmetric pseudo-inverse ``Q_k Λ_k⁻¹ Q_kᵀ`` over the eigenvalues above
+    ``rtol · λ_max`` (scipy.linalg.eigh). It returns the minimum-norm solution, which is right for any
+    consistent right-hand side, also when the operator has more null vectors than expected: a Galerkin
+    operator ``Pᵀ A P`` inherits the kernel of a rank-deficient ``P`` (coarse hat functions that are
+    linearly dependent on the finer nodes, e.g. cage nodes touching one or two fine nodes), and the
+    restricted residual ``Pᵀ r`` is orthogonal to that kernel. ``method="splu"``: sparse LU (SuperLU),
+    with one node pinned for ``nullspace="constant"``; validated at setup on a random consistent
+    right-hand side, so a rank-deficient operator raises instead of returning garbage.
+    """
+
+    def __init__(self, A: sp.csr_matrix, nullspace: str | None, level: int, method: str = "auto",
+                 pinv_max: int = 2000, rtol: float = 1e-10):
         self.n = A.shape[0]
         self.nullspace = nullspace
         self.pin = None
+        self.lu = None
+        self.Q = None
         t0 = time.perf_counter()
-        if nullspace == "constant":
-            if self.n == 1:
-                self.lu = None
-                self.nnz = 0
-                return
-            # pin the node with the largest diagonal (any node works for a connected graph)
-            self.pin = int(np.argmax(A.diagonal()))
-            self.keep = np.delete(np.arange(self.n), self.pin)
-            A = A[self.keep][:, self.keep]
-        try:
-            self.lu = spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A")
-        except RuntimeError as e:
-            extra = " (with one node pinned: is the coarsest graph disconnected?)" if self.pin is not None else ""
-            raise SolverError(f"coarsest operator (level {level}, n={self.n}) is singular{extra}: {e}") from None
-        self.nnz = int(self.lu.L.nnz + self.lu.U.nnz)
+        if method == "auto":
+            method = "pinv" if self.n <= pinv_max else "splu"
+        if method not in ("pinv", "splu"):
+            raise SolverInputError(f"coarse_solver must be 'auto', 'pinv' or 'splu', got {method!r}")
+        self.method = method
+        expected = 1 if nullspace == "constant" else 0
+        if method == "pinv":
+            Ad = A.toarray()
+            if _is_symmetric(A):
+                w, Q = sla.eigh(Ad)
+                keep = w > rtol * max(w.max(), 0.0)
+                self.Q, self.winv, self.Qt = Q[:, keep], 1.0 / w[keep], None
+            else:  # non-symmetric user operator: SVD pseudo-inverse
+                U, sv, Vt = sla.svd(Ad)
+                keep = sv > rtol * sv.max()
+                self.Q, self.winv, self.Qt = Vt[keep].T, 1.0 / sv[keep], U[:, keep].T
+            self.nullity = int(self.n - np.count_nonzero(keep))
+            self.nnz = int(2 * self.Q.size)
+        else:
+            Af = A
+            if nullspace == "constant" and self.n > 1:
+                # pin the node with the largest diagonal (any node works for a connected graph)
+                self.pin = int(np.argmax(A.diagonal()))
+                self.keep = np.delete(np.arange(self.n), self.pin)
+                Af = A[self.keep][:, self.keep]
+            if self.n > 1 or nullspace != "constant":
+                try:
+                    self.lu = spla.splu(sp.csc_matrix(Af), permc_spec="MMD_AT_PLUS_A")
+                except RuntimeError as e:
+                    raise SolverError(
+                        f"coarsest operator (level {level}, n={self.n}) is singular: {e}; use coarse_solver='pinv'"
+                    ) from None
+            self.nnz = 0 if self.lu is None else int(self.lu.L.nnz + self.lu.U.nnz)
+            self.nullity = expected
+            # validate: an operator singular beyond the expected null space gives an LU whose solutions
+            # satisfy A x = b but carry huge null-space components, without any error. The solution of
+            # A x = A v must be v itself (up to a constant for Neumann).
+            v = np.random.default_rng(0).standard_normal(self.n)
+            if nullspace == "constant":
+                v -= v.mean()
+            with np.errstate(all="ignore"):
+                err = np.linalg.norm(self(A @ v) - v) / np.linalg.norm(v)
+            if not err < 1e-6:
+                raise SolverError(
+                    f"coarsest operator (level {level}, n={self.n}) is numerically singular beyond the "
+                    f"expected null space (LU solve error {err:.1e} on a consistent right-hand side). With "
+                    "Galerkin operators this means a rank-deficient prolongation (coarse nodes whose hat "
+                    "functions are linearly dependent on the finer nodes); use coarse_solver='pinv' "
+                    "(or more levels so the coarsest is small enough for it), or drop those coarse nodes"
+                )
         self.seconds = time.perf_counter() - t0
 
     def __call__(self, b: np.ndarray) -> np.ndarray:
         if self.nullspace == "constant":
             b = b - b.mean()
-            if self.lu is None:
-                return np.zeros(1)
+        if self.Q is not None:
+            y = (self.Q.T @ b) if self.Qt is None else (self.Qt @ b)
+            x = self.Q @ (self.winv * y)
+        elif self.lu is None:
+            x = np.zeros(self.n)
+        elif self.pin is not None:
             x = np.zeros(self.n)
             x[self.keep] = self.lu.solve(b[self.keep])
-            return x - x.mean()
-        return self.lu.solve(b)
+        else:
+            x = self.lu.solve(b)
+        if self.nullspace == "constant":
+            x = x - x.mean()
+        return x
 
 
 @dataclass
@@ -280,6 +336,13 @@ class MultigridSolver:
     nullspace : None or "constant"
         ``"constant"`` for pure Neumann operators (see module docstring): checks ``A_k 1 = 0`` on every
         level, projects right-hand sides and returns zero-mean solutions.
+    coarse_solver : {"auto", "pinv", "splu"}
+        Coarsest-level direct solver, set up once. ``"pinv"``: dense pseudo-inverse (robust to extra
+        null vectors from rank-deficient prolongations; O(n³) setup). ``"splu"``: SuperLU (validated at
+        setup; raises if the operator is singular beyond the expected null space). ``"auto"``:
+        ``"pinv"`` if the coarsest level has at most ``pinv_max`` unknowns, else ``"splu"``.
+    pinv_max : int
+        Size limit of the ``"auto"`` choice (dense eigh of 2000 unknowns: ~1–4 s on this machine).
 
     Attributes
     ----------
@@ -311,6 +374,8 @@ class MultigridSolver:
         presmoother=DEFAULT_SMOOTHER,
         postsmoother=None,
         nullspace: str | None = None,
+        coarse_solver: str = "auto",
+        pinv_max: int = 2000,
     ):
         t0 = time.perf_counter()
         if nullspace not in (None, "constant"):
@@ -376,7 +441,10 @@ class MultigridSolver:
             else:
                 lvl = Level(Ak)
             self.levels.append(lvl)
-        self._coarse_solver = _CoarseSolver(ops[-1], nullspace, len(ops) - 1)
+        self._coarse_solver = _CoarseSolver(ops[-1], nullspace, len(ops) - 1, coarse_solver, pinv_max)
+        #: null vectors of the coarsest operator (1 expected for Neumann, 0 for Dirichlet; more means a
+        #: rank-deficient prolongation, handled by the pseudo-inverse)
+        self.coarse_nullity = self._coarse_solver.nullity
         self.symmetric = all(_is_symmetric(L.A) for L in self.levels)
         # a cycle is a symmetric operator iff A_k are symmetric and post = adjoint(pre) on every level
         self.symmetric_cycle = self.symmetric and (
@@ -392,6 +460,7 @@ class MultigridSolver:
             f"Coarse operators:    {self.coarse}",
             f"Smoothers (pre/post): {self._smoother_desc()}",
             f"Null space:          {self.nullspace}",
+            f"Coarsest solver:     {self._coarse_solver.method} (null vectors: {self.coarse_nullity})",
             f"Operator complexity: {self.operator_complexity():6.3f}",
             f"Grid complexity:     {self.grid_complexity():6.3f}",
             f"Cycle complexity (V): {self.cycle_complexity('V'):6.3f}",

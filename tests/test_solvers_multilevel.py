@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 import solvers.multilevel
@@ -393,6 +394,53 @@ def test_unstructured_fine_level_converges(jittered, bc, coarse):
     assert res[-1] < 1e-11 and f < (0.3 if coarse == "galerkin" else 0.35), f
     _x, info = ml.solve(b, accel="cg", tol=1e-8, return_info=True)
     assert info["converged"] and info["iterations"] <= 10
+
+
+def _split_column(P, j):
+    """P with coarse column j split into two identical half columns: rows still sum to 1, rank - 1."""
+    P = P.tocsc()
+    half = 0.5 * P[:, [j]]
+    return sp.hstack([P[:, :j], half, P[:, j + 1 :], half]).tocsr()
+
+
+@pytest.mark.parametrize("bc", ["dirichlet", "neumann"])
+def test_rank_deficient_prolongation(cube, bc):
+    """Extra null vectors of P^T A P (rank-deficient P): pseudo-inverse copes, SuperLU refuses clearly."""
+    _meshes, Ps, K, _M = cube
+    Ps = Ps[:2]
+    if bc == "neumann":
+        A, b, nullspace = K, fem.project_rhs(_random_rhs(K.shape[0], 6)), "constant"
+    else:
+        ds, Ps, _ = _dirichlet(cube, 3)
+        A, b, nullspace = ds.A, _random_rhs(ds.A.shape[0], 6), None
+    j = Ps[1].shape[1] // 2
+    bad = [Ps[0], _split_column(Ps[1], j)]
+    ref = MultigridSolver(A, Ps, nullspace=nullspace)
+    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto -> pinv on the small coarsest level
+    assert ml._coarse_solver.method == "pinv" and ml.coarse_nullity == ref.coarse_nullity + 1
+    f_ref, _ = _factor(ref, b)
+    f, res = _factor(ml, b)
+    assert res[-1] < 1e-11 and f <= f_ref + 0.01, (f, f_ref)  # the split column adds nothing, breaks nothing
+    x, xr = ml.solve(b, tol=1e-10), ref.solve(b, tol=1e-10)
+    assert np.abs(x - xr).max() < 1e-8 * np.abs(xr).max()
+    with pytest.raises(SolverError, match="rank-deficient"):
+        MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="splu")
+
+
+def test_coarse_solvers_agree(cube):
+    _meshes, Ps, K, _M = cube
+    b = fem.project_rhs(_random_rhs(K.shape[0], 8))
+    xs = []
+    for method in ("splu", "pinv"):
+        ml = MultigridSolver(K, Ps[:2], nullspace="constant", coarse_solver=method)
+        assert ml._coarse_solver.method == method and ml.coarse_nullity == 1
+        assert f"Coarsest solver:     {method}" in repr(ml)
+        xs.append(ml.solve(b, tol=1e-11))
+    assert np.abs(xs[0] - xs[1]).max() < 1e-9 * np.abs(xs[0]).max()
+    # auto picks SuperLU above pinv_max
+    assert MultigridSolver(K, Ps[:1], nullspace="constant", pinv_max=100)._coarse_solver.method == "splu"
+    with pytest.raises(SolverInputError, match="coarse_solver"):
+        MultigridSolver(K, Ps[:1], nullspace="constant", coarse_solver="cholesky")
 
 
 def test_convergence_factor_helper():

@@ -25,6 +25,7 @@ from .multilevel import (
     MultigridSolver,
     convergence_factor,
     galerkin_operators,
+    prune_prolongations,
     restrict_prolongations,
 )
 from .smoothing import SMOOTHERS, Smoother, make_smoother
@@ -53,6 +54,7 @@ __all__ = [
     "mg_pcg",
     "pcg",
     "project_rhs",
+    "prune_prolongations",
     "remove_mean",
     "restrict_prolongations",
     "stiffness_matrix",

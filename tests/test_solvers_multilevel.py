@@ -22,6 +22,7 @@ from solvers import (
     SolverInputError,
     convergence_factor,
     fem,
+    prune_prolongations,
     restrict_prolongations,
 )
 from solvers.gallery import kuhn_cube_hierarchy, kuhn_cube_mesh, kuhn_interpolation
@@ -416,8 +417,10 @@ def test_rank_deficient_prolongation(cube, bc):
     j = Ps[1].shape[1] // 2
     bad = [Ps[0], _split_column(Ps[1], j)]
     ref = MultigridSolver(A, Ps, nullspace=nullspace)
-    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto -> pinv on the small coarsest level
-    assert ml._coarse_solver.method == "pinv" and ml.coarse_nullity == ref.coarse_nullity + 1
+    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> pinv
+    assert ml._coarse_solver.method == "pinv" and ml._coarse_solver.fallback
+    assert ml.coarse_nullity == ref.coarse_nullity + 1 and "fallback" in repr(ml)
+    assert ref._coarse_solver.method == "splu" and not ref._coarse_solver.fallback
     f_ref, _ = _factor(ref, b)
     f, res = _factor(ml, b)
     assert res[-1] < 1e-11 and f <= f_ref + 0.01, (f, f_ref)  # the split column adds nothing, breaks nothing
@@ -437,10 +440,38 @@ def test_coarse_solvers_agree(cube):
         assert f"Coarsest solver:     {method}" in repr(ml)
         xs.append(ml.solve(b, tol=1e-11))
     assert np.abs(xs[0] - xs[1]).max() < 1e-9 * np.abs(xs[0]).max()
-    # auto picks SuperLU above pinv_max
-    assert MultigridSolver(K, Ps[:1], nullspace="constant", pinv_max=100)._coarse_solver.method == "splu"
+    # above pinv_max there is no fallback: a rank-deficient coarsest level raises
+    bad = [Ps[0], _split_column(Ps[1], 10)]
+    with pytest.raises(SolverError, match="rank-deficient"):
+        MultigridSolver(K, bad, nullspace="constant", pinv_max=100)
     with pytest.raises(SolverInputError, match="coarse_solver"):
         MultigridSolver(K, Ps[:1], nullspace="constant", coarse_solver="cholesky")
+
+
+def test_prune_prolongations_removes_weightless_coarse_nodes(cube):
+    """A coarse node touching one fine node with weight 0.01: pruning restores the clean hierarchy."""
+    _meshes, Ps, K, _M = cube
+    P0 = Ps[0].tolil(copy=True)
+    i = 1000
+    P0[i, :] = 0.99 * P0[i, :].toarray()
+    extra = sp.csr_matrix(([0.01], ([i], [0])), shape=(P0.shape[0], 1))
+    P0 = sp.hstack([P0.tocsr(), extra]).tocsr()  # new coarse node n_1, column sum 0.01
+    P1 = sp.vstack([Ps[1], sp.csr_matrix(Ps[1][:1].toarray())]).tocsr()  # its row on level 1
+    bad = [P0, P1, Ps[2]]
+    pruned, kept = prune_prolongations(bad, min_column_sum=0.2)
+    assert kept[0].size == Ps[0].shape[1] and kept[0][-1] == Ps[0].shape[1] - 1
+    for Pp, P in zip(pruned, Ps[:3]):
+        assert Pp.shape == P.shape and abs(Pp - P).max() < 1e-15
+    # the weightless node makes the Galerkin hierarchy worse-conditioned; pruned = the clean one
+    b = fem.project_rhs(_random_rhs(K.shape[0], 9))
+    f_clean, _ = _factor(MultigridSolver(K, Ps[:3], nullspace="constant"), b)
+    f_pruned, _ = _factor(MultigridSolver(K, pruned, nullspace="constant"), b)
+    assert f_pruned == pytest.approx(f_clean, abs=1e-12)
+    # without renormalisation the row that lost weight no longer sums to 1
+    raw, _ = prune_prolongations(bad, 0.2, renormalize=False)
+    assert np.asarray(raw[0].sum(axis=1)).ravel()[i] == pytest.approx(0.99)
+    with pytest.raises(SolverInputError, match="column sum"):
+        prune_prolongations(Ps[:1], min_column_sum=100.0)
 
 
 def test_convergence_factor_helper():

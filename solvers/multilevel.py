@@ -523,20 +523,20 @@ class MultigridSolver:
 
     # ------------------------------------------------------------------ description
     def __repr__(self) -> str:
-        lines = [
-            "MultigridSolver",
-            f"Number of levels:    {len(self.levels)}",
-            f"Coarse operators:    {self.coarse}",
-            f"Smoothers (pre/post): {self._smoother_desc()}",
-            f"Null space:          {self.nullspace}",
-            (f"Coarsest solver:     {self._coarse_solver.method}"
-            f"{' (fallback: SuperLU failed validation)' if self._coarse_solver.fallback else ''}"
-            f" (null vectors: {self.coarse_nullity})"),
-            f"Operator complexity: {self.operator_complexity():6.3f}",
-            f"Grid complexity:     {self.grid_complexity():6.3f}",
-            f"Cycle complexity (V): {self.cycle_complexity('V'):6.3f}",
-            "  level   unknowns     nonzeros   nnz/row     nnz(P)",
+        cs = self._coarse_solver
+        fallback = " (fallback: SuperLU failed validation)" if cs.fallback else ""
+        rows = [
+            ("Number of levels", f"{len(self.levels)}"),
+            ("Coarse operators", self.coarse),
+            ("Smoothers (pre/post)", self._smoother_desc()),
+            ("Null space", f"{self.nullspace}"),
+            ("Coarsest solver", f"{cs.method}{fallback} (null vectors: {self.coarse_nullity})"),
+            ("Operator complexity", f"{self.operator_complexity():.3f}"),
+            ("Grid complexity", f"{self.grid_complexity():.3f}"),
+            ("Cycle complexity (V)", f"{self.cycle_complexity('V'):.3f} fine SpMVs"),
         ]
+        lines = ["MultigridSolver"] + [f"{k + ':':22s}{v}" for k, v in rows]
+        lines.append("  level   unknowns     nonzeros   nnz/row     nnz(P)")
         for k, L in enumerate(self.levels):
             n = L.A.shape[0]
             nnzp = "" if L.P is None else f"{L.P.nnz:10d}"

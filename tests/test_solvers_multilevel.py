@@ -320,7 +320,7 @@ def test_complexities_and_repr(cube):
     # V(1,1) with symmetric GS: 2+2 sweeps + residual ≈ 5 SpMV on level 0, plus coarser levels and P's
     assert 5.0 < ml.cycle_complexity("V") < 9.0
     r = repr(ml)
-    assert "Number of levels:    4" in r and f"{ml.levels[0].A.shape[0]:10d}" in r and "nnz(P)" in r
+    assert "Number of levels:     4" in r and f"{ml.levels[0].A.shape[0]:10d}" in r and "nnz(P)" in r
 
 
 def test_forward_gauss_seidel_gets_adjoint_postsmoother(cube):
@@ -437,7 +437,7 @@ def test_coarse_solvers_agree(cube):
     for method in ("splu", "pinv"):
         ml = MultigridSolver(K, Ps[:2], nullspace="constant", coarse_solver=method)
         assert ml._coarse_solver.method == method and ml.coarse_nullity == 1
-        assert f"Coarsest solver:     {method}" in repr(ml)
+        assert f"Coarsest solver:      {method}" in repr(ml)
         xs.append(ml.solve(b, tol=1e-11))
     assert np.abs(xs[0] - xs[1]).max() < 1e-9 * np.abs(xs[0]).max()
     # above pinv_max there is no fallback: a rank-deficient coarsest level raises

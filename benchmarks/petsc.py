@@ -11,7 +11,8 @@ a PNG bar chart of setup and solve times. Run from the repository root:
         [--out benchmarks/petsc.png]
     # or a hierarchy from the nestmg pipeline (cages -> tets -> prolongations) of a surface mesh:
     PYTHONPATH=. python benchmarks/petsc.py --mesh ../shared/data/meshes/gargo.off --levels 3 \\
-        [--method nested] [--mesher tetgen] [--edge-fac 0.01]
+        [--method nested] [--mesher tetgen] [--edge-fac 0.006] [--save /tmp/gargo]
+    # later runs can reuse it: --load /tmp/gargo
 
 The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_hierarchy`;
 every MPI rank reads it with ``load_hierarchy`` (the pattern docs/petsc.md recommends on a cluster).
@@ -72,7 +73,8 @@ def pipeline_dirichlet(path: str, levels: int, method: str, mesher: str, edge_fa
 
 
 def _keep(info: dict) -> dict:
-    keys = ("iterations", "converged", "final_residual", "factor", "setup_seconds", "solve_seconds")
+    keys = ("iterations", "converged", "final_residual", "factor", "setup_seconds", "solve_seconds",
+            "rows_per_rank", "ghosts_per_rank")
     return {k: info[k] for k in keys if k in info}
 
 
@@ -103,13 +105,13 @@ def worker(args) -> None:
                 if best is None or info["solve_seconds"] < best["solve_seconds"]:
                     best = info
             best["nnz"] = [L["nnz"] for L in mg.levels]
-            res["solvers"][name] = _keep(best) | {"nnz": best["nnz"]}
+            res["solvers"][name] = _keep(best) | {"nnz": best["nnz"], "partition": mg.partition}
 
     pcmg("pcmg_galerkin", prob["Ps"], args.repeat)
     pcmg("pcmg_rediscretised", prob["Ps_int"], args.repeat, galerkin=False, coarse_ops=prob["coarse_ops"])
     pcmg("pcmg_stationary", prob["Ps"], 1, krylov="richardson")
-    if comm.getSize() > 1:
-        pcmg("pcmg_ptscotch", prob["Ps"], args.repeat, partition="ptscotch")
+    if comm.getSize() > 1:  # the default partition is PT-Scotch on several ranks; compare with rows in order
+        pcmg("pcmg_natural_partition", prob["Ps"], args.repeat, partition="natural")
     for kind in ("gamg", "hypre"):
         best = None
         for _ in range(args.repeat):
@@ -162,6 +164,8 @@ def main() -> None:
     ap.add_argument("--method", default="nested", help="cage backend for --mesh")
     ap.add_argument("--mesher", default="tetgen", help="tet mesher for --mesh (tetgen or tetwild)")
     ap.add_argument("--edge-fac", type=float, default=None, help="fine edge length / bbox diagonal for --mesh")
+    ap.add_argument("--save", metavar="STEM", help="keep the hierarchy in STEM_galerkin.npz / STEM_rediscretised.npz")
+    ap.add_argument("--load", metavar="STEM", help="reuse a hierarchy kept with --save (skips building it)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -172,20 +176,31 @@ def main() -> None:
 
     from solvers.petsc import save_hierarchy
 
+    from solvers.petsc import load_hierarchy
+
     load0 = os.getloadavg()
     t0 = time.perf_counter()
-    if args.mesh:
+    if args.load:
+        gal, red = load_hierarchy(args.load + "_galerkin.npz"), load_hierarchy(args.load + "_rediscretised.npz")
+        prob = {"A": gal["A"], "Ps": gal["Ps"], "b": gal["b"], "Ps_int": red["Ps"], "coarse_ops": red["coarse_ops"],
+                "tets": int(gal["tets"]), "label": str(gal["label"])}
+        prob["n_outside"] = gal["n_outside"].tolist() if "n_outside" in gal else None
+    elif args.mesh:
         prob = pipeline_dirichlet(args.mesh, args.levels, args.method, args.mesher, args.edge_fac)
     else:
         prob = kuhn_dirichlet(args.n, args.levels)
+    args.levels = len(prob["Ps"]) + 1
     out = {"problem": {"label": prob["label"], "levels": args.levels, "tets": prob["tets"],
                        "unknowns": int(prob["A"].shape[0]), "nnz": int(prob["A"].nnz),
                        "coarse_unknowns": [int(P.shape[1]) for P in prob["Ps"]],
                        "n_outside": prob.get("n_outside"), "build_seconds": time.perf_counter() - t0},
            "inprocess": inprocess(prob, args.repeat), "petsc": {}}
     tmp = tempfile.TemporaryDirectory()
-    stem = os.path.join(tmp.name, "h")
-    save_hierarchy(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"])
+    stem = args.save or os.path.join(tmp.name, "h")
+    extra = {"tets": np.array(prob["tets"]), "label": np.array(prob["label"])}
+    if prob.get("n_outside") is not None:
+        extra["n_outside"] = np.array(prob["n_outside"])
+    save_hierarchy(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"], **extra)
     save_hierarchy(stem + "_rediscretised.npz", prob["A"], prob["Ps_int"], coarse_ops=prob["coarse_ops"], b=prob["b"])
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1",
                OPENBLAS_NUM_THREADS="1")
@@ -231,7 +246,7 @@ def plot(out: dict, path: str) -> None:
         solve.append(s["solve_seconds"])
         its.append(s["iterations"])
     for r, res in out["petsc"].items():
-        for name in ("pcmg_galerkin", "pcmg_rediscretised", "pcmg_ptscotch", "gamg", "hypre"):
+        for name in ("pcmg_galerkin", "pcmg_rediscretised", "pcmg_natural_partition", "gamg", "hypre"):
             if name in res["solvers"]:
                 s = res["solvers"][name]
                 labels.append(f"{name}\n({r} rank{'s' if r != '1' else ''})")

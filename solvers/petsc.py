@@ -383,11 +383,14 @@ class PetscMultigrid:
     krylov : {"cg", "richardson"}
         ``"cg"``: CG preconditioned by one cycle. ``"richardson"``: plain stationary cycling (each
         iteration is one cycle), the setting in which a convergence factor per cycle is defined.
-    partition : "natural", a PETSc partitioner name (e.g. "ptscotch"), or (n_0,) int array
+    partition : "auto", "natural", a PETSc partitioner name (e.g. "ptscotch"), or (n_0,) int array
         Distribution of the fine rows. "natural": contiguous blocks of rows in the given order (PETSc's
-        default). "ptscotch": PETSc's MatPartitioning of the fine operator's graph, then every coarse node
-        goes to the rank holding most of its interpolation weight; the problem is renumbered internally,
-        and ``solve`` takes and returns vectors in the caller's numbering.
+        default). "ptscotch" / "parmetis": PETSc's MatPartitioning of the fine operator's graph, then every
+        coarse node goes to the rank holding most of its interpolation weight; the problem is renumbered
+        internally, and ``solve`` takes and returns vectors in the caller's numbering. "auto" (default):
+        natural on one rank, else PT-Scotch (ParMETIS) when PETSc has it — tet meshers number nodes
+        without spatial coherence, and on a 313k-unknown tetgen mesh the natural split on 2 ranks took
+        CG from 9 to 15 iterations (PT-Scotch: 9).
     options_prefix : str
         PETSc options prefix of the KSP (see the module docstring).
     options : dict, optional
@@ -435,7 +438,7 @@ class PetscMultigrid:
         omega: float | None = None,
         nullspace: str | None = None,
         krylov: str = "cg",
-        partition="natural",
+        partition="auto",
         options_prefix: str = "nestmg_",
         options: dict | None = None,
     ):
@@ -478,6 +481,13 @@ class PetscMultigrid:
         size = self.comm_size
         nat = _Layout(None, self.n, size)
         owner = None
+        if isinstance(partition, str) and partition == "auto":
+            partition = "natural"
+            if size > 1:
+                for name in ("ptscotch", "parmetis"):
+                    if PETSc.Sys.hasExternalPackage(name):
+                        partition = name
+                        break
         if not (isinstance(partition, str) and partition == "natural") and partition is not None:
             A_nat = _to_petsc(PETSc, A, nat, nat, self.comm) if isinstance(partition, str) else None
             owner = _fine_owner(PETSc, A_nat, partition, self.n, size, self.comm)
@@ -588,18 +598,30 @@ class PetscMultigrid:
             sksp.setFromOptions()
 
     def _setup_coarse(self, cksp) -> None:
-        """Exact coarsest solve: LU (SVD pseudo-inverse for a singular Neumann operator), redundant in parallel."""
-        inner = "svd" if self.nullspace == "constant" else "lu"
+        """Exact coarsest solve, redundant on every rank in parallel.
+
+        Cholesky by CHOLMOD when PETSc has SuiteSparse (the coarse operators are SPD; 3.5x faster than
+        PETSc's own LU on a 6.8k-unknown Galerkin operator with 73 non-zeros per row), else PETSc's LU;
+        an SVD pseudo-inverse for a singular Neumann operator.
+        """
+        PETSc = self._PETSc
+        if self.nullspace == "constant":
+            inner = {"pc_type": "svd"}
+        elif PETSc.Sys.hasExternalPackage("suitesparse"):
+            inner = {"pc_type": "cholesky", "pc_factor_mat_solver_type": "cholmod"}
+        else:
+            inner = {"pc_type": "lu"}
         cksp.setType("preonly")
         cpc = cksp.getPC()
-        opts = {}
         if self.comm_size == 1:
-            cpc.setType(inner)
+            cpc.setType(inner["pc_type"])
+            opts = {k: v for k, v in inner.items() if k != "pc_type"}
         else:  # every rank factorises the whole (small) coarsest operator
             cpc.setType("redundant")
-            opts["redundant_pc_type"] = inner
-        with _options(self._PETSc, cksp.getOptionsPrefix() or "", opts):
+            opts = {f"redundant_{k}": v for k, v in inner.items()}
+        with _options(PETSc, cksp.getOptionsPrefix() or "", opts):
             cksp.setFromOptions()
+        self.coarse_solver = "+".join(str(v) for v in inner.values())
 
     # ------------------------------------------------------------------ description
     def __repr__(self) -> str:
@@ -611,6 +633,7 @@ class PetscMultigrid:
             f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}, "
             f"off-rank couplings {self.ghosts_per_rank})",
             f"Null space:         {self.nullspace}",
+            f"Coarsest solve:     {self.coarse_solver}{' (redundant)' if self.comm_size > 1 else ''}",
             "  level   unknowns     nonzeros   nnz/row",
         ]
         for k, L in enumerate(self.levels):

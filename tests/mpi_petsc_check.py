@@ -88,17 +88,18 @@ def main(argv=None) -> int:
     # a non-contiguous partition: slabs along x although the numbering runs along z (renumbering path)
     by_x = np.minimum((D["xyz"][:, 0] * size).astype(np.int64), size - 1)
 
+    nat = {"partition": "natural"}
     runs = {
-        "rich_V": (D, dict(krylov="richardson")),
-        "cg_V": (D, dict(krylov="cg")),
-        "rich_W": (D, dict(krylov="richardson", cycle="W")),
-        "rich_V22": (D, dict(krylov="richardson", presmooth=2, postsmooth=2)),
-        "rich_given": (D, dict(krylov="richardson", galerkin=False)),
-        "rich_neumann": (N, dict(krylov="richardson", nullspace="constant")),
-        "cg_ptscotch": (D, dict(krylov="cg", partition="ptscotch")),
+        "rich_V": (D, dict(krylov="richardson", **nat)),
+        "cg_V": (D, dict(krylov="cg", **nat)),
+        "rich_W": (D, dict(krylov="richardson", cycle="W", **nat)),
+        "rich_V22": (D, dict(krylov="richardson", presmooth=2, postsmooth=2, **nat)),
+        "rich_given": (D, dict(krylov="richardson", galerkin=False, **nat)),
+        "rich_neumann": (N, dict(krylov="richardson", nullspace="constant", **nat)),
+        "cg_auto": (D, dict(krylov="cg")),  # default partition: PT-Scotch on several ranks
         "rich_byx": (D, dict(krylov="richardson", partition=by_x)),
-        "direct": (D, dict(levels=1)),
-        "rich_perm_natural": (R, dict(krylov="richardson")),
+        "direct": (D, dict(levels=1, **nat)),
+        "rich_perm_natural": (R, dict(krylov="richardson", **nat)),
         "rich_perm_ptscotch": (R, dict(krylov="richardson", partition="ptscotch")),
     }
     out = {"ranks": size, "n": int(D["A"].shape[0]), "runs": {}}
@@ -115,7 +116,7 @@ def main(argv=None) -> int:
         xs[f"x_{name}"] = x
         out["runs"][name] = {k: info[k] for k in ("iterations", "factor", "final_residual", "converged", "reason",
                                                   "residuals", "setup_seconds", "solve_seconds",
-                                                  "ghosts_per_rank", "rows_per_rank")}
+                                                  "ghosts_per_rank", "rows_per_rank", "partition")}
         out["runs"][name]["levels"] = info["levels"]
     for kind in ("gamg", "hypre"):
         x, info = petsc_amg_solve(D["A"], D["b"], kind, tol=args.tol)

@@ -338,7 +338,7 @@ def test_mpirun_two_ranks(tmp_path):
             "rich_V22": _inprocess(dirichlet, pre=2, post=2),
             "rich_given": _inprocess(dirichlet, given=True),
             "rich_neumann": _inprocess(neumann, nullspace="constant"),
-            "cg_ptscotch": _inprocess(dirichlet, accel="cg"),
+            "cg_auto": _inprocess(dirichlet, accel="cg"),
             "rich_byx": _inprocess(dirichlet),
         }
     for name, (xr, ref) in refs.items():
@@ -348,6 +348,7 @@ def test_mpirun_two_ranks(tmp_path):
         assert abs(r["iterations"] - ref["iterations"]) <= 1, (name, r["iterations"], ref["iterations"])
         assert _rel(xs[f"x_{name}"], xr) < 1e-7, name
     xd = spla.spsolve(sp.csc_matrix(dirichlet["A"]), dirichlet["b"])
+    assert runs["cg_auto"]["partition"] == "ptscotch" and runs["rich_V"]["partition"] == "natural"
     assert runs["direct"]["iterations"] <= 1 and _rel(xs["x_direct"], xd) < 1e-10
     # partitioning: on randomly numbered unknowns the natural (contiguous) split couples nearly every row
     # to the other rank; PT-Scotch finds slabs again -> far fewer couplings and a better local-SOR cycle

@@ -481,6 +481,12 @@ class PetscMultigrid:
         size = self.comm_size
         nat = _Layout(None, self.n, size)
         owner = None
+        if isinstance(partition, str) and partition not in ("auto", "natural"):
+            if partition not in ("ptscotch", "parmetis"):
+                raise SolverInputError(f"partition must be 'auto', 'natural', 'ptscotch', 'parmetis' or an array of "
+                                       f"ranks, got {partition!r}")
+            if not PETSc.Sys.hasExternalPackage(partition):
+                raise SolverInputError(f"this PETSc was built without {partition}; use 'auto' or 'natural'")
         if isinstance(partition, str) and partition == "auto":
             partition = "natural"
             if size > 1:

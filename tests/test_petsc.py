@@ -223,6 +223,13 @@ def test_bad_input(dirichlet):
         PetscMultigrid(Abad, Ps)
     with pytest.raises(SolverInputError, match="partition"):
         PetscMultigrid(A, Ps, partition=np.zeros(3, dtype=int))
+    with pytest.raises(SolverInputError, match="partition"):
+        PetscMultigrid(A, Ps, partition="metis-ish")
+    from petsc4py import PETSc
+
+    if not PETSc.Sys.hasExternalPackage("parmetis"):  # Debian's PETSc 3.18 has no ParMETIS
+        with pytest.raises(SolverInputError, match="without parmetis"):
+            PetscMultigrid(A, Ps, partition="parmetis")
     with pytest.raises(SolverInputError, match="sparse"):
         PetscMultigrid(A.toarray(), Ps)
     with PetscMultigrid(A, Ps) as mg:

@@ -37,9 +37,9 @@ import scipy.sparse as sp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from solvers.fem import boundary_nodes, stiffness_matrix  # noqa: E402
-from solvers.gallery import kuhn_cube_hierarchy  # noqa: E402
-from solvers.multilevel import restrict_prolongations  # noqa: E402
+from solvers.fem import boundary_nodes, stiffness_matrix
+from solvers.gallery import kuhn_cube_hierarchy
+from solvers.multilevel import restrict_prolongations
 
 
 def kuhn_dirichlet(n: int, levels: int, seed: int = 0) -> dict:
@@ -85,9 +85,7 @@ def worker(args) -> None:
     petsc4py.init([sys.argv[0]])
     from petsc4py import PETSc
 
-    from solvers.petsc import PetscMultigrid, petsc_amg_solve
-
-    from solvers.petsc import load_hierarchy
+    from solvers.petsc import PetscMultigrid, load_hierarchy, petsc_amg_solve
 
     comm = PETSc.COMM_WORLD
     t0 = time.perf_counter()
@@ -101,7 +99,7 @@ def worker(args) -> None:
         with PetscMultigrid(A, Ps, **kw) as mg:
             best = None
             for _ in range(reps):
-                x, info = mg.solve(b, tol=1e-8, maxiter=200)
+                _, info = mg.solve(b, tol=1e-8, maxiter=200)
                 if best is None or info["solve_seconds"] < best["solve_seconds"]:
                     best = info
             best["nnz"] = [L["nnz"] for L in mg.levels]
@@ -115,7 +113,7 @@ def worker(args) -> None:
     for kind in ("gamg", "hypre"):
         best = None
         for _ in range(args.repeat):
-            x, info = petsc_amg_solve(A, b, kind, tol=1e-8, maxiter=500)
+            _, info = petsc_amg_solve(A, b, kind, tol=1e-8, maxiter=500)
             if best is None or info["setup_seconds"] + info["solve_seconds"] < (
                     best["setup_seconds"] + best["solve_seconds"]):
                 best = info
@@ -174,9 +172,7 @@ def main() -> None:
 
     import tempfile
 
-    from solvers.petsc import save_hierarchy
-
-    from solvers.petsc import load_hierarchy
+    from solvers.petsc import load_hierarchy, save_hierarchy
 
     load0 = os.getloadavg()
     t0 = time.perf_counter()
@@ -209,7 +205,7 @@ def main() -> None:
     for r in args.ranks:
         cmd = ["mpirun", "-n", str(r), sys.executable, os.path.abspath(__file__), "--worker", stem,
                "--repeat", str(args.repeat)]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        proc = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
         if proc.returncode != 0 or not lines:
             raise SystemExit(f"mpirun -n {r} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")

@@ -41,13 +41,13 @@ from .errors import IncompatibleRHSError, SolverError, SolverInputError
 from .multilevel import ConvergenceWarning, convergence_factor
 
 __all__ = [
-    "PetscUnavailableError",
-    "petsc_available",
     "PetscMultigrid",
-    "petsc_amg_solve",
-    "save_hierarchy",
+    "PetscUnavailableError",
     "load_hierarchy",
+    "petsc_amg_solve",
+    "petsc_available",
     "row_partition",
+    "save_hierarchy",
 ]
 
 SMOOTHER_NAMES = ("sor", "jacobi", "chebyshev")
@@ -636,8 +636,8 @@ class PetscMultigrid:
             f"Krylov / cycle:     {self.krylov} / {self.cycle}({self.presmooth},{self.postsmooth})",
             f"Smoother:           {self.smoother} (omega={self.omega})",
             f"Coarse operators:   {'Galerkin (PETSc MatPtAP)' if self.galerkin else 'given'}",
-            f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}, "
-            f"off-rank couplings {self.ghosts_per_rank})",
+            (f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}, "
+             f"off-rank couplings {self.ghosts_per_rank})"),
             f"Null space:         {self.nullspace}",
             f"Coarsest solve:     {self.coarse_solver}{' (redundant)' if self.comm_size > 1 else ''}",
             "  level   unknowns     nonzeros   nnz/row",

@@ -24,9 +24,9 @@ import scipy.sparse as sp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # run as a script from anywhere
 
-from solvers.fem import boundary_nodes, stiffness_matrix  # noqa: E402
-from solvers.gallery import kuhn_cube_hierarchy  # noqa: E402
-from solvers.multilevel import restrict_prolongations  # noqa: E402
+from solvers.fem import boundary_nodes, stiffness_matrix
+from solvers.gallery import kuhn_cube_hierarchy
+from solvers.multilevel import restrict_prolongations
 
 
 def dirichlet_problem(n: int, levels: int, seed: int = 0) -> dict:
@@ -89,18 +89,19 @@ def main(argv=None) -> int:
     by_x = np.minimum((D["xyz"][:, 0] * size).astype(np.int64), size - 1)
 
     nat = {"partition": "natural"}
+    rich = {"krylov": "richardson"}
     runs = {
-        "rich_V": (D, dict(krylov="richardson", **nat)),
-        "cg_V": (D, dict(krylov="cg", **nat)),
-        "rich_W": (D, dict(krylov="richardson", cycle="W", **nat)),
-        "rich_V22": (D, dict(krylov="richardson", presmooth=2, postsmooth=2, **nat)),
-        "rich_given": (D, dict(krylov="richardson", galerkin=False, **nat)),
-        "rich_neumann": (N, dict(krylov="richardson", nullspace="constant", **nat)),
-        "cg_auto": (D, dict(krylov="cg")),  # default partition: PT-Scotch on several ranks
-        "rich_byx": (D, dict(krylov="richardson", partition=by_x)),
-        "direct": (D, dict(levels=1, **nat)),
-        "rich_perm_natural": (R, dict(krylov="richardson", **nat)),
-        "rich_perm_ptscotch": (R, dict(krylov="richardson", partition="ptscotch")),
+        "rich_V": (D, {**rich, **nat}),
+        "cg_V": (D, {"krylov": "cg", **nat}),
+        "rich_W": (D, {**rich, "cycle": "W", **nat}),
+        "rich_V22": (D, {**rich, "presmooth": 2, "postsmooth": 2, **nat}),
+        "rich_given": (D, {**rich, "galerkin": False, **nat}),
+        "rich_neumann": (N, {**rich, "nullspace": "constant", **nat}),
+        "cg_auto": (D, {"krylov": "cg"}),  # default partition: PT-Scotch on several ranks
+        "rich_byx": (D, {**rich, "partition": by_x}),
+        "direct": (D, {"levels": 1, **nat}),
+        "rich_perm_natural": (R, {**rich, **nat}),
+        "rich_perm_ptscotch": (R, {**rich, "partition": "ptscotch"}),
     }
     out = {"ranks": size, "n": int(D["A"].shape[0]), "runs": {}}
     xs = {}

@@ -1,8 +1,8 @@
 """MPI driver for tests/test_petsc.py: run solvers.petsc on every rank, print one JSON line on rank 0.
 
-Usage (from the repository root)::
+Usage (from the repository root; ``solvers`` must be importable, e.g. ``PYTHONPATH=.``)::
 
-    mpirun -n 2 python tests/mpi_petsc_check.py --n 16 --levels 3 --out /tmp/petsc_check.npz
+    PYTHONPATH=. mpirun -n 2 python tests/mpi_petsc_check.py --n 16 --levels 3 --out /tmp/petsc_check.npz
 
 Every rank builds the same Kuhn cube hierarchy (deterministic), the Dirichlet and Neumann P1 Poisson
 problems and a seeded right-hand side, and takes its rows. Rank 0 prints
@@ -16,13 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 import numpy as np
 import scipy.sparse as sp
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # run as a script from anywhere
 
 from solvers.fem import boundary_nodes, stiffness_matrix
 from solvers.gallery import kuhn_cube_hierarchy

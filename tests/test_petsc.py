@@ -7,6 +7,7 @@ reason when petsc4py (scripts/install-petsc.sh) or mpirun is missing.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -33,8 +34,18 @@ from solvers.petsc import (
 )
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from mpi_petsc_check import dirichlet_problem, neumann_problem, permuted
+
+
+def _load_driver():
+    """The MPI driver's problem builders, so both sides solve the very same systems."""
+    spec = importlib.util.spec_from_file_location("mpi_petsc_check", HERE / "mpi_petsc_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_driver = _load_driver()
+dirichlet_problem, neumann_problem, permuted = _driver.dirichlet_problem, _driver.neumann_problem, _driver.permuted
 
 N, LEVELS = 16, 3  # 3375 interior unknowns on the finest level
 N_MPI = 24  # 12167 unknowns for the 2-rank run: larger, so the rank interface is a smaller fraction
@@ -324,6 +335,8 @@ def test_mpirun_two_ranks(tmp_path):
     out = tmp_path / "x.npz"
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
                OMPI_MCA_rmaps_base_oversubscribe="1", OMP_NUM_THREADS="1")
+    # the ranks import solvers from this checkout (whether or not nestmg is installed)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
     cmd = [_mpirun(), "-n", "2", sys.executable, str(HERE / "mpi_petsc_check.py"),
            "--n", str(N_MPI), "--levels", str(LEVELS), "--out", str(out)]
     proc = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=300)

@@ -41,6 +41,7 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, problems, coarse_li
             h = build_hierarchy(V, F, levels, method=m, mesher=mesher, edge_length_fac=h0, progress=False)
         except Exception as exc:  # report, keep going with the other methods
             rec["error"] = f"{type(exc).__name__}: {exc}"
+            print(f"  {path.name:<14} {m:<9} ERROR {rec['error']}", flush=True)
             out["methods"][m] = rec
             continue
         rec["hierarchy"] = h.to_dict()
@@ -100,7 +101,7 @@ def main(argv=None):
     ap.add_argument("--mesher", default="tetgen", choices=["tetgen", "tetwild"])
     ap.add_argument("--problems", nargs="+", default=["poisson-dirichlet", "poisson-neumann"])
     ap.add_argument("--coarse", nargs="+", default=["galerkin", "rediscretized"])
-    ap.add_argument("--smoother", default="gauss_seidel")
+    ap.add_argument("--smoother", default="symmetric_gauss_seidel")
     ap.add_argument("--out", type=Path, default=Path("bench_out/pipeline"))
     a = ap.parse_args(argv)
     results = [run_mesh(a.mesh_dir / m, a.methods, a.levels, a.fine_tets, a.mesher, a.problems, a.coarse, a.smoother)

@@ -1,0 +1,36 @@
+"""nestmg: geometric multigrid for PDEs on 3D shapes, with nested cages as coarse levels.
+
+Pipeline (one function call per arrow, plain arrays in between)::
+
+    (V, F) --cagegen.build_cages--> surfaces --tetrahedralize--> tet layers --prolongation--> P_k
+           --solvers.MultigridSolver--> V-cycles
+
+:func:`build_hierarchy` runs the first three stages (cached), :func:`setup_problem` assembles a model
+problem and the level data, :func:`solve_on_hierarchy` does both plus a measured solve.
+"""
+
+from .hierarchy import Hierarchy, build_hierarchy, tet_hierarchy
+from .io import load_mesh, normalize, save_mesh
+from .problems import PROBLEMS, Problem, setup_problem
+from .prolongation import ProlongationReport, prolongation
+from .run import solve_on_hierarchy
+from .tetmesh import TetMeshError, tetrahedralize
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Hierarchy",
+    "PROBLEMS",
+    "Problem",
+    "ProlongationReport",
+    "TetMeshError",
+    "build_hierarchy",
+    "load_mesh",
+    "normalize",
+    "prolongation",
+    "save_mesh",
+    "setup_problem",
+    "solve_on_hierarchy",
+    "tet_hierarchy",
+    "tetrahedralize",
+]

@@ -18,7 +18,7 @@ import numpy as np
 
 __all__ = ["atomic_write_bytes", "cache_dir", "cache_key", "load_entry", "save_entry"]
 
-CACHE_VERSION = "1"
+CACHE_VERSION = "3"
 
 
 def cache_dir() -> Path:

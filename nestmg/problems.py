@@ -85,6 +85,25 @@ def _level_operator(name: str, V: np.ndarray, T: np.ndarray, lam: float) -> sp.c
     return K
 
 
+def _prune(rows: sp.csr_matrix, reach: np.ndarray, tau: float) -> np.ndarray:
+    """Coarse columns kept for a Galerkin level: those reached with total weight >= ``tau``.
+
+    A cage node that only one or two fine nodes reach (weights ~1e-3) adds nothing to the coarse space
+    but makes ``P`` rank-deficient, i.e. ``P^T A P`` singular beyond its true null space. A weak
+    column is kept anyway when some fine row has all its weight on weak columns.
+    """
+    if tau <= 0:
+        return reach
+    cs = np.asarray(rows.sum(axis=0)).ravel()
+    weak = np.zeros(rows.shape[1], dtype=bool)
+    weak[reach] = cs[reach] < tau
+    strong_sum = np.asarray(rows[:, ~weak].sum(axis=1)).ravel()
+    orphan_rows = np.flatnonzero(strong_sum <= 0)
+    if orphan_rows.size:
+        weak[np.unique(rows[orphan_rows].indices)] = False
+    return reach[~weak[reach]]
+
+
 def setup_problem(
     tets: list[tuple[np.ndarray, np.ndarray]],
     P: list[sp.csr_matrix],
@@ -93,6 +112,7 @@ def setup_problem(
     coarse: str = "galerkin",
     lam: float = 1e-2,
     f: np.ndarray | None = None,
+    prune: float = 0.5,
 ) -> Problem:
     """Assemble a model problem on ``tets[0]`` and the level data for multigrid.
 
@@ -109,6 +129,10 @@ def setup_problem(
     f : (n_fine,) float array, optional
         Source at the fine nodes (default :func:`default_rhs`). For ``poisson-neumann`` its
         mass-weighted mean is removed so that the system is compatible.
+    prune : float
+        Galerkin only: drop coarse nodes whose prolongation column sums to less than this (nodes of a
+        cage that barely reach the fine mesh; they make ``P`` rank-deficient) and rescale the affected
+        rows to sum to 1. 0 keeps every reached node.
 
     Returns
     -------
@@ -147,9 +171,14 @@ def setup_problem(
                 cols = np.intersect1d(cols, reach)
             ops.append(Ac[cols][:, cols].tocsr())
         else:
-            cols = reach
+            cols = _prune(rows, reach, prune)
         free.append(cols)
-        Pr.append(rows[:, cols].tocsr())
+        Pk_r = rows[:, cols].tocsr()
+        if coarse == "galerkin" and prune > 0:
+            # rows that lost weight to pruned columns are rescaled to sum to 1 again (constants stay exact)
+            rs = np.asarray(Pk_r.sum(axis=1)).ravel()
+            Pk_r = sp.csr_matrix(sp.diags(1.0 / rs) @ Pk_r)
+        Pr.append(Pk_r)
     A = A_full[free[0]][:, free[0]].tocsr()
     return Problem(
         name=name,
@@ -160,5 +189,5 @@ def setup_problem(
         free=free,
         n_fine=n0,
         nullspace="constant" if name == "poisson-neumann" else None,
-        params={"lam": lam if name == "diffusion-neumann" else None, "coarse": coarse},
+        params={"lam": lam if name == "diffusion-neumann" else None, "coarse": coarse, "prune": prune},
     )

@@ -40,6 +40,38 @@ def orient_tets(V: np.ndarray, T: np.ndarray) -> np.ndarray:
     return T
 
 
+def _flat(V: np.ndarray, T: np.ndarray, rtol: float = 1e-12) -> np.ndarray:
+    """Mask of flat tets: |volume| <= ``rtol`` x (longest edge)^3 (a regular tet has 0.118)."""
+    P = V[T]
+    longest = np.max([np.linalg.norm(P[:, i] - P[:, j], axis=1)
+                      for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], axis=0)
+    return np.abs(tet_volumes(V, T)) <= rtol * longest**3
+
+
+def _has_flat_tets(V: np.ndarray, T: np.ndarray) -> bool:
+    """True if some tet is flat (FEM-unusable: unbounded cotangent weights)."""
+    return bool(len(T) and _flat(V, T).any())
+
+
+def _drop_boundary_slivers(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Remove flat tets whose four nodes all lie on the boundary surface.
+
+    TetGen keeps the input surface exactly; where that surface has nearly coplanar neighbouring
+    triangles it may fill the gap between them with a sliver of ~zero volume. Such a tet adds nothing
+    to the domain, and its cotangent weights are unbounded, so it is dropped. Flat tets with an
+    interior node are left for the caller to reject.
+    """
+    import igl
+
+    flat = _flat(V, T)
+    on_bnd = np.zeros(len(V), dtype=bool)
+    on_bnd[np.unique(igl.boundary_facets(np.ascontiguousarray(T))[0])] = True
+    drop = flat & on_bnd[T].all(axis=1)
+    if not drop.any():
+        return V, T
+    return _compact(V, T[~drop])
+
+
 def _compact(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     used = np.unique(T)
     if len(used) == len(V):
@@ -114,10 +146,15 @@ def tetrahedralize(
             except ImportError as exc:  # optional extra
                 raise TetMeshError("mesher='tetgen' needs the optional 'tetgen' package (pip install tetgen)") from exc
             # TetGen's maxvolume is only honoured with fixedvolume=True (ENVIRONMENT.md); the volume of a
-            # regular tet of edge h is h^3 / (6 sqrt 2).
-            Vt, T, _, _ = tetgen.TetGen(V, F.astype(np.int32)).tetrahedralize(
-                quality=True, minratio=minratio, fixedvolume=True, maxvolume=h**3 / (6 * np.sqrt(2)), steinerleft=-1
-            )
+            # regular tet of edge h is h^3 / (6 sqrt 2). Its radius-edge bound does not remove slivers;
+            # when one is left, retry with a dihedral-angle bound (TetGen's -q/d switch).
+            for mindihedral in (0.0, 10.0, 18.0):
+                Vt, T, _, _ = tetgen.TetGen(V, F.astype(np.int32)).tetrahedralize(
+                    quality=True, minratio=minratio, mindihedral=mindihedral, fixedvolume=True,
+                    maxvolume=h**3 / (6 * np.sqrt(2)), steinerleft=-1,
+                )
+                if not _has_flat_tets(np.asarray(Vt, float), np.asarray(T, np.int64)):
+                    break
     except TetMeshError:
         raise
     except Exception as exc:  # the meshers raise RuntimeError / their own types on bad input
@@ -128,7 +165,9 @@ def tetrahedralize(
         raise TetMeshError(f"{mesher} returned no tets (surface {len(V)} vertices / {len(F)} faces)")
     Vt, T = _compact(Vt, T)
     T = orient_tets(Vt, T)
-    vol = tet_volumes(Vt, T)
-    if vol.min() <= 0:
-        raise TetMeshError(f"{mesher} returned {int((vol <= 0).sum())} degenerate tets")
+    if mesher == "tetgen" and _has_flat_tets(Vt, T):
+        Vt, T = _drop_boundary_slivers(Vt, T)
+    if _has_flat_tets(Vt, T):
+        n_flat = int(_flat(Vt, T).sum())
+        raise TetMeshError(f"{mesher} returned {n_flat} flat (near-zero volume) tets; try mesher='tetwild'")
     return Vt, T

@@ -42,6 +42,9 @@ _MASS_TYPES = {
 }
 
 
+_TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+
+
 def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
     """Validate a tet mesh and return contiguous float64/int64 copies.
 
@@ -83,9 +86,12 @@ def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
     if np.any(Ts[:, 1:] == Ts[:, :-1]):
         bad = np.flatnonzero(np.any(Ts[:, 1:] == Ts[:, :-1], axis=1))
         raise SolverInputError(f"{bad.size} tets repeat a node index (first: tet {bad[0]} = {T[bad[0]]})")
+    # flatness is judged by shape, not size: |vol| <= 1e-12 * (longest edge)^3 (a regular tet has
+    # 0.118); small but well-shaped tets (refinement near a thin feature) are legitimate
     vol = np.abs(igl.volume(V, T)).ravel()
-    scale = np.ptp(V, axis=0).max() ** 3
-    tiny = vol <= 1e-14 * scale
+    P = V[T]
+    longest = np.max([np.linalg.norm(P[:, i] - P[:, j], axis=1) for i, j in _TET_EDGES], axis=0)
+    tiny = vol <= 1e-12 * longest**3
     if np.any(tiny):
         bad = np.flatnonzero(tiny)
         raise SolverInputError(f"{bad.size} tets have zero volume (first: tet {bad[0]})")

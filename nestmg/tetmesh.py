@@ -13,6 +13,10 @@ boundary exactly.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import tempfile
+
 import numpy as np
 
 from cagegen.errors import NestmgError
@@ -38,6 +42,18 @@ def orient_tets(V: np.ndarray, T: np.ndarray) -> np.ndarray:
     neg = tet_volumes(V, T) < 0
     T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
     return T
+
+
+@contextlib.contextmanager
+def _in_temp_dir():
+    """Run in a fresh temporary working directory (restored and removed afterwards)."""
+    old = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="nestmg-tetwild-") as d:
+        os.chdir(d)
+        try:
+            yield
+        finally:
+            os.chdir(old)
 
 
 def _flat(V: np.ndarray, T: np.ndarray, rtol: float = 1e-12) -> np.ndarray:
@@ -137,9 +153,11 @@ def tetrahedralize(
         if mesher == "tetwild":
             import pytetwild
 
-            Vt, T = pytetwild.tetrahedralize(
-                V, F.astype(np.int32), edge_length_abs=h, epsilon=epsilon, num_threads=threads, quiet=True
-            )
+            # fTetWild writes __tracked_surface.stl into the working directory: keep it out of the user's
+            with _in_temp_dir():
+                Vt, T = pytetwild.tetrahedralize(
+                    V, F.astype(np.int32), edge_length_abs=h, epsilon=epsilon, num_threads=threads, quiet=True
+                )
         else:
             try:
                 import tetgen

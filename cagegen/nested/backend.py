@@ -1,0 +1,457 @@
+"""The ``"nested"`` cage backend: Sacht et al.'s Nested Cages (2015), layer by layer.
+
+For every consecutive pair (fine layer F, target face count m):
+
+1. **Decimate** F (or, with ``decimate_from="input"``, the input) to Ĉ with m faces
+   (:func:`cagegen.decimate.decimate_surface`: watertight, self-intersection free, same genus).
+2. **Flow** F inside Ĉ along Ĉ's signed distance (:func:`cagegen.nested.flow.flow_inside`).
+3. **Re-inflate** F back to its rest pose along the reversed flow, pushing Ĉ out of the way with
+   ipctk's CCD and barrier (:func:`cagegen.nested.reinflate.reinflate`), then minimise the final
+   energy of the cage with F at rest.
+4. **Certify** the pair with :func:`cagegen.verify_nesting`; a failing layer is never returned.
+
+When the flow or the re-inflation fails (the paper's known failure: Ĉ too far from F, e.g. bunny
+→ [1000, 250] in the reference implementation), the pair is retried with the other decimator, then
+with an intermediate layer inserted (F → √(|F|·m) faces → m), recursively; every action is
+recorded in ``info["layers"][k]["recovery"]``.
+
+The work is done on a copy scaled to a unit bounding-box diagonal (the paper's step sizes are
+relative to it); the cages are mapped back to the input's coordinates and certified there.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import nullcontext
+from typing import Callable
+
+import igl
+import numpy as np
+
+from ..decimate import decimate_surface
+from ..errors import CageError
+from ..verify import verify_nesting
+from .collision import min_distance
+from .energies import ENERGIES, signed_volume
+from .flow import flow_inside
+from .reinflate import reinflate
+
+__all__ = ["nested_backend", "nest_pair", "offset_surface"]
+
+_DEFAULTS = {
+    "energy": "volume",
+    "quad_order": 2,
+    "flow_step": 1e-3,
+    "flow_max_iter": 1000,
+    "dhat": 5e-3,
+    "kappa": 1e3,
+    "dhat_final": 1e-3,
+    "kappa_final": 1.0,
+    "max_move": 5e-3,
+    "final_iters": 100,
+}
+
+
+class _PairFailure(Exception):
+    """A pair (flow, re-inflation or certification) failed; ``stage`` says where."""
+
+    def __init__(self, stage: str, reason: str, info: dict):
+        super().__init__(f"{stage}: {reason}")
+        self.stage, self.reason, self.info = stage, reason, info
+
+
+class _Reporter:
+    """Progress output: rich bars (``progress=True``), a message callable, or nothing."""
+
+    def __init__(self, progress):
+        self.say: Callable[[str], None] = lambda msg: None
+        self.bar = None
+        if callable(progress):
+            self.say = progress
+        elif progress:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(),
+                                TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(),
+                                transient=False)
+        self.layer_task = None
+        self.phase_task = None
+
+    def __enter__(self):
+        if self.bar is not None:
+            self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+
+    def layers(self, n: int) -> None:
+        if self.bar is not None:
+            self.layer_task = self.bar.add_task("nested cages: layers", total=n)
+
+    def layer_done(self) -> None:
+        if self.bar is not None:
+            self.bar.advance(self.layer_task)
+
+    def phase(self, name: str, total: int | None) -> Callable:
+        """Start a phase; returns ``update(done, total=None)``."""
+        self.say(name)
+        if self.bar is None:
+            return lambda done, total=None: None
+        if self.phase_task is not None:
+            self.bar.remove_task(self.phase_task)
+        self.phase_task = self.bar.add_task(f"  {name}", total=total)
+        task = self.phase_task
+
+        def update(done: int, total: int | None = None) -> None:
+            self.bar.update(task, completed=done, total=total if total is not None else None)
+
+        return update
+
+
+def offset_surface(V: np.ndarray, F: np.ndarray, gap: float) -> np.ndarray:
+    """Vertices moved outward so every face plane of ``(V, F)`` is at least ``gap`` behind them.
+
+    Each vertex moves along its angle-weighted normal n by ``gap / min_f (n · n_f)`` (incident faces
+    f, the factor clamped to 3), so a cage outside the offset surface keeps about ``gap`` from the
+    original one. The offset surface may self-intersect in thin parts; nothing here needs it not to
+    (the flow and re-inflation ignore fine-fine contacts) and the gap is measured on the original.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+    gap : float
+        Absolute offset distance.
+
+    Returns
+    -------
+    (n,3) float array
+    """
+    if gap <= 0:
+        return np.array(V, dtype=float)
+    N = igl.per_vertex_normals(V, F, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
+    FN = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
+    cos = np.full(len(V), 1.0)
+    for k in range(3):  # vectorised over faces, loop over the 3 corners
+        np.minimum.at(cos, F[:, k], np.einsum("ij,ij->i", N[F[:, k]], FN))
+    scale = 1.0 / np.clip(cos, 1.0 / 3.0, 1.0)
+    return V + (gap * scale)[:, None] * N
+
+
+def nest_pair(
+    Vf: np.ndarray,
+    Ff: np.ndarray,
+    Vc: np.ndarray,
+    Fc: np.ndarray,
+    *,
+    energy: str = "volume",
+    quad_order: int = 2,
+    flow_step: float = 1e-3,
+    flow_max_iter: int = 1000,
+    dhat: float = 5e-3,
+    kappa: float = 1e3,
+    dhat_final: float = 1e-3,
+    kappa_final: float = 1.0,
+    max_move: float = 5e-3,
+    final_iters: int = 100,
+    gap: float = 0.0,
+    reporter: _Reporter | None = None,
+) -> tuple[np.ndarray, dict]:
+    """Deform the target Ĉ = ``(Vc, Fc)`` into a cage that nests the fine surface ``(Vf, Ff)``.
+
+    Works in the caller's units; the relative parameters refer to the bounding-box diagonal of the
+    fine surface (the backend passes unit-diagonal inputs, so they are the paper's values).
+
+    Parameters
+    ----------
+    Vf : (nf,3) float array
+    Ff : (mf,3) int array
+        Fine surface (rest pose).
+    Vc : (nc,3) float array
+    Fc : (mc,3) int array
+        Target cage Ĉ (closed, free of self-intersections).
+    energy : str
+        Final cage energy (:data:`cagegen.nested.energies.ENERGIES`).
+    quad_order, flow_step, flow_max_iter
+        Flow options (:func:`cagegen.nested.flow.flow_inside`).
+    dhat, kappa, dhat_final, kappa_final, max_move, final_iters
+        Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
+    gap : float
+        Absolute clearance to keep between the cage and the fine surface (0: any positive gap).
+    reporter : optional
+        Progress reporter (internal).
+
+    Returns
+    -------
+    C : (nc,3) float array
+        Cage vertices (same triangles ``Fc``).
+    info : dict
+        ``flow``, ``reinflate`` figures and ``seconds`` per phase.
+
+    Raises
+    ------
+    _PairFailure
+        The flow or the re-inflation failed (internal; the backend recovers or raises CageError).
+    """
+    rep = reporter or _Reporter(False)
+    info: dict = {"seconds": {}}
+    target = offset_surface(Vf, Ff, gap) if gap > 0 else np.array(Vf, dtype=float)
+
+    t = time.perf_counter()
+    upd = rep.phase("flow", flow_max_iter)
+    fl = flow_inside(target, Ff, Vc, Fc, quad_order=quad_order, step=flow_step,
+                     max_iter=flow_max_iter, callback=lambda it: upd(it))
+    info["seconds"]["flow"] = time.perf_counter() - t
+    info["flow"] = fl.to_dict()
+    if not fl.success:
+        raise _PairFailure("flow", fl.reason, info)
+
+    t = time.perf_counter()
+    upd = rep.phase("re-inflation", None)
+    rr = reinflate(fl.history, Ff, Vc, Fc, energy=energy, dhat=dhat, kappa=kappa,
+                   dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
+                   final_iters=final_iters, callback=lambda k, n: upd(k, n))
+    info["seconds"]["reinflate"] = rr.stats.get("t_reinflate", time.perf_counter() - t)
+    info["seconds"]["final_energy"] = rr.stats.get("t_final", 0.0)
+    info["reinflate"] = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in rr.stats.items()}
+    if not rr.success:
+        raise _PairFailure("reinflate", rr.reason, info)
+    # the re-inflation ends with the fine surface exactly at its rest pose
+    info["reinflate"]["fine_at_rest"] = bool(np.array_equal(rr.fine, target))
+    return rr.cage, info
+
+
+def _decimate(V, F, n_faces, algorithm):
+    U, G, dinfo = decimate_surface(V, F, int(n_faces), algorithm=algorithm)
+    return U, G, {"algorithm": dinfo["algorithm"], "block_intersections": dinfo["block_intersections"],
+                  "n_faces": int(G.shape[0]), "seconds": dinfo["seconds"]}
+
+
+def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_no):
+    """Cage with ~n_faces faces nesting (Vf, Ff), with recovery. Returns (C, G, info)."""
+    first_alg = opts.get("decimator", "qslim")
+    algs = [first_alg, "decimate" if first_alg == "qslim" else "qslim"]
+    failures = []
+    for alg in algs:
+        t = time.perf_counter()
+        try:
+            U, G, dinfo = _decimate(Vf, Ff, n_faces, alg)
+        except CageError as exc:
+            failures.append({"action": f"decimate with {alg}", "stage": "decimate", "reason": str(exc)})
+            continue
+        t_dec = time.perf_counter() - t
+        try:
+            C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{k: opts[k] for k in _DEFAULTS})
+        except _PairFailure as exc:
+            failures.append({"action": f"decimate with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+                             "stage": exc.stage, "reason": exc.reason})
+            log.append({"layer": layer_no, **failures[-1]})
+            continue
+        pinfo["decimation"] = dinfo
+        pinfo["seconds"]["decimate"] = t_dec
+        pinfo["failed_attempts"] = failures
+        return C, G, pinfo
+    if depth >= max_depth:
+        raise CageError(
+            f"layer {layer_no}: no nested cage with {n_faces} faces around a {len(Ff)}-face surface "
+            f"after {len(failures)} attempts: " + "; ".join(f"{f['action']}: {f['stage']} {f['reason']}" for f in failures),
+            layer=layer_no, reason=failures[-1]["reason"] if failures else "decimation failed")
+    # recovery: insert an intermediate layer (geometric mean of the face counts), then retry
+    mid = int(2 * round(np.sqrt(len(Ff) * n_faces) / 2))
+    if mid <= n_faces or mid >= len(Ff):
+        raise CageError(f"layer {layer_no}: no room for an intermediate layer between {len(Ff)} and {n_faces} faces",
+                        layer=layer_no, reason="flow failed")
+    log.append({"layer": layer_no, "action": f"insert intermediate layer of {mid} faces", "stage": "recovery",
+                "reason": failures[-1]["reason"] if failures else ""})
+    rep.say(f"layer {layer_no}: recovering with an intermediate layer of {mid} faces")
+    Ci, Gi, iinfo = _build_layer(Vf, Ff, mid, opts, gap, rep, depth + 1, max_depth, log, layer_no)
+    C, G, pinfo = _build_layer(Ci, Gi, n_faces, opts, gap, rep, depth + 1, max_depth, log, layer_no)
+    pinfo["intermediate"] = {"n_faces": int(len(Gi)), "info": iinfo}
+    pinfo["failed_attempts"] = failures + pinfo.get("failed_attempts", [])
+    return C, G, pinfo
+
+
+def nested_backend(
+    V: np.ndarray,
+    F: np.ndarray,
+    face_counts,
+    *,
+    energy: str = "volume",
+    quad_order: int = 2,
+    min_gap: float = 0.0,
+    min_gap_abs: float | None = None,
+    decimate_from: str = "previous",
+    decimator: str = "qslim",
+    max_recovery_depth: int = 2,
+    progress=False,
+    certify: bool = True,
+    **opts,
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
+    """Cage backend ``"nested"``: strictly nested cages by flow and re-inflation (Sacht et al. 2015).
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        The closed input surface (layer 0; already audited by :func:`cagegen.build_cages`). Not
+        modified.
+    face_counts : sequence of int
+        Target faces per cage, finest first.
+    energy : str
+        Cage energy minimised once the fine surface is back at rest: ``"volume"`` (tight, default),
+        ``"step"`` (the pushed-out decimation), ``"surface_arap"`` (shape preserving).
+    quad_order : int
+        Quadrature degree of the flow (paper: 2).
+    min_gap : float
+        Clearance to keep between consecutive layers, relative to the input's bounding-box diagonal
+        (0: touching is avoided but any positive gap is accepted). For TetWild, whose boundary is
+        only within ``epsilon`` (default 1e-3) of its input, use ``min_gap > epsilon``.
+    min_gap_abs : float, optional
+        The same clearance in absolute units (overrides ``min_gap``).
+    decimate_from : {"previous", "input"}
+        Decimate the previous layer (default) or the input for each target.
+    decimator : {"qslim", "decimate"}
+        Decimator tried first (the other one is the first recovery).
+    max_recovery_depth : int
+        How many intermediate layers may be nested into each other when recovering.
+    progress : bool or callable
+        ``True``: rich progress bars per layer and phase; a callable gets one-line messages;
+        ``False``: silent.
+    certify : bool
+        Verify every pair with :func:`cagegen.verify_nesting` (the layer is recomputed through the
+        recovery path, or :class:`CageError` is raised, when it fails).
+    **opts
+        Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
+        ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
+
+    Returns
+    -------
+    layers : list of (V_k, F_k)
+        The cages only, finest first; ``V_k`` (n_k,3) float64, ``F_k`` (m_k,3) int64.
+    info : dict
+        JSON-serialisable: ``options``, per layer ``target``, ``n_faces``, ``decimation``, ``flow``,
+        ``reinflate``, ``seconds`` per phase, ``min_gap`` achieved (relative and absolute),
+        ``volume_ratio``, ``verification``, ``recovery`` (list of actions); ``seconds`` in total.
+
+    Raises
+    ------
+    CageError
+        A layer could not be built or certified (``.layer`` is its index, 1 = first cage).
+    ValueError
+        Unknown option or energy.
+    """
+    t_all = time.perf_counter()
+    if energy not in ENERGIES:
+        raise ValueError(f"unknown energy {energy!r}; choose one of {sorted(ENERGIES)}")
+    if decimate_from not in ("previous", "input"):
+        raise ValueError(f"decimate_from must be 'previous' or 'input', got {decimate_from!r}")
+    unknown = set(opts) - set(_DEFAULTS)
+    if unknown:
+        raise ValueError(f"unknown option(s) for the nested backend: {sorted(unknown)}")
+    V = np.array(V, dtype=np.float64)  # private copies
+    F = np.array(F, dtype=np.int64)
+    face_counts = [int(c) for c in face_counts]
+    params = {**_DEFAULTS, **opts, "energy": energy, "quad_order": int(quad_order), "decimator": decimator}
+
+    # work at unit bounding-box diagonal (the paper's relative step sizes)
+    lo, hi = V.min(0), V.max(0)
+    center = 0.5 * (lo + hi)
+    diag = float(np.linalg.norm(hi - lo))
+    Vn = (V - center) / diag
+    gap_abs = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag
+    gap_n = gap_abs / diag
+    # aim a little beyond the requested clearance (the offset is measured on face planes)
+    gap_target = 1.1 * gap_n if gap_n > 0 else 0.0
+
+    info: dict = {
+        "method": "nested",
+        "options": {k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in params.items()},
+        "min_gap_requested": {"relative": gap_n, "absolute": gap_abs},
+        "decimate_from": decimate_from,
+        "layers": [],
+        "recovery": [],
+    }
+    layers = []
+    prev_n, prev_F = Vn, F
+    prev_orig = (V, F)
+    with _Reporter(progress) as rep:
+        rep.layers(len(face_counts))
+        for k, m in enumerate(face_counts, start=1):
+            t_layer = time.perf_counter()
+            rep.say(f"layer {k}: target {m} faces")
+            src_V, src_F = (prev_n, prev_F) if decimate_from == "previous" else (Vn, F)
+            log: list = []
+            if decimate_from == "input" and k > 1:
+                # the target is a decimation of the input, but it must nest the previous layer
+                C, G, linfo = _layer_from_target(prev_n, prev_F, Vn, F, m, params, gap_target, rep, log, k)
+            else:
+                C, G, linfo = _build_layer(src_V, src_F, m, params, gap_target, rep, 0,
+                                           int(max_recovery_depth), log, k)
+            Vk = C * diag + center
+            Gk = np.ascontiguousarray(G, dtype=np.int64)
+            t = time.perf_counter()
+            if certify:
+                report = verify_nesting([prev_orig, (Vk, Gk)], min_gap=gap_abs / _diag(prev_orig[0]))
+                linfo["verification"] = report.to_dict()
+                if not report.ok:
+                    raise CageError(f"layer {k} failed certification: {report.pairs[0].reason}",
+                                    layer=k, reason=str(report.pairs[0].reason))
+            linfo.setdefault("seconds", {})["verify"] = time.perf_counter() - t
+            gap_k = min_distance(Vk, Gk, *prev_orig)
+            linfo.update({
+                "layer": k,
+                "target": m,
+                "n_faces": int(len(Gk)),
+                "n_vertices": int(len(Vk)),
+                "min_gap_absolute": gap_k,
+                "min_gap_relative": gap_k / diag,
+                "volume_ratio": signed_volume(Vk, Gk) / signed_volume(*prev_orig),
+                "volume_ratio_to_input": signed_volume(Vk, Gk) / signed_volume(V, F),
+                "hausdorff_relative": float(igl.hausdorff(Vk, Gk, V, F)) / diag,
+                "recovery": log,
+            })
+            linfo["seconds"]["total"] = time.perf_counter() - t_layer
+            info["layers"].append(_jsonable(linfo))
+            info["recovery"].extend(log)
+            layers.append((Vk, Gk))
+            prev_n, prev_F = C, Gk
+            prev_orig = (Vk, Gk)
+            rep.layer_done()
+    info["seconds"] = time.perf_counter() - t_all
+    return layers, info
+
+
+def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):
+    """``decimate_from="input"``: decimate the input, nest it around the previous layer."""
+    U, G, dinfo = _decimate(Vsrc, Fsrc, m, params.get("decimator", "qslim"))
+    try:
+        C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{kk: params[kk] for kk in _DEFAULTS})
+    except _PairFailure as exc:
+        log.append({"layer": k, "action": "decimation of the input failed; decimating the previous layer",
+                    "stage": exc.stage, "reason": exc.reason})
+        return _build_layer(Vf, Ff, m, params, gap, rep, 0, 2, log, k)
+    pinfo["decimation"] = dinfo
+    return C, G, pinfo
+
+
+def _diag(V: np.ndarray) -> float:
+    return float(np.linalg.norm(V.max(0) - V.min(0)))
+
+
+def _jsonable(obj):
+    """Recursively convert numpy scalars/arrays to plain Python for JSON."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    return obj

@@ -1,0 +1,195 @@
+"""Re-inflation energies E(F, Ĉ, C) of the cage (paper Sec. 3.2, Eqs. 11-15).
+
+Each energy is a small object holding its reused state (rest cage, Laplacian, tet mesh) with
+
+* ``value(C) -> float``
+* ``gradient(C) -> (nc,3)``
+* ``metric(C) -> (3nc,3nc) csr``: a symmetric positive definite matrix used as the Hessian (exact
+  for ``step``, the ARAP "global step" matrix for the ARAP energies, a proximal identity for
+  ``volume``, whose true Hessian is indefinite), in ipctk's row-major DOF order
+  ``[x0, y0, z0, x1, ...]``;
+* ``begin_step(C)``: called at the start of every reverse time step (``step`` remembers C(t)).
+
+:func:`make_energy` builds one by name: ``"step"``, ``"volume"``, ``"surface_arap"``,
+``"volumetric_arap"`` or ``"symmetry"``.
+"""
+
+from __future__ import annotations
+
+import igl
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = [
+    "StepEnergy",
+    "VolumeEnergy",
+    "SurfaceARAPEnergy",
+    "make_energy",
+    "ENERGIES",
+    "signed_volume",
+]
+
+
+def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Enclosed volume of a closed, outward-oriented triangle mesh: Σ_f det(a, b, c) / 6 (Eq. 13)."""
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def _kron3(M: sp.spmatrix) -> sp.csr_matrix:
+    """Expand an (n,n) scalar operator to (3n,3n) on row-major xyz DOFs."""
+    return sp.kron(M, sp.identity(3), format="csr")
+
+
+class StepEnergy:
+    """E_step = ½ ‖C(t+∆t) − C(t)‖² (Eq. 12): move the cage as little as possible."""
+
+    name = "step"
+
+    def __init__(self, Vc_rest: np.ndarray, Fc: np.ndarray):
+        self.prev = np.array(Vc_rest, dtype=float)
+        self._M = sp.identity(3 * len(Vc_rest), format="csr")
+
+    def begin_step(self, C: np.ndarray) -> None:
+        self.prev = np.array(C, dtype=float)
+
+    def value(self, C: np.ndarray) -> float:
+        return 0.5 * float(np.sum((C - self.prev) ** 2))
+
+    def gradient(self, C: np.ndarray) -> np.ndarray:
+        return C - self.prev
+
+    def metric(self, C: np.ndarray) -> sp.csr_matrix:
+        return self._M
+
+
+class VolumeEnergy:
+    """E_vol = Vol(C) = ∫ x·n dA / 3 (Eq. 13); ∇E_vol = area-weighted vertex normals / 3.
+
+    The Hessian of the volume is indefinite, so the metric is a proximal identity whose scale makes
+    an unconstrained step move the fastest vertex by ``max_move`` (a fraction of the cage's
+    bounding-box diagonal): preconditioned gradient descent, the barrier Hessian added by the caller
+    slows down the vertices in contact.
+    """
+
+    name = "volume"
+
+    def __init__(self, Vc_rest: np.ndarray, Fc: np.ndarray, max_move: float = 5e-3):
+        self.F = np.asarray(Fc, dtype=np.int64)
+        self.n = len(Vc_rest)
+        self.max_move = max_move * float(np.linalg.norm(np.ptp(Vc_rest, axis=0)))
+
+    def begin_step(self, C: np.ndarray) -> None:
+        pass
+
+    def value(self, C: np.ndarray) -> float:
+        return signed_volume(C, self.F)
+
+    def gradient(self, C: np.ndarray) -> np.ndarray:
+        a, b, c = C[self.F[:, 0]], C[self.F[:, 1]], C[self.F[:, 2]]
+        G = np.zeros_like(C)
+        # d det(a,b,c)/da = b × c, and cyclically
+        np.add.at(G, self.F[:, 0], np.cross(b, c))
+        np.add.at(G, self.F[:, 1], np.cross(c, a))
+        np.add.at(G, self.F[:, 2], np.cross(a, b))
+        return G / 6.0
+
+    def metric(self, C: np.ndarray) -> sp.csr_matrix:
+        gmax = float(np.linalg.norm(self.gradient(C), axis=1).max())
+        return sp.identity(3 * self.n, format="csr") * (max(gmax, 1e-300) / self.max_move)
+
+
+def _fit_rotations(S: np.ndarray) -> np.ndarray:
+    """Closest rotations R_k (k,3,3) maximising tr(R S_k) (polar decomposition via batched SVD)."""
+    U, _, Vt = np.linalg.svd(S)
+    R = np.einsum("kji,klj->kil", Vt, U)  # R = V Uᵀ
+    det = np.linalg.det(R)
+    flip = det < 0
+    if np.any(flip):
+        Vt2 = Vt[flip].copy()
+        Vt2[:, 2, :] *= -1
+        R[flip] = np.einsum("kji,klj->kil", Vt2, U[flip])
+    return R
+
+
+class SurfaceARAPEnergy:
+    """Surface ("spokes") ARAP, Eq. 14: E = ½ Σ_i Σ_{j∈N(i)} w_ij ‖e_ij − R_i ê_ij‖².
+
+    ``w_ij`` are the cotangent weights of the rest cage Ĉ (clamped to be positive so the metric
+    2L stays positive definite), ``R_i`` the best-fit rotations (local step); with the rotations
+    fixed the gradient is ``2 L C − b`` (global step), so ``2L`` is the metric.
+    """
+
+    name = "surface_arap"
+
+    def __init__(self, Vc_rest: np.ndarray, Fc: np.ndarray):
+        R0 = np.asarray(Vc_rest, dtype=float)
+        F = np.asarray(Fc, dtype=np.int64)
+        self.n = len(R0)
+        Lc = -igl.cotmatrix(R0, F).tocoo()  # positive semi-definite cot Laplacian
+        off = Lc.row != Lc.col
+        i, j, w = Lc.row[off], Lc.col[off], -Lc.data[off]  # w_ij = ½(cot α + cot β)
+        w = np.maximum(w, 1e-3 * np.abs(w).mean())
+        self._set_edges(R0, i, j, w)
+
+    def _set_edges(self, R0: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarray) -> None:
+        self.i, self.j, self.w = i, j, w  # directed pairs (both orientations present)
+        self.rest_e = R0[i] - R0[j]
+        n = self.n
+        W = sp.csr_matrix((w, (i, j)), shape=(n, n))
+        L = sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W
+        eps = 1e-6 * float(L.diagonal().mean())
+        self._M = _kron3(2.0 * L + eps * sp.identity(n))
+
+    def begin_step(self, C: np.ndarray) -> None:
+        pass
+
+    def _rotations(self, C: np.ndarray) -> np.ndarray:
+        e = C[self.i] - C[self.j]
+        S = np.zeros((self.n, 3, 3))
+        np.add.at(S, self.i, self.w[:, None, None] * np.einsum("ka,kb->kab", self.rest_e, e))
+        return _fit_rotations(S)
+
+    def value(self, C: np.ndarray) -> float:
+        R = self._rotations(C)
+        r = (C[self.i] - C[self.j]) - np.einsum("kab,kb->ka", R[self.i], self.rest_e)
+        return 0.5 * float(self.w @ np.sum(r * r, axis=1))
+
+    def gradient(self, C: np.ndarray) -> np.ndarray:
+        R = self._rotations(C)
+        e = C[self.i] - C[self.j]
+        Re = np.einsum("kab,kb->ka", R[self.i] + R[self.j], self.rest_e)
+        G = np.zeros_like(C)
+        np.add.at(G, self.i, self.w[:, None] * (2.0 * e - Re))
+        return G
+
+    def metric(self, C: np.ndarray) -> sp.csr_matrix:
+        return self._M
+
+
+ENERGIES = {
+    "step": StepEnergy,
+    "volume": VolumeEnergy,
+    "surface_arap": SurfaceARAPEnergy,
+}
+
+
+def make_energy(name: str, Vc_rest: np.ndarray, Fc: np.ndarray, **kw):
+    """Build the energy ``name`` for the rest cage ``(Vc_rest, Fc)``.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`ENERGIES`.
+    Vc_rest : (nc,3) float array
+        Rest (decimated) cage Ĉ.
+    Fc : (mc,3) int array
+        Cage triangles.
+
+    Returns
+    -------
+    energy object (see the module docstring)
+    """
+    if name not in ENERGIES:
+        raise ValueError(f"unknown re-inflation energy {name!r}; choose one of {sorted(ENERGIES)}")
+    return ENERGIES[name](Vc_rest, Fc, **kw)

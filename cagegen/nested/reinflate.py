@@ -1,0 +1,320 @@
+"""Re-inflation: replay the flow backwards while the cage is pushed out of the way (paper Sec. 3.2).
+
+The fine surface must return exactly to its rest pose along its flow history; the cage C has to
+move so that C never intersects itself nor the fine surface *during* every step (continuous-time
+constraints, Eqs. 9-10). Instead of a velocity filter we use ipctk's incremental-potential
+machinery: for every reverse step F(t) → F(t+∆t) we minimise over both surfaces
+
+    Φ(C, F) = E(C) + (k_F/2) ‖F − F(t+∆t)‖² + κ B(C, F)
+
+with Newton's method (barrier Hessian projected to PSD), a CCD-bounded backtracking line search
+(``compute_collision_free_stepsize``: every accepted motion is intersection-free) and the barrier
+B of Li et al. (IPC) with activation distance ``dhat``. The stiff spring k_F plays the role of the
+fine mesh's "infinite mass": the barrier's reaction moves the cage, the fine surface follows its
+prescribed path. When F is within ``snap_tol`` of its target, it is snapped *exactly* onto it
+(after a CCD check), so after the last step F equals its rest positions bit for bit. As in the
+paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol) only once F is at
+rest, with F fixed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .collision import PairMesh
+from .energies import StepEnergy, make_energy, signed_volume
+
+import os
+_DEBUG = bool(os.environ.get("NESTMG_DEBUG"))
+
+__all__ = ["ReinflateResult", "reinflate", "resample_history"]
+
+
+@dataclass
+class ReinflateResult:
+    """Outcome of :func:`reinflate`.
+
+    Attributes
+    ----------
+    cage : (nc,3) float array
+        New cage positions C (nests the fine surface at rest if ``success``).
+    fine : (nf,3) float array
+        Final fine positions (equal to ``history[0]`` if ``success``).
+    success : bool
+    reason : str
+    stats : dict
+        Counters and timings (JSON-serialisable).
+    """
+
+    cage: np.ndarray
+    fine: np.ndarray
+    success: bool
+    reason: str
+    stats: dict = field(default_factory=dict)
+
+
+def resample_history(history: list, max_move: float) -> list:
+    """Path of the fine surface through ``history`` in steps moving no vertex more than ``max_move``.
+
+    Snapshots closer than ``max_move`` are merged, longer segments are split linearly (between
+    snapshots the fine surface may follow any path: only its end, the rest pose, matters). The first
+    and last entries are kept as the same objects, so ``path[0] is history[0]`` stays exact.
+    """
+    keep = [history[0]]
+    for k in range(1, len(history)):
+        if k < len(history) - 1 and np.abs(history[k + 1] - keep[-1]).max() <= max_move:
+            continue
+        a, b = keep[-1], history[k]
+        n_sub = int(np.ceil(np.abs(b - a).max() / max_move)) if max_move > 0 else 1
+        for s in range(1, n_sub):
+            keep.append(a + (b - a) * (s / n_sub))
+        keep.append(b)
+    return keep
+
+
+class _Problem:
+    """Newton machinery on the stacked positions X = [C; F] (row-major DOFs)."""
+
+    def __init__(self, pair: PairMesh, energy, dhat: float, kappa: float, k_fine: float):
+        self.pair, self.energy = pair, energy
+        self.nc, self.nf = pair.nc, pair.nf
+        self.dhat, self.kappa, self.k_fine = dhat, kappa, k_fine
+        self.barrier = ipctk.BarrierPotential(dhat, kappa)
+        self.col = ipctk.NormalCollisions()
+        self.n_ccd = 0
+        self.n_build = 0
+        self.lam = np.zeros((pair.nf, 3))  # augmented-Lagrangian multipliers of F = target
+
+    def _collisions(self, X: np.ndarray) -> ipctk.NormalCollisions:
+        col = self.pair.collisions(X, self.dhat)
+        self.n_build += 1
+        return col
+
+    def objective(self, X: np.ndarray, target: np.ndarray | None) -> float:
+        C, F = X[: self.nc], X[self.nc :]
+        val = self.energy.value(C) + float(self.barrier(self._collisions(X), self.pair.mesh, X))
+        if target is not None:
+            c = F - target
+            val += 0.5 * self.k_fine * float(np.sum(c * c)) - float(np.sum(self.lam * c))
+        return val
+
+    def newton_step(self, X: np.ndarray, target: np.ndarray | None) -> tuple[np.ndarray, float, float]:
+        """Newton direction, CCD-bounded and Armijo-backtracked. Returns (X_new, alpha, |dX|_inf).
+
+        ``target`` is the fine surface's goal (spring); ``None`` keeps F fixed (final phase).
+        """
+        nc3 = 3 * self.nc
+        C, F = X[: self.nc], X[self.nc :]
+        col = self._collisions(X)
+        gB = self.barrier.gradient(col, self.pair.mesh, X)
+        HB = self.barrier.hessian(col, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP)
+        gC = self.energy.gradient(C).ravel() + gB[:nc3]
+        HC = self.energy.metric(C)
+        if target is None:  # fine surface fixed: reduced system on the cage DOFs
+            H = (HC + HB[:nc3, :nc3]).tocsc()
+            g = gC
+            d = np.zeros(X.size)
+            d[:nc3] = -_solve_spd(H, g)
+            f0 = self.energy.value(C) + float(self.barrier(col, self.pair.mesh, X))
+        else:
+            gF = (self.k_fine * (F - target) - self.lam).ravel() + gB[nc3:]
+            g = np.r_[gC, gF]
+            # fine DOFs untouched by any contact have the diagonal Hessian k_F: solve them in closed
+            # form and the coupled system only on the cage + fine DOFs in contact (small)
+            HB = HB.tocsr()
+            touched = np.zeros(X.size, dtype=bool)
+            touched[:nc3] = True
+            touched[np.unique(HB.indices)] = True
+            d = -g / self.k_fine
+            idx = np.flatnonzero(touched)
+            # idx starts with the nc3 cage DOFs
+            Hs = (HB[idx][:, idx] + sp.diags(np.where(idx < nc3, 0.0, self.k_fine))
+                  + sp.block_diag([HC, sp.csr_matrix((len(idx) - nc3, len(idx) - nc3))]))
+            if _DEBUG:
+                print("system", Hs.shape, Hs.nnz)
+            d[idx] = -_solve_spd(Hs.tocsc(), g[idx])
+            c = F - target
+            f0 = (self.energy.value(C) + float(self.barrier(col, self.pair.mesh, X))
+                  + 0.5 * self.k_fine * float(np.sum(c * c)) - float(np.sum(self.lam * c)))
+        D = d.reshape(-1, 3)
+        slope = float(g @ d[: g.size])
+        self.n_ccd += 1
+        alpha = self.pair.stepsize(X, X + D)
+        if alpha <= 0.0:
+            return X, 0.0, 0.0
+        alpha = min(1.0, alpha)
+        if _DEBUG:
+            print("  ccd alpha", alpha)
+        for _ in range(30):
+            Xt = X + alpha * D
+            if self.objective(Xt, target) <= f0 + 1e-4 * alpha * slope:
+                return Xt, alpha, float(np.abs(alpha * D).max())
+            alpha *= 0.5
+        return X, 0.0, 0.0
+
+
+def _solve_spd(H: sp.spmatrix, g: np.ndarray) -> np.ndarray:
+    """Solve the SPD Newton system H d = g (sparse LU with a symmetric fill-reducing ordering)."""
+    lu = spla.splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    return lu.solve(g)
+
+
+def reinflate(
+    history: list,
+    Ff: np.ndarray,
+    Vc: np.ndarray,
+    Fc: np.ndarray,
+    *,
+    energy: str = "volume",
+    dhat: float = 5e-3,
+    kappa: float = 1e3,
+    dhat_final: float = 1e-3,
+    kappa_final: float = 1.0,
+    k_fine: float = 1e3,
+    max_move: float = 5e-3,
+    snap_tol: float = 1e-2,
+    max_newton: int = 60,
+    final_iters: int = 100,
+    final_tol: float = 1e-4,
+    callback: Callable[[int, int], None] | None = None,
+) -> ReinflateResult:
+    """Re-inflate the flowed fine surface to its rest pose, pushing the cage outward (Alg. 3).
+
+    Parameters
+    ----------
+    history : list of (nf,3) float arrays
+        Fine positions along the flow, ``history[0]`` the rest pose, ``history[-1]`` strictly inside
+        the cage (see :func:`cagegen.nested.flow.flow_inside`). Not modified.
+    Ff : (mf,3) int array
+        Fine triangles.
+    Vc : (nc,3) float array
+        Cage rest positions Ĉ (not modified); must be free of self-intersections.
+    Fc : (mc,3) int array
+        Cage triangles.
+    energy : str
+        Final energy minimised with the fine surface at rest: ``"step"`` (none: keep the pushed-out
+        cage), ``"volume"`` (tight), ``"surface_arap"``. E_step is used while re-inflating, as in the
+        paper ("surface_arap" uses ARAP throughout).
+    dhat : float
+        Barrier activation distance while re-inflating, fraction of the fine bounding-box diagonal.
+        Larger than the per-step motion ``max_move`` so the cage "sees" the fine surface coming.
+    kappa : float
+        Barrier stiffness while re-inflating (stiff: the cage keeps ahead of the fine surface, few
+        Newton iterations).
+    dhat_final, kappa_final : float
+        Barrier of the final phase (softer and shorter-ranged: the final energy pulls the cage
+        close to the fine surface; the equilibrium gap shrinks with both).
+    k_fine : float
+        Spring stiffness pulling the fine surface to its next history position.
+    max_move : float
+        Largest vertex motion (fraction of the diagonal) of one reverse step; the history is
+        resampled to respect it.
+    snap_tol : float
+        Distance (fraction of ``dhat``) from its target under which F is snapped onto it.
+    max_newton : int
+        Newton iterations allowed per reverse step.
+    final_iters : int
+        Iterations of the final energy minimisation.
+    final_tol : float
+        Stop the final phase when the objective decreases by less than this relative amount.
+    callback : callable, optional
+        ``callback(step, n_steps)`` after each reverse step.
+
+    Returns
+    -------
+    ReinflateResult
+    """
+    t0 = time.perf_counter()
+    Ff = np.asarray(Ff, dtype=np.int64)
+    Fc = np.asarray(Fc, dtype=np.int64)
+    rest = history[0]
+    diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    dhat_abs = dhat * diag
+    path = resample_history(history, max_move * diag)
+    C = np.array(Vc, dtype=float)
+    pair = PairMesh(C, Fc, path[-1], Ff)
+    X = pair.stack(C, path[-1])
+    stats: dict = {"reverse_steps": len(path) - 1, "newton_iterations": 0}
+    if pair.intersects(X):
+        return ReinflateResult(C, path[-1].copy(), False, "flowed surface intersects the cage", stats)
+
+    reinflate_energy = make_energy("surface_arap" if energy == "surface_arap" else "step", C, Fc)
+    prob = _Problem(pair, reinflate_energy, dhat_abs, kappa, k_fine)
+    nc = len(C)
+    targets = path[-2::-1]  # F(t+∆t) for the reverse steps, ending with the rest pose (same object)
+    for k, Fb in enumerate(targets):
+        reinflate_energy.begin_step(X[:nc])
+        snapped = False
+        for _ in range(max_newton):
+            X, alpha, move = prob.newton_step(X, Fb)
+            stats["newton_iterations"] += 1
+            gap = float(np.abs(X[nc:] - Fb).max())
+            if _DEBUG:
+                print(f"step {k} alpha {alpha:.3g} move {move:.3g} Fgap {gap:.3g} kF {prob.k_fine:.3g} ncol {len(prob._collisions(X))}")
+            if gap < snap_tol * dhat_abs:
+                Xs = X.copy()
+                Xs[nc:] = Fb
+                prob.n_ccd += 1
+                if prob.pair.stepsize(X, Xs) >= 1.0:
+                    X, snapped = Xs, True
+                    break
+            if alpha >= 0.5:
+                # augmented Lagrangian update: the multiplier takes over the contact force, so the
+                # fine surface converges onto its target without an infinitely stiff spring
+                prob.lam -= prob.k_fine * (X[nc:] - Fb)
+            if alpha == 0.0 or move < 1e-12 * diag:
+                prob.k_fine *= 10.0  # stuck short of the target: stiffen the fine surface's spring
+        if not snapped:
+            stats.update(_counters(prob, t0))
+            return ReinflateResult(X[:nc].copy(), X[nc:].copy(), False,
+                                   f"re-inflation stuck at reverse step {k + 1}/{len(targets)}", stats)
+        if callback is not None:
+            callback(k + 1, len(targets))
+    stats["t_reinflate"] = time.perf_counter() - t0
+
+    # final phase: fine surface at rest (fixed), minimise the requested energy of the cage
+    t1 = time.perf_counter()
+    X[nc:] = rest  # already equal bit for bit; keeps the exact array values
+    final_energy = make_energy(energy, np.asarray(Vc, dtype=float), Fc)
+    final_energy.begin_step(X[:nc])
+    stats["volume_before_final"] = signed_volume(X[:nc], Fc)
+    n_final = 0
+    if energy != "step":
+        prob.energy = final_energy
+        prob.dhat = dhat_final * diag
+        prob.barrier = ipctk.BarrierPotential(prob.dhat, kappa_final)
+        f_prev = prob.objective(X, None)
+        kap = kappa_final
+        for _ in range(final_iters):
+            X, alpha, move = prob.newton_step(X, None)
+            n_final += 1
+            f = prob.objective(X, None)
+            if _DEBUG:
+                print(f"final alpha {alpha:.3g} move {move:.3g} f {f:.6g} kappa {kap:.3g} vol {signed_volume(X[:nc], Fc):.6g}")
+            if alpha < 0.5 and kap < 1e4:
+                # a blocked (CCD-limited) step: the barrier is too soft to stop the cage before the
+                # contact, stiffen it (adaptive stiffness, as in IPC)
+                kap *= 2.0
+                prob.barrier = ipctk.BarrierPotential(prob.dhat, kap)
+                f = prob.objective(X, None)
+            elif abs(f_prev - f) <= final_tol * max(abs(f_prev), 1e-300):
+                break
+            f_prev = f
+        stats["kappa_final_reached"] = kap
+    stats["final_iterations"] = n_final
+    stats["volume_after_final"] = signed_volume(X[:nc], Fc)
+    stats["t_final"] = time.perf_counter() - t1
+    stats.update(_counters(prob, t0))
+    return ReinflateResult(X[:nc].copy(), X[nc:].copy(), True, "ok", stats)
+
+
+def _counters(prob: _Problem, t0: float) -> dict:
+    return {"ccd_calls": prob.n_ccd, "collision_builds": prob.n_build, "seconds": time.perf_counter() - t0}

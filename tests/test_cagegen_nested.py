@@ -1,0 +1,284 @@
+"""Tests of the Nested Cages backend (cagegen.nested): quadrature, energies, flow, re-inflation,
+multi-layer hierarchies with certification, recovery and the min_gap option.
+
+Shapes are small procedural surfaces (nestmg.shapes, ~2.4k-2.7k faces) so the file runs in well
+under a minute.
+"""
+
+from __future__ import annotations
+
+import json
+
+import igl
+import numpy as np
+import pytest
+
+from cagegen import build_cages, verify_nesting
+from cagegen.decimate import decimate_surface
+from cagegen.nested import backend as nested_backend_module
+from cagegen.nested import (
+    flow_inside,
+    make_energy,
+    nested_backend,
+    offset_surface,
+    quadrature_matrix,
+    quadrature_points,
+    reinflate,
+    triangle_rule,
+)
+from cagegen.nested.collision import PairMesh, min_distance
+from cagegen.nested.energies import signed_volume
+from nestmg import shapes
+
+
+def _unit(V):
+    lo, hi = V.min(0), V.max(0)
+    return (V - 0.5 * (lo + hi)) / np.linalg.norm(hi - lo)
+
+
+@pytest.fixture(scope="module")
+def neck():
+    V, F = shapes.neck_blobs(res=28)
+    return V, F
+
+
+@pytest.fixture(scope="module")
+def genus2():
+    V, F = shapes.genus2(res=30)
+    return V, F
+
+
+@pytest.fixture(scope="module")
+def neck_pair(neck):
+    """Unit-diagonal neck surface and its decimation to a quarter of the faces."""
+    V, F = neck
+    Vn = _unit(V)
+    U, G, _ = decimate_surface(Vn, F, len(F) // 4)
+    return Vn, F, U, G
+
+
+@pytest.fixture(scope="module")
+def neck_flow(neck_pair):
+    Vn, F, U, G = neck_pair
+    V_before = Vn.copy()
+    res = flow_inside(Vn, F, U, G)
+    assert np.array_equal(Vn, V_before), "flow_inside modified its input"
+    return res
+
+
+# ----------------------------------------------------------------------------- quadrature
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5])
+def test_triangle_rule_integrates_polynomials_exactly(order):
+    b, w = triangle_rule(order)
+    assert np.isclose(w.sum(), 1.0) and np.allclose(b.sum(1), 1.0)
+    # ∫_T λ1^i λ2^j dA / |T| = 2 i! j! / (i + j + 2)!  for every i + j <= order
+    from math import factorial
+
+    for i in range(order + 1):
+        for j in range(order + 1 - i):
+            exact = 2.0 * factorial(i) * factorial(j) / factorial(i + j + 2)
+            assert np.isclose(w @ (b[:, 0] ** i * b[:, 1] ** j), exact, rtol=1e-9, atol=1e-12)
+
+
+def test_quadrature_points_area_and_centroid(neck):
+    V, F = neck
+    P, W = quadrature_points(V, F, order=2)
+    area = 0.5 * igl.doublearea(V, F).sum()
+    assert np.isclose(W.sum(), area, rtol=1e-12)
+    # degree-1 exactness: ∫ x dA over the surface equals Σ area × centroid
+    A = 0.5 * igl.doublearea(V, F)
+    assert np.allclose(W @ P, A @ V[F].mean(1), rtol=1e-10, atol=1e-12)
+    B, w = quadrature_matrix(F, len(V), 2)
+    assert B.shape == (3 * len(F), len(V)) and np.allclose(B.sum(1), 1.0)
+
+
+def test_triangle_rule_rejects_bad_order():
+    with pytest.raises(ValueError):
+        triangle_rule(0)
+
+
+# ----------------------------------------------------------------------------- energies
+@pytest.mark.parametrize("name", ["step", "volume", "surface_arap"])
+def test_energy_gradients_match_finite_differences(neck_pair, name):
+    _, _, U, G = neck_pair
+    rng = np.random.default_rng(0)
+    E = make_energy(name, U, G)
+    C = U + 2e-3 * rng.standard_normal(U.shape)
+    g = E.gradient(C)
+    D = rng.standard_normal(U.shape)
+    h = 1e-6
+    fd = (E.value(C + h * D) - E.value(C - h * D)) / (2 * h)
+    assert np.isclose(fd, np.sum(g * D), rtol=1e-5, atol=1e-10)
+    M = E.metric(C)
+    assert M.shape == (3 * len(U), 3 * len(U))
+    x = rng.standard_normal(3 * len(U))
+    assert x @ (M @ x) > 0  # positive definite metric
+
+
+def test_volume_energy_is_enclosed_volume(neck_pair):
+    Vn, F, _, _ = neck_pair
+    # divergence theorem vs. libigl's tet volumes of a cone from the centroid
+    c = Vn.mean(0)
+    T = np.c_[F, np.full(len(F), len(Vn))]
+    vol = igl.volume(np.vstack([Vn, c]), T).sum()
+    assert np.isclose(signed_volume(Vn, F), -vol, rtol=1e-10) or np.isclose(signed_volume(Vn, F), vol, rtol=1e-10)
+    assert signed_volume(Vn, F) > 0  # outward orientation
+
+
+def test_unknown_energy_is_rejected(neck):
+    V, F = neck
+    with pytest.raises(ValueError, match="energy"):
+        nested_backend(V, F, [500], energy="bogus")
+    with pytest.raises(ValueError, match="unknown option"):
+        nested_backend(V, F, [500], not_an_option=1)
+
+
+# ----------------------------------------------------------------------------- flow
+def test_flow_moves_fine_surface_strictly_inside(neck_pair, neck_flow):
+    Vn, F, U, G = neck_pair
+    res = neck_flow
+    assert res.success, res.reason
+    assert res.history[0] is not Vn and np.array_equal(res.history[0], Vn)
+    Fbar = res.history[-1]
+    # the flow really moved the surface (the decimation pokes out of the fine surface)
+    S0, _, _, _ = igl.signed_distance(Vn, U, G)
+    assert S0.max() > 1e-3
+    assert np.abs(Fbar - Vn).max() > 1e-3
+    # every flowed vertex and quadrature point has winding number 1 w.r.t. Ĉ (exact evaluation)
+    P, _ = quadrature_points(Fbar, F, order=2)
+    w = igl.winding_number(U, G, np.vstack([Fbar, P]))
+    assert w.min() > 0.999 and w.max() < 1.001
+    assert res.max_signed_distance < 0
+    pm = PairMesh(U, G, Fbar, F)
+    assert not pm.intersects(pm.stack(U, Fbar))
+
+
+def test_flow_reports_failure_when_capped(neck_pair):
+    Vn, F, U, G = neck_pair
+    res = flow_inside(Vn, F, U, G, max_iter=1)
+    assert not res.success and "1 iterations" in res.reason
+
+
+# ----------------------------------------------------------------------------- re-inflation
+@pytest.mark.parametrize("energy", ["step", "volume"])
+def test_reinflation_returns_fine_surface_to_rest_and_nests(neck_pair, neck_flow, energy):
+    Vn, F, U, G = neck_pair
+    U_before = U.copy()
+    rr = reinflate(neck_flow.history, F, U, G, energy=energy)
+    assert rr.success, rr.reason
+    assert np.array_equal(U, U_before), "reinflate modified the target cage"
+    # exact: the fine surface is back at its rest positions bit for bit
+    assert np.array_equal(rr.fine, Vn)
+    rep = verify_nesting([(Vn, F), (rr.cage, G)])
+    assert rep.ok, str(rep)
+    vol_ratio = signed_volume(rr.cage, G) / signed_volume(Vn, F)
+    assert 1.0 < vol_ratio < 1.15
+    if energy == "volume":
+        assert rr.stats["volume_after_final"] < rr.stats["volume_before_final"]
+
+
+def test_surface_arap_energy_nests(neck_pair, neck_flow):
+    Vn, F, U, G = neck_pair
+    rr = reinflate(neck_flow.history, F, U, G, energy="surface_arap", final_iters=20)
+    assert rr.success and np.array_equal(rr.fine, Vn)
+    assert verify_nesting([(Vn, F), (rr.cage, G)]).ok
+
+
+# ----------------------------------------------------------------------------- multi-layer backend
+@pytest.fixture(scope="module")
+def neck_layers(neck):
+    V, F = neck
+    V0, F0 = V.copy(), F.copy()
+    layers, info = nested_backend(V, F, [600, 150, 40])
+    assert np.array_equal(V, V0) and np.array_equal(F, F0), "backend modified its input"
+    return layers, info
+
+
+def test_neck_three_cages_certified(neck, neck_layers):
+    V, F = neck
+    layers, info = neck_layers
+    assert len(layers) == 3
+    rep = verify_nesting([(V, F)] + layers)
+    assert rep.ok, str(rep)
+    for (Vk, Fk), target, li in zip(layers, [600, 150, 40], info["layers"]):
+        assert Vk.dtype == np.float64 and Fk.dtype == np.int64
+        assert abs(len(Fk) - target) <= 4
+        assert li["min_gap_absolute"] > 0
+        assert li["volume_ratio"] > 1.0
+        assert li["verification"]["ok"]
+        assert {"flow", "reinflate", "final_energy", "decimate", "verify"} <= set(li["seconds"])
+    # the finest cage is tight: within 4% of the input volume, 2% of the diagonal
+    assert info["layers"][0]["volume_ratio"] < 1.04
+    assert info["layers"][0]["hausdorff_relative"] < 0.02
+    json.dumps(info)  # JSON-serialisable
+
+
+def test_genus2_three_cages_certified(genus2):
+    V, F = genus2
+    layers, info = nested_backend(V, F, [700, 180, 100])
+    rep = verify_nesting([(V, F)] + layers)
+    assert rep.ok, str(rep)
+    assert len(layers) == 3
+    # the handles survive: every cage keeps genus 2 (χ = 2 - 2g = -2)
+    for Vk, Fk in layers:
+        E = igl.edges(Fk)
+        assert len(Vk) - len(E) + len(Fk) == -2
+    assert info["layers"][0]["volume_ratio"] < 1.1
+
+
+def test_build_cages_integration(neck):
+    V, F = neck
+    layers, info = build_cages(V, F, levels=3, method="nested", return_info=True)
+    assert info["certified"] and info["nested"]
+    assert len(layers) == 3 and layers[0][0].shape == V.shape
+
+
+def test_min_gap_is_kept(neck):
+    V, F = neck
+    diag = np.linalg.norm(np.ptp(V, axis=0))
+    layers, info = nested_backend(V, F, [600], min_gap=4e-3)
+    gap = min_distance(layers[0][0], layers[0][1], V, F)
+    assert gap >= 4e-3 * diag
+    assert info["layers"][0]["min_gap_relative"] >= 4e-3
+    assert verify_nesting([(V, F)] + layers, min_gap=4e-3).ok
+
+
+def test_offset_surface_clears_face_planes(neck):
+    V, F = neck
+    W = offset_surface(V, F, 0.01)
+    FN = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
+    # every offset vertex is at least 0.01 in front of the planes of its incident faces
+    for k in range(3):
+        h = np.einsum("ij,ij->i", W[F[:, k]] - V[F[:, k]], FN)
+        assert h.min() >= 0.01 - 1e-12
+
+
+def test_recovery_after_flow_failure(neck, monkeypatch):
+    """A failing flow (the paper's 'Ĉ too far from F') is recovered and recorded in info."""
+    V, F = neck
+    real = nested_backend_module.flow_inside
+    calls = {"n": 0}
+
+    def flaky(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            return real(*args, **{**kw, "max_iter": 0})
+        return real(*args, **kw)
+
+    monkeypatch.setattr(nested_backend_module, "flow_inside", flaky)
+    layers, info = nested_backend(V, F, [600])
+    assert calls["n"] >= 2
+    assert info["recovery"] and info["recovery"][0]["stage"] == "flow"
+    assert verify_nesting([(V, F)] + layers).ok
+
+
+def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch):
+    V, F = neck
+    real = nested_backend_module.flow_inside
+    monkeypatch.setattr(nested_backend_module, "flow_inside",
+                        lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    from cagegen.errors import CageError
+
+    with pytest.raises(CageError) as exc:
+        nested_backend(V, F, [600], max_recovery_depth=0)
+    assert exc.value.layer == 1

@@ -1,0 +1,356 @@
+"""Cage backend ``"lazy"``: loose but cheap enclosing cages (Sellán et al.'s "lazy cage").
+
+For one layer with target ``m`` faces around a fine surface ``S`` (:func:`lazy_cage_layer`):
+
+1. offset ``S`` outward by ``d`` (marching cubes of the signed distance on a ``grid_size``-cell
+   grid, ``gpytoolbox.offset_surface``);
+2. decimate the offset surface to ``m`` faces (``gpytoolbox.decimate``, libigl's collapses);
+3. "self-union" the result to resolve self-intersections the collapses made
+   (``gpytoolbox.copyleft.mesh_boolean``, CGAL -- the GPL part);
+4. binary search on ``d`` in ``[0, d_max]`` (``d_max`` = half the largest bounding-box extent of ``S``)
+   for ``max_iter`` steps, keeping the smallest ``d`` whose candidate passes the acceptance test.
+
+gpytoolbox's own ``copyleft.lazy_cage`` accepts a candidate when it does not cross ``S``. Here the
+acceptance test is nestmg's certification of the pair (closed manifold cage, positive volume, no
+self-intersection, no crossing or touching, every fine vertex inside, no cage vertex inside ``S``:
+:func:`cagegen.verify_nesting`), so a returned layer is always certified; when no step of the search
+is accepted, ``d`` is doubled past ``d_max`` a few times before :class:`cagegen.CageError` is raised.
+
+The cage may have a different genus from ``S`` (the offset closes handles thinner than ``2 d``):
+that is reported per layer (``genus_fine``, ``genus``, ``genus_changed``), never hidden.
+
+``build_cages(V, F, levels=K, method="lazy")`` applies :func:`lazy_cage_layer` to the previous layer
+for each coarser layer, at the face counts of :func:`cagegen.default_face_counts` like the other
+backends. :func:`lazy_cage_layer` is also the recovery hook of the ``nested`` backend (one layer,
+``(V, F, info)`` out).
+
+License: gpytoolbox's ``copyleft`` module is GPL-3; this module imports it and is only loaded when
+``method="lazy"`` is requested (the ``lazy`` extra). Importing it without gpytoolbox raises
+:class:`cagegen.BackendUnavailableError`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from .._geometry import (
+    as_mesh_arrays,
+    bbox_diagonal,
+    cross_intersection_pairs,
+    edge_stats,
+    n_components,
+    self_intersection_pairs,
+)
+from .._geometry import signed_volume as _signed_volume
+from ..errors import BackendUnavailableError, CageError
+from ..verify import WINDING_THRESHOLD
+
+try:  # optional GPL dependency: fail at import time with an actionable message
+    from gpytoolbox import decimate as _gp_decimate
+    from gpytoolbox import offset_surface as _gp_offset_surface
+    from gpytoolbox.copyleft import mesh_boolean as _gp_mesh_boolean
+except ImportError as _exc:  # pragma: no cover - exercised by a test that hides gpytoolbox
+    raise BackendUnavailableError(
+        "the 'lazy' cage backend needs gpytoolbox (GPL-3, its copyleft.mesh_boolean): "
+        "pip install 'nestmg[lazy]'  (or: pip install gpytoolbox)"
+        f" [import failed: {_exc}]"
+    ) from _exc
+
+__all__ = ["genus", "lazy_backend", "lazy_cage_layer"]
+
+#: how many times ``d`` is doubled beyond ``d_max`` when no step of the binary search is accepted
+_MAX_GROW = 3
+
+
+def genus(V: np.ndarray, F: np.ndarray) -> int | None:
+    """Total genus of a closed manifold triangle mesh (sum over its components).
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+
+    Returns
+    -------
+    int or None
+        ``(2 c - χ) / 2`` with ``χ = V - E + F`` over referenced vertices and ``c`` components;
+        None when the mesh is not a closed manifold.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> t = trimesh.creation.torus(1.0, 0.3)
+    >>> genus(t.vertices, t.faces)
+    1
+    """
+    F = np.asarray(F, dtype=np.int64)
+    es = edge_stats(F, len(V))
+    if es.n_boundary_edges or es.n_nonmanifold_edges:
+        return None
+    chi = np.unique(F).size - es.n_edges + F.shape[0]
+    c = n_components(F, len(V))
+    return int((2 * c - chi) // 2)
+
+
+def _candidate(V, F32, d, n_faces, grid_size, decimation, self_union):
+    """Offset by ``d``, decimate to ``n_faces``, self-union. Returns (U, G) or raises RuntimeError."""
+    Uo, Go = _gp_offset_surface(V, F32, float(d), int(grid_size))
+    if len(Go) == 0:
+        raise RuntimeError("empty offset surface")
+    if len(Go) > n_faces:
+        U, G, _, _ = _gp_decimate(np.asarray(Uo, float), np.asarray(Go, np.int32), num_faces=int(n_faces),
+                                  method=decimation)
+    else:  # the offset surface is already coarser than the target (tiny grid)
+        U, G = Uo, Go
+    if self_union:
+        U, G = _gp_mesh_boolean(np.asarray(U, float), np.asarray(G, np.int32), np.asarray(U, float),
+                                np.asarray(G, np.int32), boolean_type="union")
+    U = np.ascontiguousarray(U, dtype=np.float64)
+    G = np.ascontiguousarray(G, dtype=np.int64)
+    if len(G) == 0:
+        raise RuntimeError("empty cage after decimation / self-union")
+    used = np.unique(G)  # drop unreferenced vertices left by the collapses or the boolean
+    if used.size != len(U):
+        remap = np.full(len(U), -1, dtype=np.int64)
+        remap[used] = np.arange(used.size)
+        U, G = U[used], remap[G]
+    return U, G
+
+
+def _accept(V, F, U, G) -> str:
+    """Empty string when ``(U, G)`` nests ``(V, F)`` by the verifier's rule; otherwise the reason.
+
+    The rule of :func:`cagegen.verify_nesting` (closed oriented manifold, positive volume, no
+    crossing or touching, fine vertices inside, no cage vertex inside, no self-intersection), cheapest
+    test first and without the gap figures, which the search does not need.
+    """
+    import igl
+
+    es = edge_stats(G, len(U))
+    if es.n_boundary_edges or es.n_nonmanifold_edges or es.n_inconsistent_edges:
+        return (f"cage not a closed oriented manifold ({es.n_boundary_edges} boundary, {es.n_nonmanifold_edges} "
+                f"non-manifold, {es.n_inconsistent_edges} inconsistent edges)")
+    if _signed_volume(U, G) <= 0:
+        return "cage is inside-out or flat"
+    k = len(cross_intersection_pairs(V, F, U, G))
+    if k:
+        return f"cage intersects the fine layer ({k} intersecting or touching triangle pairs)"
+    w = igl.winding_number(U, G, V)
+    n_out = int(np.count_nonzero(w < WINDING_THRESHOLD))
+    if n_out:
+        return f"{n_out} fine vertices outside the cage"
+    n_in = int(np.count_nonzero(igl.winding_number(V, F, U) >= WINDING_THRESHOLD))
+    if n_in:
+        return f"{n_in} cage vertices inside the fine layer"
+    k = len(self_intersection_pairs(U, G))
+    return f"cage self-intersects ({k} face pairs)" if k else ""
+
+
+def lazy_cage_layer(
+    V,
+    F,
+    n_faces: int,
+    *,
+    grid_size: int = 50,
+    max_iter: int = 10,
+    decimation: str = "shortest_edge",
+    self_union: bool = True,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One certified enclosing cage of about ``n_faces`` faces around the closed surface ``(V, F)``.
+
+    Parameters
+    ----------
+    V : (n,3) array_like of float
+    F : (m,3) array_like of int
+        Closed, outward-oriented, self-intersection-free surface (not modified).
+    n_faces : int
+        Target face count of the cage (>= 4). The self-union may change it by a few faces.
+    grid_size : int
+        Cells along the longest side of the signed-distance grid (>= 8); finer grids give tighter
+        cages (the offset cannot be much thinner than one cell) at a cubic cost.
+    max_iter : int
+        Binary-search steps on the offset distance (>= 1); each halves the uncertainty on ``d``.
+    decimation : {"shortest_edge", "qslim"}
+        gpytoolbox's decimator.
+    self_union : bool
+        Resolve self-intersections of the decimated offset with a CGAL self-union (GPL). Without it,
+        self-intersecting candidates are simply rejected by the acceptance test.
+
+    Returns
+    -------
+    U : (p,3) float64 array
+    G : (q,3) int64 array
+        The cage: certified to strictly contain ``(V, F)``.
+    info : dict
+        JSON-serialisable: ``target``, ``n_faces``, ``n_vertices``, ``offset`` (absolute ``d``),
+        ``offset_relative`` (``d`` / bounding-box diagonal of ``(V, F)``), ``genus_fine``, ``genus``,
+        ``genus_changed``, ``components``, ``volume_ratio`` (cage / fine), ``iterations`` (per step:
+        ``d_relative``, ``accepted``, ``reason``, ``seconds``), ``seconds``.
+
+    Raises
+    ------
+    cagegen.MeshInputError
+        Malformed arrays.
+    ValueError
+        Bad option values.
+    cagegen.CageError
+        No certified cage was found (the message lists the reasons of the last attempts).
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> s = trimesh.creation.icosphere(subdivisions=3)
+    >>> U, G, info = lazy_cage_layer(s.vertices, s.faces, 200, grid_size=24, max_iter=4)
+    >>> info["n_faces"] <= 220, info["genus"], 1.0 < info["volume_ratio"] < 2.5
+    (True, 0, True)
+    """
+    V, F = as_mesh_arrays(V, F, "fine layer")
+    if isinstance(n_faces, (bool, np.bool_)) or int(n_faces) != n_faces or int(n_faces) < 4:
+        raise ValueError(f"n_faces must be an integer >= 4, got {n_faces!r}")
+    if isinstance(grid_size, (bool, np.bool_)) or int(grid_size) != grid_size or int(grid_size) < 8:
+        raise ValueError(f"grid_size must be an integer >= 8, got {grid_size!r}")
+    if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter or int(max_iter) < 1:
+        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    if decimation not in ("shortest_edge", "qslim"):
+        raise ValueError(f"decimation must be 'shortest_edge' or 'qslim', got {decimation!r}")
+    n_faces = int(n_faces)
+    t0 = time.perf_counter()
+    diag = bbox_diagonal(V)
+    F32 = F.astype(np.int32)
+    lo, hi = 0.0, 0.5 * float(np.max(V.max(axis=0) - V.min(axis=0)))
+    best: tuple[np.ndarray, np.ndarray, float] | None = None
+    steps: list[dict] = []
+
+    def attempt(d: float) -> bool:
+        nonlocal best
+        t = time.perf_counter()
+        try:
+            U, G = _candidate(V, F32, d, n_faces, grid_size, decimation, self_union)
+            reason = _accept(V, F, U, G)
+        except (RuntimeError, ValueError) as exc:  # gpytoolbox / CGAL failures on a candidate
+            U = G = None
+            reason = f"candidate failed: {exc}"
+        ok = not reason
+        if ok:
+            best = (U, G, d)
+        steps.append({"d_relative": d / diag, "accepted": ok, "reason": reason,
+                      "seconds": time.perf_counter() - t})
+        return ok
+
+    for _ in range(int(max_iter)):
+        d = 0.5 * (lo + hi)
+        if attempt(d):
+            hi = d
+        else:
+            lo = d
+    d = hi
+    grow = 0
+    while best is None and grow < _MAX_GROW:
+        d *= 2.0
+        grow += 1
+        attempt(d)
+    if best is None:
+        last = "; ".join(f"d={s['d_relative']:.3g}: {s['reason']}" for s in steps[-3:])
+        raise CageError(f"lazy cage with {n_faces} faces: no certified candidate in {len(steps)} attempts ({last})",
+                        reason=steps[-1]["reason"])
+    U, G, d = best
+    g_fine, g_cage = genus(V, F), genus(U, G)
+    info = {
+        "target": n_faces,
+        "n_faces": len(G),
+        "n_vertices": len(U),
+        "offset": float(d),
+        "offset_relative": float(d / diag),
+        "grid_size": int(grid_size),
+        "max_iter": int(max_iter),
+        "decimation": decimation,
+        "self_union": bool(self_union),
+        "genus_fine": g_fine,
+        "genus": g_cage,
+        "genus_changed": bool(g_fine != g_cage),
+        "components": n_components(G, len(U)),
+        "volume_ratio": _signed_volume(U, G) / _signed_volume(V, F),
+        "iterations": steps,
+        "seconds": time.perf_counter() - t0,
+    }
+    return U, G, info
+
+
+def lazy_backend(
+    V: np.ndarray,
+    F: np.ndarray,
+    face_counts,
+    *,
+    grid_size: int = 50,
+    max_iter: int = 10,
+    decimation: str = "shortest_edge",
+    self_union: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
+    """Cage backend ``"lazy"``: layer ``k+1`` is a lazy cage of layer ``k`` (nested, loose).
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        The audited input surface (layer 0; not modified).
+    face_counts : sequence of int
+        Target face counts of the cages, finest first.
+    grid_size, max_iter, decimation, self_union
+        See :func:`lazy_cage_layer`.
+    progress : callable, optional
+        Called with a one-line message per layer (genus changes included).
+
+    Returns
+    -------
+    layers : list of (U_k, G_k)
+        The cages only, finest first; ``U_k`` (p_k,3) float64, ``G_k`` (q_k,3) int64.
+    info : dict
+        ``method``, ``nested_by_construction`` (True: each layer passed the verifier inside the
+        search), ``genus_changes`` (list of ``{"layer", "from", "to"}``), ``seconds``, and ``layers``:
+        per layer the :func:`lazy_cage_layer` info plus ``layer``, ``hausdorff_relative`` (to the
+        input, over the input's bounding-box diagonal) and ``volume_ratio_to_input``.
+
+    Raises
+    ------
+    cagegen.CageError
+        With ``layer`` set (1 = first cage) when no certified cage was found for a layer.
+    """
+    import igl
+
+    t0 = time.perf_counter()
+    V = np.array(V, dtype=np.float64)
+    F = np.array(F, dtype=np.int64)
+    diag0 = bbox_diagonal(V)
+    vol0 = _signed_volume(V, F)
+    layers, per_layer, changes = [], [], []
+    Vp, Fp = V, F
+    for k, m in enumerate(face_counts, start=1):
+        try:
+            U, G, li = lazy_cage_layer(Vp, Fp, int(m), grid_size=grid_size, max_iter=max_iter,
+                                       decimation=decimation, self_union=self_union)
+        except CageError as exc:
+            raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
+        li["layer"] = k
+        li["hausdorff_relative"] = float(igl.hausdorff(U, G, V, F)) / diag0
+        li["volume_ratio_to_input"] = _signed_volume(U, G) / vol0
+        if li["genus_changed"]:
+            changes.append({"layer": k, "from": li["genus_fine"], "to": li["genus"]})
+        per_layer.append(li)
+        layers.append((U, G))
+        if progress is not None:
+            g = f", genus {li['genus_fine']} -> {li['genus']}" if li["genus_changed"] else ""
+            progress(f"lazy: layer {k}: {len(G)} faces (target {m}), offset {li['offset_relative']:.3g} of the "
+                     f"diagonal, {li['seconds']:.2f} s{g}")
+        Vp, Fp = U, G
+    info = {
+        "method": "lazy",
+        "nested_by_construction": True,
+        "genus_changes": changes,
+        "seconds": time.perf_counter() - t0,
+        "layers": per_layer,
+    }
+    return layers, info

@@ -68,8 +68,16 @@ def as_mesh_arrays(V, F, name: str = "input") -> tuple[np.ndarray, np.ndarray]:
 
 
 def bbox_diagonal(V: np.ndarray) -> float:
-    """Length of the axis-aligned bounding-box diagonal of ``V`` (n,3)."""
-    return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    """Length of the axis-aligned bounding-box diagonal of ``V`` (n,3).
+
+    Computed as ``s * |ext / s|`` with ``s`` the largest extent, so that it neither underflows to 0
+    (extents ~1e-200) nor overflows to inf (extents ~1e200) when squaring.
+    """
+    ext = np.abs(V.max(axis=0) - V.min(axis=0))
+    s = float(ext.max())
+    if s == 0.0 or not np.isfinite(s):
+        return s
+    return s * float(np.linalg.norm(ext / s))
 
 
 def signed_volume(V: np.ndarray, F: np.ndarray) -> float:

@@ -231,7 +231,10 @@ def audit_mesh(
                 f"absurd size: mesh of diagonal {d:.3g} sits {offset:.3g} from the origin "
                 "(float64 precision lost); translate it"
             )
-    geometric = finite and d is not None and d > 0
+    # geometric checks only at a sane scale: at absurd ones their tolerances over/underflow
+    geometric = finite and d is not None and MIN_DIAG <= d <= MAX_DIAG
+    if finite and not geometric:
+        a.skipped.append("geometric checks (absurd size)")
 
     # --- faces
     repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
@@ -358,8 +361,8 @@ def repair_mesh(
     F : (m',3) int64 array
     """
     V, F = as_mesh_arrays(V, F, "input")
-    if merge_duplicates and np.isfinite(V).all():
-        d = bbox_diagonal(V)
+    d = bbox_diagonal(V) if np.isfinite(V).all() else float("nan")
+    if merge_duplicates and MIN_DIAG <= d <= MAX_DIAG:  # an absurd size is left for the audit to report
         rep = _duplicate_labels(V, merge_tol * d)
         F = rep[F]
         keep = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])

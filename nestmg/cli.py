@@ -38,6 +38,16 @@ def _load(mesh: str) -> tuple[np.ndarray, np.ndarray, str]:
     return Vn, F, name
 
 
+def _refuse_overwriting_input(mesh: str, outputs: list[Path]) -> None:
+    """Raise :class:`NestmgError` if an output path is the input mesh file (checked before any work)."""
+    if mesh.startswith("shape:"):
+        return
+    src = Path(mesh).resolve()
+    for out in outputs:
+        if Path(out).resolve() == src:
+            raise NestmgError(f"refusing to write {out}: it is the input mesh {mesh}; choose another output")
+
+
 def _write_json(path: str | Path, obj: Any) -> None:
     atomic_write_bytes(Path(path), json.dumps(obj, indent=1, default=_json_default).encode())
 
@@ -59,6 +69,7 @@ def _hierarchy(V, F, args, method=None):
         V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
         mesher=args.mesher, edge_length_fac=args.edge_length, epsilon=args.epsilon,
         extrapolation=args.extrapolation, cache=not args.no_cache, progress=None if args.quiet is False else False,
+        cage_opts={"repair": True} if args.repair else None,
     )
 
 
@@ -113,11 +124,13 @@ def cmd_cages(args) -> int:
 
     import cagegen
 
-    V, F, name = _load(args.mesh)
     out = Path(args.out)
+    n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
+    _refuse_overwriting_input(args.mesh, [out / f"layer_{k}.obj" for k in range(n_layers)] + [out / "report.json"])
+    V, F, name = _load(args.mesh)
     layers, info = cagegen.build_cages(
-        V, F, args.levels, method=args.method, face_counts=args.face_counts, return_info=True,
-        progress=None if args.quiet is False else False,
+        V, F, args.levels, method=args.method, face_counts=args.face_counts,
+        return_info=True, progress=None if args.quiet is False else False, repair=args.repair,
     )
     for k, (Vk, Fk) in enumerate(layers):
         save_mesh(out / f"layer_{k}.obj", Vk, Fk)
@@ -136,6 +149,7 @@ def cmd_cages(args) -> int:
 def cmd_solve(args) -> int:
     from .render import plot_convergence
 
+    _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p])
     V, F, name = _load(args.mesh)
     h = _hierarchy(V, F, args)
     r = _solve(h, args)
@@ -145,6 +159,8 @@ def cmd_solve(args) -> int:
         _write_json(args.json, report)
     if args.png:
         png = Path(args.png)
+        if not args.json:  # pictures always travel with the report they illustrate
+            _write_json(png / "report.json", report)
         _png_layers(h, png / "layers.png", f"{name}: {args.method}")
         plot_convergence({args.method: r["residuals"]}, png / "convergence.png", title=f"{name}: {args.problem}")
     return 0
@@ -153,6 +169,7 @@ def cmd_solve(args) -> int:
 def cmd_compare(args) -> int:
     from .render import plot_convergence
 
+    _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p])
     V, F, name = _load(args.mesh)
     report: dict[str, Any] = {"mesh": args.mesh, "problem": args.problem, "methods": {}}
     hists = {}
@@ -166,6 +183,8 @@ def cmd_compare(args) -> int:
             _png_layers(h, Path(args.png) / f"layers_{m}.png", f"{name}: {m}")
     if args.json:
         _write_json(args.json, report)
+    elif args.png:  # pictures always travel with the report they illustrate
+        _write_json(Path(args.png) / "report.json", report)
     if args.png:
         plot_convergence(hists, Path(args.png) / "convergence.png",
                          title=f"{name}: {args.problem}, {args.coarse} coarse operators")
@@ -184,6 +203,8 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
                    default="clamped", help="rule for fine nodes outside the coarse tets")
     g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
+    g.add_argument("--repair", action="store_true",
+                   help="merge duplicate vertices, drop unreferenced ones and orient outward before the audit")
 
 
 def _solver_opts(p: argparse.ArgumentParser) -> None:

@@ -238,10 +238,25 @@ def _coarse_owner(P: sp.csr_matrix, fine_owner: np.ndarray, size: int) -> np.nda
     return np.argmax(weight, axis=1).astype(np.int64)
 
 
-def _fine_owner(PETSc, A_nat, partition, n: int, size: int, comm) -> np.ndarray | None:
-    """Owner rank of every fine row: None (natural), a given array, or PETSc MatPartitioning."""
+def _fine_owner(PETSc, A_global, A_nat, partition, n: int, size: int, comm) -> np.ndarray | None:
+    """Owner rank of every fine row: None (natural), RCM slabs, a given array, or PETSc MatPartitioning.
+
+    PETSc's MatPartitioning runs in parallel on the naturally distributed operator ``A_nat``; note that
+    PT-Scotch is not deterministic (Debian's build): repeated runs cut in different places, so factors
+    vary by ~0.01 between runs. "rcm" is deterministic.
+    """
     if partition is None or (isinstance(partition, str) and partition == "natural"):
         return None
+    if isinstance(partition, str) and partition == "rcm":
+        # deterministic level-set slabs: contiguous blocks of the reverse Cuthill-McKee order
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        order = reverse_cuthill_mckee(sp.csr_matrix(A_global), symmetric_mode=True)
+        owner = np.empty(n, dtype=np.int64)
+        offsets = row_partition(n, size)
+        for r in range(size):
+            owner[order[offsets[r] : offsets[r + 1]]] = r
+        return owner
     if isinstance(partition, str):
         if size == 1:
             return None
@@ -383,14 +398,16 @@ class PetscMultigrid:
     krylov : {"cg", "richardson"}
         ``"cg"``: CG preconditioned by one cycle. ``"richardson"``: plain stationary cycling (each
         iteration is one cycle), the setting in which a convergence factor per cycle is defined.
-    partition : "auto", "natural", a PETSc partitioner name (e.g. "ptscotch"), or (n_0,) int array
+    partition : "auto", "natural", "rcm", "ptscotch", "parmetis", or (n_0,) int array
         Distribution of the fine rows. "natural": contiguous blocks of rows in the given order (PETSc's
-        default). "ptscotch" / "parmetis": PETSc's MatPartitioning of the fine operator's graph, then every
-        coarse node goes to the rank holding most of its interpolation weight; the problem is renumbered
-        internally, and ``solve`` takes and returns vectors in the caller's numbering. "auto" (default):
-        natural on one rank, else PT-Scotch (ParMETIS) when PETSc has it — tet meshers number nodes
-        without spatial coherence, and on a 313k-unknown tetgen mesh the natural split on 2 ranks took
-        CG from 9 to 15 iterations (PT-Scotch: 9).
+        default). "rcm": contiguous blocks of the reverse Cuthill–McKee order (scipy; deterministic
+        level-set slabs, good for few ranks). "ptscotch" / "parmetis": PETSc's MatPartitioning of the
+        fine operator's graph (best cuts, but PT-Scotch is not deterministic run to run). Every coarse
+        node then goes to the rank holding most of its interpolation weight; the problem is renumbered
+        internally, and ``solve`` takes and returns vectors in the caller's numbering. "auto"
+        (default): natural on one rank, else PT-Scotch (ParMETIS) when PETSc has it, else RCM. Tet
+        meshers number nodes without spatial coherence: on a 313k-unknown tetgen mesh the natural split
+        on 2 ranks took CG from 9 to 15 iterations (PT-Scotch: 9).
     options_prefix : str
         PETSc options prefix of the KSP (see the module docstring).
     options : dict, optional
@@ -481,24 +498,27 @@ class PetscMultigrid:
         size = self.comm_size
         nat = _Layout(None, self.n, size)
         owner = None
-        if isinstance(partition, str) and partition not in ("auto", "natural"):
+        if isinstance(partition, str) and partition not in ("auto", "natural", "rcm"):
             if partition not in ("ptscotch", "parmetis"):
-                raise SolverInputError(f"partition must be 'auto', 'natural', 'ptscotch', 'parmetis' or an array of "
-                                       f"ranks, got {partition!r}")
+                raise SolverInputError(f"partition must be 'auto', 'natural', 'rcm', 'ptscotch', 'parmetis' or an "
+                                       f"array of ranks, got {partition!r}")
             if not PETSc.Sys.hasExternalPackage(partition):
                 raise SolverInputError(f"this PETSc was built without {partition}; use 'auto' or 'natural'")
         if isinstance(partition, str) and partition == "auto":
             partition = "natural"
             if size > 1:
+                partition = "rcm"
                 for name in ("ptscotch", "parmetis"):
                     if PETSc.Sys.hasExternalPackage(name):
                         partition = name
                         break
-        if not (isinstance(partition, str) and partition == "natural") and partition is not None:
+        if not (isinstance(partition, str) and partition in ("natural", "rcm")) and partition is not None:
             A_nat = _to_petsc(PETSc, A, nat, nat, self.comm) if isinstance(partition, str) else None
-            owner = _fine_owner(PETSc, A_nat, partition, self.n, size, self.comm)
+            owner = _fine_owner(PETSc, A, A_nat, partition, self.n, size, self.comm)
             if A_nat is not None:
                 A_nat.destroy()
+        elif partition == "rcm" and size > 1:
+            owner = _fine_owner(PETSc, A, None, partition, self.n, size, self.comm)
         self.partition = "natural" if owner is None else (partition if isinstance(partition, str) else "given")
         layouts = [_Layout(owner, self.n, size)]
         for P in Ps:

@@ -99,6 +99,7 @@ def main(argv=None) -> int:
         "direct": (D, {"levels": 1, **nat}),
         "rich_perm_natural": (R, {**rich, **nat}),
         "rich_perm_ptscotch": (R, {**rich, "partition": "ptscotch"}),
+        "rich_perm_rcm": (R, {**rich, "partition": "rcm"}),
     }
     out = {"ranks": size, "n": int(D["A"].shape[0]), "runs": {}}
     xs = {}

@@ -44,11 +44,18 @@ unset PETSC_ARCH  # Debian's PETSc is a prefix install
 build="$(mktemp -d)"
 trap 'rm -rf "$build"' EXIT
 echo "install-petsc: building petsc4py==$PETSC4PY_VERSION against $PETSC_DIR (about 2 minutes on 2 cores)"
-"$PYTHON" -m venv --system-site-packages "$build/venv"
-"$build/venv/bin/python" -m pip install --quiet cython "setuptools<70" wheel
-"$build/venv/bin/python" -m pip wheel --no-build-isolation --no-deps --quiet \
-    -w "$build/wheels" "petsc4py==$PETSC4PY_VERSION"
-"$PYTHON" -m pip install --no-deps --force-reinstall "$build"/wheels/petsc4py-*.whl
+if "$PYTHON" -m venv --system-site-packages "$build/venv" >/dev/null 2>&1; then
+    "$build/venv/bin/python" -m pip install --quiet cython "setuptools<70" wheel
+    "$build/venv/bin/python" -m pip wheel --no-build-isolation --no-deps --quiet \
+        -w "$build/wheels" "petsc4py==$PETSC4PY_VERSION"
+    "$PYTHON" -m pip install --no-deps --force-reinstall "$build"/wheels/petsc4py-*.whl
+else
+    # no venv module (e.g. Debian without python3-venv): build in the environment itself. This pins
+    # setuptools<70 there; projects built with build isolation (pip install .) are not affected.
+    echo "install-petsc: no venv module, building in the environment (setuptools<70 will be installed)" >&2
+    "$PYTHON" -m pip install --quiet cython "setuptools<70" wheel
+    "$PYTHON" -m pip install --no-build-isolation --no-deps --force-reinstall "petsc4py==$PETSC4PY_VERSION"
+fi
 
 "$PYTHON" - <<'PY'
 import petsc4py

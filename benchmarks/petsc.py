@@ -35,8 +35,6 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
 from solvers.fem import boundary_nodes, stiffness_matrix
 from solvers.gallery import kuhn_cube_hierarchy
 from solvers.multilevel import restrict_prolongations

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .cache import cache_key, load_entry, save_entry
+from .memory import check_tet_memory
 from .progress import Timer, stages
 from .prolongation import ProlongationReport, prolongation
 from .tetmesh import tetrahedralize
@@ -121,6 +122,7 @@ def _mesh_layer(V, F, mesher, h, epsilon, use_cache):
         hit = load_entry(key)
         if hit is not None:
             return hit[0]["V"], hit[0]["T"]
+    check_tet_memory(V, F, h, mesher)  # refuse before meshing a layer that would not fit
     Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=h, epsilon=epsilon)
     if use_cache:
         save_entry(key, {"V": Vt, "T": T}, opts)

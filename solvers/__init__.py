@@ -5,7 +5,7 @@ prolongation matrices as plain numpy/scipy arrays. ``solvers.baselines`` (pyamg,
 ``solvers.gallery`` are imported on demand.
 """
 
-from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
+from .errors import DivergenceError, IncompatibleRHSError, InsufficientMemoryError, SolverError, SolverInputError
 from .fem import (
     DirichletSystem,
     boundary_nodes,
@@ -28,6 +28,7 @@ from .multilevel import (
     prune_prolongations,
     restrict_prolongations,
 )
+from .memory import available_memory, check_memory, galerkin_nnz_estimate
 from .smoothing import SMOOTHERS, Smoother, make_smoother
 
 __all__ = [
@@ -35,6 +36,7 @@ __all__ = [
     "ConvergenceWarning",
     "DirichletSystem",
     "DivergenceError",
+    "InsufficientMemoryError",
     "IncompatibleRHSError",
     "KrylovResult",
     "Level",
@@ -42,11 +44,14 @@ __all__ = [
     "Smoother",
     "SolverError",
     "SolverInputError",
+    "available_memory",
     "boundary_nodes",
+    "check_memory",
     "check_compatible",
     "convergence_factor",
     "diffusion_matrix",
     "eliminate_dirichlet",
+    "galerkin_nnz_estimate",
     "galerkin_operators",
     "load_vector",
     "make_smoother",

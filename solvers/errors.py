@@ -41,3 +41,20 @@ class DivergenceError(SolverError):
         self.cycle = cycle
         self.level = level
         self.residuals = list(residuals) if residuals is not None else []
+
+
+class InsufficientMemoryError(SolverError, MemoryError):
+    """A structure would not fit in the memory available; raised *before* allocating it.
+
+    Attributes
+    ----------
+    needed : int
+        Estimated bytes (an upper bound).
+    available : int
+        Bytes available (``$NESTMG_MEMORY_LIMIT`` or the system's available memory).
+    """
+
+    def __init__(self, message: str, needed: int, available: int):
+        super().__init__(message)
+        self.needed = int(needed)
+        self.available = int(available)

@@ -28,6 +28,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
+from .memory import check_memory, galerkin_bytes
 from .smoothing import Smoother, make_smoother
 
 __all__ = [
@@ -78,12 +79,20 @@ def galerkin_operators(A: sp.spmatrix, Ps) -> list[sp.csr_matrix]:
     Returns
     -------
     list of csr_matrix, length ``len(Ps) + 1``, finest first.
+
+    Raises
+    ------
+    InsufficientMemoryError
+        Before a product whose estimated size (:func:`solvers.memory.galerkin_bytes`) exceeds the
+        memory available (``$NESTMG_MEMORY_LIMIT`` or the system's).
     """
     ops = [_as_csr(A, "A")]
     for k, P in enumerate(Ps):
         P = sp.csr_matrix(P, dtype=np.float64)
         if P.shape[0] != ops[-1].shape[0]:
             raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {ops[-1].shape[0]} nodes")
+        # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
+        check_memory(galerkin_bytes(ops[-1], P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
         Ac = sp.csr_matrix(P.T @ ops[-1] @ P)
         Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
         Ac.sum_duplicates()

@@ -55,7 +55,7 @@ def _audit_summary(a) -> dict:
 
 def run_cell(path: str, method: str, levels: int) -> dict:
     """One (mesh, method) cell in this process; returns a JSON-serialisable dict."""
-    from cagegen import NestmgError, audit_mesh, build_cages
+    from cagegen import NestmgError, audit_mesh, build_cages, repair_mesh
     from nestmg.io import load_mesh, normalize
 
     out: dict = {"mesh": Path(path).stem, "file": Path(path).name, "method": method}
@@ -70,6 +70,11 @@ def run_cell(path: str, method: str, levels: int) -> dict:
             m = trimesh.load(path, force="mesh", process=False)
             Vt, _, _ = normalize(m.vertices)
             out["trimesh"] = _audit_summary(audit_mesh(Vt, m.faces, name=Path(path).name))
+            try:  # what the documented repair makes of trimesh's reading
+                Vr, Fr = repair_mesh(Vt, m.faces)
+                out["trimesh_repaired"] = _audit_summary(audit_mesh(Vr, Fr, name=Path(path).name))
+            except NestmgError as exc:
+                out["trimesh_repaired"] = {"ok": False, "problems": [_short(exc, 80)]}
             out["status"] = "audited"
         else:
             V, F = load_mesh(path)
@@ -130,7 +135,10 @@ def cell_text(c: dict) -> str:
     if s == "audited":
         def one(a):
             return "closed, ok" if a["ok"] else ", ".join(a["problems"])
-        return f"libigl: {one(c['libigl'])}; trimesh: {one(c['trimesh'])}"
+        txt = f"libigl: {one(c['libigl'])}; trimesh: {one(c['trimesh'])}"
+        if "trimesh_repaired" in c and not c["trimesh"]["ok"]:
+            txt += f"; trimesh + repair: {one(c['trimesh_repaired'])}"
+        return txt
     if s in ("certified", "built, nested", "built, not nested"):
         return f"**{s}** {c['faces']} faces, {t}"
     if s == "error":

@@ -111,8 +111,14 @@ def stiffness_matrix(V, T) -> sp.csr_matrix:
         Symmetric positive semi-definite, rows sum to 0, ``K_ij = ∫ ∇φ_i·∇φ_j``.
     """
     V, T = check_tet_mesh(V, T)
-    K = -igl.cotmatrix(V, T)
+    # K scales like length in 3D: assemble on a unit-sized copy and rescale, so that tiny or huge
+    # meshes do not under/overflow inside libigl's cotangent formula (NaN/inf at edge lengths ~1e-30)
+    lo = V.min(axis=0)
+    s = float(np.abs(V.max(axis=0) - lo).max())
+    K = -igl.cotmatrix(np.ascontiguousarray((V - lo) / s), T) * s
     K = sp.csr_matrix(K)
+    if not np.all(np.isfinite(K.data)):
+        raise SolverInputError("stiffness matrix has NaN/inf entries (degenerate tets?)")
     K.sum_duplicates()
     K.sort_indices()
     return K

@@ -791,6 +791,12 @@ class MultigridSolver:
                 it += 1
                 rel = float(np.linalg.norm(b - A @ x)) / normb
                 hist.append(rel)
+                if not np.isfinite(rel) and np.all(np.isfinite(x)):  # finite iterate, overflowing norm
+                    raise DivergenceError(
+                        f"{cycle}-cycle {it} diverges: the residual norm overflowed (max |x| = "
+                        f"{np.abs(x).max():.3g}; relative residual before this cycle {hist[-2]:.3g})",
+                        cycle=it, level=None, residuals=hist,
+                    )
                 if not np.isfinite(rel):
                     level, stage = self._locate_nan(x_prev, b, cycle)
                     raise DivergenceError(

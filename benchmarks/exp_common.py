@@ -49,7 +49,8 @@ def load_zoo(name: str, zoo: Path | None = None) -> tuple[np.ndarray, np.ndarray
     return V, F
 
 
-def build_pair(V, F, levels: int, fine_tets: int, *, same_domain: int = 0, rules=NAIVE_RULES) -> dict:
+def build_pair(V, F, levels: int, fine_tets: int, *, same_domain: int = 0, rules=NAIVE_RULES,
+               face_counts: list[int] | None = None) -> dict:
     """Nested and naive hierarchies of ``(V, F)`` on one fine TetGen mesh.
 
     Parameters
@@ -66,6 +67,8 @@ def build_pair(V, F, levels: int, fine_tets: int, *, same_domain: int = 0, rules
         come from the cage backend.
     rules : tuple of str
         Extrapolation rules of the naive hierarchy.
+    face_counts : list of int, optional
+        Cage face counts (coarser layers only; default 4x fewer per layer).
 
     Returns
     -------
@@ -82,7 +85,7 @@ def build_pair(V, F, levels: int, fine_tets: int, *, same_domain: int = 0, rules
     for method in ("nested", "decimate"):
         t0 = time.perf_counter()
         if n_cage_levels >= 2:
-            surfaces, cinfo = cages(V, F, n_cage_levels, method)
+            surfaces, cinfo = cages(V, F, n_cage_levels, method, face_counts)
             cage_seconds = cinfo.get("seconds", 0.0)
             nested_ok = (cinfo.get("verification") or {}).get("ok")
         else:

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from . import errors
 from ._geometry import as_mesh_arrays
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
+from .components import build_cages_per_component, split_components
 from .errors import BackendUnavailableError, CageError, LevelsError, MeshInputError, NestmgError
 from .registry import available_backends, get_backend, register_backend
 from .sizes import check_face_counts, default_face_counts
@@ -37,12 +38,14 @@ __all__ = [
     "audit_mesh",
     "available_backends",
     "build_cages",
+    "build_cages_per_component",
     "check_face_counts",
     "check_mesh",
     "default_face_counts",
     "errors",
     "register_backend",
     "repair_mesh",
+    "split_components",
     "verify_nesting",
 ]
 
@@ -70,6 +73,7 @@ def build_cages(
     *,
     repair: bool = False,
     min_gap: float = 0.0,
+    components: str = "single",
     **opts,
 ):
     """Build a hierarchy of cages around a closed surface, finest first.
@@ -102,6 +106,10 @@ def build_cages(
     min_gap : float
         Clearance demanded between consecutive layers, relative to the input's bounding-box diagonal
         (see :func:`verify_nesting`).
+    components : {"single", "separate"}
+        ``"single"`` (default): the input must be one closed piece. ``"separate"``: one hierarchy per
+        disjoint closed piece; the return value is then a *list* with one ``build_cages`` result per
+        piece (see :func:`cagegen.components.build_cages_per_component`).
     **opts
         Passed to the backend.
 
@@ -126,6 +134,15 @@ def build_cages(
     CageError
         The backend failed, or (certified methods) a layer does not nest; ``.layer`` names it.
     """
+    if components == "separate":
+        from .components import build_cages_per_component
+
+        return build_cages_per_component(
+            V, F, levels, method, face_counts=face_counts, verify=verify, return_info=return_info,
+            progress=progress, repair=repair, min_gap=min_gap, **opts,
+        )
+    if components != "single":
+        raise ValueError(f"components must be 'single' or 'separate', got {components!r}")
     t0 = time.perf_counter()
     if progress is None or progress is False:
         report_to = None

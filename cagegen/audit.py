@@ -296,7 +296,10 @@ def audit_mesh(
         P.append(f"non-manifold vertices: {a.n_nonmanifold_vertices} vertices where several fans meet")
     a.n_components = n_components(F, n)
     if a.n_components > 1:
-        P.append(f"several connected components: {a.n_components} (a single closed piece is required)")
+        P.append(
+            f"several connected components: {a.n_components} (a single closed piece is required; "
+            "build_cages(..., components='separate') builds one hierarchy per piece)"
+        )
 
     # --- volume and genus (closed, consistently oriented meshes only)
     if es.closed_manifold and a.n_nonmanifold_vertices == 0:

@@ -210,6 +210,8 @@ def nest_pair(
 
     t = time.perf_counter()
     upd = rep.phase("re-inflation", None)
+    if fl.expansions:
+        Vc = fl.target  # the flow expanded Ĉ where it got stuck
     rr = reinflate(fl.history, Ff, Vc, Fc, energy=energy, dhat=dhat, kappa=kappa,
                    dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
                    final_iters=final_iters, callback=lambda k, n: upd(k, n))

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import igl
+import ipctk
 import numpy as np
 
 from .collision import PairMesh
@@ -44,6 +45,10 @@ class FlowResult:
         Why the flow stopped.
     max_signed_distance : float
         Largest signed distance of a quadrature point of F̄ to Ĉ (negative = all inside).
+    target : (nc,3) float array
+        The target Ĉ the flow ended inside: the input Ĉ, or Ĉ expanded where the flow got stuck.
+    expansions : int
+        Number of expansion steps applied to Ĉ.
     """
 
     history: list
@@ -53,6 +58,8 @@ class FlowResult:
     max_signed_distance: float
     intersection_checks: int = 0
     step_sizes: list = field(default_factory=list)
+    target: np.ndarray | None = None
+    expansions: int = 0
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary (without the history arrays)."""
@@ -63,13 +70,34 @@ class FlowResult:
             "max_signed_distance": float(self.max_signed_distance),
             "snapshots": len(self.history),
             "intersection_checks": int(self.intersection_checks),
+            "expansions": int(self.expansions),
         }
 
 
 def _signed_distance(P: np.ndarray, Vc: np.ndarray, Fc: np.ndarray):
-    """Signed distance, closest points and pseudonormals of points ``P`` w.r.t. the mesh Ĉ."""
-    S, _, Q, N = igl.signed_distance(P, Vc, Fc, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
-    return S, Q, N
+    """Signed distance, closest faces, closest points and pseudonormals of ``P`` w.r.t. Ĉ."""
+    S, I, Q, N = igl.signed_distance(P, Vc, Fc, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+    return S, I, Q, N
+
+
+def _expand_target(Vc: np.ndarray, Fc: np.ndarray, S: np.ndarray, I: np.ndarray, margin: float):
+    """Push the target Ĉ outward where fine quadrature points are stuck outside it (paper Sec. 3.1).
+
+    Every vertex of a face that is the closest face of a point with signed distance > -margin moves
+    along its angle-weighted normal by the largest (sd + margin) among those points. The motion is
+    cut by CCD so Ĉ never intersects itself. Returns the new vertices and the step fraction taken.
+    """
+    stuck = S > -margin
+    amount = S[stuck] + margin
+    a = np.zeros(len(Vc))
+    for k in range(3):
+        np.maximum.at(a, Fc[I[stuck], k], amount)
+    Nv = igl.per_vertex_normals(Vc, Fc, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
+    D = a[:, None] * Nv
+    faces = np.asarray(Fc, dtype=np.int32)
+    cm = ipctk.CollisionMesh(Vc, ipctk.edges(faces), faces)
+    alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, Vc + D, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
+    return Vc + min(1.0, alpha) * D, alpha
 
 
 def flow_inside(
@@ -87,6 +115,8 @@ def flow_inside(
     keep_every: float = 5e-3,
     stall_iter: int = 150,
     active_depth: float | None = None,
+    expand_after: int | None = 50,
+    max_expansions: int = 20,
     callback: Callable[[int], None] | None = None,
 ) -> FlowResult:
     """Flow the fine surface along the signed distance to Ĉ until it is strictly inside Ĉ.
@@ -123,6 +153,13 @@ def flow_inside(
         inside it are flowed ("local" flow): the integrand becomes sd(p) restricted to
         sd(p) > -active_depth, so the parts of F already well inside stay at rest and the history
         (hence the re-inflation) is much shorter. ``None`` is the paper's flow (every point moves).
+    expand_after : int or None
+        When some quadrature points stay outside Ĉ and the largest signed distance has not improved
+        for this many iterations, expand Ĉ locally (the paper's remedy for hard cases: "reverse the
+        picture and expand the coarse mesh"), CCD-limited so Ĉ stays free of self-intersections.
+        ``None`` disables it (then ``FlowResult.target`` is Ĉ itself).
+    max_expansions : int
+        Cap on expansion steps.
     callback : callable, optional
         Called with the iteration number after each step (progress bars).
 
@@ -132,7 +169,7 @@ def flow_inside(
     """
     Vf0 = np.array(Vf, dtype=float)  # private copy: the caller's array is never touched
     Ff = np.asarray(Ff, dtype=np.int64)
-    Vc = np.asarray(Vc, dtype=float)
+    Vc = np.array(Vc, dtype=float)  # private copy (may be expanded)
     Fc = np.asarray(Fc, dtype=np.int64)
     diag = float(np.linalg.norm(Vf0.max(0) - Vf0.min(0)))
     h, h_max, h_min = step * diag, max_step * diag, step * diag / 64
@@ -144,7 +181,8 @@ def flow_inside(
 
     def evaluate(V):
         P = B @ V
-        S, Q, N = _signed_distance(P, Vc, Fc)
+        S, I, Q, N = _signed_distance(P, Vc, Fc)
+        evaluate.I = I
         W = np.outer(triangle_areas(V, Ff), w).ravel()  # area × rule weight per point
         return P, S, Q, N, W
 
@@ -161,7 +199,20 @@ def flow_inside(
     reason = f"no convergence after {max_iter} iterations"
     success = False
     steps = []
+    best, since_best, n_expand = float(S.max()), 0, 0
     while True:
+        if S.max() < best - 0.02 * max(abs(best), 1e-4 * diag):
+            best, since_best = float(S.max()), 0
+        else:
+            since_best += 1
+        if (expand_after is not None and S.max() > -margin_abs and since_best >= expand_after
+                and n_expand < max_expansions):
+            Vc, alpha = _expand_target(Vc, Fc, S, evaluate.I, max(margin_abs, 1e-3 * diag))
+            n_expand += 1
+            since_best, best = 0, np.inf
+            pair = PairMesh(Vc, Fc, Vf0, Ff)
+            P, S, Q, N, W = evaluate(V)
+            continue
         if S.max() < -margin_abs:
             n_checks += 1
             if not pair.intersects(pair.stack(Vc, V)):
@@ -175,6 +226,19 @@ def flow_inside(
                 q = len(w)
                 P, S, Q, N, W = evaluate(V)
                 continue
+            if (expand_after is not None and inside_iters > stall_iter // 4 and inside_iters % 25 == 0
+                    and n_expand < max_expansions):
+                # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface
+                from .._geometry import cross_intersection_pairs
+
+                pairs = cross_intersection_pairs(Vc, Fc, V, Ff)
+                if len(pairs):
+                    fake_S = np.zeros(len(pairs))
+                    Vc, alpha = _expand_target(Vc, Fc, fake_S, pairs[:, 0], 2e-3 * diag)
+                    n_expand += 1
+                    pair = PairMesh(Vc, Fc, Vf0, Ff)
+                    P, S, Q, N, W = evaluate(V)
+                    continue
             if inside_iters >= stall_iter:
                 reason = f"stalled: quadrature points inside but intersections remain after {it} iterations"
                 break
@@ -209,4 +273,4 @@ def flow_inside(
             callback(it)
     if history[-1] is not V and not np.array_equal(history[-1], V):
         history.append(V.copy())
-    return FlowResult(history, success, it, reason, float(S.max()), n_checks, steps)
+    return FlowResult(history, success, it, reason, float(S.max()), n_checks, steps, Vc, n_expand)

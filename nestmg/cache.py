@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "cache_dir", "cache_key", "load_entry", "save_entry"]
+__all__ = ["arrays_digest", "atomic_write_bytes", "cache_dir", "cache_key", "load_entry", "save_entry"]
 
 CACHE_VERSION = "3"
 
@@ -54,19 +54,38 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
+def arrays_digest(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 of named arrays (names, shapes, dtypes and bytes, in name order)."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(str((name, a.shape, a.dtype.str)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 def save_entry(key: str, arrays: dict[str, np.ndarray], meta: dict[str, Any], directory: Path | None = None) -> None:
-    """Store ``arrays`` and JSON ``meta`` under ``key`` (atomic)."""
+    """Store ``arrays`` and JSON ``meta`` under ``key`` (atomic).
+
+    The metadata records the arrays' SHA-256 (``"sha256"``), so that a reload can prove it returns
+    exactly the arrays that were stored (and, for cages, certified) -- see :func:`load_entry`.
+    """
     import io
 
     d = Path(directory) if directory is not None else cache_dir()
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     atomic_write_bytes(d / f"{key}.npz", buf.getvalue())
+    meta = {**meta, "sha256": arrays_digest(arrays)}
     atomic_write_bytes(d / f"{key}.json", json.dumps(meta, indent=1, default=str).encode())
 
 
 def load_entry(key: str, directory: Path | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
-    """Return ``(arrays, meta)`` stored under ``key``, or None when absent or unreadable."""
+    """Return ``(arrays, meta)`` stored under ``key``, or None when absent, unreadable or altered.
+
+    An entry whose arrays no longer match the SHA-256 recorded when it was saved (edited, corrupted,
+    or written by an older version without it) is treated as absent, so it is rebuilt and re-verified.
+    """
     d = Path(directory) if directory is not None else cache_dir()
     npz, js = d / f"{key}.npz", d / f"{key}.json"
     if not (npz.exists() and js.exists()):
@@ -75,6 +94,8 @@ def load_entry(key: str, directory: Path | None = None) -> tuple[dict[str, np.nd
         with np.load(npz) as z:
             arrays = {k: z[k] for k in z.files}
         meta = json.loads(js.read_text())
-    except (OSError, ValueError):
+    except Exception:  # noqa: BLE001 - any unreadable entry (BadZipFile, zlib.error, bad JSON...) is a miss
+        return None
+    if not isinstance(meta, dict) or meta.pop("sha256", None) != arrays_digest(arrays):
         return None
     return arrays, meta

@@ -149,3 +149,59 @@ def test_incompatible_neumann_data_is_rejected_through_nestmg(ball_hierarchy):
     x2 = ml.solve(b_bad, project=True, tol=1e-8)  # explicit opt-in projects instead
     assert np.linalg.norm(x2 - x) > 0 and abs(x2.mean()) < 1e-12
     assert sp.issparse(prob.A)
+
+
+def test_altered_or_truncated_cache_entries_are_rebuilt(tmp_path, monkeypatch):
+    """A cache entry is returned only if its arrays hash to what was stored (and verified) when saved."""
+    from nestmg.cache import load_entry, save_entry
+
+    monkeypatch.setenv("NESTMG_CACHE", str(tmp_path))
+    arrays = {"V0": np.arange(12.0).reshape(4, 3), "F0": np.array([[0, 1, 2], [0, 2, 3]])}
+    save_entry("k", arrays, {"certified": True})
+    hit = load_entry("k")
+    assert hit is not None and hit[1] == {"certified": True}
+    for name, a in arrays.items():
+        assert hit[0][name].tobytes() == a.tobytes()
+    # someone edits the arrays (a valid npz, different content): not returned
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, V0=arrays["V0"] + 1e-9, F0=arrays["F0"])
+    (tmp_path / "k.npz").write_bytes(buf.getvalue())
+    assert load_entry("k") is None
+    # truncated file, garbage JSON: misses, never exceptions
+    save_entry("k", arrays, {"certified": True})
+    data = (tmp_path / "k.npz").read_bytes()
+    (tmp_path / "k.npz").write_bytes(data[: len(data) // 2])
+    assert load_entry("k") is None
+    save_entry("k", arrays, {"certified": True})
+    (tmp_path / "k.json").write_text("[1, 2")
+    assert load_entry("k") is None
+    (tmp_path / "k.json").write_text("[1, 2]")
+    assert load_entry("k") is None
+
+
+def test_pipeline_rebuilds_an_altered_cage_entry(tmp_path, monkeypatch):
+    pytest.importorskip("tetgen")
+    import nestmg.hierarchy as hier
+    from nestmg import build_hierarchy, shapes
+    from nestmg.cache import cache_key
+
+    monkeypatch.setenv("NESTMG_CACHE", str(tmp_path))
+    V, F = shapes.sphere(res=16)
+    kw = dict(levels=2, method="decimate", face_counts=[60], mesher="tetgen", progress=False)
+    h1 = build_hierarchy(V, F, **kw)
+    key = cache_key([V, F], {"stage": "cages", "method": "decimate", "levels": 2, "face_counts": [60]})
+    assert (tmp_path / f"{key}.npz").exists()
+    with np.load(tmp_path / f"{key}.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["V1"] = arrays["V1"] * 0.5  # shrink the cage: it would no longer contain the input
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    (tmp_path / f"{key}.npz").write_bytes(buf.getvalue())
+    h2 = build_hierarchy(V, F, **kw)
+    assert "cached" not in h2.cage_info  # rebuilt, not loaded
+    _same_arrays(h1, h2)
+    assert hier.load_entry(key) is not None  # and stored again, intact

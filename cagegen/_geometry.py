@@ -2,7 +2,8 @@
 
 Everything here takes plain arrays and returns plain arrays or numbers; nothing modifies its input.
 Edge statistics come from one ``np.unique`` over integer edge keys (no per-element Python loops);
-exact intersection tests come from libigl's CGAL bindings (``igl.copyleft.cgal``).
+exact intersection tests come from :mod:`cagegen.intersect` (filtered floating-point predicates, no
+copyleft code) or, as an option, libigl's CGAL bindings (``igl.copyleft.cgal``, GPL).
 """
 
 from __future__ import annotations
@@ -171,30 +172,56 @@ def n_components(F: np.ndarray, n_vertices: int) -> int:
     return int(np.unique(labels[ref]).size)
 
 
-def self_intersection_pairs(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Pairs of faces of one mesh that intersect (exact predicates, CGAL via libigl).
+#: Engine of the exact intersection tests: ``"filtered"`` (default; :mod:`cagegen.intersect`, numpy
+#: and scipy only) or ``"cgal"`` (libigl's ``igl.copyleft.cgal``, GPL; an option, never required).
+INTERSECTION_ENGINES = ("filtered", "cgal")
+DEFAULT_INTERSECTION_ENGINE = "filtered"
+
+
+def _engine(engine: str | None) -> str:
+    engine = DEFAULT_INTERSECTION_ENGINE if engine is None else engine
+    if engine not in INTERSECTION_ENGINES:
+        raise ValueError(f"intersection engine must be one of {INTERSECTION_ENGINES}, got {engine!r}")
+    return engine
+
+
+def self_intersection_pairs(V: np.ndarray, F: np.ndarray, engine: str | None = None) -> np.ndarray:
+    """Pairs of faces of one mesh that intersect (exact decision, see :mod:`cagegen.intersect`).
 
     Faces sharing a vertex or an edge are only reported if they overlap beyond that shared part.
+    ``engine``: ``"filtered"`` (default, no copyleft code) or ``"cgal"`` (``igl.copyleft.cgal``, GPL).
 
     Returns
     -------
     (k,2) int64 array of face indices into ``F``.
     """
+    if _engine(engine) == "filtered":
+        from .intersect import self_pairs
+
+        return self_pairs(V, F)
     from igl.copyleft import cgal
 
     out = cgal.remesh_self_intersections(V, F, detect_only=True)
     return np.asarray(out[2], dtype=np.int64).reshape(-1, 2)
 
 
-def cross_intersection_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray) -> np.ndarray:
-    """Pairs ``(a, b)`` of faces of mesh A and mesh B that intersect or touch (exact, CGAL via libigl).
+def cross_intersection_pairs(
+    VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray, engine: str | None = None
+) -> np.ndarray:
+    """Pairs ``(a, b)`` of faces of mesh A and mesh B that intersect or touch (exact decision).
 
-    Touching (a vertex of one surface exactly on the other) counts as an intersection.
+    Touching (a vertex of one surface exactly on the other) counts as an intersection. ``engine``:
+    ``"filtered"`` (default, :mod:`cagegen.intersect`; also reports pairs that touch to within
+    rounding, ~1e-16 of the coordinates) or ``"cgal"`` (``igl.copyleft.cgal``, GPL).
 
     Returns
     -------
     (k,2) int64 array: column 0 indexes ``FA``, column 1 indexes ``FB``.
     """
+    if _engine(engine) == "filtered":
+        from .intersect import cross_pairs
+
+        return cross_pairs(VA, FA, VB, FB)
     from igl.copyleft import cgal
 
     out = cgal.intersect_other(VA, FA, VB, FB, detect_only=True)

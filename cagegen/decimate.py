@@ -83,7 +83,7 @@ def decimate_surface(
     block_intersections : bool
         Start with libigl's intersection-blocking collapses (slower, ~3x).
     check_self : bool
-        Reject (and retry) results with self-intersections (exact CGAL test).
+        Reject (and retry) results with self-intersections (exact test, :mod:`cagegen.intersect`).
     keep_genus : bool
         Reject (and retry) results whose genus differs from the input's.
 

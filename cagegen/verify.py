@@ -6,9 +6,11 @@ Let ``S_f`` (fine) and ``S_c`` (coarse) be closed, oriented, self-intersection-f
 bounding the solids ``Ω_f`` and ``Ω_c``. The pair is certified *nested* (``Ω_f ⊂ interior Ω_c``)
 when all of the following hold:
 
-1. **No crossing**: no triangle of ``S_f`` intersects or touches a triangle of ``S_c`` (exact CGAL
-   predicates, ``igl.copyleft.cgal.intersect_other``). Touching counts as failing: a contact has
-   zero gap, which tet meshers and point location cannot tell from a crossing.
+1. **No crossing**: no triangle of ``S_f`` intersects or touches a triangle of ``S_c`` (exact
+   decision: :mod:`cagegen.intersect`'s filtered predicates by default, which also count pairs that
+   touch to within rounding as touching; ``intersection_engine="cgal"`` uses the GPL
+   ``igl.copyleft.cgal.intersect_other`` instead). Touching counts as failing: a contact has zero
+   gap, which tet meshers and point location cannot tell from a crossing.
 2. **Fine inside coarse**: every fine vertex has generalized winding number ``w_c >= 1/2`` with
    respect to ``S_c`` (``igl.winding_number``, hierarchical but exact).
 3. **Coarse outside fine**: every coarse vertex has ``w_f < 1/2`` with respect to ``S_f``.
@@ -51,6 +53,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ._geometry import (
+    _engine,
     as_mesh_arrays,
     bbox_diagonal,
     cross_intersection_pairs,
@@ -221,7 +224,7 @@ class _Layer:
     self_pairs: int | None
 
 
-def _prepare(i: int, V, F, check_self: bool) -> _Layer:
+def _prepare(i: int, V, F, check_self: bool, engine: str | None = None) -> _Layer:
     try:
         V, F = as_mesh_arrays(V, F, f"layer {i}")
     except MeshInputError as exc:
@@ -231,11 +234,13 @@ def _prepare(i: int, V, F, check_self: bool) -> _Layer:
     vol = signed_volume(V, F) if finite else float("nan")
     self_pairs = None
     if check_self and finite:
-        self_pairs = len(self_intersection_pairs(V, F))
+        self_pairs = len(self_intersection_pairs(V, F, engine))
     return _Layer(V, F, finite, es.n_boundary_edges, es.n_nonmanifold_edges, vol, self_pairs)
 
 
-def _check_pair(i: int, f: _Layer, c: _Layer, diag: float, min_gap: float, exact_winding: bool) -> PairReport:
+def _check_pair(
+    i: int, f: _Layer, c: _Layer, diag: float, min_gap: float, exact_winding: bool, engine: str | None = None
+) -> PairReport:
     import igl
 
     winding = igl.winding_number if exact_winding else igl.fast_winding_number
@@ -274,7 +279,7 @@ def _check_pair(i: int, f: _Layer, c: _Layer, diag: float, min_gap: float, exact
         p.min_winding = float(w_f.min())
         p.n_outside_vertices = int(np.count_nonzero(w_f < WINDING_THRESHOLD))
         p.n_coarse_inside_vertices = int(np.count_nonzero(w_c >= WINDING_THRESHOLD))
-        p.n_intersecting_pairs = len(cross_intersection_pairs(f.V, f.F, c.V, c.F))
+        p.n_intersecting_pairs = len(cross_intersection_pairs(f.V, f.F, c.V, c.F, engine))
         if p.n_intersecting_pairs:
             p.min_gap = 0.0  # crossing or touching surfaces are at distance 0
             p.min_gap_exact = True
@@ -324,6 +329,7 @@ def verify_nesting(
     min_gap: float = 0.0,
     check_self: bool = True,
     exact_winding: bool = True,
+    intersection_engine: str | None = None,
 ) -> NestingReport:
     """Certify that every layer of a hierarchy strictly contains the previous one.
 
@@ -338,10 +344,13 @@ def verify_nesting(
         Required clearance between consecutive surfaces, relative to the bounding-box diagonal of
         layer 0. The default 0 accepts any positive gap (touching is always a failure).
     check_self : bool
-        Also test each layer for self-intersections (exact CGAL test; a self-intersecting layer fails).
+        Also test each layer for self-intersections (exact decision; a self-intersecting layer fails).
     exact_winding : bool
         Evaluate winding numbers with ``igl.winding_number`` (robust for nearly touching surfaces);
         False uses the ~6x faster but approximate ``igl.fast_winding_number``.
+    intersection_engine : {"filtered", "cgal"}, optional
+        Exact intersection tests: ``"filtered"`` (default; :mod:`cagegen.intersect`, no copyleft
+        code) or ``"cgal"`` (libigl's GPL CGAL module). None: the default.
 
     Returns
     -------
@@ -368,10 +377,11 @@ def verify_nesting(
     if len(layers) < 2:
         raise ValueError(f"verify_nesting needs at least two layers, got {len(layers)}")
     t0 = time.perf_counter()
-    prepared = [_prepare(i, V, F, check_self) for i, (V, F) in enumerate(layers)]
+    engine = _engine(intersection_engine)
+    prepared = [_prepare(i, V, F, check_self, engine) for i, (V, F) in enumerate(layers)]
     diag = bbox_diagonal(prepared[0].V) if prepared[0].finite else float("nan")
     pairs = [
-        _check_pair(i, prepared[i], prepared[i + 1], diag, float(min_gap), exact_winding)
+        _check_pair(i, prepared[i], prepared[i + 1], diag, float(min_gap), exact_winding, engine)
         for i in range(len(prepared) - 1)
     ]
     return NestingReport(

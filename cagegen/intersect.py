@@ -1,0 +1,330 @@
+"""Triangle-triangle intersection tests without copyleft code (numpy + scipy only).
+
+The nesting verifier and the input audit need two answers: which face pairs of two meshes
+intersect or touch, and which face pairs of one mesh do. libigl's CGAL module answers both exactly
+but is GPL; this module is the default engine of :mod:`cagegen` (CGAL stays available as
+``engine="cgal"`` in :func:`cagegen._geometry.cross_intersection_pairs` and
+:func:`cagegen._geometry.self_intersection_pairs`).
+
+Decision rule
+-------------
+Two closed triangles intersect iff an edge of one meets the other (if they do, the ends of their
+common segment lie on edges). A segment ``pq`` meets triangle ``abc`` iff ``p`` and ``q`` are not
+strictly on the same side of the plane ``abc`` *and* the line ``pq`` does not pass strictly beside
+one of the triangle's edges (the three orientations ``orient(p, q, a, b)``, ``(p, q, b, c)``,
+``(p, q, c, a)`` do not take both strict signs).
+
+Every orientation is a 3x3 determinant evaluated in floating point together with a forward error
+bound (a multiple of Shewchuk's static bound for ``orient3d``, times a safety factor 16). A sign is
+trusted only when ``|det|`` exceeds the bound; an uncertain sign counts as zero, i.e. as touching.
+So "no intersection" is always exact, and the only possible error is a conservative one: a pair
+whose configuration is degenerate to within ~1e-14 relative (touching, or coplanar with overlapping
+bounding boxes) is reported. Touching counts as failing in the verifier anyway.
+
+Pairs of one mesh that share a vertex or an edge are tested for overlap *beyond* the shared part:
+for a shared edge, the two faces must not fold onto each other (coplanar, third vertices on the same
+side); for a shared vertex, the opposite edges are tested as above and a face edge lying in the
+other face's plane is tested for entering the other face's angle at the shared vertex.
+
+Broad phase: face pairs whose bounding boxes (inflated by 1e-9 of the coordinates' magnitude for
+rounding) overlap, found on a uniform grid; everything is vectorised, no Python loop over faces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["cross_pairs", "orient3d", "self_pairs"]
+
+_EPS = np.finfo(np.float64).eps / 2  # unit roundoff 2^-53
+#: Shewchuk's orient3d static bound (7 + 56 eps) eps, times a safety factor
+_O3D_BOUND = 16.0 * (7.0 + 56.0 * _EPS) * _EPS
+
+
+def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Sign of ``det[a - d, b - d, c - d]`` row by row, 0 where the sign is not certain.
+
+    Parameters
+    ----------
+    a, b, c, d : (k,3) float arrays
+
+    Returns
+    -------
+    (k,) int8 array in {-1, 0, 1}.
+    """
+    ad, bd, cd = a - d, b - d, c - d
+    t1 = bd[:, 1] * cd[:, 2]
+    t2 = bd[:, 2] * cd[:, 1]
+    t3 = cd[:, 1] * ad[:, 2]
+    t4 = cd[:, 2] * ad[:, 1]
+    t5 = ad[:, 1] * bd[:, 2]
+    t6 = ad[:, 2] * bd[:, 1]
+    det = ad[:, 0] * (t1 - t2) + bd[:, 0] * (t3 - t4) + cd[:, 0] * (t5 - t6)
+    perm = (np.abs(ad[:, 0]) * (np.abs(t1) + np.abs(t2)) + np.abs(bd[:, 0]) * (np.abs(t3) + np.abs(t4))
+            + np.abs(cd[:, 0]) * (np.abs(t5) + np.abs(t6)))
+    s = np.sign(det).astype(np.int8)
+    s[np.abs(det) <= _O3D_BOUND * perm] = 0
+    return s
+
+
+_O2D_BOUND = 16.0 * (3.0 + 16.0 * _EPS) * _EPS
+
+
+def _orient2d(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Sign of ``det[a - c, b - c]`` for (k,2) rows, 0 where not certain."""
+    l = (a[:, 0] - c[:, 0]) * (b[:, 1] - c[:, 1])
+    r = (a[:, 1] - c[:, 1]) * (b[:, 0] - c[:, 0])
+    det = l - r
+    s = np.sign(det).astype(np.int8)
+    s[np.abs(det) <= _O2D_BOUND * (np.abs(l) + np.abs(r))] = 0
+    return s
+
+
+def _segments_meet_2d(p, q, a, b) -> np.ndarray:
+    """(k,) bool: closed 2D segments ``pq`` and ``ab`` meet (or uncertain)."""
+    o1, o2 = _orient2d(p, q, a), _orient2d(p, q, b)
+    o3, o4 = _orient2d(a, b, p), _orient2d(a, b, q)
+    meet = (o1 * o2 <= 0) & (o3 * o4 <= 0)
+    # collinear (or uncertain): they meet only if their boxes overlap
+    col = (o1 == 0) & (o2 == 0)
+    if col.any():
+        lo1, hi1 = np.minimum(p, q), np.maximum(p, q)
+        lo2, hi2 = np.minimum(a, b), np.maximum(a, b)
+        box = ((lo1 <= hi2) & (lo2 <= hi1)).all(axis=1)
+        meet &= ~col | box
+    return meet
+
+
+def _segment_hits_triangle_2d(p, q, a, b, c) -> np.ndarray:
+    """Segment and triangle (nearly) in one plane: test their projections along the dominant normal axis.
+
+    Disjoint projections imply disjoint 3D sets, so the answer is never a false "no".
+    """
+    n = np.abs(np.cross(b - a, c - a))
+    drop = n.argmax(axis=1)
+    keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]  # (k,2) coordinates kept
+    r = np.arange(len(p))[:, None]
+    P, Q, A, B, C = (x[r, keep] for x in (p, q, a, b, c))
+    s = [_orient2d(A, B, X) for X in (P, Q)] + [_orient2d(B, C, X) for X in (P, Q)] + \
+        [_orient2d(C, A, X) for X in (P, Q)]
+    in_p = ~(np.stack(s[0::2], 1).max(1) > 0) | ~(np.stack(s[0::2], 1).min(1) < 0)
+    in_q = ~(np.stack(s[1::2], 1).max(1) > 0) | ~(np.stack(s[1::2], 1).min(1) < 0)
+    return (in_p | in_q | _segments_meet_2d(P, Q, A, B) | _segments_meet_2d(P, Q, B, C)
+            | _segments_meet_2d(P, Q, C, A))
+
+
+def _segment_hits_triangle(p, q, a, b, c) -> np.ndarray:
+    """(k,) bool: closed segment ``pq`` meets closed triangle ``abc`` (or the decision is uncertain)."""
+    sp = orient3d(a, b, c, p)
+    sq = orient3d(a, b, c, q)
+    straddle = sp * sq <= 0  # not strictly on one side of the plane
+    hit = np.zeros(len(p), dtype=bool)
+    flat = straddle & (sp == 0) & (sq == 0)  # segment in the plane: the line test says nothing
+    idx = np.flatnonzero(straddle & ~flat)
+    if idx.size:
+        P, Q, A, B, C = p[idx], q[idx], a[idx], b[idx], c[idx]
+        s1 = orient3d(P, Q, A, B)
+        s2 = orient3d(P, Q, B, C)
+        s3 = orient3d(P, Q, C, A)
+        S = np.stack([s1, s2, s3], axis=1)
+        hit[idx] = ~((S > 0).any(axis=1) & (S < 0).any(axis=1))  # no two strict opposite signs
+    idx = np.flatnonzero(flat)
+    if idx.size:
+        hit[idx] = _segment_hits_triangle_2d(p[idx], q[idx], a[idx], b[idx], c[idx])
+    return hit
+
+
+def _cells(lo, hi, origin, cell, dims):
+    """Grid cells overlapped by each box: (entries,) face ids and (entries,) int64 cell keys."""
+    i0 = np.floor((lo - origin) / cell).astype(np.int64)
+    i1 = np.floor((hi - origin) / cell).astype(np.int64)
+    n = i1 - i0 + 1  # (m,3) cells per axis
+    tot = n.prod(axis=1)
+    ids = np.repeat(np.arange(len(lo)), tot)
+    k = np.arange(int(tot.sum())) - np.repeat(np.cumsum(tot) - tot, tot)
+    nx, ny = n[ids, 0], n[ids, 1]
+    cx = i0[ids, 0] + k % nx
+    cy = i0[ids, 1] + (k // nx) % ny
+    cz = i0[ids, 2] + k // (nx * ny)
+    return ids, (cx * dims[1] + cy) * dims[2] + cz
+
+
+def _candidates(VA, FA, VB, FB, slop):
+    """Candidate (face of A, face of B) pairs whose bounding boxes overlap, (k,2) int64.
+
+    Uniform-grid broad phase, fully vectorised: every box is entered into the cells it overlaps (cell
+    size ~ the median face extent), entries of A and B with the same cell key are paired through
+    sorted searches, duplicates are removed and the boxes are compared.
+    """
+    TA, TB = VA[FA], VB[FB]
+    loA, hiA = TA.min(axis=1) - slop, TA.max(axis=1) + slop
+    loB, hiB = TB.min(axis=1) - slop, TB.max(axis=1) + slop
+    origin = np.minimum(loA.min(axis=0), loB.min(axis=0))
+    top = np.maximum(hiA.max(axis=0), hiB.max(axis=0))
+    ext = np.concatenate([(hiA - loA).max(axis=1), (hiB - loB).max(axis=1)])
+    cell = max(float(np.median(ext)), float((top - origin).max()) / 2.0**18, 1e-300)
+    dims = np.floor((top - origin) / cell).astype(np.int64) + 2
+    idA, keyA = _cells(loA, hiA, origin, cell, dims)
+    idB, keyB = _cells(loB, hiB, origin, cell, dims)
+    order = np.argsort(keyA, kind="stable")
+    keyA, idA = keyA[order], idA[order]
+    left = np.searchsorted(keyA, keyB, side="left")
+    cnt = np.searchsorted(keyA, keyB, side="right") - left
+    total = int(cnt.sum())
+    if total == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    ib = np.repeat(idB, cnt)
+    pos = np.repeat(left, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    ia = idA[pos]
+    pair = np.sort(ia * len(FB) + ib)
+    pair = pair[np.concatenate([[True], pair[1:] != pair[:-1]])]
+    ia, ib = pair // len(FB), pair % len(FB)
+    keep = ((loA[ia] <= hiB[ib]) & (loB[ib] <= hiA[ia])).all(axis=1)
+    return np.stack([ia[keep], ib[keep]], axis=1)
+
+
+def _tri_tri(TA: np.ndarray, TB: np.ndarray) -> np.ndarray:
+    """(k,) bool: closed triangles ``TA[i]`` and ``TB[i]`` ((k,3,3) arrays) meet (or uncertain)."""
+    hit = np.zeros(len(TA), dtype=bool)
+    for X, Y in ((TA, TB), (TB, TA)):
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            todo = ~hit
+            if not todo.any():
+                break
+            hit[todo] |= _segment_hits_triangle(X[todo, i], X[todo, j], Y[todo, 0], Y[todo, 1], Y[todo, 2])
+    return hit
+
+
+def _slop(*Vs) -> float:
+    ext = max(float(np.abs(V).max()) for V in Vs)
+    return 1e-9 * max(ext, 1e-300)
+
+
+def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray) -> np.ndarray:
+    """Face pairs ``(a, b)`` of two meshes that intersect or touch.
+
+    Parameters
+    ----------
+    VA : (nA,3) float array
+    FA : (mA,3) int array
+    VB : (nB,3) float array
+    FB : (mB,3) int array
+
+    Returns
+    -------
+    (k,2) int64 array: column 0 indexes ``FA``, column 1 ``FB``, sorted lexicographically.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]); F = np.array([[0, 1, 2]])
+    >>> cross_pairs(V, F, V + [0.2, 0.2, -0.5] + [[0, 0, 0], [0, 0, 1], [0, 0, 1]], F).tolist()
+    [[0, 0]]
+    >>> cross_pairs(V, F, V + [0, 0, 0.1], F).tolist()
+    []
+    """
+    VA = np.asarray(VA, dtype=np.float64)
+    VB = np.asarray(VB, dtype=np.float64)
+    FA = np.asarray(FA, dtype=np.int64)
+    FB = np.asarray(FB, dtype=np.int64)
+    C = _candidates(VA, FA, VB, FB, _slop(VA, VB))
+    if not len(C):
+        return C
+    hit = _tri_tri(VA[FA[C[:, 0]]], VB[FB[C[:, 1]]])
+    out = C[hit]
+    return out[np.lexsort((out[:, 1], out[:, 0]))]
+
+
+def _ray_in_angle(r, u, v, n) -> np.ndarray:
+    """(k,) bool: direction ``r`` lies in the closed planar angle spanned by ``u``, ``v`` (normal ``n``),
+    or the decision is uncertain. All vectors are relative to the apex; ``n = u x v``."""
+    z = np.zeros_like(r)
+    s1 = orient3d(u, r, n, z)  # sign of det[u, r, n] = (u x r) . n
+    s2 = orient3d(r, v, n, z)
+    return (s1 >= 0) & (s2 >= 0)
+
+
+def self_pairs(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Face pairs of one mesh that intersect beyond what they share (a vertex or an edge).
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+
+    Returns
+    -------
+    (k,2) int64 array of face indices, ``k[:,0] < k[:,1]``, sorted lexicographically.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> s = trimesh.creation.icosphere(subdivisions=2)
+    >>> len(self_pairs(s.vertices, s.faces))
+    0
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    C = _candidates(V, F, V, F, _slop(V))
+    C = C[C[:, 0] < C[:, 1]]
+    if not len(C):
+        return C
+    FA, FB = F[C[:, 0]], F[C[:, 1]]
+    eq = FA[:, :, None] == FB[:, None, :]  # (k,3,3): vertex i of A is vertex j of B
+    n_shared = eq.sum(axis=(1, 2))
+    hit = np.zeros(len(C), dtype=bool)
+
+    # disjoint faces: the full test
+    m0 = n_shared == 0
+    if m0.any():
+        hit[m0] = _tri_tri(V[FA[m0]], V[FB[m0]])
+
+    # shared edge: a fold onto each other (third vertices coplanar and on the same side of the edge)
+    m2 = np.flatnonzero(n_shared == 2)
+    if m2.size:
+        inA = eq[m2].any(axis=2)  # (k,3) which vertices of A are shared
+        inB = eq[m2].any(axis=1)
+        sa = np.sort(np.where(inA, FA[m2], -1), axis=1)[:, 1:]  # the two shared vertex ids
+        ua = FA[m2][~inA]
+        ub = FB[m2][~inB]
+        s, t = V[sa[:, 0]], V[sa[:, 1]]
+        coplanar = orient3d(s, t, V[ua], V[ub]) == 0
+        n1 = np.cross(t - s, V[ua] - s)
+        n2 = np.cross(t - s, V[ub] - s)
+        dot = np.einsum("ij,ij->i", n1, n2)
+        same_side = dot > -1e-12 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
+        hit[m2] = coplanar & same_side
+
+    # shared vertex: opposite edges against the other face; in-plane edges against the other's angle
+    m1 = np.flatnonzero(n_shared == 1)
+    if m1.size:
+        e = eq[m1]
+        ia = e.any(axis=2).argmax(axis=1)  # position of the shared vertex in A
+        ib = e.any(axis=1).argmax(axis=1)  # ... in B
+        r = np.arange(m1.size)
+        A, B = FA[m1], FB[m1]
+        a0 = A[r, ia]
+        a1, a2 = A[r, (ia + 1) % 3], A[r, (ia + 2) % 3]
+        b1, b2 = B[r, (ib + 1) % 3], B[r, (ib + 2) % 3]
+        S, A1, A2, B1, B2 = V[a0], V[a1], V[a2], V[b1], V[b2]
+        nA = np.cross(A1 - S, A2 - S)
+        nB = np.cross(B1 - S, B2 - S)
+        h = np.zeros(m1.size, dtype=bool)
+        # edge S-X lies in the other face's plane (uncertain = yes) and enters its angle at S
+        combos = ((B1, nA, A1, A2), (B2, nA, A1, A2), (A1, nB, B1, B2), (A2, nB, B1, B2))
+        inplane = [orient3d(Y1, Y2, X, S) == 0 for X, _, Y1, Y2 in combos]
+        for (X, nX, Y1, Y2), ip in zip(combos, inplane):
+            k = np.flatnonzero(ip)
+            if k.size:
+                h[k] |= _ray_in_angle(X[k] - S[k], Y1[k] - S[k], Y2[k] - S[k], nX[k])
+        # not coplanar: the common part beyond S ends on an opposite edge
+        coplanar = (inplane[0] & inplane[1]) | (inplane[2] & inplane[3])
+        k = np.flatnonzero(~coplanar & ~h)
+        if k.size:
+            h[k] = (_segment_hits_triangle(A1[k], A2[k], S[k], B1[k], B2[k])
+                    | _segment_hits_triangle(B1[k], B2[k], S[k], A1[k], A2[k]))
+        hit[m1] = h
+    # three shared vertices: a duplicated face
+    hit[n_shared == 3] = True
+    out = C[hit]
+    return out[np.lexsort((out[:, 1], out[:, 0]))]

@@ -1,0 +1,133 @@
+"""cagegen.intersect: filtered exact triangle intersection tests (the verifier's default, no copyleft code)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from cagegen import verify_nesting
+from cagegen._geometry import cross_intersection_pairs, self_intersection_pairs
+from cagegen.intersect import cross_pairs, orient3d, self_pairs
+
+TRI = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+F1 = np.array([[0, 1, 2]])
+
+
+def _ico(sub=3):
+    s = trimesh.creation.icosphere(subdivisions=sub)
+    return np.asarray(s.vertices, float), np.asarray(s.faces, np.int64)
+
+
+def test_orient3d_signs_and_exact_zero():
+    a, b, c = TRI[None, 0], TRI[None, 1], TRI[None, 2]
+    assert orient3d(a, b, c, np.array([[0.2, 0.2, -1.0]]))[0] == 1
+    assert orient3d(a, b, c, np.array([[0.2, 0.2, 1.0]]))[0] == -1
+    assert orient3d(a, b, c, np.array([[0.3, 0.3, 0.0]]))[0] == 0
+    # a point 1e-300 off a plane through large coordinates: the sign cannot be certified -> 0
+    big = 1e8 + TRI
+    assert orient3d(big[None, 0], big[None, 1], big[None, 2], np.array([[1e8 + 0.3, 1e8 + 0.3, 1e8 + 1e-300]]))[0] == 0
+
+
+@pytest.mark.parametrize(
+    "offset, expected",
+    [
+        ([[0.2, 0.2, -0.5], [0.2, 0.2, 0.5], [0.2, 0.7, 0.5]], 1),  # pierces the interior
+        ([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 1.0]], 1),  # touches at a vertex
+        ([[0.5, 0.5, 0.0], [0.5, 0.5, 1.0], [1.0, 1.0, 1.0]], 1),  # touches an edge
+        ([[2.0, 2.0, -0.5], [2.0, 2.0, 0.5], [2.0, 3.0, 0.5]], 0),  # far
+        ([[0.2, 0.2, 1e-9], [0.3, 0.2, 1.0], [0.2, 0.3, 1.0]], 0),  # 1e-9 above: certified disjoint
+    ],
+)
+def test_cross_pairs_single_triangles(offset, expected):
+    W = np.array(offset)
+    assert len(cross_pairs(TRI, F1, W, F1)) == expected
+
+
+def test_coplanar_cases():
+    # overlapping coplanar triangles meet, disjoint coplanar ones do not
+    assert len(cross_pairs(TRI, F1, TRI + [0.2, 0.2, 0.0], F1)) == 1
+    assert len(cross_pairs(TRI, F1, TRI + [0.6, 0.6, 0.0], F1)) == 0
+    # a subdivided box: flat fans of coplanar neighbours are not self-intersections
+    b = trimesh.creation.box().subdivide().subdivide()
+    assert len(self_pairs(b.vertices, b.faces)) == 0
+
+
+def test_folds_and_shared_vertex_overlaps_are_found():
+    # two faces sharing edge 0-1, folded onto each other (third vertices on the same side)
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0.3, 1, 0], [0.6, 0.8, 0]])
+    assert self_pairs(V, np.array([[0, 1, 2], [1, 0, 3]])).tolist() == [[0, 1]]
+    # same edge, third vertex on the other side: a flat valid pair
+    V2 = V.copy()
+    V2[3] = [0.6, -0.8, 0]
+    assert len(self_pairs(V2, np.array([[0, 1, 2], [1, 0, 3]]))) == 0
+    # sharing vertex 0 only, coplanar, angles overlapping -> found; angles apart -> not
+    W = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0.5, 0], [0.5, 1, 0], [-1, 0.2, 0], [-1, -0.5, 0]])
+    assert self_pairs(W, np.array([[0, 1, 2], [0, 3, 4]])).tolist() == [[0, 1]]
+    assert len(self_pairs(W, np.array([[0, 1, 2], [0, 5, 6]]))) == 0
+    # sharing vertex 0, not coplanar, the second face crossing the first one's interior
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.6, 0.6, -0.3], [0.6, 0.6, 0.3]])
+    assert self_pairs(X, np.array([[0, 1, 2], [0, 3, 4]])).tolist() == [[0, 1]]
+    X[3:, 0] = -0.6  # now behind the shared vertex
+    assert len(self_pairs(X, np.array([[0, 1, 2], [0, 3, 4]]))) == 0
+
+
+def test_injected_self_intersections_match_cgal(rng):
+    cgal = pytest.importorskip("igl.copyleft.cgal")
+    V, F = _ico(3)
+    for _ in range(4):
+        W = V.copy()
+        idx = rng.choice(len(V), size=3, replace=False)
+        W[idx] *= -0.3 + 0.2 * rng.random((3, 1))  # push three vertices through the sphere
+        ours = {tuple(p) for p in self_pairs(W, F).tolist()}
+        ref = {tuple(sorted(p)) for p in np.asarray(cgal.remesh_self_intersections(W, F, detect_only=True)[2])
+               .reshape(-1, 2).tolist()}
+        assert ours == ref and len(ours) > 10
+
+
+def test_rounding_level_contacts_are_reported_as_touching():
+    """Edges that cross to within ~1e-16 count as touching; CGAL (exact on the rounded input) may not."""
+    cgal = pytest.importorskip("igl.copyleft.cgal")
+    from cagegen._geometry import segment_segment_sqdist
+
+    V, F = _ico(3)
+    W = 0.99 * V + [0.0, 0.0, 0.05]  # some edge pairs meet at ~1e-16 here
+    ours = {tuple(p) for p in cross_pairs(V, F, W, F).tolist()}
+    ref = {tuple(p) for p in np.asarray(cgal.intersect_other(V, F, W, F, detect_only=True)[0]).reshape(-1, 2).tolist()}
+    extra = np.array(sorted(ours - ref))
+    assert ref <= ours and 0 < len(extra) <= 10
+    A, B = V[F[extra[:, 0]]], W[F[extra[:, 1]]]
+    d = np.full(len(extra), np.inf)
+    for i in range(3):
+        for k in range(3):
+            d = np.minimum(d, segment_segment_sqdist(A[:, i], A[:, (i + 1) % 3], B[:, k], B[:, (k + 1) % 3]))
+    assert np.sqrt(d.max()) < 1e-12  # each extra pair really meets, to rounding
+
+
+def test_cross_pairs_match_cgal_on_generic_positions(rng):
+    cgal = pytest.importorskip("igl.copyleft.cgal")
+    V, F = _ico(3)
+    for _ in range(3):
+        R = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+        W = (V @ R.T) * (0.97 + 0.06 * rng.random()) + 0.02 * rng.standard_normal(3)
+        ours = {tuple(p) for p in cross_pairs(V, F, W, F).tolist()}
+        ref = {tuple(p) for p in np.asarray(cgal.intersect_other(V, F, W, F, detect_only=True)[0])
+               .reshape(-1, 2).tolist()}
+        assert ours == ref and len(ours) > 10
+
+
+def test_engines_agree_in_the_verifier():
+    pytest.importorskip("igl.copyleft.cgal")
+    V, F = _ico(3)
+    good = [(V, F), (1.05 * V, F)]
+    R = np.linalg.qr(np.random.default_rng(3).standard_normal((3, 3)))[0]  # generic position: no
+    bad = [(V, F), (0.99 * V @ R.T + [0.0, 0.0, 0.05], F)]  # rounding-level contacts; pokes out
+    for layers, ok in ((good, True), (bad, False)):
+        a = verify_nesting(layers)
+        b = verify_nesting(layers, intersection_engine="cgal")
+        assert a.ok is b.ok is ok
+        assert a.pairs[0].n_intersecting_pairs == b.pairs[0].n_intersecting_pairs
+    with pytest.raises(ValueError, match="engine"):
+        verify_nesting(good, intersection_engine="bogus")
+    assert len(self_intersection_pairs(V, F, "filtered")) == 0
+    assert len(cross_intersection_pairs(V, F, V, F)) > 0  # identical surfaces touch everywhere

@@ -177,6 +177,8 @@ def build_cages(
     kwargs = dict(opts)
     if report_to is not None and _accepts(backend, "progress"):
         kwargs["progress"] = report_to
+    if min_gap > 0 and _accepts(backend, "min_gap"):
+        kwargs["min_gap"] = min_gap  # the backend must build the clearance the verifier will demand
     say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
     t1 = time.perf_counter()
     # the backend gets its own copies: it may not modify the layer we return

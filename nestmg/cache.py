@@ -18,7 +18,7 @@ import numpy as np
 
 __all__ = ["arrays_digest", "atomic_write_bytes", "cache_dir", "cache_key", "load_entry", "save_entry"]
 
-CACHE_VERSION = "3"
+CACHE_VERSION = "4"
 
 
 def cache_dir() -> Path:

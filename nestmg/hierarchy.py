@@ -242,7 +242,9 @@ def build_hierarchy(
     progress : bool or None
         Progress bars (None: only on a terminal).
     cage_opts : dict, optional
-        Extra options for the cage backend.
+        Extra options for the cage backend. With TetWild and a certified method, ``min_gap`` defaults
+        to ``2.5 * epsilon`` (cages keep that clearance, relative to the bounding-box diagonal, so
+        TetWild's envelope cannot put fine nodes outside the coarse tets).
 
     Returns
     -------
@@ -262,6 +264,11 @@ def build_hierarchy(
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     cage_opts = dict(cage_opts or {})
+    if mesher == "tetwild" and method != "decimate":
+        # TetWild's boundary is only within `epsilon` (relative to each layer's bbox diagonal) of its
+        # input, outward on the fine layer and inward on the cage: a clearance of 2.5 epsilon between
+        # consecutive cages keeps every fine node inside the coarse tet mesh (tet-level nesting).
+        cage_opts.setdefault("min_gap", 2.5 * epsilon)
     timer = Timer()
     opts = {"stage": "cages", "method": method, "levels": levels, "face_counts": face_counts, **cage_opts}
     key = cache_key([V, F], opts)

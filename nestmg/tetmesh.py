@@ -170,6 +170,9 @@ def tetrahedralize(
                 Vt, T, _, _ = tetgen.TetGen(V, F.astype(np.int32)).tetrahedralize(
                     quality=True, minratio=minratio, mindihedral=mindihedral, fixedvolume=True,
                     maxvolume=h**3 / (6 * np.sqrt(2)), steinerleft=-1,
+                    # TetGen merges nearly coplanar facets / nearby vertices by default, which moves the
+                    # boundary of a cage that touches the finer surface (lost volume, fine nodes outside)
+                    nomergefacet=True, nomergevertex=True,
                 )
                 if not _has_flat_tets(np.asarray(Vt, float), np.asarray(T, np.int64)):
                     break

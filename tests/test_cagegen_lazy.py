@@ -157,3 +157,24 @@ def test_mixed_nested_and_lazy_hierarchy_certified(neck):
     assert rep.ok, str(rep)
     assert rep.pairs[0].min_gap_rel < rep.pairs[1].min_gap_rel  # the nested cage is the tighter one
     assert info["n_faces"] == len(G)
+
+
+def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
+    """Flow always failing and no intermediate layer allowed: the layer comes from the lazy cage, reported."""
+    import cagegen.nested.backend as nb
+
+    real = nb.flow_inside
+    monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    V, F = neck
+    msgs: list[str] = []
+    layers, info = nb.nested_backend(V, F, [600], max_recovery_depth=0, progress=msgs.append)
+    assert cagegen.verify_nesting([(V, F)] + layers).ok
+    li = info["layers"][0]
+    assert li["fallback"] == "lazy" and li["lazy"]["n_faces"] == len(layers[0][1])
+    assert li["verification"]["ok"] is True
+    fb = [r for r in info["recovery"] if r["stage"] == "fallback"]
+    assert len(fb) == 1 and "lazy" in fb[0]["action"] and "layer 1" in fb[0]["reason"]
+    assert any("falling back to a lazy cage" in m for m in msgs)
+    with pytest.raises(CageError) as exc:  # without the fallback the failure is raised as before
+        nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
+    assert exc.value.layer == 1

@@ -22,8 +22,7 @@ relative to it); the cages are mapped back to the input's coordinates and certif
 from __future__ import annotations
 
 import time
-from contextlib import nullcontext
-from typing import Callable
+from collections.abc import Callable
 
 import igl
 import numpy as np
@@ -36,7 +35,7 @@ from .energies import ENERGIES, signed_volume
 from .flow import flow_inside
 from .reinflate import reinflate
 
-__all__ = ["nested_backend", "nest_pair", "offset_surface"]
+__all__ = ["nest_pair", "nested_backend", "offset_surface"]
 
 _DEFAULTS = {
     "energy": "volume",
@@ -46,9 +45,9 @@ _DEFAULTS = {
     "dhat": 5e-3,
     "kappa": 1e3,
     "dhat_final": 1e-3,
-    "kappa_final": 1.0,
+    "kappa_final": 1e3,
     "max_move": 5e-3,
-    "final_iters": 100,
+    "final_iters": 60,
 }
 
 
@@ -153,9 +152,9 @@ def nest_pair(
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
-    kappa_final: float = 1.0,
+    kappa_final: float = 1e3,
     max_move: float = 5e-3,
-    final_iters: int = 100,
+    final_iters: int = 60,
     gap: float = 0.0,
     reporter: _Reporter | None = None,
 ) -> tuple[np.ndarray, dict]:
@@ -270,7 +269,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     rep.say(f"layer {layer_no}: recovering with an intermediate layer of {mid} faces")
     Ci, Gi, iinfo = _build_layer(Vf, Ff, mid, opts, gap, rep, depth + 1, max_depth, log, layer_no)
     C, G, pinfo = _build_layer(Ci, Gi, n_faces, opts, gap, rep, depth + 1, max_depth, log, layer_no)
-    pinfo["intermediate"] = {"n_faces": int(len(Gi)), "info": iinfo}
+    pinfo["intermediate"] = {"n_faces": len(Gi), "info": iinfo}
     pinfo["failed_attempts"] = failures + pinfo.get("failed_attempts", [])
     return C, G, pinfo
 
@@ -289,6 +288,7 @@ def nested_backend(
     max_recovery_depth: int = 2,
     progress=False,
     certify: bool = True,
+    fallback: str | None = "lazy",
     **opts,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"nested"``: strictly nested cages by flow and re-inflation (Sacht et al. 2015).
@@ -324,6 +324,11 @@ def nested_backend(
     certify : bool
         Verify every pair with :func:`cagegen.verify_nesting` (the layer is recomputed through the
         recovery path, or :class:`CageError` is raised, when it fails).
+    fallback : {"lazy", None}
+        When the flow fails and intermediate layers do not help either, build that layer with
+        :func:`cagegen.copyleft.lazy.lazy_cage_layer` (loose but certified; needs the GPL ``lazy``
+        extra, otherwise the original error is raised) and record it in ``info["recovery"]`` and
+        the layer's ``fallback`` entry. None: raise instead.
     **opts
         Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
         ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
@@ -385,12 +390,15 @@ def nested_backend(
             rep.say(f"layer {k}: target {m} faces")
             src_V, src_F = (prev_n, prev_F) if decimate_from == "previous" else (Vn, F)
             log: list = []
-            if decimate_from == "input" and k > 1:
-                # the target is a decimation of the input, but it must nest the previous layer
-                C, G, linfo = _layer_from_target(prev_n, prev_F, Vn, F, m, params, gap_target, rep, log, k)
-            else:
-                C, G, linfo = _build_layer(src_V, src_F, m, params, gap_target, rep, 0,
-                                           int(max_recovery_depth), log, k)
+            try:
+                if decimate_from == "input" and k > 1:
+                    # the target is a decimation of the input, but it must nest the previous layer
+                    C, G, linfo = _layer_from_target(prev_n, prev_F, Vn, F, m, params, gap_target, rep, log, k)
+                else:
+                    C, G, linfo = _build_layer(src_V, src_F, m, params, gap_target, rep, 0,
+                                               int(max_recovery_depth), log, k)
+            except CageError as exc:
+                C, G, linfo = _lazy_fallback(prev_n, prev_F, m, exc, fallback, rep, log, k)
             Vk = C * diag + center
             Gk = np.ascontiguousarray(G, dtype=np.int64)
             t = time.perf_counter()
@@ -405,8 +413,8 @@ def nested_backend(
             linfo.update({
                 "layer": k,
                 "target": m,
-                "n_faces": int(len(Gk)),
-                "n_vertices": int(len(Vk)),
+                "n_faces": len(Gk),
+                "n_vertices": len(Vk),
                 "min_gap_absolute": gap_k,
                 "min_gap_relative": gap_k / diag,
                 "volume_ratio": signed_volume(Vk, Gk) / signed_volume(*prev_orig),
@@ -436,6 +444,26 @@ def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):
         return _build_layer(Vf, Ff, m, params, gap, rep, 0, 2, log, k)
     pinfo["decimation"] = dinfo
     return C, G, pinfo
+
+
+def _lazy_fallback(Vf, Ff, m, exc, fallback, rep, log, k):
+    """Last resort for layer ``k`` once the flow and the intermediate layers failed: a lazy cage."""
+    if fallback is None:
+        raise exc
+    if fallback != "lazy":
+        raise ValueError(f"fallback must be 'lazy' or None, got {fallback!r}")
+    try:
+        from ..copyleft.lazy import lazy_cage_layer
+    except ImportError as imp:  # BackendUnavailableError: the GPL extra is not installed
+        raise CageError(f"{exc} (lazy fallback unavailable: {imp})", layer=k, reason=exc.reason) from exc
+    rep.say(f"layer {k}: flow and intermediate layers failed; falling back to a lazy cage")
+    try:
+        C, G, info = lazy_cage_layer(Vf, Ff, m)
+    except CageError as exc2:
+        raise CageError(f"{exc}; the lazy fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
+    log.append({"layer": k, "action": f"fall back to a lazy cage of {len(G)} faces (cagegen.copyleft.lazy)",
+                "stage": "fallback", "reason": str(exc)})
+    return C, G, {"fallback": "lazy", "lazy": info, "seconds": {"lazy": info["seconds"]}}
 
 
 def _diag(V: np.ndarray) -> float:

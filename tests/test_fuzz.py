@@ -361,3 +361,21 @@ def test_cli_refuses_to_overwrite_its_input(tmp_path, capsys):
     assert main(["cages", str(src), "--method", "fuzz-hull", "--levels", "2", "--out", str(tmp_path / "o"),
                  "--quiet"]) == 0
     assert json.loads((tmp_path / "o" / "report.json").read_text())["certified"] is True
+
+
+def test_regression_triangles_sharing_a_vertex_do_not_intersect():
+    """Found by the CLI fuzz test (a rotated, normalised torus): two faces that share only vertex 1 and
+    do not otherwise meet (CGAL's exact test agrees) were reported as a self-intersecting pair by the
+    filtered-predicate engine under development in ``cagegen.intersect``, so a clean input was refused.
+    Coordinates are exact (``repr`` round-trips)."""
+    from cagegen._geometry import self_intersection_pairs
+
+    V = np.array([
+        [-0.06567302761884596, 0.04848975165330382, 0.36209758689660615],
+        [-0.05654346981220124, 0.02673162584935964, 0.36240586380853146],
+        [-0.0830159232693333, 0.0442598781925537, 0.35809854711597777],
+        [-0.04130827040310701, 0.00881044408472384, 0.3642979108543459],
+        [-0.07167204115900824, 0.01722443800048645, 0.3584815949064929],
+    ])
+    F = np.array([[0, 1, 2], [1, 3, 4]])
+    assert len(self_intersection_pairs(V, F)) == 0

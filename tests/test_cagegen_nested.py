@@ -88,7 +88,7 @@ def test_quadrature_points_area_and_centroid(neck):
     # degree-1 exactness: ∫ x dA over the surface equals Σ area × centroid
     A = 0.5 * igl.doublearea(V, F)
     assert np.allclose(W @ P, A @ V[F].mean(1), rtol=1e-10, atol=1e-12)
-    B, w = quadrature_matrix(F, len(V), 2)
+    B, _ = quadrature_matrix(F, len(V), 2)
     assert B.shape == (3 * len(F), len(V)) and np.allclose(B.sum(1), 1.0)
 
 
@@ -280,5 +280,5 @@ def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch):
     from cagegen.errors import CageError
 
     with pytest.raises(CageError) as exc:
-        nested_backend(V, F, [600], max_recovery_depth=0)
+        nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
     assert exc.value.layer == 1

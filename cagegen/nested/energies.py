@@ -21,11 +21,11 @@ import numpy as np
 import scipy.sparse as sp
 
 __all__ = [
-    "StepEnergy",
-    "VolumeEnergy",
-    "SurfaceARAPEnergy",
-    "make_energy",
     "ENERGIES",
+    "StepEnergy",
+    "SurfaceARAPEnergy",
+    "VolumeEnergy",
+    "make_energy",
     "signed_volume",
 ]
 

@@ -15,13 +15,14 @@ triangle-edge tests; the fine surface may intersect itself).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import igl
 import ipctk
 import numpy as np
 
+from .._geometry import cross_intersection_pairs
 from .collision import PairMesh
 from .quadrature import quadrature_matrix, triangle_areas
 
@@ -80,18 +81,16 @@ def _signed_distance(P: np.ndarray, Vc: np.ndarray, Fc: np.ndarray):
     return S, I, Q, N
 
 
-def _expand_target(Vc: np.ndarray, Fc: np.ndarray, S: np.ndarray, I: np.ndarray, margin: float):
-    """Push the target Ĉ outward where fine quadrature points are stuck outside it (paper Sec. 3.1).
+def _expand_target(Vc: np.ndarray, Fc: np.ndarray, faces: np.ndarray, amount: np.ndarray):
+    """Push the target Ĉ outward around some of its faces (paper Sec. 3.1, "expand the coarse mesh").
 
-    Every vertex of a face that is the closest face of a point with signed distance > -margin moves
-    along its angle-weighted normal by the largest (sd + margin) among those points. The motion is
-    cut by CCD so Ĉ never intersects itself. Returns the new vertices and the step fraction taken.
+    Every vertex of ``faces[i]`` moves along its angle-weighted normal by the largest ``amount[i]``
+    of its listed faces. The motion is cut by CCD so Ĉ never intersects itself. Returns the new
+    vertices and the step fraction taken.
     """
-    stuck = S > -margin
-    amount = S[stuck] + margin
     a = np.zeros(len(Vc))
-    for k in range(3):
-        np.maximum.at(a, Fc[I[stuck], k], amount)
+    for k in range(3):  # the three corners; vectorised over faces
+        np.maximum.at(a, Fc[faces, k], amount)
     Nv = igl.per_vertex_normals(Vc, Fc, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
     D = a[:, None] * Nv
     faces = np.asarray(Fc, dtype=np.int32)
@@ -207,7 +206,10 @@ def flow_inside(
             since_best += 1
         if (expand_after is not None and S.max() > -margin_abs and since_best >= expand_after
                 and n_expand < max_expansions):
-            Vc, alpha = _expand_target(Vc, Fc, S, evaluate.I, max(margin_abs, 1e-3 * diag))
+            # points stuck outside (or within the margin): push their closest faces out by sd + margin
+            m_e = max(margin_abs, 1e-3 * diag)
+            stuck = S > -m_e
+            Vc, _ = _expand_target(Vc, Fc, evaluate.I[stuck], S[stuck] + m_e)
             n_expand += 1
             since_best, best = 0, np.inf
             pair = PairMesh(Vc, Fc, Vf0, Ff)
@@ -229,12 +231,9 @@ def flow_inside(
             if (expand_after is not None and inside_iters > stall_iter // 4 and inside_iters % 25 == 0
                     and n_expand < max_expansions):
                 # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface
-                from .._geometry import cross_intersection_pairs
-
                 pairs = cross_intersection_pairs(Vc, Fc, V, Ff)
                 if len(pairs):
-                    fake_S = np.zeros(len(pairs))
-                    Vc, alpha = _expand_target(Vc, Fc, fake_S, pairs[:, 0], 2e-3 * diag)
+                    Vc, _ = _expand_target(Vc, Fc, pairs[:, 0], np.full(len(pairs), 2e-3 * diag))
                     n_expand += 1
                     pair = PairMesh(Vc, Fc, Vf0, Ff)
                     P, S, Q, N, W = evaluate(V)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["triangle_rule", "quadrature_matrix", "quadrature_points"]
+__all__ = ["quadrature_matrix", "quadrature_points", "triangle_rule"]
 
 # Symmetric rules on the reference triangle, barycentric coordinates (q,3) and weights summing to 1
 # (Strang & Fix / Dunavant). Keys: polynomial degree integrated exactly.

@@ -19,9 +19,10 @@ rest, with F fixed.
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import ipctk
 import numpy as np
@@ -29,10 +30,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .collision import PairMesh
-from .energies import StepEnergy, make_energy, signed_volume
+from .energies import make_energy, signed_volume
 
-import os
-_DEBUG = bool(os.environ.get("NESTMG_DEBUG"))
+_log = logging.getLogger(__name__)
 
 __all__ = ["ReinflateResult", "reinflate", "resample_history"]
 
@@ -137,8 +137,6 @@ class _Problem:
             # idx starts with the nc3 cage DOFs
             Hs = (HB[idx][:, idx] + sp.diags(np.where(idx < nc3, 0.0, self.k_fine))
                   + sp.block_diag([HC, sp.csr_matrix((len(idx) - nc3, len(idx) - nc3))]))
-            if _DEBUG:
-                print("system", Hs.shape, Hs.nnz)
             d[idx] = -_solve_spd(Hs.tocsc(), g[idx])
             c = F - target
             f0 = (self.energy.value(C) + float(self.barrier(col, self.pair.mesh, X))
@@ -150,8 +148,6 @@ class _Problem:
         if alpha <= 0.0:
             return X, 0.0, 0.0
         alpha = min(1.0, alpha)
-        if _DEBUG:
-            print("  ccd alpha", alpha)
         for _ in range(30):
             Xt = X + alpha * D
             if self.objective(Xt, target) <= f0 + 1e-4 * alpha * slope:
@@ -177,13 +173,13 @@ def reinflate(
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
-    kappa_final: float = 1.0,
+    kappa_final: float = 1e3,
     k_fine: float = 1e3,
     max_move: float = 5e-3,
     snap_tol: float = 1e-2,
     max_newton: int = 60,
-    final_iters: int = 100,
-    final_tol: float = 1e-4,
+    final_iters: int = 60,
+    final_tol: float = 1e-3,
     callback: Callable[[int, int], None] | None = None,
 ) -> ReinflateResult:
     """Re-inflate the flowed fine surface to its rest pose, pushing the cage outward (Alg. 3).
@@ -257,8 +253,7 @@ def reinflate(
             X, alpha, move = prob.newton_step(X, Fb)
             stats["newton_iterations"] += 1
             gap = float(np.abs(X[nc:] - Fb).max())
-            if _DEBUG:
-                print(f"step {k} alpha {alpha:.3g} move {move:.3g} Fgap {gap:.3g} kF {prob.k_fine:.3g} ncol {len(prob._collisions(X))}")
+            _log.debug("reverse step %d: alpha %.3g move %.3g |F - target| %.3g", k, alpha, move, gap)
             if gap < snap_tol * dhat_abs:
                 Xs = X.copy()
                 Xs[nc:] = Fb
@@ -297,8 +292,7 @@ def reinflate(
             X, alpha, move = prob.newton_step(X, None)
             n_final += 1
             f = prob.objective(X, None)
-            if _DEBUG:
-                print(f"final alpha {alpha:.3g} move {move:.3g} f {f:.6g} kappa {kap:.3g} vol {signed_volume(X[:nc], Fc):.6g}")
+            _log.debug("final: alpha %.3g move %.3g objective %.6g kappa %.3g", alpha, move, f, kap)
             if alpha < 0.5 and kap < 1e4:
                 # a blocked (CCD-limited) step: the barrier is too soft to stop the cage before the
                 # contact, stiffen it (adaptive stiffness, as in IPC)

@@ -70,8 +70,8 @@ def run_hierarchy_cell(path: str, method: str, levels: int, mesher: str) -> dict
         V, F = load_mesh(path)
         Vn, _, _ = normalize(V)
         h = build_hierarchy(Vn, F, levels, method=method, mesher=mesher, cache=False, progress=False)
-        out["faces"] = [int(len(Fk)) for _, Fk in h.surfaces]
-        out["tets"] = [int(len(T)) for _, T in h.tets]
+        out["faces"] = [len(Fk) for _, Fk in h.surfaces]
+        out["tets"] = [len(T) for _, T in h.tets]
         out["n_outside"] = h.n_outside
         out["certified"] = h.certified
         out["timings"] = {k: (round(v, 2) if isinstance(v, float) else v) for k, v in h.timings.items()}
@@ -121,9 +121,9 @@ def run_cell(path: str, method: str, levels: int) -> dict:
         else:
             V, F = load_mesh(path)
             Vn, _, _ = normalize(V)
-            out["faces_in"] = int(len(F))
+            out["faces_in"] = len(F)
             layers, info = build_cages(Vn, F, levels, method=method, return_info=True)
-            out["faces"] = [int(len(Fk)) for _, Fk in layers]
+            out["faces"] = [len(Fk) for _, Fk in layers]
             out["nested"] = info["nested"]
             out["certified"] = info["certified"]
             out["seconds_stages"] = {k: round(v, 3) for k, v in info["seconds"].items()}

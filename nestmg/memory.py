@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from solvers.memory import check_memory
 from solvers.errors import InsufficientMemoryError
+from solvers.memory import check_memory
 
 from .tetmesh import TetMeshError
 

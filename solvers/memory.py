@@ -43,7 +43,7 @@ __all__ = [
 BYTES_PER_NNZ = 16
 
 
-def parse_bytes(text: str | int | float) -> int:
+def parse_bytes(text: str | float) -> int:
     """``"512M"``, ``"2G"``, ``"1.5e9"`` or a number -> bytes (K/M/G/T are powers of 1024)."""
     if isinstance(text, (int, float, np.integer, np.floating)):
         value = float(text)

@@ -37,12 +37,12 @@ import cagegen
 from cagegen import audit_mesh, build_cages, register_backend, verify_nesting
 from cagegen.errors import MeshInputError, NestmgError
 
-FUZZ = dict(
-    derandomize=True,
-    database=None,
-    deadline=10_000,  # ms per example (the first example pays for imports)
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
-)
+FUZZ = {
+    "derandomize": True,
+    "database": None,
+    "deadline": 10_000,  # ms per example (the first example pays for imports)
+    "suppress_health_check": [HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+}
 
 
 # ----------------------------------------------------------------------------- a cheap certified backend

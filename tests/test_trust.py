@@ -46,7 +46,7 @@ def test_rerun_hits_the_cache_and_is_bitwise_identical(tmp_path, monkeypatch):
     monkeypatch.setenv("NESTMG_CACHE", str(tmp_path / "cache"))
     V, F = shapes.sphere(res=16)
     V0, F0 = V.copy(), F.copy()
-    kw = dict(levels=3, method="decimate", face_counts=[200, 60], mesher="tetgen", progress=False)
+    kw = {"levels": 3, "method": "decimate", "face_counts": [200, 60], "mesher": "tetgen", "progress": False}
     h1 = build_hierarchy(V, F, **kw)
     entries = sorted(p.name for p in (tmp_path / "cache").iterdir())
     assert len(entries) == 2 * 4  # cages + 3 tet layers, .npz + .json each
@@ -72,7 +72,7 @@ def test_rerun_without_cache_is_deterministic(monkeypatch, tmp_path):
     from nestmg import build_hierarchy, shapes
 
     V, F = shapes.sphere(res=16)
-    kw = dict(levels=3, method="decimate", face_counts=[200, 60], mesher="tetgen", progress=False, cache=False)
+    kw = {"levels": 3, "method": "decimate", "face_counts": [200, 60], "mesher": "tetgen", "progress": False, "cache": False}
     _same_arrays(build_hierarchy(V, F, **kw), build_hierarchy(V, F, **kw))
 
 
@@ -189,7 +189,7 @@ def test_pipeline_rebuilds_an_altered_cage_entry(tmp_path, monkeypatch):
 
     monkeypatch.setenv("NESTMG_CACHE", str(tmp_path))
     V, F = shapes.sphere(res=16)
-    kw = dict(levels=2, method="decimate", face_counts=[60], mesher="tetgen", progress=False)
+    kw = {"levels": 2, "method": "decimate", "face_counts": [60], "mesher": "tetgen", "progress": False}
     h1 = build_hierarchy(V, F, **kw)
     key = cache_key([V, F], {"stage": "cages", "method": "decimate", "levels": 2, "face_counts": [60]})
     assert (tmp_path / f"{key}.npz").exists()

@@ -173,9 +173,50 @@ def plot(results: dict, path: str) -> None:
     fig.savefig(path, dpi=90)
 
 
+def markdown_table(runs: list[dict]) -> str:
+    """One row per (mesh, method, layer) from one or more result dicts (later ones fill gaps)."""
+    merged: dict = {}
+    for res in runs:
+        for mesh, entry in res["meshes"].items():
+            m = merged.setdefault(mesh, {k: v for k, v in entry.items() if k != "methods"})
+            if "skipped" in entry:
+                m.setdefault("skipped", entry["skipped"])
+                continue
+            meths = m.setdefault("methods", {})
+            for meth, r in entry.get("methods", {}).items():
+                if meth not in meths or ("failed" in meths[meth] and "failed" not in r):
+                    meths[meth] = r
+    rows = [("| mesh (faces, genus) | method | layer: faces | s / layer | max dist | mean dist | vol ratio | genus "
+            "| verifier: ok, min gap, out, crossing |"), "|---|---|---|---|---|---|---|---|---|"]
+    for mesh, m in merged.items():
+        if "methods" not in m:
+            rows.append(f"| {mesh} | skipped: {m.get('skipped', '')[:90]} | | | | | | | |")
+            continue
+        head = f"{mesh} ({m['n_faces']}, g{m['genus']})"
+        for meth in METHODS:
+            r = m["methods"].get(meth)
+            if r is None:
+                continue
+            if "failed" in r:
+                rows.append(f"| {head} | {meth} | failed: {r['failed'][:80]} | | | | | | |")
+                continue
+            for x in r["layers"]:
+                v = x["verifier"]
+                sec = f"{x['seconds']:.1f}" + ("" if r["seconds_per_layer_measured"] else " (total/k)")
+                rows.append(
+                    f"| {head} | {meth} | {x['layer']}: {x['n_faces']} | {sec} | {x['max_dist_rel']:.4f} | "
+                    f"{x['mean_dist_rel']:.4f} | {x['volume_ratio']:.3f} | {x['genus']} | "
+                    f"{'yes' if v['ok'] else 'NO'}, {v['min_gap_rel']:.1e}, {v['n_outside_vertices']}, "
+                    f"{v['n_intersecting_pairs']} |")
+    return "\n".join(rows)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("zoo", help="folder of closed meshes (e.g. /work/shared/data/meshes)")
+    ap.add_argument("zoo", nargs="?", help="folder of closed meshes (e.g. /work/shared/data/meshes)")
+    ap.add_argument("--table", nargs="+", metavar="JSON",
+                    help="print a markdown table from result files (later files fill methods missing or "
+                         "failed in earlier ones) and exit")
     ap.add_argument("--meshes", nargs="*", help="mesh stems to run (default: all)")
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     ap.add_argument("--levels", type=int, default=3)
@@ -184,6 +225,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", default=None, help="folder for cages_lazy.json and the layers (.npz)")
     ap.add_argument("--png", default=None)
     args = ap.parse_args(argv)
+    if args.table:
+        print(markdown_table([json.loads(Path(f).read_text()) for f in args.table]))
+        return {}
+    if not args.zoo:
+        ap.error("give the mesh folder (or --table)")
 
     from cagegen import LevelsError, audit_mesh, default_face_counts
     from nestmg.io import load_mesh, normalize

@@ -303,7 +303,8 @@ def nested_backend(
         Target faces per cage, finest first.
     energy : str
         Cage energy minimised once the fine surface is back at rest: ``"volume"`` (tight, default),
-        ``"step"`` (the pushed-out decimation), ``"surface_arap"`` (shape preserving).
+        ``"step"`` (the pushed-out decimation), ``"surface_arap"`` (shape preserving),
+        ``"volumetric_arap"`` (ARAP on a TetGen tessellation of Ĉ; between the two).
     quad_order : int
         Quadrature degree of the flow (paper: 2).
     min_gap : float

@@ -11,7 +11,7 @@ Each energy is a small object holding its reused state (rest cage, Laplacian, te
 * ``begin_step(C)``: called at the start of every reverse time step (``step`` remembers C(t)).
 
 :func:`make_energy` builds one by name: ``"step"``, ``"volume"``, ``"surface_arap"``,
-``"volumetric_arap"`` or ``"symmetry"``.
+or ``"volumetric_arap"`` (``"symmetry"`` is not implemented).
 """
 
 from __future__ import annotations
@@ -19,12 +19,14 @@ from __future__ import annotations
 import igl
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg  # noqa: F401  (sp.linalg.splu)
 
 __all__ = [
     "ENERGIES",
     "StepEnergy",
     "SurfaceARAPEnergy",
     "VolumeEnergy",
+    "VolumetricARAPEnergy",
     "make_energy",
     "signed_volume",
 ]
@@ -167,10 +169,74 @@ class SurfaceARAPEnergy:
         return self._M
 
 
+class VolumetricARAPEnergy(SurfaceARAPEnergy):
+    """Volumetric ARAP, Eq. 15, on a TetGen tessellation of the rest cage Ĉ.
+
+    The tet mesh (boundary kept: its first nc nodes are Ĉ's vertices, ``pYq`` switches) adds
+    interior nodes. They are not collision DOFs: for a cage C the energy is minimised over the
+    interior nodes by local-global iterations warm-started from the previous call (the paper's
+    "optimize for the interior while holding the boundary fixed"), so E(C) = min_interior E and, by
+    the envelope theorem, its gradient is the boundary part of the full ARAP gradient. The metric is
+    the boundary block of 2L (L: cotangent Laplacian of the tet mesh, weights clamped positive).
+    Rotations are per node over the tet-mesh edges (spokes).
+    """
+
+    name = "volumetric_arap"
+
+    def __init__(self, Vc_rest: np.ndarray, Fc: np.ndarray, inner_iters: int = 3):
+        import tetgen
+
+        R0 = np.asarray(Vc_rest, dtype=float)
+        nodes, T = tetgen.TetGen(R0, np.asarray(Fc, dtype=np.int64)).tetrahedralize(switches="pYq1.5Q")[:2]
+        nodes = np.asarray(nodes, dtype=float)
+        if not np.array_equal(nodes[: len(R0)], R0):
+            raise RuntimeError("TetGen reordered or moved the cage vertices")
+        self.nb = len(R0)
+        self.n = len(nodes)
+        self.T = np.asarray(T, dtype=np.int64)
+        Lc = -igl.cotmatrix(nodes, self.T).tocoo()
+        off = Lc.row != Lc.col
+        i, j, w = Lc.row[off], Lc.col[off], -Lc.data[off]
+        w = np.maximum(w, 1e-3 * np.abs(w).mean())
+        self._set_edges(nodes, i, j, w)
+        self.interior = nodes[self.nb :].copy()
+        self.inner_iters = inner_iters
+        M = self._M.tocsr()
+        nb3 = 3 * self.nb
+        self._Mbb = M[:nb3, :nb3].tocsr()
+        self._Mii = M[nb3:, nb3:].tocsc()
+        self._Mib = M[nb3:, :nb3].tocsr()
+        self._Mii_lu = sp.linalg.splu(self._Mii) if self.n > self.nb else None
+
+    def _full(self, C: np.ndarray) -> np.ndarray:
+        """Boundary C plus interior nodes relaxed by local-global iterations (warm start)."""
+        X = np.vstack([C, self.interior])
+        if self._Mii_lu is None:
+            return X
+        nb3 = 3 * self.nb
+        for _ in range(self.inner_iters):
+            G = SurfaceARAPEnergy.gradient(self, X).ravel()
+            # global step on the interior with the rotations of X fixed: M_ii x_i = M_ii x_i - g_i
+            rhs = self._Mii @ X[self.nb :].ravel() - G[nb3:]
+            X[self.nb :] = self._Mii_lu.solve(rhs).reshape(-1, 3)
+        self.interior = X[self.nb :].copy()
+        return X
+
+    def value(self, C: np.ndarray) -> float:
+        return SurfaceARAPEnergy.value(self, self._full(C))
+
+    def gradient(self, C: np.ndarray) -> np.ndarray:
+        return SurfaceARAPEnergy.gradient(self, self._full(C))[: self.nb]
+
+    def metric(self, C: np.ndarray) -> sp.csr_matrix:
+        return self._Mbb
+
+
 ENERGIES = {
     "step": StepEnergy,
     "volume": VolumeEnergy,
     "surface_arap": SurfaceARAPEnergy,
+    "volumetric_arap": VolumetricARAPEnergy,
 }
 
 

@@ -197,8 +197,8 @@ def reinflate(
         Cage triangles.
     energy : str
         Final energy minimised with the fine surface at rest: ``"step"`` (none: keep the pushed-out
-        cage), ``"volume"`` (tight), ``"surface_arap"``. E_step is used while re-inflating, as in the
-        paper ("surface_arap" uses ARAP throughout).
+        cage), ``"volume"`` (tight), ``"surface_arap"``, ``"volumetric_arap"``. E_step is used while
+        re-inflating, as in the paper (the ARAP energies use surface ARAP while re-inflating).
     dhat : float
         Barrier activation distance while re-inflating, fraction of the fine bounding-box diagonal.
         Larger than the per-step motion ``max_move`` so the cage "sees" the fine surface coming.
@@ -242,7 +242,7 @@ def reinflate(
     if pair.intersects(X):
         return ReinflateResult(C, path[-1].copy(), False, "flowed surface intersects the cage", stats)
 
-    reinflate_energy = make_energy("surface_arap" if energy == "surface_arap" else "step", C, Fc)
+    reinflate_energy = make_energy("surface_arap" if energy.endswith("arap") else "step", C, Fc)
     prob = _Problem(pair, reinflate_energy, dhat_abs, kappa, k_fine)
     nc = len(C)
     targets = path[-2::-1]  # F(t+∆t) for the reverse steps, ending with the rest pose (same object)

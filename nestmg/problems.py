@@ -112,7 +112,7 @@ def setup_problem(
     coarse: str = "galerkin",
     lam: float = 1e-2,
     f: np.ndarray | None = None,
-    prune: float = 0.5,
+    prune: float = 0.2,
 ) -> Problem:
     """Assemble a model problem on ``tets[0]`` and the level data for multigrid.
 

@@ -186,7 +186,8 @@ def cell_text(c: dict) -> str:
             return f"**{s}** {c['tets']} tets, n_outside {c['n_outside']}, {t}"
         return f"**{s}** {c['faces']} faces, {t}"
     if s == "error":
-        return f"{c['error_class']}: {c['message']} ({t})"
+        msg = c["message"].replace("input is not a usable closed surface: - ", "").split(" - ")[0]
+        return f"{c['error_class']}: {_short(msg, 110)} ({t})"
     return f"**{s}**: {c.get('message', '')} ({t})"
 
 
@@ -211,8 +212,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per cell")
     ap.add_argument("--json", default="zoo_table.json")
     ap.add_argument("--markdown", default=None)
+    ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+                    help="only render: merge the cells of earlier --json outputs (later files win) into a table")
     ap.add_argument("--cell", nargs=2, metavar=("MESH", "METHOD"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+
+    if args.merge:
+        cells: dict = {}
+        for f in args.merge:
+            for c in json.loads(Path(f).read_text())["cells"]:
+                cells[(c["file"], c["method"])] = c
+        methods = list(dict.fromkeys(m for _, m in cells)) if args.methods == ap.get_default("methods") \
+            else args.methods
+        print(markdown(sorted(cells.values(), key=lambda c: c["file"]), methods))
+        return 0
 
     if args.cell:
         print(json.dumps(run_cell(args.cell[0], args.cell[1], args.levels)), flush=True)

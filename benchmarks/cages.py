@@ -59,7 +59,7 @@ def _tightness(V, F, layers) -> list[dict]:
     out = []
     for Vk, Fk in layers:
         out.append({
-            "n_faces": int(len(Fk)),
+            "n_faces": len(Fk),
             "volume_ratio": float(signed_volume(Vk, Fk) / vol0),
             "hausdorff_relative": float(igl.hausdorff(Vk, Fk, V, F)) / diag,
         })
@@ -83,6 +83,7 @@ def _verify(V, F, layers) -> dict:
 
 
 def _run_ours(path: str, counts: list[int], q) -> None:
+    t = time.perf_counter()
     try:
         from cagegen.nested import nested_backend
 
@@ -103,11 +104,13 @@ def _run_ours(path: str, counts: list[int], q) -> None:
             "min_gap_relative": [li["min_gap_relative"] for li in info["layers"]],
             "layers": [(np.asarray(a), np.asarray(b)) for a, b in layers],
         })
-    except Exception as exc:  # reported in the JSON
-        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()[-2000:]})
+    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
+        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
+               "traceback": traceback.format_exc()[-2000:]})
 
 
 def _run_wheel(path: str, counts: list[int], q) -> None:
+    t = time.perf_counter()
     try:
         import nested_cages
 
@@ -120,8 +123,8 @@ def _run_wheel(path: str, counts: list[int], q) -> None:
         q.put({"ok": True, "seconds": sec,
                "layers": [(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.int64))
                           for a, b in out]})
-    except Exception as exc:
-        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
+        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t})
 
 
 def _in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
@@ -132,7 +135,7 @@ def _in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
     p.start()
     try:
         res = q.get(timeout=timeout)
-    except Exception:
+    except Exception:  # noqa: BLE001 -- queue timeout
         p.kill()
         p.join()
         return {"ok": False, "error": f"timeout after {timeout:.0f} s", "seconds": time.perf_counter() - t}
@@ -144,7 +147,7 @@ def _summarise(V, F, res: dict) -> dict:
     out = {k: v for k, v in res.items() if k not in ("layers", "traceback")}
     if res.get("ok"):
         layers = res["layers"]
-        out["face_counts"] = [int(len(b)) for _, b in layers]
+        out["face_counts"] = [len(b) for _, b in layers]
         out["verification"] = _verify(V, F, layers)
         out["tightness"] = _tightness(V, F, layers)
     return out
@@ -248,7 +251,7 @@ def main(argv=None) -> int:
     results = []
     for p, counts in cases:
         V, F = _read(p)
-        rec = {"mesh": p.name, "n_faces": int(len(F)), "face_counts": counts}
+        rec = {"mesh": p.name, "n_faces": len(F), "face_counts": counts}
         print(f"[cages] {p.name} {counts}: nested ...", file=sys.stderr, flush=True)
         rec["nested"] = _summarise(V, F, _in_subprocess(_run_ours, p, counts, args.timeout))
         print(f"[cages]   nested: ok={rec['nested'].get('ok')} {rec['nested'].get('seconds', 0):.1f} s "

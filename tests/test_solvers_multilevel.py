@@ -417,9 +417,12 @@ def test_rank_deficient_prolongation(cube, bc):
     j = Ps[1].shape[1] // 2
     bad = [Ps[0], _split_column(Ps[1], j)]
     ref = MultigridSolver(A, Ps, nullspace=nullspace)
-    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> pinv
-    assert ml._coarse_solver.method == "pinv" and ml._coarse_solver.fallback
-    assert ml.coarse_nullity == ref.coarse_nullity + 1 and "fallback" in repr(ml)
+    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> regularised LU
+    assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.fallback and "fallback" in repr(ml)
+    mp = MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="pinv")
+    assert mp.coarse_nullity == ref.coarse_nullity + 1  # the pseudo-inverse sees the extra null vector
+    fp, resp = _factor(mp, b)
+    assert resp[-1] < 1e-11 and fp <= _factor(ref, b)[0] + 0.01
     assert ref._coarse_solver.method == "splu" and not ref._coarse_solver.fallback
     f_ref, _ = _factor(ref, b)
     f, res = _factor(ml, b)
@@ -434,16 +437,19 @@ def test_coarse_solvers_agree(cube):
     _meshes, Ps, K, _M = cube
     b = fem.project_rhs(_random_rhs(K.shape[0], 8))
     xs = []
-    for method in ("splu", "pinv"):
+    for method in ("splu", "pinv", "regularized"):
         ml = MultigridSolver(K, Ps[:2], nullspace="constant", coarse_solver=method)
-        assert ml._coarse_solver.method == method and ml.coarse_nullity == 1
+        assert ml._coarse_solver.method == method
+        assert ml.coarse_nullity == (1 if method != "regularized" else -1)
         assert f"Coarsest solver:      {method}" in repr(ml)
         xs.append(ml.solve(b, tol=1e-11))
     assert np.abs(xs[0] - xs[1]).max() < 1e-9 * np.abs(xs[0]).max()
-    # above pinv_max there is no fallback: a rank-deficient coarsest level raises
+    assert np.abs(xs[0] - xs[2]).max() < 1e-8 * np.abs(xs[0]).max()
+    # above pinv_max the sparse regularised LU still copes with a rank-deficient coarsest level
     bad = [Ps[0], _split_column(Ps[1], 10)]
-    with pytest.raises(SolverError, match="rank-deficient"):
-        MultigridSolver(K, bad, nullspace="constant", pinv_max=100)
+    ml = MultigridSolver(K, bad, nullspace="constant", pinv_max=100)
+    assert ml._coarse_solver.method == "regularized"
+    assert np.abs(ml.solve(b, tol=1e-11) - xs[0]).max() < 1e-8 * np.abs(xs[0]).max()
     with pytest.raises(SolverInputError, match="coarse_solver"):
         MultigridSolver(K, Ps[:1], nullspace="constant", coarse_solver="cholesky")
 

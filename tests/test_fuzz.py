@@ -193,7 +193,7 @@ def _check_result(layers, info, method: str) -> None:
 
 
 # ----------------------------------------------------------------------------- the fuzz tests
-@settings(max_examples=300, **FUZZ)
+@settings(max_examples=200, **FUZZ)
 @given(case=damaged_meshes(), repair=st.booleans(), method=st.sampled_from(["fuzz-hull", "decimate"]))
 def test_build_cages_certified_or_documented_error(case, repair, method):
     shape, kind, V, F = case
@@ -216,7 +216,7 @@ def test_build_cages_certified_or_documented_error(case, repair, method):
     np.testing.assert_array_equal(F, F0)
 
 
-@settings(max_examples=40, **FUZZ)
+@settings(max_examples=30, **FUZZ)
 @given(
     case=damaged_meshes(kinds=("none", "flip_all", "split_vertex", "unreferenced_vertex", "second_part", "nan")),
     repair=st.booleans(),
@@ -260,7 +260,7 @@ def _write_off(path: Path, V, F) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-@settings(max_examples=60, **FUZZ)
+@settings(max_examples=40, **FUZZ)
 @given(
     case=damaged_meshes(kinds=tuple(k for k in DAMAGE if k != "bad_index")),
     fmt=st.sampled_from(["obj", "off"]),
@@ -305,7 +305,7 @@ def test_cli_cages_exit_code_and_report(tmp_path_factory, capsys, case, fmt, gar
         assert not (out / "report.json").exists()  # no report of something that was not built
 
 
-@settings(max_examples=6, **{**FUZZ, "deadline": 60_000})
+@settings(max_examples=4, **{**FUZZ, "deadline": 60_000})
 @given(scale_exp=st.floats(-6.0, 6.0), offset_exp=st.one_of(st.none(), st.floats(-3.0, 4.0)),
        seed=st.integers(0, 1000))
 def test_nested_backend_certified_under_similarity_transforms(scale_exp, offset_exp, seed):
@@ -379,3 +379,19 @@ def test_regression_triangles_sharing_a_vertex_do_not_intersect():
     ])
     F = np.array([[0, 1, 2], [1, 3, 4]])
     assert len(self_intersection_pairs(V, F)) == 0
+
+
+def test_regression_rotated_clean_tori_have_no_self_intersections():
+    """The same bug at scale: before the exact re-evaluation, 7 of 40 rotated / scaled / shifted and
+    normalised trimesh tori were refused by the audit (up to 26 "intersecting" pairs each)."""
+    from nestmg.io import normalize
+
+    m = trimesh.creation.torus(1.0, 0.35, major_sections=20, minor_sections=10)
+    V0, F0 = np.asarray(m.vertices), np.asarray(m.faces)
+    for seed in (3, 4, 17, 21):  # seeds that failed
+        rng = np.random.default_rng(seed)
+        R, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+        V = (V0 @ R.T) * 10.0 ** rng.uniform(-3, 3) + 10.0 ** rng.uniform(-3, 3) * np.array([1, -0.5, 0.25])
+        Vn, _, _ = normalize(V)
+        a = audit_mesh(Vn, F0)
+        assert a.n_self_intersections == 0 and a.ok, (seed, str(a))

@@ -235,6 +235,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     first_alg = opts.get("decimator", "qslim")
     algs = [first_alg, "decimate" if first_alg == "qslim" else "qslim"]
     failures = []
+    tried = set()
     for alg in algs:
         t = time.perf_counter()
         try:
@@ -242,6 +243,10 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         except CageError as exc:
             failures.append({"action": f"decimate with {alg}", "stage": "decimate", "reason": str(exc)})
             continue
+        key = (dinfo["algorithm"], dinfo["block_intersections"])
+        if key in tried:  # the decimator fell back to a result already tried: same flow, skip it
+            continue
+        tried.add(key)
         t_dec = time.perf_counter() - t
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{k: opts[k] for k in _DEFAULTS})

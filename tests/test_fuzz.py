@@ -193,7 +193,7 @@ def _check_result(layers, info, method: str) -> None:
 
 
 # ----------------------------------------------------------------------------- the fuzz tests
-@settings(max_examples=200, **FUZZ)
+@settings(max_examples=150, **FUZZ)
 @given(case=damaged_meshes(), repair=st.booleans(), method=st.sampled_from(["fuzz-hull", "decimate"]))
 def test_build_cages_certified_or_documented_error(case, repair, method):
     shape, kind, V, F = case

@@ -205,6 +205,7 @@ def main(argv=None) -> int:
                     help="extra case NAME=c1,c2,... (default: bunny.off=1000,250)")
     ap.add_argument("--only", action="append", default=None, help="restrict to these file names")
     ap.add_argument("--no-wheel", action="store_true")
+    ap.add_argument("--no-default", action="store_true", help="run only the --counts cases")
     args = ap.parse_args(argv)
 
     from cagegen import LevelsError, default_face_counts
@@ -216,7 +217,7 @@ def main(argv=None) -> int:
     files = sorted(p for p in Path(args.mesh_dir).iterdir() if p.suffix.lower() in MESH_EXT)
     skipped = []
     for p in files:
-        if args.only and p.name not in args.only:
+        if args.no_default or (args.only and p.name not in args.only):
             continue
         V, F = _read(p)
         closed, why = _is_closed(F)

@@ -19,7 +19,8 @@ import tempfile
 
 import numpy as np
 
-from cagegen.errors import NestmgError
+from cagegen._geometry import as_mesh_arrays
+from cagegen.errors import MeshInputError, NestmgError
 
 __all__ = ["MESHERS", "TetMeshError", "orient_tets", "tetrahedralize", "tet_volumes"]
 
@@ -77,11 +78,11 @@ def _drop_boundary_slivers(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np
     to the domain, and its cotangent weights are unbounded, so it is dropped. Flat tets with an
     interior node are left for the caller to reject.
     """
-    import igl
+    from solvers.fem import boundary_nodes
 
     flat = _flat(V, T)
     on_bnd = np.zeros(len(V), dtype=bool)
-    on_bnd[np.unique(igl.boundary_facets(np.ascontiguousarray(T))[0])] = True
+    on_bnd[boundary_nodes(T)] = True
     drop = flat & on_bnd[T].all(axis=1)
     if not drop.any():
         return V, T
@@ -138,14 +139,23 @@ def tetrahedralize(
 
     Raises
     ------
+    MeshInputError
+        Wrong shapes or dtypes, no faces, indices out of range, NaN/inf coordinates (checked before
+        the mesher runs).
     TetMeshError
         If the mesher fails or returns an empty / degenerate mesh.
     """
-    V = np.ascontiguousarray(V, dtype=np.float64)
-    F = np.ascontiguousarray(F, dtype=np.int64)
+    # structural checks before any C++ code sees the arrays: pytetwild segfaults on an empty face
+    # array, and out-of-range indices would be read out of bounds
+    V, F = as_mesh_arrays(V, F, "surface")
+    if not np.isfinite(V).all():
+        raise MeshInputError(f"surface: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     if mesher not in MESHERS:
         raise ValueError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
-    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    if not (np.isfinite(diag) and diag > 0):
+        raise MeshInputError(f"surface: bounding-box diagonal {diag} (all vertices coincide, or overflow)")
     h = float(edge_length) if edge_length is not None else edge_length_fac * diag
     if not np.isfinite(h) or h <= 0:
         raise ValueError(f"edge length must be positive, got {h}")
@@ -155,9 +165,13 @@ def tetrahedralize(
 
             # fTetWild writes __tracked_surface.stl into the working directory: keep it out of the user's
             with _in_temp_dir():
+                # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
+                c = (lo + hi) / 2
                 Vt, T = pytetwild.tetrahedralize(
-                    V, F.astype(np.int32), edge_length_abs=h, epsilon=epsilon, num_threads=threads, quiet=True
+                    (V - c) / diag, F.astype(np.int32), edge_length_abs=h / diag, epsilon=epsilon,
+                    num_threads=threads, quiet=True,
                 )
+                Vt = np.asarray(Vt, dtype=np.float64) * diag + c
         else:
             try:
                 import tetgen

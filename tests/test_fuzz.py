@@ -395,3 +395,37 @@ def test_regression_rotated_clean_tori_have_no_self_intersections():
         Vn, _, _ = normalize(V)
         a = audit_mesh(Vn, F0)
         assert a.n_self_intersections == 0 and a.ok, (seed, str(a))
+
+
+_TETWILD_PROBE = """
+import numpy as np, trimesh
+from cagegen.errors import MeshInputError
+from nestmg.tetmesh import tetrahedralize
+m = trimesh.creation.icosphere(subdivisions=2)
+V, F = np.asarray(m.vertices), np.asarray(m.faces)
+for bad in (np.zeros((0, 3), int), np.where(F == 0, 999, F)):
+    try:
+        tetrahedralize(V, bad, mesher="tetwild")
+    except MeshInputError as exc:
+        print("refused:", exc)
+Vt, T = tetrahedralize(V * 1e-9, F, mesher="tetwild", edge_length_fac=0.2)
+print("tiny:", len(T), float(np.ptp(Vt[:, 0])))
+"""
+
+
+def test_regression_tetwild_segfaults_are_prevented():
+    """Found by probing ``tetrahedralize`` like the fuzz tests: pytetwild *segfaulted* (killing the
+    process) on an empty face array and on a sphere of diagonal ~3e-9; out-of-range indices reached
+    it unchecked. Now: structural checks first (MeshInputError), and TetWild meshes a unit-diagonal
+    copy. Run in a subprocess so that a regression shows up as a failed test, not a dead test run."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("pytetwild")
+    r = subprocess.run([sys.executable, "-c", _TETWILD_PROBE], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"exit code {r.returncode}: {r.stderr[-500:]}"
+    lines = r.stdout.splitlines()
+    assert lines[0] == "refused: surface: empty mesh (no faces)"
+    assert lines[1].startswith("refused: surface: 5 face indices out of range")
+    n, width = lines[2].split()[1:]
+    assert int(n) > 100 and float(width) == pytest.approx(2e-9, rel=0.05)

@@ -31,6 +31,8 @@ import igl
 import numpy as np
 import scipy.sparse as sp
 
+from solvers.fem import boundary_faces
+
 __all__ = ["EXTRAPOLATIONS", "ProlongationReport", "prolongation"]
 
 EXTRAPOLATIONS = ("clamped", "linear", "closest_point", "nearest_vertex")
@@ -150,7 +152,7 @@ def prolongation(
 
     max_d = 0.0
     if len(out):
-        Fb, J, _ = igl.boundary_facets(Tc)
+        Fb, J = boundary_faces(Tc)
         d2, fi, C = igl.point_mesh_squared_distance(Vf[out], Vc, np.ascontiguousarray(Fb))
         max_d = float(np.sqrt(d2.max()))
         near_tet = Tc[J[fi]]

@@ -212,3 +212,23 @@ def test_docstring_examples():
 
     failures, tests = doctest.testmod(fem)
     assert tests >= 3 and failures == 0
+
+
+def test_boundary_faces_match_libigl():
+    import igl
+
+    from solvers.fem import boundary_faces
+    from solvers.gallery import kuhn_cube_mesh
+
+    V, T = kuhn_cube_mesh(6)
+    vol = np.einsum("ij,ij->i", np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), V[T[:, 3]] - V[T[:, 0]])
+    T = T.copy()
+    T[vol < 0, 2], T[vol < 0, 3] = T[vol < 0, 3].copy(), T[vol < 0, 2].copy()
+    F, J = boundary_faces(T)
+    F2 = igl.boundary_facets(T)[0]
+    assert len(F) == len(F2) == 6 * 2 * 36
+    assert {tuple(sorted(f)) for f in F} == {tuple(sorted(f)) for f in F2}
+    assert all(set(f) <= set(T[j]) for f, j in zip(F, J))
+    # outward orientation: the divergence theorem gives the cube's volume
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    assert abs(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6 - 1.0) < 1e-12

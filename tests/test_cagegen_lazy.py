@@ -178,3 +178,17 @@ def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
     with pytest.raises(CageError) as exc:  # without the fallback the failure is raised as before
         nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
     assert exc.value.layer == 1
+
+
+def test_nested_fallback_without_gpytoolbox_raises_the_original_error(neck, monkeypatch):
+    import cagegen.nested.backend as nb
+
+    real = nb.flow_inside
+    monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    monkeypatch.setitem(sys.modules, "cagegen.copyleft.lazy", None)  # import of the hook fails
+    V, F = neck
+    with pytest.raises(CageError, match="lazy fallback unavailable") as exc:
+        nb.nested_backend(V, F, [600], max_recovery_depth=0)
+    assert exc.value.layer == 1
+    with pytest.raises(ValueError, match="fallback"):
+        nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback="bogus")

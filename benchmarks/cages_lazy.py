@@ -184,8 +184,9 @@ def markdown_table(runs: list[dict]) -> str:
                 continue
             meths = m.setdefault("methods", {})
             for meth, r in entry.get("methods", {}).items():
-                if meth not in meths or ("failed" in meths[meth] and "failed" not in r):
-                    meths[meth] = r
+                old = meths.get(meth)
+                if old is None or ("failed" in old and ("failed" not in r or old["failed"].startswith("timeout"))):
+                    meths[meth] = r  # a result beats a failure, a real failure beats a timeout
     rows = [("| mesh (faces, genus) | method | layer: faces | s / layer | max dist | mean dist | vol ratio | genus "
             "| verifier: ok, min gap, out, crossing |"), "|---|---|---|---|---|---|---|---|---|"]
     for mesh, m in merged.items():

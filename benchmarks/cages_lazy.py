@@ -173,10 +173,10 @@ def plot(results: dict, path: str) -> None:
     fig.savefig(path, dpi=90)
 
 
-def markdown_table(runs: list[dict]) -> str:
-    """One row per (mesh, method, layer) from one or more result dicts (later ones fill gaps)."""
+def merge_runs(runs: list[dict]) -> dict:
+    """Merge result dicts: for each (mesh, method) a result beats a failure, a real failure a timeout."""
     merged: dict = {}
-    for res in runs:
+    for i_run, res in enumerate(runs, start=1):
         for mesh, entry in res["meshes"].items():
             m = merged.setdefault(mesh, {k: v for k, v in entry.items() if k != "methods"})
             if "skipped" in entry:
@@ -186,7 +186,13 @@ def markdown_table(runs: list[dict]) -> str:
             for meth, r in entry.get("methods", {}).items():
                 old = meths.get(meth)
                 if old is None or ("failed" in old and ("failed" not in r or old["failed"].startswith("timeout"))):
-                    meths[meth] = r  # a result beats a failure, a real failure beats a timeout
+                    meths[meth] = dict(r, run=i_run)  # a result beats a failure, a real failure a timeout
+    return {"runs": len(runs), "meshes": merged}
+
+
+def markdown_table(res: dict) -> str:
+    """One row per (mesh, method, layer) of a :func:`merge_runs` result."""
+    merged, n_runs = res["meshes"], res["runs"]
     rows = [("| mesh (faces, genus) | method | layer: faces | s / layer | max dist | mean dist | vol ratio | genus "
             "| verifier: ok, min gap, out, crossing |"), "|---|---|---|---|---|---|---|---|---|"]
     for mesh, m in merged.items():
@@ -198,6 +204,8 @@ def markdown_table(runs: list[dict]) -> str:
             r = m["methods"].get(meth)
             if r is None:
                 continue
+            if n_runs > 1:
+                meth = f"{meth} (run {r['run']})"
             if "failed" in r:
                 rows.append(f"| {head} | {meth} | failed: {r['failed'][:80]} | | | | | | |")
                 continue
@@ -224,11 +232,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--timeout", type=float, default=300.0)
     ap.add_argument("--samples", type=int, default=20000)
     ap.add_argument("--out", default=None, help="folder for cages_lazy.json and the layers (.npz)")
-    ap.add_argument("--png", default=None)
+    ap.add_argument("--png", default=None, help="bar chart of layer-1 tightness and time (also with --table)")
     args = ap.parse_args(argv)
     if args.table:
-        print(markdown_table([json.loads(Path(f).read_text()) for f in args.table]))
-        return {}
+        merged = merge_runs([json.loads(Path(f).read_text()) for f in args.table])
+        print(markdown_table(merged))
+        if args.png:
+            plot(merged, args.png)
+        return merged
     if not args.zoo:
         ap.error("give the mesh folder (or --table)")
 

@@ -284,3 +284,12 @@ def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch):
     with pytest.raises(CageError) as exc:
         nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
     assert exc.value.layer == 1
+
+
+def test_decimate_from_input_nests_previous_layer(neck):
+    """Targets decimated from the input (not the previous cage) still nest the previous layer."""
+    V, F = neck
+    layers, info = nested_backend(V, F, [600, 150], decimate_from="input")
+    assert verify_nesting([(V, F)] + layers).ok
+    assert info["decimate_from"] == "input"
+    assert info["layers"][1]["volume_ratio_to_input"] > info["layers"][0]["volume_ratio_to_input"] > 1.0

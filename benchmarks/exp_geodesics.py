@@ -23,7 +23,7 @@ import numpy as np
 from exp_common import ZOO, build_pair, environment, load_zoo, write_json
 
 
-def run(meshes, fine_tets, levels, nus, maxiter, tol):
+def run(meshes, fine_tets, levels, nus, maxiter, tol, hierarchies):
     from nestmg.geodesics import heat_geodesic, heat_precompute, multigrid_solve
     from solvers import DivergenceError
 
@@ -43,7 +43,8 @@ def run(meshes, fine_tets, levels, nus, maxiter, tol):
                "t": pre.t, "direct_seconds": t_direct, "max_distance": float(ref.max()), "runs": []}
         print(f"{mesh}: {len(Vf)} nodes, direct heat method {t_direct:.2f} s, max distance {ref.max():.3f}",
               flush=True)
-        for name, (tets, P, _) in pair["hierarchies"].items():
+        for name in hierarchies:
+            tets, P, _ = pair["hierarchies"][name]
             for coarse in ("galerkin", "rediscretized"):
                 for nu in nus:
                     solve = multigrid_solve(tets, P, t=pre.t, coarse=coarse, nu=nu, accel=None, tol=tol,
@@ -121,7 +122,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--zoo", type=Path, default=ZOO)
     ap.add_argument("--meshes", nargs="+", default=["gargo.off", "bunny.off"])
-    ap.add_argument("--fine-tets", type=int, default=130_000)
+    ap.add_argument("--fine-tets", type=int, default=80_000)
+    ap.add_argument("--hierarchies", nargs="+",
+                    default=["nested", "naive-linear", "naive-closest_point", "naive-nearest_vertex"])
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--nus", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     ap.add_argument("--maxiter", type=int, default=60)
@@ -134,7 +137,7 @@ def main(argv=None):
     import exp_common
 
     exp_common.ZOO = a.zoo
-    res = run(a.meshes, a.fine_tets, a.levels, a.nus, a.maxiter, a.tol)
+    res = run(a.meshes, a.fine_tets, a.levels, a.nus, a.maxiter, a.tol, a.hierarchies)
     write_json(res, a.out / "exp_geodesics.json")
     plot(res, a.out / "exp_geodesics.png")
     print(f"wrote {a.out / 'exp_geodesics.json'} and {a.out / 'exp_geodesics.png'}")

@@ -91,10 +91,16 @@ class _Problem:
         self.n_ccd = 0
         self.n_build = 0
         self.lam = np.zeros((pair.nf, 3))  # augmented-Lagrangian multipliers of F = target
+        self._cache = None
 
     def _collisions(self, X: np.ndarray) -> ipctk.NormalCollisions:
+        # the accepted line-search point is the next Newton point: reuse its collision set
+        if (self._cache is not None and self._cache[1] == self.dhat and self._cache[0].shape == X.shape
+                and np.array_equal(self._cache[0], X)):
+            return self._cache[2]
         col = self.pair.collisions(X, self.dhat)
         self.n_build += 1
+        self._cache = (X.copy(), self.dhat, col)
         return col
 
     def objective(self, X: np.ndarray, target: np.ndarray | None) -> float:

@@ -80,7 +80,7 @@ def test_multigrid_solve_matches_direct(torus_iso_tets):
         solve = multigrid_solve(tets, P, t=pre.t, coarse=coarse, nu=2, accel="cg", tol=1e-11)
         r = heat_geodesic(Vf, Tf, src, pre=pre, solve=solve)
         assert r.info["heat"]["converged"] and r.info["poisson"]["converged"]
-        assert r.info["poisson"]["iterations"] <= 25, (coarse, r.info["poisson"]["iterations"])  # measured 19
+        assert r.info["poisson"]["iterations"] <= 25, (coarse, r.info["poisson"]["iterations"])  # measured 12 / 20
         assert np.abs(r.distance - ref.distance).max() < 1e-6 * ref.distance.max()
         assert np.abs(r.heat - ref.heat).max() < 1e-8 * ref.heat.max()
         assert min(r.distance[s] for s in src) == 0.0
@@ -94,7 +94,8 @@ def test_stationary_cycles_converge_on_nested_hierarchy(torus_iso_tets):
     solve = multigrid_solve(tets, P, t=pre.t, coarse="galerkin", nu=1, accel=None, tol=1e-8, maxiter=80)
     r = heat_geodesic(Vf, Tf, 0, pre=pre, solve=solve)
     assert r.info["heat"]["converged"] and r.info["poisson"]["converged"]
-    assert r.info["heat"]["factor"] < 0.5 and r.info["poisson"]["factor"] < 0.75
+    # measured: heat 0.47, Poisson 0.52 (26 cycles)
+    assert r.info["heat"]["factor"] < 0.6 and r.info["poisson"]["factor"] < 0.7
 
 
 def test_cube_corner_distance():

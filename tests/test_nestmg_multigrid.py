@@ -96,8 +96,9 @@ def _mg(tets, P, problem, coarse="galerkin"):
 def test_w_and_f_cycles_at_least_as_fast_as_v(torus_iso_tets, problem, coarse):
     """Per cycle, W and F converge at least as fast as V on the procedurally nested torus (4 levels).
 
-    Measured: Dirichlet/Galerkin V 0.358, W 0.357, F 0.357; Neumann/Galerkin 0.495 for all three;
-    Neumann/re-discretised V 0.756, W 0.576, F 0.580; diffusion/re-discretised V 0.589, W 0.578, F 0.578.
+    Measured (fixture 77k / 14k / 3k / 1.8k tets): Dirichlet/Galerkin V 0.298, W 0.287, F 0.287;
+    Neumann/Galerkin 0.519 for all three; Neumann/re-discretised V 0.756, W 0.629, F 0.629;
+    diffusion/re-discretised V 0.649, W 0.641, F 0.641.
     """
     _, tets, P, _ = torus_iso_tets
     pr, ml = _mg(tets, P, problem, coarse)
@@ -108,7 +109,7 @@ def test_w_and_f_cycles_at_least_as_fast_as_v(torus_iso_tets, problem, coarse):
         f[c] = info["factor"]
     assert f["W"] <= f["V"] + 0.005 and f["F"] <= f["V"] + 0.005, f
     if (problem, coarse) == ("poisson-neumann", "rediscretized"):
-        assert f["W"] < f["V"] - 0.1 and f["F"] < f["V"] - 0.1, f  # where the V-cycle is weak, W/F fix it
+        assert f["W"] < f["V"] - 0.08 and f["F"] < f["V"] - 0.08, f  # where the V-cycle is weak, W/F help
 
 
 @pytest.mark.parametrize("problem", ["poisson-dirichlet", "poisson-neumann", "diffusion-neumann"])
@@ -116,7 +117,7 @@ def test_pcg_iterations_independent_of_level_count(torus_iso_tets, problem):
     """MG-PCG to 1e-8 needs the same number of iterations (±2) with 2, 3 or 4 levels (Galerkin).
 
     Measured: Dirichlet 8/8/8, Neumann 11/11/11, diffusion 10/10/10. (Re-discretised Neumann grows,
-    12/14/17: docs/experiments.md.)
+    14/15/18, and is not asserted.)
     """
     _, tets, P, _ = torus_iso_tets
     its = {}

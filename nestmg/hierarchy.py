@@ -219,6 +219,7 @@ def build_hierarchy(
     cache: bool = True,
     progress: bool | None = None,
     cage_opts: dict | None = None,
+    same_domain_levels: int = 0,
 ) -> Hierarchy:
     """Cages, tet layers and prolongations for the closed surface ``(V, F)``.
 
@@ -228,7 +229,7 @@ def build_hierarchy(
     F : (m,3) int array
         Closed, manifold, single-component surface (audited; a clear error otherwise).
     levels : int
-        Number of levels (input + ``levels - 1`` cages), >= 2.
+        Number of levels (input + ``levels - 1`` coarser layers: cages, after ``same_domain_levels``), >= 2.
     method : str
         Cage backend (``nested``, ``decimate``, ...; see ``cagegen.available_backends()``).
     face_counts : list of int, optional
@@ -245,6 +246,13 @@ def build_hierarchy(
         Extra options for the cage backend. With TetWild and a certified method, ``min_gap`` defaults
         to ``2.5 * epsilon`` (cages keep that clearance, relative to the bounding-box diagonal, so
         TetWild's envelope cannot put fine nodes outside the coarse tets).
+    same_domain_levels : int
+        Coarsen within the input surface first: levels ``1 .. same_domain_levels`` re-mesh the *input*
+        surface at 2x, 4x, ... the fine edge length (same domain, so no fine node needs
+        extrapolation; with TetGen the boundary is kept exactly), and only the remaining
+        ``levels - same_domain_levels - 1`` levels are cages. For large fine meshes (ENVIRONMENT.md,
+        "At scale"): a same-domain level is useful while its edge length stays below the input surface's
+        own edge length, since the mesher cannot coarsen the boundary. 0 (default): cages only.
 
     Returns
     -------
@@ -261,6 +269,12 @@ def build_hierarchy(
 
     if levels < 2:
         raise ValueError(f"levels must be >= 2, got {levels}")
+    if not isinstance(same_domain_levels, (int, np.integer)) or not 0 <= same_domain_levels <= levels - 2:
+        raise ValueError(
+            f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "
+            f"level), got {same_domain_levels!r}"
+        )
+    n_surf = levels - int(same_domain_levels)  # input + cages
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     cage_opts = dict(cage_opts or {})
@@ -270,18 +284,18 @@ def build_hierarchy(
         # consecutive cages keeps every fine node inside the coarse tet mesh (tet-level nesting).
         cage_opts.setdefault("min_gap", 2.5 * epsilon)
     timer = Timer()
-    opts = {"stage": "cages", "method": method, "levels": levels, "face_counts": face_counts, **cage_opts}
+    opts = {"stage": "cages", "method": method, "levels": n_surf, "face_counts": face_counts, **cage_opts}
     key = cache_key([V, F], opts)
     hit = load_entry(key) if cache else None
     with timer("cages"):
         if hit is not None:
             arrays, info = hit
-            surfaces = [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(levels)]
+            surfaces = [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(n_surf)]
             info = dict(info, cached=True)
         else:
             t0 = time.perf_counter()
             surfaces, info = cagegen.build_cages(
-                V, F, levels, method=method, face_counts=face_counts, return_info=True, progress=progress, **cage_opts
+                V, F, n_surf, method=method, face_counts=face_counts, return_info=True, progress=progress, **cage_opts
             )
             info = dict(info, seconds=time.perf_counter() - t0)
             if cache:
@@ -291,6 +305,7 @@ def build_hierarchy(
                 save_entry(key, arrays, info)
     if tet_retries is None:
         tet_retries = 0 if method == "decimate" else 2
+    surfaces = [surfaces[0]] * int(same_domain_levels) + list(surfaces)  # same-domain layers first
     tets, Ps, reps, tt = tet_hierarchy(
         surfaces,
         mesher=mesher,
@@ -313,5 +328,6 @@ def build_hierarchy(
         options={
             "levels": levels, "face_counts": face_counts, "mesher": mesher, "edge_length_fac": edge_length_fac,
             "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": cage_opts,
+            "same_domain_levels": int(same_domain_levels),
         },
     )

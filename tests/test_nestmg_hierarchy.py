@@ -1,0 +1,45 @@
+"""build_hierarchy options (nestmg.hierarchy): same-domain levels below the cages."""
+
+import numpy as np
+import pytest
+
+from nestmg import shapes
+from nestmg.hierarchy import build_hierarchy
+
+
+@pytest.fixture(scope="module")
+def sphere_surface():
+    return shapes.sphere(20)
+
+
+def test_same_domain_levels(sphere_surface):
+    pytest.importorskip("tetgen")
+    V, F = sphere_surface
+    V0, F0 = V.copy(), F.copy()
+    h = build_hierarchy(V, F, 3, method="decimate", mesher="tetgen", edge_length_fac=0.03,
+                        same_domain_levels=1, cache=False, progress=False)
+    np.testing.assert_array_equal(V, V0)
+    np.testing.assert_array_equal(F, F0)
+    assert h.levels == 3 and len(h.P) == 2
+    # level 1 re-meshes the input surface itself; level 2 is the (decimated) cage with 4x fewer faces
+    np.testing.assert_array_equal(h.surfaces[1][0], h.surfaces[0][0])
+    np.testing.assert_array_equal(h.surfaces[1][1], h.surfaces[0][1])
+    assert len(h.surfaces[2][1]) < len(F) / 3
+    ntets = [len(T) for _, T in h.tets]
+    assert ntets[0] > 3 * ntets[1] > 0, ntets  # 2x the edge length: several times fewer tets
+    # TetGen keeps the boundary: every fine node lies in the same-domain coarse mesh (up to location
+    # round-off on the shared boundary), so P reproduces linear functions at the fine nodes
+    assert h.prolongation_reports[0].max_distance_rel < 1e-9
+    a = np.array([0.7, -0.2, 1.3])
+    Vf, Vc = h.tets[0][0], h.tets[1][0]
+    assert np.abs(h.P[0] @ (Vc @ a) - Vf @ a).max() < 1e-8
+    assert h.options["same_domain_levels"] == 1
+    # the cage pair itself is not nested (decimation): extrapolated nodes only on the coarse level
+    assert h.n_outside[1] > 0
+
+
+@pytest.mark.parametrize("bad", [-1, 2, 5, 1.0, "1"])
+def test_same_domain_levels_validated(sphere_surface, bad):
+    V, F = sphere_surface
+    with pytest.raises(ValueError, match="same_domain_levels"):
+        build_hierarchy(V, F, 3, method="decimate", mesher="tetgen", same_domain_levels=bad, cache=False)

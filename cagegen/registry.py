@@ -16,7 +16,7 @@ pair and raises :class:`cagegen.CageError` for the first failing layer.
 from __future__ import annotations
 
 import importlib
-from typing import Callable
+from collections.abc import Callable
 
 from .errors import BackendUnavailableError
 

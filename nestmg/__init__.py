@@ -19,8 +19,8 @@ from .tetmesh import TetMeshError, tetrahedralize
 __version__ = "0.1.0"
 
 __all__ = [
-    "Hierarchy",
     "PROBLEMS",
+    "Hierarchy",
     "Problem",
     "ProlongationReport",
     "TetMeshError",

@@ -99,7 +99,7 @@ def _png_layers(h, path, title):
 def cmd_demo(args) -> int:
     from .render import plot_convergence
 
-    V, F, name = _load(f"shape:{args.shape}")
+    V, F, _ = _load(f"shape:{args.shape}")
     out = Path(args.out)
     print(f"nestmg demo: {args.shape} ({len(F)} faces), {args.levels} levels, cages by {args.method!r}")
     h = _hierarchy(V, F, args)
@@ -120,9 +120,9 @@ def cmd_demo(args) -> int:
 
 
 def cmd_cages(args) -> int:
-    from .io import save_mesh
-
     import cagegen
+
+    from .io import save_mesh
 
     out = Path(args.out)
     n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
@@ -135,7 +135,7 @@ def cmd_cages(args) -> int:
     for k, (Vk, Fk) in enumerate(layers):
         save_mesh(out / f"layer_{k}.obj", Vk, Fk)
     _write_json(out / "report.json", {"mesh": args.mesh, "method": args.method,
-                                      "faces": [int(len(Fk)) for _, Fk in layers], **info})
+                                      "faces": [len(Fk) for _, Fk in layers], **info})
     ver = info.get("verification", {})
     print(f"{name}: {len(layers)} layers {[len(Fk) for _, Fk in layers]} faces; verifier ok={ver.get('ok')}")
     if args.png:

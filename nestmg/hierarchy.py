@@ -88,9 +88,9 @@ class Hierarchy:
         return {
             "method": self.method,
             "levels": self.levels,
-            "surface_faces": [int(len(F)) for _, F in self.surfaces],
-            "nodes": [int(len(V)) for V, _ in self.tets],
-            "tets": [int(len(T)) for _, T in self.tets],
+            "surface_faces": [len(F) for _, F in self.surfaces],
+            "nodes": [len(V) for V, _ in self.tets],
+            "tets": [len(T) for _, T in self.tets],
             "prolongation": [r.to_dict() for r in self.prolongation_reports],
             "n_outside": self.n_outside,
             "surfaces_nested": self.surfaces_nested,

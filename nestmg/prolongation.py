@@ -184,7 +184,7 @@ def prolongation(
     rep = ProlongationReport(
         n_fine=nf,
         n_coarse=nc,
-        n_outside=int(len(out)),
+        n_outside=len(out),
         max_distance=max_d,
         max_distance_rel=max_d / diag if diag > 0 else 0.0,
         extrapolation=extrapolation,

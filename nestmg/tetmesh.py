@@ -22,7 +22,7 @@ import numpy as np
 from cagegen._geometry import as_mesh_arrays
 from cagegen.errors import MeshInputError, NestmgError
 
-__all__ = ["MESHERS", "TetMeshError", "orient_tets", "tetrahedralize", "tet_volumes"]
+__all__ = ["MESHERS", "TetMeshError", "orient_tets", "tet_volumes", "tetrahedralize"]
 
 MESHERS = ("tetwild", "tetgen")
 

@@ -5,7 +5,13 @@ prolongation matrices as plain numpy/scipy arrays. ``solvers.baselines`` (pyamg,
 ``solvers.gallery`` are imported on demand.
 """
 
-from .errors import DivergenceError, IncompatibleRHSError, InsufficientMemoryError, SolverError, SolverInputError
+from .errors import (
+    DivergenceError,
+    IncompatibleRHSError,
+    InsufficientMemoryError,
+    SolverError,
+    SolverInputError,
+)
 from .fem import (
     DirichletSystem,
     boundary_nodes,
@@ -19,6 +25,7 @@ from .fem import (
     stiffness_matrix,
 )
 from .krylov import KrylovResult, mg_pcg, pcg
+from .memory import available_memory, check_memory, galerkin_nnz_estimate
 from .multilevel import (
     ConvergenceWarning,
     Level,
@@ -28,7 +35,6 @@ from .multilevel import (
     prune_prolongations,
     restrict_prolongations,
 )
-from .memory import available_memory, check_memory, galerkin_nnz_estimate
 from .smoothing import SMOOTHERS, Smoother, make_smoother
 
 __all__ = [
@@ -36,8 +42,8 @@ __all__ = [
     "ConvergenceWarning",
     "DirichletSystem",
     "DivergenceError",
-    "InsufficientMemoryError",
     "IncompatibleRHSError",
+    "InsufficientMemoryError",
     "KrylovResult",
     "Level",
     "MultigridSolver",
@@ -46,8 +52,8 @@ __all__ = [
     "SolverInputError",
     "available_memory",
     "boundary_nodes",
-    "check_memory",
     "check_compatible",
+    "check_memory",
     "convergence_factor",
     "diffusion_matrix",
     "eliminate_dirichlet",

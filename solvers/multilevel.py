@@ -569,8 +569,8 @@ class MultigridSolver:
             ("Coarse operators", self.coarse),
             ("Smoothers (pre/post)", self._smoother_desc()),
             ("Null space", f"{self.nullspace}"),
-            ("Coarsest solver", f"{cs.method}{fallback} (null vectors: "
-                                f"{self.coarse_nullity if self.coarse_nullity >= 0 else 'not computed'})"),
+            ("Coarsest solver", (f"{cs.method}{fallback} (null vectors: "
+                                 f"{self.coarse_nullity if self.coarse_nullity >= 0 else 'not computed'})")),
             ("Operator complexity", f"{self.operator_complexity():.3f}"),
             ("Grid complexity", f"{self.grid_complexity():.3f}"),
             ("Cycle complexity (V)", f"{self.cycle_complexity('V'):.3f} fine SpMVs"),

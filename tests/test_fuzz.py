@@ -422,7 +422,7 @@ def test_regression_tetwild_segfaults_are_prevented():
     import sys
 
     pytest.importorskip("pytetwild")
-    r = subprocess.run([sys.executable, "-c", _TETWILD_PROBE], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", _TETWILD_PROBE], capture_output=True, text=True, timeout=300, check=False)
     assert r.returncode == 0, f"exit code {r.returncode}: {r.stderr[-500:]}"
     lines = r.stdout.splitlines()
     assert lines[0] == "refused: surface: empty mesh (no faces)"

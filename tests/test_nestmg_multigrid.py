@@ -9,7 +9,7 @@ from nestmg.run import solve_on_hierarchy
 
 
 def test_tet_layers_are_nested(torus_iso_tets):
-    S, tets, P, reps = torus_iso_tets
+    _, tets, P, reps = torus_iso_tets
     assert [r.n_outside for r in reps] == [0, 0, 0]  # TetGen keeps the boundary: no extrapolation at all
     for k, Pk in enumerate(P):
         Vf, Vc = tets[k][0], tets[k + 1][0]

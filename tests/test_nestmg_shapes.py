@@ -34,7 +34,7 @@ def test_relaxation_improves_triangles():
         V, F = shapes.mesh_implicit(f, b, res=24, level=0.06, relax=relax)
         a = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
         q.append(a.min() / a.mean())
-    assert q[0] < 0.01 < 0.1 < q[1]
+    assert q[0] < 0.01 and q[1] > 0.1, q  # raw marching cubes has slivers; relaxed triangles do not
 
 
 def test_nested_isosurfaces_are_nested():

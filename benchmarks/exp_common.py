@@ -164,14 +164,23 @@ def environment() -> dict:
 def write_json(obj: dict, path: Path) -> None:
     """Write ``obj`` as indented JSON (numpy scalars converted)."""
 
-    def conv(o):
-        if isinstance(o, (np.integer,)):
-            return int(o)
-        if isinstance(o, (np.floating,)):
-            return float(o)
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        return str(o)
+    from nestmg.io import json_default
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=1, default=conv))
+    path.write_text(json.dumps(obj, indent=1, default=json_default))
+
+
+# plot style (colour, marker, line) of every hierarchy the experiments compare
+STYLES = {"nested": ("k", "o", "-"), "naive-clamped": ("tab:blue", "s", "--"),
+          "naive-linear": ("tab:red", "^", "--"), "naive-closest_point": ("tab:green", "v", "--"),
+          "naive-nearest_vertex": ("tab:orange", "D", "--")}
+
+
+def save_figure(fig, path: Path, dpi: int = 70) -> None:
+    """Lay out, write (creating the folder) and close a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)

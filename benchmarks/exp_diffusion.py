@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import ZOO, build_pair, environment, load_zoo, write_json
+from exp_common import STYLES, ZOO, build_pair, environment, load_zoo, save_figure, write_json
 
 
 def run(meshes, fine_tets, lams, levels, maxiter, nu):
@@ -64,9 +64,7 @@ def plot(results, path: Path):
     meshes = list(results["meshes"])
     lams = results["params"]["lams"]
     fig, axes = plt.subplots(len(meshes), 3, figsize=(15, 4.2 * len(meshes)), squeeze=False)
-    styles = {"nested": ("k", "o", "-"), "naive-clamped": ("tab:blue", "s", "--"),
-              "naive-linear": ("tab:red", "^", "--"), "naive-closest_point": ("tab:green", "v", "--"),
-              "naive-nearest_vertex": ("tab:orange", "D", "--")}
+    styles = STYLES
     for i, mesh in enumerate(meshes):
         runs = results["meshes"][mesh]["runs"]
         for j, coarse in enumerate(("galerkin", "rediscretized")):
@@ -96,10 +94,7 @@ def plot(results, path: Path):
         ax.set_ylabel("relative residual")
         ax.set_title(f"{mesh}: λ={mid} (solid Galerkin, dotted re-discretised)")
         ax.legend(fontsize=6, ncol=2)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=70)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv=None):

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import ZOO, build_pair, environment, load_zoo, write_json
+from exp_common import STYLES, ZOO, build_pair, environment, load_zoo, save_figure, write_json
 
 
 def run(meshes, fine_tets, levels, nus, maxiter, tol, hierarchies):
@@ -89,9 +89,7 @@ def plot(results, path: Path):
     meshes = list(results["meshes"])
     maxiter = results["params"]["maxiter"]
     fig, axes = plt.subplots(len(meshes), 2, figsize=(11, 4.0 * len(meshes)), squeeze=False)
-    styles = {"nested": ("k", "o", "-"), "naive-clamped": ("tab:blue", "s", "--"),
-              "naive-linear": ("tab:red", "^", "--"), "naive-closest_point": ("tab:green", "v", "--"),
-              "naive-nearest_vertex": ("tab:orange", "D", "--")}
+    styles = STYLES
     for i, mesh in enumerate(meshes):
         runs = results["meshes"][mesh]["runs"]
         for j, coarse in enumerate(("galerkin", "rediscretized")):
@@ -112,10 +110,7 @@ def plot(results, path: Path):
             ax.set_ylabel("V(ν,ν) cycles to 1e-8 (Poisson step)")
             ax.set_title(f"{mesh}: heat-method geodesics, {coarse}")
             ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=70)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv=None):

@@ -27,7 +27,7 @@ import time
 import warnings
 from pathlib import Path
 
-from exp_common import ZOO, build_pair, environment, load_zoo, write_json
+from exp_common import STYLES, ZOO, build_pair, environment, load_zoo, save_figure, write_json
 
 HIERARCHIES = ("nested", "naive-linear", "naive-closest_point")
 #: default: closest-point extrapolation gave the same figures as linear in every row of the first run
@@ -113,8 +113,7 @@ def plot(results, path: Path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    styles = {"nested": ("k", "o", "-"), "naive-linear": ("tab:red", "^", "--"),
-              "naive-closest_point": ("tab:green", "v", "--")}
+    styles = {k: STYLES[k] for k in ("nested", "naive-linear", "naive-closest_point")}
     fig, axes = plt.subplots(2, 2, figsize=(11, 8))
     for col, (key, xkey, xlabel) in enumerate((("levels", "levels", "number of levels"),
                                                ("sizes", "fine_tets", "fine tets"))):
@@ -138,10 +137,7 @@ def plot(results, path: Path):
     for ax in axes.ravel():
         ax.axhline(1.0, color="gray", lw=0.8)
         ax.legend(fontsize=6)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=70)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv=None):

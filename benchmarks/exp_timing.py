@@ -29,7 +29,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import ZOO, cages, edge_for_tets, environment, load_zoo, write_json
+from exp_common import ZOO, cages, edge_for_tets, environment, load_zoo, save_figure, write_json
 
 
 def _status_kb(field: str) -> int:
@@ -199,10 +199,7 @@ def plot(results, path: Path):
         ax.set_title(t)
     axes[0].legend(fontsize=7)
     fig.suptitle("Dirichlet Poisson to 1e-8 (one run; ratios matter, absolute times are on a shared 2-core machine)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=70)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv=None):

@@ -18,6 +18,7 @@ import numpy as np
 from cagegen.errors import NestmgError
 
 from .cache import atomic_write_bytes
+from .io import json_default
 
 __all__ = ["main"]
 
@@ -49,17 +50,7 @@ def _refuse_overwriting_input(mesh: str, outputs: list[Path]) -> None:
 
 
 def _write_json(path: str | Path, obj: Any) -> None:
-    atomic_write_bytes(Path(path), json.dumps(obj, indent=1, default=_json_default).encode())
-
-
-def _json_default(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
+    atomic_write_bytes(Path(path), json.dumps(obj, indent=1, default=json_default).encode())
 
 
 def _hierarchy(V, F, args, method=None):

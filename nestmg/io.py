@@ -18,7 +18,7 @@ from cagegen.errors import MeshInputError
 
 from .cache import atomic_write_bytes
 
-__all__ = ["denormalize", "load_mesh", "normalize", "save_mesh", "save_tets"]
+__all__ = ["denormalize", "json_default", "load_mesh", "normalize", "save_mesh", "save_tets"]
 
 _IGL_FORMATS = {".obj", ".off", ".ply"}
 
@@ -114,3 +114,14 @@ def save_tets(path: str | os.PathLike, V: np.ndarray, T: np.ndarray) -> None:
     buf = _io.BytesIO()
     np.savez_compressed(buf, V=np.asarray(V), T=np.asarray(T))
     atomic_write_bytes(path, buf.getvalue())
+
+
+def json_default(o):
+    """``json.dumps(..., default=json_default)``: numpy scalars and arrays as Python numbers and lists."""
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)

@@ -41,6 +41,12 @@ fi
 export PETSC_DIR
 unset PETSC_ARCH  # Debian's PETSc is a prefix install
 
+# petsc4py is built against, and imports, numpy: make sure this environment has it (a fresh venv may not)
+if ! "$PYTHON" -c "import numpy" >/dev/null 2>&1; then
+    echo "install-petsc: installing numpy into $("$PYTHON" -c 'import sys; print(sys.prefix)')"
+    "$PYTHON" -m pip install --quiet "numpy>=1.24"
+fi
+
 build="$(mktemp -d)"
 trap 'rm -rf "$build"' EXIT
 echo "install-petsc: building petsc4py==$PETSC4PY_VERSION against $PETSC_DIR (about 2 minutes on 2 cores)"

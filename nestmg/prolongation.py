@@ -47,7 +47,10 @@ class ProlongationReport:
     n_fine, n_coarse : int
         Rows and columns of ``P``.
     n_outside : int
-        Fine nodes outside every coarse tet (extrapolated).
+        Fine nodes outside every coarse tet (extrapolated), farther than ``on_boundary_tol`` x diagonal.
+    n_on_boundary : int
+        Nodes that point location missed but that lie on the coarse boundary up to round-off; they are
+        interpolated at their closest boundary point (exact), not extrapolated.
     max_distance : float
         Largest distance of an outside node to the coarse mesh (0 when none).
     max_distance_rel : float
@@ -61,6 +64,7 @@ class ProlongationReport:
     n_fine: int
     n_coarse: int
     n_outside: int
+    n_on_boundary: int
     max_distance: float
     max_distance_rel: float
     extrapolation: str
@@ -90,6 +94,7 @@ def prolongation(
     Tc: np.ndarray,
     *,
     extrapolation: str = "clamped",
+    on_boundary_tol: float = 1e-12,
 ) -> tuple[sp.csr_matrix, ProlongationReport]:
     """Barycentric prolongation from a coarse tet mesh to the nodes of a finer one.
 
@@ -103,6 +108,9 @@ def prolongation(
         Tets of the coarser mesh.
     extrapolation : {"clamped", "linear", "closest_point", "nearest_vertex"}
         Rule for fine nodes outside every coarse tet (see the module docstring).
+    on_boundary_tol : float
+        Nodes within this distance (relative to the fine bounding-box diagonal) of the coarse mesh count
+        as on its boundary, not outside.
 
     Returns
     -------
@@ -151,9 +159,21 @@ def prolongation(
     W[ins] = _tet_barycentric(Vf[ins], Vc, Tc[tet[ins]])
 
     max_d = 0.0
+    n_on = 0
+    diag = float(np.linalg.norm(Vf.max(axis=0) - Vf.min(axis=0))) if nf else 1.0
     if len(out):
         Fb, J = boundary_faces(Tc)
         d2, fi, C = igl.point_mesh_squared_distance(Vf[out], Vc, np.ascontiguousarray(Fb))
+        # nodes on the coarse boundary up to round-off (a fine boundary node on a coarse boundary facet
+        # that point location missed by ~1e-17) are located at their closest point, not extrapolated
+        on = d2 <= (on_boundary_tol * diag) ** 2
+        if on.any():
+            on_idx = out[on]
+            cols[on_idx] = Tc[J[fi[on]]]
+            W[on_idx] = _tet_barycentric(C[on], Vc, Tc[J[fi[on]]])
+            n_on = int(on.sum())
+            out, d2, fi, C = out[~on], d2[~on], fi[~on], C[~on]
+    if len(out):
         max_d = float(np.sqrt(d2.max()))
         near_tet = Tc[J[fi]]
         if extrapolation == "nearest_vertex":
@@ -180,11 +200,11 @@ def prolongation(
     W /= W.sum(axis=1, keepdims=True)
     P = sp.csr_matrix((W.ravel(), (rows.ravel(), cols.ravel())), shape=(nf, nc))
     P.eliminate_zeros()
-    diag = float(np.linalg.norm(Vf.max(axis=0) - Vf.min(axis=0))) if nf else 1.0
     rep = ProlongationReport(
         n_fine=nf,
         n_coarse=nc,
         n_outside=len(out),
+        n_on_boundary=n_on,
         max_distance=max_d,
         max_distance_rel=max_d / diag if diag > 0 else 0.0,
         extrapolation=extrapolation,

@@ -66,3 +66,15 @@ def test_million_nodes_in_seconds(rng):
     dt = time.perf_counter() - t0
     assert rep.n_outside == 0 and P.shape[0] == 1_000_000
     assert dt < 15.0, f"1M nodes took {dt:.1f} s"
+
+
+def test_nodes_on_the_coarse_boundary_up_to_roundoff_are_not_extrapolated():
+    Vc, Tc = _cube_tets(2)
+    Q = np.array([[0.5 + 1e-15, 0.1, -0.2], [0.5 + 1e-3, 0.1, -0.2], [0.0, 0.0, 0.0]])  # on, outside, inside
+    P, rep = prolongation(Q, Vc, Tc, extrapolation="linear")
+    assert rep.n_outside == 1 and rep.n_on_boundary == 1
+    assert abs(rep.max_distance - 1e-3) < 1e-12
+    a = np.array([1.0, -2.0, 0.5])
+    assert abs(P[0] @ (Vc @ a) - np.array([0.5, 0.1, -0.2]) @ a) < 1e-12  # exact at the boundary point
+    P2, rep2 = prolongation(Q, Vc, Tc, on_boundary_tol=0.0)
+    assert rep2.n_on_boundary == 0 and rep2.n_outside in (1, 2)  # point location may or may not catch it

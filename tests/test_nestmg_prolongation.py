@@ -76,5 +76,5 @@ def test_nodes_on_the_coarse_boundary_up_to_roundoff_are_not_extrapolated():
     assert abs(rep.max_distance - 1e-3) < 1e-12
     a = np.array([1.0, -2.0, 0.5])
     assert abs(P[0] @ (Vc @ a) - np.array([0.5, 0.1, -0.2]) @ a) < 1e-12  # exact at the boundary point
-    P2, rep2 = prolongation(Q, Vc, Tc, on_boundary_tol=0.0)
+    _, rep2 = prolongation(Q, Vc, Tc, on_boundary_tol=0.0)
     assert rep2.n_on_boundary == 0 and rep2.n_outside in (1, 2)  # point location may or may not catch it

@@ -301,6 +301,39 @@ class DirichletSystem:
         return x[self.free].copy()
 
 
+def node_indices(f, n: int, what: str) -> np.ndarray:
+    """Node indices from an index array or a boolean mask, validated against ``n`` nodes.
+
+    Parameters
+    ----------
+    f : (k,) int array_like or (n,) bool mask
+    n : int
+        Number of nodes.
+    what : str
+        Name used in error messages.
+
+    Returns
+    -------
+    (k,) int64 array, in the given order (duplicates kept).
+
+    Raises
+    ------
+    SolverInputError
+        Mask of the wrong shape, non-integer indices, or indices outside ``[0, n)``.
+    """
+    f = np.asarray(f)
+    if f.dtype == bool:
+        if f.shape != (n,):
+            raise SolverInputError(f"{what}: a boolean mask must have shape ({n},), got {f.shape}")
+        f = np.flatnonzero(f)
+    if f.size and not np.issubdtype(f.dtype, np.integer):
+        raise SolverInputError(f"{what}: node indices must be integers, got dtype {f.dtype}")
+    f = f.astype(np.int64).ravel()
+    if f.size and (f.min() < 0 or f.max() >= n):
+        raise SolverInputError(f"{what}: node indices must be in [0, {n}) (out of range)")
+    return f
+
+
 def eliminate_dirichlet(A: sp.spmatrix, b, fixed, values=0.0) -> DirichletSystem:
     """Eliminate Dirichlet conditions ``x[fixed] = values`` from ``A x = b``.
 
@@ -336,16 +369,7 @@ def eliminate_dirichlet(A: sp.spmatrix, b, fixed, values=0.0) -> DirichletSystem
     b = np.asarray(b, dtype=np.float64)
     if b.shape != (n,):
         raise SolverInputError(f"b must have shape ({n},), got {b.shape}")
-    fixed = np.asarray(fixed)
-    if fixed.dtype == bool:
-        if fixed.shape != (n,):
-            raise SolverInputError(f"a boolean fixed mask must have shape ({n},), got {fixed.shape}")
-        fixed = np.flatnonzero(fixed)
-    if fixed.size and not np.issubdtype(fixed.dtype, np.integer):
-        raise SolverInputError(f"fixed must hold integer node indices, got dtype {fixed.dtype}")
-    fixed = fixed.astype(np.int64).ravel()
-    if fixed.size and (fixed.min() < 0 or fixed.max() >= n):
-        raise SolverInputError(f"fixed indices must be in [0, {n})")
+    fixed = node_indices(fixed, n, "fixed")
     vals = np.broadcast_to(np.asarray(values, dtype=np.float64), fixed.shape)
     if not np.all(np.isfinite(vals)):
         raise SolverInputError("Dirichlet values contain NaN/inf")

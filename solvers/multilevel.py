@@ -28,6 +28,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
+from .fem import node_indices
 from .memory import check_memory, galerkin_bytes
 from .smoothing import Smoother, make_smoother
 
@@ -144,18 +145,9 @@ def restrict_prolongations(Ps, free, coarse_free="support"):
     Ps = [sp.csr_matrix(P, dtype=np.float64) for P in Ps]
 
     def _idx(f, n, what):
-        f = np.asarray(f)
-        if f.dtype == bool:
-            if f.shape != (n,):
-                raise SolverInputError(f"{what}: boolean mask must have shape ({n},), got {f.shape}")
-            f = np.flatnonzero(f)
-        if f.size and not np.issubdtype(f.dtype, np.integer):
-            raise SolverInputError(f"{what}: indices must be integers, got {f.dtype}")
-        f = np.unique(f.astype(np.int64).ravel())
+        f = np.unique(node_indices(f, n, what))
         if f.size == 0:
             raise SolverInputError(f"{what}: no free node")
-        if f[0] < 0 or f[-1] >= n:
-            raise SolverInputError(f"{what}: indices out of range [0, {n})")
         return f
 
     if not Ps:

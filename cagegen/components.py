@@ -129,8 +129,8 @@ def build_cages_per_component(V, F, levels: int | None = None, method: str = "ne
     MeshInputError
         A piece is unusable (the message names it), pieces intersect, or one lies inside another.
     """
-    from . import build_cages
     from .audit import check_mesh, repair_mesh
+    from .build import build_cages
 
     if repair:
         V, F = repair_mesh(V, F)

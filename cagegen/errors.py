@@ -32,5 +32,9 @@ class BackendUnavailableError(NestmgError, ImportError):
     """A cage backend needs an optional dependency that is not installed."""
 
 
+class UnknownMethodError(NestmgError, ValueError):
+    """No cage backend is registered under the requested method name."""
+
+
 class LevelsError(NestmgError, ValueError):
     """The requested hierarchy (number of levels, face counts) cannot be built from this input."""

@@ -18,7 +18,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-from .errors import BackendUnavailableError
+from .errors import BackendUnavailableError, UnknownMethodError
 
 # name -> "module:function" (imported on first use so optional dependencies stay optional)
 _BACKENDS: dict[str, str] = {
@@ -46,13 +46,13 @@ def get_backend(name: str) -> Callable:
 
     Raises
     ------
-    ValueError
-        If no backend of that name is registered.
+    UnknownMethodError
+        If no backend of that name is registered (a ``ValueError``).
     BackendUnavailableError
         If the backend's module (or one of its optional dependencies) cannot be imported.
     """
     if name not in _BACKENDS:
-        raise ValueError(f"unknown cage method {name!r}; registered: {sorted(_BACKENDS)}")
+        raise UnknownMethodError(f"unknown cage method {name!r}; registered: {sorted(_BACKENDS)}")
     target = _BACKENDS[name]
     if callable(target):
         return target
@@ -62,6 +62,11 @@ def get_backend(name: str) -> Callable:
     except ImportError as exc:  # optional dependency missing
         raise BackendUnavailableError(f"cage method {name!r} is unavailable: {exc}") from exc
     return getattr(mod, func)
+
+
+def registered_backends() -> list[str]:
+    """Names of every registered backend (nothing is imported: an optional one may still be unavailable)."""
+    return sorted(_BACKENDS)
 
 
 def available_backends() -> list[str]:

@@ -10,11 +10,12 @@ problem and the level data, :func:`solve_on_hierarchy` does both plus a measured
 """
 
 from .hierarchy import Hierarchy, build_hierarchy, tet_hierarchy
-from .io import load_mesh, normalize, save_mesh
+from .io import load_mesh, load_tet_mesh, normalize, save_mesh
 from .problems import PROBLEMS, Problem, setup_problem
 from .prolongation import ProlongationReport, prolongation
 from .run import solve_on_hierarchy
 from .tetmesh import TetMeshError, tetrahedralize
+from .usermesh import hierarchy_from_tets, load_hierarchy, save_hierarchy, write_vtu_levels
 
 __version__ = "0.1.0"
 
@@ -25,12 +26,17 @@ __all__ = [
     "ProlongationReport",
     "TetMeshError",
     "build_hierarchy",
+    "hierarchy_from_tets",
+    "load_hierarchy",
     "load_mesh",
+    "load_tet_mesh",
     "normalize",
     "prolongation",
+    "save_hierarchy",
     "save_mesh",
     "setup_problem",
     "solve_on_hierarchy",
     "tet_hierarchy",
     "tetrahedralize",
+    "write_vtu_levels",
 ]

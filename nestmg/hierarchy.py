@@ -79,6 +79,26 @@ class Hierarchy:
         return None if ver is None else bool(ver.get("ok"))
 
     @property
+    def fallbacks(self) -> list[dict]:
+        """Cage layers built by a backend's fallback (e.g. ``{"layer": 2, "fallback": "lazy"}``); [] if none."""
+        layers = (self.cage_info.get("backend") or {}).get("layers") or []
+        return [{"layer": int(d.get("layer", i + 1)), "fallback": d["fallback"]}
+                for i, d in enumerate(layers) if isinstance(d, dict) and d.get("fallback")]
+
+    def save(self, directory) -> Any:
+        """Write the hierarchy to ``directory`` (:func:`nestmg.usermesh.save_hierarchy`)."""
+        from .usermesh import save_hierarchy
+
+        return save_hierarchy(self, directory)
+
+    @classmethod
+    def load(cls, directory) -> Hierarchy:
+        """Read a hierarchy written by :meth:`save` (:func:`nestmg.usermesh.load_hierarchy`)."""
+        from .usermesh import load_hierarchy
+
+        return load_hierarchy(directory)
+
+    @property
     def certified(self) -> bool:
         """True when the surfaces are certified nested *and* no fine node lies outside a coarse tet mesh."""
         return bool(self.surfaces_nested) and all(n == 0 for n in self.n_outside)
@@ -87,6 +107,7 @@ class Hierarchy:
         """JSON-serialisable summary (no arrays)."""
         return {
             "method": self.method,
+            "fallbacks": self.fallbacks,
             "levels": self.levels,
             "surface_faces": [len(F) for _, F in self.surfaces],
             "nodes": [len(V) for V, _ in self.tets],
@@ -101,7 +122,8 @@ class Hierarchy:
         }
 
     def __repr__(self) -> str:
-        lines = [f"Hierarchy(method={self.method!r}, levels={self.levels}, certified={self.certified})",
+        fb = "".join(f", layer {d['layer']} by fallback {d['fallback']!r}" for d in self.fallbacks)
+        lines = [f"Hierarchy(method={self.method!r}{fb}, levels={self.levels}, certified={self.certified})",
                  "level  faces     nodes      tets   nnz(P)  n_outside"]
         for k, ((_, F), (V, T)) in enumerate(zip(self.surfaces, self.tets)):
             nnz = self.P[k].nnz if k < len(self.P) else 0
@@ -139,6 +161,7 @@ def tet_hierarchy(
     tet_retries: int = 2,
     cache: bool = True,
     progress: bool | None = None,
+    fine: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[list, list, list, dict]:
     """Tet-mesh every surface layer and build the prolongations between consecutive layers.
 
@@ -161,6 +184,9 @@ def tet_hierarchy(
         Reuse tet meshes from the on-disk cache.
     progress : bool or None
         Show a progress bar (None: only on a terminal).
+    fine : (V, T), optional
+        The caller's own tet mesh of ``surfaces[0]``, used as level 0 unchanged instead of meshing it
+        (:func:`nestmg.usermesh.hierarchy_from_tets`).
 
     Returns
     -------
@@ -183,7 +209,10 @@ def tet_hierarchy(
         for k, (V, F) in enumerate(surfaces):
             bar.describe(f"tet layer {k} ({len(F)} faces, {mesher})")
             with timer("tets"):
-                tets.append(_mesh_layer(V, F, mesher, h0 * 2**k, eps[k], cache))
+                if k == 0 and fine is not None:  # the caller's own fine tet mesh, kept as it is
+                    tets.append(fine)
+                else:
+                    tets.append(_mesh_layer(V, F, mesher, h0 * 2**k, eps[k], cache))
             bar.advance()
     Ps, reps = [], []
     for k in range(len(surfaces) - 1):

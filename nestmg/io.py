@@ -18,9 +18,14 @@ from cagegen.errors import MeshInputError
 
 from .cache import atomic_write_bytes
 
-__all__ = ["denormalize", "json_default", "load_mesh", "normalize", "save_mesh", "save_tets"]
+__all__ = [
+    "TET_FORMATS", "denormalize", "json_default", "load_mesh", "load_tet_mesh", "normalize", "read_cells",
+    "save_mesh", "save_tets", "save_vtu",
+]
 
 _IGL_FORMATS = {".obj", ".off", ".ply"}
+#: Volume-mesh formats read through meshio (gmsh, Medit, VTK XML and legacy).
+TET_FORMATS = (".msh", ".mesh", ".vtu", ".vtk")
 
 
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -114,6 +119,106 @@ def save_tets(path: str | os.PathLike, V: np.ndarray, T: np.ndarray) -> None:
     buf = _io.BytesIO()
     np.savez_compressed(buf, V=np.asarray(V), T=np.asarray(T))
     atomic_write_bytes(path, buf.getvalue())
+
+
+def read_cells(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Read a volume-mesh file through meshio: nodes, linear tets and triangles, as stored.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ``.msh`` (gmsh), ``.mesh`` (Medit), ``.vtu``, ``.vtk`` (see :data:`TET_FORMATS`).
+
+    Returns
+    -------
+    V : (n,3) float64 array
+        Every node of the file, in file order (none dropped or merged).
+    T : (t,4) int64 array or None
+        All ``tetra`` blocks, in file order (None when the file has none).
+    F : (m,3) int64 array or None
+        All ``triangle`` blocks (None when none).
+
+    Raises
+    ------
+    MeshInputError
+        Missing or unreadable file, or second-order tets (``tetra10``: not a P1 fine level).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeshInputError(f"mesh file not found: {path}")
+    try:
+        import meshio
+
+        m = meshio.read(str(path))
+    except Exception as exc:
+        raise MeshInputError(f"could not read {path.name}: {exc}") from exc
+    V = np.ascontiguousarray(m.points, dtype=np.float64)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise MeshInputError(f"{path.name}: nodes must be 3D, got an array of shape {V.shape}")
+    blocks = {c.type: [] for c in m.cells}
+    for c in m.cells:
+        blocks[c.type].append(np.asarray(c.data, dtype=np.int64))
+    if "tetra10" in blocks and "tetra" not in blocks:
+        raise MeshInputError(f"{path.name}: second-order tets (tetra10); give the P1 mesh of their vertices "
+                             "(nestmg.usermesh.p1_to_p2_prolongation adds a P2 level on top)")
+    T = np.concatenate(blocks["tetra"]) if "tetra" in blocks else None
+    F = np.concatenate(blocks["triangle"]) if "triangle" in blocks else None
+    return V, T, F
+
+
+def load_tet_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a linear tet mesh (``.msh``, ``.mesh``, ``.vtu``, ``.vtk``) through meshio.
+
+    Nodes and tets are returned exactly as stored (same order; the caller's fine level for
+    :func:`nestmg.hierarchy_from_tets`). Lower-dimensional cells (boundary triangles, lines) are ignored.
+
+    Returns
+    -------
+    V : (n,3) float64 array
+    T : (t,4) int64 array
+
+    Raises
+    ------
+    MeshInputError
+        Unreadable file, or no tetrahedra in it.
+    """
+    V, T, F = read_cells(path)
+    if T is None:
+        what = f"{len(F)} triangles (a surface)" if F is not None else "no tets or triangles"
+        raise MeshInputError(f"{Path(path).name}: no tetrahedra in the file, it holds {what}")
+    return V, T
+
+
+def save_vtu(path: str | os.PathLike, V: np.ndarray, T: np.ndarray, point_data: dict | None = None,
+             cell_data: dict | None = None) -> None:
+    """Write a tet mesh (and point / cell fields) as a VTU file, atomically (temp file + rename).
+
+    Parameters
+    ----------
+    path : path ending in ``.vtu`` (or any meshio tet format)
+    V : (n,3) float array
+    T : (t,4) int array
+    point_data : dict of name -> (n,) or (n,c) array, optional
+    cell_data : dict of name -> (t,) array, optional
+    """
+    import tempfile
+
+    import meshio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh = meshio.Mesh(np.asarray(V, dtype=np.float64), [("tetra", np.asarray(T, dtype=np.int64))],
+                       point_data={k: np.asarray(v) for k, v in (point_data or {}).items()},
+                       cell_data={k: [np.asarray(v)] for k, v in (cell_data or {}).items()})
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        meshio.write(tmp, mesh)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 def json_default(o):

@@ -167,7 +167,7 @@ def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
     monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
     V, F = neck
     msgs: list[str] = []
-    layers, info = nb.nested_backend(V, F, [600], max_recovery_depth=0, progress=msgs.append)
+    layers, info = nb.nested_backend(V, F, [600], max_recovery_depth=0, progress=msgs.append, fallback="lazy")
     assert cagegen.verify_nesting([(V, F)] + layers).ok
     li = info["layers"][0]
     assert li["fallback"] == "lazy" and li["lazy"]["n_faces"] == len(layers[0][1])
@@ -175,8 +175,8 @@ def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
     fb = [r for r in info["recovery"] if r["stage"] == "fallback"]
     assert len(fb) == 1 and "lazy" in fb[0]["action"] and "layer 1" in fb[0]["reason"]
     assert any("falling back to a lazy cage" in m for m in msgs)
-    with pytest.raises(CageError) as exc:  # without the fallback the failure is raised as before
-        nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
+    with pytest.raises(CageError) as exc:  # without the fallback (the default) the failure is raised
+        nb.nested_backend(V, F, [600], max_recovery_depth=0)
     assert exc.value.layer == 1
 
 
@@ -188,7 +188,7 @@ def test_nested_fallback_without_gpytoolbox_raises_the_original_error(neck, monk
     monkeypatch.setitem(sys.modules, "cagegen.copyleft.lazy", None)  # import of the hook fails
     V, F = neck
     with pytest.raises(CageError, match="lazy fallback unavailable") as exc:
-        nb.nested_backend(V, F, [600], max_recovery_depth=0)
+        nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback="lazy")
     assert exc.value.layer == 1
     with pytest.raises(ValueError, match="fallback"):
         nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback="bogus")

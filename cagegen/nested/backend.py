@@ -31,7 +31,7 @@ from ..decimate import decimate_surface
 from ..errors import CageError
 from ..verify import verify_nesting
 from .collision import min_distance
-from .energies import ENERGIES, signed_volume
+from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signed_volume
 from .flow import flow_inside
 from .reinflate import reinflate
 
@@ -293,7 +293,7 @@ def nested_backend(
     max_recovery_depth: int = 2,
     progress=False,
     certify: bool = True,
-    fallback: str | None = "lazy",
+    fallback: str | None = None,
     **opts,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"nested"``: strictly nested cages by flow and re-inflation (Sacht et al. 2015).
@@ -309,7 +309,8 @@ def nested_backend(
     energy : str
         Cage energy minimised once the fine surface is back at rest: ``"volume"`` (tight, default),
         ``"step"`` (the pushed-out decimation), ``"surface_arap"`` (shape preserving),
-        ``"volumetric_arap"`` (ARAP on a TetGen tessellation of Ĉ; between the two).
+        ``"volumetric_arap"`` (ARAP on a TetGen tessellation of Ĉ; between the two; loads TetGen,
+        AGPL-3.0: a copyleft opt-in, recorded in ``info["copyleft"]``; needs the ``tetgen`` extra).
     quad_order : int
         Quadrature degree of the flow (paper: 2).
     min_gap : float
@@ -330,11 +331,12 @@ def nested_backend(
     certify : bool
         Verify every pair with :func:`cagegen.verify_nesting` (the layer is recomputed through the
         recovery path, or :class:`CageError` is raised, when it fails).
-    fallback : {"lazy", None}
-        When the flow fails and intermediate layers do not help either, build that layer with
-        :func:`cagegen.copyleft.lazy.lazy_cage_layer` (loose but certified; needs the GPL ``lazy``
-        extra, otherwise the original error is raised) and record it in ``info["recovery"]`` and
-        the layer's ``fallback`` entry. None: raise instead.
+    fallback : str or None
+        Opt-in last resort, by name (:data:`FALLBACKS`), when the flow fails and intermediate layers do
+        not help either; the layer it builds is recorded in ``info["recovery"]`` and the layer's
+        ``fallback`` entry (``Hierarchy.fallbacks`` reports it). ``"lazy"``:
+        :func:`cagegen.copyleft.lazy.lazy_cage_layer` (loose but certified; loads GPL code, needs the
+        ``lazy`` extra). None (default): raise :class:`CageError`; nothing copyleft is ever loaded.
     **opts
         Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
         ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
@@ -363,6 +365,9 @@ def nested_backend(
     unknown = set(opts) - set(_DEFAULTS)
     if unknown:
         raise ValueError(f"unknown option(s) for the nested backend: {sorted(unknown)}")
+    if fallback is not None and fallback not in FALLBACKS:
+        raise ValueError(f"unknown fallback {fallback!r}; choose one of {sorted(FALLBACKS)} or None (default)")
+    check_energy_available(energy)  # a copyleft energy's package, before the flow runs
     V = np.array(V, dtype=np.float64)  # private copies
     F = np.array(F, dtype=np.int64)
     face_counts = [int(c) for c in face_counts]
@@ -383,6 +388,8 @@ def nested_backend(
         "options": {k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in params.items()},
         "min_gap_requested": {"relative": gap_n, "absolute": gap_abs},
         "decimate_from": decimate_from,
+        "fallback": fallback,
+        "copyleft": [COPYLEFT_ENERGIES[energy][1]] if energy in COPYLEFT_ENERGIES else [],
         "layers": [],
         "recovery": [],
     }
@@ -404,7 +411,7 @@ def nested_backend(
                     C, G, linfo = _build_layer(src_V, src_F, m, params, gap_target, rep, 0,
                                                int(max_recovery_depth), log, k)
             except CageError as exc:
-                C, G, linfo = _lazy_fallback(prev_n, prev_F, m, exc, fallback, rep, log, k)
+                C, G, linfo = _fallback(prev_n, prev_F, m, exc, fallback, rep, log, k)
             Vk = C * diag + center
             Gk = np.ascontiguousarray(G, dtype=np.int64)
             t = time.perf_counter()
@@ -452,12 +459,15 @@ def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):
     return C, G, pinfo
 
 
-def _lazy_fallback(Vf, Ff, m, exc, fallback, rep, log, k):
-    """Last resort for layer ``k`` once the flow and the intermediate layers failed: a lazy cage."""
+def _fallback(Vf, Ff, m, exc, fallback, rep, log, k):
+    """Last resort for layer ``k`` once the flow and the intermediate layers failed (opt-in by name)."""
     if fallback is None:
         raise exc
-    if fallback != "lazy":
-        raise ValueError(f"fallback must be 'lazy' or None, got {fallback!r}")
+    return FALLBACKS[fallback](Vf, Ff, m, exc, rep, log, k)
+
+
+def _lazy_fallback(Vf, Ff, m, exc, rep, log, k):
+    """Fallback ``"lazy"``: a lazy cage (GPL ``gpytoolbox.copyleft``, loaded only here)."""
     try:
         from ..copyleft.lazy import lazy_cage_layer
     except ImportError as imp:  # BackendUnavailableError: the GPL extra is not installed
@@ -470,6 +480,11 @@ def _lazy_fallback(Vf, Ff, m, exc, fallback, rep, log, k):
     log.append({"layer": k, "action": f"fall back to a lazy cage of {len(G)} faces (cagegen.copyleft.lazy)",
                 "stage": "fallback", "reason": str(exc)})
     return C, G, {"fallback": "lazy", "lazy": info, "seconds": {"lazy": info["seconds"]}}
+
+
+#: Fallback name -> ``f(Vf, Ff, m, exc, rep, log, k) -> (C, G, layer_info)`` (unit-diagonal coordinates;
+#: ``layer_info["fallback"]`` names it). Opt-in only: ``nested_backend(fallback=None)`` is the default.
+FALLBACKS = {"lazy": _lazy_fallback}
 
 
 def _diag(V: np.ndarray) -> float:

@@ -12,6 +12,10 @@ Each energy is a small object holding its reused state (rest cage, Laplacian, te
 
 :func:`make_energy` builds one by name: ``"step"``, ``"volume"``, ``"surface_arap"``,
 or ``"volumetric_arap"`` (``"symmetry"`` is not implemented).
+
+License: ``"volumetric_arap"`` tessellates the cage with TetGen (the ``tetgen`` package, AGPL-3.0). It is
+a copyleft opt-in: TetGen is imported only when that energy is asked for by name, and a missing package
+raises :class:`cagegen.BackendUnavailableError` naming the extra (``pip install "nestmg[tetgen]"``).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg  # noqa: F401  (sp.linalg.splu)
 
 __all__ = [
+    "COPYLEFT_ENERGIES",
     "ENERGIES",
     "StepEnergy",
     "SurfaceARAPEnergy",
@@ -184,7 +189,8 @@ class VolumetricARAPEnergy(SurfaceARAPEnergy):
     name = "volumetric_arap"
 
     def __init__(self, Vc_rest: np.ndarray, Fc: np.ndarray, inner_iters: int = 3):
-        import tetgen
+        check_energy_available(self.name)
+        import tetgen  # AGPL-3.0: loaded only for this energy, asked for by name
 
         R0 = np.asarray(Vc_rest, dtype=float)
         nodes, T = tetgen.TetGen(R0, np.asarray(Fc, dtype=np.int64)).tetrahedralize(switches="pYq1.5Q")[:2]
@@ -230,6 +236,29 @@ class VolumetricARAPEnergy(SurfaceARAPEnergy):
 
     def metric(self, C: np.ndarray) -> sp.csr_matrix:
         return self._Mbb
+
+
+#: Energies that load copyleft code: name -> (module, what it is, extra that installs it).
+COPYLEFT_ENERGIES = {"volumetric_arap": ("tetgen", "TetGen (AGPL-3.0)", "tetgen")}
+
+
+def check_energy_available(name: str) -> None:
+    """Raise :class:`cagegen.BackendUnavailableError` if energy ``name`` needs a package that is absent.
+
+    Checked before any work (without importing the package), so a long flow does not end in an
+    ImportError. Only the copyleft energies (:data:`COPYLEFT_ENERGIES`) have such a dependency.
+    """
+    import importlib.util
+
+    from ..errors import BackendUnavailableError
+
+    if name in COPYLEFT_ENERGIES:
+        module, what, extra = COPYLEFT_ENERGIES[name]
+        if importlib.util.find_spec(module) is None:
+            raise BackendUnavailableError(
+                f"energy={name!r} loads {what}, a copyleft opt-in, and the {module!r} package is not installed: "
+                f'pip install "nestmg[{extra}]"'
+            )
 
 
 ENERGIES = {

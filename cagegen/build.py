@@ -1,0 +1,204 @@
+"""The one entry point of :mod:`cagegen`: :func:`build_cages` (audit, backend, certification).
+
+Re-exported by the package (``cagegen.build_cages``); kept in its own module so that
+:mod:`cagegen.components` can import it without importing the package ``__init__``.
+"""
+
+from __future__ import annotations
+
+import inspect
+import sys
+import time
+from collections.abc import Callable
+
+from ._geometry import as_mesh_arrays
+from .audit import check_mesh
+from .errors import CageError, LevelsError, MeshInputError
+from .registry import get_backend
+from .sizes import check_face_counts, default_face_counts
+from .verify import verify_nesting
+
+__all__ = ["UNCERTIFIED_METHODS", "build_cages"]
+
+#: Methods whose layers are not expected to nest (baselines): reported, not gated.
+UNCERTIFIED_METHODS = frozenset({"decimate"})
+
+
+def _accepts(fn: Callable, name: str) -> bool:
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+def build_cages(
+    V,
+    F,
+    levels: int | None = None,
+    method: str = "nested",
+    face_counts=None,
+    verify: bool = True,
+    return_info: bool = False,
+    progress: bool | Callable[[str], None] | None = None,
+    *,
+    repair: bool = False,
+    min_gap: float = 0.0,
+    components: str = "single",
+    **opts,
+):
+    """Build a hierarchy of cages around a closed surface, finest first.
+
+    Parameters
+    ----------
+    V : (n,3) array_like of float
+    F : (m,3) array_like of int
+        Closed, manifold, single-piece, outward-oriented, self-intersection-free surface (audited;
+        the caller's arrays are never modified).
+    levels : int, optional
+        Total number of layers, input included. Needed unless ``face_counts`` is given.
+    method : str
+        Registered backend (``"nested"``, ``"decimate"``, ``"lazy"``, ...; see
+        :func:`available_backends`).
+    face_counts : sequence of int, optional
+        Target faces per cage, finest first (``levels - 1`` entries, strictly decreasing). Default:
+        :func:`default_face_counts` (4x fewer faces per level).
+    verify : bool
+        Run :func:`verify_nesting` on the result. For certified methods (all but ``"decimate"``) a
+        failing pair raises :class:`CageError`; for ``"decimate"`` the figures are only recorded.
+        ``verify=False`` skips it (``info["certified"]`` is then False).
+    return_info : bool
+        Also return the info dict.
+    progress : bool or callable, optional
+        ``progress(message)`` is called at each stage; ``True`` prints the messages to stderr;
+        ``None``/``False`` is silent. Backends that accept a ``progress`` keyword get the callable.
+    repair : bool
+        Merge duplicate vertices, drop unreferenced ones and orient outward before the audit.
+    min_gap : float
+        Clearance demanded between consecutive layers, relative to the input's bounding-box diagonal
+        (see :func:`verify_nesting`).
+    components : {"single", "separate"}
+        ``"single"`` (default): the input must be one closed piece. ``"separate"``: one hierarchy per
+        disjoint closed piece; the return value is then a *list* with one ``build_cages`` result per
+        piece (see :func:`cagegen.components.build_cages_per_component`).
+    **opts
+        Passed to the backend.
+
+    Returns
+    -------
+    layers : list of (V_i, F_i)
+        ``V_i`` (n_i,3) float64, ``F_i`` (m_i,3) int64; ``layers[0]`` is the audited input.
+    info : dict
+        Only with ``return_info=True``: ``method``, ``face_counts``, ``audit`` (input audit),
+        ``backend`` (the backend's own info), ``verification`` (:meth:`NestingReport.to_dict` or None),
+        ``nested`` (bool or None), ``certified`` (bool), ``seconds`` per stage. JSON-serialisable if
+        the backend's info is.
+
+    Raises
+    ------
+    MeshInputError
+        The input surface is unusable (the message names each problem).
+    LevelsError
+        ``levels`` / ``face_counts`` cannot be met.
+    BackendUnavailableError
+        The method's optional dependency is missing.
+    CageError
+        The backend failed, or (certified methods) a layer does not nest; ``.layer`` names it.
+    """
+    if components == "separate":
+        from .components import build_cages_per_component
+
+        return build_cages_per_component(
+            V, F, levels, method, face_counts=face_counts, verify=verify, return_info=return_info,
+            progress=progress, repair=repair, min_gap=min_gap, **opts,
+        )
+    if components != "single":
+        raise ValueError(f"components must be 'single' or 'separate', got {components!r}")
+    t0 = time.perf_counter()
+    if progress is None or progress is False:
+        report_to = None
+    elif progress is True:
+        def report_to(msg: str) -> None:
+            print(f"[cagegen] {msg}", file=sys.stderr, flush=True)
+    elif callable(progress):
+        report_to = progress
+    else:
+        raise TypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
+    say = report_to if report_to is not None else (lambda msg: None)
+
+    V, F, audit = check_mesh(V, F, repair=repair, name="input", return_audit=True)
+    t_audit = time.perf_counter() - t0
+    say(f"input: {V.shape[0]} vertices, {F.shape[0]} faces, audit ok ({t_audit:.2f} s)")
+
+    n_faces = int(F.shape[0])
+    if face_counts is None:
+        if levels is None:
+            raise LevelsError("give levels (number of layers, input included) or face_counts")
+        face_counts = default_face_counts(n_faces, levels)
+    else:
+        face_counts = check_face_counts(face_counts, n_faces)
+        if levels is not None and len(face_counts) != levels - 1:
+            raise LevelsError(
+                f"levels={levels} needs {levels - 1} face counts (input excluded), got {len(face_counts)}"
+            )
+    if not face_counts:
+        raise LevelsError("no cage requested (levels must be >= 2)")
+
+    backend = get_backend(method)
+    kwargs = dict(opts)
+    if report_to is not None and _accepts(backend, "progress"):
+        kwargs["progress"] = report_to
+    if min_gap > 0 and _accepts(backend, "min_gap"):
+        kwargs["min_gap"] = min_gap  # the backend must build the clearance the verifier will demand
+    say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
+    t1 = time.perf_counter()
+    # the backend gets its own copies: it may not modify the layer we return
+    cages, backend_info = backend(V.copy(), F.copy(), list(face_counts), **kwargs)
+    t_backend = time.perf_counter() - t1
+
+    cages = list(cages)
+    if len(cages) != len(face_counts):
+        raise CageError(
+            f"backend {method!r} returned {len(cages)} layers for {len(face_counts)} face counts",
+            layer=min(len(cages), len(face_counts)) + 1,
+        )
+    layers = [(V, F)]
+    for k, layer in enumerate(cages, start=1):
+        try:
+            Vk, Fk = layer
+            Vk, Fk = as_mesh_arrays(Vk, Fk, f"layer {k}")
+        except (MeshInputError, TypeError, ValueError) as exc:
+            raise CageError(f"backend {method!r} returned an invalid layer {k}: {exc}", layer=k) from exc
+        layers.append((Vk, Fk))
+
+    report = None
+    t_verify = 0.0
+    if verify:
+        t2 = time.perf_counter()
+        report = verify_nesting(layers, min_gap=min_gap)
+        t_verify = time.perf_counter() - t2
+        say(f"verification: {'nested' if report.ok else 'NOT nested'} ({t_verify:.2f} s)")
+        if method not in UNCERTIFIED_METHODS:
+            report.raise_if_failed()
+
+    certified = bool(report is not None and report.ok and method not in UNCERTIFIED_METHODS)
+    if not return_info:
+        return layers
+    info = {
+        "method": method,
+        "face_counts": [int(c) for c in face_counts],
+        "achieved_face_counts": [int(Fk.shape[0]) for _, Fk in layers[1:]],
+        "audit": audit.to_dict(),
+        "backend": backend_info,
+        "verification": None if report is None else report.to_dict(),
+        "nested": None if report is None else bool(report.ok),
+        "certified": certified,
+        "seconds": {
+            "audit": t_audit,
+            "backend": t_backend,
+            "verify": t_verify,
+            "total": time.perf_counter() - t0,
+        },
+    }
+    return layers, info
+

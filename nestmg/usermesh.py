@@ -1,0 +1,441 @@
+"""Bring your own tet mesh: the caller's mesh is the fine level, cages give the coarse ones.
+
+Simulation code usually has its tet mesh already (gmsh, TetWild, a Medit or VTU file) and its own FEM
+assembly. :func:`hierarchy_from_tets` keeps that mesh as level 0 *exactly* (same nodes, same order, same
+tets), so any matrix assembled on it pairs with the hierarchy's prolongations::
+
+    H = hierarchy_from_tets(V, T, levels=3)          # H.tets[0] is (V, T)
+    ml = solvers.MultigridSolver(A_user, H.P)        # A_user: (n, n) on the user's nodes
+
+Steps: validate the tets; extract their boundary surface (oriented outward) and audit it
+(:func:`cagegen.check_mesh`: closed, manifold, one piece, no self-intersection); cage it
+(:func:`cagegen.build_cages`, certified nested, with a clearance ``min_gap`` so TetWild's epsilon
+envelope cannot put a fine node outside a coarse tet mesh); tet-mesh the cages and prolong from the
+user's nodes (:func:`nestmg.hierarchy.tet_hierarchy` with ``fine=(V, T)``, which re-meshes a coarse layer
+with a smaller envelope while fine nodes remain outside it). ``Hierarchy.certified`` is true when the
+surfaces are certified nested and ``n_outside == 0`` on every level.
+
+Also here: :func:`save_hierarchy` / :func:`load_hierarchy` (``Hierarchy.save(dir)`` / ``Hierarchy.load(dir)``:
+exact arrays, reusable without the cache), :func:`write_vtu_levels` (every level's tet mesh, and fields, as
+VTU files ParaView opens) and :func:`p1_to_p2_prolongation` (a P2 fine level on top of the P1 hierarchy).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from cagegen.errors import MeshInputError, NestmgError
+
+from .cache import arrays_digest, atomic_write_bytes, cache_key, load_entry, save_entry
+from .hierarchy import Hierarchy, tet_hierarchy
+from .progress import Timer
+from .prolongation import ProlongationReport
+
+__all__ = [
+    "boundary_surface",
+    "check_user_tets",
+    "hierarchy_from_tets",
+    "load_hierarchy",
+    "p1_to_p2_prolongation",
+    "save_hierarchy",
+    "write_vtu_levels",
+]
+
+SAVE_FORMAT = "nestmg-hierarchy"
+SAVE_VERSION = 1
+
+
+def check_user_tets(V, T) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a user tet mesh; return float64 / int64 copies with the same values and order.
+
+    Parameters
+    ----------
+    V : (n,3) array_like of float
+    T : (t,4) array_like of int
+
+    Returns
+    -------
+    V : (n,3) float64 array
+    T : (t,4) int64 array
+
+    Raises
+    ------
+    MeshInputError
+        Wrong shapes, NaN/inf, indices out of range, repeated node in a tet, flat (zero-volume) tets, or
+        nodes used by no tet (their matrix rows would be empty; remove them first, e.g. meshio's
+        ``remove_orphaned_nodes``).
+
+    Examples
+    --------
+    >>> V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [5, 5, 5]])
+    >>> check_user_tets(V, [[0, 1, 2, 3]])
+    Traceback (most recent call last):
+    ...
+    cagegen.errors.MeshInputError: tet mesh: 1 of 5 nodes are used by no tet (first: node 4); remove them ...
+    """
+    from solvers.errors import SolverInputError
+    from solvers.fem import check_tet_mesh
+
+    from .tetmesh import _flat
+
+    try:
+        V, T = check_tet_mesh(V, T)
+    except SolverInputError as exc:
+        raise MeshInputError(f"tet mesh: {exc}") from exc
+    used = np.zeros(len(V), dtype=bool)
+    used[T.ravel()] = True
+    if not used.all():
+        bad = np.flatnonzero(~used)
+        raise MeshInputError(
+            f"tet mesh: {bad.size} of {len(V)} nodes are used by no tet (first: node {bad[0]}); remove them "
+            "(meshio: mesh.remove_orphaned_nodes()) so every node carries a degree of freedom"
+        )
+    flat = _flat(V, T)
+    if flat.any():
+        raise MeshInputError(f"tet mesh: {int(flat.sum())} flat (near-zero volume) tets (first: tet "
+                             f"{int(np.flatnonzero(flat)[0])}); FEM on them is undefined")
+    return V, T
+
+
+def boundary_surface(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boundary surface of a tet mesh, oriented outward, with compact vertex indices.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    T : (t,4) int array
+        Tets of either orientation (each boundary face is oriented by its own tet).
+
+    Returns
+    -------
+    Vs : (m,3) float64 array
+        Boundary nodes ``V[index]``.
+    Fs : (f,3) int64 array
+        Boundary triangles into ``Vs``, outward.
+    index : (m,) int64 array
+        User node of every surface vertex (increasing).
+
+    Examples
+    --------
+    >>> V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.2, 0.2, 0.2]])
+    >>> T = np.array([[0, 1, 2, 4], [0, 1, 4, 3], [0, 4, 2, 3], [4, 1, 2, 3]])
+    >>> Vs, Fs, index = boundary_surface(V, T)
+    >>> len(Fs), index.tolist()
+    (4, [0, 1, 2, 3])
+    """
+    from solvers.fem import boundary_faces
+
+    from .tetmesh import orient_tets
+
+    Tp = orient_tets(V, T)  # private copy: positively oriented, so boundary faces come out outward
+    F, _ = boundary_faces(Tp)
+    index = np.unique(F)
+    remap = np.full(len(V), -1, dtype=np.int64)
+    remap[index] = np.arange(len(index))
+    return np.ascontiguousarray(V[index]), remap[F], index
+
+
+def _cages(Vs, Fs, n_surf, method, face_counts, cage_opts, cache, progress):
+    """Certified cages of the boundary surface, through the cache (same keys as build_hierarchy)."""
+    import cagegen
+
+    opts = {"stage": "cages", "method": method, "levels": n_surf, "face_counts": face_counts, **cage_opts}
+    key = cache_key([Vs, Fs], opts)
+    hit = load_entry(key) if cache else None
+    if hit is not None:
+        arrays, info = hit
+        return [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(n_surf)], dict(info, cached=True)
+    t0 = time.perf_counter()
+    surfaces, info = cagegen.build_cages(Vs, Fs, n_surf, method=method, face_counts=face_counts,
+                                         return_info=True, progress=progress, **cage_opts)
+    info = dict(info, seconds=time.perf_counter() - t0)
+    if cache:
+        arrays = {}
+        for k, (Vk, Fk) in enumerate(surfaces):
+            arrays[f"V{k}"], arrays[f"F{k}"] = Vk, Fk
+        save_entry(key, arrays, info)
+    return surfaces, info
+
+
+def _mean_edge(V: np.ndarray, T: np.ndarray) -> float:
+    E = np.concatenate([T[:, [i, j]] for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
+    E = np.unique(np.sort(E, axis=1), axis=0)
+    return float(np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1).mean())
+
+
+def hierarchy_from_tets(
+    V,
+    T,
+    levels: int = 3,
+    *,
+    method: str = "nested",
+    face_counts: list[int] | None = None,
+    mesher: str = "tetwild",
+    edge_length: float | None = None,
+    epsilon: float = 1e-3,
+    extrapolation: str = "clamped",
+    tet_retries: int | None = None,
+    cache: bool = True,
+    progress: bool | None = None,
+    cage_opts: dict | None = None,
+) -> Hierarchy:
+    """A multigrid hierarchy whose fine level is the caller's tet mesh ``(V, T)``, unchanged.
+
+    Parameters
+    ----------
+    V : (n,3) array_like of float
+    T : (t,4) array_like of int
+        The user's tet mesh (one solid piece; every node used by a tet; either tet orientation).
+        ``H.tets[0]`` holds exactly these nodes and tets, in this order.
+    levels : int
+        Number of levels, the user's mesh included (>= 2): ``levels - 1`` cages of its boundary.
+    method : str
+        Cage backend (``cagegen.build_cages``); uncertified ``"decimate"`` is accepted as a baseline.
+    face_counts : list of int, optional
+        Cage face counts, finest first (default: 4x fewer faces per level than the boundary surface).
+    mesher : {"tetwild", "tetgen"}
+        Mesher of the coarse layers (``tetgen`` is the AGPL opt-in extra).
+    edge_length : float, optional
+        Absolute target edge length of level 1 is ``2 * edge_length``, doubling per level. Default: the
+        mean edge length of the user's tets.
+    epsilon : float
+        TetWild envelope relative to each layer's bounding-box diagonal.
+    extrapolation : str
+        Rule for fine nodes left outside a coarse tet mesh (see :mod:`nestmg.prolongation`).
+    tet_retries : int, optional
+        Re-mesh a coarse layer with a 4x smaller envelope while fine nodes remain outside it (default 2
+        for certified methods, 0 for ``decimate``).
+    cache : bool
+        Reuse cages and coarse tet meshes from ``$NESTMG_CACHE``.
+    progress : bool or None
+        Progress output (None: only on a terminal).
+    cage_opts : dict, optional
+        Extra options of :func:`cagegen.build_cages`. With TetWild and a certified method ``min_gap``
+        defaults to ``2.5 * epsilon`` (clearance between consecutive cages, relative to the bounding-box
+        diagonal), as in :func:`nestmg.build_hierarchy`.
+
+    Returns
+    -------
+    Hierarchy
+        ``tets[0]`` is ``(V, T)``; ``surfaces[0]`` its boundary (``options["boundary_nodes"]`` is not
+        stored; recompute with :func:`boundary_surface`); ``options["fine_level"] == "user"``.
+
+    Raises
+    ------
+    cagegen.MeshInputError
+        Bad tets, or a boundary that is not one closed, manifold, self-intersection-free surface
+        (several solids, a cavity, touching pieces...); the message names the problem.
+    cagegen.CageError
+        A cage could not be built or certified.
+    """
+    if levels < 2:
+        raise ValueError(f"levels must be >= 2, got {levels}")
+    timer = Timer()
+    with timer("boundary"):
+        V, T = check_user_tets(V, T)
+        Vs, Fs, _ = boundary_surface(V, T)
+    cage_opts = dict(cage_opts or {})
+    if mesher == "tetwild" and method != "decimate":
+        # TetWild's coarse boundaries lie only within epsilon of each cage (see build_hierarchy)
+        cage_opts.setdefault("min_gap", 2.5 * epsilon)
+    with timer("cages"):
+        try:
+            surfaces, info = _cages(Vs, Fs, levels, method, face_counts, cage_opts, cache, progress)
+        except MeshInputError as exc:
+            raise MeshInputError(f"the boundary of the tet mesh is not a usable surface: {exc}") from exc
+    h0 = float(edge_length) if edge_length is not None else _mean_edge(V, T)
+    diag = float(np.linalg.norm(Vs.max(0) - Vs.min(0)))
+    if tet_retries is None:
+        tet_retries = 0 if method == "decimate" else 2
+    tets, Ps, reps, tt = tet_hierarchy(
+        surfaces, mesher=mesher, edge_length_fac=h0 / diag, epsilon=epsilon, extrapolation=extrapolation,
+        tet_retries=tet_retries, cache=cache, progress=progress, fine=(V, T),
+    )
+    H = Hierarchy(
+        surfaces=surfaces, tets=tets, P=Ps, prolongation_reports=reps, method=method, cage_info=info,
+        timings={**timer.seconds, **tt},
+        options={
+            "fine_level": "user", "levels": levels, "face_counts": face_counts, "mesher": mesher,
+            "edge_length": h0, "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": cage_opts,
+        },
+    )
+    if method != "decimate" and any(H.n_outside):
+        warnings.warn(f"hierarchy_from_tets: fine nodes outside the coarse tet meshes per level: {H.n_outside} "
+                      f"(extrapolated by {extrapolation!r}); the hierarchy is not certified", stacklevel=2)
+    return H
+
+
+# ----------------------------------------------------------------------------- save / load
+
+
+def _split_fields(H: Hierarchy) -> dict[str, Any]:
+    """Non-array dataclass fields of ``H`` (JSON)."""
+    skip = {"surfaces", "tets", "P", "prolongation_reports"}
+    return {f.name: getattr(H, f.name) for f in dataclasses.fields(H) if f.name not in skip}
+
+
+def save_hierarchy(H: Hierarchy, directory: str | os.PathLike, *, vtu: bool = False) -> Path:
+    """Write ``H`` to ``directory`` (``hierarchy.npz`` + ``hierarchy.json``) for :func:`load_hierarchy`.
+
+    Arrays are stored exactly (surfaces, tets, prolongations as CSR parts); the JSON holds the summary
+    (:meth:`Hierarchy.to_dict`), the remaining fields and the arrays' SHA-256. Both files are written
+    atomically. ``Hierarchy.save(dir)`` calls this.
+
+    Parameters
+    ----------
+    H : Hierarchy
+    directory : path
+        Created if needed; only ``hierarchy.npz``, ``hierarchy.json`` (and ``level_k.vtu`` with
+        ``vtu=True``) are written in it.
+    vtu : bool
+        Also write every level's tet mesh as ``level_k.vtu`` (:func:`write_vtu_levels`).
+
+    Returns
+    -------
+    Path of the directory.
+    """
+    from .io import json_default
+
+    d = Path(directory)
+    arrays: dict[str, np.ndarray] = {}
+    for k, (Vk, Fk) in enumerate(H.surfaces):
+        arrays[f"surface{k}_V"], arrays[f"surface{k}_F"] = np.asarray(Vk), np.asarray(Fk)
+    for k, (Vk, Tk) in enumerate(H.tets):
+        arrays[f"tets{k}_V"], arrays[f"tets{k}_T"] = np.asarray(Vk), np.asarray(Tk)
+    for k, Pk in enumerate(H.P):
+        Pk = sp.csr_matrix(Pk)
+        arrays[f"P{k}_data"], arrays[f"P{k}_indices"], arrays[f"P{k}_indptr"] = Pk.data, Pk.indices, Pk.indptr
+        arrays[f"P{k}_shape"] = np.asarray(Pk.shape, dtype=np.int64)
+    import io as _io
+
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    meta = {
+        "format": SAVE_FORMAT, "version": SAVE_VERSION, "levels": H.levels, "n_surfaces": len(H.surfaces),
+        "sha256": arrays_digest(arrays), "fields": _split_fields(H),
+        "prolongation_reports": [r.to_dict() for r in H.prolongation_reports], "summary": H.to_dict(),
+    }
+    atomic_write_bytes(d / "hierarchy.npz", buf.getvalue())
+    atomic_write_bytes(d / "hierarchy.json", json.dumps(meta, indent=1, default=json_default).encode())
+    if vtu:
+        write_vtu_levels(d, H)
+    return d
+
+
+def load_hierarchy(directory: str | os.PathLike) -> Hierarchy:
+    """Read a hierarchy written by :func:`save_hierarchy` (``Hierarchy.load(dir)``).
+
+    Raises
+    ------
+    NestmgError
+        Missing files, another format, or arrays that do not match the recorded SHA-256.
+    """
+    d = Path(directory)
+    npz, js = d / "hierarchy.npz", d / "hierarchy.json"
+    if not (npz.is_file() and js.is_file()):
+        raise NestmgError(f"{d}: no saved hierarchy (hierarchy.npz and hierarchy.json expected)")
+    meta = json.loads(js.read_text())
+    if meta.get("format") != SAVE_FORMAT:
+        raise NestmgError(f"{js}: not a nestmg hierarchy (format {meta.get('format')!r})")
+    if int(meta.get("version", 0)) > SAVE_VERSION:
+        raise NestmgError(f"{js}: written by a newer nestmg (version {meta['version']} > {SAVE_VERSION})")
+    with np.load(npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    if arrays_digest(arrays) != meta["sha256"]:
+        raise NestmgError(f"{npz}: arrays do not match the SHA-256 recorded in {js.name} (altered or corrupt)")
+    L = int(meta["levels"])
+    surfaces = [(arrays[f"surface{k}_V"], arrays[f"surface{k}_F"]) for k in range(int(meta["n_surfaces"]))]
+    tets = [(arrays[f"tets{k}_V"], arrays[f"tets{k}_T"]) for k in range(L)]
+    P = [sp.csr_matrix((arrays[f"P{k}_data"], arrays[f"P{k}_indices"], arrays[f"P{k}_indptr"]),
+                       shape=tuple(int(s) for s in arrays[f"P{k}_shape"])) for k in range(L - 1)]
+    reps = [ProlongationReport(**r) for r in meta["prolongation_reports"]]
+    known = {f.name for f in dataclasses.fields(Hierarchy)}
+    fields = {k: v for k, v in meta["fields"].items() if k in known}
+    return Hierarchy(surfaces=surfaces, tets=tets, P=P, prolongation_reports=reps, **fields)
+
+
+# ----------------------------------------------------------------------------- VTU output
+
+
+def write_vtu_levels(
+    directory: str | os.PathLike,
+    H: Hierarchy,
+    fields: dict[str, np.ndarray] | None = None,
+    *,
+    frame: tuple[np.ndarray, float] | None = None,
+) -> list[Path]:
+    """Write every level's tet mesh as ``level_k.vtu`` (ParaView), fine-level fields on ``level_0.vtu``.
+
+    Parameters
+    ----------
+    directory : path
+    H : Hierarchy
+    fields : dict of name -> (n_0,) or (n_0, c) array, optional
+        Point data of the fine level (e.g. the solution). Coarse levels get ``level`` cell data only.
+    frame : (center (3,), scale), optional
+        Coordinates are written as ``V * scale + center`` (undo :func:`nestmg.normalize`), so files are in
+        the user's coordinates.
+
+    Returns
+    -------
+    list of Path
+    """
+    from .io import save_vtu
+
+    d = Path(directory)
+    out = []
+    n0 = len(H.tets[0][0])
+    for name, f in (fields or {}).items():
+        if np.asarray(f).shape[0] != n0:
+            raise ValueError(f"field {name!r} has {np.asarray(f).shape[0]} values, the fine level {n0} nodes")
+    for k, (Vk, Tk) in enumerate(H.tets):
+        Vw = np.asarray(Vk) if frame is None else np.asarray(Vk) * frame[1] + np.asarray(frame[0])
+        pdata = {n: np.asarray(f) for n, f in (fields or {}).items()} if k == 0 else {}
+        p = d / f"level_{k}.vtu"
+        save_vtu(p, Vw, Tk, point_data=pdata, cell_data={"level": np.full(len(Tk), k, dtype=np.int32)})
+        out.append(p)
+    return out
+
+
+# ----------------------------------------------------------------------------- P2 on top
+
+
+def p1_to_p2_prolongation(n_vertices: int, edges) -> sp.csr_matrix:
+    """Exact interpolation of P1 functions into P2 on the same tets: a P2 fine level above a P1 hierarchy.
+
+    P2 degrees of freedom ordered as in scikit-fem's ``ElementTetP2`` on a ``MeshTet``: the vertices
+    first, then one per edge (``mesh.edges.T``). A P1 function is reproduced exactly: vertex values are
+    copied, an edge's value is the mean of its two vertices. With ``Ps = [p1_to_p2_prolongation(...)] +
+    H.P`` a P2 matrix gets a multigrid whose second level is the user's P1 mesh.
+
+    Parameters
+    ----------
+    n_vertices : int
+    edges : (e,2) int array
+        Vertex pairs of the edges, in the P2 numbering order.
+
+    Returns
+    -------
+    (n_vertices + e, n_vertices) csr_matrix
+
+    Examples
+    --------
+    >>> P = p1_to_p2_prolongation(3, [[0, 1], [1, 2]])
+    >>> P.toarray().tolist()
+    [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.5]]
+    """
+    E = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    ne = len(E)
+    rows = np.concatenate([np.arange(n_vertices), np.repeat(n_vertices + np.arange(ne), 2)])
+    cols = np.concatenate([np.arange(n_vertices), E.ravel()])
+    vals = np.concatenate([np.ones(n_vertices), np.full(2 * ne, 0.5)])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n_vertices + ne, n_vertices))

@@ -25,6 +25,7 @@ _BACKENDS: dict[str, str] = {
     "decimate": "cagegen.decimate:decimate_backend",
     "nested": "cagegen.nested:nested_backend",
     "lazy": "cagegen.copyleft.lazy:lazy_backend",
+    "sdf": "cagegen.sdf:sdf_backend",
 }
 
 

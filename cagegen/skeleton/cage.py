@@ -1,0 +1,326 @@
+"""Cross-sections and the tight cage of Casti et al. (2019), Sec. 3.3 and 4.
+
+* :func:`auto_bending_nodes`: bending nodes where the local thickness r(p) (radius of the maximal
+  inscribed ball) changes fastest along a branch (Sec. 4: critical points of the smoothed r').
+* :func:`cross_section`: seeds on a circle orthogonal to the skeleton (radius 20% of r(p), 20 seeds),
+  integral lines of ∇f to the surface (points G_p), PCA plane, and the quad maximising the signed
+  sums ±λ1 x ± λ2 y (the paper's four maximisations).
+* :func:`tight_cage`: tubes between consecutive sections of a chain (side quads), convex-hull
+  polyhedra of the incident sections projected on a sphere at branching nodes, quad caps at leaves.
+"""
+
+from __future__ import annotations
+
+import igl
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import ConvexHull
+
+from ..errors import CageError
+from .field import GuidingField
+from .graph import Skeleton
+
+__all__ = ["CrossSection", "auto_bending_nodes", "cross_section", "inscribed_radius", "tight_cage"]
+
+
+def inscribed_radius(P: np.ndarray, V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Radius of the largest ball centred at each point and inside the surface (distance to M)."""
+    d2, _, _ = igl.point_mesh_squared_distance(np.atleast_2d(P), V, F)
+    return np.sqrt(d2)
+
+
+def _chain_polyline(skel: Skeleton, chain) -> np.ndarray:
+    return skel.nodes[np.asarray(chain.nodes)]
+
+
+def _arclength(X: np.ndarray) -> np.ndarray:
+    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
+
+
+def auto_bending_nodes(skel: Skeleton, V: np.ndarray, F: np.ndarray, spacing: float,
+                       min_separation: float = 1.5, rel_threshold: float = 0.15) -> tuple[Skeleton, dict]:
+    """Place bending nodes where the thickness r changes fastest along each chain (paper Sec. 4).
+
+    The skeleton is resampled at ``spacing``; along every chain r(s) (distance to M) is smoothed,
+    differentiated, and the local extrema of r' with |r'| above ``rel_threshold`` become bending nodes,
+    kept at least ``min_separation`` x (local radius) from the chain ends and from each other. Every
+    chain incident to a branching node gets a bending node where the limb leaves the body (the
+    largest |r'| near that end, or ``1.5 r`` of the branching node away from it), so junction
+    polyhedra stay small.
+
+    Returns
+    -------
+    skel : Skeleton
+        Resampled copy with the bending nodes set.
+    info : dict
+        Per chain: number of samples, bending positions (arc length).
+    """
+    S = skel.resampled(spacing)
+    deg = S.degree
+    r = inscribed_radius(S.nodes, V, F)
+    bending: set = set(S.bending)
+    info = {"chains": []}
+    for ch in S.chains():
+        ids = np.asarray(ch.nodes)
+        X = S.nodes[ids]
+        s = _arclength(X)
+        L = s[-1]
+        if len(ids) < 3:
+            continue
+        rr = gaussian_filter1d(r[ids], sigma=2.0, mode="nearest")
+        dr = np.gradient(rr, s)
+        chosen: list = []
+        cand = [i for i in range(1, len(ids) - 1)
+                if abs(dr[i]) >= rel_threshold and abs(dr[i]) >= abs(dr[i - 1]) and abs(dr[i]) >= abs(dr[i + 1])]
+        cand.sort(key=lambda i: -abs(dr[i]))
+
+        def far_enough(i):
+            lim = min_separation * r[ids[i]]
+            if s[i] < lim or L - s[i] < lim:
+                return False
+            return all(abs(s[i] - s[j]) >= min_separation * max(r[ids[i]], r[ids[j]]) for j in chosen)
+
+        for end_pos, end_node in ((0, ch.start), (len(ids) - 1, ch.end)):
+            if deg[end_node] >= 3:
+                # the limb's attachment: largest |r'| within 3 radii of the branching node, else 1.5 r
+                d = np.abs(s - s[end_pos])
+                near = [i for i in range(1, len(ids) - 1)
+                        if r[end_node] * 0.8 <= d[i] <= 3.0 * r[end_node]]
+                if near:
+                    i = max(near, key=lambda i: abs(dr[i]))
+                    if abs(dr[i]) < rel_threshold:
+                        i = min(near, key=lambda i: abs(d[i] - 1.5 * r[end_node]))
+                    if all(abs(s[i] - s[j]) > 0.5 * r[ids[i]] for j in chosen):
+                        chosen.append(i)
+        for i in cand:
+            if far_enough(i):
+                chosen.append(i)
+        for i in chosen:
+            if deg[ids[i]] == 2:
+                bending.add(int(ids[i]))
+        info["chains"].append({"length": float(L), "n_samples": int(len(ids)),
+                               "bending_arclength": sorted(float(s[i]) for i in chosen)})
+    return S.with_bending(sorted(bending)), info
+
+
+class CrossSection:
+    """The quad section at a control node.
+
+    Attributes
+    ----------
+    node : int
+        Skeleton node.
+    center, tangent : (3,) float arrays
+        Node position and unit skeleton direction (oriented along its chain).
+    radius : float
+        Inscribed-ball radius at the node.
+    seeds, hits : (k,3) float arrays
+        Circle seeds and where their integral lines meet the surface (G_p).
+    quad : (4,3) float array
+        The section's quad, counter-clockwise around ``tangent``.
+    """
+
+    def __init__(self, node, center, tangent, radius, seeds, hits, quad):
+        self.node, self.center, self.tangent, self.radius = node, center, tangent, radius
+        self.seeds, self.hits, self.quad = seeds, hits, quad
+
+
+def _frame(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.eye(3)[np.argmin(np.abs(t))]
+    u = np.cross(t, a)
+    u /= np.linalg.norm(u)
+    return u, np.cross(t, u)
+
+
+def best_quad(G: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+    """The paper's quad of a ring of surface points G_p: PCA plane, four weighted maximisations.
+
+    q0..q3 maximise (+λ1 x + λ2 y), (−λ1 x + λ2 y), (−λ1 x − λ2 y), (+λ1 x − λ2 y) over the points
+    projected on the first two principal axes; a point is not used twice (the next best one is taken).
+    The result is ordered counter-clockwise around ``tangent``.
+    """
+    c = G.mean(axis=0)
+    w, U = np.linalg.eigh(np.cov((G - c).T))
+    order = np.argsort(w)[::-1]
+    lam, U = np.maximum(w[order], 0.0), U[:, order]
+    if np.dot(np.cross(U[:, 0], U[:, 1]), tangent) < 0:
+        U[:, 1] = -U[:, 1]
+    x, y = (G - c) @ U[:, 0], (G - c) @ U[:, 1]
+    l1, l2 = np.sqrt(lam[0]), np.sqrt(lam[1])  # weights ~ spread along each axis (paper: λ1, λ2)
+    # the paper weights by the eigenvalues; using their square roots (standard deviations) gives the
+    # same argmax for round sections and does not collapse the quad onto one axis for elongated ones
+    used: list = []
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        score = sx * l1 * x + sy * l2 * y
+        score[used] = -np.inf
+        used.append(int(np.argmax(score)))
+    return G[used]
+
+
+def cross_section(field: GuidingField, node: int, center: np.ndarray, tangent: np.ndarray,
+                  radius: float, n_seeds: int = 20, seed_radius: float = 0.2) -> CrossSection:
+    """Section at a control node (paper Sec. 3.3, Fig. 4).
+
+    Raises
+    ------
+    CageError
+        Fewer than 4 integral lines reached the surface.
+    """
+    u, w = _frame(tangent)
+    th = 2 * np.pi * np.arange(n_seeds) / n_seeds
+    seeds = center + seed_radius * radius * (np.cos(th)[:, None] * u + np.sin(th)[:, None] * w)
+    hits, ok = field.trace(seeds)
+    if ok.sum() < 4:
+        raise CageError(f"skeleton cage, cross-section at skeleton node {node}: only {int(ok.sum())} of "
+                        f"{n_seeds} integral lines reached the surface", layer=1)
+    quad = best_quad(hits[ok], tangent)
+    return CrossSection(node, center, tangent, radius, seeds, hits[ok], quad)
+
+
+def _align(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Cyclic shift of ``cur`` (same orientation) whose corners best match ``prev``'s directions."""
+    a = prev - prev.mean(axis=0)
+    b = cur - cur.mean(axis=0)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    best = max(range(4), key=lambda s: float(np.sum(a * np.roll(b, -s, axis=0))))
+    return np.roll(cur, -best, axis=0)
+
+
+def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
+    """Assemble the tight cage from the sections (vertices on M).
+
+    Parameters
+    ----------
+    skel : Skeleton
+    sections : dict node -> CrossSection
+    chain_controls : list of (chain, [control nodes in chain order])
+
+    Returns
+    -------
+    dict with ``V`` (n,3), ``quads`` (q,4) int, ``tris`` (t,3) int (junction faces), ``F`` (m,3) int
+    (all faces triangulated, outward), ``section_vertices`` node -> 4 vertex indices.
+
+    Raises
+    ------
+    CageError
+        A junction hull misses a section edge, or the assembled surface is not closed and manifold.
+    """
+    verts: list = []
+    sec_vid: dict = {}
+    # consistent corner order along each chain, then vertex ids
+    for ch, ctrl in chain_controls:
+        prev = None
+        for nd in ctrl:
+            q = sections[nd].quad
+            if nd in sec_vid:  # shared section (between two junctions): keep its order
+                prev = np.asarray([verts[i] for i in sec_vid[nd]])
+                continue
+            if prev is not None:
+                q = _align(prev, q)
+            sec_vid[nd] = list(range(len(verts), len(verts) + 4))
+            verts.extend(q)
+            prev = q
+    V = np.asarray(verts, dtype=float)
+    quads, tris = [], []
+    deg = skel.degree
+    for ch, ctrl in chain_controls:
+        for a, b in zip(ctrl[:-1], ctrl[1:]):
+            A, B = sec_vid[a], sec_vid[b]
+            for k in range(4):
+                quads.append([A[k], A[(k + 1) % 4], B[(k + 1) % 4], B[k]])
+        for end in (ch.start, ch.end):
+            if deg[end] == 1:  # leaf: cap quad
+                quads.append(list(sec_vid[end]))
+    # junctions: convex hull of the incident sections projected on a sphere (paper Sec. 3.3, Fig. 5)
+    for b in skel.branching:
+        inc = []
+        for ch, ctrl in chain_controls:
+            if ch.start == b:
+                inc.append(ctrl[0])
+            if ch.end == b:
+                inc.append(ctrl[-1])
+        ids = np.array([i for nd in inc for i in sec_vid[nd]])
+        if len(np.unique(ids)) != len(ids):
+            raise CageError(f"skeleton cage, junction at node {b}: a section is incident twice (a chain "
+                            "from this node back to it); add bending nodes", layer=1)
+        P = V[ids]
+        c = P.mean(axis=0)
+        S = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)
+        hull = ConvexHull(S)
+        H = ids[hull.simplices]
+        sec_of = {int(v): k for k, nd in enumerate(inc) for v in sec_vid[nd]}
+        owner = np.array([[sec_of[int(v)] for v in tri] for tri in H])
+        inside_one = (owner == owner[:, :1]).all(axis=1)
+        hull_edges = {tuple(sorted(e)) for tri in H for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
+        for k, nd in enumerate(inc):
+            q = sec_vid[nd]
+            missing = [(q[i], q[(i + 1) % 4]) for i in range(4) if tuple(sorted((q[i], q[(i + 1) % 4]))) not in hull_edges]
+            if missing or int(np.sum(inside_one & (owner[:, 0] == k))) != 2:
+                raise CageError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
+                                f"section at node {nd} (the paper's Steiner-vertex fix is not implemented); "
+                                "move or add bending nodes near this junction", layer=1)
+        tris.extend(H[~inside_one].tolist())
+    quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
+    tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+    F = np.vstack([_split_quads(V, quads), tris])
+    F = _orient_outward(V, F)
+    _check_closed(V, F)
+    # orient the quads like the triangles
+    quads = _orient_quads(quads, F)
+    return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid}
+
+
+def _split_quads(V: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Two triangles per quad, along the shorter diagonal."""
+    if len(Q) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    d02 = np.linalg.norm(V[Q[:, 0]] - V[Q[:, 2]], axis=1)
+    d13 = np.linalg.norm(V[Q[:, 1]] - V[Q[:, 3]], axis=1)
+    a = np.where((d02 <= d13)[:, None], Q[:, [0, 1, 2]], Q[:, [0, 1, 3]])
+    b = np.where((d02 <= d13)[:, None], Q[:, [0, 2, 3]], Q[:, [1, 2, 3]])
+    return np.vstack([a, b])
+
+
+def triangulate_quads(V: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Triangles of quads (shorter diagonal), orientation kept."""
+    return _split_quads(V, np.asarray(quads, dtype=np.int64))
+
+
+def _orient_outward(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    F2, _ = igl.bfs_orient(F)
+    F2 = np.asarray(F2, dtype=np.int64)
+    vol = np.einsum("ij,ij->i", V[F2[:, 0]], np.cross(V[F2[:, 1]], V[F2[:, 2]])).sum() / 6
+    return F2[:, ::-1].copy() if vol < 0 else F2
+
+
+def _check_closed(V: np.ndarray, F: np.ndarray) -> None:
+    from .._geometry import edge_stats
+
+    es = edge_stats(F, len(V))
+    if es.n_boundary_edges or es.n_nonmanifold_edges or es.n_inconsistent_edges:
+        raise CageError(f"skeleton cage assembly: the tight cage is not a closed manifold ({es.n_boundary_edges} "
+                        f"boundary, {es.n_nonmanifold_edges} non-manifold, {es.n_inconsistent_edges} "
+                        "inconsistent edges)", layer=1)
+
+
+def _directed_edges(F: np.ndarray) -> set:
+    return {(int(a), int(b)) for tri in F for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
+
+
+def _orient_quads(Q: np.ndarray, F: np.ndarray) -> np.ndarray:
+    de = _directed_edges(F)
+    out = Q.copy()
+    for i, q in enumerate(Q):
+        if (int(q[0]), int(q[1])) not in de:
+            out[i] = q[::-1]
+    return out
+
+
+def _match_orientation(T: np.ndarray, F: np.ndarray) -> np.ndarray:
+    de = _directed_edges(F)
+    out = T.copy()
+    for i, t in enumerate(T):
+        if (int(t[0]), int(t[1])) not in de:
+            out[i] = t[::-1]
+    return out

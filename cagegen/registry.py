@@ -26,6 +26,7 @@ _BACKENDS: dict[str, str] = {
     "nested": "cagegen.nested:nested_backend",
     "lazy": "cagegen.copyleft.lazy:lazy_backend",
     "sdf": "cagegen.sdf:sdf_backend",
+    "skeleton": "cagegen.skeleton:skeleton_backend",
 }
 
 

@@ -35,7 +35,7 @@ import scipy.sparse as sp
 
 from cagegen.errors import MeshInputError, NestmgError
 
-from .cache import arrays_digest, atomic_write_bytes, cache_key, load_entry, save_entry
+from .cache import arrays_digest, atomic_write_bytes
 from .hierarchy import Hierarchy, tet_hierarchy
 from .progress import Timer
 from .prolongation import ProlongationReport
@@ -77,7 +77,7 @@ def check_user_tets(V, T) -> tuple[np.ndarray, np.ndarray]:
     Examples
     --------
     >>> V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [5, 5, 5]])
-    >>> check_user_tets(V, [[0, 1, 2, 3]])
+    >>> check_user_tets(V, [[0, 1, 2, 3]])  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
     cagegen.errors.MeshInputError: tet mesh: 1 of 5 nodes are used by no tet (first: node 4); remove them ...
@@ -144,28 +144,6 @@ def boundary_surface(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.ascontiguousarray(V[index]), remap[F], index
 
 
-def _cages(Vs, Fs, n_surf, method, face_counts, cage_opts, cache, progress):
-    """Certified cages of the boundary surface, through the cache (same keys as build_hierarchy)."""
-    import cagegen
-
-    opts = {"stage": "cages", "method": method, "levels": n_surf, "face_counts": face_counts, **cage_opts}
-    key = cache_key([Vs, Fs], opts)
-    hit = load_entry(key) if cache else None
-    if hit is not None:
-        arrays, info = hit
-        return [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(n_surf)], dict(info, cached=True)
-    t0 = time.perf_counter()
-    surfaces, info = cagegen.build_cages(Vs, Fs, n_surf, method=method, face_counts=face_counts,
-                                         return_info=True, progress=progress, **cage_opts)
-    info = dict(info, seconds=time.perf_counter() - t0)
-    if cache:
-        arrays = {}
-        for k, (Vk, Fk) in enumerate(surfaces):
-            arrays[f"V{k}"], arrays[f"F{k}"] = Vk, Fk
-        save_entry(key, arrays, info)
-    return surfaces, info
-
-
 def _mean_edge(V: np.ndarray, T: np.ndarray) -> float:
     E = np.concatenate([T[:, [i, j]] for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
     E = np.unique(np.sort(E, axis=1), axis=0)
@@ -181,6 +159,7 @@ def hierarchy_from_tets(
     face_counts: list[int] | None = None,
     mesher: str = "tetwild",
     edge_length: float | None = None,
+    coarsening: float | None = 8.0,
     epsilon: float = 1e-3,
     extrapolation: str = "clamped",
     tet_retries: int | None = None,
@@ -205,8 +184,11 @@ def hierarchy_from_tets(
     mesher : {"tetwild", "tetgen"}
         Mesher of the coarse layers (``tetgen`` is the AGPL opt-in extra).
     edge_length : float, optional
-        Absolute target edge length of level 1 is ``2 * edge_length``, doubling per level. Default: the
-        mean edge length of the user's tets.
+        Edge length (in ``V``'s units) the coarse sizing starts from. Default: the mean edge length of
+        the user's tets.
+    coarsening : float or None
+        Wanted tet ratio between consecutive levels (default 8, as :func:`nestmg.build_hierarchy`); None:
+        the edge length doubles per level.
     epsilon : float
         TetWild envelope relative to each layer's bounding-box diagonal.
     extrapolation : str
@@ -226,8 +208,9 @@ def hierarchy_from_tets(
     Returns
     -------
     Hierarchy
-        ``tets[0]`` is ``(V, T)``; ``surfaces[0]`` its boundary (``options["boundary_nodes"]`` is not
-        stored; recompute with :func:`boundary_surface`); ``options["fine_level"] == "user"``.
+        ``tets[0]`` is ``(V, T)`` (float64 / int64, same values and order); ``surfaces[0]`` its boundary
+        (:func:`boundary_surface` gives the node map); everything in ``V``'s coordinates
+        (``H.frame`` maps to the normalised frame); ``options["fine_level"] == "user"``.
 
     Raises
     ------
@@ -237,36 +220,45 @@ def hierarchy_from_tets(
     cagegen.CageError
         A cage could not be built or certified.
     """
+    from .hierarchy import _normalize, build_cage_surfaces
+
     if levels < 2:
         raise ValueError(f"levels must be >= 2, got {levels}")
+    t0 = time.perf_counter()
     timer = Timer()
     with timer("boundary"):
         V, T = check_user_tets(V, T)
-        Vs, Fs, _ = boundary_surface(V, T)
-    cage_opts = dict(cage_opts or {})
-    if mesher == "tetwild" and method != "decimate":
-        # TetWild's coarse boundaries lie only within epsilon of each cage (see build_hierarchy)
-        cage_opts.setdefault("min_gap", 2.5 * epsilon)
+        Vn, center, scale = _normalize(V)  # the work is done at unit diagonal, the result is in V's frame
+        Vs, Fs, index = boundary_surface(Vn, T)
     with timer("cages"):
-        try:
-            surfaces, info = _cages(Vs, Fs, levels, method, face_counts, cage_opts, cache, progress)
+        try:  # same clearance (min_gap = 2.5 epsilon under TetWild) and cache as build_hierarchy
+            surfaces_n, info = build_cage_surfaces(
+                Vs, Fs, levels, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
+                cache=cache, progress=progress, cage_opts=cage_opts,
+            )
         except MeshInputError as exc:
             raise MeshInputError(f"the boundary of the tet mesh is not a usable surface: {exc}") from exc
-    h0 = float(edge_length) if edge_length is not None else _mean_edge(V, T)
-    diag = float(np.linalg.norm(Vs.max(0) - Vs.min(0)))
+    h0 = float(edge_length) / scale if edge_length is not None else _mean_edge(Vn, T)
     if tet_retries is None:
         tet_retries = 0 if method == "decimate" else 2
-    tets, Ps, reps, tt = tet_hierarchy(
-        surfaces, mesher=mesher, edge_length_fac=h0 / diag, epsilon=epsilon, extrapolation=extrapolation,
-        tet_retries=tet_retries, cache=cache, progress=progress, fine=(V, T),
+    tets_n, Ps, reps, tt = tet_hierarchy(
+        surfaces_n, mesher=mesher, edge_length=h0, coarsening=coarsening, epsilon=epsilon,
+        extrapolation=extrapolation, tet_retries=tet_retries, cache=cache, progress=progress, fine=(Vn, T), t0=t0,
     )
+    surfaces = [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n]
+    if np.array_equal(surfaces_n[0][1], Fs):  # not repaired: the boundary of the user's own nodes, exactly
+        surfaces[0] = (V[index], Fs)
+    tets = [(V, T)] + [(Vt * scale + center, Tt) for Vt, Tt in tets_n[1:]]
+    info["frame"] = {"center": center.tolist(), "scale": scale}
     H = Hierarchy(
         surfaces=surfaces, tets=tets, P=Ps, prolongation_reports=reps, method=method, cage_info=info,
-        timings={**timer.seconds, **tt},
+        timings={**timer.seconds, **tt, "total": time.perf_counter() - t0},
         options={
             "fine_level": "user", "levels": levels, "face_counts": face_counts, "mesher": mesher,
-            "edge_length": h0, "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": cage_opts,
+            "edge_length": h0 * scale, "coarsening": coarsening, "epsilon": epsilon, "extrapolation": extrapolation,
+            "cage_opts": info.get("cage_opts", {}),
         },
+        frame={"center": center, "scale": scale},
     )
     if method != "decimate" and any(H.n_outside):
         warnings.warn(f"hierarchy_from_tets: fine nodes outside the coarse tet meshes per level: {H.n_outside} "

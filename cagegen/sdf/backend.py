@@ -117,10 +117,12 @@ def sdf_cage_layer(
     optimize: bool = True,
     spacing: float = 0.5,
     dhat: float = 0.25,
-    opt_iters: int = 40,
-    flip_rounds: int = 2,
+    opt_iters: int = 15,
+    flip_rounds: int = 1,
+    opt_time_limit: float = 10.0,
     prepass: bool = True,
     max_retries: int = 3,
+    min_gap: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
 
@@ -152,10 +154,15 @@ def sdf_cage_layer(
         Barrier activation distance, in units of ``c``.
     opt_iters, flip_rounds : int
         Descent steps per round, rounds of edge flips.
+    opt_time_limit : float
+        Seconds after which the descent stops (the cage so far is kept).
     prepass : bool
         Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
     max_retries : int
         Rebuilds with ``c`` doubled when a layer cannot be finished or certified.
+    min_gap : float
+        Clearance the cage must keep from ``(V, F)``, relative to ``unit`` (certified exactly; the
+        simplification keeps twice that on its distance grid).
 
     Returns
     -------
@@ -182,13 +189,14 @@ def sdf_cage_layer(
     t0 = time.perf_counter()
     V, F = as_mesh_arrays(V, F, "fine layer")
     n_faces = _check_target(n_faces)
-    if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0:
-        raise ValueError("c and dhat must be > 0; margin and spacing >= 0")
+    if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0:
+        raise ValueError("c and dhat must be > 0; margin, spacing and min_gap >= 0")
     unit = float(bbox_diagonal(V) if unit is None else unit)
     lo, hi = V.min(0), V.max(0)
     center = 0.5 * (lo + hi)
     Vn = (V - center) / unit
     g_fine = genus(Vn, F)
+    gap_rel = float(min_gap) / bbox_diagonal(Vn)  # verify_nesting's min_gap is relative to layer 0
     attempts = []
     for attempt in range(int(max_retries) + 1):
         ck = c * 2.0 ** attempt
@@ -209,12 +217,13 @@ def sdf_cage_layer(
             sec["prepass"] = time.perf_counter() - t
             t = time.perf_counter()
             if len(G) > n_faces:
-                U, G, sinfo = constrained_simplify(U, G, Vn, F, n_faces, env.sdf, margin=margin * ck)
+                U, G, sinfo = constrained_simplify(U, G, Vn, F, n_faces, env.sdf,
+                                                   margin=max(margin * ck, 2 * float(min_gap)))
             else:
                 sinfo = {"batches": 0, "collapses": 0}
             sec["simplify"] = time.perf_counter() - t
             t = time.perf_counter()
-            rep = verify_nesting([(Vn, F), (U, G)])
+            rep = verify_nesting([(Vn, F), (U, G)], min_gap=gap_rel)
             sec["verify"] = time.perf_counter() - t
             if not rep.ok:
                 raise SimplifyStuck(f"simplified cage not certified: {rep.pairs[0].reason}")
@@ -223,9 +232,10 @@ def sdf_cage_layer(
                 t = time.perf_counter()
                 try:
                     U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=spacing * ck, dhat=dhat * ck,
-                                                  iters=opt_iters, flip_rounds=flip_rounds)
+                                                  iters=opt_iters, flip_rounds=flip_rounds,
+                                                  time_limit=opt_time_limit)
                     oinfo["ran"] = True
-                    rep2 = verify_nesting([(Vn, F), (U2, G2)])
+                    rep2 = verify_nesting([(Vn, F), (U2, G2)], min_gap=gap_rel)
                     oinfo["certified"] = bool(rep2.ok)
                     if rep2.ok:
                         U, G, rep = U2, G2, rep2
@@ -277,6 +287,7 @@ def sdf_backend(
     face_counts,
     *,
     progress: Callable[[str], None] | None = None,
+    certify: bool = True,
     **opts,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"sdf"``: layer ``k+1`` is :func:`sdf_cage_layer` of layer ``k`` (nested, exact sizes).
@@ -290,9 +301,13 @@ def sdf_backend(
         Exact (even) face counts of the cages, finest first.
     progress : callable, optional
         Called with a one-line message per layer.
+    certify : bool
+        Accepted for the registry's protocol; every layer is certified inside :func:`sdf_cage_layer`
+        regardless (the certificate decides between the optimised cage, the simplified one and a
+        rebuild), so False changes nothing.
     **opts
-        Passed to :func:`sdf_cage_layer` (``c``, ``amplify``, ``optimize``, ...). Lengths are relative to
-        the *input's* bounding-box diagonal on every layer.
+        Passed to :func:`sdf_cage_layer` (``c``, ``amplify``, ``optimize``, ``min_gap``, ...). Lengths
+        are relative to the *input's* bounding-box diagonal on every layer.
 
     Returns
     -------
@@ -308,11 +323,12 @@ def sdf_backend(
     cagegen.CageError
         With ``layer`` set (1 = first cage) when a layer could not be built and certified.
     """
+    import inspect
+
     import igl
 
-    allowed = set(sdf_cage_layer.__code__.co_varnames[3:sdf_cage_layer.__code__.co_argcount
-                                                        + sdf_cage_layer.__code__.co_kwonlyargcount])
-    unknown = set(opts) - allowed - {"unit"}
+    allowed = set(list(inspect.signature(sdf_cage_layer).parameters)[3:]) - {"unit"}
+    unknown = set(opts) - allowed
     if unknown:
         raise ValueError(f"unknown option(s) for the sdf backend: {sorted(unknown)}")
     t0 = time.perf_counter()
@@ -347,3 +363,21 @@ def sdf_backend(
         "layers": per_layer,
     }
     return layers, info
+
+
+def nested_fallback(Vf, Ff, m, exc, rep, log, k):
+    """Fallback ``"sdf"`` of the ``nested`` backend (``nested_backend(..., fallback="sdf")``): an sdf cage.
+
+    Same signature as the other entries of :data:`cagegen.nested.backend.FALLBACKS`: fine layer
+    ``(Vf, Ff)`` in unit-diagonal coordinates, target ``m`` faces (rounded up to even), the flow's
+    error ``exc``, a reporter, the recovery log and the layer number. MIT, no copyleft import.
+    """
+    m = int(m) + int(m) % 2
+    rep.say(f"layer {k}: flow and intermediate layers failed; falling back to an sdf cage")
+    try:
+        C, G, info = sdf_cage_layer(Vf, Ff, m)
+    except (CageError, ValueError) as exc2:
+        raise CageError(f"{exc}; the sdf fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
+    log.append({"layer": k, "action": f"fall back to an sdf cage of {len(G)} faces (cagegen.sdf)",
+                "stage": "fallback", "reason": str(exc)})
+    return C, G, {"fallback": "sdf", "sdf": info, "seconds": {"sdf": info["seconds"]["total"]}}

@@ -191,7 +191,7 @@ def optimize_cage(
     step: float | None = None,
     iters: int = 60,
     flip_rounds: int = 2,
-    time_limit: float = 20.0,
+    time_limit: float = 10.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Relocate the cage's vertices (and flip edges) to lower spacing + MIPS energy, intersection-free.
 
@@ -227,11 +227,14 @@ def optimize_cage(
     info = {"steps": 0, "flips": 0, "ccd_limited": 0}
     nc = len(C)
 
+    active = np.zeros(nc, dtype=bool)  # cage vertices in barrier pairs at the last gradient
+
     def total(pm, X, Cc, grad=False):
         col = pm.collisions(X, dhat)
         if grad:
             e, g = energy(Cc, grad=True)
             gb = barrier.gradient(col, pm.mesh, X)[: 3 * nc].reshape(-1, 3)
+            active[:] = np.abs(gb).max(axis=1) > 0
             return e + float(barrier(col, pm.mesh, X)), g + gb
         return energy(Cc) + float(barrier(col, pm.mesh, X))
 
@@ -258,9 +261,17 @@ def optimize_cage(
             if float(gn.max()) < 1e-12:
                 break
             # per-vertex normalised gradient (a positive diagonal scaling: still a descent direction)
-            d = -g * (step / np.maximum(gn, 1e-3 * float(gn.max())))[:, None]
+            gref = float(np.quantile(gn, 0.9))
+            d = -g * (step / np.maximum(gn, gref if gref > 0 else float(gn.max())))[:, None]
             X1 = pm.stack(C + d, Xf)
             amax = pm.stepsize(X, X1, min_dist)
+            if amax < 0.3 and active.any():
+                # a pair in contact range blocks the step: hold its cage vertices, move the others
+                d2_ = np.where(active[:, None], 0.0, d)
+                amax2 = pm.stepsize(X, pm.stack(C + d2_, Xf), min_dist)
+                if amax2 > amax:
+                    d, amax = d2_, amax2
+                    info["held"] = info.get("held", 0) + 1
             if amax < 1.0:
                 info["ccd_limited"] += 1
             a = 0.9 * amax

@@ -1,0 +1,164 @@
+"""Tests of the ``sdf`` cage backend (Qiu, Liao, Chen 2024) on procedural shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import cagegen
+from cagegen import build_cages, verify_nesting
+from cagegen.errors import CageError, LevelsError
+from cagegen.sdf.backend import genus, sdf_cage_layer
+from cagegen.sdf.envelope import SDFGrid, active_points, build_envelope
+from cagegen.sdf.optimize import mips
+from cagegen.sdf.simplify import constrained_simplify
+from nestmg import shapes
+
+
+def _unit(V):
+    lo, hi = V.min(0), V.max(0)
+    return (V - 0.5 * (lo + hi)) / np.linalg.norm(hi - lo)
+
+
+def _c_ring(gap: float, res: int = 64):
+    """A torus cut by a slit of width ``gap`` (absolute): genus 0, its two ends nearly touch."""
+    def f(P):
+        R, r = 1.0, 0.35
+        q = np.c_[np.hypot(P[:, 0], P[:, 1]) - R, P[:, 2]]
+        torus = np.linalg.norm(q, axis=1) - r
+        slab = np.maximum(np.abs(P[:, 1]) - 0.5 * gap, -P[:, 0])  # the slit, on the +x side
+        return np.maximum(torus, -slab)
+    b = np.array([[-1.4, -1.4, -0.4], [1.4, 1.4, 0.4]])
+    return shapes.mesh_implicit(f, b, res=res, relax=0)
+
+
+@pytest.fixture(scope="module")
+def blobs():
+    return shapes.neck_blobs(res=32)
+
+
+@pytest.fixture(scope="module")
+def g2():
+    return shapes.genus2(res=40)
+
+
+def test_registered():
+    assert "sdf" in cagegen.available_backends()
+
+
+def test_envelope_contains_input_and_keeps_genus(g2):
+    V, F = g2
+    Vn = _unit(V)
+    env = build_envelope(Vn, F, c=0.01, h=0.01)
+    rep = verify_nesting([(Vn, F), (env.V, env.F)])
+    assert rep.ok, rep.pairs[0].reason
+    assert genus(env.V, env.F) == genus(Vn, F) == 2
+    # the iso-value c is the distance: the gap is c up to the marching-cubes error (well below c)
+    assert 0.5 * 0.01 < rep.pairs[0].min_gap < 0.01
+
+
+def test_amplification_separates_nearly_touching_parts():
+    gap = 0.1  # absolute; the ring's bounding-box diagonal is 3.88, so the slit is 0.026 of it
+    V, F = _c_ring(gap)
+    Vn = _unit(V)
+    assert genus(Vn, F) == 0
+    c = 0.02  # the slit is narrower than 2c: the plain offset glues the two ends
+    plain = build_envelope(Vn, F, c=c, h=c / 3, amplify=False)
+    assert genus(plain.V, plain.F) == 1
+    # r must exceed the slit (paper: r is tied to c); the amplified field separates the ends again
+    amp = build_envelope(Vn, F, c=c, h=c / 3, r=2.5 * c)
+    assert amp.info["n_active"] > 0
+    assert genus(amp.V, amp.F) == 0
+    assert verify_nesting([(Vn, F), (amp.V, amp.F)]).ok
+
+
+def test_active_points_none_on_a_sphere():
+    V, F = shapes.sphere(res=20)
+    assert len(active_points(_unit(V), F, 0.025, 0.15)) == 0
+
+
+def test_sdf_grid_interpolates_linear_functions_exactly():
+    ax = np.arange(6) * 0.5
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    grid = SDFGrid(origin=np.zeros(3), h=0.5, values=2 * X - Y + 3 * Z)
+    P = np.random.default_rng(0).uniform(0, 2.5, size=(50, 3))
+    val, g = grid(P, grad=True)
+    np.testing.assert_allclose(val, 2 * P[:, 0] - P[:, 1] + 3 * P[:, 2], atol=1e-12)
+    np.testing.assert_allclose(g, np.tile([2.0, -1.0, 3.0], (50, 1)), atol=1e-12)
+
+
+def test_mips_value_and_gradient():
+    s = np.sqrt(3) / 2
+    V = np.array([[0, 0, 0], [1, 0, 0], [0.5, s, 0]], float)
+    F = np.array([[0, 1, 2]])
+    assert mips(V, F)[0] == pytest.approx(2.0, abs=1e-12)
+    rng = np.random.default_rng(1)
+    W = V + 0.2 * rng.standard_normal(V.shape)
+    _, G = mips(W, F, grad=True)
+    eps = 1e-6
+    for i in range(3):
+        for k in range(3):
+            Wp, Wm = W.copy(), W.copy()
+            Wp[i, k] += eps
+            Wm[i, k] -= eps
+            fd = (mips(Wp, F)[0] - mips(Wm, F)[0]) / (2 * eps)
+            assert G[0, i, k] == pytest.approx(fd, rel=1e-5, abs=1e-7)
+
+
+def test_constrained_simplify_exact_count_and_stays_outside():
+    V, F = shapes.sphere(res=20)
+    Vn = _unit(V)
+    env = build_envelope(Vn, F, c=0.02, h=0.02)
+    U, G, info = constrained_simplify(env.V, env.F, Vn, F, 200, env.sdf, margin=0.006)
+    assert len(G) == 200
+    assert info["collapses"] == (len(env.F) - 200) // 2
+    assert verify_nesting([(Vn, F), (U, G)]).ok
+    with pytest.raises(ValueError, match="parity"):
+        constrained_simplify(env.V, env.F, Vn, F, 201, env.sdf, margin=0.006)
+
+
+def test_neck_blobs_layer_certified_tight_exact(blobs):
+    V, F = blobs
+    m = int(2 * round(len(F) / 8))
+    U, G, info = sdf_cage_layer(V, F, m)
+    assert len(G) == m
+    assert verify_nesting([(V, F), (U, G)]).ok
+    assert info["genus"] == 0 and cagegen._geometry.n_components(G, len(U)) == 1
+    assert info["hausdorff_relative"] < 0.03
+    assert 1.0 < info["volume_ratio"] < 1.25
+    assert info["min_angle_deg"] > 1.0
+    # the input is not modified and the cage is in the input's coordinates
+    assert np.all(U.min(0) < V.min(0)) and np.all(U.max(0) > V.max(0))
+
+
+def test_genus2_hierarchy_build_cages(g2):
+    V, F = g2
+    counts = cagegen.default_face_counts(len(F), 3)
+    layers, info = build_cages(V, F, method="sdf", face_counts=counts, return_info=True)
+    assert info["certified"] and info["nested"]
+    assert [len(G) for _, G in layers[1:]] == counts
+    for k, (U, G) in enumerate(layers):
+        assert genus(U, G) == 2, f"layer {k}"
+    assert info["backend"]["genus_changes"] == []
+    rep = verify_nesting(layers)
+    assert rep.ok and all(p.min_gap > 0 for p in rep.pairs)
+
+
+def test_bad_arguments(blobs):
+    V, F = blobs
+    with pytest.raises(ValueError, match="even"):
+        sdf_cage_layer(V, F, 301)
+    with pytest.raises(ValueError, match="unknown option"):
+        build_cages(V, F, levels=2, method="sdf", colour="red")
+    with pytest.raises((LevelsError, ValueError)):
+        build_cages(V, F, method="sdf", face_counts=[len(F) + 2])
+
+
+def test_stuck_simplification_raises_cage_error():
+    # a cube's cage cannot have 4 faces (a tetrahedron) around it at this offset with 0 retries
+    import trimesh
+
+    t = trimesh.creation.box()
+    V, F = np.asarray(t.vertices, float), np.asarray(t.faces, np.int64)
+    with pytest.raises(CageError):
+        sdf_cage_layer(V, F, 4, max_retries=0, c=0.01)

@@ -336,7 +336,8 @@ def nested_backend(
         not help either; the layer it builds is recorded in ``info["recovery"]`` and the layer's
         ``fallback`` entry (``Hierarchy.fallbacks`` reports it). ``"lazy"``:
         :func:`cagegen.copyleft.lazy.lazy_cage_layer` (loose but certified; loads GPL code, needs the
-        ``lazy`` extra). None (default): raise :class:`CageError`; nothing copyleft is ever loaded.
+        ``lazy`` extra). ``"sdf"``: :func:`cagegen.sdf.sdf_cage_layer` (tight, exact face count, MIT).
+        None (default): raise :class:`CageError`; nothing copyleft is ever loaded.
     **opts
         Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
         ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
@@ -482,9 +483,16 @@ def _lazy_fallback(Vf, Ff, m, exc, rep, log, k):
     return C, G, {"fallback": "lazy", "lazy": info, "seconds": {"lazy": info["seconds"]}}
 
 
+def _sdf_fallback(Vf, Ff, m, exc, rep, log, k):
+    """Fallback ``"sdf"``: an sdf cage (:func:`cagegen.sdf.backend.nested_fallback`; MIT)."""
+    from ..sdf.backend import nested_fallback
+
+    return nested_fallback(Vf, Ff, m, exc, rep, log, k)
+
+
 #: Fallback name -> ``f(Vf, Ff, m, exc, rep, log, k) -> (C, G, layer_info)`` (unit-diagonal coordinates;
 #: ``layer_info["fallback"]`` names it). Opt-in only: ``nested_backend(fallback=None)`` is the default.
-FALLBACKS = {"lazy": _lazy_fallback}
+FALLBACKS = {"lazy": _lazy_fallback, "sdf": _sdf_fallback}
 
 
 def _diag(V: np.ndarray) -> float:

@@ -102,11 +102,19 @@ def active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int =
     """Indices of the active vertices: a vertex ``q`` within ``r`` (Euclidean) is farther than ``l``
     along the surface (paper Sec. 3.1).
 
-    Only vertices with a Euclidean neighbour outside their two-ring are searched (the others cannot
-    be active unless ``r`` exceeds two edge lengths); each search is a Dijkstra limited to ``l``.
+    Pairs are pre-filtered before the Dijkstra searches (limited to ``l``): ``q`` outside the two-ring
+    of ``p`` and vertex normals more than 60 degrees apart (two parts that nearly touch face each
+    other; neighbours on one sheet have similar normals). The normal filter is a heuristic of ours:
+    the paper tests every pair.
     """
+    import igl
+
     G = _edge_graph(V, F)
     pairs = cKDTree(V).query_pairs(r, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros(0, dtype=np.int64)
+    N = igl.per_vertex_normals(V, F)
+    pairs = pairs[np.einsum("ij,ij->i", N[pairs[:, 0]], N[pairs[:, 1]]) < 0.5]
     if len(pairs) == 0:
         return np.zeros(0, dtype=np.int64)
     A = (G > 0).astype(np.int8)
@@ -134,6 +142,20 @@ def active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int =
     return np.flatnonzero(active)
 
 
+def _signed(P, V, F, bound):
+    """Signed distance clamped to ``[-bound, bound]`` (libigl; beyond the bound the sign comes from
+    the fast winding number)."""
+    import igl
+
+    S, I, C, _ = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL,
+                                     lower_bound=-bound, upper_bound=bound)
+    far = ~np.isfinite(S)
+    if far.any():
+        w = igl.fast_winding_number(V, F, P[far])
+        S[far] = np.where(w > 0.5, -bound, bound)
+    return np.clip(S, -bound, bound), I, C
+
+
 def build_envelope(
     V: np.ndarray,
     F: np.ndarray,
@@ -156,7 +178,7 @@ def build_envelope(
     c : float
         Iso-value (paper: 0.01).
     h : float, optional
-        Grid spacing (default ``c / 1.5``: the marching-cubes error stays well below ``c``).
+        Grid spacing (default ``c``: the marching-cubes error stays below ``c``; measured gaps 0.6-0.9 c).
     amplify : bool
         Use the local amplification ``phi`` near active points (paper eqs. 2-3).
     r, l, alpha, beta : float
@@ -173,7 +195,7 @@ def build_envelope(
     from skimage.measure import marching_cubes
 
     t0 = time.perf_counter()
-    h = float(c / 1.5 if h is None else h)
+    h = float(c if h is None else h)
     band = alpha * c + 3 * h
     pad = c + 3 * h
     lo = V.min(0) - pad
@@ -181,12 +203,27 @@ def build_envelope(
     n = np.ceil((hi - lo) / h).astype(int) + 1
     axes = [lo[k] + h * np.arange(n[k]) for k in range(3)]
     P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    S, I, C, _ = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL,
-                                     lower_bound=-band, upper_bound=band)
-    far = ~np.isfinite(S)  # beyond the band libigl returns NaN: sign from the winding number
-    if far.any():
-        w = igl.fast_winding_number(V, F, P[far])
-        S[far] = np.where(w > 0.5, -band, band)
+    S = np.full(len(P), np.nan)
+    I = np.zeros(len(P), dtype=np.int64)
+    C = np.zeros_like(P)
+    # narrow band: a coarse grid (spacing k h) decides which fine samples can be within the band
+    # (|xi| is 1-Lipschitz: a fine sample within k h sqrt(3)/2 of a coarse one with |xi| > band + that
+    # radius is beyond the band, with the coarse sample's sign)
+    k = 4
+    todo = np.ones(len(P), dtype=bool)
+    if min(n) > 4 * k:
+        idx = np.stack(np.meshgrid(*[np.arange(m) for m in n], indexing="ij"), -1).reshape(-1, 3)
+        nc = (n - 1) // k + 1
+        cax = [lo[j] + k * h * np.arange(nc[j]) for j in range(3)]
+        Pc = np.stack(np.meshgrid(*cax, indexing="ij"), -1).reshape(-1, 3)
+        rad = k * h * np.sqrt(3) / 2
+        Sc = _signed(Pc, V, F, band + 2 * rad)[0]
+        ci = np.minimum(np.rint(idx / k).astype(np.int64), nc - 1)
+        sc = Sc.reshape(nc)[ci[:, 0], ci[:, 1], ci[:, 2]]
+        far = np.abs(sc) - np.linalg.norm(P - Pc.reshape(*nc, 3)[ci[:, 0], ci[:, 1], ci[:, 2]], axis=1) > band
+        S[far] = np.sign(sc[far]) * band
+        todo = ~far
+    S[todo], I[todo], C[todo] = _signed(P[todo], V, F, band)
     S = np.clip(S, -band, band)
     t_sdf = time.perf_counter() - t0
     info: dict = {"grid": [int(x) for x in n], "h": h, "c": c, "band": band, "seconds_sdf": t_sdf}

@@ -20,14 +20,16 @@ the hierarchy is nested).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
-from solvers.fem import boundary_nodes, mass_matrix, stiffness_matrix
+from solvers.fem import boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
+from solvers.multilevel import restrict_prolongations
 
-__all__ = ["PROBLEMS", "Problem", "default_rhs", "setup_problem"]
+__all__ = ["COARSE", "PROBLEMS", "Problem", "default_rhs", "setup_problem", "volume_fractions"]
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
@@ -66,6 +68,29 @@ class Problem:
     nullspace: str | None
     params: dict = field(default_factory=dict)
 
+    def multigrid(self, *, coarse_scaling: str | None = "auto", **kwargs):
+        """The :class:`solvers.MultigridSolver` of this problem (its coarse operators and null space).
+
+        Parameters
+        ----------
+        coarse_scaling : None, "energy" or "auto"
+            ``"auto"`` (default): ``"energy"`` with re-discretised or weighted coarse operators (they
+            are not energy projections; docs/coarse.md), None with Galerkin ones.
+        **kwargs
+            Passed on (smoothers, ``coarse_solver``, ...).
+
+        Returns
+        -------
+        solvers.MultigridSolver
+        """
+        from solvers import MultigridSolver
+
+        if coarse_scaling == "auto":
+            coarse_scaling = None if self.coarse_ops is None else "energy"
+        coarse = "galerkin" if self.coarse_ops is None else self.coarse_ops
+        return MultigridSolver(self.A, self.P, coarse=coarse, nullspace=self.nullspace,
+                               coarse_scaling=coarse_scaling, **kwargs)
+
     def expand(self, x_free: np.ndarray) -> np.ndarray:
         """Full fine-level vector: ``x_free`` on free nodes, 0 on Dirichlet nodes."""
         x = np.zeros(self.n_fine)
@@ -85,23 +110,81 @@ def _level_operator(name: str, V: np.ndarray, T: np.ndarray, lam: float) -> sp.c
     return K
 
 
-def _prune(rows: sp.csr_matrix, reach: np.ndarray, tau: float) -> np.ndarray:
-    """Coarse columns kept for a Galerkin level: those reached with total weight >= ``tau``.
+def volume_fractions(tets: list[tuple[np.ndarray, np.ndarray]], samples: int = 64, seed: int = 0) -> list[np.ndarray]:
+    """Fraction of every coarse tet's volume covered by the fine tets (the solid of ``tets[0]``).
 
-    A cage node that only one or two fine nodes reach (weights ~1e-3) adds nothing to the coarse space
-    but makes ``P`` rank-deficient, i.e. ``P^T A P`` singular beyond its true null space. A weak
-    column is kept anyway when some fine row has all its weight on weak columns.
+    Point location in the fine tet mesh (libigl ``AABB`` + ``in_element``, as behind ``P``): a coarse
+    tet whose four corners lie inside the fine mesh and that contains no fine boundary node counts as
+    covered (1), one with its corners outside and no fine boundary node as empty (0); the others --
+    the tets cut by the fine boundary -- get the share of ``samples`` random points (uniform in the
+    tet, independent per tet, fixed seed) that fall inside a fine tet: standard error
+    ``<= 0.5 / sqrt(samples)`` per tet.
+    Sampling the coarse tets, not the fine ones, keeps the estimate right where the coarse tets near
+    a cage are smaller than the fine tets.
+
+    Parameters
+    ----------
+    tets : list of (V, T)
+        Tet meshes, finest first (``Hierarchy.tets``).
+    samples : int
+        Points per cut coarse tet.
+    seed : int
+        Seed of the sample points (the result is deterministic).
+
+    Returns
+    -------
+    list of (t_k,) float arrays
+        ``w_0 = 1`` on the fine level, then one array per coarse level.
     """
-    if tau <= 0:
-        return reach
-    cs = np.asarray(rows.sum(axis=0)).ravel()
-    weak = np.zeros(rows.shape[1], dtype=bool)
-    weak[reach] = cs[reach] < tau
-    strong_sum = np.asarray(rows[:, ~weak].sum(axis=1)).ravel()
-    orphan_rows = np.flatnonzero(strong_sum <= 0)
-    if orphan_rows.size:
-        weak[np.unique(rows[orphan_rows].indices)] = False
-    return reach[~weak[reach]]
+    import igl
+
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    V0 = np.ascontiguousarray(tets[0][0], dtype=np.float64)
+    T0 = np.ascontiguousarray(tets[0][1], dtype=np.int64)
+    tree = igl.AABB()
+    tree.init(V0, T0)
+    Xb = np.ascontiguousarray(V0[boundary_nodes(T0)])
+    rng = np.random.default_rng(seed)
+
+    def inside(X):
+        return np.asarray(igl.in_element(V0, T0, np.ascontiguousarray(X, dtype=np.float64), tree)).ravel() >= 0
+
+    out = [np.ones(len(T0))]
+    for Vc, Tc in tets[1:]:
+        Vc = np.ascontiguousarray(Vc, dtype=np.float64)
+        Tc = np.ascontiguousarray(Tc, dtype=np.int64)
+        vin = inside(Vc)[Tc]  # (t, 4) corner inside the fine mesh
+        w = vin.all(axis=1).astype(np.float64)
+        ctree = igl.AABB()
+        ctree.init(Vc, Tc)
+        hit = np.asarray(igl.in_element(Vc, Tc, Xb, ctree)).ravel()
+        cut = vin.any(axis=1) & ~vin.all(axis=1)
+        cut[hit[hit >= 0]] = True
+        idx = np.flatnonzero(cut)
+        if idx.size:
+            bc = rng.dirichlet(np.ones(4), (idx.size, samples))  # uniform in each tet, independent
+            X = np.einsum("tsj,tjk->tsk", bc, Vc[Tc[idx]]).reshape(-1, 3)
+            w[idx] = inside(X).reshape(len(idx), samples).mean(axis=1)
+        out.append(w)
+    return out
+
+
+def _boundary_penalty(K0: sp.csr_matrix, bnd: np.ndarray) -> np.ndarray:
+    """Energy the fine Dirichlet condition adds to a constant, per fine boundary node.
+
+    Zeroing the boundary values of the constant 1 leaves the energy ``1_Bᵀ K 1_B = Σ_b d_b`` with
+    ``d_b = (K 1_B)_b = -Σ_{j∉B} K_bj``: the Galerkin coarse operator sees the Dirichlet condition as
+    this boundary layer. ``Gᵀ diag(d) G`` (``G`` = the boundary rows of the composite prolongation)
+    reproduces it on a coarse level with the coarse sparsity (a fine boundary node's row lies in one
+    coarse tet).
+    """
+    ind = np.zeros(K0.shape[0])
+    ind[bnd] = 1.0
+    return np.maximum((K0 @ ind)[bnd], 0.0)
+
+
+COARSE = ("galerkin", "rediscretized", "weighted")
 
 
 def setup_problem(
@@ -113,6 +196,7 @@ def setup_problem(
     lam: float = 1e-2,
     f: np.ndarray | None = None,
     prune: float = 0.2,
+    fractions: list[np.ndarray] | None = None,
 ) -> Problem:
     """Assemble a model problem on ``tets[0]`` and the level data for multigrid.
 
@@ -123,16 +207,26 @@ def setup_problem(
     P : list of (n_k, n_{k+1}) csr_matrix
         Prolongations (``Hierarchy.P``).
     name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann"}
-    coarse : {"galerkin", "rediscretized"}
+    coarse : {"galerkin", "rediscretized", "weighted"}
+        ``"galerkin"``: the solver forms ``Pᵀ A P``. ``"rediscretized"``: the same FEM problem on every
+        coarse tet mesh (Dirichlet on the coarse boundary). ``"weighted"``: re-discretised with every
+        coarse tet's stiffness and mass scaled by the fraction of its volume covered by the fine domain
+        (:func:`volume_fractions`), and, for ``poisson-dirichlet``, the fine Dirichlet condition as
+        the boundary-layer term ``Gᵀ diag(d) G`` (:func:`_boundary_penalty`) instead of a Dirichlet
+        condition on the cage: sparse (coarse-mesh sparsity) and consistent with ``Pᵀ A P`` on
+        constants. ``"rediscretised"`` is a deprecated alias of ``"rediscretized"``.
     lam : float
         Diffusion coefficient λ of ``diffusion-neumann`` (time step x conductivity).
     f : (n_fine,) float array, optional
         Source at the fine nodes (default :func:`default_rhs`). For ``poisson-neumann`` its
         mass-weighted mean is removed so that the system is compatible.
     prune : float
-        Galerkin only: drop coarse nodes whose prolongation column sums to less than this (nodes of a
-        cage that barely reach the fine mesh; they make ``P`` rank-deficient) and rescale the affected
-        rows to sum to 1. 0 keeps every reached node.
+        Galerkin and weighted: drop coarse nodes whose prolongation column sums to less than this
+        (nodes of a cage that barely reach the fine mesh; they make ``P`` rank-deficient) and rescale
+        the affected rows to sum to 1 (:func:`solvers.restrict_prolongations`). 0 keeps every reached
+        node.
+    fractions : list of arrays, optional
+        Precomputed :func:`volume_fractions` (``coarse="weighted"``; reuse across problems).
 
     Returns
     -------
@@ -140,54 +234,124 @@ def setup_problem(
     """
     if name not in PROBLEMS:
         raise ValueError(f"unknown problem {name!r}; choose from {PROBLEMS}")
-    if coarse not in ("galerkin", "rediscretized"):
-        raise ValueError(f"coarse must be 'galerkin' or 'rediscretized', got {coarse!r}")
+    if coarse == "rediscretised":
+        warnings.warn("coarse='rediscretised' is deprecated; spell it 'rediscretized'", DeprecationWarning,
+                      stacklevel=2)
+        coarse = "rediscretized"
+    if coarse not in COARSE:
+        raise ValueError(f"coarse must be one of {COARSE}, got {coarse!r}")
     if len(P) != len(tets) - 1:
         raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
-    V0, T0 = tets[0]
+    V0, T0 = check_tet_mesh(*tets[0])  # validated once; the assembly below skips its own check
     n0 = len(V0)
-    M0 = mass_matrix(V0, T0)
+    M0 = mass_matrix(V0, T0, check=False)
     f = default_rhs(V0) if f is None else np.asarray(f, dtype=np.float64)
     if f.shape != (n0,):
         raise ValueError(f"f must have shape ({n0},), got {f.shape}")
     m = M0.diagonal()
     if name == "poisson-neumann":
         f = f - (m @ f) / m.sum()  # zero mass-weighted mean -> sum(M f) = 0
-    A_full = _level_operator(name, V0, T0, lam)
+    K0 = stiffness_matrix(V0, T0, check=False)
+    A_full = (lam * K0 + M0).tocsr() if name == "diffusion-neumann" else K0
     b_full = M0 @ f
     dirichlet = name == "poisson-dirichlet"
+    bnd = boundary_nodes(T0) if dirichlet else np.zeros(0, dtype=np.int64)
+    free0 = np.setdiff1d(np.arange(n0), bnd, assume_unique=True) if dirichlet else np.arange(n0)
 
-    free = [np.setdiff1d(np.arange(n0), boundary_nodes(T0)) if dirichlet else np.arange(n0)]
-    Pr: list[sp.csr_matrix] = []
-    ops: list[sp.csr_matrix] = []
-    for k, Pk in enumerate(P):
-        Vc, Tc = tets[k + 1]
-        rows = Pk.tocsr()[free[k]]
-        reach = np.flatnonzero(np.asarray(abs(rows).sum(axis=0)).ravel() > 0)
-        if coarse == "rediscretized":
-            Ac = _level_operator(name, Vc, Tc, lam)
-            cols = np.setdiff1d(np.arange(len(Vc)), boundary_nodes(Tc)) if dirichlet else np.arange(len(Vc))
-            if dirichlet:
-                cols = np.intersect1d(cols, reach)
-            ops.append(Ac[cols][:, cols].tocsr())
-        else:
-            cols = _prune(rows, reach, prune)
-        free.append(cols)
-        Pk_r = rows[:, cols].tocsr()
-        if coarse == "galerkin" and prune > 0:
-            # rows that lost weight to pruned columns are rescaled to sum to 1 again (constants stay exact)
-            rs = np.asarray(Pk_r.sum(axis=1)).ravel()
-            Pk_r = sp.csr_matrix(sp.diags(1.0 / rs) @ Pk_r)
-        Pr.append(Pk_r)
-    A = A_full[free[0]][:, free[0]].tocsr()
+    ops: list[sp.csr_matrix] | None = None
+    if coarse == "rediscretized":
+        cand = [np.setdiff1d(np.arange(len(Vc)), boundary_nodes(Tc)) if dirichlet else np.arange(len(Vc))
+                for Vc, Tc in tets[1:]]
+        Pr, free = restrict_prolongations(P, free0, coarse_free=cand, support_only=dirichlet)
+        ops = [_level_operator(name, Vc, Tc, lam)[c][:, c].tocsr() for (Vc, Tc), c in zip(tets[1:], free[1:])]
+    else:
+        Pr, free = restrict_prolongations(P, free0, min_column_sum=prune)
+        if coarse == "weighted":
+            w = volume_fractions(tets) if fractions is None else fractions
+            if len(w) != len(tets):
+                raise ValueError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
+            ops = _weighted_operators(name, tets, w, free, lam, K0, bnd)
+    A = A_full[free0][:, free0].tocsr()
     return Problem(
         name=name,
         A=A,
-        b=np.asarray(b_full[free[0]]),
+        b=np.asarray(b_full[free0]),
         P=Pr,
-        coarse_ops=ops if coarse == "rediscretized" else None,
+        coarse_ops=ops,
         free=free,
         n_fine=n0,
         nullspace="constant" if name == "poisson-neumann" else None,
         params={"lam": lam if name == "diffusion-neumann" else None, "coarse": coarse, "prune": prune},
     )
+
+
+_MIN_FRACTION = 1e-2
+
+
+def _kept_extension(T: np.ndarray, n: int, kept: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Extension ``Q`` (n, len(kept)) of kept-node values to every node of a coarse mesh.
+
+    A node dropped by the restriction (not reached by ``P`` or pruned as too weak) takes the mean of
+    the kept nodes it shares a tet with, so ``Q 1 = 1`` there and a weighted operator ``Qᵀ W Q`` keeps
+    the constants in its kernel; tets touching a dropped node with no kept neighbour are returned in
+    ``dead`` (their weight must be 0).
+    """
+    T = np.asarray(T, dtype=np.int64)
+    is_kept = np.zeros(n, dtype=bool)
+    is_kept[kept] = True
+    col = -np.ones(n, dtype=np.int64)
+    col[kept] = np.arange(len(kept))
+    # node-node adjacency through tets, restricted to (dropped row, kept column) pairs
+    r = np.repeat(T, 4, axis=1).ravel()
+    q = np.tile(T, (1, 4)).ravel()
+    sel = ~is_kept[r] & is_kept[q]
+    E = sp.csr_matrix((np.ones(int(sel.sum())), (r[sel], col[q[sel]])), shape=(n, len(kept)))
+    E.data[:] = 1.0  # duplicates summed: back to a 0/1 pattern
+    deg = np.asarray(E.sum(axis=1)).ravel()
+    E = sp.csr_matrix(sp.diags(np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)) @ E)
+    I = sp.csr_matrix((np.ones(len(kept)), (kept, np.arange(len(kept)))), shape=(n, len(kept)))
+    Q = sp.csr_matrix(I + E)
+    orphan = ~is_kept & (deg == 0)
+    dead = np.flatnonzero(orphan[T].any(axis=1))
+    return Q, dead
+
+
+def _weighted_operators(name, tets, w, free, lam, K0, bnd) -> list[sp.csr_matrix]:
+    """Volume-fraction-weighted coarse operators on the kept coarse nodes ``free[1:]``."""
+    from .prolongation import prolongation
+
+    ops = []
+    d = _boundary_penalty(K0, bnd) if name == "poisson-dirichlet" else None
+    Vb = np.asarray(tets[0][0])[bnd]
+    for k in range(1, len(tets)):
+        Vc, Tc = tets[k]
+        c = free[k]
+        # a floor keeps the rows of reached nodes whose tets sampled no fine point non-empty
+        wk = np.maximum(w[k], _MIN_FRACTION)
+        if name == "poisson-dirichlet":
+            # dropped coarse nodes are 0, as in P (no constants to keep); the fine Dirichlet condition
+            # enters as G^T diag(d) G, G = the fine boundary nodes located in this level's tets
+            # (4 weights per row: coarse sparsity), rows renormalised to 1 over the kept nodes
+            Kw = stiffness_matrix(Vc, Tc, wk, check=False)[c][:, c]
+            G = prolongation(Vb, np.asarray(Vc, dtype=np.float64), np.asarray(Tc, dtype=np.int64))[0][:, c]
+            rs = np.asarray(G.sum(axis=1)).ravel()
+            G = sp.csr_matrix(sp.diags(np.divide(1.0, rs, out=np.zeros_like(rs), where=rs > 0)) @ G)
+            ops.append(_finish(Kw + G.T @ sp.diags(d) @ G))
+            continue
+        Q, dead = _kept_extension(Tc, len(Vc), c)
+        wk[dead] = 0.0
+        Kw = sp.csr_matrix(Q.T @ stiffness_matrix(Vc, Tc, wk, check=False) @ Q)
+        if name == "diffusion-neumann":
+            Ac = lam * Kw + Q.T @ mass_matrix(Vc, Tc, weights=wk, check=False) @ Q
+        else:
+            Ac = Kw
+        ops.append(_finish(Ac))
+    return ops
+
+
+def _finish(A) -> sp.csr_matrix:
+    A = sp.csr_matrix(A)
+    A = sp.csr_matrix(0.5 * (A + A.T))
+    A.sum_duplicates()
+    A.sort_indices()
+    return A

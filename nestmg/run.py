@@ -59,6 +59,9 @@ def solve_on_hierarchy(
     maxiter: int = 60,
     lam: float = 1e-2,
     cost: bool = True,
+    return_solution: bool = False,
+    coarse_scaling: str | None = "auto",
+    fractions: list | None = None,
 ) -> dict[str, Any]:
     """Assemble ``problem`` on ``tets[0]``, build the multigrid solver from ``P`` and solve.
 
@@ -77,6 +80,14 @@ def solve_on_hierarchy(
         See :meth:`solvers.MultigridSolver.solve`.
     cost : bool
         Also measure the cost of one cycle in fine SpMVs.
+    return_solution : bool
+        Also return the solution on every fine node as ``solution`` ((n_0,) array, 0 on Dirichlet nodes;
+        not JSON: pop it before writing the dict).
+    coarse_scaling : None, "energy" or "auto"
+        See :class:`solvers.MultigridSolver`; ``"auto"``: ``"energy"`` for re-discretised and weighted
+        coarse operators, None for Galerkin (:meth:`nestmg.problems.Problem.multigrid`).
+    fractions : list of arrays, optional
+        Precomputed :func:`nestmg.problems.volume_fractions` (``coarse="weighted"``).
 
     Returns
     -------
@@ -85,17 +96,14 @@ def solve_on_hierarchy(
         ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
     """
     t0 = time.perf_counter()
-    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam)
+    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ml = MultigridSolver(
-        prob.A, prob.P, coarse_operators=prob.coarse_ops, presmoother=(smoother, {"iterations": nu}),
-        nullspace=prob.nullspace,
-    )
+    ml = prob.multigrid(presmoother=(smoother, {"iterations": nu}), coarse_scaling=coarse_scaling)
     t_setup = time.perf_counter() - t0
     out: dict[str, Any] = {
         "problem": problem, "coarse": coarse, "smoother": smoother, "nu": nu, "cycle": cycle,
-        "accel": accel, "lam": prob.params["lam"], "tol": tol,
+        "accel": accel, "lam": prob.params["lam"], "tol": tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),
     }
@@ -107,6 +115,8 @@ def solve_on_hierarchy(
         out.update(residuals=info["residuals"], iterations=info["iterations"], converged=info["converged"],
                    diverged=False, message="")
         out["solution_norm"] = float(np.linalg.norm(x))
+        if return_solution:
+            out["solution"] = prob.expand(x)
     except DivergenceError as exc:
         out.update(residuals=exc.residuals, iterations=exc.cycle, converged=False, diverged=True, message=str(exc))
     t_solve = time.perf_counter() - t0

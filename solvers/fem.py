@@ -98,19 +98,30 @@ def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
     return V, T
 
 
-def stiffness_matrix(V, T) -> sp.csr_matrix:
+def stiffness_matrix(V, T, weights=None, *, check: bool = True) -> sp.csr_matrix:
     """P1 stiffness (negative cotangent Laplacian) of a tet mesh.
 
     Parameters
     ----------
     V : (n, 3) float, T : (t, 4) int
+    weights : (t,) float, optional
+        Per-tet coefficients ``w_e >= 0``: ``K_ij = Σ_e w_e ∫_e ∇φ_i·∇φ_j`` (e.g. the fraction of each
+        coarse tet covered by the fine domain, :func:`nestmg.problems.volume_fractions`). Default 1.
+    check : bool
+        Validate the mesh (:func:`check_tet_mesh`); ``False`` skips it for a mesh already checked.
 
     Returns
     -------
     K : (n, n) csr_matrix
         Symmetric positive semi-definite, rows sum to 0, ``K_ij = ∫ ∇φ_i·∇φ_j``.
     """
-    V, T = check_tet_mesh(V, T)
+    if check:
+        V, T = check_tet_mesh(V, T)
+    else:
+        V = np.ascontiguousarray(V, dtype=np.float64)
+        T = np.ascontiguousarray(T, dtype=np.int64)
+    if weights is not None:
+        return _weighted_stiffness(V, T, _element_weights(weights, len(T)))
     # K scales like length in 3D: assemble on a unit-sized copy and rescale, so that tiny or huge
     # meshes do not under/overflow inside libigl's cotangent formula (NaN/inf at edge lengths ~1e-30)
     lo = V.min(axis=0)
@@ -124,7 +135,35 @@ def stiffness_matrix(V, T) -> sp.csr_matrix:
     return K
 
 
-def mass_matrix(V, T, kind: str = "barycentric") -> sp.csr_matrix:
+def _element_weights(weights, t: int) -> np.ndarray:
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w.shape != (t,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise SolverInputError(f"weights must be {t} finite non-negative per-tet values, got shape {w.shape}")
+    return w
+
+
+# libigl's tet cotangent entries come per edge in this order (cotmatrix_entries for tets)
+_COT_EDGES = np.array([[1, 2], [2, 0], [0, 1], [3, 0], [3, 1], [3, 2]])
+
+
+def _weighted_stiffness(V: np.ndarray, T: np.ndarray, w: np.ndarray) -> sp.csr_matrix:
+    lo = V.min(axis=0)
+    s = float(np.abs(V.max(axis=0) - lo).max())
+    C = igl.cotmatrix_entries(np.ascontiguousarray((V - lo) / s), T) * (s * w[:, None])  # (t, 6) edge weights
+    n = V.shape[0]
+    i = T[:, _COT_EDGES[:, 0]].ravel()
+    j = T[:, _COT_EDGES[:, 1]].ravel()
+    W = sp.coo_matrix((-C.ravel(), (i, j)), shape=(n, n)).tocsr()
+    W = W + W.T
+    K = sp.csr_matrix(W - sp.diags(np.asarray(W.sum(axis=1)).ravel()))
+    if not np.all(np.isfinite(K.data)):
+        raise SolverInputError("stiffness matrix has NaN/inf entries (degenerate tets?)")
+    K.sum_duplicates()
+    K.sort_indices()
+    return K
+
+
+def mass_matrix(V, T, kind: str = "barycentric", weights=None, *, check: bool = True) -> sp.csr_matrix:
     """P1 mass matrix of a tet mesh.
 
     Parameters
@@ -134,6 +173,10 @@ def mass_matrix(V, T, kind: str = "barycentric") -> sp.csr_matrix:
         ``"barycentric"`` (default): lumped, diagonal, node gets 1/4 of each incident tet's volume.
         ``"voronoi"``: lumped, libigl's Voronoi areas. ``"full"``: consistent mass ``∫ φ_i φ_j``
         (``vol/10`` on the diagonal, ``vol/20`` off it, per tet).
+    weights : (t,) float, optional
+        Per-tet coefficients (barycentric kind only): node ``i`` gets ``Σ_e w_e vol_e / 4``.
+    check : bool
+        Validate the mesh (:func:`check_tet_mesh`).
 
     Returns
     -------
@@ -142,7 +185,16 @@ def mass_matrix(V, T, kind: str = "barycentric") -> sp.csr_matrix:
     """
     if kind not in _MASS_TYPES:
         raise SolverInputError(f"mass kind must be one of {sorted(_MASS_TYPES)}, got {kind!r}")
-    V, T = check_tet_mesh(V, T)
+    if check:
+        V, T = check_tet_mesh(V, T)
+    if weights is not None:
+        if kind != "barycentric":
+            raise SolverInputError(f"per-tet weights need kind='barycentric', got {kind!r}")
+        V = np.asarray(V, dtype=np.float64)
+        T = np.asarray(T, dtype=np.int64)
+        q = np.abs(igl.volume(V, T)).ravel() * _element_weights(weights, len(T)) / 4.0
+        m = np.bincount(T.ravel(), weights=np.repeat(q, 4), minlength=len(V))
+        return sp.diags(m).tocsr()
     M = sp.csr_matrix(igl.massmatrix(V, T, _MASS_TYPES[kind]))
     M.sum_duplicates()
     M.sort_indices()

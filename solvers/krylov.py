@@ -52,6 +52,7 @@ def pcg(
     maxiter: int | None = None,
     nullspace: str | None = None,
     divtol: float = 1e5,
+    flexible: bool = False,
 ) -> KrylovResult:
     """Preconditioned CG for a symmetric positive (semi-)definite system.
 
@@ -69,6 +70,10 @@ def pcg(
         Keep iterates and ``b`` in the zero-mean subspace (pure Neumann operators).
     divtol : float
         Flag divergence when the residual grows past ``divtol`` times the initial one.
+    flexible : bool
+        Flexible CG (Polak–Ribière ``β = zᵀ(r - r_old) / (z_oldᵀ r_old)``, Notay 2000) for a
+        preconditioner that varies slightly between iterations (e.g. a cycle with energy-scaled
+        coarse corrections). Same cost per iteration as plain CG plus one dot product.
 
     Returns
     -------
@@ -108,7 +113,10 @@ def pcg(
         Mop = spla.LinearOperator((n, n), matvec=_checked, dtype=np.float64)
     try:
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-            x, _ = _pyamg_cg(A, b, x0=x, tol=tol, criteria="rr", maxiter=maxiter, M=Mop, residuals=res)
+            if flexible:
+                x = _flexible_cg(A, b, x, Mop, tol, maxiter, res, nullspace == "constant")
+            else:
+                x, _ = _pyamg_cg(A, b, x0=x, tol=tol, criteria="rr", maxiter=maxiter, M=Mop, residuals=res)
     except _NonFiniteStop:
         rel = [float(r) / normb for r in res] + [float("nan")]
         return KrylovResult(x, calls[0], rel, False, time.perf_counter() - t0, nonfinite=True)
@@ -128,6 +136,38 @@ def pcg(
     rtrue = float(np.linalg.norm(b - A @ x)) / normb
     rel[-1] = max(rel[-1], rtrue) if len(rel) > 1 else rtrue
     return KrylovResult(x, len(rel) - 1, rel, rel[-1] <= tol * 1.0000001 or rtrue <= tol, seconds)
+
+
+def _flexible_cg(A, b, x, M, tol, maxiter, res, zero_mean):
+    """Flexible PCG (Polak–Ribière β); fills ``res`` with residual norms like pyamg's ``cg``."""
+    r = b - A @ x
+    normb = float(np.linalg.norm(b))
+    res.append(float(np.linalg.norm(r)))
+    z_old = r_old = p = None
+    for _ in range(maxiter):
+        if res[-1] <= tol * normb:
+            break
+        z = M.matvec(r) if M is not None else r.copy()
+        if zero_mean:
+            z -= z.mean()
+        rz = float(r @ z)
+        if p is None:
+            p = z.copy()
+        else:
+            beta = float(z @ (r - r_old)) / float(z_old @ r_old)
+            p = z + beta * p
+        q = A @ p
+        pq = float(p @ q)
+        if not pq > 0:
+            break
+        a = rz / pq
+        x = x + a * p
+        z_old, r_old = z, r
+        r = r - a * q
+        res.append(float(np.linalg.norm(r)))
+        if not np.isfinite(res[-1]):
+            break
+    return x
 
 
 def mg_pcg(ml, b, *, x0=None, tol: float = 1e-8, maxiter: int = 200, cycle: str = "V") -> KrylovResult:

@@ -102,7 +102,28 @@ def galerkin_operators(A: sp.spmatrix, Ps) -> list[sp.csr_matrix]:
     return ops
 
 
-def restrict_prolongations(Ps, free, coarse_free="support"):
+def _weak_columns(rows: sp.csr_matrix, cols: np.ndarray, min_column_sum: float, level: int) -> np.ndarray:
+    """Columns of ``rows[:, cols]`` kept by pruning: column sum >= ``min_column_sum``.
+
+    A weak column is kept anyway when some row has all its weight on weak columns (that finer node
+    would otherwise lose its whole interpolation).
+    """
+    sub = sp.csr_matrix(rows[:, cols])
+    cs = np.asarray(sub.sum(axis=0)).ravel()
+    weak = cs < min_column_sum
+    if not weak.any():
+        return cols
+    if weak.all():
+        raise SolverInputError(f"every coarse node of level {level} has column sum < {min_column_sum}")
+    strong_sum = np.asarray(sub[:, ~weak].sum(axis=1)).ravel()
+    orphan = np.flatnonzero((np.diff(sub.indptr) > 0) & (strong_sum <= 0))
+    if orphan.size:
+        weak[np.unique(sub[orphan].indices)] = False
+    return cols[~weak]
+
+
+def restrict_prolongations(Ps, free, coarse_free="support", *, min_column_sum: float = 0.0,
+                           renormalize: bool = True, support_only: bool = False):
     """Restrict prolongations to the free (non-Dirichlet) nodes of every level.
 
     Row ``i`` of ``P_k`` is kept iff node ``i`` is free on level ``k``; column ``j`` iff node ``j`` is
@@ -119,12 +140,26 @@ def restrict_prolongations(Ps, free, coarse_free="support"):
       coarse interior nodes, which is what re-discretised coarse operators with Dirichlet boundary
       on a same-domain hierarchy need (restrict those operators with the returned indices too).
 
+    This is the one restriction and pruning path of the project (``nestmg.problems.setup_problem``
+    and :func:`prune_prolongations` call it).
+
     Parameters
     ----------
     Ps : list of sparse, ``Ps[k]`` of shape (n_k, n_{k+1})
     free : (m_0,) int array_like or (n_0,) bool mask
         Free nodes of the finest level.
     coarse_free : "support" or list of array_like
+    min_column_sum : float
+        ``coarse_free="support"`` only: also drop coarse nodes whose (row-restricted) column sums to
+        less than this. Cage nodes that one or two fine nodes reach with weights ~1e-3 add nothing to
+        the coarse space but make ``P`` rank-deficient (``Pᵀ A P`` singular beyond its null space) and
+        denser. A weak column is kept when some row has all its weight on weak columns. 0 (default)
+        keeps every reached node.
+    renormalize : bool
+        After pruning, rescale the rows that lost weight to their previous sum (1 for interpolation:
+        constants stay reproduced, as ``nullspace="constant"`` needs).
+    support_only : bool
+        With a list ``coarse_free``: keep only the listed nodes that the restricted rows reach.
 
     Returns
     -------
@@ -163,13 +198,24 @@ def restrict_prolongations(Ps, free, coarse_free="support"):
             raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows, level {k} has {Ps[k - 1].shape[1]} nodes")
         Pr = P[frees[k]]
         Pr.eliminate_zeros()
+        support = np.flatnonzero(np.diff(Pr.tocsc().indptr) > 0)
+        pruning = isinstance(coarse_free, str) and min_column_sum > 0
         if isinstance(coarse_free, str):
-            cf = np.flatnonzero(np.diff(Pr.tocsc().indptr) > 0)
-            if cf.size == 0:
-                raise SolverInputError(f"level {k + 1}: no coarse node touches a free node of level {k}")
+            cf = support
+            if pruning and cf.size:
+                cf = _weak_columns(Pr, cf, min_column_sum, k + 1)
         else:
             cf = _idx(coarse_free[k], P.shape[1], f"coarse_free[{k}]")
+            if support_only:
+                cf = np.intersect1d(cf, support)
+        if cf.size == 0:
+            raise SolverInputError(f"level {k + 1}: no coarse node touches a free node of level {k}")
+        before = np.asarray(Pr.sum(axis=1)).ravel() if pruning and renormalize else None
         Pr = sp.csr_matrix(Pr[:, cf])
+        if before is not None:
+            after = np.asarray(Pr.sum(axis=1)).ravel()
+            scale = np.divide(before, after, out=np.ones_like(after), where=after != 0)
+            Pr = sp.csr_matrix(sp.diags(scale) @ Pr)
         Pr.sort_indices()
         out.append(Pr)
         frees.append(cf)
@@ -195,8 +241,9 @@ def prune_prolongations(Ps, min_column_sum: float = 0.2, renormalize: bool = Tru
         2:1 refinement in 3D sums to about 8; nodes near a boundary or the cage to much less).
     renormalize : bool
         Rescale the rows that lost weight to sum to what they summed to before (1 for interpolation), so
-        constants stay reproduced (needed for ``nullspace="constant"``). Rows that lose all their weight
-        are left empty.
+        constants stay reproduced (needed for ``nullspace="constant"``). A weak column is kept when a
+        row would otherwise lose all its weight (see :func:`restrict_prolongations`, which this calls
+        with every fine node free).
 
     Returns
     -------
@@ -204,27 +251,11 @@ def prune_prolongations(Ps, min_column_sum: float = 0.2, renormalize: bool = Tru
     kept : list of (m_k,) int64 arrays
         Kept node indices of levels 1..L (into the columns of the input ``Ps[k]``).
     """
-    out, kept = [], []
-    prev = None
-    for k, P in enumerate(Ps):
-        P = sp.csr_matrix(P, dtype=np.float64)
-        if prev is not None:
-            P = P[prev]
-        cs = np.asarray(P.sum(axis=0)).ravel()
-        keep = np.flatnonzero(cs >= min_column_sum)
-        if keep.size == 0:
-            raise SolverInputError(f"prune_prolongations: every coarse node of level {k + 1} has column sum < {min_column_sum}")
-        Q = sp.csr_matrix(P[:, keep])
-        if renormalize:
-            before = np.asarray(P.sum(axis=1)).ravel()
-            after = np.asarray(Q.sum(axis=1)).ravel()
-            scale = np.divide(before, after, out=np.ones_like(after), where=after != 0)
-            Q = sp.csr_matrix(sp.diags(scale) @ Q)
-        Q.sort_indices()
-        out.append(Q)
-        kept.append(keep)
-        prev = keep
-    return out, kept
+    if not Ps:
+        raise SolverInputError("prune_prolongations needs at least one prolongation")
+    n0 = sp.csr_matrix(Ps[0]).shape[0]
+    out, frees = restrict_prolongations(Ps, np.arange(n0), min_column_sum=min_column_sum, renormalize=renormalize)
+    return out, frees[1:]
 
 
 def convergence_factor(residuals, last: int = 5) -> float:
@@ -418,9 +449,18 @@ class MultigridSolver:
         ``Ps[k]`` of shape ``(n_k, n_{k+1})`` maps level ``k+1`` to level ``k`` (rows sum to 1 for
         interpolation; restricted rows near Dirichlet nodes may sum to less). May be empty (one level,
         direct solve).
-    coarse_operators : list of sparse, optional
-        ``[A_1, ..., A_L]`` re-discretised coarse operators (shape ``(n_k, n_k)``). Default: Galerkin
-        ``P_kᵀ A_k P_k``.
+    coarse : "galerkin" or list of sparse
+        ``"galerkin"`` (default): ``A_{k+1} = P_kᵀ A_k P_k``. A list ``[A_1, ..., A_L]`` (shapes
+        ``(n_k, n_k)``): the caller's coarse operators, e.g. re-discretised or volume-fraction weighted
+        ones (``nestmg.problems.setup_problem(coarse=...)`` makes them). ``coarse_operators=`` is the
+        deprecated spelling of the list form.
+    coarse_scaling : None or "energy"
+        ``"energy"``: scale every coarse-grid correction ``e = P x_c`` by the energy-optimal
+        ``α = (rᵀ e) / (eᵀ A e)`` (minimises the energy norm of the error along ``e``; one extra
+        SpMV per level and cycle). It corrects coarse operators that are uniformly too soft or too
+        stiff (re-discretisation on a cage: a larger domain); with Galerkin operators ``α = 1``
+        exactly in exact arithmetic for a single correction. Makes the cycle a (mildly) non-linear
+        preconditioner; ``solve(accel="cg")`` then uses the flexible (Polak–Ribière) CG update.
     presmoother, postsmoother : str or (str, dict)
         See :func:`solvers.smoothing.make_smoother`. Default symmetric Gauss–Seidel, one sweep each:
         V(1,1). ``postsmoother=None`` (default) means the adjoint of the presmoother: the same smoother,
@@ -470,6 +510,8 @@ class MultigridSolver:
         A,
         Ps,
         *,
+        coarse="galerkin",
+        coarse_scaling: str | None = None,
         coarse_operators=None,
         presmoother=DEFAULT_SMOOTHER,
         postsmoother=None,
@@ -499,10 +541,28 @@ class MultigridSolver:
                         f"sum to values in [{rs.min():.3g}, {rs.max():.3g}]"
                     )
             n = P.shape[1]
-        if coarse_operators is None:
+        if coarse_operators is not None:
+            warnings.warn("MultigridSolver(coarse_operators=...) is deprecated; use coarse=[A_1, ...]",
+                          DeprecationWarning, stacklevel=2)
+            if not (isinstance(coarse, str) and coarse == "galerkin"):
+                raise SolverInputError("give the coarse operators once: coarse=[...] (coarse_operators is deprecated)")
+            coarse = coarse_operators
+        if coarse_scaling not in (None, "energy"):
+            raise SolverInputError(f"coarse_scaling must be None or 'energy', got {coarse_scaling!r}")
+        self.coarse_scaling = coarse_scaling
+        if isinstance(coarse, str):
+            if coarse != "galerkin":
+                raise SolverInputError(
+                    f"coarse must be 'galerkin' or a list of coarse operators, got {coarse!r} (named coarse "
+                    "operators such as 'weighted' are built by nestmg.problems.setup_problem)")
+            if any((np.diff(P.tocsc().indptr) == 0).any() for P in Ps):
+                # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
+                # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
+                Ps, _ = restrict_prolongations(Ps, np.arange(A.shape[0]))
             ops = galerkin_operators(A, Ps)
             self.coarse = "galerkin"
         else:
+            coarse_operators = list(coarse)
             if len(coarse_operators) != len(Ps):
                 raise SolverInputError(f"coarse_operators needs {len(Ps)} matrices, got {len(coarse_operators)}")
             ops = [A] + [_as_csr(Ac, f"coarse_operators[{k}]") for k, Ac in enumerate(coarse_operators)]
@@ -511,7 +571,7 @@ class MultigridSolver:
                     raise SolverInputError(
                         f"coarse_operators[{k}] has shape {Ac.shape}, expected {(P.shape[1], P.shape[1])}"
                     )
-            self.coarse = "rediscretised"
+            self.coarse = "given"
         for k, Ak in enumerate(ops):
             d = Ak.diagonal()
             if np.any(d <= 0):
@@ -665,7 +725,12 @@ class MultigridSolver:
             else:  # F: an F-cycle then a V-cycle on the coarser level
                 self._cycle(k + 1, xc, bc, "F", check)
                 self._cycle(k + 1, xc, bc, "V", check)
-        x += L.P @ xc
+        e = L.P @ xc
+        if self.coarse_scaling == "energy":
+            den = float(e @ (A @ e))
+            if den > 0:
+                e *= float(r @ e) / den
+        x += e
         if check:
             self._check_finite(x, k, "coarse-grid correction")
         L.postsmoother(A, x, b)
@@ -795,7 +860,7 @@ class MultigridSolver:
                 )
 
             res = pcg(A, b, M=self.aspreconditioner(cycle), x0=x, tol=tol, maxiter=maxiter,
-                      nullspace=self.nullspace, divtol=divtol)
+                      nullspace=self.nullspace, divtol=divtol, flexible=self.coarse_scaling is not None)
             x, hist = res.x, res.residuals
             if res.nonfinite:
                 level, stage = self._locate_nan(np.zeros(n), b, cycle)

@@ -232,3 +232,31 @@ def test_boundary_faces_match_libigl():
     # outward orientation: the divergence theorem gives the cube's volume
     a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     assert abs(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6 - 1.0) < 1e-12
+
+
+def _reference_weighted_stiffness(V, T, w):
+    n = len(V)
+    K = np.zeros((n, n))
+    for t, wt in zip(T, w):
+        K += wt * _reference_stiffness(V, t[None])
+    return K
+
+
+def test_weighted_stiffness_and_mass(jittered_cube):
+    """Per-tet weights: K = Σ_e w_e K_e and M = Σ_e w_e M_e (volume-fraction weighted coarse operators)."""
+    V, T = jittered_cube
+    w = np.random.default_rng(3).uniform(0.0, 1.0, len(T))
+    Kw = fem.stiffness_matrix(V, T, w)
+    np.testing.assert_allclose(Kw.toarray(), _reference_weighted_stiffness(V, T, w), atol=1e-12)
+    assert np.abs(Kw @ np.ones(len(V))).max() < 1e-12
+    assert abs(fem.stiffness_matrix(V, T, np.ones(len(T))) - fem.stiffness_matrix(V, T)).max() < 1e-13
+    vol = np.abs(np.linalg.det(V[T[:, 1:]] - V[T[:, :1]])) / 6
+    Mw = fem.mass_matrix(V, T, weights=w)
+    assert Mw.sum() == pytest.approx(vol @ w, rel=1e-12)
+    assert abs(fem.mass_matrix(V, T, weights=np.ones(len(T))) - fem.mass_matrix(V, T)).max() < 1e-15
+    with pytest.raises(SolverInputError, match="weights"):
+        fem.stiffness_matrix(V, T, -w)
+    with pytest.raises(SolverInputError, match="weights"):
+        fem.mass_matrix(V, T, weights=w[:-1])
+    with pytest.raises(SolverInputError, match="barycentric"):
+        fem.mass_matrix(V, T, kind="full", weights=w)

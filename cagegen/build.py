@@ -18,10 +18,33 @@ from .registry import get_backend
 from .sizes import check_face_counts, default_face_counts
 from .verify import verify_nesting
 
-__all__ = ["UNCERTIFIED_METHODS", "build_cages"]
+__all__ = ["UNCERTIFIED_METHODS", "build_cages", "fallback_layers"]
 
 #: Methods whose layers are not expected to nest (baselines): reported, not gated.
 UNCERTIFIED_METHODS = frozenset({"decimate"})
+
+
+def fallback_layers(info: dict) -> list[dict]:
+    """Cage layers that a backend built with an opt-in fallback, read from :func:`build_cages`' info.
+
+    Parameters
+    ----------
+    info : dict
+        ``build_cages(..., return_info=True)[1]`` (or ``Hierarchy.cage_info``).
+
+    Returns
+    -------
+    list of dict
+        ``{"layer": k, "fallback": name}`` per such layer (k = 1 for the first cage); [] when none.
+
+    Examples
+    --------
+    >>> fallback_layers({"backend": {"layers": [{"layer": 1}, {"layer": 2, "fallback": "lazy"}]}})
+    [{'layer': 2, 'fallback': 'lazy'}]
+    """
+    layers = (info.get("backend") or {}).get("layers") or []
+    return [{"layer": int(d.get("layer", i + 1)), "fallback": d["fallback"]}
+            for i, d in enumerate(layers) if isinstance(d, dict) and d.get("fallback")]
 
 
 def _accepts(fn: Callable, name: str) -> bool:
@@ -150,6 +173,8 @@ def build_cages(
         kwargs["progress"] = report_to
     if min_gap > 0 and _accepts(backend, "min_gap"):
         kwargs["min_gap"] = min_gap  # the backend must build the clearance the verifier will demand
+    if verify and "certify" not in kwargs and _accepts(backend, "certify"):
+        kwargs["certify"] = False  # the whole hierarchy is verified below: once is enough
     say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
     t1 = time.perf_counter()
     # the backend gets its own copies: it may not modify the layer we return

@@ -1,7 +1,9 @@
 """Command line: ``nestmg demo | cages | solve | compare``.
 
-MESH arguments are a file (OBJ/OFF/PLY/STL) or ``shape:NAME`` for a built-in procedural shape
-(``sphere``, ``torus``, ``genus2``, ``neck_blobs``, ``thin_plate``). Inputs are normalised to a unit
+MESH arguments are a surface file (OBJ/OFF/PLY/STL), a tet-mesh file (``.msh``, ``.mesh``, ``.vtu``,
+``.vtk`` through meshio: the file's tets become the fine level, :func:`nestmg.hierarchy_from_tets`) or
+``shape:NAME`` for a built-in procedural shape (``sphere``, ``torus``, ``genus2``, ``neck_blobs``,
+``thin_plate``). Inputs are normalised to a unit
 bounding-box diagonal before any work; outputs are written atomically and never over the input.
 """
 
@@ -24,7 +26,8 @@ __all__ = ["main"]
 
 
 def _load(mesh: str) -> tuple[np.ndarray, np.ndarray, str]:
-    from .io import load_mesh, normalize
+    """Normalised nodes, cells ((m,3) triangles, or (t,4) tets from a tet-mesh file) and a name."""
+    from .io import TET_FORMATS, load_mesh, read_cells
     from .shapes import SHAPES
 
     if mesh.startswith("shape:"):
@@ -32,11 +35,18 @@ def _load(mesh: str) -> tuple[np.ndarray, np.ndarray, str]:
         if name not in SHAPES:
             raise NestmgError(f"unknown built-in shape {name!r}; choose from {sorted(SHAPES)}")
         V, F = SHAPES[name](res=24)
+    elif Path(mesh).suffix.lower() in TET_FORMATS:  # tets if the file has them, else its triangles
+        V, T, F = read_cells(mesh)
+        if T is None and F is None:
+            raise NestmgError(f"{mesh}: neither tetrahedra nor triangles in the file")
+        F = T if T is not None else F
+        name = Path(mesh).stem
     else:
         V, F = load_mesh(mesh)
         name = Path(mesh).stem
-    Vn, _, _ = normalize(V)
-    return Vn, F, name
+    # no normalisation here: build_hierarchy / build_cage_surfaces normalise inside and return (and the
+    # commands write) everything in the input's coordinates
+    return np.ascontiguousarray(V, dtype=np.float64), F, name
 
 
 def _refuse_overwriting_input(mesh: str, outputs: list[Path]) -> None:
@@ -56,27 +66,41 @@ def _write_json(path: str | Path, obj: Any) -> None:
 def _hierarchy(V, F, args, method=None):
     from .hierarchy import build_hierarchy
 
+    if F.shape[1] == 4:  # a tet mesh: it is the fine level, cages of its boundary below it
+        from .usermesh import hierarchy_from_tets
+
+        return hierarchy_from_tets(
+            V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
+            mesher=args.mesher, edge_length=args.edge_length, epsilon=args.epsilon,
+            extrapolation=args.extrapolation, cache=not args.no_cache,
+            progress=None if args.quiet is False else False, cage_opts={"repair": True} if args.repair else None,
+        )
+
     return build_hierarchy(
         V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
         mesher=args.mesher, edge_length_fac=args.edge_length, epsilon=args.epsilon,
+        max_tets=args.max_tets, time_budget=args.time_budget,
         extrapolation=args.extrapolation, cache=not args.no_cache, progress=None if args.quiet is False else False,
         cage_opts={"repair": True} if args.repair else None,
     )
 
 
-def _solve(h, args) -> dict:
+def _solve(h, args, solution: bool = False) -> dict:
     from .run import solve_on_hierarchy
 
+    # the model problems are posed on the normalised shape (unit bounding-box diagonal), so --lam and
+    # the right-hand side mean the same for every input scale
     return solve_on_hierarchy(
-        h.tets, h.P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
-        accel=args.accel, tol=args.tol, maxiter=args.maxiter, lam=args.lam,
+        h.tets_in("normalized"), h.P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
+        accel=args.accel, tol=args.tol, maxiter=args.maxiter, lam=args.lam, return_solution=solution,
     )
 
 
 def _print_solve(label: str, h, r: dict) -> None:
     status = "DIVERGED" if r["diverged"] else ("converged" if r["converged"] else "not converged")
+    fb = "".join(f" layer {d['layer']} by fallback {d['fallback']!r}" for d in h.fallbacks)
     print(f"{label:<10} levels={h.levels} tets={[len(T) for _, T in h.tets]} n_outside={h.n_outside} "
-          f"certified={h.certified}")
+          f"certified={h.certified}{fb}")
     print(f"{'':<10} {r['problem']} ({r['coarse']}, {r['smoother']} V({r['nu']},{r['nu']})): factor "
           f"{r['factor']:.3f}, {r['iterations']} cycles, {status}, final residual {r['residuals'][-1]:.2e}")
 
@@ -111,24 +135,34 @@ def cmd_demo(args) -> int:
 
 
 def cmd_cages(args) -> int:
-    import cagegen
-
+    from .hierarchy import build_cage_surfaces
     from .io import save_mesh
 
     out = Path(args.out)
     n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
     _refuse_overwriting_input(args.mesh, [out / f"layer_{k}.obj" for k in range(n_layers)] + [out / "report.json"])
     V, F, name = _load(args.mesh)
-    layers, info = cagegen.build_cages(
-        V, F, args.levels, method=args.method, face_counts=args.face_counts,
-        return_info=True, progress=None if args.quiet is False else False, repair=args.repair,
+    if F.shape[1] == 4:  # a tet mesh: cage its boundary surface
+        from .usermesh import boundary_surface
+
+        V, F, _ = boundary_surface(V, F)
+    # the same function and clearance as `solve`, layers in the input's coordinates
+    n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
+    layers, info = build_cage_surfaces(
+        V, F, n_layers, method=args.method, face_counts=args.face_counts, mesher=args.mesher,
+        epsilon=args.epsilon, cache=not args.no_cache, progress=None if args.quiet is False else False,
+        cage_opts={"repair": True} if args.repair else None,
     )
     for k, (Vk, Fk) in enumerate(layers):
         save_mesh(out / f"layer_{k}.obj", Vk, Fk)
     _write_json(out / "report.json", {"mesh": args.mesh, "method": args.method,
                                       "faces": [len(Fk) for _, Fk in layers], **info})
     ver = info.get("verification", {})
-    print(f"{name}: {len(layers)} layers {[len(Fk) for _, Fk in layers]} faces; verifier ok={ver.get('ok')}")
+    from cagegen.build import fallback_layers
+
+    fb = [f"layer {d['layer']} by fallback {d['fallback']!r}" for d in fallback_layers(info)]
+    print(f"{name}: {len(layers)} layers {[len(Fk) for _, Fk in layers]} faces; verifier ok={ver.get('ok')}"
+          + (f"; {', '.join(fb)}" if fb else ""))
     if args.png:
         from .render import render_layers
 
@@ -140,11 +174,20 @@ def cmd_cages(args) -> int:
 def cmd_solve(args) -> int:
     from .render import plot_convergence
 
-    _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p])
+    vtu = [Path(args.out) / f"level_{k}.vtu" for k in range(args.levels)] if args.out else []
+    _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p] + vtu)
     V, F, name = _load(args.mesh)
     h = _hierarchy(V, F, args)
-    r = _solve(h, args)
+    r = _solve(h, args, solution=bool(args.out))
+    u = r.pop("solution", None)
     _print_solve(args.method, h, r)
+    if args.out:  # every level's tet mesh; the solution on level 0; in the input's coordinates
+        from .problems import default_rhs
+        from .usermesh import write_vtu_levels
+
+        fields = {"f": default_rhs(h.tets[0][0])} | ({"u": u} if u is not None else {})
+        files = write_vtu_levels(args.out, h, fields)  # h.tets are in the input's coordinates
+        print(f"wrote {', '.join(str(f) for f in files)}")
     report = {"mesh": args.mesh, "hierarchy": h.to_dict(), "solve": r}
     if args.json:
         _write_json(args.json, report)
@@ -190,6 +233,10 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     g.add_argument("--edge-length", type=float, default=None,
                    help="fine tet edge length / bbox diagonal, doubling per level (default: the input's mean edge)")
     g.add_argument("--epsilon", type=float, default=1e-3, help="TetWild envelope / bbox diagonal")
+    g.add_argument("--max-tets", type=int, default=None,
+                   help="cap on the fine level's tets when --edge-length is not given (default 1.5M)")
+    g.add_argument("--time-budget", type=float, default=None,
+                   help="seconds allowed for meshing the fine level; the fine edge grows to fit (default: none)")
     g.add_argument("--extrapolation", choices=["clamped", "linear", "closest_point", "nearest_vertex"],
                    default="clamped", help="rule for fine nodes outside the coarse tets")
     g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")
@@ -240,6 +287,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", default="nested")
     s.add_argument("--json", default=None, help="write the report here")
     s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")
+    s.add_argument("--out", default=None,
+                   help="folder for VTU files (ParaView): level_k.vtu per level, level_0.vtu with f and the solution u")
     _common(s)
     _solver_opts(s)
     s.set_defaults(func=cmd_solve)
@@ -260,6 +309,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``nestmg`` console script."""
     args = build_parser().parse_args(argv)
+    if not sys.stderr.isatty() and not getattr(args, "quiet", False):
+        from .progress import enable_stage_lines
+
+        enable_stage_lines()  # a log or a pipe: one line per stage (in a terminal, rich bars instead)
+    from cagegen.registry import registered_backends
+
+    methods = [getattr(args, "method", None), *(getattr(args, "methods", None) or [])]
+    unknown = [m for m in methods if m is not None and m not in registered_backends()]
+    if unknown:  # before any work, without importing a backend
+        print(f"nestmg: error: unknown --method {unknown[0]!r}; registered: {', '.join(registered_backends())}",
+              file=sys.stderr)
+        return 2
     try:
         return int(args.func(args) or 0)
     except NestmgError as exc:

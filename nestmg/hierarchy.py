@@ -24,11 +24,16 @@ import scipy.sparse as sp
 
 from .cache import cache_key, load_entry, save_entry
 from .memory import check_tet_memory
-from .progress import Timer, stages
+from .progress import Timer, stage_line, stages
 from .prolongation import ProlongationReport, prolongation
+from .sizing import edge_length_for_tets, plan_hierarchy
 from .tetmesh import tetrahedralize
 
-__all__ = ["Hierarchy", "build_hierarchy", "tet_hierarchy"]
+__all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "tet_hierarchy"]
+
+#: TetWild knobs used by the pipeline (measured in docs/scale.md: fTetWild's own defaults are
+#: stop_energy=10, 80 optimisation passes)
+TETWILD_DEFAULTS = {"stop_energy": 10.0, "max_opt_iter": 80}
 
 
 @dataclass
@@ -61,6 +66,34 @@ class Hierarchy:
     cage_info: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     options: dict = field(default_factory=dict)
+    frame: dict = field(default_factory=lambda: {"center": [0.0, 0.0, 0.0], "scale": 1.0})
+
+    # ------------------------------------------------------------------ frames
+    # ``surfaces`` and ``tets`` are in the input's (user's) coordinates; the pipeline works on a copy
+    # centred at the origin with a unit bounding-box diagonal: user = scale * normalised + center.
+    def to_normalized(self, V: np.ndarray) -> np.ndarray:
+        """Points ``V`` (n,3) of the user's frame in the normalised frame (unit diagonal, centred)."""
+        return (np.asarray(V, dtype=np.float64) - np.asarray(self.frame["center"])) / float(self.frame["scale"])
+
+    def to_user(self, Vn: np.ndarray) -> np.ndarray:
+        """Points ``Vn`` (n,3) of the normalised frame in the user's frame."""
+        return np.asarray(Vn, dtype=np.float64) * float(self.frame["scale"]) + np.asarray(self.frame["center"])
+
+    def tets_in(self, frame: str = "user") -> list[tuple[np.ndarray, np.ndarray]]:
+        """Tet layers in the ``"user"`` (input's) or ``"normalized"`` frame (same ``T`` arrays)."""
+        if frame == "user":
+            return list(self.tets)
+        if frame == "normalized":
+            return [(self.to_normalized(V), T) for V, T in self.tets]
+        raise ValueError(f"frame must be 'user' or 'normalized', got {frame!r}")
+
+    def surfaces_in(self, frame: str = "user") -> list[tuple[np.ndarray, np.ndarray]]:
+        """Surface layers in the ``"user"`` or ``"normalized"`` frame."""
+        if frame == "user":
+            return list(self.surfaces)
+        if frame == "normalized":
+            return [(self.to_normalized(V), F) for V, F in self.surfaces]
+        raise ValueError(f"frame must be 'user' or 'normalized', got {frame!r}")
 
     @property
     def levels(self) -> int:
@@ -81,9 +114,9 @@ class Hierarchy:
     @property
     def fallbacks(self) -> list[dict]:
         """Cage layers built by a backend's fallback (e.g. ``{"layer": 2, "fallback": "lazy"}``); [] if none."""
-        layers = (self.cage_info.get("backend") or {}).get("layers") or []
-        return [{"layer": int(d.get("layer", i + 1)), "fallback": d["fallback"]}
-                for i, d in enumerate(layers) if isinstance(d, dict) and d.get("fallback")]
+        from cagegen.build import fallback_layers
+
+        return fallback_layers(self.cage_info)
 
     def save(self, directory) -> Any:
         """Write the hierarchy to ``directory`` (:func:`nestmg.usermesh.save_hierarchy`)."""
@@ -119,6 +152,7 @@ class Hierarchy:
             "timings": self.timings,
             "cage_info": self.cage_info,
             "options": self.options,
+            "frame": {"center": [float(c) for c in self.frame["center"]], "scale": float(self.frame["scale"])},
         }
 
     def __repr__(self) -> str:
@@ -136,16 +170,17 @@ def _bbox_diag(V: np.ndarray) -> float:
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
 
 
-def _mesh_layer(V, F, mesher, h, epsilon, use_cache):
+def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_opts=None, layer=None):
     """Tet-mesh one layer, through the cache."""
-    opts = {"stage": "tets", "mesher": mesher, "h": round(h, 12), "epsilon": epsilon}
+    tw = dict(tetwild_opts or {}) if mesher == "tetwild" else {}
+    opts = {"stage": "tets", "mesher": mesher, "h": round(h, 12), "epsilon": epsilon, **tw}
     key = cache_key([V, F], opts)
     if use_cache:
         hit = load_entry(key)
         if hit is not None:
             return hit[0]["V"], hit[0]["T"]
-    check_tet_memory(V, F, h, mesher)  # refuse before meshing a layer that would not fit
-    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=h, epsilon=epsilon)
+    check_tet_memory(V, F, h, mesher, layer=layer)  # refuse before meshing a layer that would not fit
+    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=h, epsilon=epsilon, **tw)
     if use_cache:
         save_entry(key, {"V": Vt, "T": T}, opts)
     return Vt, T
@@ -156,11 +191,16 @@ def tet_hierarchy(
     *,
     mesher: str = "tetwild",
     edge_length_fac: float | None = None,
+    edge_length: float | None = None,
+    coarsening: float | None = None,
+    same_domain_levels: int = 0,
     epsilon: float = 1e-3,
     extrapolation: str = "clamped",
     tet_retries: int = 2,
     cache: bool = True,
     progress: bool | None = None,
+    tetwild_opts: dict | None = None,
+    t0: float | None = None,
     fine: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[list, list, list, dict]:
     """Tet-mesh every surface layer and build the prolongations between consecutive layers.
@@ -172,9 +212,18 @@ def tet_hierarchy(
     mesher, epsilon
         See :func:`nestmg.tetmesh.tetrahedralize`.
     edge_length_fac : float, optional
-        Layer ``k`` gets target edge length ``h_0 * 2**k`` with ``h_0 = edge_length_fac *
-        diag(surfaces[0])``; default (None): ``h_0`` = mean edge length of the input surface, so the
-        fine tets match the input's resolution.
+        Fine target edge length relative to the bounding-box diagonal of ``surfaces[0]``.
+    edge_length : float, optional
+        Fine target edge length in absolute units (overrides ``edge_length_fac``). Default (both
+        None): the mean edge length of the input surface, so the fine tets match its resolution.
+    coarsening : float, optional
+        Wanted ratio of tets between consecutive levels. None (default): level ``k`` is meshed at
+        ``h_0 * 2**k``. A number: each *cage* level's edge length is chosen from its enclosed volume
+        so that it is expected to have ``coarsening`` times fewer tets than the level below it
+        actually has (cages enclose more volume than their inner layer, so plain doubling coarsens
+        by less than 8x). Same-domain levels always double.
+    same_domain_levels : int
+        How many of the first coarse surfaces are the input again (same-domain levels).
     extrapolation : str
         Rule for fine nodes outside the coarse tet mesh (see :mod:`nestmg.prolongation`).
     tet_retries : int
@@ -183,7 +232,11 @@ def tet_hierarchy(
     cache : bool
         Reuse tet meshes from the on-disk cache.
     progress : bool or None
-        Show a progress bar (None: only on a terminal).
+        Show a progress bar (None: only on a terminal). Stage lines go to the ``nestmg`` logger.
+    tetwild_opts : dict, optional
+        TetWild knobs (``stop_energy``, ``max_opt_iter``, ``threads``) for every layer.
+    t0 : float, optional
+        ``time.perf_counter()`` at the start of the run, for the elapsed time of the stage lines.
     fine : (V, T), optional
         The caller's own tet mesh of ``surfaces[0]``, used as level 0 unchanged instead of meshing it
         (:func:`nestmg.usermesh.hierarchy_from_tets`).
@@ -194,43 +247,167 @@ def tet_hierarchy(
     P : list of csr_matrix
     reports : list of ProlongationReport
     timings : dict
-        ``tets`` and ``prolongation`` seconds, and ``tet_retries`` per level.
+        ``tets`` and ``prolongation`` seconds, ``tet_seconds`` and ``edge_lengths`` per level,
+        ``tet_retries`` and ``epsilon`` per level.
     """
     timer = Timer()
+    t0 = time.perf_counter() if t0 is None else t0
     V0, F0 = surfaces[0]
-    if edge_length_fac is None:  # match the input surface's resolution
-        h0 = float(np.linalg.norm(V0[F0[:, 1]] - V0[F0[:, 0]], axis=1).mean())
-    else:
+    if edge_length is not None:
+        h0 = float(edge_length)
+    elif edge_length_fac is not None:
         h0 = edge_length_fac * _bbox_diag(V0)
-    tets: list = []
-    eps = [epsilon] * len(surfaces)
-    retries = [0] * len(surfaces)
-    with stages(len(surfaces), "tet layers", progress) as bar:
+    else:  # match the input surface's resolution
+        h0 = float(np.linalg.norm(V0[F0[:, 1]] - V0[F0[:, 0]], axis=1).mean())
+    tw = dict(TETWILD_DEFAULTS, **(tetwild_opts or {}))
+    n = len(surfaces)
+    tets: list = [None] * n
+    hs = [h0] * n
+    eps = [epsilon] * n
+    retries = [0] * n
+    t_level = [0.0] * n
+    Ps, reps = [], []
+
+    def mesh(k):
+        t = time.perf_counter()
+        with timer("tets"):
+            tets[k] = _mesh_layer(*surfaces[k], mesher, hs[k], eps[k], cache, tw, layer=k)
+        t_level[k] += time.perf_counter() - t
+        stage_line(f"tets level {k}: {len(tets[k][1]):,} tets / {len(tets[k][0]):,} nodes "
+                   f"(edge {hs[k]:.3g}, {mesher}, {time.perf_counter() - t:.1f} s)", t0)
+
+    with stages(n, "tet layers", progress) as bar:
         for k, (V, F) in enumerate(surfaces):
             bar.describe(f"tet layer {k} ({len(F)} faces, {mesher})")
-            with timer("tets"):
-                if k == 0 and fine is not None:  # the caller's own fine tet mesh, kept as it is
-                    tets.append(fine)
-                else:
-                    tets.append(_mesh_layer(V, F, mesher, h0 * 2**k, eps[k], cache))
+            if k > 0:
+                if coarsening is None or k <= same_domain_levels:
+                    hs[k] = hs[k - 1] * 2.0
+                else:  # aim at `coarsening` x fewer tets than level k-1 really has
+                    want = max(len(tets[k - 1][1]) / float(coarsening), 50)
+                    hs[k] = max(edge_length_for_tets(V, F, int(want), mesher), hs[k - 1])
+            if k == 0 and fine is not None:  # the caller's own fine tet mesh, kept as it is
+                tets[0] = fine
+            else:
+                mesh(k)
             bar.advance()
-    Ps, reps = [], []
-    for k in range(len(surfaces) - 1):
-        with timer("prolongation"):
-            P, rep = prolongation(tets[k][0], tets[k + 1][0], tets[k + 1][1], extrapolation=extrapolation)
-        while rep.n_outside > 0 and mesher == "tetwild" and retries[k + 1] < tet_retries:
-            retries[k + 1] += 1
-            eps[k + 1] /= 4
-            with timer("tets"):
-                tets[k + 1] = _mesh_layer(*surfaces[k + 1], mesher, h0 * 2 ** (k + 1), eps[k + 1], cache)
+            if k == 0:
+                continue
             with timer("prolongation"):
-                P, rep = prolongation(tets[k][0], tets[k + 1][0], tets[k + 1][1], extrapolation=extrapolation)
-        Ps.append(P)
-        reps.append(rep)
+                P, rep = prolongation(tets[k - 1][0], tets[k][0], tets[k][1], extrapolation=extrapolation)
+            while rep.n_outside > 0 and mesher == "tetwild" and retries[k] < tet_retries:
+                retries[k] += 1
+                eps[k] /= 4
+                stage_line(f"level {k}: {rep.n_outside} fine nodes outside; re-meshing with epsilon {eps[k]:.2g}", t0)
+                mesh(k)
+                with timer("prolongation"):
+                    P, rep = prolongation(tets[k - 1][0], tets[k][0], tets[k][1], extrapolation=extrapolation)
+            stage_line(f"prolongation {k - 1}<-{k}: {P.shape[0]:,} x {P.shape[1]:,}, n_outside {rep.n_outside}", t0)
+            Ps.append(P)
+            reps.append(rep)
     timings = dict(timer.seconds)
     timings["tet_retries"] = retries
     timings["epsilon"] = eps
+    timings["edge_lengths"] = hs
+    timings["tet_seconds"] = t_level
     return tets, Ps, reps, timings
+
+
+def build_cage_surfaces(
+    V: np.ndarray,
+    F: np.ndarray,
+    levels: int,
+    *,
+    method: str = "nested",
+    face_counts: list[int] | None = None,
+    mesher: str = "tetwild",
+    epsilon: float = 1e-3,
+    cache: bool = True,
+    progress: bool | None = None,
+    cage_opts: dict | None = None,
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
+    """The cage layers of a hierarchy, exactly as :func:`build_hierarchy` builds them (same clearance).
+
+    ``nestmg cages`` and ``nestmg solve`` both go through this function. The input is normalised
+    inside (centred, unit bounding-box diagonal) and the layers are returned in the input's coordinates.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        Closed input surface, in the user's coordinates.
+    levels : int
+        Number of surfaces, input included.
+    method, face_counts
+        See :func:`cagegen.build_cages`.
+    mesher, epsilon
+        The tet mesher the layers are meant for: with TetWild and a certified method the cages keep a
+        clearance ``min_gap = 2.5 * epsilon`` (relative to the diagonal) so that TetWild's envelope
+        cannot put a fine node outside the coarse tet mesh.
+    cache : bool
+        Reuse cages from the on-disk cache (keyed on the normalised input).
+    progress : bool or None
+        Progress bars (None: only on a terminal).
+    cage_opts : dict, optional
+        Extra options of the cage backend (``min_gap`` overrides the automatic clearance).
+
+    Returns
+    -------
+    surfaces : list of (V_k, F_k)
+        In the input's coordinates, input first.
+    info : dict
+        The backend's and verifier's info, plus ``frame`` (``center``, ``scale``).
+    """
+    import cagegen
+
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    Vn, center, scale = _normalize(V)
+    cage_opts = dict(cage_opts or {})
+    if mesher == "tetwild" and method not in cagegen.UNCERTIFIED_METHODS:
+        # TetWild's boundary is only within `epsilon` (relative to each layer's bbox diagonal) of its
+        # input, outward on the fine layer and inward on the cage: a clearance of 2.5 epsilon between
+        # consecutive cages keeps every fine node inside the coarse tet mesh (tet-level nesting).
+        cage_opts.setdefault("min_gap", 2.5 * epsilon)
+    opts = {"stage": "cages", "method": method, "levels": levels, "face_counts": face_counts, **cage_opts}
+    key = cache_key([Vn, F], opts)
+    hit = load_entry(key) if cache else None
+    if hit is not None:
+        arrays, info = hit
+        surfaces = [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(levels)]
+        info = dict(info, cached=True)
+    else:
+        t0 = time.perf_counter()
+        surfaces, info = cagegen.build_cages(
+            Vn, F, levels, method=method, face_counts=face_counts, return_info=True, progress=progress, **cage_opts
+        )
+        info = dict(info, seconds=time.perf_counter() - t0)
+        if cache:
+            arrays = {}
+            for k, (Vk, Fk) in enumerate(surfaces):
+                arrays[f"V{k}"], arrays[f"F{k}"] = Vk, Fk
+            save_entry(key, arrays, info)
+    # the input layer is the caller's own array (bit for bit, unless repaired), the cages are mapped back
+    V0, F0 = surfaces[0]
+    same = V0.shape == Vn.shape and F0.shape == F.shape and np.array_equal(F0, F)
+    out = [(V, F) if same else (V0 * scale + center, F0)] + [(Vk * scale + center, Fk) for Vk, Fk in surfaces[1:]]
+    info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_opts=cage_opts)
+    return out, info
+
+
+def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre the bounding box and scale its diagonal to 1 (clear error for empty / NaN / flat input)."""
+    from cagegen.errors import MeshInputError
+
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
+        raise MeshInputError(f"input: vertices must be a non-empty (n,3) array, got shape {V.shape}")
+    if not np.isfinite(V).all():
+        raise MeshInputError(f"input: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    center = 0.5 * (lo + hi)
+    scale = float(np.linalg.norm(hi - lo))
+    if not (np.isfinite(scale) and scale > 0):
+        raise MeshInputError(f"input: bounding-box diagonal {scale} (all vertices coincide, or overflow)")
+    return (V - center) / scale, center, scale
 
 
 def build_hierarchy(
@@ -242,6 +419,9 @@ def build_hierarchy(
     face_counts: list[int] | None = None,
     mesher: str = "tetwild",
     edge_length_fac: float | None = None,
+    max_tets: int | None = None,
+    time_budget: float | None = None,
+    coarsening: float | None = 8.0,
     epsilon: float = 1e-3,
     extrapolation: str = "clamped",
     tet_retries: int | None = None,
@@ -249,8 +429,15 @@ def build_hierarchy(
     progress: bool | None = None,
     cage_opts: dict | None = None,
     same_domain_levels: int = 0,
+    tetwild_opts: dict | None = None,
 ) -> Hierarchy:
     """Cages, tet layers and prolongations for the closed surface ``(V, F)``.
+
+    Sizes are decided first (:func:`nestmg.sizing.plan_hierarchy`, a few milliseconds): a request that
+    cannot fit the tet / memory budget fails before any cage is built, naming the option to change.
+    The work is done on a normalised copy (centred, unit bounding-box diagonal); the returned
+    surfaces and tets are in the input's coordinates (:attr:`Hierarchy.frame` records the map,
+    :meth:`Hierarchy.tets_in` gives both frames).
 
     Parameters
     ----------
@@ -263,25 +450,35 @@ def build_hierarchy(
         Cage backend (``nested``, ``decimate``, ...; see ``cagegen.available_backends()``).
     face_counts : list of int, optional
         Cage face counts, finest first (default: 4x fewer faces per level).
-    mesher, edge_length_fac, epsilon, extrapolation
+    mesher : {"tetwild", "tetgen"}
+        Tet mesher (TetGen is AGPL: opt-in only).
+    edge_length_fac : float, optional
+        Fine target edge length relative to the bounding-box diagonal. Default: the input's mean edge
+        length, enlarged if needed to fit ``max_tets`` and ``time_budget``.
+    max_tets : int, optional
+        Cap on the fine level's expected tets (default 1.5M when ``edge_length_fac`` is not given).
+    time_budget : float, optional
+        Seconds allowed for meshing the fine level (estimate of :func:`nestmg.sizing.fine_mesh_seconds`).
+    coarsening : float or None
+        Wanted tet ratio between consecutive cage levels (default 8); None: edge length doubling.
+    epsilon, extrapolation
         See :func:`tet_hierarchy`.
     tet_retries : int, optional
         Default 2 for certified methods, 0 for ``decimate`` (its layers are not nested anyway).
     cache : bool
         Reuse cages and tet meshes from the on-disk cache (``$NESTMG_CACHE``).
     progress : bool or None
-        Progress bars (None: only on a terminal).
+        Progress bars (None: only on a terminal). One stage line per stage goes to the ``nestmg``
+        logger (the CLI prints them when stderr is not a terminal).
     cage_opts : dict, optional
         Extra options for the cage backend. With TetWild and a certified method, ``min_gap`` defaults
-        to ``2.5 * epsilon`` (cages keep that clearance, relative to the bounding-box diagonal, so
-        TetWild's envelope cannot put fine nodes outside the coarse tets).
+        to ``2.5 * epsilon`` (see :func:`build_cage_surfaces`).
     same_domain_levels : int
         Coarsen within the input surface first: levels ``1 .. same_domain_levels`` re-mesh the *input*
-        surface at 2x, 4x, ... the fine edge length (same domain, so no fine node needs
-        extrapolation; with TetGen the boundary is kept exactly), and only the remaining
-        ``levels - same_domain_levels - 1`` levels are cages. For large fine meshes (ENVIRONMENT.md,
-        "At scale"): a same-domain level is useful while its edge length stays below the input surface's
-        own edge length, since the mesher cannot coarsen the boundary. 0 (default): cages only.
+        surface at 2x, 4x, ... the fine edge length (same domain; with TetGen the boundary is kept
+        exactly), and only the remaining ``levels - same_domain_levels - 1`` levels are cages.
+    tetwild_opts : dict, optional
+        TetWild knobs for every layer (``stop_energy``, ``max_opt_iter``, ``threads``).
 
     Returns
     -------
@@ -289,6 +486,8 @@ def build_hierarchy(
 
     Raises
     ------
+    nestmg.sizing.SizingError
+        The sizes cannot fit the budget (raised before any cage is built).
     cagegen.MeshInputError
         Bad input surface.
     cagegen.CageError
@@ -296,6 +495,7 @@ def build_hierarchy(
     """
     import cagegen
 
+    t0 = time.perf_counter()
     if levels < 2:
         raise ValueError(f"levels must be >= 2, got {levels}")
     if not isinstance(same_domain_levels, (int, np.integer)) or not 0 <= same_domain_levels <= levels - 2:
@@ -306,47 +506,49 @@ def build_hierarchy(
     n_surf = levels - int(same_domain_levels)  # input + cages
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
-    cage_opts = dict(cage_opts or {})
-    if mesher == "tetwild" and method != "decimate":
-        # TetWild's boundary is only within `epsilon` (relative to each layer's bbox diagonal) of its
-        # input, outward on the fine layer and inward on the cage: a clearance of 2.5 epsilon between
-        # consecutive cages keeps every fine node inside the coarse tet mesh (tet-level nesting).
-        cage_opts.setdefault("min_gap", 2.5 * epsilon)
+    Vn, center, scale = _normalize(V)
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or F.min() < 0 or F.max() >= len(V):
+        raise cagegen.MeshInputError(f"input: faces must be a non-empty (m,3) array of vertex indices, got {F.shape}")
+    # 1. sizes first: milliseconds, before any expensive stage
+    plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
+                          time_budget=time_budget)
+    stage_line(f"sizing: fine edge {plan.edge_length:.3g} of the diagonal ({plan.rule}), expected tets "
+               f"{[f'{n:,}' for n in plan.expected_tets]}, peak memory ~{plan.peak_bytes / 2**30:.1f} GB", t0)
+    for note in plan.notes:
+        stage_line(f"sizing note: {note}", t0)
     timer = Timer()
-    opts = {"stage": "cages", "method": method, "levels": n_surf, "face_counts": face_counts, **cage_opts}
-    key = cache_key([V, F], opts)
-    hit = load_entry(key) if cache else None
+    # 2. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
-        if hit is not None:
-            arrays, info = hit
-            surfaces = [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(n_surf)]
-            info = dict(info, cached=True)
-        else:
-            t0 = time.perf_counter()
-            surfaces, info = cagegen.build_cages(
-                V, F, n_surf, method=method, face_counts=face_counts, return_info=True, progress=progress, **cage_opts
-            )
-            info = dict(info, seconds=time.perf_counter() - t0)
-            if cache:
-                arrays = {}
-                for k, (Vk, Fk) in enumerate(surfaces):
-                    arrays[f"V{k}"], arrays[f"F{k}"] = Vk, Fk
-                save_entry(key, arrays, info)
+        surfaces_u, info = build_cage_surfaces(
+            Vn, F, n_surf, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
+            cache=cache, progress=progress, cage_opts=cage_opts,
+        )
+    stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
+               f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)
     if tet_retries is None:
-        tet_retries = 0 if method == "decimate" else 2
-    surfaces = [surfaces[0]] * int(same_domain_levels) + list(surfaces)  # same-domain layers first
-    tets, Ps, reps, tt = tet_hierarchy(
-        surfaces,
+        tet_retries = 0 if method in cagegen.UNCERTIFIED_METHODS else 2
+    surfaces_n = [surfaces_u[0]] * int(same_domain_levels) + list(surfaces_u)  # same-domain layers first
+    # 3. tets and prolongations
+    tets_n, Ps, reps, tt = tet_hierarchy(
+        surfaces_n,
         mesher=mesher,
-        edge_length_fac=edge_length_fac,
+        edge_length=plan.edge_length,
+        coarsening=coarsening,
+        same_domain_levels=int(same_domain_levels),
         epsilon=epsilon,
         extrapolation=extrapolation,
         tet_retries=tet_retries,
         cache=cache,
         progress=progress,
+        tetwild_opts=tetwild_opts,
+        t0=t0,
     )
-    timings = {**timer.seconds, **tt}
-    return Hierarchy(
+    timings = {**timer.seconds, **tt, "total": time.perf_counter() - t0}
+    # 4. back to the user's frame (the input layer is the caller's array itself)
+    surfaces = [(V, F)] + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[1:]]
+    tets = [(Vt * scale + center, T) for Vt, T in tets_n]
+    info["frame"] = {"center": center.tolist(), "scale": scale}
+    h = Hierarchy(
         surfaces=surfaces,
         tets=tets,
         P=Ps,
@@ -356,7 +558,12 @@ def build_hierarchy(
         timings=timings,
         options={
             "levels": levels, "face_counts": face_counts, "mesher": mesher, "edge_length_fac": edge_length_fac,
-            "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": cage_opts,
-            "same_domain_levels": int(same_domain_levels),
+            "max_tets": max_tets, "time_budget": time_budget, "coarsening": coarsening,
+            "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": info.get("cage_opts", {}),
+            "same_domain_levels": int(same_domain_levels), "tetwild_opts": dict(TETWILD_DEFAULTS, **(tetwild_opts or {})),
+            "sizing": plan.to_dict(),
         },
+        frame={"center": center, "scale": scale},
     )
+    stage_line(f"hierarchy: tets {[len(T) for _, T in tets]}, n_outside {h.n_outside}, certified {h.certified}", t0)
+    return h

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import sys
 import time
 from collections.abc import Iterator
@@ -65,3 +66,31 @@ class Timer:
             yield
         finally:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+#: logger of the pipeline's stage lines (``nestmg``): the CLI prints them when stderr is not a terminal
+log = logging.getLogger("nestmg")
+
+
+def stage_line(msg: str, t0: float | None = None) -> None:
+    """Log one stage line (``INFO`` on the ``nestmg`` logger), with the elapsed time since ``t0``."""
+    if t0 is not None:
+        msg = f"{time.perf_counter() - t0:7.1f} s  {msg}"
+    log.info(msg)
+
+
+def enable_stage_lines(stream=None) -> None:
+    """Print the pipeline's stage lines (one per stage, flushed) on ``stream`` (default stderr).
+
+    The CLI calls this when stderr is not a terminal, so a long run in a script or a CI log shows where
+    it is; in a terminal the rich progress bars do that instead. Idempotent.
+    """
+    for h in log.handlers:
+        if getattr(h, "_nestmg_stage_lines", False):
+            return
+    h = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    h.setFormatter(logging.Formatter("[nestmg] %(message)s"))
+    h._nestmg_stage_lines = True  # type: ignore[attr-defined]
+    log.addHandler(h)
+    log.setLevel(logging.INFO)
+    log.propagate = False

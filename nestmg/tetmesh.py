@@ -22,7 +22,7 @@ import numpy as np
 from cagegen._geometry import as_mesh_arrays
 from cagegen.errors import MeshInputError, NestmgError
 
-__all__ = ["MESHERS", "TetMeshError", "orient_tets", "tet_volumes", "tetrahedralize"]
+__all__ = ["MESHERS", "TetMeshError", "orient_tets", "tet_quality", "tet_volumes", "tetrahedralize"]
 
 MESHERS = ("tetwild", "tetgen")
 
@@ -43,6 +43,42 @@ def orient_tets(V: np.ndarray, T: np.ndarray) -> np.ndarray:
     neg = tet_volumes(V, T) < 0
     T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
     return T
+
+
+def tet_quality(V: np.ndarray, T: np.ndarray, sliver_deg: float = 5.0) -> dict:
+    """Dihedral-angle quality of a tet mesh.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    T : (t,4) int array
+    sliver_deg : float
+        A tet whose smallest dihedral angle is below this (degrees) counts as a sliver.
+
+    Returns
+    -------
+    dict
+        ``min_dihedral_deg`` (smallest over the mesh), ``p01_min_dihedral_deg`` (1st percentile of the
+        per-tet minimum), ``max_dihedral_deg``, ``n_slivers`` and ``sliver_fraction``.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    T = np.asarray(T, dtype=np.int64)
+    if len(T) == 0:
+        return {"min_dihedral_deg": float("nan"), "p01_min_dihedral_deg": float("nan"),
+                "max_dihedral_deg": float("nan"), "n_slivers": 0, "sliver_fraction": 0.0}
+    P = V[T]
+    # outward-or-inward face normals of the 4 faces (face i is opposite vertex i)
+    faces = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
+    N = np.stack([np.cross(P[:, b] - P[:, a], P[:, c] - P[:, a]) for a, b, c in faces], axis=1)
+    N /= np.maximum(np.linalg.norm(N, axis=2, keepdims=True), 1e-300)
+    # the dihedral angle at the edge shared by faces i and j is pi - angle(n_i, n_j)
+    ang = np.stack([np.pi - np.arccos(np.clip(np.einsum("ij,ij->i", N[:, i], N[:, j]), -1.0, 1.0))
+                    for i in range(4) for j in range(i + 1, 4)], axis=1)
+    dmin = np.degrees(ang.min(axis=1))
+    dmax = np.degrees(ang.max(axis=1))
+    n_sl = int((dmin < sliver_deg).sum())
+    return {"min_dihedral_deg": float(dmin.min()), "p01_min_dihedral_deg": float(np.percentile(dmin, 1)),
+            "max_dihedral_deg": float(dmax.max()), "n_slivers": n_sl, "sliver_fraction": n_sl / len(T)}
 
 
 @contextlib.contextmanager
@@ -108,6 +144,8 @@ def tetrahedralize(
     epsilon: float = 1e-3,
     minratio: float = 1.5,
     threads: int = 0,
+    stop_energy: float = 10.0,
+    max_opt_iter: int = 80,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tet-mesh the solid bounded by the closed surface ``(V, F)``.
 
@@ -129,6 +167,9 @@ def tetrahedralize(
         TetGen radius-edge quality bound (ignored by tetwild).
     threads : int
         TetWild threads (0 = all cores).
+    stop_energy, max_opt_iter
+        TetWild's optimisation stops when the largest conformal AMIPS energy of a tet is below
+        ``stop_energy`` or after ``max_opt_iter`` passes (fTetWild's defaults: 10 and 80).
 
     Returns
     -------
@@ -169,7 +210,8 @@ def tetrahedralize(
                 c = (lo + hi) / 2
                 Vt, T = pytetwild.tetrahedralize(
                     (V - c) / diag, F.astype(np.int32), edge_length_abs=h / diag, epsilon=epsilon,
-                    num_threads=threads, quiet=True,
+                    num_threads=threads, quiet=True, stop_energy=float(stop_energy),
+                    num_opt_iter=int(max_opt_iter),
                 )
                 Vt = np.asarray(Vt, dtype=np.float64) * diag + c
         else:

@@ -1,0 +1,239 @@
+"""Sizing decided first: tet sizes of every level from a tet, memory and time budget.
+
+Everything here is cheap (a volume integral over the input surface), so it runs *before* any cage is
+built or any tet meshed, and an impossible request fails in seconds naming the option to change.
+
+The rule (:func:`plan_hierarchy`)
+---------------------------------
+* Fine edge length ``h_0``: ``--edge-length`` if given; otherwise the input's mean edge length,
+  enlarged when needed so that the estimated fine tet count stays within ``max_tets`` (default
+  1.5M) *and* the estimated fine meshing time within ``time_budget``.
+* Level ``k`` is meshed at ``h_0 * 2**k`` (~8x fewer tets per level, since the cages enclose a
+  volume only slightly larger than the layer inside).
+* The estimated peak memory of the largest stage (mesher + FEM matrices, :mod:`nestmg.memory`) must
+  fit in ``$NESTMG_MEMORY_LIMIT`` or the available memory.
+
+Tet counts: a regular tet of edge ``h`` has volume ``h³/(6√2)``; measured ratios of actual tets to
+``volume / regular`` are ~1.0 for TetWild (sphere, bunny, gargoyle at 0.03-0.005 of the diagonal) and
+~1.8 for TetGen's quality meshes (:data:`COUNT_RATIO`). The memory check uses the conservative
+:func:`nestmg.memory.estimate_tets` (2.5x) so it refuses only what cannot fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from solvers.errors import InsufficientMemoryError
+from solvers.memory import check_memory
+
+from .memory import TetMeshMemoryError, estimate_tet_bytes
+from .tetmesh import TetMeshError
+
+__all__ = [
+    "COUNT_RATIO",
+    "SizingError",
+    "SizingPlan",
+    "edge_length_for_tets",
+    "enclosed_volume",
+    "expected_tets",
+    "plan_hierarchy",
+]
+
+#: measured tets / (volume / regular-tet volume) at the target edge length
+COUNT_RATIO = {"tetwild": 1.1, "tetgen": 1.8}
+
+#: default cap on the fine level's tets
+DEFAULT_MAX_TETS = 1_500_000
+
+
+class SizingError(TetMeshError, ValueError):
+    """The requested sizes cannot be met within the budget (raised before any expensive stage)."""
+
+
+def enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Volume enclosed by the closed, outward-oriented surface ``(V, F)`` (divergence theorem).
+
+    Falls back to the bounding-box volume when the signed volume is not positive (inward faces).
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    c = V.mean(axis=0)
+    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
+    vol = float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
+    if not vol > 0:
+        vol = float(np.prod(V.max(axis=0) - V.min(axis=0)))
+    return vol
+
+
+def _regular(h: float) -> float:
+    return h**3 / (6.0 * np.sqrt(2.0))
+
+
+def expected_tets(volume: float, edge_length: float, mesher: str = "tetwild") -> int:
+    """Expected tet count of a solid of ``volume`` meshed at target ``edge_length`` by ``mesher``."""
+    return int(COUNT_RATIO[mesher] * volume / _regular(edge_length))
+
+
+def edge_length_for_tets(V: np.ndarray, F: np.ndarray, n_tets: int, mesher: str = "tetwild") -> float:
+    """Target edge length at which ``mesher`` is expected to make ``n_tets`` tets of ``(V, F)``'s solid."""
+    if n_tets <= 0:
+        raise ValueError(f"n_tets must be positive, got {n_tets}")
+    vol = enclosed_volume(V, F)
+    return float((COUNT_RATIO[mesher] * vol * 6.0 * np.sqrt(2.0) / n_tets) ** (1.0 / 3.0))
+
+
+@dataclass
+class SizingPlan:
+    """Sizes of a hierarchy decided before any cage or tet mesh is built (lengths in the input's units).
+
+    Attributes
+    ----------
+    edge_length : float
+        Fine target edge length ``h_0``; level ``k`` uses ``h_0 * 2**k``.
+    edge_lengths : list of float
+        Target edge length per level.
+    expected_tets : list of int
+        Expected tets per level (cage levels use the fine volume: an underestimate by the cages'
+        volume ratio, 1.0-1.5).
+    peak_bytes : int
+        Estimated peak memory of the largest meshing stage.
+    expected_seconds : float
+        Estimated seconds of the fine tet meshing (model in :func:`fine_mesh_seconds`).
+    rule : str
+        Which constraint set ``h_0``: ``"user"``, ``"input resolution"``, ``"max_tets"``, ``"time_budget"``.
+    notes : list of str
+    """
+
+    edge_length: float
+    edge_lengths: list[float]
+    expected_tets: list[int]
+    peak_bytes: int
+    expected_seconds: float
+    rule: str
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable copy."""
+        return asdict(self)
+
+
+#: fTetWild seconds ~ A * input faces + B * output tets (2 threads); fitted to the measurements in
+#: docs/scale.md (benchmarks/results/scale/tetwild_knobs.json) with the default knobs of
+#: :func:`nestmg.tetmesh.tetrahedralize` used by the pipeline.
+TETWILD_SECONDS_PER_FACE = 1.0e-3
+TETWILD_SECONDS_PER_TET = 2.5e-4
+
+
+def fine_mesh_seconds(n_faces: int, n_tets: int, mesher: str = "tetwild") -> float:
+    """Rough wall-time estimate (2 cores) of meshing an ``n_faces`` surface into ``n_tets`` tets."""
+    if mesher == "tetgen":
+        return 1e-5 * n_tets + 1e-5 * n_faces
+    return TETWILD_SECONDS_PER_FACE * n_faces + TETWILD_SECONDS_PER_TET * n_tets
+
+
+def plan_hierarchy(
+    V: np.ndarray,
+    F: np.ndarray,
+    levels: int,
+    *,
+    mesher: str = "tetwild",
+    edge_length: float | None = None,
+    max_tets: int | None = None,
+    time_budget: float | None = None,
+    memory_limit: int | str | None = None,
+    min_edge_fraction: float = 1e-4,
+) -> SizingPlan:
+    """Decide every level's target edge length from the budget, before any expensive stage.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        The input surface (closed; any units).
+    levels : int
+        Number of levels.
+    mesher : {"tetwild", "tetgen"}
+    edge_length : float, optional
+        Fine target edge length in the input's units (the user's choice; then ``max_tets`` only
+        applies if given explicitly).
+    max_tets : int, optional
+        Cap on the fine level's expected tets (default :data:`DEFAULT_MAX_TETS` when ``edge_length``
+        is not given).
+    time_budget : float, optional
+        Seconds allowed for meshing the fine level (estimated by :func:`fine_mesh_seconds`); the
+        fine edge is enlarged to fit. None: no time constraint.
+    memory_limit : int or str, optional
+        Bytes (or e.g. ``"8G"``); default ``$NESTMG_MEMORY_LIMIT`` or the available memory.
+    min_edge_fraction : float
+        Smallest accepted fine edge relative to the bounding-box diagonal (guards against typos).
+
+    Returns
+    -------
+    SizingPlan
+
+    Raises
+    ------
+    SizingError
+        The request cannot fit (names the option to change): an explicit ``edge_length`` whose tets
+        exceed an explicit ``max_tets``, or a budget too small for even a coarse mesh.
+    nestmg.memory.TetMeshMemoryError
+        The fine level would not fit in the memory available.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    if mesher not in COUNT_RATIO:
+        raise ValueError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    vol = enclosed_volume(V, F)
+    notes: list[str] = []
+    if edge_length is not None:
+        h = float(edge_length)
+        if not (np.isfinite(h) and h > 0):
+            raise SizingError(f"--edge-length must be positive, got {edge_length}")
+        if h < min_edge_fraction * diag:
+            raise SizingError(
+                f"--edge-length {h:.3g} is below {min_edge_fraction:g} of the bounding-box diagonal ({diag:.3g}): "
+                f"~{expected_tets(vol, h, mesher):.3g} tets; use a larger --edge-length")
+        rule = "user"
+        n0 = expected_tets(vol, h, mesher)
+        if max_tets is not None and n0 > max_tets:
+            raise SizingError(
+                f"--edge-length {h:.3g} gives ~{n0:,} fine tets, more than --max-tets {max_tets:,}; use "
+                f"--edge-length >= {edge_length_for_tets(V, F, max_tets, mesher):.3g} or raise --max-tets")
+    else:
+        cap = DEFAULT_MAX_TETS if max_tets is None else int(max_tets)
+        if cap < 100:
+            raise SizingError(f"--max-tets {cap} is too small for a multigrid hierarchy; use >= 100")
+        E = V[F[:, [1, 2, 0]]] - V[F]
+        h_in = float(np.linalg.norm(E, axis=2).mean())
+        h_cap = edge_length_for_tets(V, F, cap, mesher)
+        h, rule = (h_in, "input resolution") if h_in >= h_cap else (h_cap, "max_tets")
+        if time_budget is not None:
+            # largest tet count meshed within the budget (the per-face part does not depend on h)
+            left = time_budget - fine_mesh_seconds(len(F), 0, mesher)
+            if left <= 0:
+                notes.append(f"the fine meshing of a {len(F):,}-face input is estimated above the time budget "
+                             f"({fine_mesh_seconds(len(F), 0, mesher):.0f} s > {time_budget:.0f} s) at any size")
+            else:
+                n_time = int(left / fine_mesh_seconds(0, 1, mesher))
+                h_time = edge_length_for_tets(V, F, max(n_time, 100), mesher)
+                if h_time > h:
+                    h, rule = h_time, "time_budget"
+    n0 = expected_tets(vol, h, mesher)
+    hs = [h * 2.0**k for k in range(levels)]
+    ns = [max(expected_tets(vol, hk, mesher), 1) for hk in hs]
+    if ns[-1] < 20:
+        notes.append(f"the coarsest level has only ~{ns[-1]} tets; consider fewer levels")
+    # peak memory of the largest stage with a 30% margin on the expected count (the per-tet bytes of
+    # nestmg.memory are themselves upper bounds of the measurements)
+    peak = estimate_tet_bytes(int(1.3 * n0), mesher)
+    try:
+        check_memory(peak, f"the {mesher} fine tet mesh (~{n0:,} tets at edge length {h:.3g})", limit=memory_limit)
+    except InsufficientMemoryError as exc:
+        raise TetMeshMemoryError(f"{exc}; use a larger --edge-length or a smaller --max-tets "
+                                 f"(or raise $NESTMG_MEMORY_LIMIT)", n_tets=n0, needed=exc.needed,
+                                 available=exc.available) from None
+    return SizingPlan(edge_length=h, edge_lengths=hs, expected_tets=ns, peak_bytes=int(peak),
+                      expected_seconds=fine_mesh_seconds(len(F), n0, mesher), rule=rule, notes=notes)

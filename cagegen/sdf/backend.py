@@ -64,7 +64,7 @@ def _min_angle_deg(V: np.ndarray, F: np.ndarray) -> float:
     return best
 
 
-def _prepass(U, G, Vf, Ff, n_faces, mults=(8, 4, 2)):
+def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2)):
     """Plain QEM in steps to ``mult * n_faces`` faces (each step from the last accepted one), a step
     being accepted only when its result satisfies the constraints (closed, same genus, no
     self-intersection: :func:`decimate_surface`; no crossing and the fine layer inside: here)."""
@@ -119,7 +119,7 @@ def sdf_cage_layer(
     dhat: float = 0.25,
     opt_iters: int = 15,
     flip_rounds: int = 1,
-    opt_time_limit: float = 10.0,
+    opt_time_limit: float = 30.0,
     prepass: bool = True,
     max_retries: int = 3,
     min_gap: float = 0.0,

@@ -26,8 +26,10 @@ import time
 import ipctk
 import numpy as np
 
+from .._geometry import segment_segment_sqdist
 from ..intersect import cross_pairs, self_pairs
 from ..nested.collision import PairMesh
+from .simplify import too_close
 
 __all__ = ["mips", "optimize_cage"]
 
@@ -110,7 +112,7 @@ class _Energy:
         return Es + Eq, g
 
 
-def _flip_pass(C, F, Vin, Fin, max_flips):
+def _flip_pass(C, F, Vin, Fin, max_flips, clear=0.0):
     """Flip edges whose flip raises the smaller minimum angle of the two triangles (exactly checked)."""
     he = np.stack([F, np.roll(F, -1, axis=1)], 2).reshape(-1, 2)
     fid = np.repeat(np.arange(len(F)), 3)
@@ -151,6 +153,12 @@ def _flip_pass(C, F, Vin, Fin, max_flips):
     if not sel:
         return F, 0
     sel = np.asarray(sel)
+    from scipy.spatial import cKDTree
+
+    vin_tree = cKDTree(Vin)
+    EI = np.unique(np.sort(np.concatenate([Fin[:, [0, 1]], Fin[:, [1, 2]], Fin[:, [2, 0]]]), axis=1), axis=0)
+    e_tree = cKDTree(0.5 * (Vin[EI[:, 0]] + Vin[EI[:, 1]]))
+    e_half = 0.5 * float(np.linalg.norm(Vin[EI[:, 0]] - Vin[EI[:, 1]], axis=1).max())
     for _ in range(4):
         Fn = F.copy()
         Fn[f1[sel]] = T1[sel]
@@ -161,6 +169,17 @@ def _flip_pass(C, F, Vin, Fin, max_flips):
         pr = cross_pairs(C, Fn[changed], Vin, Fin)
         if len(pr):
             bad[owner[pr[:, 0]]] = True
+        if clear > 0:  # keep the clearance the descent kept: vertex-face and new-edge-edge distances
+            bad[owner[too_close(C[Fn[changed]], Vin, Fin, vin_tree, clear)]] = True
+            P0, P1 = C[k[sel]], C[l_[sel]]
+            mid = 0.5 * (P0 + P1)
+            lists = e_tree.query_ball_point(mid, 0.5 * np.linalg.norm(P1 - P0, axis=1) + e_half + clear)
+            cnt = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+            if cnt.sum():
+                ie = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
+                iflip = np.repeat(np.arange(len(sel)), cnt)
+                d2 = segment_segment_sqdist(P0[iflip], P1[iflip], Vin[EI[ie, 0]], Vin[EI[ie, 1]])
+                bad[iflip[d2 < clear * clear]] = True
         pr = self_pairs(C, Fn)
         if len(pr):
             pos = -np.ones(len(F), dtype=np.int64)
@@ -290,7 +309,7 @@ def optimize_cage(
             f, g = total(pm, X, C, grad=True)
             info["steps"] += 1
         if rnd < flip_rounds:
-            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc))
+            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=min_dist)
             info["flips"] += nfl
             if nfl == 0 and rnd > 0:
                 break

@@ -114,6 +114,60 @@ def _project(P: np.ndarray, owner: np.ndarray, Q1: np.ndarray, Q2: np.ndarray, s
     return P
 
 
+def _point_triangle_sqdist(P, A, B, C):
+    """Squared distances of points ``P`` to triangles ``ABC``, row by row (Ericson's closest-point
+    regions, vectorised)."""
+    ab, ac, ap = B - A, C - A, P - A
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = P - B
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = P - C
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    tiny = 1e-300
+    v = vb / np.where(np.abs(denom) > tiny, denom, tiny)
+    w = vc / np.where(np.abs(denom) > tiny, denom, tiny)
+    Q = A + v[:, None] * ab + w[:, None] * ac  # interior projection
+    # edge regions
+    def seg(X, Y):
+        t = np.clip(np.einsum("ij,ij->i", P - X, Y - X) / np.maximum(np.einsum("ij,ij->i", Y - X, Y - X), tiny), 0, 1)
+        return X + t[:, None] * (Y - X)
+    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > tiny)
+    cands = [seg(A, B), seg(B, C), seg(C, A)]
+    dist = [np.einsum("ij,ij->i", P - q, P - q) for q in cands]
+    best = np.minimum(np.minimum(dist[0], dist[1]), dist[2])
+    dq = np.einsum("ij,ij->i", P - Q, P - Q)
+    return np.where(inside, np.minimum(dq, best), best)
+
+
+def too_close(T: np.ndarray, Vin: np.ndarray, Fin: np.ndarray, vin_tree, clear: float) -> np.ndarray:
+    """Which triangles ``T`` (k,3,3) come closer than ``clear`` to the surface ``(Vin, Fin)``: exact
+    distances of samples on each triangle to the surface and of the surface's vertices near each
+    triangle (``vin_tree``: a k-d tree of ``Vin``) to it. (A sharp edge of the surface passing between
+    the samples can still come closer; the exact crossing test is separate.)"""
+    import igl
+
+    L = _SAMPLES
+    X = (L[:, 0][None, :, None] * T[:, None, 0] + ((1 - L[:, 0]) * (1 - L[:, 1]))[None, :, None]
+         * T[:, None, 1] + ((1 - L[:, 0]) * L[:, 1])[None, :, None] * T[:, None, 2])
+    X = np.concatenate([X, T[:, 1:]], axis=1)  # all three corners
+    vals = igl.point_mesh_squared_distance(X.reshape(-1, 3), Vin, Fin)[0].reshape(len(T), -1)
+    low = vals.min(axis=1) < clear * clear
+    cq = T.mean(axis=1)
+    rq = np.linalg.norm(T - cq[:, None, :], axis=2).max(axis=1)
+    near_v = vin_tree.query_ball_point(cq, rq + clear)
+    cnt = np.fromiter((len(x) for x in near_v), dtype=np.int64, count=len(near_v))
+    if cnt.sum():
+        iv = np.concatenate([np.asarray(x, dtype=np.int64) for x in near_v if len(x)])
+        it = np.repeat(np.arange(len(T)), cnt)
+        d2 = _point_triangle_sqdist(Vin[iv], T[it, 0], T[it, 1], T[it, 2])
+        low[it[d2 < clear * clear]] = True
+    return low
+
+
 def _tri_normals(V, F):
     return np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
 
@@ -129,6 +183,7 @@ def constrained_simplify(
     margin: float,
     Q: np.ndarray | None = None,
     batch_fraction: float = 0.12,
+    min_quality: float = 0.02,
     max_batches: int = 10000,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Collapse edges of the cage ``(V, F)`` (outside ``(Vin, Fin)``) down to exactly ``target`` faces.
@@ -149,6 +204,9 @@ def constrained_simplify(
         Initial quadrics (default: :func:`face_quadrics` of ``(V, F)``).
     batch_fraction : float
         Upper bound of the collapses per batch, as a fraction of the live vertices.
+    min_quality : float
+        Smallest ``2 area / sum of squared edge lengths`` a new triangle may have (0.289 for an
+        equilateral one; 0.02 is a smallest angle of about 2-4 degrees).
 
     Returns
     -------
@@ -172,6 +230,7 @@ def constrained_simplify(
     changed_at = np.zeros(n, dtype=np.int64)
     from scipy.spatial import cKDTree
 
+    vin_tree = cKDTree(Vin)
     cin = Vin[Fin].mean(axis=1)
     in_ext = float(np.linalg.norm(Vin[Fin] - cin[:, None, :], axis=2).max()) + 1e-9
     in_tree = cKDTree(cin)
@@ -269,17 +328,15 @@ def constrained_simplify(
             a_new = np.linalg.norm(n_new, axis=1)
             e2 = sum(np.einsum("ij,ij->i", d, d) for d in (
                 Vc[Fc[nf, 1]] - Vc[Fc[nf, 0]], Vc[Fc[nf, 2]] - Vc[Fc[nf, 1]], Vc[Fc[nf, 0]] - Vc[Fc[nf, 2]]))
-            fold = (dots <= 0.0) | (a_new <= 1e-3 * e2)
+            fold = (dots <= 0.0) | (a_new <= min_quality * e2)
             bad[nown[fold]] = True
             rejected["normal"] += int(np.unique(nown[fold]).size)
-            # 2. clearance of the samples on the new triangles (grid distance)
+            # 2. clearance (exact distances): samples on the new triangles to the input, and input
+            #    vertices near the new triangles to them, must stay beyond half the margin
             own_v = Vc[rmap[tri_r[inc_alive]]]  # corners with p first
-            L = _SAMPLES
-            X = (L[:, 0][None, :, None] * own_v[:, None, 0] + ((1 - L[:, 0]) * (1 - L[:, 1]))[None, :, None]
-                 * own_v[:, None, 1] + ((1 - L[:, 0]) * L[:, 1])[None, :, None] * own_v[:, None, 2])
-            vals = sdf(X.reshape(-1, 3)).reshape(len(nf), -1)
-            low = vals.min(axis=1) < margin * 0.5
-            newb = np.unique(nown[low & ~bad[nown]])
+            clear = 0.5 * margin
+            low = too_close(own_v, Vin, Fin, vin_tree, clear) & ~bad[nown]
+            newb = np.unique(nown[low])
             rejected["margin"] += int(newb.size)
             bad[newb] = True
             # 3. exact: new triangles must not cross or touch the input

@@ -1,0 +1,173 @@
+"""Benchmark the ``sdf`` cage backend beside ``nested`` and ``lazy`` (and optionally the wheel) on a mesh zoo.
+
+Usage::
+
+    nice -n 10 python benchmarks/cages_sdf.py MESH_DIR --out DIR [--methods sdf,nested,lazy] [--wheel]
+                                   [--levels 3] [--timeout 600] [--only bunny.off ...] [--tag NAME]
+                                   [--sdf-opt c=0.008 ...]
+
+Every closed mesh of ``MESH_DIR`` (open ones are skipped, as in ``benchmarks/cages.py``) gets the same
+face counts for every method (``cagegen.default_face_counts``: 4x fewer faces per layer). Each run is
+a subprocess with a timeout. Per method and mesh the JSON records success / error, wall and CPU
+seconds (in total and, for ``sdf``, per layer and phase), the achieved face counts, the verdict and
+figures of :func:`cagegen.verify_nesting` (min gap, min winding, ...), and per layer: max distance to
+the input (Hausdorff) and mean distance of the cage to the input (area-weighted, centroid and edge-
+midpoint rule) over the input's bounding-box diagonal, volume ratio to the input, genus, smallest
+angle, MIPS mean / max (w.r.t. equilateral triangles; 2 is perfect). The 1-minute load average is
+recorded before and after each run (the machine is shared). Writes ``DIR/<tag>.json``; the JSON is
+also printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cages import _in_subprocess, _is_closed, _read, _verify
+
+MESH_EXT = (".off", ".obj", ".ply", ".stl")
+SDF_OPTS: dict = {}
+
+
+def _layer_figures(V, F, layers) -> list[dict]:
+    import igl
+
+    from cagegen._geometry import signed_volume
+    from cagegen.sdf.backend import _min_angle_deg, genus
+    from cagegen.sdf.optimize import mips
+
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    vol0 = signed_volume(V, F)
+    out = []
+    for Vk, Fk in layers:
+        X = Vk[Fk]
+        A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
+        Q = np.vstack([X.mean(1), 0.5 * (X[:, 0] + X[:, 1]), 0.5 * (X[:, 1] + X[:, 2]), 0.5 * (X[:, 2] + X[:, 0])])
+        w = np.tile(A / 4, 4)
+        d2 = igl.point_mesh_squared_distance(Q, V, F)[0]
+        m = mips(Vk, Fk)
+        out.append({
+            "n_faces": len(Fk),
+            "max_distance_relative": float(igl.hausdorff(Vk, Fk, V, F)) / diag,
+            "mean_distance_relative": float(np.sum(w * np.sqrt(d2)) / np.sum(w)) / diag,
+            "volume_ratio": float(signed_volume(Vk, Fk) / vol0),
+            "genus": genus(Vk, Fk),
+            "min_angle_deg": _min_angle_deg(Vk, Fk),
+            "mips_mean": float(m.mean()),
+            "mips_max": float(m.max()),
+        })
+    return out
+
+
+def _run(method: str):
+    def run(path: str, counts: list[int], q) -> None:
+        t = time.perf_counter()
+        c0 = time.process_time()
+        try:
+            from cagegen import get_backend
+
+            V, F = _read(Path(path))
+            backend = get_backend(method)
+            t = time.perf_counter()
+            c0 = time.process_time()
+            opts = dict(SDF_OPTS) if method == "sdf" else {}
+            layers, info = backend(V, F, counts, progress=None, **opts)
+            res = {"ok": True, "seconds": time.perf_counter() - t, "cpu_seconds": time.process_time() - c0,
+                   "layers": [(np.asarray(a, float), np.asarray(b, np.int64)) for a, b in layers]}
+            if method == "sdf":
+                res["per_layer"] = [{
+                    "seconds": li["seconds"], "c_used": li["c_used"], "attempts": li["attempts"],
+                    "prepass": li["prepass"], "simplify": li["simplify"],
+                    "optimize": {k: v for k, v in li["optimize"].items() if k != "rejected_reason"},
+                    "optimized_cage_kept": li["optimize"].get("certified", False),
+                    "genus_envelope": li["genus_envelope"], "envelope_faces": li["envelope"]["n_faces"],
+                    "n_active": li["envelope"]["n_active"]} for li in info["layers"]]
+            elif method == "nested":
+                res["recovery"] = info.get("recovery", [])
+                res["per_layer_seconds"] = [li["seconds"].get("total") for li in info["layers"]]
+            elif method == "lazy":
+                res["per_layer_seconds"] = [li["seconds"] for li in info["layers"]]
+            q.put(res)
+        except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
+            q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
+                   "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
+    return run
+
+
+def _run_wheel(path: str, counts: list[int], q) -> None:
+    from cages import _run_wheel as rw
+
+    rw(path, counts, q)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("mesh_dir")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--methods", default="sdf,nested,lazy")
+    ap.add_argument("--wheel", action="store_true", help="also run the nested-cages wheel (slow)")
+    ap.add_argument("--levels", type=int, default=3)
+    ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--only", action="append", default=None)
+    ap.add_argument("--tag", default="cages_sdf")
+    ap.add_argument("--sdf-opt", action="append", default=[], help="key=value passed to the sdf backend")
+    args = ap.parse_args(argv)
+    for kv in args.sdf_opt:
+        k, v = kv.split("=", 1)
+        SDF_OPTS[k] = json.loads(v)
+    from cagegen import default_face_counts
+
+    methods = [m for m in args.methods.split(",") if m] + (["wheel"] if args.wheel else [])
+    paths = sorted(p for p in Path(args.mesh_dir).iterdir() if p.suffix.lower() in MESH_EXT)
+    if args.only:
+        paths = [p for p in paths if p.name in args.only]
+    results, skipped = [], []
+    for p in paths:
+        V, F = _read(p)
+        ok, why = _is_closed(F)
+        if not ok:
+            skipped.append({"mesh": p.name, "reason": why})
+            continue
+        try:
+            counts = default_face_counts(len(F), args.levels)
+        except Exception as exc:  # noqa: BLE001
+            counts = default_face_counts(len(F), 2)
+            print(f"{p.name}: {exc}; using {counts}", file=sys.stderr)
+        row = {"mesh": p.name, "n_faces": len(F), "face_counts": counts}
+        for m in methods:
+            load0 = os.getloadavg()[0]
+            fn = _run_wheel if m == "wheel" else _run(m)
+            res = _in_subprocess(fn, p, counts, args.timeout)
+            out = {k: v for k, v in res.items() if k not in ("layers", "traceback")}
+            if res.get("ok"):
+                layers = res["layers"]
+                out["face_counts"] = [len(b) for _, b in layers]
+                out["exact_face_counts"] = out["face_counts"] == counts
+                out["verification"] = _verify(V, F, layers)
+                out["layers"] = _layer_figures(V, F, layers)
+            elif "traceback" in res:
+                out["traceback"] = res["traceback"]
+            out["loadavg_1min"] = [load0, os.getloadavg()[0]]
+            row[m] = out
+            print(f"{p.name} {m}: ok={out.get('ok')} {out.get('seconds', 0):.1f} s "
+                  f"{out.get('error', '')}", file=sys.stderr, flush=True)
+        results.append(row)
+    doc = {"mesh_dir": str(args.mesh_dir), "methods": methods, "levels": args.levels, "sdf_options": SDF_OPTS,
+           "timeout": args.timeout, "skipped_open": skipped, "results": results}
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{args.tag}.json").write_text(json.dumps(doc, indent=1, default=float))
+    print(json.dumps(doc, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -35,14 +35,14 @@ def test_fine_level_is_the_user_mesh_and_certified(user_mesh):
     assert H.certified and H.n_outside == [0, 0] and H.fallbacks == []
     assert H.options["fine_level"] == "user" and H.method == "nested"
     # the surface that was caged is the boundary of the user's tets
-    Vs, Fs, idx = boundary_surface(V, T)
+    Vs, Fs, _ = boundary_surface(V, T)
     assert np.array_equal(H.surfaces[0][0], Vs) and np.array_equal(H.surfaces[0][1], Fs)
     assert len(H.surfaces[1][1]) < len(Fs) and len(H.tets[1][0]) < len(V)
     for P in H.P:  # barycentric: rows sum to 1, no negative weights (no extrapolation)
         assert np.allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0, atol=1e-12) and P.data.min() >= -1e-12
     # P reproduces linear functions on the user's nodes (they all lie inside the coarse tets)
-    lin = lambda X: 1.0 + X @ np.array([0.3, -1.2, 0.7])  # noqa: E731
-    assert np.abs(H.P[0] @ lin(H.tets[1][0]) - lin(V)).max() < 1e-10
+    g = np.array([0.3, -1.2, 0.7])
+    assert np.abs(H.P[0] @ (1.0 + H.tets[1][0] @ g) - (1.0 + V @ g)).max() < 1e-10
     assert "fallbacks" in H.to_dict() and "Hierarchy(method='nested', levels=3, certified=True)" in repr(H)
 
 
@@ -50,7 +50,7 @@ def test_fine_level_is_the_user_mesh_and_certified(user_mesh):
 def test_meshio_formats_come_back_node_for_node(user_mesh, tmp_path, fmt):
     import meshio
 
-    V, T, H = user_mesh
+    V, T, _ = user_mesh
     fmt_name, ext = fmt
     path = tmp_path / f"part{ext}"
     cells = [("triangle", boundary_surface(V, T)[1]), ("tetra", T)] if ext == ".msh" else [("tetra", T)]
@@ -148,7 +148,9 @@ def test_p1_to_p2_prolongation_reproduces_linear_functions():
     m = skfem.MeshTet().refined(2)
     basis = skfem.Basis(m, skfem.ElementTetP2())
     P = p1_to_p2_prolongation(m.nvertices, m.edges.T)
-    lin = lambda x: 2.0 + x[0] - 3 * x[1] + 0.5 * x[2]  # noqa: E731
+    def lin(x):
+        return 2.0 + x[0] - 3 * x[1] + 0.5 * x[2]
+
     assert np.abs(P @ lin(m.p) - basis.project(lin)).max() < 1e-12
 
 
@@ -186,7 +188,7 @@ print(sorted(m for m in sys.modules if m.split(".")[0] in ("gpytoolbox", "tetgen
 
 
 def test_default_nested_run_loads_no_copyleft_module():
-    r = subprocess.run([sys.executable, "-c", _LICENSE_PROBE], capture_output=True, text=True, timeout=600)
+    r = subprocess.run([sys.executable, "-c", _LICENSE_PROBE], check=False, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines()[-1] == "[]", r.stdout
 
@@ -224,3 +226,27 @@ def test_cli_solve_on_a_tet_mesh_file_writes_vtu(user_mesh, tmp_path, capsys):
     u = m0.point_data["u"]
     assert u.shape == (len(V),) and np.isfinite(u).all() and np.std(u) > 0
     assert (out / "level_1.vtu").is_file() and (out / "level_2.vtu").is_file()
+
+
+def test_fallback_layers_are_reported(user_mesh):
+    import dataclasses
+
+    _, _, H = user_mesh
+    info = dict(H.cage_info, backend={"layers": [{"layer": 1}, {"layer": 2, "fallback": "lazy"}]})
+    Hf = dataclasses.replace(H, cage_info=info)
+    assert Hf.fallbacks == [{"layer": 2, "fallback": "lazy"}]
+    assert "layer 2 by fallback 'lazy'" in repr(Hf).splitlines()[0]
+    assert Hf.to_dict()["fallbacks"] == [{"layer": 2, "fallback": "lazy"}]
+
+
+def test_cli_cages_on_a_tet_mesh_file_cages_its_boundary(user_mesh, tmp_path, capsys):
+    import meshio
+
+    from nestmg.cli import main
+
+    V, T, _ = user_mesh
+    src = tmp_path / "part.vtu"
+    meshio.write(str(src), meshio.Mesh(V, [("tetra", T)]))
+    assert main(["cages", str(src), "--levels", "3", "--out", str(tmp_path / "c"), "--quiet"]) == 0
+    n_bnd = len(boundary_surface(V, T)[1])
+    assert f"3 layers [{n_bnd}," in capsys.readouterr().out and (tmp_path / "c" / "layer_2.obj").is_file()

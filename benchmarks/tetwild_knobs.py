@@ -26,6 +26,8 @@ CONFIGS = {
     "eps2e-3": {"epsilon": 2e-3, "stop_energy": 10.0, "max_opt_iter": 80},
     "eps2e-3_stop30_it20": {"epsilon": 2e-3, "stop_energy": 30.0, "max_opt_iter": 20},
     "1thread_stop30_it20": {"epsilon": 1e-3, "stop_energy": 30.0, "max_opt_iter": 20, "threads": 1},
+    "predec": {"epsilon": 1e-3, "stop_energy": 10.0, "max_opt_iter": 80, "predecimate": True},
+    "predec_stop30_it20": {"epsilon": 1e-3, "stop_energy": 30.0, "max_opt_iter": 20, "predecimate": True},
 }
 
 _CHILD = r"""
@@ -40,14 +42,19 @@ V, F = load_mesh(args["mesh"])
 V, _, _ = normalize(V)
 h = edge_length_for_tets(V, F, args["tets"], "tetwild")
 cfg = dict(args["cfg"])
+n_in = len(F)
+V0, F0 = V, F
+if cfg.pop("predecimate", False):  # decimate the input to ~the target edge first (nestmg.hierarchy)
+    from nestmg.hierarchy import predecimate
+    V, F = predecimate(V, F, h, max_error=0.5 * cfg.get("epsilon", 1e-3))[:2]
 t0 = time.perf_counter()
 Vt, T = tetrahedralize(V, F, mesher="tetwild", edge_length=h, **cfg)
 sec = time.perf_counter() - t0
 q = tet_quality(Vt, T)
-B = boundary_faces(T)
+B, _ = boundary_faces(T)
 bn = np.unique(B)
-d2, _, _ = igl.point_mesh_squared_distance(Vt[bn], V, F)
-out = {"seconds": sec, "tets": int(len(T)), "nodes": int(len(Vt)), "edge_length": h,
+d2, _, _ = igl.point_mesh_squared_distance(Vt[bn], V0, F0)
+out = {"seconds": sec, "input_faces": n_in, "meshed_faces": int(len(F)), "tets": int(len(T)), "nodes": int(len(Vt)), "edge_length": h,
        "boundary_faces": int(len(B)), "max_boundary_deviation": float(np.sqrt(d2.max())),
        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, **q}
 print("RESULT " + json.dumps(out))

@@ -29,7 +29,7 @@ from .prolongation import ProlongationReport, prolongation
 from .sizing import edge_length_for_tets, plan_hierarchy
 from .tetmesh import tetrahedralize
 
-__all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "tet_hierarchy"]
+__all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "predecimate", "tet_hierarchy"]
 
 #: TetWild knobs used by the pipeline (measured in docs/scale.md: fTetWild's own defaults are
 #: stop_energy=10, 80 optimisation passes)
@@ -394,6 +394,66 @@ def build_cage_surfaces(
     return out, info
 
 
+def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio: float = 1.0,
+                min_reduction: float = 0.6, max_error: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Decimate a surface much finer than the tets it will be meshed into (a cheaper fine mesh).
+
+    TetWild's time grows with the input surface's size, not only with the tets (docs/scale.md): a
+    100k-face scan meshed at an edge several times its own costs minutes in envelope tests for
+    triangles far smaller than a tet. The surface is decimated (QEM, :func:`cagegen.decimate.decimate_surface`:
+    watertight, same genus, no self-intersection) to a mean edge of about ``edge_length / edge_ratio``
+    when that removes at least ``1 - min_reduction`` of the faces; otherwise it is returned unchanged.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+        Closed surface.
+    edge_length : float
+        Target tet edge length (absolute).
+    edge_ratio : float
+        Surface edges kept ``edge_ratio`` times finer than the tets.
+    min_reduction : float
+        Decimate only if the target face count is below ``min_reduction * len(F)``.
+    max_error : float, optional
+        Largest accepted Hausdorff distance between the input and the decimated surface (absolute);
+        the pipeline passes half of TetWild's envelope, so the fine tets stay within 1.5 epsilon of the
+        input. Exceeded: the face count is doubled (at most twice), then the surface is left unchanged.
+
+    Returns
+    -------
+    V2, F2 : arrays
+        The (possibly) decimated surface.
+    info : dict
+        ``faces_in``, ``faces_out``, ``seconds``, ``hausdorff`` (absolute, input vs result).
+    """
+    import time as _time
+
+    from cagegen.decimate import decimate_surface
+
+    t = _time.perf_counter()
+    E = V[F[:, [1, 2, 0]]] - V[F]
+    area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
+    # equilateral triangles of edge l have area sqrt(3)/4 l^2
+    target = int(area / (np.sqrt(3) / 4 * (edge_length / edge_ratio) ** 2))
+    info = {"faces_in": len(F), "faces_out": len(F), "seconds": 0.0, "hausdorff": 0.0}
+    import igl
+
+    for _ in range(3):  # the QEM error of a smooth surface roughly halves when the faces double
+        if target >= min_reduction * len(F) or target < 1000:
+            break
+        U, G, dinfo = decimate_surface(V, F, target, algorithm="qslim")
+        err = float(igl.hausdorff(V, F, U, G))
+        if max_error is None or err <= max_error:
+            info.update(faces_out=len(G), seconds=_time.perf_counter() - t, hausdorff=err,
+                        algorithm=dinfo.get("algorithm"))
+            return U, G, info
+        info.setdefault("rejected", []).append({"faces": len(G), "hausdorff": err})
+        target *= 2
+    info["seconds"] = _time.perf_counter() - t
+    return V, F, info
+
+
 def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Centre the bounding box and scale its diagonal to 1 (clear error for empty / NaN / flat input)."""
     from cagegen.errors import MeshInputError
@@ -430,6 +490,7 @@ def build_hierarchy(
     cage_opts: dict | None = None,
     same_domain_levels: int = 0,
     tetwild_opts: dict | None = None,
+    predecimate_input: bool = True,
 ) -> Hierarchy:
     """Cages, tet layers and prolongations for the closed surface ``(V, F)``.
 
@@ -479,6 +540,10 @@ def build_hierarchy(
         exactly), and only the remaining ``levels - same_domain_levels - 1`` levels are cages.
     tetwild_opts : dict, optional
         TetWild knobs for every layer (``stop_energy``, ``max_opt_iter``, ``threads``).
+    predecimate_input : bool
+        With TetWild, decimate an input much finer than the fine tets (:func:`predecimate`, Hausdorff
+        error below ``epsilon / 2``) before caging and meshing it; ``surfaces[0]`` is then that surface
+        (``cage_info["predecimation"]`` records the error). The cages are certified around it.
 
     Returns
     -------
@@ -517,18 +582,32 @@ def build_hierarchy(
     for note in plan.notes:
         stage_line(f"sizing note: {note}", t0)
     timer = Timer()
-    # 2. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
+    # 2. the surface actually meshed: an input much finer than the tets is decimated first (QEM, error
+    #    below half of TetWild's envelope), so neither TetWild nor the cages pay for detail no tet can see
+    S0, F0, pre = Vn, F, {"faces_in": len(F), "faces_out": len(F), "hausdorff": 0.0}
+    if predecimate_input and mesher == "tetwild":
+        with timer("predecimate"):
+            E = Vn[F[:, [1, 2, 0]]] - Vn[F]
+            area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
+            if area / (np.sqrt(3) / 4 * plan.edge_length**2) < 0.6 * len(F):
+                cagegen.check_mesh(Vn, F, repair=bool((cage_opts or {}).get("repair", False)), name="input")
+                S0, F0, pre = predecimate(Vn, F, plan.edge_length, max_error=0.5 * epsilon)
+        if pre["faces_out"] < pre["faces_in"]:
+            stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
+                       f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
+    # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
         surfaces_u, info = build_cage_surfaces(
-            Vn, F, n_surf, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
+            S0, F0, n_surf, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
             cache=cache, progress=progress, cage_opts=cage_opts,
         )
+    info["predecimation"] = pre
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
                f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)
     if tet_retries is None:
         tet_retries = 0 if method in cagegen.UNCERTIFIED_METHODS else 2
     surfaces_n = [surfaces_u[0]] * int(same_domain_levels) + list(surfaces_u)  # same-domain layers first
-    # 3. tets and prolongations
+    # 4. tets and prolongations
     tets_n, Ps, reps, tt = tet_hierarchy(
         surfaces_n,
         mesher=mesher,
@@ -544,8 +623,9 @@ def build_hierarchy(
         t0=t0,
     )
     timings = {**timer.seconds, **tt, "total": time.perf_counter() - t0}
-    # 4. back to the user's frame (the input layer is the caller's array itself)
-    surfaces = [(V, F)] + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[1:]]
+    # 5. back to the user's frame (the input layer is the caller's array itself unless decimated)
+    first = (V, F) if F0 is F else (S0 * scale + center, F0)
+    surfaces = [first] * (1 + int(same_domain_levels)) + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[1 + int(same_domain_levels):]]
     tets = [(Vt * scale + center, T) for Vt, T in tets_n]
     info["frame"] = {"center": center.tolist(), "scale": scale}
     h = Hierarchy(
@@ -561,7 +641,7 @@ def build_hierarchy(
             "max_tets": max_tets, "time_budget": time_budget, "coarsening": coarsening,
             "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": info.get("cage_opts", {}),
             "same_domain_levels": int(same_domain_levels), "tetwild_opts": dict(TETWILD_DEFAULTS, **(tetwild_opts or {})),
-            "sizing": plan.to_dict(),
+            "sizing": plan.to_dict(), "predecimate_input": predecimate_input,
         },
         frame={"center": center, "scale": scale},
     )

@@ -146,3 +146,27 @@ def test_non_terminal_run_prints_stage_lines(tmp_path):
     for stage in ("sizing:", "cages (decimate)", "tets level 0:", "tets level 1:", "prolongation 0<-1", "hierarchy:"):
         assert stage in text, text
     assert all(" s  " in ln for ln in lines)  # elapsed seconds on every line
+
+
+def test_input_much_finer_than_the_tets_is_decimated_first():
+    """A fine input meshed coarsely is QEM-decimated within half of TetWild's envelope before meshing."""
+    from nestmg import build_hierarchy
+
+    V, F = shapes.sphere(res=48)
+    h = build_hierarchy(V, F, levels=2, method="decimate", face_counts=[300], cache=False, progress=False,
+                        max_tets=20000)
+    pre = h.cage_info["predecimation"]
+    assert pre["faces_out"] < 0.5 * pre["faces_in"]
+    diag = np.linalg.norm(V.max(0) - V.min(0))
+    assert pre["hausdorff"] <= 0.5e-3 + 1e-12  # normalised units (the envelope is 1e-3 of the diagonal)
+    Vs, Fs = h.surfaces[0]
+    assert len(Fs) == pre["faces_out"]
+    d2, _, _ = igl.point_mesh_squared_distance(Vs, V, F)
+    assert np.sqrt(d2.max()) <= 0.5e-3 * diag * 1.01
+    # the fine tets still follow the input within TetWild's envelope plus the decimation error
+    Vt, T = h.tets[0]
+    from solvers.fem import boundary_faces
+
+    bn = np.unique(boundary_faces(T)[0])
+    d2, _, _ = igl.point_mesh_squared_distance(Vt[bn], V, F)
+    assert np.sqrt(d2.max()) <= 1.6e-3 * diag

@@ -108,6 +108,15 @@ def _run_wheel(path: str, counts: list[int], q) -> None:
     rw(path, counts, q)
 
 
+def _write(args, methods, skipped, results) -> dict:
+    doc = {"mesh_dir": str(args.mesh_dir), "methods": methods, "levels": args.levels, "sdf_options": SDF_OPTS,
+           "timeout": args.timeout, "skipped_open": skipped, "results": results}
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{args.tag}.json").write_text(json.dumps(doc, indent=1, default=float))
+    return doc
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("mesh_dir")
@@ -160,11 +169,8 @@ def main(argv=None) -> int:
             print(f"{p.name} {m}: ok={out.get('ok')} {out.get('seconds', 0):.1f} s "
                   f"{out.get('error', '')}", file=sys.stderr, flush=True)
         results.append(row)
-    doc = {"mesh_dir": str(args.mesh_dir), "methods": methods, "levels": args.levels, "sdf_options": SDF_OPTS,
-           "timeout": args.timeout, "skipped_open": skipped, "results": results}
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{args.tag}.json").write_text(json.dumps(doc, indent=1, default=float))
+        _write(args, methods, skipped, results)  # after every mesh: a long run leaves usable partial results
+    doc = _write(args, methods, skipped, results)
     print(json.dumps(doc, indent=1, default=float))
     return 0
 

@@ -143,18 +143,32 @@ def _point_triangle_sqdist(P, A, B, C):
     return np.where(inside, np.minimum(dq, best), best)
 
 
+_AABB_CACHE: dict = {}
+
+
+def _aabb(V: np.ndarray, F: np.ndarray):
+    """libigl AABB tree of ``(V, F)``, kept for the last surface (rebuilt when it changes)."""
+    import igl
+
+    key = (id(V), id(F), V.shape, F.shape)
+    if _AABB_CACHE.get("key") != key:
+        tree = igl.AABB()
+        tree.init(V, F)
+        _AABB_CACHE.clear()
+        _AABB_CACHE.update(key=key, tree=tree, ref=(V, F))
+    return _AABB_CACHE["tree"]
+
+
 def too_close(T: np.ndarray, Vin: np.ndarray, Fin: np.ndarray, vin_tree, clear: float) -> np.ndarray:
     """Which triangles ``T`` (k,3,3) come closer than ``clear`` to the surface ``(Vin, Fin)``: exact
     distances of samples on each triangle to the surface and of the surface's vertices near each
     triangle (``vin_tree``: a k-d tree of ``Vin``) to it. (A sharp edge of the surface passing between
     the samples can still come closer; the exact crossing test is separate.)"""
-    import igl
-
     L = _SAMPLES
     X = (L[:, 0][None, :, None] * T[:, None, 0] + ((1 - L[:, 0]) * (1 - L[:, 1]))[None, :, None]
          * T[:, None, 1] + ((1 - L[:, 0]) * L[:, 1])[None, :, None] * T[:, None, 2])
     X = np.concatenate([X, T[:, 1:]], axis=1)  # all three corners
-    vals = igl.point_mesh_squared_distance(X.reshape(-1, 3), Vin, Fin)[0].reshape(len(T), -1)
+    vals = _aabb(Vin, Fin).squared_distance(Vin, Fin, X.reshape(-1, 3))[0].reshape(len(T), -1)
     low = vals.min(axis=1) < clear * clear
     cq = T.mean(axis=1)
     rq = np.linalg.norm(T - cq[:, None, :], axis=2).max(axis=1)
@@ -328,7 +342,18 @@ def constrained_simplify(
             a_new = np.linalg.norm(n_new, axis=1)
             e2 = sum(np.einsum("ij,ij->i", d, d) for d in (
                 Vc[Fc[nf, 1]] - Vc[Fc[nf, 0]], Vc[Fc[nf, 2]] - Vc[Fc[nf, 1]], Vc[Fc[nf, 0]] - Vc[Fc[nf, 2]]))
-            fold = (dots <= 0.0) | (a_new <= min_quality * e2)
+            # quality floor: a new triangle below min_quality must not be worse than the worst old
+            # triangle around the same collapse (never degrade an already poor neighbourhood further)
+            q_new = a_new / np.maximum(e2, 1e-300)
+            Xo = V[F[nf]]
+            q_old = np.linalg.norm(n_old, axis=1) / np.maximum(sum(np.einsum("ij,ij->i", d, d) for d in (
+                Xo[:, 1] - Xo[:, 0], Xo[:, 2] - Xo[:, 1], Xo[:, 0] - Xo[:, 2])), 1e-300)
+            qo_min = np.full(len(sel), np.inf)
+            np.minimum.at(qo_min, nown, q_old)
+            qn_min = np.full(len(sel), np.inf)
+            np.minimum.at(qn_min, nown, q_new)
+            poor = (qn_min < min_quality) & (qn_min < qo_min)
+            fold = (dots <= 0.0) | (a_new <= 1e-6 * e2) | poor[nown]
             bad[nown[fold]] = True
             rejected["normal"] += int(np.unique(nown[fold]).size)
             # 2. clearance (exact distances): samples on the new triangles to the input, and input

@@ -200,6 +200,7 @@ def tet_hierarchy(
     cache: bool = True,
     progress: bool | None = None,
     tetwild_opts: dict | None = None,
+    coarsen_coarse: bool = True,
     t0: float | None = None,
     fine: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[list, list, list, dict]:
@@ -235,6 +236,8 @@ def tet_hierarchy(
         Show a progress bar (None: only on a terminal). Stage lines go to the ``nestmg`` logger.
     tetwild_opts : dict, optional
         TetWild knobs (``stop_energy``, ``max_opt_iter``, ``threads``) for every layer.
+    coarsen_coarse : bool
+        TetWild's ``coarsen`` on the coarse levels (see :func:`nestmg.tetmesh.tetrahedralize`).
     t0 : float, optional
         ``time.perf_counter()`` at the start of the run, for the elapsed time of the stage lines.
     fine : (V, T), optional
@@ -270,8 +273,10 @@ def tet_hierarchy(
 
     def mesh(k):
         t = time.perf_counter()
+        # coarse TetWild levels are coarsened (else a cage's boundary triangles keep 2-8x the tets asked)
+        twk = dict(tw, coarsen=True) if (k > 0 and coarsen_coarse and mesher == "tetwild") else tw
         with timer("tets"):
-            tets[k] = _mesh_layer(*surfaces[k], mesher, hs[k], eps[k], cache, tw, layer=k)
+            tets[k] = _mesh_layer(*surfaces[k], mesher, hs[k], eps[k], cache, twk, layer=k)
         t_level[k] += time.perf_counter() - t
         stage_line(f"tets level {k}: {len(tets[k][1]):,} tets / {len(tets[k][0]):,} nodes "
                    f"(edge {hs[k]:.3g}, {mesher}, {time.perf_counter() - t:.1f} s)", t0)

@@ -146,6 +146,7 @@ def tetrahedralize(
     threads: int = 0,
     stop_energy: float = 10.0,
     max_opt_iter: int = 80,
+    coarsen: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tet-mesh the solid bounded by the closed surface ``(V, F)``.
 
@@ -170,6 +171,10 @@ def tetrahedralize(
     stop_energy, max_opt_iter
         TetWild's optimisation stops when the largest conformal AMIPS energy of a tet is below
         ``stop_energy`` or after ``max_opt_iter`` passes (fTetWild's defaults: 10 and 80).
+    coarsen : bool
+        TetWild: coarsen the output as far as the quality allows. Without it the boundary triangles of a
+        coarse cage keep ~2-8x more tets than the target edge length asks (measured on the demo torus's
+        cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
 
     Returns
     -------
@@ -211,7 +216,7 @@ def tetrahedralize(
                 Vt, T = pytetwild.tetrahedralize(
                     (V - c) / diag, F.astype(np.int32), edge_length_abs=h / diag, epsilon=epsilon,
                     num_threads=threads, quiet=True, stop_energy=float(stop_energy),
-                    num_opt_iter=int(max_opt_iter),
+                    num_opt_iter=int(max_opt_iter), coarsen=bool(coarsen),
                 )
                 Vt = np.asarray(Vt, dtype=np.float64) * diag + c
         else:

@@ -164,3 +164,16 @@ def test_stuck_simplification_raises_cage_error():
     V, F = np.asarray(t.vertices, float), np.asarray(t.faces, np.int64)
     with pytest.raises(CageError):
         sdf_cage_layer(V, F, 4, max_retries=0, c=0.01)
+
+
+def test_nested_fallback_sdf_builds_a_certified_layer():
+    from cagegen.nested.backend import FALLBACKS, _Reporter
+
+    V, F = shapes.sphere(res=16)
+    Vn = _unit(V)
+    log: list = []
+    flow_error = CageError("flow failed (simulated)", layer=1, reason="flow failed")
+    C, G, info = FALLBACKS["sdf"](Vn, F, 151, flow_error, _Reporter(False), log, 1)
+    assert info["fallback"] == "sdf" and len(G) == 152  # odd targets are rounded up to even
+    assert verify_nesting([(Vn, F), (C, G)]).ok
+    assert log and log[0]["stage"] == "fallback"

@@ -138,6 +138,7 @@ def main(argv=None) -> int:
     paths = sorted(p for p in Path(args.mesh_dir).iterdir() if p.suffix.lower() in MESH_EXT)
     if args.only:
         paths = [p for p in paths if p.name in args.only]
+    paths.sort(key=lambda p: len(_read(p)[1]))  # smallest first: a cut-short run still covers many meshes
     results, skipped = [], []
     for p in paths:
         V, F = _read(p)

@@ -60,7 +60,7 @@ def _solve(prob, scaling, maxiter):
     return rec
 
 
-def run_mesh(path: Path, methods, levels, fine_tets, mesher, maxiter):
+def run_mesh(path: Path, methods, levels, fine_tets, mesher, maxiter, edge_length=None):
     from exp_common import edge_for_tets
 
     from nestmg.hierarchy import build_hierarchy
@@ -69,7 +69,7 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, maxiter):
 
     V, F = load_mesh(path)
     V, _, _ = normalize(V)
-    h0 = edge_for_tets(V, F, fine_tets) if mesher == "tetgen" else None
+    h0 = edge_length if edge_length else (edge_for_tets(V, F, fine_tets) if mesher == "tetgen" else None)
     out = {"mesh": path.name, "faces": len(F), "methods": {}}
     for m in methods:
         rec: dict = {}
@@ -146,13 +146,16 @@ def main(argv=None):
     ap.add_argument("--fine-tets", type=int, default=200_000)
     ap.add_argument("--mesher", default="tetgen", choices=["tetgen", "tetwild"])
     ap.add_argument("--maxiter", type=int, default=80)
+    ap.add_argument("--edge-length", type=float, default=None,
+                    help="fine edge length (unit bounding-box diagonal); default from --fine-tets (TetGen)")
     ap.add_argument("--out", type=Path, default=Path("bench_out/coarse_operators"))
     args = ap.parse_args(argv)
     from nestmg.io import json_default
 
-    results = [run_mesh(args.mesh_dir / name, args.methods, args.levels, args.fine_tets, args.mesher, args.maxiter)
-               for name in args.meshes]
+    results = [run_mesh(args.mesh_dir / name, args.methods, args.levels, args.fine_tets, args.mesher, args.maxiter,
+                        args.edge_length) for name in args.meshes]
     doc = {"benchmark": "coarse_operators", "mesher": args.mesher, "fine_tets": args.fine_tets,
+           "edge_length": args.edge_length,
            "levels": args.levels, "results": results}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "coarse_operators.json").write_text(json.dumps(doc, indent=1, default=json_default))

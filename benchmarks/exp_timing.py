@@ -83,12 +83,11 @@ def in_child(fn, *args, timeout: float = 600.0) -> dict:
 # ----------------------------------------------------------------------------- solver runs (in children)
 def _nestmg(tets, P, coarse, tol):
     from nestmg.problems import setup_problem
-    from solvers import MultigridSolver
 
     t0 = time.perf_counter()
     prob = setup_problem(tets, P, "poisson-dirichlet", coarse=coarse)
     t1 = time.perf_counter()
-    ml = MultigridSolver(prob.A, prob.P, coarse_operators=prob.coarse_ops)
+    ml = prob.multigrid(coarse_scaling=None)
     t2 = time.perf_counter()
     x, info = ml.solve(prob.b, tol=tol, maxiter=200, accel="cg", return_info=True)
     t3 = time.perf_counter()

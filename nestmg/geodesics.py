@@ -238,7 +238,7 @@ def multigrid_solve(
         prob = setup_problem(tets, P, name, coarse=coarse, lam=t, prune=0.0 if kind == "heat" else 0.5)
         if prob.A.shape != A.shape or prob.free[0].size != n0:
             raise GeodesicInputError("the hierarchy's finest tet mesh is not the mesh of the problem")
-        ml = MultigridSolver(A, prob.P, coarse_operators=prob.coarse_ops,
+        ml = MultigridSolver(A, prob.P, coarse="galerkin" if prob.coarse_ops is None else prob.coarse_ops,
                              presmoother=("symmetric_gauss_seidel", {"iterations": nu}),
                              nullspace="constant" if kind == "poisson" else None)
         x, info = ml.solve(b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)

@@ -242,9 +242,9 @@ def setup_problem(
         raise ValueError(f"coarse must be one of {COARSE}, got {coarse!r}")
     if len(P) != len(tets) - 1:
         raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
-    V0, T0 = check_tet_mesh(*tets[0])  # validated once; the assembly below skips its own check
+    V0, T0, vol0 = check_tet_mesh(*tets[0], return_volumes=True)  # validated once; assembly skips its check
     n0 = len(V0)
-    M0 = mass_matrix(V0, T0, check=False)
+    M0 = mass_matrix(V0, T0, check=False, volumes=vol0)
     f = default_rhs(V0) if f is None else np.asarray(f, dtype=np.float64)
     if f.shape != (n0,):
         raise ValueError(f"f must have shape ({n0},), got {f.shape}")
@@ -259,11 +259,13 @@ def setup_problem(
     free0 = np.setdiff1d(np.arange(n0), bnd, assume_unique=True) if dirichlet else np.arange(n0)
 
     ops: list[sp.csr_matrix] | None = None
-    if coarse == "rediscretized":
+    if coarse == "rediscretized" and P:
         cand = [np.setdiff1d(np.arange(len(Vc)), boundary_nodes(Tc)) if dirichlet else np.arange(len(Vc))
                 for Vc, Tc in tets[1:]]
         Pr, free = restrict_prolongations(P, free0, coarse_free=cand, support_only=dirichlet)
         ops = [_level_operator(name, Vc, Tc, lam)[c][:, c].tocsr() for (Vc, Tc), c in zip(tets[1:], free[1:])]
+    elif not P:
+        Pr, free = [], [free0]
     else:
         Pr, free = restrict_prolongations(P, free0, min_column_sum=prune)
         if coarse == "weighted":

@@ -45,7 +45,7 @@ _MASS_TYPES = {
 _TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 
 
-def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
+def check_tet_mesh(V, T, *, return_volumes: bool = False):
     """Validate a tet mesh and return contiguous float64/int64 copies.
 
     Parameters
@@ -53,9 +53,12 @@ def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
     V : (n, 3) array_like of float
     T : (t, 4) array_like of int
 
+    return_volumes : bool
+        Also return the tet volumes ``(t,)`` computed by the check (reuse them for the mass matrix).
+
     Returns
     -------
-    V : (n, 3) float64, T : (t, 4) int64
+    V : (n, 3) float64, T : (t, 4) int64[, vol : (t,) float64]
 
     Raises
     ------
@@ -82,20 +85,36 @@ def check_tet_mesh(V, T) -> tuple[np.ndarray, np.ndarray]:
         raise SolverInputError(f"V contains {np.count_nonzero(~np.isfinite(V))} NaN/inf coordinates")
     if T.min() < 0 or T.max() >= V.shape[0]:
         raise SolverInputError(f"T indices must be in [0, {V.shape[0]}), got range [{T.min()}, {T.max()}]")
-    Ts = np.sort(T, axis=1)
-    if np.any(Ts[:, 1:] == Ts[:, :-1]):
-        bad = np.flatnonzero(np.any(Ts[:, 1:] == Ts[:, :-1], axis=1))
+    rep = np.zeros(len(T), dtype=bool)
+    for i, j in _TET_EDGES:
+        rep |= T[:, i] == T[:, j]
+    if rep.any():
+        bad = np.flatnonzero(rep)
         raise SolverInputError(f"{bad.size} tets repeat a node index (first: tet {bad[0]} = {T[bad[0]]})")
     # flatness is judged by shape, not size: |vol| <= 1e-12 * (longest edge)^3 (a regular tet has
-    # 0.118); small but well-shaped tets (refinement near a thin feature) are legitimate
-    vol = np.abs(igl.volume(V, T)).ravel()
-    P = V[T]
-    longest = np.max([np.linalg.norm(P[:, i] - P[:, j], axis=1) for i, j in _TET_EDGES], axis=0)
-    tiny = vol <= 1e-12 * longest**3
+    # 0.118); small but well-shaped tets (refinement near a thin feature) are legitimate.
+    # 6 vol = |det(e1, e2, e3)| with e_k = x_k - x_0; squared lengths avoid the square roots.
+    vol6, l2 = _volumes6(V, T)
+    # the longest edge is at most twice the longest edge from corner 0: |vol| <= 1e-12 (2 l)^3
+    tiny = vol6 <= 48e-12 * l2**1.5
     if np.any(tiny):
         bad = np.flatnonzero(tiny)
         raise SolverInputError(f"{bad.size} tets have zero volume (first: tet {bad[0]})")
+    if return_volumes:
+        return V, T, vol6 / 6.0
     return V, T
+
+
+def _volumes6(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Six times the tet volumes and the squared length of the longest edge at corner 0, vectorised."""
+    x0 = V[T[:, 0]]
+    a, b, c = (V[T[:, k]] - x0 for k in (1, 2, 3))
+    cx = b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1]
+    cy = b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2]
+    cz = b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]
+    vol6 = np.abs(a[:, 0] * cx + a[:, 1] * cy + a[:, 2] * cz)
+    l2 = np.maximum(np.maximum(np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)), np.einsum("ij,ij->i", c, c))
+    return vol6, l2
 
 
 def stiffness_matrix(V, T, weights=None, *, check: bool = True) -> sp.csr_matrix:
@@ -126,8 +145,9 @@ def stiffness_matrix(V, T, weights=None, *, check: bool = True) -> sp.csr_matrix
     # meshes do not under/overflow inside libigl's cotangent formula (NaN/inf at edge lengths ~1e-30)
     lo = V.min(axis=0)
     s = float(np.abs(V.max(axis=0) - lo).max())
-    K = -igl.cotmatrix(np.ascontiguousarray((V - lo) / s), T) * s
-    K = sp.csr_matrix(K)
+    L = igl.cotmatrix(np.ascontiguousarray((V - lo) / s), T)
+    # libigl returns CSC; the matrix is symmetric, so its CSC arrays are its CSR arrays (no conversion)
+    K = sp.csr_matrix((-s * L.data, L.indices, L.indptr), shape=L.shape) if sp.isspmatrix_csc(L) else sp.csr_matrix(-s * L)
     if not np.all(np.isfinite(K.data)):
         raise SolverInputError("stiffness matrix has NaN/inf entries (degenerate tets?)")
     K.sum_duplicates()
@@ -163,7 +183,8 @@ def _weighted_stiffness(V: np.ndarray, T: np.ndarray, w: np.ndarray) -> sp.csr_m
     return K
 
 
-def mass_matrix(V, T, kind: str = "barycentric", weights=None, *, check: bool = True) -> sp.csr_matrix:
+def mass_matrix(V, T, kind: str = "barycentric", weights=None, *, check: bool = True,
+                volumes=None) -> sp.csr_matrix:
     """P1 mass matrix of a tet mesh.
 
     Parameters
@@ -177,6 +198,8 @@ def mass_matrix(V, T, kind: str = "barycentric", weights=None, *, check: bool = 
         Per-tet coefficients (barycentric kind only): node ``i`` gets ``Σ_e w_e vol_e / 4``.
     check : bool
         Validate the mesh (:func:`check_tet_mesh`).
+    volumes : (t,) float, optional
+        Tet volumes already computed (``check_tet_mesh(..., return_volumes=True)``), barycentric kind.
 
     Returns
     -------
@@ -187,14 +210,16 @@ def mass_matrix(V, T, kind: str = "barycentric", weights=None, *, check: bool = 
         raise SolverInputError(f"mass kind must be one of {sorted(_MASS_TYPES)}, got {kind!r}")
     if check:
         V, T = check_tet_mesh(V, T)
-    if weights is not None:
-        if kind != "barycentric":
-            raise SolverInputError(f"per-tet weights need kind='barycentric', got {kind!r}")
+    if kind == "barycentric":  # node i gets 1/4 of each incident tet's (weighted) volume
         V = np.asarray(V, dtype=np.float64)
         T = np.asarray(T, dtype=np.int64)
-        q = np.abs(igl.volume(V, T)).ravel() * _element_weights(weights, len(T)) / 4.0
+        q = _volumes6(V, T)[0] / 24.0 if volumes is None else np.asarray(volumes, dtype=np.float64) / 4.0
+        if weights is not None:
+            q *= _element_weights(weights, len(T))
         m = np.bincount(T.ravel(), weights=np.repeat(q, 4), minlength=len(V))
         return sp.diags(m).tocsr()
+    if weights is not None:
+        raise SolverInputError(f"per-tet weights need kind='barycentric', got {kind!r}")
     M = sp.csr_matrix(igl.massmatrix(V, T, _MASS_TYPES[kind]))
     M.sum_duplicates()
     M.sort_indices()
@@ -262,8 +287,30 @@ def boundary_nodes(T, n: int | None = None) -> np.ndarray:
         raise SolverInputError(f"T must be a (t, 4) integer array, got {T.shape} {T.dtype}")
     if n is not None and (T.min() < 0 or T.max() >= n):
         raise SolverInputError(f"T indices out of range [0, {n})")
-    F, _ = boundary_faces(T)
-    return np.unique(F)
+    if T.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    m = int(T.max()) + 1
+    if m >= 2**21:
+        F, _ = boundary_faces(T)
+        return np.unique(F)
+    # the faces of a row-sorted tet (a<b<c<d) are sorted triples already: pack each into one int64,
+    # sort the keys (no argsort) and keep the keys that occur once; their nodes are unpacked from them
+    Ts = np.sort(T.astype(np.int64), axis=1)
+    a, b, c, d = Ts.T
+    key = np.concatenate([(b << 42) | (c << 21) | d, (a << 42) | (c << 21) | d,
+                          (a << 42) | (b << 21) | d, (a << 42) | (b << 21) | c])
+    key.sort()
+    once = np.ones(key.size, dtype=bool)
+    dup = key[1:] == key[:-1]
+    once[1:] &= ~dup
+    once[:-1] &= ~dup
+    k = key[once]
+    mask = (1 << 21) - 1
+    hit = np.zeros(m, dtype=bool)
+    hit[k >> 42] = True
+    hit[(k >> 21) & mask] = True
+    hit[k & mask] = True
+    return np.flatnonzero(hit)
 
 
 # the four faces of tet (a, b, c, d), each oriented outward for a positively oriented tet

@@ -359,6 +359,27 @@ def _history(ksp, normb: float) -> list[float]:
     return [float(v) / normb for v in h]
 
 
+def _coarse_choice(coarse, galerkin, coarse_ops):
+    """``coarse=`` ("galerkin" or a list), with the deprecated ``galerkin=`` / ``coarse_ops=`` spelling."""
+    if galerkin is not None or coarse_ops is not None:
+        warnings.warn("PetscMultigrid(galerkin=..., coarse_ops=...) is deprecated; use coarse='galerkin' or "
+                      "coarse=[A_1, ..., A_L]", DeprecationWarning, stacklevel=3)
+        if not (isinstance(coarse, str) and coarse == "galerkin"):
+            raise SolverInputError("give the coarse operators once: coarse=[...] (galerkin=/coarse_ops= are deprecated)")
+        if galerkin is None:
+            galerkin = coarse_ops is None
+        if galerkin and coarse_ops is not None:
+            raise SolverInputError("coarse_ops given with galerkin=True: pass coarse=[A_1, ...] to use them")
+        return bool(galerkin), coarse_ops
+    if isinstance(coarse, str):
+        if coarse != "galerkin":
+            raise SolverInputError(
+                f"coarse must be 'galerkin' or a list of coarse operators, got {coarse!r} (named coarse "
+                "operators such as 'weighted' are built by nestmg.problems.setup_problem)")
+        return True, None
+    return False, list(coarse)
+
+
 # ------------------------------------------------------------------------------------ PCMG solver
 class PetscMultigrid:
     """nestmg's multigrid hierarchy run by PETSc: KSP (CG or Richardson) preconditioned by PCMG.
@@ -374,12 +395,12 @@ class PetscMultigrid:
         first, as :class:`solvers.MultigridSolver`). May be empty (one level: a parallel direct solve).
     comm : petsc4py ``PETSc.Comm``, optional
         Default ``PETSc.COMM_WORLD`` (all ranks of ``mpirun``).
-    galerkin : bool
-        True: PETSc computes ``A_{k+1} = P_kᵀ A_k P_k`` (``-pc_mg_galerkin both``). False: use
-        ``coarse_ops``.
-    coarse_ops : list of sparse, optional
-        ``[A_1, ..., A_L]`` coarse operators built by nestmg (e.g. re-discretised); required when
-        ``galerkin=False``, not allowed otherwise.
+    coarse : "galerkin" or list of sparse
+        ``"galerkin"`` (default): PETSc computes ``A_{k+1} = P_kᵀ A_k P_k`` (``-pc_mg_galerkin both``).
+        A list ``[A_1, ..., A_L]``: coarse operators built by nestmg (re-discretised or weighted,
+        ``nestmg.problems.setup_problem(coarse=...)``), as ``MultigridSolver(coarse=...)``.
+    galerkin, coarse_ops
+        Deprecated spelling (``galerkin=False, coarse_ops=[...]``) of ``coarse=[...]``.
     cycle : {"V", "W"}
     smoother : {"sor", "jacobi", "chebyshev"}
         ``"sor"``: Richardson + PCSOR, symmetric sweeps, ω = ``omega`` (default 1: symmetric
@@ -446,7 +467,8 @@ class PetscMultigrid:
         Ps,
         *,
         comm=None,
-        galerkin: bool = True,
+        coarse="galerkin",
+        galerkin: bool | None = None,
         coarse_ops=None,
         cycle: str = "V",
         smoother: str = "sor",
@@ -474,8 +496,7 @@ class PetscMultigrid:
             raise SolverInputError(f"omega must lie in (0, 2), got {omega!r}")
         if not isinstance(options_prefix, str) or not options_prefix or options_prefix.startswith("-"):
             raise SolverInputError(f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
-        if galerkin and coarse_ops is not None:
-            raise SolverInputError("coarse_ops given with galerkin=True: pass galerkin=False to use them")
+        galerkin, coarse_ops = _coarse_choice(coarse, galerkin, coarse_ops)
         self.nullspace = _check_nullspace(nullspace)
         A, Ps, coarse_ops = _check_hierarchy(A, Ps, coarse_ops)
         if not galerkin and Ps and coarse_ops is None:

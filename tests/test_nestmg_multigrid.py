@@ -84,10 +84,9 @@ def test_cycle_cost_reported(torus_iso_tets):
 
 # ----------------------------------------------------------------------------- issue 5: cycles and levels
 def _mg(tets, P, problem, coarse="galerkin"):
-    from solvers import MultigridSolver
 
     pr = setup_problem(tets, P, problem, coarse=coarse)
-    return pr, MultigridSolver(pr.A, pr.P, coarse_operators=pr.coarse_ops, nullspace=pr.nullspace)
+    return pr, pr.multigrid(coarse_scaling=None)
 
 
 @pytest.mark.parametrize("problem, coarse", [("poisson-dirichlet", "galerkin"), ("poisson-neumann", "galerkin"),

@@ -72,7 +72,7 @@ def _sgs(k: int):
 
 def _inprocess(prob, *, cycle="V", pre=1, post=1, accel=None, given=False, nullspace=None):
     Ps = prob["Ps_int"] if given else prob["Ps"]
-    ml = MultigridSolver(prob["A"], Ps, coarse_operators=prob["coarse_ops"] if given else None,
+    ml = MultigridSolver(prob["A"], Ps, coarse=prob["coarse_ops"] if given else "galerkin",
                          presmoother=_sgs(pre), postsmoother=_sgs(post), nullspace=nullspace)
     return ml.solve(prob["b"], tol=1e-8, maxiter=100, cycle=cycle, accel=accel, return_info=True)
 
@@ -119,10 +119,10 @@ def test_cg_matches_inprocess_pcg(dirichlet):
 
 
 def test_given_coarse_operators(dirichlet):
-    """galerkin=False uses nestmg's re-discretised coarse operators (interior coarse nodes), like in-process."""
+    """coarse=[...] uses nestmg's re-discretised coarse operators (interior coarse nodes), like in-process."""
     xr, ref = _inprocess(dirichlet, given=True)
-    with PetscMultigrid(dirichlet["A"], dirichlet["Ps_int"], galerkin=False,
-                        coarse_ops=dirichlet["coarse_ops"], krylov="richardson") as mg:
+    with PetscMultigrid(dirichlet["A"], dirichlet["Ps_int"], coarse=dirichlet["coarse_ops"],
+                        krylov="richardson") as mg:
         x, info = mg.solve(dirichlet["b"])
         sizes = [L["n"] for L in mg.levels]
         nnz = [L["nnz"] for L in mg.levels]
@@ -221,10 +221,12 @@ def test_bad_input(dirichlet):
         PetscMultigrid(A, Ps[1:])
     with pytest.raises(SolverInputError, match="square"):
         PetscMultigrid(A[:, :-1], [])
-    with pytest.raises(SolverInputError, match="coarse_ops"):
-        PetscMultigrid(A, Ps, galerkin=False)
-    with pytest.raises(SolverInputError, match="galerkin=False"):
-        PetscMultigrid(A, Ps, coarse_ops=[A, A])
+    with pytest.warns(DeprecationWarning), pytest.raises(SolverInputError, match="coarse_ops"):
+        PetscMultigrid(A, Ps, galerkin=False)  # deprecated spelling, still checked
+    with pytest.warns(DeprecationWarning), pytest.raises(SolverInputError, match="coarse="):
+        PetscMultigrid(A, Ps, galerkin=True, coarse_ops=[A, A])
+    with pytest.raises(SolverInputError, match="galerkin"):
+        PetscMultigrid(A, Ps, coarse="weighted")
     with pytest.raises(SolverInputError, match="cycle"):
         PetscMultigrid(A, Ps, cycle="F")
     with pytest.raises(SolverInputError, match="smoother"):

@@ -79,7 +79,7 @@ def _hierarchy(V, F, args, method=None):
     return build_hierarchy(
         V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
         mesher=args.mesher, edge_length_fac=args.edge_length, epsilon=args.epsilon,
-        max_tets=args.max_tets, time_budget=args.time_budget,
+        max_tets=args.max_tets, time_budget=args.time_budget or None, fine_level=args.fine_level,
         extrapolation=args.extrapolation, cache=not args.no_cache, progress=None if args.quiet is False else False,
         cage_opts={"repair": True} if args.repair else None,
     )
@@ -235,8 +235,12 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     g.add_argument("--epsilon", type=float, default=1e-3, help="TetWild envelope / bbox diagonal")
     g.add_argument("--max-tets", type=int, default=None,
                    help="cap on the fine level's tets when --edge-length is not given (default 1.5M)")
-    g.add_argument("--time-budget", type=float, default=None,
-                   help="seconds allowed for meshing the fine level; the fine edge grows to fit (default: none)")
+    g.add_argument("--time-budget", type=float, default=150.0,
+                   help="seconds (2 cores) allowed for meshing the fine level; the fine edge grows to fit "
+                        "(default %(default)s; 0: no time limit)")
+    g.add_argument("--fine-level", choices=["refine", "mesh"], default="refine",
+                   help="refine: the fine level is a red refinement of the input meshed at twice the edge "
+                        "(default, with >= 3 levels); mesh: the input meshed at the fine edge")
     g.add_argument("--extrapolation", choices=["clamped", "linear", "closest_point", "nearest_vertex"],
                    default="clamped", help="rule for fine nodes outside the coarse tets")
     g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")

@@ -26,7 +26,8 @@ from .cache import cache_key, load_entry, save_entry
 from .memory import check_tet_memory
 from .progress import Timer, stage_line, stages
 from .prolongation import ProlongationReport, prolongation
-from .sizing import edge_length_for_tets, plan_hierarchy
+from .refine import refine_tets
+from .sizing import DEFAULT_TIME_BUDGET, edge_length_for_tets, plan_hierarchy
 from .tetmesh import tetrahedralize
 
 __all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "predecimate", "tet_hierarchy"]
@@ -485,7 +486,7 @@ def build_hierarchy(
     mesher: str = "tetwild",
     edge_length_fac: float | None = None,
     max_tets: int | None = None,
-    time_budget: float | None = None,
+    time_budget: float | None = DEFAULT_TIME_BUDGET,
     coarsening: float | None = 8.0,
     epsilon: float = 1e-3,
     extrapolation: str = "clamped",
@@ -496,6 +497,7 @@ def build_hierarchy(
     same_domain_levels: int = 0,
     tetwild_opts: dict | None = None,
     predecimate_input: bool = True,
+    fine_level: str = "refine",
 ) -> Hierarchy:
     """Cages, tet layers and prolongations for the closed surface ``(V, F)``.
 
@@ -523,8 +525,9 @@ def build_hierarchy(
         length, enlarged if needed to fit ``max_tets`` and ``time_budget``.
     max_tets : int, optional
         Cap on the fine level's expected tets (default 1.5M when ``edge_length_fac`` is not given).
-    time_budget : float, optional
-        Seconds allowed for meshing the fine level (estimate of :func:`nestmg.sizing.fine_mesh_seconds`).
+    time_budget : float or None
+        Seconds allowed for meshing the fine level (estimate of :func:`nestmg.sizing.fine_mesh_seconds`,
+        2 cores); default :data:`nestmg.sizing.DEFAULT_TIME_BUDGET`. None: only ``max_tets`` and memory.
     coarsening : float or None
         Wanted tet ratio between consecutive cage levels (default 8); None: edge length doubling.
     epsilon, extrapolation
@@ -545,6 +548,12 @@ def build_hierarchy(
         exactly), and only the remaining ``levels - same_domain_levels - 1`` levels are cages.
     tetwild_opts : dict, optional
         TetWild knobs for every layer (``stop_energy``, ``max_opt_iter``, ``threads``).
+    fine_level : {"refine", "mesh"}
+        ``"refine"`` (default, when ``levels - same_domain_levels >= 3``): level 1 is the input meshed at
+        ``2 h_0`` and the fine level its red refinement (:func:`nestmg.refine.refine_tets`: exactly
+        nested, exact prolongation, Galerkin operator = FEM operator; ~8x cheaper to mesh than ``h_0``
+        directly, docs/scale.md); the cages are the levels below. ``"mesh"``: the input is meshed at
+        ``h_0`` and every coarser level is a cage.
     predecimate_input : bool
         With TetWild, decimate an input much finer than the fine tets (:func:`predecimate`, Hausdorff
         error below ``epsilon / 2``) before caging and meshing it; ``surfaces[0]`` is then that surface
@@ -568,12 +577,15 @@ def build_hierarchy(
     t0 = time.perf_counter()
     if levels < 2:
         raise ValueError(f"levels must be >= 2, got {levels}")
+    if fine_level not in ("refine", "mesh"):
+        raise ValueError(f"fine_level must be 'refine' or 'mesh', got {fine_level!r}")
+    refine = fine_level == "refine" and levels - int(same_domain_levels) >= 3  # keep at least one cage level
     if not isinstance(same_domain_levels, (int, np.integer)) or not 0 <= same_domain_levels <= levels - 2:
         raise ValueError(
             f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "
             f"level), got {same_domain_levels!r}"
         )
-    n_surf = levels - int(same_domain_levels)  # input + cages
+    n_surf = levels - int(same_domain_levels) - int(refine)  # input + cages
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     Vn, center, scale = _normalize(V)
@@ -581,7 +593,8 @@ def build_hierarchy(
         raise cagegen.MeshInputError(f"input: faces must be a non-empty (m,3) array of vertex indices, got {F.shape}")
     # 1. sizes first: milliseconds, before any expensive stage
     plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
-                          time_budget=time_budget)
+                          time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
+                          mesh_edge_factor=2.0 if refine else 1.0)
     stage_line(f"sizing: fine edge {plan.edge_length:.3g} of the diagonal ({plan.rule}), expected tets "
                f"{[f'{n:,}' for n in plan.expected_tets]}, peak memory ~{plan.peak_bytes / 2**30:.1f} GB", t0)
     for note in plan.notes:
@@ -594,9 +607,10 @@ def build_hierarchy(
         with timer("predecimate"):
             E = Vn[F[:, [1, 2, 0]]] - Vn[F]
             area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
-            if area / (np.sqrt(3) / 4 * plan.edge_length**2) < 0.6 * len(F):
+            h_mesh = plan.edge_length * (2.0 if refine else 1.0)  # the edge TetWild is asked for
+            if area / (np.sqrt(3) / 4 * h_mesh**2) < 0.6 * len(F):
                 cagegen.check_mesh(Vn, F, repair=bool((cage_opts or {}).get("repair", False)), name="input")
-                S0, F0, pre = predecimate(Vn, F, plan.edge_length, max_error=0.5 * epsilon)
+                S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=0.5 * epsilon)
         if pre["faces_out"] < pre["faces_in"]:
             stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
                        f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
@@ -616,7 +630,7 @@ def build_hierarchy(
     tets_n, Ps, reps, tt = tet_hierarchy(
         surfaces_n,
         mesher=mesher,
-        edge_length=plan.edge_length,
+        edge_length=plan.edge_length * (2.0 if refine else 1.0),
         coarsening=coarsening,
         same_domain_levels=int(same_domain_levels),
         epsilon=epsilon,
@@ -627,10 +641,25 @@ def build_hierarchy(
         tetwild_opts=tetwild_opts,
         t0=t0,
     )
+    if refine:
+        # the fine level: one red refinement of the mesh at 2 h_0 (exactly nested, exact P; nestmg.refine)
+        with timer("refine"):
+            tr = time.perf_counter()
+            Vr, Tr, Pr = refine_tets(*tets_n[0])
+            rep0 = ProlongationReport(n_fine=len(Vr), n_coarse=len(tets_n[0][0]), n_outside=0, n_on_boundary=0,
+                                      max_distance=0.0, max_distance_rel=0.0, extrapolation="none (refinement)",
+                                      seconds=time.perf_counter() - tr)
+        tets_n, Ps, reps = [(Vr, Tr)] + tets_n, [Pr] + Ps, [rep0] + reps
+        surfaces_n = [surfaces_n[0]] + surfaces_n
+        tt["edge_lengths"] = [plan.edge_length] + tt["edge_lengths"]
+        tt["tet_seconds"] = [timer.seconds["refine"]] + tt["tet_seconds"]
+        stage_line(f"fine level: red refinement of level 1, {len(Tr):,} tets / {len(Vr):,} nodes "
+                   f"({timer.seconds['refine']:.1f} s)", t0)
     timings = {**timer.seconds, **tt, "total": time.perf_counter() - t0}
     # 5. back to the user's frame (the input layer is the caller's array itself unless decimated)
     first = (V, F) if F0 is F else (S0 * scale + center, F0)
-    surfaces = [first] * (1 + int(same_domain_levels)) + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[1 + int(same_domain_levels):]]
+    n_same = 1 + int(same_domain_levels) + int(refine)  # levels whose surface is the meshed input
+    surfaces = [first] * n_same + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[n_same:]]
     tets = [(Vt * scale + center, T) for Vt, T in tets_n]
     info["frame"] = {"center": center.tolist(), "scale": scale}
     h = Hierarchy(
@@ -646,7 +675,7 @@ def build_hierarchy(
             "max_tets": max_tets, "time_budget": time_budget, "coarsening": coarsening,
             "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": info.get("cage_opts", {}),
             "same_domain_levels": int(same_domain_levels), "tetwild_opts": dict(TETWILD_DEFAULTS, **(tetwild_opts or {})),
-            "sizing": plan.to_dict(), "predecimate_input": predecimate_input,
+            "sizing": plan.to_dict(), "predecimate_input": predecimate_input, "fine_level": fine_level,
         },
         frame={"center": center, "scale": scale},
     )

@@ -28,11 +28,13 @@ import numpy as np
 from solvers.errors import InsufficientMemoryError
 from solvers.memory import check_memory
 
-from .memory import TetMeshMemoryError, estimate_tet_bytes
+from .memory import FEM_BYTES_PER_NODE, TetMeshMemoryError, estimate_tet_bytes
 from .tetmesh import TetMeshError
 
 __all__ = [
     "COUNT_RATIO",
+    "DEFAULT_MAX_TETS",
+    "DEFAULT_TIME_BUDGET",
     "SizingError",
     "SizingPlan",
     "edge_length_for_tets",
@@ -46,6 +48,9 @@ COUNT_RATIO = {"tetwild": 1.1, "tetgen": 1.8}
 
 #: default cap on the fine level's tets
 DEFAULT_MAX_TETS = 1_500_000
+
+#: default seconds allowed for meshing the fine level (2 cores; see :func:`fine_mesh_seconds`)
+DEFAULT_TIME_BUDGET = 150.0
 
 
 class SizingError(TetMeshError, ValueError):
@@ -126,6 +131,14 @@ TETWILD_SECONDS_PER_FACE = 1.0e-3
 TETWILD_SECONDS_PER_TET = 2.5e-4
 
 
+def _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor) -> float:
+    """Estimated seconds of meshing the fine level at fine edge ``h`` (surface predecimated to its edge)."""
+    E = V[F[:, [1, 2, 0]]] - V[F]
+    area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
+    faces = min(len(F), int(area / (np.sqrt(3) / 4 * (mesh_edge_factor * h) ** 2)))
+    return fine_mesh_seconds(faces, int(meshed_fraction * expected_tets(vol, h, mesher)), mesher)
+
+
 def fine_mesh_seconds(n_faces: int, n_tets: int, mesher: str = "tetwild") -> float:
     """Rough wall-time estimate (2 cores) of meshing an ``n_faces`` surface into ``n_tets`` tets."""
     if mesher == "tetgen":
@@ -144,6 +157,8 @@ def plan_hierarchy(
     time_budget: float | None = None,
     memory_limit: int | str | None = None,
     min_edge_fraction: float = 1e-4,
+    meshed_fraction: float = 1.0,
+    mesh_edge_factor: float = 1.0,
 ) -> SizingPlan:
     """Decide every level's target edge length from the budget, before any expensive stage.
 
@@ -162,12 +177,18 @@ def plan_hierarchy(
         Cap on the fine level's expected tets (default :data:`DEFAULT_MAX_TETS` when ``edge_length``
         is not given).
     time_budget : float, optional
-        Seconds allowed for meshing the fine level (estimated by :func:`fine_mesh_seconds`); the
-        fine edge is enlarged to fit. None: no time constraint.
+        Seconds allowed for meshing the fine level (estimated by :func:`fine_mesh_seconds` on the
+        predecimated surface); the fine edge is enlarged to fit. None: no time constraint.
     memory_limit : int or str, optional
         Bytes (or e.g. ``"8G"``); default ``$NESTMG_MEMORY_LIMIT`` or the available memory.
     min_edge_fraction : float
         Smallest accepted fine edge relative to the bounding-box diagonal (guards against typos).
+    meshed_fraction : float
+        Fraction of the fine tets the mesher itself makes (1/8 when the fine level is a red refinement of
+        a mesh at twice the edge, ``nestmg.refine``); the time estimate uses it.
+    mesh_edge_factor : float
+        Edge of the mesh the mesher makes, relative to the fine edge (2 with refinement); the surface
+        is predecimated to that edge, so the per-face part of the estimate uses it too.
 
     Returns
     -------
@@ -211,16 +232,23 @@ def plan_hierarchy(
         h_cap = edge_length_for_tets(V, F, cap, mesher)
         h, rule = (h_in, "input resolution") if h_in >= h_cap else (h_cap, "max_tets")
         if time_budget is not None:
-            # largest tet count meshed within the budget (the per-face part does not depend on h)
-            left = time_budget - fine_mesh_seconds(len(F), 0, mesher)
-            if left <= 0:
-                notes.append(f"the fine meshing of a {len(F):,}-face input is estimated above the time budget "
-                             f"({fine_mesh_seconds(len(F), 0, mesher):.0f} s > {time_budget:.0f} s) at any size")
-            else:
-                n_time = int(left / fine_mesh_seconds(0, 1, mesher))
-                h_time = edge_length_for_tets(V, F, max(n_time, 100), mesher)
-                if h_time > h:
-                    h, rule = h_time, "time_budget"
+            t_h = _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor)
+            if t_h > time_budget:
+                # the estimate decreases with h: bisect for the finest edge that fits the budget
+                lo, hi = h, h * 2.0
+                while _meshing_seconds(V, F, vol, hi, mesher, meshed_fraction, mesh_edge_factor) > time_budget:
+                    lo, hi = hi, hi * 2.0
+                    if hi > diag:
+                        raise SizingError(
+                            f"meshing this {len(F):,}-face input is estimated above the time budget of "
+                            f"{time_budget:.0f} s at any size; raise --time-budget")
+                for _ in range(30):
+                    mid = 0.5 * (lo + hi)
+                    if _meshing_seconds(V, F, vol, mid, mesher, meshed_fraction, mesh_edge_factor) > time_budget:
+                        lo = mid
+                    else:
+                        hi = mid
+                h, rule = hi, "time_budget"
     n0 = expected_tets(vol, h, mesher)
     hs = [h * 2.0**k for k in range(levels)]
     ns = [max(expected_tets(vol, hk, mesher), 1) for hk in hs]
@@ -228,7 +256,9 @@ def plan_hierarchy(
         notes.append(f"the coarsest level has only ~{ns[-1]} tets; consider fewer levels")
     # peak memory of the largest stage with a 30% margin on the expected count (the per-tet bytes of
     # nestmg.memory are themselves upper bounds of the measurements)
-    peak = estimate_tet_bytes(int(1.3 * n0), mesher)
+    peak = estimate_tet_bytes(int(1.3 * meshed_fraction * n0), mesher)
+    if meshed_fraction < 1.0:  # the refined fine level: its FEM matrices and ~200 B/tet of refinement arrays
+        peak += int(1.3 * n0 * (FEM_BYTES_PER_NODE / 5.5 + 200))
     try:
         check_memory(peak, f"the {mesher} fine tet mesh (~{n0:,} tets at edge length {h:.3g})", limit=memory_limit)
     except InsufficientMemoryError as exc:
@@ -236,4 +266,5 @@ def plan_hierarchy(
                                  f"(or raise $NESTMG_MEMORY_LIMIT)", n_tets=n0, needed=exc.needed,
                                  available=exc.available) from None
     return SizingPlan(edge_length=h, edge_lengths=hs, expected_tets=ns, peak_bytes=int(peak),
-                      expected_seconds=fine_mesh_seconds(len(F), n0, mesher), rule=rule, notes=notes)
+                      expected_seconds=_meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor),
+                      rule=rule, notes=notes)

@@ -20,11 +20,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def user_mesh():
+def user_mesh(tmp_path_factory):
     """A TetWild tet mesh of a procedural sphere (the 'user's mesh') and its hierarchy."""
-    Vs, Fs = shapes.sphere(res=16)
-    V, T = tetrahedralize(Vs, Fs, edge_length_fac=0.06)
-    H = hierarchy_from_tets(V, T, levels=3, progress=False)
+    with pytest.MonkeyPatch.context() as mp:  # the session's cache folder (conftest), not the user's
+        mp.setenv("NESTMG_CACHE", str(tmp_path_factory.getbasetemp() / "nestmg-cache"))
+        Vs, Fs = shapes.sphere(res=16)
+        V, T = tetrahedralize(Vs, Fs, edge_length_fac=0.06)
+        H = hierarchy_from_tets(V, T, levels=3, progress=False)
     return V, T, H
 
 

@@ -287,15 +287,16 @@ def constrained_simplify(
         # point is in the closed neighbourhood of an edge taken before (then no face is shared and
         # the link conditions stay valid)
         locked = [False] * n
-        nbrs = np.split(A.indices, A.indptr[1:-1])
+        ptr, ind = A.indptr.tolist(), A.indices.tolist()
+        al, bl = a.tolist(), b.tolist()
         sel = []
         for e in cand.tolist():
-            x, y = int(a[e]), int(b[e])
+            x, y = al[e], bl[e]
             if locked[x] or locked[y]:
                 continue
-            for v in nbrs[x].tolist():
+            for v in ind[ptr[x]:ptr[x + 1]]:
                 locked[v] = True
-            for v in nbrs[y].tolist():
+            for v in ind[ptr[y]:ptr[y + 1]]:
                 locked[v] = True
             locked[x] = locked[y] = True
             sel.append(e)

@@ -124,11 +124,12 @@ class SizingPlan:
         return asdict(self)
 
 
-#: fTetWild seconds ~ A * input faces + B * output tets (2 threads); fitted to the measurements in
-#: docs/scale.md (benchmarks/results/scale/tetwild_knobs.json) with the default knobs of
-#: :func:`nestmg.tetmesh.tetrahedralize` used by the pipeline.
+#: fTetWild seconds ~ A * input faces + B * output tets (2 threads). Measured here (docs/scale.md):
+#: 111k-face bunny predecimated to 28.5k faces -> 252k-263k tets in 324-912 s on a shared machine,
+#: ENVIRONMENT.md's idle figures 316k tets from 100k faces in 329 s, 1.06M in 614 s, 559k from 7k faces
+#: in 437 s: ~0.6-1.2 ms per tet, ~1 ms per input face. B is taken at 0.8 ms.
 TETWILD_SECONDS_PER_FACE = 1.0e-3
-TETWILD_SECONDS_PER_TET = 2.5e-4
+TETWILD_SECONDS_PER_TET = 8.0e-4
 
 
 def _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor) -> float:
@@ -228,7 +229,8 @@ def plan_hierarchy(
         if cap < 100:
             raise SizingError(f"--max-tets {cap} is too small for a multigrid hierarchy; use >= 100")
         E = V[F[:, [1, 2, 0]]] - V[F]
-        h_in = float(np.linalg.norm(E, axis=2).mean())
+        # the mesher's own edge (mesh_edge_factor x the fine edge) need not be finer than the input's
+        h_in = float(np.linalg.norm(E, axis=2).mean()) / mesh_edge_factor
         h_cap = edge_length_for_tets(V, F, cap, mesher)
         h, rule = (h_in, "input resolution") if h_in >= h_cap else (h_cap, "max_tets")
         if time_budget is not None:

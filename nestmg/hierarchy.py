@@ -448,7 +448,9 @@ def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio:
     for _ in range(3):  # the QEM error of a smooth surface roughly halves when the faces double
         if target >= min_reduction * len(F) or target < 1000:
             break
-        U, G, dinfo = decimate_surface(V, F, target, algorithm="qslim")
+        # QEM with libigl's intersection-blocking collapses: plain qslim leaves self-intersections on
+        # detailed scans and the fallback (shortest-edge midpoints) errs 10x more (docs/scale.md)
+        U, G, dinfo = decimate_surface(V, F, target, algorithm="qslim", block_intersections=True)
         err = float(igl.hausdorff(V, F, U, G))
         if max_error is None or err <= max_error:
             info.update(faces_out=len(G), seconds=_time.perf_counter() - t, hausdorff=err,
@@ -556,7 +558,7 @@ def build_hierarchy(
         ``h_0`` and every coarser level is a cage.
     predecimate_input : bool
         With TetWild, decimate an input much finer than the fine tets (:func:`predecimate`, Hausdorff
-        error below ``epsilon / 2``) before caging and meshing it; ``surfaces[0]`` is then that surface
+        error below ``epsilon``) before caging and meshing it; ``surfaces[0]`` is then that surface
         (``cage_info["predecimation"]`` records the error). The cages are certified around it.
 
     Returns
@@ -610,10 +612,20 @@ def build_hierarchy(
             h_mesh = plan.edge_length * (2.0 if refine else 1.0)  # the edge TetWild is asked for
             if area / (np.sqrt(3) / 4 * h_mesh**2) < 0.6 * len(F):
                 cagegen.check_mesh(Vn, F, repair=bool((cage_opts or {}).get("repair", False)), name="input")
-                S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=0.5 * epsilon)
+                S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=epsilon)
         if pre["faces_out"] < pre["faces_in"]:
             stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
                        f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
+        elif pre.get("rejected"):
+            # not decimated within the error bound (e.g. a noisy scan): TetWild meshes every input face, so
+            # the time estimate is redone with them (still before any cage)
+            stage_line(f"predecimation refused (Hausdorff {[round(r['hausdorff'], 4) for r in pre['rejected']]} > "
+                       f"{epsilon:g}); keeping the {len(F):,} input faces", t0)
+            plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
+                                  time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
+                                  mesh_edge_factor=2.0 if refine else 1.0, surface_faces=len(F))
+            stage_line(f"sizing (again): fine edge {plan.edge_length:.3g} ({plan.rule}), expected tets "
+                       f"{[f'{n:,}' for n in plan.expected_tets]}", t0)
     # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
         surfaces_u, info = build_cage_surfaces(

@@ -132,11 +132,14 @@ TETWILD_SECONDS_PER_FACE = 1.0e-3
 TETWILD_SECONDS_PER_TET = 8.0e-4
 
 
-def _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor) -> float:
+def _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces=None) -> float:
     """Estimated seconds of meshing the fine level at fine edge ``h`` (surface predecimated to its edge)."""
-    E = V[F[:, [1, 2, 0]]] - V[F]
-    area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
-    faces = min(len(F), int(area / (np.sqrt(3) / 4 * (mesh_edge_factor * h) ** 2)))
+    if surface_faces is not None:
+        faces = int(surface_faces)
+    else:
+        E = V[F[:, [1, 2, 0]]] - V[F]
+        area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
+        faces = min(len(F), int(area / (np.sqrt(3) / 4 * (mesh_edge_factor * h) ** 2)))
     return fine_mesh_seconds(faces, int(meshed_fraction * expected_tets(vol, h, mesher)), mesher)
 
 
@@ -160,6 +163,7 @@ def plan_hierarchy(
     min_edge_fraction: float = 1e-4,
     meshed_fraction: float = 1.0,
     mesh_edge_factor: float = 1.0,
+    surface_faces: int | None = None,
 ) -> SizingPlan:
     """Decide every level's target edge length from the budget, before any expensive stage.
 
@@ -190,6 +194,9 @@ def plan_hierarchy(
     mesh_edge_factor : float
         Edge of the mesh the mesher makes, relative to the fine edge (2 with refinement); the surface
         is predecimated to that edge, so the per-face part of the estimate uses it too.
+    surface_faces : int, optional
+        Faces the mesher will really get (when predecimation was refused); default: the input's faces
+        or those of its predecimation to the meshed edge, whichever is fewer.
 
     Returns
     -------
@@ -234,11 +241,11 @@ def plan_hierarchy(
         h_cap = edge_length_for_tets(V, F, cap, mesher)
         h, rule = (h_in, "input resolution") if h_in >= h_cap else (h_cap, "max_tets")
         if time_budget is not None:
-            t_h = _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor)
+            t_h = _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces)
             if t_h > time_budget:
                 # the estimate decreases with h: bisect for the finest edge that fits the budget
                 lo, hi = h, h * 2.0
-                while _meshing_seconds(V, F, vol, hi, mesher, meshed_fraction, mesh_edge_factor) > time_budget:
+                while _meshing_seconds(V, F, vol, hi, mesher, meshed_fraction, mesh_edge_factor, surface_faces) > time_budget:
                     lo, hi = hi, hi * 2.0
                     if hi > diag:
                         raise SizingError(
@@ -246,7 +253,7 @@ def plan_hierarchy(
                             f"{time_budget:.0f} s at any size; raise --time-budget")
                 for _ in range(30):
                     mid = 0.5 * (lo + hi)
-                    if _meshing_seconds(V, F, vol, mid, mesher, meshed_fraction, mesh_edge_factor) > time_budget:
+                    if _meshing_seconds(V, F, vol, mid, mesher, meshed_fraction, mesh_edge_factor, surface_faces) > time_budget:
                         lo = mid
                     else:
                         hi = mid
@@ -268,5 +275,5 @@ def plan_hierarchy(
                                  f"(or raise $NESTMG_MEMORY_LIMIT)", n_tets=n0, needed=exc.needed,
                                  available=exc.available) from None
     return SizingPlan(edge_length=h, edge_lengths=hs, expected_tets=ns, peak_bytes=int(peak),
-                      expected_seconds=_meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor),
+                      expected_seconds=_meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces),
                       rule=rule, notes=notes)

@@ -149,7 +149,7 @@ def test_non_terminal_run_prints_stage_lines(tmp_path):
 
 
 def test_input_much_finer_than_the_tets_is_decimated_first():
-    """A fine input meshed coarsely is QEM-decimated within half of TetWild's envelope before meshing."""
+    """A fine input meshed coarsely is QEM-decimated within TetWild's envelope before meshing."""
     from nestmg import build_hierarchy
 
     V, F = shapes.sphere(res=48)
@@ -158,15 +158,15 @@ def test_input_much_finer_than_the_tets_is_decimated_first():
     pre = h.cage_info["predecimation"]
     assert pre["faces_out"] < 0.5 * pre["faces_in"]
     diag = np.linalg.norm(V.max(0) - V.min(0))
-    assert pre["hausdorff"] <= 0.5e-3 + 1e-12  # normalised units (the envelope is 1e-3 of the diagonal)
+    assert pre["hausdorff"] <= 1e-3 + 1e-12  # normalised units (the envelope is 1e-3 of the diagonal)
     Vs, Fs = h.surfaces[0]
     assert len(Fs) == pre["faces_out"]
     d2, _, _ = igl.point_mesh_squared_distance(Vs, V, F)
-    assert np.sqrt(d2.max()) <= 0.5e-3 * diag * 1.01
+    assert np.sqrt(d2.max()) <= 1e-3 * diag * 1.01
     # the fine tets still follow the input within TetWild's envelope plus the decimation error
     Vt, T = h.tets[0]
     from solvers.fem import boundary_faces
 
     bn = np.unique(boundary_faces(T)[0])
     d2, _, _ = igl.point_mesh_squared_distance(Vt[bn], V, F)
-    assert np.sqrt(d2.max()) <= 1.6e-3 * diag
+    assert np.sqrt(d2.max()) <= 2.1e-3 * diag

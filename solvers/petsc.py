@@ -28,17 +28,42 @@ user set win over the constructor's choices. To read command-line options, initi
 
 from __future__ import annotations
 
-import contextlib
-import re
-import time
-import warnings
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import IncompatibleRHSError, SolverError, SolverInputError
-from .multilevel import ConvergenceWarning, convergence_factor
+from .errors import SolverError, SolverInputError
+from .multilevel import convergence_factor
+from .petsc_amg import petsc_amg_solve
+from .petsc_common import (
+    SMOOTHER_NAMES,
+    PetscUnavailableError,
+    _allgather,
+    _barrier_time,
+    _check_diagonal,
+    _check_hierarchy,
+    _check_nullspace,
+    _check_reason,
+    _check_vector,
+    _coarse_choice,
+    _coarse_owner,
+    _fine_owner,
+    _gather,
+    _ghost_count,
+    _history,
+    _Layout,
+    _noop_monitor,
+    _options,
+    _petsc,
+    _petsc_message,
+    _prepare_rhs,
+    _reason_name,
+    _to_petsc,
+    petsc_available,
+    row_partition,
+)
+from .petsc_io import load_hierarchy, save_hierarchy
 
 __all__ = [
     "PetscMultigrid",
@@ -50,334 +75,45 @@ __all__ = [
     "save_hierarchy",
 ]
 
-SMOOTHER_NAMES = ("sor", "jacobi", "chebyshev")
-AMG_KINDS = ("gamg", "hypre")
 
+class _PyCoarse:
+    """PETSc python PC context: :class:`solvers.coarse._CoarseSolver` on the whole coarsest operator.
 
-class PetscUnavailableError(SolverError, ImportError):
-    """petsc4py (or a PETSc feature such as hypre) is not installed; see ``scripts/install-petsc.sh``."""
-
-
-def _petsc():
-    """Import petsc4py lazily (it initialises MPI) and return the ``PETSc`` module."""
-    try:
-        from petsc4py import PETSc
-    except ImportError as e:  # pragma: no cover - exercised only without petsc4py
-        raise PetscUnavailableError(
-            f"the PETSc backend needs petsc4py ({e}); run scripts/install-petsc.sh "
-            "(Debian petsc-dev + petsc4py 3.18.5 built against it)"
-        ) from None
-    return PETSc
-
-
-def petsc_available() -> bool:
-    """True when ``from petsc4py import PETSc`` works."""
-    try:
-        _petsc()
-    except PetscUnavailableError:
-        return False
-    return True
-
-
-# --------------------------------------------------------------------------------------------- input
-def _as_csr(M, name: str, shape: tuple[int, int] | None = None) -> sp.csr_matrix:
-    if not sp.issparse(M):
-        raise SolverInputError(f"{name} must be a scipy sparse matrix, got {type(M).__name__}")
-    if np.iscomplexobj(M.data):
-        raise SolverInputError(f"{name} must be real")
-    M = sp.csr_matrix(M, dtype=np.float64, copy=True)
-    M.sum_duplicates()
-    M.sort_indices()
-    if shape is not None and M.shape != shape:
-        raise SolverInputError(f"{name} has shape {M.shape}, expected {shape}")
-    if not np.all(np.isfinite(M.data)):
-        raise SolverInputError(f"{name} contains {np.count_nonzero(~np.isfinite(M.data))} NaN/inf entries")
-    return M
-
-
-def _check_hierarchy(A, Ps, coarse_ops) -> tuple[sp.csr_matrix, list[sp.csr_matrix], list[sp.csr_matrix] | None]:
-    A = _as_csr(A, "A")
-    if A.shape[0] != A.shape[1] or A.shape[0] == 0:
-        raise SolverInputError(f"A must be square and non-empty, got {A.shape}")
-    if isinstance(Ps, sp.spmatrix) or not hasattr(Ps, "__len__"):
-        raise SolverInputError("Ps must be a list of sparse prolongation matrices")
-    sizes = [A.shape[0]]
-    out = []
-    for k, P in enumerate(Ps):
-        P = _as_csr(P, f"Ps[{k}]")
-        if P.shape[0] != sizes[-1]:
-            raise SolverInputError(f"Ps[{k}] has shape {P.shape}; expected {sizes[-1]} rows (level {k} size)")
-        if not 0 < P.shape[1] < P.shape[0]:
-            raise SolverInputError(f"Ps[{k}] has shape {P.shape}: a coarse level must have 1..n_{k}-1 nodes")
-        empty = np.flatnonzero(np.diff(sp.csc_matrix(P).indptr) == 0)
-        if empty.size:
-            raise SolverInputError(
-                f"Ps[{k}] has {empty.size} all-zero columns (first {empty[0]}): those coarse nodes would get a "
-                "zero row in P^T A P; drop them (solvers.restrict_prolongations does)"
-            )
-        sizes.append(P.shape[1])
-        out.append(P)
-    ops = None
-    if coarse_ops is not None:
-        if len(coarse_ops) != len(out):
-            raise SolverInputError(f"coarse_ops needs {len(out)} matrices (levels 1..), got {len(coarse_ops)}")
-        ops = [_as_csr(Ac, f"coarse_ops[{k}]", (sizes[k + 1], sizes[k + 1])) for k, Ac in enumerate(coarse_ops)]
-    return A, out, ops
-
-
-def _check_diagonal(M: sp.csr_matrix, name: str) -> None:
-    """SOR/Jacobi/Chebyshev smoothing divides by the diagonal: refuse it here, not deep inside PETSc.
-
-    (An error raised inside PETSc's KSPSolve leaves Debian's PETSc 3.18 in a state that crashes at exit.)
+    On several ranks every rank holds the full (small) coarsest matrix (``MatCreateSubMatrices``) and
+    the full right-hand side (scatter to all), solves redundantly and keeps its own rows.
     """
-    d = M.diagonal()
-    bad = np.flatnonzero(~(d > 0))
-    if bad.size:
-        raise SolverInputError(
-            f"{name} has {bad.size} non-positive diagonal entries (first at row {bad[0]}: {d[bad[0]]:g}); "
-            "the smoothers need a positive diagonal (an SPD operator)"
-        )
 
+    def __init__(self, nullspace, method, pinv_max, level):
+        self.nullspace, self.method, self.pinv_max, self.level = nullspace, method, pinv_max, level
+        self.cs = None
+        self._scatter = None
 
-def _check_vector(b, n: int, name: str = "b") -> np.ndarray:
-    b = np.asarray(b)
-    if b.ndim == 2 and b.shape[1] == 1:
-        b = b[:, 0]
-    if b.shape != (n,):
-        raise SolverInputError(f"{name} must have shape ({n},), got {b.shape}")
-    if not np.issubdtype(b.dtype, np.number) or np.iscomplexobj(b):
-        raise SolverInputError(f"{name} must be real, got dtype {b.dtype}")
-    b = np.array(b, dtype=np.float64)  # a copy: never touch the caller's array
-    if not np.all(np.isfinite(b)):
-        raise SolverInputError(f"{name} contains {np.count_nonzero(~np.isfinite(b))} NaN/inf entries")
-    return b
+    def setUp(self, pc) -> None:
+        from .coarse import _CoarseSolver
 
+        PETSc = _petsc()
+        A, _ = pc.getOperators()
+        n = A.getSize()[0]
+        if A.getComm().getSize() > 1:
+            iset = PETSc.IS().createStride(n, 0, 1, comm=PETSc.COMM_SELF)
+            A = A.createSubMatrices(iset, iset)[0]
+        ai, aj, av = A.getValuesCSR()
+        As = sp.csr_matrix((np.array(av), np.array(aj), np.array(ai)), shape=(n, n))
+        As.sum_duplicates()
+        self.cs = _CoarseSolver(As, self.nullspace, self.level, self.method, self.pinv_max)
+        self._scatter = None
 
-def _check_nullspace(nullspace) -> str | None:
-    if nullspace not in (None, "constant"):
-        raise SolverInputError(f"nullspace must be None or 'constant', got {nullspace!r}")
-    return nullspace
-
-
-def _prepare_rhs(b, n: int, nullspace: str | None, project: bool) -> np.ndarray:
-    b = _check_vector(b, n)
-    if nullspace == "constant":
-        scale = float(np.abs(b).sum())
-        if project:
-            b -= b.mean()
-        elif abs(b.sum()) > 1e-10 * max(scale, 1e-300):
-            raise IncompatibleRHSError(
-                f"sum(b) = {b.sum():.3e} is not zero (relative {abs(b.sum()) / scale:.2e}): the singular system "
-                "has no solution; pass project=True to remove the mean of b"
-            )
-    return b
-
-
-# ------------------------------------------------------------------------------------- partitioning
-def row_partition(n: int, size: int) -> np.ndarray:
-    """PETSc's natural contiguous row split (``PETSC_DECIDE``): the first ``n % size`` ranks get one more.
-
-    Parameters
-    ----------
-    n : int
-        Global number of rows.
-    size : int
-        Number of ranks.
-
-    Returns
-    -------
-    offsets : (size + 1,) int64
-        Rank ``r`` owns rows ``offsets[r]:offsets[r+1]``.
-    """
-    n, size = int(n), int(size)
-    counts = np.full(size, n // size, dtype=np.int64)
-    counts[: n % size] += 1
-    return np.concatenate([[0], np.cumsum(counts)])
-
-
-class _Layout:
-    """Row distribution of one level: a permutation (new -> old global index) and per-rank offsets."""
-
-    def __init__(self, owner: np.ndarray | None, n: int, size: int):
-        self.n = n
-        if owner is None:  # natural partition: identity permutation
-            self.perm = None
-            self.inv = None
-            self.offsets = row_partition(n, size)
+    def apply(self, pc, x, y) -> None:
+        PETSc = _petsc()
+        if x.getComm().getSize() > 1:
+            if self._scatter is None:
+                self._scatter, self._xall = PETSc.Scatter.toAll(x)
+            self._scatter.scatter(x, self._xall, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+            sol = self.cs(np.array(self._xall.getArray(readonly=True)))
+            lo, hi = y.getOwnershipRange()
+            y.setArray(sol[lo:hi])
         else:
-            owner = np.asarray(owner, dtype=np.int64)
-            self.perm = np.argsort(owner, kind="stable")
-            self.inv = np.empty(n, dtype=np.int64)
-            self.inv[self.perm] = np.arange(n)
-            self.offsets = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=size))])
-
-    def local_rows(self, rank: int) -> np.ndarray:
-        lo, hi = self.offsets[rank], self.offsets[rank + 1]
-        return np.arange(lo, hi) if self.perm is None else self.perm[lo:hi]
-
-    def nlocal(self, rank: int) -> int:
-        return int(self.offsets[rank + 1] - self.offsets[rank])
-
-    def to_new(self, cols: np.ndarray) -> np.ndarray:
-        return cols if self.inv is None else self.inv[cols]
-
-    def to_old(self, x_new: np.ndarray) -> np.ndarray:
-        if self.perm is None:
-            return x_new
-        x = np.empty_like(x_new)
-        x[self.perm] = x_new
-        return x
-
-
-def _coarse_owner(P: sp.csr_matrix, fine_owner: np.ndarray, size: int) -> np.ndarray:
-    """Give each coarse node to the rank holding most of its interpolation weight ``sum_i |P_ij|``."""
-    onehot = sp.csr_matrix(
-        (np.ones(fine_owner.size), (np.arange(fine_owner.size), fine_owner)), shape=(fine_owner.size, size)
-    )
-    weight = np.asarray((abs(P).T @ onehot).todense())
-    return np.argmax(weight, axis=1).astype(np.int64)
-
-
-def _fine_owner(PETSc, A_global, A_nat, partition, n: int, size: int, comm) -> np.ndarray | None:
-    """Owner rank of every fine row: None (natural), RCM slabs, a given array, or PETSc MatPartitioning.
-
-    PETSc's MatPartitioning runs in parallel on the naturally distributed operator ``A_nat``; note that
-    PT-Scotch is not deterministic (Debian's build): repeated runs cut in different places, so factors
-    vary by ~0.01 between runs. "rcm" is deterministic.
-    """
-    if partition is None or (isinstance(partition, str) and partition == "natural"):
-        return None
-    if isinstance(partition, str) and partition == "rcm":
-        # deterministic level-set slabs: contiguous blocks of the reverse Cuthill-McKee order
-        from scipy.sparse.csgraph import reverse_cuthill_mckee
-
-        order = reverse_cuthill_mckee(sp.csr_matrix(A_global), symmetric_mode=True)
-        owner = np.empty(n, dtype=np.int64)
-        offsets = row_partition(n, size)
-        for r in range(size):
-            owner[order[offsets[r] : offsets[r + 1]]] = r
-        return owner
-    if isinstance(partition, str):
-        if size == 1:
-            return None
-        part = PETSc.MatPartitioning().create(comm=comm)
-        try:
-            part.setType(partition)
-        except PETSc.Error as e:
-            raise SolverInputError(f"PETSc has no partitioner {partition!r} ({e}); try 'ptscotch' or 'natural'") from None
-        part.setAdjacency(A_nat)
-        is_ = PETSc.IS()
-        part.apply(is_)
-        owner = is_.allGather().getIndices().astype(np.int64)
-        is_.destroy()
-        part.destroy()
-        if np.bincount(owner, minlength=size).min() == 0:
-            raise SolverError(f"partitioner {partition!r} left a rank without rows")
-        return owner
-    owner = np.asarray(partition)
-    if owner.shape != (n,) or not np.issubdtype(owner.dtype, np.integer):
-        raise SolverInputError(f"partition must be 'natural', a PETSc partitioner name or ({n},) int ranks")
-    if owner.min() < 0 or owner.max() >= size:
-        raise SolverInputError(f"partition ranks must lie in [0, {size})")
-    return owner.astype(np.int64)
-
-
-def _to_petsc(PETSc, M: sp.csr_matrix, rows: _Layout, cols: _Layout, comm):
-    """Copy this rank's rows of the global ``M`` into a PETSc AIJ matrix (columns in the new numbering)."""
-    rank = comm.getRank()
-    local = M[rows.local_rows(rank)] if rows.perm is not None else M[rows.offsets[rank] : rows.offsets[rank + 1]]
-    local = sp.csr_matrix(local)
-    if cols.inv is not None:
-        local = sp.csr_matrix((local.data, cols.to_new(local.indices), local.indptr), shape=local.shape)
-    local.sort_indices()
-    it = PETSc.IntType
-    mat = PETSc.Mat().createAIJ(
-        size=((rows.nlocal(rank), rows.n), (cols.nlocal(rank), cols.n)),
-        csr=(local.indptr.astype(it), local.indices.astype(it), local.data),
-        comm=comm,
-    )
-    mat.assemble()
-    return mat
-
-
-def _gather(PETSc, vec) -> np.ndarray:
-    """All entries of a distributed vector on every rank."""
-    scatter, full = PETSc.Scatter.toAll(vec)
-    scatter.scatter(vec, full, addv=PETSc.InsertMode.INSERT_VALUES, mode=PETSc.ScatterMode.FORWARD)
-    out = full.getArray().copy()
-    scatter.destroy()
-    full.destroy()
-    return out
-
-
-def _allgather(PETSc, comm, value: float) -> np.ndarray:
-    """One float from every rank, on every rank (without mpi4py)."""
-    size = comm.getSize()
-    vec = PETSc.Vec().createMPI((1, size), comm=comm)
-    vec.setValue(comm.getRank(), float(value))
-    vec.assemble()
-    out = _gather(PETSc, vec)
-    vec.destroy()
-    return out
-
-
-def _ghost_count(M: sp.csr_matrix, lay: _Layout, rank: int) -> int:
-    """Distinct off-rank columns coupled to this rank's rows (the halo a SpMV must receive)."""
-    rows = lay.local_rows(rank)
-    cols = lay.to_new(np.unique(M[rows].indices))
-    return int(np.count_nonzero((cols < lay.offsets[rank]) | (cols >= lay.offsets[rank + 1])))
-
-
-@contextlib.contextmanager
-def _options(PETSc, prefix: str, values: dict[str, Any]):
-    """Put ``values`` into PETSc's options database under ``prefix`` unless the user set them already.
-
-    The options this function inserted are removed on exit, so nothing leaks into later solvers.
-    """
-    db = PETSc.Options()
-    added = []
-    for key, val in values.items():
-        name = f"{prefix}{key}"
-        if db.hasName(name):
-            continue
-        db.setValue(name, "" if val is None else str(val))
-        added.append(name)
-    try:
-        yield
-    finally:
-        for name in added:
-            db.delValue(name)
-
-
-def _barrier_time(comm) -> float:
-    comm.barrier()
-    return time.perf_counter()
-
-
-def _history(ksp, normb: float) -> list[float]:
-    h = np.asarray(ksp.getConvergenceHistory(), dtype=np.float64)
-    return [float(v) / normb for v in h]
-
-
-def _coarse_choice(coarse, galerkin, coarse_ops):
-    """``coarse=`` ("galerkin" or a list), with the deprecated ``galerkin=`` / ``coarse_ops=`` spelling."""
-    if galerkin is not None or coarse_ops is not None:
-        warnings.warn("PetscMultigrid(galerkin=..., coarse_ops=...) is deprecated; use coarse='galerkin' or "
-                      "coarse=[A_1, ..., A_L]", DeprecationWarning, stacklevel=3)
-        if not (isinstance(coarse, str) and coarse == "galerkin"):
-            raise SolverInputError("give the coarse operators once: coarse=[...] (galerkin=/coarse_ops= are deprecated)")
-        if galerkin is None:
-            galerkin = coarse_ops is None
-        if galerkin and coarse_ops is not None:
-            raise SolverInputError("coarse_ops given with galerkin=True: pass coarse=[A_1, ...] to use them")
-        return bool(galerkin), coarse_ops
-    if isinstance(coarse, str):
-        if coarse != "galerkin":
-            raise SolverInputError(
-                f"coarse must be 'galerkin' or a list of coarse operators, got {coarse!r} (named coarse "
-                "operators such as 'weighted' are built by nestmg.problems.setup_problem)")
-        return True, None
-    return False, list(coarse)
+            y.setArray(self.cs(np.array(x.getArray(readonly=True))))
 
 
 # ------------------------------------------------------------------------------------ PCMG solver
@@ -433,6 +169,12 @@ class PetscMultigrid:
         PETSc options prefix of the KSP (see the module docstring).
     options : dict, optional
         Extra PETSc options (without the prefix), e.g. ``{"mg_levels_pc_sor_its": 2}``.
+    coarse_solver : {"auto", "splu", "regularized", "pinv", "petsc"}
+        Coarsest solve. The in-process names run :class:`solvers.MultigridSolver`'s coarsest solver
+        (same safeguards, see there) inside PETSc on every rank; ``"petsc"``: PETSc's Cholesky
+        (CHOLMOD) / LU, or SVD for Neumann (slow: dense).
+    pinv_max : int
+        Size limit of the pseudo-inverse fallback (as in :class:`solvers.MultigridSolver`).
 
     Attributes
     ----------
@@ -480,6 +222,8 @@ class PetscMultigrid:
         partition="auto",
         options_prefix: str = "nestmg_",
         options: dict | None = None,
+        coarse_solver: str = "auto",
+        pinv_max: int = 3000,
     ):
         PETSc = _petsc()
         self._PETSc = PETSc
@@ -514,6 +258,10 @@ class PetscMultigrid:
         if omega is None:
             omega = {"sor": 1.0, "jacobi": 2.0 / 3.0}.get(smoother)
         self.omega = omega
+        if coarse_solver not in ("auto", "splu", "regularized", "pinv", "petsc"):
+            raise SolverInputError(
+                f"coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', got {coarse_solver!r}")
+        self._coarse_method, self._pinv_max = coarse_solver, int(pinv_max)
 
         t0 = _barrier_time(self.comm)
         size = self.comm_size
@@ -565,6 +313,7 @@ class PetscMultigrid:
         self._mats = mats + given + interp
 
         nlev = len(Ps) + 1
+        self._nlev = nlev
         ksp = PETSc.KSP().create(comm=self.comm)
         ksp.setOptionsPrefix(options_prefix)
         ksp.setOperators(self._A)
@@ -647,11 +396,27 @@ class PetscMultigrid:
     def _setup_coarse(self, cksp) -> None:
         """Exact coarsest solve, redundant on every rank in parallel.
 
+        Default (``coarse_solver="auto"`` and the other in-process names): a PETSc python PC that runs
+        the in-process coarsest solver (:class:`solvers.coarse._CoarseSolver`: SuperLU, validated; then
+        the regularised LU of ``A + 1e-9 diag(A)``; then the pseudo-inverse up to ``pinv_max``
+        unknowns) on the whole coarsest operator, gathered on every rank. So PETSc survives the
+        rank-deficient Galerkin coarse operators of cage hierarchies exactly where
+        :class:`solvers.MultigridSolver` does (issue 15: PETSc's own Cholesky stopped at a zero pivot).
+        ``coarse_solver="petsc"`` keeps PETSc's factorisations:
+
         Cholesky by CHOLMOD when PETSc has SuiteSparse (the coarse operators are SPD; 3.5x faster than
         PETSc's own LU on a 6.8k-unknown Galerkin operator with 73 non-zeros per row), else PETSc's LU;
         an SVD pseudo-inverse for a singular Neumann operator.
         """
         PETSc = self._PETSc
+        if self._coarse_method != "petsc":
+            cksp.setType("preonly")
+            cpc = cksp.getPC()
+            cpc.setType("python")
+            self._pycoarse = _PyCoarse(self.nullspace, self._coarse_method, self._pinv_max, self._nlev - 1)
+            cpc.setPythonContext(self._pycoarse)
+            self.coarse_solver = f"in-process {self._coarse_method} (gathered on every rank)"
+            return
         if self.nullspace == "constant":
             inner = {"pc_type": "svd"}
         elif PETSc.Sys.hasExternalPackage("suitesparse"):
@@ -805,225 +570,3 @@ class PetscMultigrid:
 
     def __exit__(self, *exc):
         self.destroy()
-
-
-def _check_reason(reason: str, its: int, hist: list[float], what: str, tol: float) -> None:
-    """Raise on breakdown/divergence; warn (as the in-process solver does) when maxiter was reached."""
-    if reason == "DIVERGED_ITS":
-        warnings.warn(f"{what} stopped after {its} iterations at relative residual {hist[-1]:.3e} > tol={tol:g}",
-                      ConvergenceWarning, stacklevel=3)
-    elif reason.startswith("DIVERGED"):
-        raise SolverError(f"{what} failed: {reason} after {its} iterations (relative residual {hist[-1]:.3e})")
-
-
-def _petsc_message(err) -> str:
-    """The last lines of PETSc's error traceback (the message proper) on one line."""
-    lines = [ln.split("] ", 1)[-1] for ln in str(err).splitlines() if ln.strip()]
-    return " / ".join(lines[-2:]) if lines else repr(err)
-
-
-def _noop_monitor(ksp, its, rnorm) -> None:
-    """Empty KSP monitor (see PetscMultigrid: keeps KSPRICHARDSON on its generic, history-logging path)."""
-
-
-def _reason_name(PETSc, code: int) -> str:
-    """KSPConvergedReason as PETSc prints it with -ksp_converged_reason (e.g. "DIVERGED_ITS")."""
-    if code == PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT:
-        return "DIVERGED_ITS"
-    for name, val in vars(PETSc.KSP.ConvergedReason).items():
-        if not name.startswith("_") and val == code and name != "ITERATING":
-            return name
-    return f"REASON_{code}"
-
-
-# ----------------------------------------------------------------------------------- PETSc AMG
-def petsc_amg_solve(
-    A,
-    b,
-    kind: str = "gamg",
-    *,
-    tol: float = 1e-8,
-    maxiter: int = 200,
-    comm=None,
-    nullspace: str | None = None,
-    project: bool = False,
-    options_prefix: str | None = None,
-    options: dict | None = None,
-) -> tuple[np.ndarray, dict]:
-    """Solve ``A x = b`` by CG preconditioned with PETSc's algebraic multigrid, for comparison.
-
-    Parameters
-    ----------
-    A : (n, n) sparse matrix
-        Global SPD (or, with ``nullspace="constant"``, semi-definite) matrix, identical on every rank.
-    b : (n,) array_like
-        Global right-hand side.
-    kind : {"gamg", "hypre"}
-        ``"gamg"``: PETSc's smoothed-aggregation PCGAMG (defaults of PETSc 3.18: Chebyshev/Jacobi
-        smoothing). ``"hypre"``: hypre's BoomerAMG through PCHYPRE (classical AMG).
-    tol, maxiter : float, int
-        Relative unpreconditioned residual tolerance and iteration cap of CG.
-    comm : petsc4py ``PETSc.Comm``, optional
-    nullspace : None or "constant"
-    project : bool
-        With ``nullspace="constant"``: project an incompatible ``b`` instead of raising.
-    options_prefix : str, optional
-        Default ``"nestmg_gamg_"`` / ``"nestmg_hypre_"``.
-    options : dict, optional
-        Extra PETSc options without the prefix (e.g. ``{"pc_gamg_threshold": 0.02}``).
-
-    Returns
-    -------
-    x : (n,) float64, on every rank
-    info : dict
-        As :meth:`PetscMultigrid.solve`, plus ``kind``; ``setup_seconds`` covers matrix copy and AMG setup.
-
-    Raises
-    ------
-    PetscUnavailableError
-        No petsc4py, or ``kind="hypre"`` and this PETSc has no hypre.
-    """
-    PETSc = _petsc()
-    if kind not in AMG_KINDS:
-        raise SolverInputError(f"kind must be one of {AMG_KINDS}, got {kind!r}")
-    nullspace = _check_nullspace(nullspace)
-    A, _, _ = _check_hierarchy(A, [], None)
-    n = A.shape[0]
-    b = _prepare_rhs(b, n, nullspace, project)
-    maxiter = int(maxiter)
-    if maxiter < 0 or not tol > 0:
-        raise SolverInputError(f"need tol > 0 and maxiter >= 0, got {tol}, {maxiter}")
-    comm = PETSc.COMM_WORLD if comm is None else comm
-    prefix = options_prefix or f"nestmg_{kind}_"
-    t0 = _barrier_time(comm)
-    lay = _Layout(None, n, comm.getSize())
-    Ap = _to_petsc(PETSc, A, lay, lay, comm)
-    ns = None
-    if nullspace == "constant":
-        ns = PETSc.NullSpace().create(constant=True, comm=comm)
-        Ap.setNullSpace(ns)
-        Ap.setNearNullSpace(ns)
-    ksp = PETSc.KSP().create(comm=comm)
-    ksp.setOptionsPrefix(prefix)
-    ksp.setOperators(Ap)
-    ksp.setType("cg")
-    ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-    pc = ksp.getPC()
-    try:
-        if kind == "gamg":
-            pc.setType("gamg")
-            pc.setGAMGType(PETSc.PC.GAMGType.AGG)
-        else:
-            pc.setType("hypre")
-            pc.setHYPREType("boomeramg")
-    except PETSc.Error as e:
-        ksp.destroy()
-        Ap.destroy()
-        raise PetscUnavailableError(f"this PETSc cannot provide {kind!r} ({e})") from None
-    ksp.setTolerances(rtol=tol, atol=1e-300, max_it=maxiter)
-    with _options(PETSc, prefix, dict(options or {})):
-        ksp.setFromOptions()
-        try:
-            ksp.setUp()
-        except PETSc.Error as e:
-            raise SolverError(f"PETSc {kind} setup failed: {_petsc_message(e)}") from None
-    setup_seconds = _barrier_time(comm) - t0
-    rows = lay.local_rows(comm.getRank())
-    xv, bv = Ap.createVecs()
-    bv.setArray(b[rows])
-    xv.set(0.0)
-    normb = float(np.linalg.norm(b))
-    ksp.setConvergenceHistory(length=maxiter + 1, reset=True)
-    t0 = _barrier_time(comm)
-    if normb > 0:
-        try:
-            ksp.solve(bv, xv)
-        except PETSc.Error as e:
-            raise SolverError(f"PETSc KSPSolve (CG+{kind}) failed: {_petsc_message(e)}") from None
-        hist = _history(ksp, normb)
-        its = ksp.getIterationNumber()
-        reason = _reason_name(PETSc, ksp.getConvergedReason())
-    else:
-        hist, its, reason = [0.0], 0, "CONVERGED_ATOL"
-    solve_seconds = _barrier_time(comm) - t0
-    x = _gather(PETSc, xv)
-    if nullspace == "constant":
-        x -= x.mean()
-    rv = bv.duplicate()
-    Ap.mult(xv, rv)
-    rv.aypx(-1.0, bv)
-    final = float(rv.norm()) / normb if normb > 0 else 0.0
-    for obj in (xv, bv, rv, ksp, Ap) + ((ns,) if ns is not None else ()):
-        obj.destroy()
-    _check_reason(reason, its, hist, f"PETSc CG+{kind}", tol)
-    return x, {
-        "kind": kind,
-        "iterations": int(its),
-        "converged": reason.startswith("CONVERGED"),
-        "reason": reason,
-        "residuals": hist,
-        "factor": convergence_factor(hist),
-        "final_residual": final,
-        "setup_seconds": setup_seconds,
-        "solve_seconds": solve_seconds,
-        "ranks": comm.getSize(),
-    }
-
-
-# ---------------------------------------------------------------------------------- .npz exchange
-def save_hierarchy(path, A, Ps, *, coarse_ops=None, b=None, **arrays) -> None:
-    """Write a hierarchy to one ``.npz`` file (call on one rank only, e.g. ``if rank == 0``).
-
-    Parameters
-    ----------
-    path : str or path-like
-    A : (n_0, n_0) sparse
-    Ps : list of sparse, ``Ps[k]`` of shape (n_k, n_{k+1})
-    coarse_ops : list of sparse, optional
-    b : (n_0,) array_like, optional
-    **arrays : extra numpy arrays stored under their names (e.g. the fine node positions).
-    """
-    A, Ps, coarse_ops = _check_hierarchy(A, Ps, coarse_ops)
-    out: dict[str, np.ndarray] = {"n_levels": np.array(len(Ps) + 1)}
-
-    def put(tag, M):
-        out[f"{tag}_data"], out[f"{tag}_indices"], out[f"{tag}_indptr"] = M.data, M.indices, M.indptr
-        out[f"{tag}_shape"] = np.array(M.shape)
-
-    put("A", A)
-    for k, P in enumerate(Ps):
-        put(f"P{k}", P)
-    if coarse_ops is not None:
-        for k, Ac in enumerate(coarse_ops):
-            put(f"C{k}", Ac)
-    if b is not None:
-        out["b"] = _check_vector(b, A.shape[0])
-    for name, arr in arrays.items():
-        if name in ("A", "Ps", "coarse_ops", "b", "n_levels") or re.fullmatch(r"(A|P\d+|C\d+)_\w+", name):
-            raise SolverInputError(f"extra array name {name!r} clashes with the hierarchy's own keys")
-        out[name] = np.asarray(arr)
-    np.savez(path, **out)
-
-
-def load_hierarchy(path) -> dict:
-    """Read a file written by :func:`save_hierarchy` (every rank may call it).
-
-    Returns
-    -------
-    dict
-        ``A`` (csr), ``Ps`` (list of csr), ``coarse_ops`` (list or None), ``b`` (array or None), and any
-        extra arrays under their names.
-    """
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files}
-
-    def get(tag):
-        return sp.csr_matrix((data.pop(f"{tag}_data"), data.pop(f"{tag}_indices"), data.pop(f"{tag}_indptr")),
-                             shape=tuple(data.pop(f"{tag}_shape")))
-
-    L = int(data.pop("n_levels"))
-    out = {"A": get("A"), "Ps": [get(f"P{k}") for k in range(L - 1)]}
-    out["coarse_ops"] = [get(f"C{k}") for k in range(L - 1)] if "C0_data" in data else None
-    out["b"] = data.pop("b", None)
-    out.update(data)
-    return out

@@ -68,6 +68,9 @@ def main(argv=None) -> int:
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--out", required=True, help=".npz file for the solutions (written by rank 0)")
+    ap.add_argument("--cage", nargs="*", default=[],
+                    help="only solve these .npz hierarchies (solvers.petsc.save_hierarchy, with a 'neumann' flag "
+                         "array), e.g. the cage hierarchies of the tests, by MG-PCG with the default options")
     args, petsc_args = ap.parse_known_args(argv)
 
     import petsc4py
@@ -79,6 +82,8 @@ def main(argv=None) -> int:
 
     comm = PETSc.COMM_WORLD
     size = comm.getSize()
+    if args.cage:
+        return _cage_runs(args, PETSc, comm)
     D = dirichlet_problem(args.n, args.levels)
     N = neumann_problem(args.n, args.levels)
     R = permuted(D)
@@ -92,7 +97,7 @@ def main(argv=None) -> int:
         "cg_V": (D, {"krylov": "cg", **nat}),
         "rich_W": (D, {**rich, "cycle": "W", **nat}),
         "rich_V22": (D, {**rich, "presmooth": 2, "postsmooth": 2, **nat}),
-        "rich_given": (D, {**rich, "galerkin": False, **nat}),
+        "rich_given": (D, {**rich, "given": True, **nat}),
         "rich_neumann": (N, {**rich, "nullspace": "constant", **nat}),
         "cg_auto": (D, {"krylov": "cg"}),  # default partition: PT-Scotch on several ranks
         "rich_byx": (D, {**rich, "partition": by_x}),
@@ -106,10 +111,10 @@ def main(argv=None) -> int:
     for name, (prob, kw) in runs.items():
         if kw.pop("levels", None) == 1:
             Ps, extra = [], {}  # one level: PCMG's coarse solver alone (redundant LU in parallel)
-        elif kw.get("galerkin", True):
+        elif not kw.pop("given", False):
             Ps, extra = prob["Ps"], {}
         else:
-            Ps, extra = prob["Ps_int"], {"coarse_ops": prob["coarse_ops"]}
+            Ps, extra = prob["Ps_int"], {"coarse": prob["coarse_ops"]}
         with PetscMultigrid(prob["A"], Ps, **extra, **kw) as mg:
             x, info = mg.solve(prob["b"], tol=args.tol, maxiter=100)
         xs[f"x_{name}"] = x
@@ -130,6 +135,26 @@ def main(argv=None) -> int:
     scatter.scatter(vec, allc)
     spread = np.ptp(allc.getArray())
     out["checksum_spread"] = float(spread)
+    if comm.getRank() == 0:
+        np.savez(args.out, **xs)
+        print(json.dumps(out), flush=True)
+    return 0
+
+
+def _cage_runs(args, PETSc, comm) -> int:
+    """MG-PCG on saved hierarchies (every rank loads the same file), default partition and coarse solve."""
+    from solvers.petsc import PetscMultigrid, load_hierarchy
+
+    out = {"ranks": comm.getSize(), "runs": {}}
+    xs = {}
+    for k, path in enumerate(args.cage):
+        h = load_hierarchy(path)
+        ns = "constant" if bool(h.get("neumann", np.zeros(1))[0]) else None
+        with PetscMultigrid(h["A"], h["Ps"], nullspace=ns) as mg:
+            x, info = mg.solve(h["b"], tol=args.tol, maxiter=100)
+        xs[f"x_{k}"] = x
+        out["runs"][str(k)] = {key: info[key] for key in ("iterations", "final_residual", "converged", "setup_seconds",
+                                                          "partition")}
     if comm.getRank() == 0:
         np.savez(args.out, **xs)
         print(json.dumps(out), flush=True)

@@ -389,3 +389,67 @@ def test_mpirun_two_ranks(tmp_path):
     for kind, cap in (("gamg", 25), ("hypre", 10)):
         assert runs[kind]["converged"] and runs[kind]["iterations"] <= cap
         assert _rel(xs[f"x_{kind}"], xd) < 1e-6
+
+
+# ------------------------------------------------------------------- cage hierarchies (issue 15, item 4)
+@pytest.fixture(scope="module")
+def sphere_cages():
+    """Nested cages of a procedural sphere, TetGen layers: 29k / 3.6k / 0.7k tets, built in ~5 s."""
+    pytest.importorskip("tetgen")
+    from nestmg import shapes
+    from nestmg.hierarchy import build_hierarchy
+
+    V, F = shapes.sphere(12)
+    return build_hierarchy(V, F, 3, method="nested", mesher="tetgen", edge_length_fac=0.05, cache=False,
+                           progress=False)
+
+
+def _cage_problem(h, name):
+    from nestmg.problems import setup_problem
+
+    return setup_problem(h.tets, h.P, name)
+
+
+@pytest.mark.parametrize("name", ["poisson-dirichlet", "poisson-neumann"])
+def test_cage_hierarchy_one_rank_like_inprocess(sphere_cages, name):
+    """PetscMultigrid(A, P) on a real cage hierarchy: same iterations and solution as MultigridSolver(A, P),
+    the same coarsest-level safeguards (in-process coarse solver), setup within 2x (+0.5 s for tiny sizes)."""
+    pr = _cage_problem(sphere_cages, name)
+    ml = pr.multigrid()
+    x_ref, ref = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
+    with PetscMultigrid(pr.A, pr.P, nullspace=pr.nullspace) as mg:
+        x, info = mg.solve(pr.b, tol=1e-8)
+        assert "in-process auto" in repr(mg)
+        setup = mg.setup_seconds
+    assert info["converged"] and info["final_residual"] <= 1e-8
+    assert ref["iterations"] <= 12 and abs(info["iterations"] - ref["iterations"]) <= 1
+    assert _rel(x, x_ref) < 1e-6
+    assert setup <= 2.0 * ml.setup_seconds + 0.5, (setup, ml.setup_seconds)
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(_mpirun() is None, reason="no mpirun/mpiexec on PATH (apt-get install openmpi-bin)")
+def test_cage_hierarchy_two_ranks(tmp_path, sphere_cages):
+    paths, refs = [], []
+    for k, name in enumerate(("poisson-dirichlet", "poisson-neumann")):
+        pr = _cage_problem(sphere_cages, name)
+        path = tmp_path / f"cage{k}.npz"
+        save_hierarchy(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
+        paths.append(str(path))
+        refs.append(pr.multigrid().solve(pr.b, tol=1e-8, accel="cg", return_info=True))
+    out = tmp_path / "x.npz"
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1", OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
+    cmd = [_mpirun(), "-n", "2", sys.executable, str(HERE / "mpi_petsc_check.py"), "--out", str(out), "--cage", *paths]
+    proc = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, f"mpirun failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+    res = json.loads(next(ln for ln in proc.stdout.splitlines() if ln.startswith("{")))
+    xs = np.load(out)
+    assert res["ranks"] == 2
+    for k, (x_ref, ref) in enumerate(refs):
+        r = res["runs"][str(k)]
+        assert r["converged"] and r["final_residual"] <= 1e-8, r
+        # processor-local SOR on 2 ranks: a few more iterations than the in-process cycle at most
+        assert r["iterations"] <= ref["iterations"] + 3, (r, ref["iterations"])
+        assert _rel(xs[f"x_{k}"], x_ref) < 1e-6

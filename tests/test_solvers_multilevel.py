@@ -24,6 +24,7 @@ from solvers import (
     fem,
     prune_prolongations,
     restrict_prolongations,
+    transfer,
 )
 from solvers.gallery import kuhn_cube_hierarchy, kuhn_cube_mesh, kuhn_interpolation
 
@@ -270,11 +271,17 @@ def test_bad_inputs(cube):
 
 
 def test_keeping_every_coarse_node_is_caught(cube):
-    """Restricting only the fine rows leaves cube corners with empty coarse rows: clear error."""
-    ds, _, _ = _dirichlet(cube, 2)
+    """Restricting only the fine rows leaves cube corners with empty Galerkin rows: those coarse nodes are
+    dropped (as restrict_prolongations does); given coarse operators with an empty row are refused."""
+    ds, Pf, _ = _dirichlet(cube, 2)
     _meshes, Ps, _K, _M = cube
+    ml = MultigridSolver(ds.A, [Ps[0][ds.free]])
+    assert ml.levels[1].A.shape == (Pf[0].shape[1],) * 2
+    G = MultigridSolver(ds.A, Pf).levels[1].A
+    assert abs(ml.levels[1].A - G).max() == 0.0
+    bad = sp.csr_matrix((Ps[0].shape[1],) * 2)
     with pytest.raises(SolverError, match="restrict_prolongations"):
-        MultigridSolver(ds.A, [Ps[0][ds.free]])
+        MultigridSolver(ds.A, [Ps[0][ds.free]], coarse=[bad])
 
 
 def test_inputs_untouched_and_x0(cube):
@@ -489,6 +496,8 @@ def test_convergence_factor_helper():
 
 def test_docstring_examples():
     failures, tests = doctest.testmod(solvers.multilevel, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert tests >= 4 and failures == 0
+    failures, tests = doctest.testmod(transfer, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert tests >= 4 and failures == 0
 
 

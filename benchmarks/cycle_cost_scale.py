@@ -1,0 +1,119 @@
+"""Cycle cost, MG-PCG cost and ``setup_problem`` cost at >= 1M tets (issue 15, items 2 and 3).
+
+    nice -n 10 python benchmarks/cycle_cost_scale.py /work/shared/data/meshes/bunny.off \
+        --fine-tets 1150000 --out benchmarks/results/cycle_cost_scale
+
+Builds (or loads from the cache) a 4-level hierarchy: TetGen (opt-in, for the measurement only) of the
+input at ~``--fine-tets`` tets, one same-domain level, two nested cages. Then, on the fine mesh:
+
+* setup: ``igl.cotmatrix`` vs ``nestmg.problems.setup_problem`` (Dirichlet and Neumann), best of
+  ``--repeat``;
+* for Galerkin and weighted coarse operators and two smoothers -- symmetric Gauss–Seidel before and
+  after (4 sweeps per level visit) and forward before / backward after (2 sweeps, still a symmetric
+  cycle) -- the cost of one V-cycle in fine SpMVs (counted, and measured by CPU time, best of
+  ``--repeat``), MG-PCG iterations to 1e-8, and the solve's CPU time in fine SpMVs.
+
+CPU (process) time, not wall time, is the unit: robust to other jobs on a shared machine (all kernels
+are single-threaded). Prints one JSON document and writes ``cycle_cost_scale.json`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+SMOOTHERS = {
+    "sgs/sgs": (("gauss_seidel", {"sweep": "symmetric", "iterations": 1}), None),
+    "fgs/bgs": (("gauss_seidel", {"sweep": "forward", "iterations": 1}), None),  # post = adjoint = backward
+}
+
+
+def best(f, repeat):
+    ts = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        f()
+        ts.append(time.process_time() - t0)
+    return min(ts)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("mesh", type=Path)
+    ap.add_argument("--fine-tets", type=int, default=1_150_000)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=Path("bench_out/cycle_cost_scale"))
+    args = ap.parse_args(argv)
+
+    import igl
+    from exp_common import edge_for_tets
+
+    from nestmg.hierarchy import build_hierarchy
+    from nestmg.io import json_default, load_mesh, normalize
+    from nestmg.problems import setup_problem, volume_fractions
+
+    V, F = load_mesh(args.mesh)
+    V, _, _ = normalize(V)
+    t0 = time.perf_counter()
+    h = build_hierarchy(V, F, 4, method="nested", mesher="tetgen", edge_length_fac=edge_for_tets(V, F, args.fine_tets),
+                        same_domain_levels=1, progress=False)
+    doc: dict = {"benchmark": "cycle_cost_scale", "mesh": args.mesh.name, "build_seconds": time.perf_counter() - t0,
+                 "tets": [len(T) for _, T in h.tets], "nodes": [len(Vk) for Vk, _ in h.tets],
+                 "n_outside": [int(x) for x in h.n_outside]}
+    print(json.dumps({k: doc[k] for k in ("tets", "n_outside")}), flush=True)
+    V0, T0 = (np.asarray(a) for a in h.tets[0])
+    V0 = np.ascontiguousarray(V0, dtype=np.float64)
+    T0 = np.ascontiguousarray(T0, dtype=np.int64)
+    t_cot = best(lambda: igl.cotmatrix(V0, T0), args.repeat)
+    doc["setup"] = {"cotmatrix_seconds": t_cot}
+    for prob in ("poisson-dirichlet", "poisson-neumann"):
+        t = best(lambda: setup_problem(h.tets[:1], [], prob), args.repeat)  # noqa: B023 -- called at once
+        doc["setup"][prob] = {"setup_problem_seconds": t, "ratio_to_cotmatrix": t / t_cot}
+        print(f"setup {prob}: cotmatrix {t_cot:.2f} s, setup_problem {t:.2f} s ({t / t_cot:.2f}x)", flush=True)
+    t0 = time.perf_counter()
+    fr = volume_fractions(h.tets)
+    doc["fractions_seconds"] = time.perf_counter() - t0
+    doc["runs"] = []
+    for prob in ("poisson-dirichlet", "poisson-neumann"):
+        for coarse in ("galerkin", "weighted"):
+            t0 = time.perf_counter()
+            pr = setup_problem(h.tets, h.P, prob, coarse=coarse, fractions=fr)
+            t_prob = time.perf_counter() - t0
+            A = pr.A
+            x = np.random.default_rng(0).standard_normal(A.shape[0])
+            t_spmv = best(lambda: [A @ x for _ in range(20)], args.repeat) / 20  # noqa: B023
+            for sname, (pre, post) in SMOOTHERS.items():
+                t0 = time.perf_counter()
+                ml = pr.multigrid(presmoother=pre, postsmoother=post)
+                t_setup = time.perf_counter() - t0
+                M = ml.aspreconditioner()
+                t_cyc = best(lambda: M.matvec(x), args.repeat)  # noqa: B023
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    c0, w0 = time.process_time(), time.perf_counter()
+                    _, info = ml.solve(pr.b, tol=1e-8, maxiter=100, accel="cg", return_info=True)
+                    c_solve, w_solve = time.process_time() - c0, time.perf_counter() - w0
+                rec = {"problem": prob, "coarse": coarse, "smoother": sname, "coarse_scaling": ml.coarse_scaling,
+                       "operator_complexity": ml.operator_complexity(), "problem_seconds": t_prob,
+                       "solver_setup_seconds": t_setup, "spmv_cpu_seconds": t_spmv,
+                       "cycle_counted_spmv": ml.cycle_complexity("V"), "cycle_measured_spmv": t_cyc / t_spmv,
+                       "pcg_iterations": info["iterations"], "pcg_converged": info["converged"],
+                       "solve_cpu_seconds": c_solve, "solve_wall_seconds": w_solve,
+                       "solve_spmv": c_solve / t_spmv}
+                doc["runs"].append(rec)
+                print(f"{prob:18s} {coarse:9s} {sname}: opc {rec['operator_complexity']:.2f} cycle "
+                      f"{rec['cycle_measured_spmv']:.1f} SpMV (counted {rec['cycle_counted_spmv']:.1f}); PCG "
+                      f"{info['iterations']} it = {rec['solve_spmv']:.0f} SpMV; setup {t_prob:.2f}+{t_setup:.2f} s",
+                      flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "cycle_cost_scale.json").write_text(json.dumps(doc, indent=1, default=json_default))
+    print(json.dumps({"written": str(args.out / "cycle_cost_scale.json")}))
+
+
+if __name__ == "__main__":
+    main()

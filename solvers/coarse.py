@@ -1,0 +1,151 @@
+"""Direct solve on the coarsest level (SuperLU, regularised SuperLU, dense pseudo-inverse).
+
+Split from :mod:`solvers.multilevel`; also used by :mod:`solvers.petsc` for PETSc's coarsest level, so
+both paths share the same safeguards for rank-deficient Galerkin coarse operators.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .errors import SolverError, SolverInputError
+from .transfer import _is_symmetric
+
+__all__: list[str] = []
+
+
+class _CoarseSolver:
+    """Direct solve on the coarsest level, set up once.
+
+    ``method="pinv"``: dense symmetric pseudo-inverse ``Q_k Λ_k⁻¹ Q_kᵀ`` over the eigenvalues above
+    ``rtol · λ_max`` (scipy.linalg.eigh). It returns the minimum-norm solution, which is right for any
+    consistent right-hand side, also when the operator has more null vectors than expected: a Galerkin
+    operator ``Pᵀ A P`` inherits the kernel of a rank-deficient ``P`` (coarse hat functions that are
+    linearly dependent on the finer nodes, e.g. cage nodes touching one or two fine nodes), and the
+    restricted residual ``Pᵀ r`` is orthogonal to that kernel. ``method="splu"``: sparse LU (SuperLU),
+    with one node pinned for ``nullspace="constant"``; validated at setup on a random consistent
+    right-hand side, so a rank-deficient operator raises instead of returning garbage.
+    ``method="regularized"``: SuperLU of ``A + 1e-9 diag(A)`` (cheap and sparse; exact on the range for
+    consistent right-hand sides). ``method="auto"``: SuperLU, then the regularised LU, then the
+    pseudo-inverse when the level has at most ``pinv_max`` unknowns.
+    """
+
+    def __init__(self, A: sp.csr_matrix, nullspace: str | None, level: int, method: str = "auto",
+                 pinv_max: int = 3000, rtol: float = 1e-10):
+        self.n = A.shape[0]
+        self.nullspace = nullspace
+        self.pin = None
+        self.lu = None
+        self.Q = None
+        t0 = time.perf_counter()
+        if method not in ("auto", "pinv", "splu", "regularized"):
+            raise SolverInputError(
+                f"coarse_solver must be 'auto', 'pinv', 'splu' or 'regularized', got {method!r}")
+        self.fallback = False
+        if method == "auto":
+            try:
+                self._setup(A, nullspace, level, "splu", rtol)
+            except SolverError:
+                self.fallback = True
+                self.pin, self.lu = None, None
+                try:
+                    self._setup(A, nullspace, level, "regularized", rtol)
+                except SolverError:
+                    if self.n > pinv_max:
+                        raise
+                    self.pin, self.lu = None, None
+                    self._setup(A, nullspace, level, "pinv", rtol)
+        else:
+            self._setup(A, nullspace, level, method, rtol)
+        self.seconds = time.perf_counter() - t0
+
+    def _setup(self, A, nullspace, level, method, rtol):
+        self.method = method
+        expected = 1 if nullspace == "constant" else 0
+        if method == "regularized":
+            # sparse LU of A + eps diag(A): for a consistent right-hand side (b orthogonal to ker A, as
+            # the restricted residual P^T r is) the range component is exact to O(eps cond) and null
+            # components are irrelevant -- they are invisible after prolongation (ker of a Galerkin
+            # operator = ker P, plus the constants, which are projected out). Validated by the residual.
+            eps = 1e-9
+            Ar = sp.csc_matrix(A + eps * sp.diags(np.maximum(A.diagonal(), np.finfo(float).tiny)))
+            try:
+                self.lu = spla.splu(Ar, permc_spec="MMD_AT_PLUS_A")
+            except RuntimeError as e:
+                raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU failed: {e}") from None
+            self.nnz = int(self.lu.L.nnz + self.lu.U.nnz)
+            self.nullity = -1  # not computed (at least the expected one)
+            v = np.random.default_rng(0).standard_normal(self.n)
+            b = A @ v
+            with np.errstate(all="ignore"):
+                err = np.linalg.norm(A @ self(b) - b) / np.linalg.norm(b)
+            if not err < 1e-6:
+                raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU residual {err:.1e}")
+            return
+        if method == "pinv":
+            Ad = A.toarray()
+            if _is_symmetric(A):
+                w, Q = sla.eigh(Ad)
+                keep = w > rtol * max(w.max(), 0.0)
+                self.Q, self.winv, self.Qt = Q[:, keep], 1.0 / w[keep], None
+            else:  # non-symmetric user operator: SVD pseudo-inverse
+                U, sv, Vt = sla.svd(Ad)
+                keep = sv > rtol * sv.max()
+                self.Q, self.winv, self.Qt = Vt[keep].T, 1.0 / sv[keep], U[:, keep].T
+            self.nullity = int(self.n - np.count_nonzero(keep))
+            self.nnz = int(2 * self.Q.size)
+        else:
+            Af = A
+            if nullspace == "constant" and self.n > 1:
+                # pin the node with the largest diagonal (any node works for a connected graph)
+                self.pin = int(np.argmax(A.diagonal()))
+                self.keep = np.delete(np.arange(self.n), self.pin)
+                Af = A[self.keep][:, self.keep]
+            if self.n > 1 or nullspace != "constant":
+                try:
+                    self.lu = spla.splu(sp.csc_matrix(Af), permc_spec="MMD_AT_PLUS_A")
+                except RuntimeError as e:
+                    raise SolverError(
+                        f"coarsest operator (level {level}, n={self.n}) is singular: {e}; use coarse_solver='pinv'"
+                    ) from None
+            self.nnz = 0 if self.lu is None else int(self.lu.L.nnz + self.lu.U.nnz)
+            self.nullity = expected
+            # validate: an operator singular beyond the expected null space gives an LU whose solutions
+            # satisfy A x = b but carry huge null-space components, without any error. The solution of
+            # A x = A v must be v itself (up to a constant for Neumann).
+            v = np.random.default_rng(0).standard_normal(self.n)
+            if nullspace == "constant":
+                v -= v.mean()
+            with np.errstate(all="ignore"):
+                err = np.linalg.norm(self(A @ v) - v) / np.linalg.norm(v)
+            if not err < 1e-6:
+                raise SolverError(
+                    f"coarsest operator (level {level}, n={self.n}) is numerically singular beyond the "
+                    f"expected null space (LU solve error {err:.1e} on a consistent right-hand side). With "
+                    "Galerkin operators this means a rank-deficient prolongation (coarse nodes whose hat "
+                    "functions are linearly dependent on the finer nodes); use coarse_solver='pinv' "
+                    "(or more levels so the coarsest is small enough for it), or drop those coarse nodes "
+                    "(prune_prolongations)"
+                )
+
+    def __call__(self, b: np.ndarray) -> np.ndarray:
+        if self.nullspace == "constant":
+            b = b - b.mean()
+        if self.Q is not None:
+            y = (self.Q.T @ b) if self.Qt is None else (self.Qt @ b)
+            x = self.Q @ (self.winv * y)
+        elif self.lu is None:
+            x = np.zeros(self.n)
+        elif self.pin is not None:
+            x = np.zeros(self.n)
+            x[self.keep] = self.lu.solve(b[self.keep])
+        else:
+            x = self.lu.solve(b)
+        if self.nullspace == "constant":
+            x = x - x.mean()
+        return x

@@ -558,7 +558,7 @@ def build_hierarchy(
         ``h_0`` and every coarser level is a cage.
     predecimate_input : bool
         With TetWild, decimate an input much finer than the fine tets (:func:`predecimate`, Hausdorff
-        error below ``epsilon``) before caging and meshing it; ``surfaces[0]`` is then that surface
+        error below ``max(epsilon, h_mesh / 4)``, ``h_mesh`` the edge TetWild is asked for) before caging and meshing it; ``surfaces[0]`` is then that surface
         (``cage_info["predecimation"]`` records the error). The cages are certified around it.
 
     Returns
@@ -612,7 +612,9 @@ def build_hierarchy(
             h_mesh = plan.edge_length * (2.0 if refine else 1.0)  # the edge TetWild is asked for
             if area / (np.sqrt(3) / 4 * h_mesh**2) < 0.6 * len(F):
                 cagegen.check_mesh(Vn, F, repair=bool((cage_opts or {}).get("repair", False)), name="input")
-                S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=epsilon)
+                # error bound: TetWild's envelope, or a quarter of the meshed edge if larger (detail below
+                # that is not resolved by the tets anyway, e.g. a scan's noise)
+                S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=max(epsilon, 0.25 * h_mesh))
         if pre["faces_out"] < pre["faces_in"]:
             stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
                        f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
@@ -620,7 +622,7 @@ def build_hierarchy(
             # not decimated within the error bound (e.g. a noisy scan): TetWild meshes every input face, so
             # the time estimate is redone with them (still before any cage)
             stage_line(f"predecimation refused (Hausdorff {[round(r['hausdorff'], 4) for r in pre['rejected']]} > "
-                       f"{epsilon:g}); keeping the {len(F):,} input faces", t0)
+                       f"{max(epsilon, 0.25 * h_mesh):.3g}); keeping the {len(F):,} input faces", t0)
             plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
                                   time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
                                   mesh_edge_factor=2.0 if refine else 1.0, surface_faces=len(F))

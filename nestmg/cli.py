@@ -71,7 +71,8 @@ def _hierarchy(V, F, args, method=None):
 
         return hierarchy_from_tets(
             V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
-            mesher=args.mesher, edge_length=args.edge_length, epsilon=args.epsilon,
+            mesher=args.mesher, epsilon=args.epsilon,  # --edge-length is relative to the bbox diagonal
+            edge_length=None if args.edge_length is None else args.edge_length * float(np.linalg.norm(np.ptp(V, 0))),
             extrapolation=args.extrapolation, cache=not args.no_cache,
             progress=None if args.quiet is False else False, cage_opts={"repair": True} if args.repair else None,
         )

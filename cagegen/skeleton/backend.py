@@ -73,10 +73,8 @@ class SkeletonCage:
         with open(path, "w", encoding="utf-8") as fh:
             fh.write("# nestmg skeleton cage (Casti et al. 2019); quads split along the shorter diagonal "
                      "before inflation are certified\n")
-            for p in self.V:
-                fh.write(f"v {p[0]:.17g} {p[1]:.17g} {p[2]:.17g}\n")
-            for f in faces:
-                fh.write("f " + " ".join(str(int(i) + 1) for i in f) + "\n")
+            fh.writelines(f"v {p[0]:.17g} {p[1]:.17g} {p[2]:.17g}\n" for p in self.V)
+            fh.writelines("f " + " ".join(str(int(i) + 1) for i in f) + "\n" for f in faces)
 
 
 def _as_skeleton(skeleton) -> Skeleton:
@@ -109,6 +107,7 @@ def skeleton_cage(
     seed_radius: float = 0.2,
     tet_edge_length: float | None = None,
     tet_epsilon: float = 1e-3,
+    mesher: str = "delaunay",
     preinflate_rounds: int = 3,
     min_gap: float = 0.0,
     certify: bool = True,
@@ -133,9 +132,13 @@ def skeleton_cage(
         Seeds per section and their circle radius as a fraction of the inscribed radius (paper: 20, 0.2).
     tet_edge_length : float, optional
         TetWild target edge length, fraction of the bounding-box diagonal (default: half the smallest
-        inscribed radius at a control node, clamped to [0.008, 0.03]).
+        inscribed radius at a control node, clamped to [0.015, 0.03]).
     tet_epsilon : float
         TetWild envelope (fraction of the diagonal).
+    mesher : {"delaunay", "tetwild"}
+        Tet mesh of the guiding field: ``"delaunay"`` (default; scipy's Qhull on the surface vertices,
+        an interior grid and the skeleton samples, tets kept by winding number: seconds) or
+        ``"tetwild"`` (pytetwild, conforming, minutes on a loaded 2-core machine).
     preinflate_rounds : int
         Pre-inflation rounds (paper: 1).
     min_gap : float
@@ -223,7 +226,7 @@ def skeleton_cage(
     if added:
         S = S.with_bending(sorted(bset | set(added)))
     sec["bending"] = time.perf_counter() - t
-    info["skeleton"] = {"n_nodes": int(len(S.nodes)), "n_leaves": len(S.leaves), "n_branching": len(S.branching),
+    info["skeleton"] = {"n_nodes": len(S.nodes), "n_leaves": len(S.leaves), "n_branching": len(S.branching),
                         "n_bending": len(S.bending), "bending_added_mid_chain": added}
     say(f"skeleton: {len(S.leaves)} leaves, {len(S.branching)} branching, {len(S.bending)} bending nodes")
 
@@ -232,25 +235,28 @@ def skeleton_cage(
     ctrl_nodes = sorted({n for _, c in chain_controls for n in c})
     radii = inscribed_radius(S.nodes[ctrl_nodes], Vn, F)
     rad_of = dict(zip(ctrl_nodes, radii))
-    h = tet_edge_length if tet_edge_length is not None else float(np.clip(0.5 * radii.min(), 0.008, 0.03))
+    h = tet_edge_length if tet_edge_length is not None else float(np.clip(0.5 * radii.min(), 0.015, 0.03))
     samples = S.resampled(h / 2).nodes
-    say(f"field: TetWild (edge {h:.3g}) + harmonic solve")
-    field = GuidingField(Vn, F, samples, edge_length=h, epsilon=tet_epsilon)
+    say(f"field: {mesher} tets (edge {h:.3g}) + harmonic solve")
+    field = GuidingField(Vn, F, samples, edge_length=h, epsilon=tet_epsilon, mesher=mesher)
     sec["field"] = time.perf_counter() - t
-    info["field"] = {"edge_length": h, "n_tets": field.n_tets, "n_nodes": field.n_nodes,
+    info["field"] = {"mesher": mesher, "edge_length": h, "n_tets": field.n_tets, "n_nodes": field.n_nodes,
                      "skeleton_offset": field.skeleton_offset, "seconds": field.seconds}
 
     # 4. cross-sections
     t = time.perf_counter()
     sections = {}
     for ch, ctrl in chain_controls:
+        ref = None  # first axis of the previous section along the chain (untwisted round sections)
         for n in ctrl:
             if n in sections:
+                ref = sections[n].axis
                 continue
             i = ch.nodes.index(n)
             tan = _tangent(S, ch, i, reach=max(rad_of[n], 2 * spacing))
             sections[n] = cross_section(field, n, S.nodes[n], tan, rad_of[n], n_seeds=n_seeds,
-                                        seed_radius=seed_radius)
+                                        seed_radius=seed_radius, ref=ref)
+            ref = sections[n].axis
     sec["sections"] = time.perf_counter() - t
 
     # 5. tight cage
@@ -258,8 +264,8 @@ def skeleton_cage(
     tc = tight_cage(S, sections, chain_controls)
     sec["assembly"] = time.perf_counter() - t
     Vt, Ft = tc["V"], tc["F"]
-    info["tight_cage"] = {"n_vertices": int(len(Vt)), "n_faces": int(len(Ft)), "n_quads": int(len(tc["quads"])),
-                          "n_junction_triangles": int(len(tc["tris"]))}
+    info["tight_cage"] = {"n_vertices": len(Vt), "n_faces": len(Ft), "n_quads": len(tc["quads"]),
+                          "n_junction_triangles": len(tc["tris"])}
     say(f"tight cage: {len(Vt)} vertices, {len(tc['quads'])} quads + {len(tc['tris'])} triangles")
 
     # 6. pre-inflation
@@ -300,8 +306,8 @@ def skeleton_cage(
     sec["verify"] = time.perf_counter() - t
     sec["total"] = time.perf_counter() - t_all
     info["seconds"] = sec
-    info["n_vertices"], info["n_faces"] = int(len(Vc)), int(len(Fc))
-    info["n_quads"], info["n_junction_triangles"] = int(len(tc["quads"])), int(len(tc["tris"]))
+    info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
+    info["n_quads"], info["n_junction_triangles"] = len(tc["quads"]), len(tc["tris"])
     sections_out = [{"node": int(n), "center": s.center * diag + center, "quad": s.quad * diag + center,
                      "hits": s.hits * diag + center} for n, s in sorted(sections.items())]
     return SkeletonCage(V=Vc, F=Fc, quads=tc["quads"], tris=tc["tris"], tight_V=Vt * diag + center,

@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import igl
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -74,7 +76,7 @@ def auto_bending_nodes(skel: Skeleton, V: np.ndarray, F: np.ndarray, spacing: fl
                 if abs(dr[i]) >= rel_threshold and abs(dr[i]) >= abs(dr[i - 1]) and abs(dr[i]) >= abs(dr[i + 1])]
         cand.sort(key=lambda i: -abs(dr[i]))
 
-        def far_enough(i):
+        def far_enough(i, s=s, ids=ids, L=L, chosen=chosen):
             lim = min_separation * r[ids[i]]
             if s[i] < lim or L - s[i] < lim:
                 return False
@@ -98,7 +100,7 @@ def auto_bending_nodes(skel: Skeleton, V: np.ndarray, F: np.ndarray, spacing: fl
         for i in chosen:
             if deg[ids[i]] == 2:
                 bending.add(int(ids[i]))
-        info["chains"].append({"length": float(L), "n_samples": int(len(ids)),
+        info["chains"].append({"length": float(L), "n_samples": len(ids),
                                "bending_arclength": sorted(float(s[i]) for i in chosen)})
     return S.with_bending(sorted(bending)), info
 
@@ -132,34 +134,54 @@ def _frame(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(t, u)
 
 
-def best_quad(G: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+def best_quad(G: np.ndarray, tangent: np.ndarray, ref: np.ndarray | None = None,
+              roundness: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
     """The paper's quad of a ring of surface points G_p: PCA plane, four weighted maximisations.
 
-    q0..q3 maximise (+λ1 x + λ2 y), (−λ1 x + λ2 y), (−λ1 x − λ2 y), (+λ1 x − λ2 y) over the points
+    q0..q3 maximise (+w1 x + w2 y), (−w1 x + w2 y), (−w1 x − w2 y), (+w1 x − w2 y) over the points
     projected on the first two principal axes; a point is not used twice (the next best one is taken).
-    The result is ordered counter-clockwise around ``tangent``.
+    The paper weights by the eigenvalues λ1, λ2; we use their square roots (the spreads along the
+    axes), which does not collapse two corners onto the far ends of an elongated section.
+
+    For a nearly round ring (spread ratio above ``roundness``) the principal axes are arbitrary; if
+    ``ref`` (the previous section's first axis along the chain) is given, it is projected into the PCA
+    plane and used as the first axis instead, so consecutive quads are not twisted against each other.
+
+    Returns
+    -------
+    quad : (4,3) float array
+        Ordered counter-clockwise around ``tangent``.
+    axis : (3,) float array
+        The first in-plane axis used.
     """
     c = G.mean(axis=0)
     w, U = np.linalg.eigh(np.cov((G - c).T))
     order = np.argsort(w)[::-1]
     lam, U = np.maximum(w[order], 0.0), U[:, order]
-    if np.dot(np.cross(U[:, 0], U[:, 1]), tangent) < 0:
+    l1, l2 = np.sqrt(lam[0]), np.sqrt(lam[1])
+    n = np.cross(U[:, 0], U[:, 1])
+    if np.dot(n, tangent) < 0:
         U[:, 1] = -U[:, 1]
-    x, y = (G - c) @ U[:, 0], (G - c) @ U[:, 1]
-    l1, l2 = np.sqrt(lam[0]), np.sqrt(lam[1])  # weights ~ spread along each axis (paper: λ1, λ2)
-    # the paper weights by the eigenvalues; using their square roots (standard deviations) gives the
-    # same argmax for round sections and does not collapse the quad onto one axis for elongated ones
+        n = -n
+    e1, e2 = U[:, 0], U[:, 1]
+    if ref is not None and l2 > roundness * l1:
+        r = ref - np.dot(ref, n) * n
+        if np.linalg.norm(r) > 1e-6:
+            e1 = r / np.linalg.norm(r)
+            e2 = np.cross(n, e1)
+    x, y = (G - c) @ e1, (G - c) @ e2
     used: list = []
     for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
         score = sx * l1 * x + sy * l2 * y
         score[used] = -np.inf
         used.append(int(np.argmax(score)))
-    return G[used]
+    return G[used], e1
 
 
 def cross_section(field: GuidingField, node: int, center: np.ndarray, tangent: np.ndarray,
-                  radius: float, n_seeds: int = 20, seed_radius: float = 0.2) -> CrossSection:
-    """Section at a control node (paper Sec. 3.3, Fig. 4).
+                  radius: float, n_seeds: int = 20, seed_radius: float = 0.2,
+                  ref: np.ndarray | None = None) -> CrossSection:
+    """Section at a control node (paper Sec. 3.3, Fig. 4); ``ref``: see :func:`best_quad`.
 
     Raises
     ------
@@ -173,8 +195,10 @@ def cross_section(field: GuidingField, node: int, center: np.ndarray, tangent: n
     if ok.sum() < 4:
         raise CageError(f"skeleton cage, cross-section at skeleton node {node}: only {int(ok.sum())} of "
                         f"{n_seeds} integral lines reached the surface", layer=1)
-    quad = best_quad(hits[ok], tangent)
-    return CrossSection(node, center, tangent, radius, seeds, hits[ok], quad)
+    quad, axis = best_quad(hits[ok], tangent, ref=ref)
+    cs = CrossSection(node, center, tangent, radius, seeds, hits[ok], quad)
+    cs.axis = axis
+    return cs
 
 
 def _align(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
@@ -225,7 +249,7 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
     quads, tris = [], []
     deg = skel.degree
     for ch, ctrl in chain_controls:
-        for a, b in zip(ctrl[:-1], ctrl[1:]):
+        for a, b in itertools.pairwise(ctrl):
             A, B = sec_vid[a], sec_vid[b]
             for k in range(4):
                 quads.append([A[k], A[(k + 1) % 4], B[(k + 1) % 4], B[k]])

@@ -80,23 +80,35 @@ class GuidingField:
     """
 
     def __init__(self, V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, edge_length: float,
-                 epsilon: float = 1e-3):
+                 epsilon: float = 1e-3, mesher: str = "delaunay"):
         self.V, self.F = V, F
+        self.edge_length = float(edge_length)
         self.seconds = {}
+        self.mesher = mesher
         t0 = time.perf_counter()
-        try:
-            import pytetwild
+        n_skel = 0
+        if mesher == "tetwild":
+            try:
+                import pytetwild
 
-            with _in_temp_dir():
-                TV, TT = pytetwild.tetrahedralize(V, F.astype(np.int32), edge_length_abs=float(edge_length),
-                                                  epsilon=float(epsilon), quiet=True)
-        except Exception as exc:  # pytetwild raises RuntimeError on bad input
-            raise CageError(f"skeleton cage, guiding field: TetWild failed: {exc}", layer=1) from exc
+                with _in_temp_dir():
+                    TV, TT = pytetwild.tetrahedralize(V, F.astype(np.int32), edge_length_abs=float(edge_length),
+                                                      epsilon=float(epsilon), quiet=True)
+            except Exception as exc:  # pytetwild raises RuntimeError on bad input
+                raise CageError(f"skeleton cage, guiding field: TetWild failed: {exc}", layer=1) from exc
+        elif mesher == "delaunay":
+            TV, TT = _delaunay_tets(V, F, skel_points, float(edge_length))
+            n_skel = len(skel_points)
+        else:
+            raise ValueError(f"mesher must be 'delaunay' or 'tetwild', got {mesher!r}")
         TV = np.asarray(TV, dtype=np.float64)
         TT = np.asarray(TT, dtype=np.int64)
+        if len(TT) == 0:
+            raise CageError(f"skeleton cage, guiding field: {mesher} produced no tets", layer=1)
         used = np.unique(TT)
         remap = np.full(len(TV), -1)
         remap[used] = np.arange(len(used))
+        skel_ids = remap[len(TV) - n_skel:] if n_skel else np.zeros(0, dtype=np.int64)
         TV, TT = TV[used], remap[TT]
         P = TV[TT]
         D = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], axis=2)  # columns
@@ -122,7 +134,14 @@ class GuidingField:
                             "too large for this shape)", layer=1)
         dist, idx = cKDTree(TV[interior]).query(skel_points)
         zero = np.unique(interior[idx])
-        self.skeleton_offset = {"max": float(dist.max()), "mean": float(dist.mean()), "n_nodes": int(len(zero))}
+        if n_skel:  # the skeleton samples are tet nodes: f = 0 exactly on them (paper: S embedded)
+            zero = np.unique(skel_ids[(skel_ids >= 0)])
+            zero = zero[~is_b[zero]]
+            dist = np.zeros(1)
+        if len(zero) == 0:
+            raise CageError("skeleton cage, guiding field: no tet node on the skeleton (skeleton outside the "
+                            "tet mesh?)", layer=1)
+        self.skeleton_offset = {"max": float(dist.max()), "mean": float(dist.mean()), "n_nodes": len(zero)}
         fixed = np.zeros(len(TV), bool)
         fixed[boundary] = True
         fixed[zero] = True
@@ -138,15 +157,19 @@ class GuidingField:
         g = np.stack([f[TT[:, 1]] - f[TT[:, 0]], f[TT[:, 2]] - f[TT[:, 0]], f[TT[:, 3]] - f[TT[:, 0]]], axis=1)
         self.grad = np.einsum("tji,tj->ti", self.Dinv, g)  # grad = Dinv^T (f_i - f_0)
         # per-node averaged gradient: direction where a tet is flat (all nodes fixed to the same value)
+        vol6 = np.abs(np.linalg.det(np.linalg.inv(self.Dinv)))
         ng = np.zeros((len(TV), 3))
+        wsum = np.zeros(len(TV))
         for j in range(4):
-            np.add.at(ng, TT[:, j], self.grad)
+            np.add.at(ng, TT[:, j], self.grad * vol6[:, None])
+            np.add.at(wsum, TT[:, j], vol6)
+        ng /= np.maximum(wsum, 1e-300)[:, None]
         self._node_grad = ng
         self.centroids = P.mean(axis=1)
         self._ctree = cKDTree(self.centroids)
         self.seconds["solve"] = time.perf_counter() - t0
-        self.n_tets = int(len(TT))
-        self.n_nodes = int(len(TV))
+        self.n_tets = len(TT)
+        self.n_nodes = len(TV)
 
     # ------------------------------------------------------------------ point location
     def locate(self, P: np.ndarray, k: int = 24) -> np.ndarray:
@@ -180,15 +203,52 @@ class GuidingField:
         return out
 
     # ------------------------------------------------------------------ integral lines
-    def trace(self, P: np.ndarray, max_steps: int = 5000, return_paths: bool = False):
+    def _walk(self, P: np.ndarray, tet: np.ndarray, max_hops: int = 50) -> np.ndarray:
+        """Tet containing each point, walking from ``tet`` across the most violated face (-1: left M)."""
+        tet = tet.copy()
+        todo = np.flatnonzero(tet >= 0)
+        for _ in range(max_hops):
+            if len(todo) == 0:
+                break
+            lam = self._bary(P[todo], tet[todo])
+            j = np.argmin(lam, axis=1)
+            inside = lam[np.arange(len(todo)), j] >= -1e-10
+            moving = todo[~inside]
+            tet[moving] = self.adj[tet[moving], j[~inside]]
+            todo = moving[tet[moving] >= 0]
+        if len(todo):  # walk did not converge (cycling around an edge): locate from scratch
+            tet[todo] = self.locate(P[todo])
+        return tet
+
+    def gradient_at(self, P: np.ndarray, tet: np.ndarray) -> np.ndarray:
+        """Unit direction of the continuous (nodal, linearly interpolated) gradient of f."""
+        lam = np.clip(self._bary(P, tet), 0.0, None)
+        g = np.einsum("nj,njd->nd", lam, self._node_grad[self.TT[tet]])
+        n = np.linalg.norm(g, axis=1)
+        flat = n < 1e-300
+        if flat.any():
+            g[flat] = self.grad[tet[flat]]
+            n[flat] = np.linalg.norm(g[flat], axis=1)
+        return g / np.maximum(n, 1e-300)[:, None]
+
+    def trace(self, P: np.ndarray, step: float | None = None, max_steps: int | None = None,
+              return_paths: bool = False):
         """Follow the integral lines of ∇f from ``P`` to the surface (paper Sec. 3.1 / 3.3).
+
+        The per-tet gradient of a linear f is piecewise constant, and its integral lines collapse onto
+        edges and faces (the paper's remark on [45]); we integrate the continuous field obtained by
+        averaging it at the nodes (volume weights) and interpolating linearly, with midpoint (RK2)
+        steps of ``step`` and a tet walk for point location. A line ends where it leaves the tet
+        mesh; that point is snapped onto M.
 
         Parameters
         ----------
         P : (n,3) float array
             Seeds inside the tet mesh (seeds outside it are returned unchanged with ``ok`` False).
-        max_steps : int
-            Tet crossings allowed per line.
+        step : float, optional
+            Step length (default: half the tet edge length).
+        max_steps : int, optional
+            Steps allowed per line (default: 4 bounding-box diagonals of travel).
         return_paths : bool
             Also return the polylines (list of (m_i,3) arrays).
 
@@ -202,6 +262,10 @@ class GuidingField:
         """
         P = np.array(np.atleast_2d(P), dtype=float)
         n = len(P)
+        h = float(step) if step is not None else 0.5 * self.edge_length
+        diag = float(np.linalg.norm(np.ptp(self.TV, axis=0)))
+        if max_steps is None:
+            max_steps = int(4 * diag / h) + 10
         tet = self.locate(P)
         pos = P.copy()
         active = tet >= 0
@@ -211,47 +275,71 @@ class GuidingField:
             ids = np.flatnonzero(active)
             if len(ids) == 0:
                 break
-            t = tet[ids]
-            g = self.grad[t]
-            gn = np.linalg.norm(g, axis=1)
-            flat = gn < 1e-12
-            if flat.any():  # flat tet (all nodes fixed to one value): averaged nodal gradient
-                g[flat] = self._node_grad[self.TT[t[flat]]].sum(axis=1)
-                gn[flat] = np.linalg.norm(g[flat], axis=1)
-            g = g / np.maximum(gn, 1e-300)[:, None]
-            lam = np.clip(self._bary(pos[ids], t), 0.0, None)
-            dl = np.einsum("nij,nj->ni", self.Dinv[t], g)
-            dlam = np.column_stack([-dl.sum(axis=1), dl])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                tex = np.where(dlam < -1e-14, lam / -dlam, np.inf)
-            j = np.argmin(tex, axis=1)
-            s = tex[np.arange(len(ids)), j]
-            s = np.where(np.isfinite(s), s, 0.0)
-            newpos = pos[ids] + s[:, None] * g
-            # nudge past the face so the next tet's barycentrics are non-negative
-            nxt = self.adj[t, j]
-            pos[ids] = newpos
+            p0, t0 = pos[ids], tet[ids]
+            g0 = self.gradient_at(p0, t0)
+            pm = p0 + 0.5 * h * g0
+            tm = self._walk(pm, t0)
+            out = tm < 0
+            g = g0.copy()
+            if (~out).any():
+                g[~out] = self.gradient_at(pm[~out], tm[~out])
+            p1 = p0 + h * g
+            t1 = np.where(out, -1, self._walk(p1, np.where(out, t0, tm)))
+            left = t1 < 0
+            pos[ids] = p1
+            tet[ids] = t1
             if paths is not None:
                 for i in ids:
                     paths[i].append(pos[i].copy())
-            at_boundary = nxt < 0
-            fin = ids[at_boundary]
-            done[fin] = True
-            active[fin] = False
-            cont = ids[~at_boundary]
-            tet[cont] = nxt[~at_boundary]
-        end = pos
+            done[ids[left]] = True
+            active[ids[left]] = False
+        end = pos.copy()
         ok = done.copy()
         if ok.any():  # snap onto M
             _, _, C = igl.point_mesh_squared_distance(end[ok], self.V, self.F)
-            end = end.copy()
             end[ok] = C
         if return_paths:
             return end, ok, [np.array(p) for p in paths]
         return end, ok
 
 
+def _delaunay_tets(V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, h: float):
+    """Tets of the surface's interior from a Delaunay tetrahedralisation (scipy / Qhull).
+
+    Points: the surface vertices, a grid of spacing ``h`` inside M (kept ``h/2`` away from M) and the
+    skeleton samples (last, so f = 0 is imposed exactly on S's samples). A Delaunay tet is kept when
+    its centroid is inside M (winding number > 1/2); flat tets are dropped. The kept tets' boundary
+    approximates M (integral lines are snapped onto M at the end).
+    """
+    from scipy.spatial import Delaunay
+
+    lo, hi = V.min(0), V.max(0)
+    axes = [np.arange(lo[i] + h / 2, hi[i], h) for i in range(3)]
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    # a body-centred lattice (grid + cell centres) has no cospherical 8-point cells: fewer slivers
+    G = np.vstack([G, G + 0.5 * h])
+    w = igl.fast_winding_number(V, F, G)
+    G = G[w > 0.5]
+    if len(G):
+        d2, _, _ = igl.point_mesh_squared_distance(G, V, F)
+        G = G[d2 > (0.5 * h) ** 2]
+    if len(skel_points):
+        _, i = cKDTree(skel_points).query(G) if len(G) else (None, None)
+        if len(G):
+            dd = np.linalg.norm(G - skel_points[i], axis=1)
+            G = G[dd > 0.35 * h]
+    P = np.vstack([V, G, skel_points])
+    T = Delaunay(P).simplices.astype(np.int64)
+    C = P[T].mean(axis=1)
+    keep = igl.fast_winding_number(V, F, C) > 0.5
+    T = T[keep]
+    X = P[T]
+    vol = np.einsum("ij,ij->i", X[:, 1] - X[:, 0], np.cross(X[:, 2] - X[:, 0], X[:, 3] - X[:, 0])) / 6
+    T = T[np.abs(vol) > 1e-9 * h**3]
+    return P, T
+
+
 def guiding_field(V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, edge_length: float,
-                  epsilon: float = 1e-3) -> GuidingField:
+                  epsilon: float = 1e-3, mesher: str = "delaunay") -> GuidingField:
     """Build the :class:`GuidingField` of the surface ``(V, F)`` and skeleton samples ``skel_points``."""
-    return GuidingField(V, F, skel_points, edge_length, epsilon)
+    return GuidingField(V, F, skel_points, edge_length, epsilon, mesher)

@@ -224,9 +224,6 @@ def write_skeleton(path: str | os.PathLike, skel: Skeleton, overwrite: bool = Fa
         raise FileExistsError(f"{path} exists (pass overwrite=True to replace it)")
     with open(path, "w", encoding="utf-8") as fh:
         fh.write("# nestmg skeleton v1\n")
-        for p in skel.nodes:
-            fh.write(f"v {p[0]:.17g} {p[1]:.17g} {p[2]:.17g}\n")
-        for a, b in skel.edges:
-            fh.write(f"e {a} {b}\n")
-        for b in skel.bending:
-            fh.write(f"b {b}\n")
+        fh.writelines(f"v {p[0]:.17g} {p[1]:.17g} {p[2]:.17g}\n" for p in skel.nodes)
+        fh.writelines(f"e {a} {b}\n" for a, b in skel.edges)
+        fh.writelines(f"b {b}\n" for b in skel.bending)

@@ -59,7 +59,8 @@ def _vertex_displacements(V: np.ndarray, F: np.ndarray, disp: np.ndarray) -> np.
 
 def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarray, Fm: np.ndarray,
                 rounds: int = 3, margin: float = 0.05, backoff: float = 0.1,
-                max_backoff: int = 40) -> tuple[np.ndarray, dict]:
+                max_backoff: int = 40, contain_rounds: int = 6,
+                clearance: float = 2e-3) -> tuple[np.ndarray, dict]:
     """Pull the tight cage ``(V, F)`` out to the surface ``(Vm, Fm)`` along the integral lines of f.
 
     Parameters
@@ -79,6 +80,10 @@ def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarra
         Fraction of its displacement by which a vertex of a self-intersecting face steps back.
     max_backoff : int
         Step-back iterations per round.
+    contain_rounds : int
+        Rounds of the containment push that follows (0: the paper's pre-inflation only).
+    clearance : float
+        Distance (units of V) by which the containment push passes the vertices of M.
 
     Returns
     -------
@@ -111,5 +116,49 @@ def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarra
         L = np.linalg.norm(dv, axis=1)
         info["rounds"].append({"samples_inside": n_in, "mean_move": float(L.mean()), "max_move": float(L.max()),
                                "backoff_iterations": n_back, "reverted": bool(len(pairs))})
-    info["self_intersections"] = int(len(self_intersection_pairs(V, F)))
+    V, cinfo = _contain(V, F, Vm, Fm, rounds=contain_rounds, clearance=clearance, backoff=backoff,
+                        max_backoff=max_backoff)
+    info["containment"] = cinfo
+    info["self_intersections"] = len(self_intersection_pairs(V, F))
     return V, info
+
+
+def _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff):
+    """Push the cage past the vertices of M still outside it (our addition to the paper's step).
+
+    Each vertex p of M outside the cage pulls its closest cage face by (p - closest point) lengthened
+    by ``clearance``; the face displacements are combined at the vertices as in the pre-inflation
+    (direction = mean, magnitude = largest projection), with the same step-back on self-intersection.
+    This shortens the Nested Cages flow that follows (it starts from a cage containing most of M).
+    """
+    out_log = []
+    for _ in range(rounds):
+        w = igl.fast_winding_number(V, F, Vm)
+        out = np.flatnonzero(w < 0.5)
+        out_log.append(len(out))
+        if len(out) == 0:
+            break
+        _, I, C, _ = igl.signed_distance(Vm[out], V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
+        d = Vm[out] - C
+        L = np.linalg.norm(d, axis=1)
+        d = d * ((L + clearance) / np.maximum(L, 1e-300))[:, None]
+        disp = np.zeros((len(F), 3))
+        best = np.full(len(F), -1.0)
+        np.maximum.at(best, I, L)
+        pick = best[I] == L
+        disp[I[pick]] = d[pick]
+        dv = _vertex_displacements(V, F, disp)
+        V0 = V.copy()
+        V = V0 + dv
+        n_back = 0
+        pairs = self_intersection_pairs(V, F)
+        while len(pairs) and n_back < max_backoff:
+            bad = np.unique(F[np.unique(np.asarray(pairs).ravel())].ravel())
+            V[bad] -= backoff * dv[bad]
+            dv[bad] *= 1.0 - backoff
+            n_back += 1
+            pairs = self_intersection_pairs(V, F)
+        if len(pairs):
+            V = V0
+            break
+    return V, {"outside_per_round": out_log}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -166,14 +168,20 @@ def test_stuck_simplification_raises_cage_error():
         sdf_cage_layer(V, F, 4, max_retries=0, c=0.01)
 
 
-def test_nested_fallback_sdf_builds_a_certified_layer():
-    from cagegen.nested.backend import FALLBACKS, _Reporter
+def test_nested_backend_falls_back_to_sdf(blobs, monkeypatch):
+    """Flow always failing, no intermediate layer: the layer comes from the sdf fallback (MIT), certified."""
+    import cagegen.nested.backend as nb
 
-    V, F = shapes.sphere(res=16)
-    Vn = _unit(V)
-    log: list = []
-    flow_error = CageError("flow failed (simulated)", layer=1, reason="flow failed")
-    C, G, info = FALLBACKS["sdf"](Vn, F, 151, flow_error, _Reporter(False), log, 1)
-    assert info["fallback"] == "sdf" and len(G) == 152  # odd targets are rounded up to even
-    assert verify_nesting([(Vn, F), (C, G)]).ok
-    assert log and log[0]["stage"] == "fallback"
+    real = nb.flow_inside
+    monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    monkeypatch.setitem(sys.modules, "cagegen.copyleft.lazy", None)  # no copyleft module can be used
+    V, F = blobs
+    msgs: list[str] = []
+    layers, info = nb.nested_backend(V, F, [600], max_recovery_depth=0, progress=msgs.append, fallback="sdf")
+    assert verify_nesting([(V, F)] + layers).ok
+    li = info["layers"][0]
+    assert li["fallback"] == "sdf" and len(layers[0][1]) == 600 == li["sdf"]["n_faces"]
+    assert li["verification"]["ok"] is True
+    fb = [r for r in info["recovery"] if r["stage"] == "fallback"]
+    assert len(fb) == 1 and "sdf" in fb[0]["action"] and "layer 1" in fb[0]["reason"]
+    assert any("falling back to an sdf cage" in m for m in msgs)

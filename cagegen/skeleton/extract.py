@@ -81,9 +81,9 @@ def _prune(P: np.ndarray, E: np.ndarray, r: np.ndarray, prune: float) -> tuple[n
         for ch in Skeleton.chains(S):
             a, b = ch.start, ch.end
             if deg[a] == 1 and deg[b] >= 3:
-                leaf, br = a, b
+                br = b
             elif deg[b] == 1 and deg[a] >= 3:
-                leaf, br = b, a
+                br = a
             else:
                 continue
             X = P[np.asarray(ch.nodes)]

@@ -1,15 +1,19 @@
 """The guiding harmonic field of Casti et al. (2019), Sec. 3.1, and its integral lines.
 
-A TetWild mesh (pytetwild, MPL-2.0; TetGen is AGPL and not used here) fills the surface M. The
-paper embeds the skeleton S as chains of internal edges; TetWild cannot, so the condition f = 0 is
-imposed on the tet nodes nearest to dense samples of S (the distance of those nodes to S is
-recorded in :attr:`GuidingField.skeleton_offset` as the measure of that approximation). With f = 1
-on the boundary nodes, f solves the cotangent-Laplace problem ``Δf = 0`` (libigl ``cotmatrix``).
+Tet mesh of the interior of M, two choices:
 
-f is linear in each tet, so ∇f is constant per tet and an integral line is a polyline that crosses
-each tet in a straight segment: :meth:`GuidingField.trace` walks tet to tet (all lines at once, in
-numpy) until a boundary face is reached, then snaps the end onto M (TetWild's boundary is within
-its ``epsilon`` of M).
+* ``"delaunay"`` (default): scipy's Qhull Delaunay tetrahedralisation of the surface vertices, a
+  body-centred lattice of spacing h inside M and the skeleton samples; tets whose centroid has
+  winding number > 1/2 are kept. The skeleton samples are tet nodes, so f = 0 is imposed exactly on
+  points of S (the paper embeds S as chains of tet edges). Seconds; the boundary approximates M.
+* ``"tetwild"``: pytetwild (MPL-2.0), conforming to M within ``epsilon``; f = 0 on the tet nodes
+  nearest to dense samples of S (their distance to S is :attr:`GuidingField.skeleton_offset`).
+  Minutes on a loaded 2-core machine, hence not the default. TetGen (AGPL) is not used.
+
+With f = 1 on the boundary nodes, f solves the cotangent-Laplace problem ``Δf = 0`` (libigl
+``cotmatrix``, scipy direct solve). f is linear per tet, so ∇f is piecewise constant and its exact
+integral lines collapse onto edges; :meth:`GuidingField.trace` integrates the nodal average of ∇f
+(continuous) with midpoint steps and a tet walk, and snaps each line's end onto M.
 """
 
 from __future__ import annotations

@@ -1,0 +1,235 @@
+"""Skeleton cages (``cagegen.skeleton``, Casti et al. 2019): procedural shapes and the zoo's characters.
+
+Cases:
+
+* ``star`` / ``stick`` -- procedural articulated shapes (implicit unions of capsules, marching cubes)
+  with their KNOWN skeletons and bending nodes; the ``nested`` cage with the same face count is built
+  beside them for the tightness comparison;
+* zoo meshes (``--zoo DIR``, default homer, cheburashka, elephant, spot) -- automatic skeleton
+  (pygel3d) and automatic bending nodes.
+
+Per case (each in a child process with ``--timeout``): certified or the error (its message names the
+failing step), seconds per step, skeleton / cage sizes, tightness (max and mean distance of the cage
+to the input over the input's diagonal, from cage vertices and area-uniform samples; volume ratio).
+Prints one JSON object, writes it to ``--out`` and, with ``--png DIR``, one picture per case: the
+skeleton with its bending nodes, the integral-line hits and quads of the cross-sections, the tight
+cage, and the certified cage.
+
+Usage::
+
+    nice -n 10 python benchmarks/cages_skeleton.py --zoo /work/shared/data/meshes \\
+        --out benchmarks/results/skeleton/cages_skeleton.json --png docs/images/skeleton
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+ZOO = ("homer.obj", "cheburashka.obj", "elephant.obj", "spot.obj")
+
+
+# ----------------------------------------------------------------------------- procedural shapes
+def star_of_capsules(res: int = 44):
+    """Four capsule arms (radius 0.2, length 1) from a ball of radius 0.4; skeleton centre-elbow-tip."""
+    from cagegen.skeleton import Skeleton
+    from nestmg.shapes import _capsule_sdf, _smooth_min, mesh_implicit
+
+    arms = [np.array(a, float) for a in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))]
+
+    def f(P):
+        d = np.linalg.norm(P, axis=1) - 0.4
+        for a in arms:
+            d = _smooth_min(d, _capsule_sdf(P, (0, 0, 0), a, 0.2), 0.08)
+        return d
+
+    V, F = mesh_implicit(f, np.array([[-1.25] * 3, [1.25] * 3]), res=res)
+    nodes, edges, bend = [np.zeros(3)], [], []
+    for a in arms:
+        nodes.append(0.6 * a)
+        bend.append(len(nodes) - 1)
+        edges.append((0, len(nodes) - 1))
+        nodes.append(1.0 * a)
+        edges.append((len(nodes) - 2, len(nodes) - 1))
+    return V, F, Skeleton(np.array(nodes), np.array(edges), bend)
+
+
+def stick_figure(res: int = 56):
+    """Torso, head, bent arms and legs of tubes; skeleton = bone axes, elbows and knees bending."""
+    from cagegen.skeleton import Skeleton
+    from nestmg.shapes import _capsule_sdf, _smooth_min, mesh_implicit
+
+    J = {"pelvis": (0, -0.3, 0), "neck": (0, 0.45, 0), "head": (0, 0.85, 0),
+         "elbow_l": (-0.45, 0.25, 0), "hand_l": (-0.75, -0.05, 0), "elbow_r": (0.45, 0.25, 0),
+         "hand_r": (0.75, -0.05, 0), "knee_l": (-0.2, -0.75, 0.05), "foot_l": (-0.25, -1.2, 0.0),
+         "knee_r": (0.2, -0.75, 0.05), "foot_r": (0.25, -1.2, 0.0)}
+    names = list(J)
+    bones = [("pelvis", "neck"), ("neck", "head"), ("neck", "elbow_l"), ("elbow_l", "hand_l"),
+             ("neck", "elbow_r"), ("elbow_r", "hand_r"), ("pelvis", "knee_l"), ("knee_l", "foot_l"),
+             ("pelvis", "knee_r"), ("knee_r", "foot_r")]
+    radii = [0.2, 0.17, 0.1, 0.09, 0.1, 0.09, 0.12, 0.11, 0.12, 0.11]
+
+    def f(P):
+        d = None
+        for (a, b), r in zip(bones, radii):
+            c = _capsule_sdf(P, J[a], J[b], r)
+            d = c if d is None else _smooth_min(d, c, 0.06)
+        return d
+
+    V, F = mesh_implicit(f, np.array([[-1.0, -1.45, -0.35], [1.0, 1.15, 0.35]]), res=res)
+    idx = {n: i for i, n in enumerate(names)}
+    S = Skeleton(np.array([J[n] for n in names], float), np.array([(idx[a], idx[b]) for a, b in bones]),
+                 [idx["elbow_l"], idx["elbow_r"], idx["knee_l"], idx["knee_r"]])
+    return V, F, S
+
+
+# ----------------------------------------------------------------------------- one case
+def _load(case: str, zoo: Path | None):
+    import trimesh
+
+    from cagegen import check_mesh
+
+    if case == "star":
+        V, F, S = star_of_capsules()
+        return V, F, S, "given"
+    if case == "stick":
+        V, F, S = stick_figure()
+        return V, F, S, "given"
+    m = trimesh.load(zoo / case, process=True, force="mesh")
+    V, F = check_mesh(np.asarray(m.vertices, float), np.asarray(m.faces, np.int64), repair=True)
+    return V, F, None, "auto"
+
+
+def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool) -> dict:
+    from cages_lazy import tightness
+
+    from cagegen import build_cages, verify_nesting
+    from cagegen.skeleton import skeleton_cage
+
+    V, F, S, bending = _load(case, zoo)
+    out: dict = {"case": case, "input_vertices": len(V), "input_faces": len(F),
+                 "skeleton": "known" if S is not None else "automatic (pygel3d MSLS)", "bending": bending}
+    log: list = []
+    t0 = time.perf_counter()
+    try:
+        c = skeleton_cage(V, F, S, bending=bending,
+                          progress=lambda msg: log.append((round(time.perf_counter() - t0, 2), msg)))
+    except Exception as exc:  # noqa: BLE001 -- a failure is a result: the message names the step
+        out.update({"certified": False, "error": f"{type(exc).__name__}: {exc}", "progress": log,
+                    "seconds_total": time.perf_counter() - t0})
+        return out
+    rep = verify_nesting([(V, F), (c.V, c.F)])
+    out.update({
+        "certified": bool(rep.ok),
+        "cage_vertices": len(c.V), "cage_faces": len(c.F), "cage_quads": len(c.quads),
+        "cage_junction_triangles": len(c.tris), "sections": len(c.sections),
+        "skeleton_info": c.info["skeleton"], "seconds": c.info["seconds"],
+        "field": c.info["field"], "pre_inflation": c.info["pre_inflation"],
+        "tightness": tightness(c.V, c.F, V, F, 20000),
+        "tight_cage_tightness": tightness(c.tight_V, c.F, V, F, 20000),
+        "progress": log,
+    })
+    if "extraction" in c.info:
+        out["extraction"] = c.info["extraction"]
+    if compare_nested:
+        t = time.perf_counter()
+        try:
+            layers = build_cages(V, F, face_counts=[len(c.F)], method="nested", fallback=None)
+            out["nested_same_faces"] = {"faces": len(layers[1][1]), "seconds": time.perf_counter() - t,
+                                        "tightness": tightness(*layers[1], V, F, 20000)}
+        except Exception as exc:  # noqa: BLE001 -- recorded
+            out["nested_same_faces"] = {"error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t}
+    if png is not None:
+        png.mkdir(parents=True, exist_ok=True)
+        picture(V, F, c, png / f"skeleton_{Path(case).stem}.png", title=case)
+        out["png"] = str(png / f"skeleton_{Path(case).stem}.png")
+    return out
+
+
+def picture(V, F, c, path: Path, title: str) -> None:
+    """Three panels: skeleton + sections, tight cage, certified cage (pyvista, off screen)."""
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    p = pv.Plotter(off_screen=True, window_size=(1500, 520), shape=(1, 3))
+    mesh = pv.PolyData(V, np.c_[np.full(len(F), 3), F].ravel())
+    S = c.skeleton
+    bones = pv.PolyData(S.nodes, lines=np.c_[np.full(len(S.edges), 2), S.edges].ravel())
+
+    def cage_mesh(VV):
+        faces = [np.r_[4, q] for q in c.quads] + [np.r_[3, t] for t in c.tris]
+        return pv.PolyData(VV, np.concatenate(faces))
+
+    for k, (name, VV) in enumerate([("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
+                                    (f"certified cage ({len(c.F)} triangles)", c.V)]):
+        p.subplot(0, k)
+        p.add_mesh(mesh, color="tan", opacity=0.35 if k else 0.25)
+        p.add_mesh(bones, color="red", line_width=4)
+        if k == 0:
+            p.add_points(S.nodes[S.bending], color="black", point_size=12, render_points_as_spheres=True)
+            for s in c.sections:
+                p.add_points(s["hits"], color="green", point_size=5, render_points_as_spheres=True)
+                q = np.vstack([s["quad"], s["quad"][:1]])
+                p.add_mesh(pv.lines_from_points(q), color="blue", line_width=3)
+        else:
+            p.add_mesh(cage_mesh(VV), style="wireframe", color="navy", line_width=2)
+        p.add_text(f"{title}: {name}", font_size=9)
+        p.view_isometric()
+    p.screenshot(str(path))
+    p.close()
+
+
+def _child(q, case, zoo, png, compare):
+    try:
+        q.put(run_case(case, zoo, png, compare))
+    except Exception:  # noqa: BLE001 -- recorded as the result
+        q.put({"case": case, "certified": False, "error": traceback.format_exc(limit=3)})
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--zoo", type=Path, default=None, help="folder of the dev zoo meshes")
+    ap.add_argument("--cases", nargs="*", default=None, help="star, stick and/or zoo file names")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/skeleton/cages_skeleton.json"))
+    ap.add_argument("--png", type=Path, default=None)
+    ap.add_argument("--timeout", type=float, default=900.0)
+    args = ap.parse_args(argv)
+    cases = args.cases or (["star", "stick"] + (list(ZOO) if args.zoo else []))
+    ctx = mp.get_context("fork")
+    results = []
+    for case in cases:
+        q = ctx.Queue()
+        t = time.perf_counter()
+        p = ctx.Process(target=_child, args=(q, case, args.zoo, args.png, case in ("star", "stick")))
+        p.start()
+        p.join(args.timeout)
+        if p.is_alive():
+            p.terminate()
+            p.join()
+            res = {"case": case, "certified": False, "error": f"timeout after {args.timeout:.0f} s"}
+        else:
+            res = q.get() if not q.empty() else {"case": case, "certified": False, "error": "child died"}
+        res["wall_seconds"] = time.perf_counter() - t
+        results.append(res)
+        print(json.dumps({k: res.get(k) for k in ("case", "certified", "cage_faces", "error", "wall_seconds")}),
+              file=sys.stderr, flush=True)
+    from nestmg.io import json_default
+
+    out = {"benchmark": "cages_skeleton", "command": " ".join(sys.argv), "results": results}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1, default=json_default))
+    print(json.dumps(out, default=json_default))
+    return out
+
+
+if __name__ == "__main__":
+    main()

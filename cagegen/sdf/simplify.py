@@ -320,6 +320,7 @@ def constrained_simplify(
         tri_r = np.stack([tri[np.arange(len(tri)), (rot + k) % 3] for k in range(3)], 1)
         Pnew = _project(Pnew, own, V[tri_r[:, 1]], V[tri_r[:, 2]], sdf, margin)
         alive = np.ones(len(sel), dtype=bool)
+        clean = False
         for _round in range(6):
             idx = np.flatnonzero(alive)
             if len(idx) == 0:
@@ -400,12 +401,17 @@ def constrained_simplify(
                     rejected["self"] += int(hit.size)
                     bad[hit] = True
             if not bad[idx].any():
+                clean = True
                 break
             for k in np.flatnonzero(bad & alive):
                 attempts[int(key[sel[k]])] = (int(att[sel[k]]) + 1, batch)
             alive &= ~bad
         idx = np.flatnonzero(alive)
-        if len(idx) == 0:
+        if not clean or len(idx) == 0:
+            # nothing applied unless the last set of collapses passed every test together; the
+            # untested survivors count as a failed attempt too (no endless retry of the same batch)
+            for k in idx:
+                attempts[int(key[sel[k]])] = (int(att[sel[k]]) + 1, batch)
             continue
         # apply the accepted collapses
         ai, bi = a[sel[idx]], b[sel[idx]]

@@ -269,21 +269,17 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
             raise CageError(f"skeleton cage, junction at node {b}: a section is incident twice (a chain "
                             "from this node back to it); add bending nodes", layer=1)
         P = V[ids]
-        c = P.mean(axis=0)
-        S = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)
-        hull = ConvexHull(S)
-        H = ids[hull.simplices]
         sec_of = {int(v): k for k, nd in enumerate(inc) for v in sec_vid[nd]}
-        owner = np.array([[sec_of[int(v)] for v in tri] for tri in H])
-        inside_one = (owner == owner[:, :1]).all(axis=1)
-        hull_edges = {tuple(sorted(e)) for tri in H for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
-        for k, nd in enumerate(inc):
-            q = sec_vid[nd]
-            missing = [(q[i], q[(i + 1) % 4]) for i in range(4) if tuple(sorted((q[i], q[(i + 1) % 4]))) not in hull_edges]
-            if missing or int(np.sum(inside_one & (owner[:, 0] == k))) != 2:
-                raise CageError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
-                                f"section at node {nd} (the paper's Steiner-vertex fix is not implemented); "
-                                "move or add bending nodes near this junction", layer=1)
+        # sphere centre: the sections' centroid (paper), else the branching node itself
+        failed = None
+        for c in (P.mean(axis=0), skel.nodes[b]):
+            H, inside_one, failed = _junction_hull(P, ids, c, inc, sec_vid, sec_of)
+            if failed is None:
+                break
+        if failed is not None:
+            raise CageError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
+                            f"section at node {failed} (the paper's Steiner-vertex fix is not implemented); "
+                            "move or add bending nodes near this junction", layer=1)
         tris.extend(H[~inside_one].tolist())
     quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
     tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
@@ -293,6 +289,25 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
     # orient the quads like the triangles
     quads = _orient_quads(quads, F)
     return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid}
+
+
+def _junction_hull(P, ids, c, inc, sec_vid, sec_of):
+    """Hull of the junction's section corners projected on the unit sphere around ``c``.
+
+    Returns (triangles, mask of triangles inside one section, first section whose edges the hull
+    misses or None).
+    """
+    S = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)
+    H = ids[ConvexHull(S).simplices]
+    owner = np.array([[sec_of[int(v)] for v in tri] for tri in H])
+    inside_one = (owner == owner[:, :1]).all(axis=1)
+    hull_edges = {tuple(sorted(e)) for tri in H for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
+    for k, nd in enumerate(inc):
+        q = sec_vid[nd]
+        missing = [i for i in range(4) if tuple(sorted((q[i], q[(i + 1) % 4]))) not in hull_edges]
+        if missing or int(np.sum(inside_one & (owner[:, 0] == k))) != 2:
+            return H, inside_one, nd
+    return H, inside_one, None
 
 
 def _split_quads(V: np.ndarray, Q: np.ndarray) -> np.ndarray:

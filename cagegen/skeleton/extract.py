@@ -8,7 +8,8 @@ seconds. It is an optional extra (``pip install nestmg[skeleton]``).
 
 Cleaning: cycles are cut by a minimum spanning tree; leaf branches shorter than ``prune`` x the
 inscribed radius at their branching node are removed (spurs), repeatedly; leaf nodes outside the
-surface are dropped; degree-2 nodes are kept (they carry the curve).
+surface are dropped; interior nodes outside it (thin parts) are moved halfway to their neighbours'
+mean until inside (50 steps at most); degree-2 nodes are kept (they carry the curve).
 """
 
 from __future__ import annotations
@@ -141,12 +142,28 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
             break
         dropped += int(out.sum())
         P, E = _compact(P, E, ~out)
-    if np.any(igl.winding_number(V, F, P) < 0.5):
-        raise CageError("skeleton extraction (pygel3d): interior skeleton nodes lie outside the surface", layer=1)
+    # interior nodes outside M (thin parts): move them towards their neighbours' mean until inside
+    moved = 0
+    for _ in range(50):
+        out = np.flatnonzero(igl.winding_number(V, F, P) < 0.5)
+        if len(out) == 0:
+            break
+        nb_sum = np.zeros_like(P)
+        cnt = np.zeros(len(P))
+        np.add.at(nb_sum, E[:, 0], P[E[:, 1]])
+        np.add.at(nb_sum, E[:, 1], P[E[:, 0]])
+        np.add.at(cnt, E.ravel(), 1.0)
+        P = P.copy()
+        P[out] = 0.5 * P[out] + 0.5 * nb_sum[out] / np.maximum(cnt[out], 1.0)[:, None]
+        moved += len(out)
+    n_out = int(np.sum(igl.winding_number(V, F, P) < 0.5))
+    if n_out:
+        raise CageError(f"skeleton extraction (pygel3d): {n_out} interior skeleton nodes lie outside the surface "
+                        "(after 50 smoothing steps)", layer=1)
     d2, _, _ = igl.point_mesh_squared_distance(P, V, F)
     P, E, n_pruned = _prune(P, E, np.sqrt(d2), prune)
     S = Skeleton(P, E)
     info.update({"n_nodes": len(P), "n_edges": len(E), "spurs_pruned": n_pruned,
-                 "leaves_outside_dropped": dropped, "n_leaves": len(S.leaves), "n_branching": len(S.branching),
+                 "leaves_outside_dropped": dropped, "outside_node_moves": moved, "n_leaves": len(S.leaves), "n_branching": len(S.branching),
                  "seconds": time.perf_counter() - t0, "method": "pygel3d.graph.MSLS_skeleton"})
     return S, info

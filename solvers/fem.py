@@ -147,7 +147,11 @@ def stiffness_matrix(V, T, weights=None, *, check: bool = True) -> sp.csr_matrix
     s = float(np.abs(V.max(axis=0) - lo).max())
     L = igl.cotmatrix(np.ascontiguousarray((V - lo) / s), T)
     # libigl returns CSC; the matrix is symmetric, so its CSC arrays are its CSR arrays (no conversion)
-    K = sp.csr_matrix((-s * L.data, L.indices, L.indptr), shape=L.shape) if sp.isspmatrix_csc(L) else sp.csr_matrix(-s * L)
+    if sp.isspmatrix_csc(L) and L.has_canonical_format:
+        K = sp.csr_matrix((-s * L.data, L.indices, L.indptr), shape=L.shape)
+        K.has_canonical_format = True  # inherited from libigl's CSC: skips two O(nnz) passes
+    else:
+        K = sp.csr_matrix(-s * L)
     if not np.all(np.isfinite(K.data)):
         raise SolverInputError("stiffness matrix has NaN/inf entries (degenerate tets?)")
     K.sum_duplicates()

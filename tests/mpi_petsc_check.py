@@ -150,7 +150,7 @@ def _cage_runs(args, PETSc, comm) -> int:
     for k, path in enumerate(args.cage):
         h = load_hierarchy(path)
         ns = "constant" if bool(h.get("neumann", np.zeros(1))[0]) else None
-        with PetscMultigrid(h["A"], h["Ps"], nullspace=ns) as mg:
+        with PetscMultigrid(h["A"], h["Ps"], nullspace=ns, coarse_solver="auto") as mg:
             x, info = mg.solve(h["b"], tol=args.tol, maxiter=100)
         xs[f"x_{k}"] = x
         out["runs"][str(k)] = {key: info[key] for key in ("iterations", "final_residual", "converged", "setup_seconds",

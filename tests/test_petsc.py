@@ -417,7 +417,7 @@ def test_cage_hierarchy_one_rank_like_inprocess(sphere_cages, name):
     pr = _cage_problem(sphere_cages, name)
     ml = pr.multigrid()
     x_ref, ref = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
-    with PetscMultigrid(pr.A, pr.P, nullspace=pr.nullspace) as mg:
+    with PetscMultigrid(pr.A, pr.P, nullspace=pr.nullspace, coarse_solver="auto") as mg:
         x, info = mg.solve(pr.b, tol=1e-8)
         assert "in-process auto" in repr(mg)
         setup = mg.setup_seconds

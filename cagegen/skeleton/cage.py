@@ -40,15 +40,16 @@ def _arclength(X: np.ndarray) -> np.ndarray:
 
 
 def auto_bending_nodes(skel: Skeleton, V: np.ndarray, F: np.ndarray, spacing: float,
-                       min_separation: float = 1.5, rel_threshold: float = 0.15) -> tuple[Skeleton, dict]:
+                       min_separation: float = 1.5, rel_threshold: float = 0.15,
+                       junction_window: tuple = (1.5, 3.5)) -> tuple[Skeleton, dict]:
     """Place bending nodes where the thickness r changes fastest along each chain (paper Sec. 4).
 
     The skeleton is resampled at ``spacing``; along every chain r(s) (distance to M) is smoothed,
     differentiated, and the local extrema of r' with |r'| above ``rel_threshold`` become bending nodes,
     kept at least ``min_separation`` x (local radius) from the chain ends and from each other. Every
     chain incident to a branching node gets a bending node where the limb leaves the body (the
-    largest |r'| near that end, or ``1.5 r`` of the branching node away from it), so junction
-    polyhedra stay small.
+    largest |r'| at ``junction_window`` x r of the branching node from it, else the middle of the
+    window), so junction polyhedra stay small and their sections do not overlap.
 
     Returns
     -------
@@ -87,11 +88,12 @@ def auto_bending_nodes(skel: Skeleton, V: np.ndarray, F: np.ndarray, spacing: fl
                 # the limb's attachment: largest |r'| within 3 radii of the branching node, else 1.5 r
                 d = np.abs(s - s[end_pos])
                 near = [i for i in range(1, len(ids) - 1)
-                        if r[end_node] * 0.8 <= d[i] <= 3.0 * r[end_node]]
+                        if r[end_node] * junction_window[0] <= d[i] <= junction_window[1] * r[end_node]]
                 if near:
                     i = max(near, key=lambda i: abs(dr[i]))
                     if abs(dr[i]) < rel_threshold:
-                        i = min(near, key=lambda i: abs(d[i] - 1.5 * r[end_node]))
+                        mid = 0.5 * (junction_window[0] + junction_window[1]) * r[end_node]
+                        i = min(near, key=lambda i: abs(d[i] - mid))
                     if all(abs(s[i] - s[j]) > 0.5 * r[ids[i]] for j in chosen):
                         chosen.append(i)
         for i in cand:

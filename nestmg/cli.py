@@ -109,7 +109,9 @@ def _print_solve(label: str, h, r: dict) -> None:
 def _png_layers(h, path, title):
     from .render import render_layers
 
-    render_layers(h.surfaces, path, title=title)
+    # same-domain levels (the refined fine level, same_domain_levels) share their surface: draw it once
+    layers = [S for k, S in enumerate(h.surfaces) if k == 0 or S[0] is not h.surfaces[k - 1][0]]
+    render_layers(layers, path, title=title)
 
 
 def cmd_demo(args) -> int:

@@ -581,7 +581,9 @@ def build_hierarchy(
         raise ValueError(f"levels must be >= 2, got {levels}")
     if fine_level not in ("refine", "mesh"):
         raise ValueError(f"fine_level must be 'refine' or 'mesh', got {fine_level!r}")
-    refine = fine_level == "refine" and levels - int(same_domain_levels) >= 3  # keep at least one cage level
+    # keep at least one cage level; face counts given for every coarse level mean "all cages"
+    refine = (fine_level == "refine" and levels - int(same_domain_levels) >= 3
+              and (face_counts is None or len(face_counts) != levels - int(same_domain_levels) - 1))
     if not isinstance(same_domain_levels, (int, np.integer)) or not 0 <= same_domain_levels <= levels - 2:
         raise ValueError(
             f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "

@@ -12,7 +12,7 @@ from nestmg.cli import main
 def test_cli_solve_and_compare_on_builtin_shape(tmp_path, capsys):
     out = tmp_path / "solve.json"
     rc = main(["solve", "shape:sphere", "--method", "decimate", "--levels", "3", "--mesher", "tetgen",
-               "--problem", "poisson-dirichlet", "--json", str(out), "--quiet", "--png", str(tmp_path / "png")])
+               "--max-tets", "60000", "--problem", "poisson-dirichlet", "--json", str(out), "--quiet", "--png", str(tmp_path / "png")])
     assert rc == 0
     rep = json.loads(out.read_text())
     r = rep["solve"]
@@ -26,6 +26,7 @@ def test_cli_solve_and_compare_on_builtin_shape(tmp_path, capsys):
 
     cmp_json = tmp_path / "cmp.json"
     rc = main(["compare", "shape:sphere", "--methods", "decimate", "--levels", "2", "--mesher", "tetgen",
+               "--max-tets", "60000",
                "--problem", "poisson-neumann", "--json", str(cmp_json), "--quiet"])
     assert rc == 0
     rep = json.loads(cmp_json.read_text())
@@ -57,7 +58,7 @@ def test_cli_reports_bad_input_cleanly(tmp_path, capsys):
 def test_readme_example_runs():
     path = Path(__file__).resolve().parents[1] / "docs" / "examples" / "quickstart.py"
     ns = runpy.run_path(str(path))
-    h, u, residuals = ns["main"](method="nested", mesher="tetgen")
+    h, u, residuals = ns["main"](method="nested", mesher="tetwild")  # as in the README
     assert h.certified
     assert residuals[-1] <= 1e-8 and len(residuals) - 1 <= 40
     assert abs(u.mean()) < 1e-10 and np.isfinite(u).all()

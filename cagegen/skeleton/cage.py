@@ -192,8 +192,11 @@ def cross_section(field: GuidingField, node: int, center: np.ndarray, tangent: n
     """
     u, w = _frame(tangent)
     th = 2 * np.pi * np.arange(n_seeds) / n_seeds
-    seeds = center + seed_radius * radius * (np.cos(th)[:, None] * u + np.sin(th)[:, None] * w)
-    hits, ok = field.trace(seeds)
+    for rad in (seed_radius, 0.5 * seed_radius, 0.25 * seed_radius):  # thin parts: seeds closer to S
+        seeds = center + rad * radius * (np.cos(th)[:, None] * u + np.sin(th)[:, None] * w)
+        hits, ok = field.trace(seeds)
+        if ok.sum() >= 4:
+            break
     if ok.sum() < 4:
         raise CageError(f"skeleton cage, cross-section at skeleton node {node}: only {int(ok.sum())} of "
                         f"{n_seeds} integral lines reached the surface", layer=1)

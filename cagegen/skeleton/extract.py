@@ -69,6 +69,29 @@ def _compact(P, E, keep):
     return P[keep], new[E]
 
 
+def _contract_short(P: np.ndarray, E: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Merge the end points of edges shorter than ``tol`` (coincident skeleton nodes)."""
+    parent = np.arange(len(P))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in E[np.linalg.norm(P[E[:, 0]] - P[E[:, 1]], axis=1) < tol]:
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[rb] = ra
+    r = np.array([root(i) for i in range(len(P))])
+    E2 = r[E]
+    E2 = E2[E2[:, 0] != E2[:, 1]]
+    E2 = np.unique(np.sort(E2, axis=1), axis=0)
+    keep = r == np.arange(len(P))
+    new = np.cumsum(keep) - 1
+    return P[keep], new[E2]
+
+
 def _prune(P: np.ndarray, E: np.ndarray, r: np.ndarray, prune: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Remove leaf chains shorter than ``prune * r[branching node]`` until none is left."""
     removed = 0
@@ -160,6 +183,7 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
     if n_out:
         raise CageError(f"skeleton extraction (pygel3d): {n_out} interior skeleton nodes lie outside the surface "
                         "(after 50 smoothing steps)", layer=1)
+    P, E = _contract_short(P, E, 1e-6 * float(np.linalg.norm(np.ptp(V, axis=0))))
     d2, _, _ = igl.point_mesh_squared_distance(P, V, F)
     P, E, n_pruned = _prune(P, E, np.sqrt(d2), prune)
     S = Skeleton(P, E)

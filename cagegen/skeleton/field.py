@@ -191,6 +191,9 @@ class GuidingField:
             ok = lam.min(axis=1) >= -1e-9
             idx = np.flatnonzero(todo)[ok]
             out[idx] = c[ok]
+        if (out < 0).any() and k < 200 and len(self.TT) > k:  # large tets: widen the candidate set
+            miss = out < 0
+            out[miss] = self.locate(P[miss], k=min(8 * k, 200))
         return out
 
     def _bary(self, P: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -275,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--method", default="nested")
     d.add_argument("--out", default="nestmg-demo")
     d.add_argument("--no-png", action="store_true")
-    _common(d)
+    _common(d, levels=4)  # refined fine level, the input meshed, two nested cages
     _solver_opts(d)
     d.set_defaults(func=cmd_demo)
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import CageError, MeshInputError
 from ..verify import verify_nesting
-from .cage import auto_bending_nodes, cross_section, inscribed_radius, tight_cage
+from .cage import JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage
 from .field import GuidingField
 from .graph import Skeleton, read_skeleton
 from .inflate import pre_inflate
@@ -109,6 +109,7 @@ def skeleton_cage(
     tet_epsilon: float = 1e-3,
     mesher: str = "delaunay",
     preinflate_rounds: int = 3,
+    drop_bad_sections: bool = True,
     min_gap: float = 0.0,
     certify: bool = True,
     inner: tuple | None = None,
@@ -141,6 +142,10 @@ def skeleton_cage(
         ``"tetwild"`` (pytetwild, conforming, minutes on a loaded 2-core machine).
     preinflate_rounds : int
         Pre-inflation rounds (paper: 1).
+    drop_bad_sections : bool
+        When a junction's convex hull misses an edge of an incident bending section (the paper fixes
+        this with Steiner vertices, not implemented), drop that bending node and use the next section
+        along its chain (recorded in ``info["junction_recovery"]``); False: raise.
     min_gap : float
         Clearance demanded between M and the cage, relative to M's bounding-box diagonal.
     certify : bool
@@ -261,7 +266,23 @@ def skeleton_cage(
 
     # 5. tight cage
     t = time.perf_counter()
-    tc = tight_cage(S, sections, chain_controls)
+    dropped: list = []
+    while True:
+        try:
+            tc = tight_cage(S, sections, chain_controls)
+            break
+        except JunctionError as exc:
+            # recovery (ours): the junction's section is too close to it; use the next section along
+            # that chain instead (drop the bending node), when the chain keeps a section
+            nd = exc.section
+            k = next((j for j, (_, c) in enumerate(chain_controls) if nd in c), None)
+            if (not drop_bad_sections or k is None or deg[nd] != 2 or len(chain_controls[k][1]) < 2
+                    or len(dropped) >= 20):
+                raise
+            chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
+            dropped.append({"junction": exc.junction, "bending_node_dropped": nd})
+            say(f"junction at node {exc.junction}: dropping the bending node {nd} next to it")
+    info["junction_recovery"] = dropped
     sec["assembly"] = time.perf_counter() - t
     Vt, Ft = tc["V"], tc["F"]
     info["tight_cage"] = {"n_vertices": len(Vt), "n_faces": len(Ft), "n_quads": len(tc["quads"]),
@@ -309,10 +330,12 @@ def skeleton_cage(
     info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
     info["n_quads"], info["n_junction_triangles"] = len(tc["quads"]), len(tc["tris"])
     sections_out = [{"node": int(n), "center": s.center * diag + center, "quad": s.quad * diag + center,
-                     "hits": s.hits * diag + center} for n, s in sorted(sections.items())]
+                     "hits": s.hits * diag + center} for n, s in sorted(sections.items())
+                    if n in tc["section_vertices"]]
     return SkeletonCage(V=Vc, F=Fc, quads=tc["quads"], tris=tc["tris"], tight_V=Vt * diag + center,
                         preinflated_V=Vp * diag + center,
-                        skeleton=Skeleton(S.nodes * diag + center, S.edges, S.bending),
+                        skeleton=Skeleton(S.nodes * diag + center, S.edges,
+                                          [b for b in S.bending if b in tc["section_vertices"]]),
                         input_skeleton=S_in, sections=sections_out, info=info)
 
 

@@ -107,6 +107,14 @@ def auto_bending_nodes(skel: Skeleton, V: np.ndarray, F: np.ndarray, spacing: fl
     return S.with_bending(sorted(bending)), info
 
 
+class JunctionError(CageError):
+    """The convex hull at branching node ``junction`` misses an edge of the section at node ``section``."""
+
+    def __init__(self, message: str, junction: int, section: int):
+        super().__init__(message, layer=1)
+        self.junction, self.section = int(junction), int(section)
+
+
 class CrossSection:
     """The quad section at a control node.
 
@@ -282,9 +290,9 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
             if failed is None:
                 break
         if failed is not None:
-            raise CageError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
-                            f"section at node {failed} (the paper's Steiner-vertex fix is not implemented); "
-                            "move or add bending nodes near this junction", layer=1)
+            raise JunctionError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
+                                f"section at node {failed} (the paper's Steiner-vertex fix is not implemented); "
+                                "move or add bending nodes near this junction", b, failed)
         tris.extend(H[~inside_one].tolist())
     quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
     tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)

@@ -21,7 +21,7 @@ from solvers.memory import check_memory
 
 from .tetmesh import TetMeshError
 
-__all__ = ["TetMeshMemoryError", "check_tet_memory", "estimate_tet_bytes", "estimate_tets"]
+__all__ = ["TetMeshMemoryError", "check_tet_memory", "enclosed_volume", "estimate_tet_bytes", "estimate_tets"]
 
 #: tets per regular-tet volume (measured 1.8 for TetGen, 1.0 for TetWild), taken with a margin
 COUNT_FACTOR = 2.5
@@ -47,6 +47,21 @@ class TetMeshMemoryError(TetMeshError, MemoryError):
         self.n_tets, self.needed, self.available = int(n_tets), int(needed), int(available)
 
 
+def enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Volume enclosed by the closed, outward-oriented surface ``(V, F)`` (divergence theorem).
+
+    Falls back to the bounding-box volume when the signed volume is not positive (inward faces).
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    c = V.mean(axis=0)
+    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
+    vol = float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
+    if not vol > 0:
+        vol = float(np.prod(V.max(axis=0) - V.min(axis=0)))
+    return vol
+
+
 def estimate_tets(V: np.ndarray, F: np.ndarray, edge_length: float) -> int:
     """Upper estimate of the number of tets of the solid bounded by ``(V, F)`` at target edge ``edge_length``.
 
@@ -64,11 +79,7 @@ def estimate_tets(V: np.ndarray, F: np.ndarray, edge_length: float) -> int:
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
-    c = V.mean(axis=0)
-    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
-    vol = float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
-    if not vol > 0:
-        vol = float(np.prod(V.max(axis=0) - V.min(axis=0)))
+    vol = enclosed_volume(V, F)
     regular = edge_length**3 / (6.0 * np.sqrt(2.0))
     return int(min(COUNT_FACTOR * vol / regular + len(F), 2**62))
 

@@ -28,7 +28,7 @@ import numpy as np
 from solvers.errors import InsufficientMemoryError
 from solvers.memory import check_memory
 
-from .memory import FEM_BYTES_PER_NODE, TetMeshMemoryError, estimate_tet_bytes
+from .memory import FEM_BYTES_PER_NODE, TetMeshMemoryError, enclosed_volume, estimate_tet_bytes
 from .tetmesh import TetMeshError
 
 __all__ = [
@@ -55,21 +55,6 @@ DEFAULT_TIME_BUDGET = 150.0
 
 class SizingError(TetMeshError, ValueError):
     """The requested sizes cannot be met within the budget (raised before any expensive stage)."""
-
-
-def enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
-    """Volume enclosed by the closed, outward-oriented surface ``(V, F)`` (divergence theorem).
-
-    Falls back to the bounding-box volume when the signed volume is not positive (inward faces).
-    """
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    c = V.mean(axis=0)
-    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
-    vol = float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
-    if not vol > 0:
-        vol = float(np.prod(V.max(axis=0) - V.min(axis=0)))
-    return vol
 
 
 def _regular(h: float) -> float:

@@ -283,6 +283,24 @@ def skeleton_cage(
             dropped.append({"junction": exc.junction, "bending_node_dropped": nd})
             say(f"junction at node {exc.junction}: dropping the bending node {nd} next to it")
     info["junction_recovery"] = dropped
+    # a tight cage that intersects itself (sections of neighbouring limbs crossing): shrink the
+    # offending sections towards their skeleton node, 20% per step (ours; the paper has no such case)
+    from .._geometry import self_intersection_pairs
+
+    owner_center = np.zeros((len(tc["V"]), 3))
+    for nd, vids in tc["section_vertices"].items():
+        owner_center[vids] = S.nodes[nd]
+    shrink_steps = 0
+    pairs = self_intersection_pairs(tc["V"], tc["F"])
+    while len(pairs) and shrink_steps < 10:
+        bad = np.unique(tc["F"][np.unique(pairs.ravel())].ravel())
+        tc["V"][bad] += 0.2 * (owner_center[bad] - tc["V"][bad])
+        shrink_steps += 1
+        pairs = self_intersection_pairs(tc["V"], tc["F"])
+    info["tight_cage_shrink_steps"] = shrink_steps
+    if len(pairs):
+        raise CageError(f"skeleton cage, assembly: the tight cage intersects itself ({len(pairs)} face pairs) "
+                        "after 10 shrink steps; add or move bending nodes", layer=1)
     sec["assembly"] = time.perf_counter() - t
     Vt, Ft = tc["V"], tc["F"]
     info["tight_cage"] = {"n_vertices": len(Vt), "n_faces": len(Ft), "n_quads": len(tc["quads"]),

@@ -9,7 +9,7 @@ seconds. It is an optional extra (``pip install nestmg[skeleton]``).
 Cleaning: cycles are cut by a minimum spanning tree; leaf branches shorter than ``prune`` x the
 inscribed radius at their branching node are removed (spurs), repeatedly; leaf nodes outside the
 surface are dropped; interior nodes outside it (thin parts) are moved halfway to their neighbours'
-mean until inside (50 steps at most); degree-2 nodes are kept (they carry the curve).
+mean until inside (50 steps at most), then merged into a neighbour inside M; degree-2 nodes are kept (they carry the curve).
 """
 
 from __future__ import annotations
@@ -179,6 +179,30 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
         P = P.copy()
         P[out] = 0.5 * P[out] + 0.5 * nb_sum[out] / np.maximum(cnt[out], 1.0)[:, None]
         moved += len(out)
+    # still outside: merge each such node into a neighbour inside M (edge contraction)
+    merged = 0
+    for _ in range(10):
+        w = igl.winding_number(V, F, P)
+        out = np.flatnonzero(w < 0.5)
+        if len(out) == 0:
+            break
+        nb = [[] for _ in range(len(P))]
+        for a, b in E:
+            nb[a].append(b)
+            nb[b].append(a)
+        pairs = [(o, max(nb[o], key=lambda j: w[j])) for o in out if nb[o]]
+        parent = np.arange(len(P))
+        for o, j in pairs:
+            if w[j] >= 0.5 and parent[j] == j:
+                parent[o] = j
+        if np.all(parent == np.arange(len(P))):
+            break
+        E2 = parent[E]
+        E2 = np.unique(np.sort(E2[E2[:, 0] != E2[:, 1]], axis=1), axis=0)
+        keep = parent == np.arange(len(P))
+        new = np.cumsum(keep) - 1
+        P, E = P[keep], new[E2]
+        merged += int((~keep).sum())
     n_out = int(np.sum(igl.winding_number(V, F, P) < 0.5))
     if n_out:
         raise CageError(f"skeleton extraction (pygel3d): {n_out} interior skeleton nodes lie outside the surface "
@@ -188,6 +212,6 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
     P, E, n_pruned = _prune(P, E, np.sqrt(d2), prune)
     S = Skeleton(P, E)
     info.update({"n_nodes": len(P), "n_edges": len(E), "spurs_pruned": n_pruned,
-                 "leaves_outside_dropped": dropped, "outside_node_moves": moved, "n_leaves": len(S.leaves), "n_branching": len(S.branching),
+                 "leaves_outside_dropped": dropped, "outside_node_moves": moved, "outside_nodes_merged": merged, "n_leaves": len(S.leaves), "n_branching": len(S.branching),
                  "seconds": time.perf_counter() - t0, "method": "pygel3d.graph.MSLS_skeleton"})
     return S, info

@@ -475,6 +475,16 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     scale = float(np.linalg.norm(hi - lo))
     if not (np.isfinite(scale) and scale > 0):
         raise MeshInputError(f"input: bounding-box diagonal {scale} (all vertices coincide, or overflow)")
+    # the audit's scale rules apply to the input as given (the normalised copy would hide them)
+    from cagegen.audit import MAX_DIAG, MAX_OFFSET, MIN_DIAG
+
+    if not MIN_DIAG <= scale <= MAX_DIAG:
+        raise MeshInputError(f"input: absurd size: bounding-box diagonal {scale:.3g} outside [{MIN_DIAG:g}, "
+                             f"{MAX_DIAG:g}]; rescale")
+    offset = float(np.abs(V).max())
+    if offset > MAX_OFFSET * scale:
+        raise MeshInputError(f"input: absurd size: mesh of diagonal {scale:.3g} sits {offset:.3g} from the origin "
+                             "(float64 precision lost); translate it")
     return (V - center) / scale, center, scale
 
 

@@ -169,13 +169,11 @@ class PetscMultigrid:
         PETSc options prefix of the KSP (see the module docstring).
     options : dict, optional
         Extra PETSc options (without the prefix), e.g. ``{"mg_levels_pc_sor_its": 2}``.
-    coarse_solver : {"petsc", "auto", "splu", "regularized", "pinv"}
-        Coarsest solve. ``"petsc"`` (default): PETSc's Cholesky (CHOLMOD) / LU, or SVD for Neumann
-        (dense: slow). The in-process names run :class:`solvers.MultigridSolver`'s coarsest solver
-        (same safeguards: ``"auto"`` survives rank-deficient Galerkin coarse operators of cage
-        hierarchies) inside PETSc on every rank, as a python PC. (Not yet the default: written while
-        petsc4py could not be installed on the development machine; make it the default once
-        ``tests/test_petsc.py``'s cage tests pass.)
+    coarse_solver : {"auto", "splu", "regularized", "pinv", "petsc"}
+        Coarsest solve. The in-process names (default ``"auto"``) run :class:`solvers.MultigridSolver`'s
+        coarsest solver (same safeguards: ``"auto"`` survives rank-deficient Galerkin coarse operators
+        of cage hierarchies) inside PETSc on every rank, as a python PC. ``"petsc"``: PETSc's Cholesky
+        (CHOLMOD) / LU, or SVD for Neumann (dense: slow).
     pinv_max : int
         Size limit of the pseudo-inverse fallback (as in :class:`solvers.MultigridSolver`).
 
@@ -225,7 +223,7 @@ class PetscMultigrid:
         partition="auto",
         options_prefix: str = "nestmg_",
         options: dict | None = None,
-        coarse_solver: str = "petsc",
+        coarse_solver: str = "auto",
         pinv_max: int = 3000,
     ):
         PETSc = _petsc()

@@ -195,7 +195,11 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     from nestmg import build_hierarchy, setup_problem
     from solvers import MultigridSolver
 
+    from nestmg.io import normalize
+
     V, F, S = stick_figure()
+    _, center, scale = normalize(V)
+    S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: the skeleton must follow
     out: dict = {"shape": "stick", "face_counts": list(face_counts)}
     for name, opts in (("skeleton", {"skeleton": S, "bending": "given"}), ("nested", {})):
         t = time.perf_counter()

@@ -193,9 +193,8 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     the skeleton cage, beside the ``nested``-only one with the same face counts; TetWild layers (nestmg
     defaults), V(1,1) cycles (``MultigridSolver`` defaults), mean residual reduction per cycle to 1e-8."""
     from nestmg import build_hierarchy, setup_problem
-    from solvers import MultigridSolver
-
     from nestmg.io import normalize
+    from solvers import MultigridSolver
 
     V, F, S = stick_figure()
     _, center, scale = normalize(V)

@@ -205,6 +205,19 @@ def sdf_cage_layer(
             t = time.perf_counter()
             env = build_envelope(Vn, F, c=ck, h=ck if h is None else h * 2.0 ** attempt, amplify=amplify,
                                  r=r, l=l, alpha=alpha, beta=beta)
+            # the envelope must contain the fine layer: marching cubes on a grid of spacing ~c can cut
+            # through sharp features of a coarse input; refine the grid (same c) before giving up
+            hk = ck if h is None else h * 2.0 ** attempt
+            k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
+            refine = 0
+            while k_cross and refine < 2:
+                hk *= 0.5
+                refine += 1
+                env = build_envelope(Vn, F, c=ck, h=hk, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta)
+                k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
+            env.info["grid_refinements"] = refine
+            if k_cross:
+                raise SimplifyStuck(f"envelope crosses the fine layer ({k_cross} pairs) even at h={hk:.3g}")
             sec["envelope"] = time.perf_counter() - t
             U, G = env.V, env.F
             while len(G) < n_faces:  # the envelope is coarser than the target: subdivide (same surface)

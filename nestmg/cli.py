@@ -241,9 +241,10 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     g.add_argument("--time-budget", type=float, default=150.0,
                    help="seconds (2 cores) allowed for meshing the fine level; the fine edge grows to fit "
                         "(default %(default)s; 0: no time limit)")
-    g.add_argument("--fine-level", choices=["refine", "mesh"], default="refine",
+    g.add_argument("--fine-level", choices=["refine", "mesh"], default=None,
                    help="refine: the fine level is a red refinement of the input meshed at twice the edge "
-                        "(default, with >= 3 levels); mesh: the input meshed at the fine edge")
+                        "(default with TetWild and >= 3 levels); mesh: the input meshed at the fine edge "
+                        "(default with TetGen)")
     g.add_argument("--extrapolation", choices=["clamped", "linear", "closest_point", "nearest_vertex"],
                    default="clamped", help="rule for fine nodes outside the coarse tets")
     g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")

@@ -59,7 +59,7 @@ def main(argv=None) -> int:
         for mode in args.modes:
             arg = json.dumps({"mesh": mesh, "mode": mode, "levels": args.levels, "gap": args.gap})
             try:
-                p = subprocess.run([sys.executable, "-c", _CHILD, arg], capture_output=True, text=True,
+                p = subprocess.run([sys.executable, "-c", _CHILD, arg], check=False, capture_output=True, text=True,
                                    timeout=args.timeout)
                 res = next((json.loads(ln[7:]) for ln in p.stdout.splitlines() if ln.startswith("RESULT ")),
                            {"error": p.stderr[-1500:]})

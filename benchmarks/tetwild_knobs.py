@@ -64,7 +64,7 @@ print("RESULT " + json.dumps(out))
 def run_one(mesh: str, tets: int, cfg: dict) -> dict:
     """Mesh ``mesh`` once with ``cfg`` in a subprocess; returns its figures (or the error)."""
     arg = json.dumps({"mesh": mesh, "tets": tets, "cfg": cfg})
-    p = subprocess.run([sys.executable, "-c", _CHILD, arg], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-c", _CHILD, arg], check=False, capture_output=True, text=True)
     for line in p.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[7:])

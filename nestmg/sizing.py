@@ -112,9 +112,11 @@ class SizingPlan:
 #: fTetWild seconds ~ A * input faces + B * output tets (2 threads). Measured here (docs/scale.md):
 #: 111k-face bunny predecimated to 28.5k faces -> 252k-263k tets in 324-912 s on a shared machine,
 #: ENVIRONMENT.md's idle figures 316k tets from 100k faces in 329 s, 1.06M in 614 s, 559k from 7k faces
-#: in 437 s: ~0.6-1.2 ms per tet, ~1 ms per input face. B is taken at 0.8 ms.
+#: in 437 s: ~0.6-1.2 ms per tet, ~1 ms per input face. The end-to-end runs of docs/scale.md (first
+#: version, B = 0.8 ms) gave 0.38 / 0.61 / 1.15 ms per tet (bumpy-cube / bunny / a noisy gargoyle, with
+#: 1 ms per face): B is now the slowest of them, so the budget holds on rough surfaces too.
 TETWILD_SECONDS_PER_FACE = 1.0e-3
-TETWILD_SECONDS_PER_TET = 8.0e-4
+TETWILD_SECONDS_PER_TET = 1.2e-3
 
 
 def _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces=None) -> float:

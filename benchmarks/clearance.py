@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
+
+from exp_common import run_child
 
 _CHILD = r"""
 import json, sys, time
@@ -57,14 +58,8 @@ def main(argv=None) -> int:
         rows = json.loads(Path(args.json).read_text())["runs"]
     for mesh in args.meshes:
         for mode in args.modes:
-            arg = json.dumps({"mesh": mesh, "mode": mode, "levels": args.levels, "gap": args.gap})
-            try:
-                p = subprocess.run([sys.executable, "-c", _CHILD, arg], check=False, capture_output=True, text=True,
-                                   timeout=args.timeout)
-                res = next((json.loads(ln[7:]) for ln in p.stdout.splitlines() if ln.startswith("RESULT ")),
-                           {"error": p.stderr[-1500:]})
-            except subprocess.TimeoutExpired:
-                res = {"error": f"timeout after {args.timeout:.0f} s", "seconds": float("inf")}
+            res = run_child(_CHILD, {"mesh": mesh, "mode": mode, "levels": args.levels, "gap": args.gap},
+                            timeout=args.timeout)
             r = {"mesh": Path(mesh).name, "mode": mode, **res}
             rows = [x for x in rows if not (x["mesh"] == r["mesh"] and x["mode"] == mode)] + [r]
             print(json.dumps({k: r.get(k) for k in ("mesh", "mode", "seconds", "faces", "min_gap", "error")}),

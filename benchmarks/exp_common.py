@@ -184,3 +184,23 @@ def save_figure(fig, path: Path, dpi: int = 70) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
+
+
+def run_child(code: str, payload: dict, *, timeout: float | None = None, stderr_through: bool = False) -> dict:
+    """Run ``python -c code json(payload)`` in a fresh process (its own peak memory) and return the JSON
+    it prints on a line ``RESULT {...}``; ``{"error": ...}`` when it printed none or timed out.
+
+    ``stderr_through``: let the child's stderr (stage lines) pass to ours instead of capturing it.
+    """
+    import subprocess
+    import sys
+
+    try:
+        p = subprocess.run([sys.executable, "-c", code, json.dumps(payload)], check=False, stdout=subprocess.PIPE,
+                           stderr=None if stderr_through else subprocess.PIPE, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timeout after {timeout:.0f} s", "seconds": float("inf")}
+    for line in p.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    return {"error": ((p.stderr or "") + p.stdout)[-2000:], "returncode": p.returncode}

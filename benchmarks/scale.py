@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
+
+from exp_common import run_child
 
 _CHILD = r"""
 import json, resource, sys, time
@@ -62,13 +62,9 @@ print("RESULT " + json.dumps(out, default=float))
 
 def run_one(mesh: str, levels: int, method: str, cache: bool, opts: dict) -> dict:
     """One input end to end in a fresh subprocess; stage lines pass through to stderr."""
-    arg = json.dumps({"mesh": mesh, "levels": levels, "method": method, "cache": cache, "opts": opts})
-    p = subprocess.run([sys.executable, "-c", _CHILD, arg], check=False, stdout=subprocess.PIPE, stderr=None, text=True,
-                       env=dict(os.environ))
-    for line in p.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    return {"mesh": mesh, "error": p.stdout[-3000:], "returncode": p.returncode}
+    r = run_child(_CHILD, {"mesh": mesh, "levels": levels, "method": method, "cache": cache, "opts": opts},
+                  stderr_through=True)
+    return r if "error" not in r else {"mesh": mesh, **r}
 
 
 def summary(r: dict) -> dict:

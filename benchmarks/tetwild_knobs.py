@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
+
+from exp_common import run_child
 
 CONFIGS = {
     "default": {"epsilon": 1e-3, "stop_energy": 10.0, "max_opt_iter": 80},
@@ -63,12 +64,7 @@ print("RESULT " + json.dumps(out))
 
 def run_one(mesh: str, tets: int, cfg: dict) -> dict:
     """Mesh ``mesh`` once with ``cfg`` in a subprocess; returns its figures (or the error)."""
-    arg = json.dumps({"mesh": mesh, "tets": tets, "cfg": cfg})
-    p = subprocess.run([sys.executable, "-c", _CHILD, arg], check=False, capture_output=True, text=True)
-    for line in p.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    return {"error": (p.stderr or p.stdout)[-2000:]}
+    return run_child(_CHILD, {"mesh": mesh, "tets": tets, "cfg": cfg})
 
 
 def main(argv=None) -> int:

@@ -401,7 +401,7 @@ def sphere_cages():
 
     V, F = shapes.sphere(12)
     return build_hierarchy(V, F, 3, method="nested", mesher="tetgen", edge_length_fac=0.05, cache=False,
-                           progress=False)
+                           progress=False, fine_level="refine")  # TetGen's default is "mesh" (issue 14)
 
 
 def _cage_problem(h, name):

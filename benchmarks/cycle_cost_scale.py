@@ -33,15 +33,6 @@ SMOOTHERS = {
 }
 
 
-def best(f, repeat):
-    ts = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        f()
-        ts.append(time.process_time() - t0)
-    return min(ts)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("mesh", type=Path)
@@ -51,6 +42,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     import igl
+    from exp_common import best_cpu_time as best
     from exp_common import edge_for_tets
 
     from nestmg.hierarchy import build_hierarchy

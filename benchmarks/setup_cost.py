@@ -20,15 +20,6 @@ from pathlib import Path
 import numpy as np
 
 
-def best(f, repeat: int) -> float:
-    ts = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        f()
-        ts.append(time.process_time() - t0)
-    return min(ts)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("mesh", type=Path)
@@ -39,6 +30,7 @@ def main(argv=None):
 
     import igl
     import tetgen
+    from exp_common import best_cpu_time as best
     from exp_common import edge_for_tets
 
     from nestmg.io import load_mesh, normalize

@@ -13,13 +13,10 @@ boundary exactly.
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
-
 import numpy as np
 
 from cagegen._geometry import as_mesh_arrays
+from cagegen._tempdir import in_temp_dir
 from cagegen.errors import MeshInputError, NestmgError
 
 __all__ = ["MESHERS", "TetMeshError", "orient_tets", "tet_quality", "tet_volumes", "tetrahedralize"]
@@ -79,18 +76,6 @@ def tet_quality(V: np.ndarray, T: np.ndarray, sliver_deg: float = 5.0) -> dict:
     n_sl = int((dmin < sliver_deg).sum())
     return {"min_dihedral_deg": float(dmin.min()), "p01_min_dihedral_deg": float(np.percentile(dmin, 1)),
             "max_dihedral_deg": float(dmax.max()), "n_slivers": n_sl, "sliver_fraction": n_sl / len(T)}
-
-
-@contextlib.contextmanager
-def _in_temp_dir():
-    """Run in a fresh temporary working directory (restored and removed afterwards)."""
-    old = os.getcwd()
-    with tempfile.TemporaryDirectory(prefix="nestmg-tetwild-") as d:
-        os.chdir(d)
-        try:
-            yield
-        finally:
-            os.chdir(old)
 
 
 def _flat(V: np.ndarray, T: np.ndarray, rtol: float = 1e-12) -> np.ndarray:
@@ -210,7 +195,7 @@ def tetrahedralize(
             import pytetwild
 
             # fTetWild writes __tracked_surface.stl into the working directory: keep it out of the user's
-            with _in_temp_dir():
+            with in_temp_dir():
                 # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
                 c = (lo + hi) / 2
                 Vt, T = pytetwild.tetrahedralize(

@@ -18,9 +18,6 @@ integral lines collapse onto edges; :meth:`GuidingField.trace` integrates the no
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 import time
 
 import igl
@@ -29,24 +26,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
+from .._tempdir import in_temp_dir
 from ..errors import CageError
 
 __all__ = ["GuidingField", "guiding_field"]
 
 # face j of a tet is opposite its vertex j
 _FACE_OF = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-
-
-@contextlib.contextmanager
-def _in_temp_dir():
-    """fTetWild writes a tracking file into the working directory: keep it out of the user's."""
-    old = os.getcwd()
-    with tempfile.TemporaryDirectory(prefix="cagegen-tetwild-") as d:
-        os.chdir(d)
-        try:
-            yield
-        finally:
-            os.chdir(old)
 
 
 def _tet_adjacency(T: np.ndarray) -> np.ndarray:
@@ -95,7 +81,7 @@ class GuidingField:
             try:
                 import pytetwild
 
-                with _in_temp_dir():
+                with in_temp_dir("cagegen-tetwild-"):
                     TV, TT = pytetwild.tetrahedralize(V, F.astype(np.int32), edge_length_abs=float(edge_length),
                                                       epsilon=float(epsilon), quiet=True)
             except Exception as exc:  # pytetwild raises RuntimeError on bad input

@@ -1,0 +1,23 @@
+"""A fresh temporary working directory: fTetWild writes a tracking file (``__tracked_surface.stl``)
+into the current directory, which must not be the user's."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+
+__all__ = ["in_temp_dir"]
+
+
+@contextlib.contextmanager
+def in_temp_dir(prefix: str = "nestmg-tetwild-") -> Iterator[str]:
+    """Run the body in a fresh temporary working directory (restored and removed afterwards)."""
+    old = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix=prefix) as d:
+        os.chdir(d)
+        try:
+            yield d
+        finally:
+            os.chdir(old)

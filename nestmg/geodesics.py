@@ -215,7 +215,9 @@ def multigrid_solve(
         ``M_k + t K_k``.
     coarse : {"galerkin", "rediscretized"}
     nu : int
-        Symmetric Gauss–Seidel sweeps before and after the coarse correction: V(nu, nu).
+        Symmetric Gauss–Seidel sweeps before and after the coarse correction on the fine level:
+        V(nu, nu); ``2 nu`` on coarser levels and one extra local sweep on the boundary layer, as
+        :meth:`nestmg.problems.Problem.multigrid`.
     cycle, accel, tol, maxiter
         See :meth:`solvers.MultigridSolver.solve`.
 
@@ -239,7 +241,9 @@ def multigrid_solve(
         if prob.A.shape != A.shape or prob.free[0].size != n0:
             raise GeodesicInputError("the hierarchy's finest tet mesh is not the mesh of the problem")
         ml = MultigridSolver(A, prob.P, coarse="galerkin" if prob.coarse_ops is None else prob.coarse_ops,
-                             presmoother=("symmetric_gauss_seidel", {"iterations": nu}),
+                             presmoother=[("symmetric_gauss_seidel", {"iterations": nu}),
+                                          ("symmetric_gauss_seidel", {"iterations": 2 * nu})],
+                             local_nodes=prob.local_nodes,
                              nullspace="constant" if kind == "poisson" else None)
         x, info = ml.solve(b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)
         return x, {k: info[k] for k in ("iterations", "converged", "residuals", "factor")}

@@ -26,12 +26,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from solvers.fem import boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
+from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
 from solvers.multilevel import restrict_prolongations
 
 __all__ = ["COARSE", "PROBLEMS", "Problem", "default_rhs", "setup_problem", "volume_fractions"]
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+
+#: The pipeline's smoothers, finest level first: one symmetric Gauss–Seidel sweep on the fine level,
+#: two on the coarser ones (a variable V-cycle; the coarse levels are ~8x smaller, so the extra sweeps
+#: cost ~0.5 fine SpMV per cycle). Measured in docs/scale.md ("Smoothing").
+DEFAULT_SMOOTHERS = [("symmetric_gauss_seidel", {"iterations": 1}), ("symmetric_gauss_seidel", {"iterations": 2})]
 
 
 @dataclass
@@ -56,6 +61,10 @@ class Problem:
     nullspace : str or None
         ``"constant"`` for pure Neumann problems.
     params : dict
+    local_nodes : int array or None
+        Free-node indices (level-0 numbering of ``A``) that get extra local Gauss–Seidel sweeps: the
+        boundary layer (boundary nodes and one tet ring) of Neumann and diffusion problems, where
+        natural boundary conditions make the global smoother weakest (docs/scale.md).
     """
 
     name: str
@@ -67,8 +76,9 @@ class Problem:
     n_fine: int
     nullspace: str | None
     params: dict = field(default_factory=dict)
+    local_nodes: np.ndarray | None = None
 
-    def multigrid(self, *, coarse_scaling: str | None = "auto", **kwargs):
+    def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, **kwargs):
         """The :class:`solvers.MultigridSolver` of this problem (its coarse operators and null space).
 
         Parameters
@@ -76,8 +86,12 @@ class Problem:
         coarse_scaling : None, "energy" or "auto"
             ``"auto"`` (default): ``"energy"`` with re-discretised or weighted coarse operators (they
             are not energy projections; docs/coarse.md), None with Galerkin ones.
+        local : bool
+            Give :attr:`local_nodes` one extra symmetric Gauss–Seidel sweep per smoothing step
+            (``MultigridSolver(local_nodes=...)``); ``local_nodes=`` in ``kwargs`` overrides it.
         **kwargs
-            Passed on (smoothers, ``coarse_solver``, ...).
+            Passed on (smoothers, ``coarse_solver``, ...). Without ``presmoother``: the variable
+            V-cycle of :data:`DEFAULT_SMOOTHERS`.
 
         Returns
         -------
@@ -88,6 +102,8 @@ class Problem:
         if coarse_scaling == "auto":
             coarse_scaling = None if self.coarse_ops is None else "energy"
         coarse = "galerkin" if self.coarse_ops is None else self.coarse_ops
+        kwargs.setdefault("presmoother", DEFAULT_SMOOTHERS)
+        kwargs.setdefault("local_nodes", self.local_nodes if local else None)
         return MultigridSolver(self.A, self.P, coarse=coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 
@@ -274,6 +290,9 @@ def setup_problem(
                 raise ValueError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
             ops = _weighted_operators(name, tets, w, free, lam, K0, bnd)
     A = A_full[free0][:, free0].tocsr()
+    local = None
+    if not dirichlet:  # natural boundary: the boundary layer gets extra local sweeps (free0 = all nodes)
+        local = boundary_layer_nodes(T0, rings=1, n=n0)
     return Problem(
         name=name,
         A=A,
@@ -284,6 +303,7 @@ def setup_problem(
         n_fine=n0,
         nullspace="constant" if name == "poisson-neumann" else None,
         params={"lam": lam if name == "diffusion-neumann" else None, "coarse": coarse, "prune": prune},
+        local_nodes=local,
     )
 
 

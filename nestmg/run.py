@@ -62,6 +62,8 @@ def solve_on_hierarchy(
     return_solution: bool = False,
     coarse_scaling: str | None = "auto",
     fractions: list | None = None,
+    coarse_nu: int | None = None,
+    local: bool = True,
 ) -> dict[str, Any]:
     """Assemble ``problem`` on ``tets[0]``, build the multigrid solver from ``P`` and solve.
 
@@ -75,7 +77,14 @@ def solve_on_hierarchy(
     problem, coarse, lam
         See :func:`nestmg.problems.setup_problem`.
     smoother : str
-        Smoother name (``solvers.SMOOTHERS``); ``nu`` sweeps before and after: V(nu, nu).
+        Smoother name (``solvers.SMOOTHERS``); ``nu`` sweeps before and after on the fine level:
+        V(nu, nu).
+    coarse_nu : int, optional
+        Sweeps on the coarser levels (default ``2 * nu``: the variable V-cycle of
+        :data:`nestmg.problems.DEFAULT_SMOOTHERS`; ``coarse_nu=nu`` is the plain V-cycle).
+    local : bool
+        Extra local sweeps on the boundary layer of Neumann and diffusion problems
+        (:meth:`nestmg.problems.Problem.multigrid`).
     cycle, accel, tol, maxiter
         See :meth:`solvers.MultigridSolver.solve`.
     cost : bool
@@ -99,10 +108,13 @@ def solve_on_hierarchy(
     prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ml = prob.multigrid(presmoother=(smoother, {"iterations": nu}), coarse_scaling=coarse_scaling)
+    cnu = 2 * nu if coarse_nu is None else coarse_nu
+    ml = prob.multigrid(presmoother=[(smoother, {"iterations": nu}), (smoother, {"iterations": cnu})],
+                        coarse_scaling=coarse_scaling, local=local)
     t_setup = time.perf_counter() - t0
     out: dict[str, Any] = {
-        "problem": problem, "coarse": coarse, "smoother": smoother, "nu": nu, "cycle": cycle,
+        "problem": problem, "coarse": coarse, "smoother": smoother, "nu": nu, "coarse_nu": cnu,
+        "local_nodes": 0 if not local or prob.local_nodes is None else int(prob.local_nodes.size), "cycle": cycle,
         "accel": accel, "lam": prob.params["lam"], "tol": tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),

@@ -23,6 +23,7 @@ from .errors import IncompatibleRHSError, SolverInputError
 
 __all__ = [
     "DirichletSystem",
+    "boundary_layer_nodes",
     "boundary_nodes",
     "check_compatible",
     "check_tet_mesh",
@@ -315,6 +316,37 @@ def boundary_nodes(T, n: int | None = None) -> np.ndarray:
     hit[(k >> 21) & mask] = True
     hit[k & mask] = True
     return np.flatnonzero(hit)
+
+
+def boundary_layer_nodes(T, rings: int = 1, boundary: np.ndarray | None = None, n: int | None = None) -> np.ndarray:
+    """Nodes on the boundary surface of a tet mesh and within ``rings`` tet-rings of it.
+
+    The unknowns where Gauss–Seidel is weakest under natural (Neumann) conditions: multigrid gets
+    extra local sweeps there (``MultigridSolver(local_nodes=...)``).
+
+    Parameters
+    ----------
+    T : (t, 4) int
+    rings : int
+        0: the boundary nodes only; ``r``: also every node sharing a tet with a node of ring ``r-1``.
+    boundary : int array, optional
+        Precomputed :func:`boundary_nodes` (avoids a second face pass).
+    n : int, optional
+        Number of nodes (default ``T.max() + 1``).
+
+    Returns
+    -------
+    (m,) int64, sorted unique node indices.
+    """
+    T = np.asarray(T)
+    b = boundary_nodes(T, n) if boundary is None else np.asarray(boundary, dtype=np.int64)
+    n = int(T.max()) + 1 if n is None else int(n)
+    mark = np.zeros(n, dtype=bool)
+    mark[b] = True
+    for _ in range(int(rings)):
+        touched = mark[T].any(axis=1)
+        mark[T[touched].ravel()] = True
+    return np.flatnonzero(mark)
 
 
 # the four faces of tet (a, b, c, d), each oriented outward for a positively oriented tet

@@ -28,7 +28,7 @@ import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
-from .smoothing import Smoother, make_smoother
+from .smoothing import Smoother, make_smoother, with_local_sweeps
 from .transfer import _as_csr, _is_symmetric, galerkin_operators, prune_prolongations, restrict_prolongations
 
 __all__ = [
@@ -118,8 +118,10 @@ class MultigridSolver:
         stiff (re-discretisation on a cage: a larger domain); with Galerkin operators ``α = 1``
         exactly in exact arithmetic for a single correction. Makes the cycle a (mildly) non-linear
         preconditioner; ``solve(accel="cg")`` then uses the flexible (Polak–Ribière) CG update.
-    presmoother, postsmoother : str or (str, dict)
-        See :func:`solvers.smoothing.make_smoother`. Default symmetric Gauss–Seidel, one sweep each:
+    presmoother, postsmoother : str or (str, dict), or a list of them
+        See :func:`solvers.smoothing.make_smoother`. A list gives one spec per level, finest first,
+        the last one repeated on deeper levels (e.g. more sweeps on the cheap coarse levels: the
+        variable V-cycle). Default symmetric Gauss–Seidel, one sweep each:
         V(1,1). ``postsmoother=None`` (default) means the adjoint of the presmoother: the same smoother,
         with a forward Gauss–Seidel sweep turned into a backward one, so the cycle is symmetric and can
         precondition CG. An explicit non-adjoint pair (e.g. forward GS on both sides) is allowed for
@@ -140,6 +142,17 @@ class MultigridSolver:
         pseudo-inverse 31-54 s, identical residual histories.
     pinv_max : int
         Size limit of the ``"auto"`` fallback (dense eigh of 2000 unknowns: ~1–4 s on this machine).
+    local_nodes : int array or bool mask, optional
+        Level-0 unknowns where the smoother is weak (for FEM: the boundary layer of a Neumann
+        problem, see :func:`solvers.fem.boundary_layer_nodes`). They get ``local_sweeps`` extra
+        symmetric Gauss–Seidel sweeps after pre-smoothing and before post-smoothing
+        (:func:`solvers.smoothing.with_local_sweeps`; the cycle stays symmetric). Coarser levels relax
+        the coarse nodes that interpolate to the finer set, down to ``local_levels`` levels (default:
+        every smoothed level).
+    local_sweeps : int
+        Extra symmetric sweeps per application (default 1).
+    local_levels : int, optional
+        Number of levels, from the finest, that get local sweeps.
 
     Attributes
     ----------
@@ -175,6 +188,9 @@ class MultigridSolver:
         nullspace: str | None = None,
         coarse_solver: str = "auto",
         pinv_max: int = 3000,
+        local_nodes=None,
+        local_sweeps: int = 1,
+        local_levels: int | None = None,
     ):
         t0 = time.perf_counter()
         if nullspace not in (None, "constant"):
@@ -245,15 +261,21 @@ class MultigridSolver:
                         f"nullspace='constant' but the level {k} operator does not annihilate constants "
                         f"(max |A_{k} 1| = {r:.3e})"
                     )
-        pre_spec = presmoother
-        post_spec = _adjoint_spec(presmoother) if postsmoother is None else postsmoother
+        pre_specs = _level_specs(presmoother, len(Ps))
+        post_specs = ([_adjoint_spec(s) for s in pre_specs] if postsmoother is None
+                      else _level_specs(postsmoother, len(Ps)))
+        local = _local_sets(local_nodes, Ps, local_levels, ops[0].shape[0])
         self.levels: list[Level] = []
         for k, Ak in enumerate(ops):
             if k < len(Ps):
                 P = Ps[k]
+                pre_spec, post_spec = pre_specs[k], post_specs[k]
                 pre = make_smoother(Ak, pre_spec)
                 # a self-adjoint smoother is shared (one spectral radius estimate per level)
                 post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec)
+                if local[k] is not None:
+                    pre, post = (with_local_sweeps(pre, Ak, local[k], local_sweeps),
+                                 with_local_sweeps(post, Ak, local[k], local_sweeps, first=True))
                 lvl = Level(Ak, P, sp.csr_matrix(P.T), pre, post)
             else:
                 lvl = Level(Ak)
@@ -265,7 +287,8 @@ class MultigridSolver:
         self.symmetric = all(_is_symmetric(L.A) for L in self.levels)
         # a cycle is a symmetric operator iff A_k are symmetric and post = adjoint(pre) on every level
         self.symmetric_cycle = self.symmetric and (
-            len(self.levels) == 1 or _smoothers_adjoint(self.levels[0].presmoother, self.levels[0].postsmoother)
+            len(self.levels) == 1
+            or all(_smoothers_adjoint(L.presmoother, L.postsmoother) for L in self.levels[:-1])
         )
         self.setup_seconds = time.perf_counter() - t0
 
@@ -599,6 +622,41 @@ class MultigridSolver:
             return x
 
         return spla.LinearOperator((n, n), matvec=matvec, rmatvec=matvec, dtype=np.float64)
+
+
+def _local_sets(nodes, Ps, levels, n0) -> list:
+    """Per-level node sets of the local sweeps: ``nodes`` on level 0, then on level ``k+1`` the coarse
+    nodes whose basis functions reach the set of level ``k`` (the columns of ``P_k`` in those rows)."""
+    out: list = [None] * (len(Ps) + 1)
+    if nodes is None:
+        return out
+    idx = np.asarray(nodes)
+    if idx.dtype == bool:
+        if idx.shape != (n0,):
+            raise SolverInputError(f"local_nodes as a mask needs shape ({n0},), got {idx.shape}")
+        idx = np.flatnonzero(idx)
+    idx = np.unique(idx.astype(np.int64))
+    if idx.size and (idx[0] < 0 or idx[-1] >= n0):
+        raise SolverInputError(f"local_nodes must lie in [0, {n0}), got [{idx[0]}, {idx[-1]}]")
+    last = len(Ps) if levels is None else min(int(levels), len(Ps))
+    for k in range(last):
+        out[k] = idx
+        idx = np.unique(Ps[k][idx].indices).astype(np.int64)
+    return out
+
+
+def _level_specs(spec, n_smoothed: int) -> list:
+    """One smoother spec per smoothed level: a single spec for all, or a list (one per level, the
+    last one repeated on deeper levels), as pyamg's per-level smoother lists."""
+    single = isinstance(spec, (str, Smoother)) or (
+        isinstance(spec, (tuple, list)) and len(spec) == 2 and isinstance(spec[0], str)
+        and (spec[1] is None or isinstance(spec[1], dict)))
+    if single or n_smoothed == 0:
+        return [spec] * n_smoothed
+    specs = list(spec)
+    if not specs:
+        raise SolverInputError("a per-level smoother list needs at least one spec")
+    return [specs[min(k, len(specs) - 1)] for k in range(n_smoothed)]
 
 
 def _spec_parts(spec):

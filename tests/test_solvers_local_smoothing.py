@@ -26,7 +26,7 @@ def _factor(ml, b):
 
 
 def test_boundary_layer_counts(cube):
-    V, T, _, _ = cube
+    _V, T, _, _ = cube
     assert np.array_equal(boundary_layer_nodes(T, 0), boundary_nodes(T))
     # (N+1)^3 grid nodes; boundary: all but the (N-1)^3 interior; one Kuhn tet ring deeper: (N-3)^3 left
     assert boundary_layer_nodes(T, 0).size == (N + 1) ** 3 - (N - 1) ** 3
@@ -55,7 +55,7 @@ def test_local_sweeps_symmetric_and_faster(cube, rng):
 
 
 def test_local_sets_follow_the_prolongation(cube):
-    V, T, K, Ps = cube
+    _V, T, K, Ps = cube
     nodes = boundary_nodes(T)
     ml = MultigridSolver(K, Ps, nullspace="constant", local_nodes=nodes, local_levels=2)
     L0, L1 = ml.levels[0], ml.levels[1]
@@ -82,7 +82,7 @@ def test_with_local_sweeps_work_and_errors(cube):
 
 
 def test_per_level_smoother_list(cube):
-    V, T, K, Ps = cube
+    _V, _T, K, Ps = cube
     spec = [("symmetric_gauss_seidel", {"iterations": 1}), ("symmetric_gauss_seidel", {"iterations": 2})]
     ml = MultigridSolver(K, Ps, nullspace="constant", presmoother=spec)
     its = [L.presmoother.params["iterations"] for L in ml.levels[:-1]]

@@ -1,19 +1,23 @@
-"""Benchmark the ``nested`` cage backend against the reference wheel ``nested-cages`` 0.1.0.
+"""Benchmark the cage backends (``nested``, ``sdf``, ``lazy``) against the reference wheel ``nested-cages`` 0.1.0.
 
 Usage::
 
     python benchmarks/cages.py MESH_DIR --out DIR [--timeout 300] [--levels 3] [--no-wheel]
                                [--counts bunny.off=1000,250 ...] [--only gargo.off ...]
+                               [--methods nested,sdf,lazy] [--tag cages]
 
 For every closed mesh of ``MESH_DIR`` (open ones are detected from their boundary edges and
 skipped), both methods get the same input and face counts (default: 4x fewer faces per layer,
 ``cagegen.default_face_counts``; plus the cases given with ``--counts``, by default the reference's
 known failure ``bunny.off=1000,250``). Each run is a subprocess with a timeout. For each method and
-mesh the JSON records: success / error, seconds (ours: per phase), achieved face counts, the verdict
-of :func:`cagegen.verify_nesting` with its figures (min gap, min winding), and tightness per layer:
-cage volume / input volume and Hausdorff distance to the input relative to the bounding-box
-diagonal. The time ratio wheel / ours is given where both finished. Writes ``DIR/cages.json`` and
-``DIR/cages.png``; the JSON is also printed.
+mesh the JSON records: success / error, wall and CPU seconds (nested: per phase; sdf, lazy: per layer),
+achieved face counts, the verdict of :func:`cagegen.verify_nesting` with its figures (min gap, min
+winding), and per layer (``layers``): max distance (Hausdorff) and mean distance of the cage to the input
+(area-weighted, centroid + edge-midpoint rule) over the input's bounding-box diagonal, volume ratio,
+genus, smallest angle, MIPS mean / max w.r.t. equilateral triangles (2 = perfect); ``tightness`` keeps
+the older volume ratio + Hausdorff pair. The 1-minute load average before and after each run is
+recorded (shared machine). The time ratio wheel / nested is given where both finished. Writes
+``DIR/<tag>.json`` and ``DIR/<tag>.png``; the JSON is also printed.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import sys
 import time
 import traceback
@@ -66,6 +71,37 @@ def _tightness(V, F, layers) -> list[dict]:
     return out
 
 
+def _layer_figures(V, F, layers) -> list[dict]:
+    """Per cage layer: max / mean distance to the input over its diagonal, volume ratio, genus, quality."""
+    import igl
+
+    from cagegen._geometry import signed_volume
+    from cagegen.sdf.backend import _min_angle_deg, genus
+    from cagegen.sdf.optimize import mips
+
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    vol0 = signed_volume(V, F)
+    out = []
+    for Vk, Fk in layers:
+        X = Vk[Fk]
+        A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
+        Q = np.vstack([X.mean(1), 0.5 * (X[:, 0] + X[:, 1]), 0.5 * (X[:, 1] + X[:, 2]), 0.5 * (X[:, 2] + X[:, 0])])
+        w = np.tile(A / 4, 4)
+        d2 = igl.point_mesh_squared_distance(Q, V, F)[0]
+        m = mips(Vk, Fk)
+        out.append({
+            "n_faces": len(Fk),
+            "max_distance_relative": float(igl.hausdorff(Vk, Fk, V, F)) / diag,
+            "mean_distance_relative": float(np.sum(w * np.sqrt(d2)) / np.sum(w)) / diag,
+            "volume_ratio": float(signed_volume(Vk, Fk) / vol0),
+            "genus": genus(Vk, Fk),
+            "min_angle_deg": _min_angle_deg(Vk, Fk),
+            "mips_mean": float(m.mean()),
+            "mips_max": float(m.max()),
+        })
+    return out
+
+
 def _verify(V, F, layers) -> dict:
     from cagegen import verify_nesting
 
@@ -89,6 +125,7 @@ def _run_ours(path: str, counts: list[int], q) -> None:
 
         V, F = _read(Path(path))
         t = time.perf_counter()
+        c0 = time.process_time()
         layers, info = nested_backend(V, F, counts, progress=False)
         sec = time.perf_counter() - t
         phases: dict = {}
@@ -99,6 +136,8 @@ def _run_ours(path: str, counts: list[int], q) -> None:
         q.put({
             "ok": True,
             "seconds": sec,
+            "cpu_seconds": time.process_time() - c0,
+            "per_layer_seconds": [li["seconds"].get("total") for li in info["layers"]],
             "seconds_per_phase": phases,
             "recovery": info["recovery"],
             "min_gap_relative": [li["min_gap_relative"] for li in info["layers"]],
@@ -109,18 +148,53 @@ def _run_ours(path: str, counts: list[int], q) -> None:
                "traceback": traceback.format_exc()[-2000:]})
 
 
+def _run_backend(method: str):
+    """Runner of a registered cage backend (``sdf``, ``lazy``, ...) for :func:`_in_subprocess`."""
+    def run(path: str, counts: list[int], q) -> None:
+        t = time.perf_counter()
+        c0 = time.process_time()
+        try:
+            from cagegen import get_backend
+
+            V, F = _read(Path(path))
+            t = time.perf_counter()
+            c0 = time.process_time()
+            layers, info = get_backend(method)(V, F, counts, progress=None)
+            res = {"ok": True, "seconds": time.perf_counter() - t, "cpu_seconds": time.process_time() - c0,
+                   "layers": [(np.asarray(a, float), np.asarray(b, np.int64)) for a, b in layers]}
+            per = info.get("layers", [])
+            res["per_layer_seconds"] = [li["seconds"]["total"] if isinstance(li.get("seconds"), dict)
+                                        else li.get("seconds") for li in per]
+            if method == "sdf":
+                res["genus_changes"] = info.get("genus_changes", [])
+                res["per_layer"] = [{
+                    "seconds": li["seconds"], "c_used": li["c_used"], "attempts": li["attempts"],
+                    "grids_tried": li["envelope"].get("grids_tried"), "n_active": li["envelope"]["n_active"],
+                    "envelope_faces": li["envelope"]["n_faces"], "genus_envelope": li["genus_envelope"],
+                    "prepass": li["prepass"], "simplify": li["simplify"],
+                    "optimized_cage_kept": li["optimize"].get("certified", False),
+                    "optimize_steps": li["optimize"].get("steps")} for li in per]
+            q.put(res)
+        except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
+            q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
+                   "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
+    return run
+
+
 def _run_wheel(path: str, counts: list[int], q) -> None:
     t = time.perf_counter()
+    c0 = time.process_time()
     try:
         import nested_cages
 
         V, F = _read(Path(path))
         t = time.perf_counter()
+        c0 = time.process_time()
         out = nested_cages.nested_cages(
             np.asfortranarray(V), np.asfortranarray(F, dtype=np.int32), num_faces=list(counts), quad_order=2,
             energy_expansion="None", energy_final="Volume", regular=[True] * len(counts))
         sec = time.perf_counter() - t
-        q.put({"ok": True, "seconds": sec,
+        q.put({"ok": True, "seconds": sec, "cpu_seconds": time.process_time() - c0,
                "layers": [(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.int64))
                           for a, b in out]})
     except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
@@ -143,13 +217,23 @@ def _in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
     return res
 
 
-def _summarise(V, F, res: dict) -> dict:
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of the finished subprocesses of this run."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def _summarise(V, F, res: dict, counts=()) -> dict:
     out = {k: v for k, v in res.items() if k not in ("layers", "traceback")}
     if res.get("ok"):
         layers = res["layers"]
         out["face_counts"] = [len(b) for _, b in layers]
+        out["exact_face_counts"] = out["face_counts"] == list(counts)
         out["verification"] = _verify(V, F, layers)
         out["tightness"] = _tightness(V, F, layers)
+        out["layers"] = _layer_figures(V, F, layers)
     return out
 
 
@@ -206,7 +290,11 @@ def main(argv=None) -> int:
     ap.add_argument("--only", action="append", default=None, help="restrict to these file names")
     ap.add_argument("--no-wheel", action="store_true")
     ap.add_argument("--no-default", action="store_true", help="run only the --counts cases")
+    ap.add_argument("--methods", default="nested,sdf,lazy",
+                    help="comma-separated backends (nested, sdf, lazy, ...); the wheel is added unless --no-wheel")
+    ap.add_argument("--tag", default="cages", help="output names DIR/<tag>.json and DIR/<tag>.png")
     args = ap.parse_args(argv)
+    methods = [m for m in args.methods.split(",") if m]
 
     from cagegen import LevelsError, default_face_counts
 
@@ -250,29 +338,33 @@ def main(argv=None) -> int:
             pass
 
     results = []
+    t_all = time.perf_counter()
+
+    def _summary() -> dict:
+        return {"mesh_dir": str(args.mesh_dir), "command": " ".join(sys.argv), "methods": methods,
+                "skipped_open": skipped, "wheel": have_wheel, "timeout": args.timeout,
+                "wall_seconds": time.perf_counter() - t_all, "cpu_seconds_all_runs": _children_cpu(),
+                "results": results}
+
     for p, counts in cases:
         V, F = _read(p)
         rec = {"mesh": p.name, "n_faces": len(F), "face_counts": counts}
-        print(f"[cages] {p.name} {counts}: nested ...", file=sys.stderr, flush=True)
-        rec["nested"] = _summarise(V, F, _in_subprocess(_run_ours, p, counts, args.timeout))
-        print(f"[cages]   nested: ok={rec['nested'].get('ok')} {rec['nested'].get('seconds', 0):.1f} s "
-              f"valid={rec['nested'].get('verification', {}).get('ok')}", file=sys.stderr, flush=True)
-        if have_wheel:
-            print(f"[cages] {p.name} {counts}: wheel ...", file=sys.stderr, flush=True)
-            rec["wheel"] = _summarise(V, F, _in_subprocess(_run_wheel, p, counts, args.timeout))
-            print(f"[cages]   wheel: ok={rec['wheel'].get('ok')} {rec['wheel'].get('seconds', 0):.1f} s "
-                  f"valid={rec['wheel'].get('verification', {}).get('ok')} {rec['wheel'].get('error', '')}",
+        for m in methods + (["wheel"] if have_wheel else []):
+            fn = _run_ours if m == "nested" else _run_wheel if m == "wheel" else _run_backend(m)
+            print(f"[cages] {p.name} {counts}: {m} ...", file=sys.stderr, flush=True)
+            load0 = os.getloadavg()[0]
+            rec[m] = _summarise(V, F, _in_subprocess(fn, p, counts, args.timeout), counts)
+            rec[m]["loadavg_1min"] = [load0, os.getloadavg()[0]]
+            print(f"[cages]   {m}: ok={rec[m].get('ok')} {rec[m].get('seconds', 0):.1f} s "
+                  f"(cpu {rec[m].get('cpu_seconds', float('nan')):.1f}) "
+                  f"valid={rec[m].get('verification', {}).get('ok')} {rec[m].get('error', '')}",
                   file=sys.stderr, flush=True)
-            if rec["nested"].get("ok") and rec["wheel"].get("ok"):
-                rec["time_ratio_wheel_over_nested"] = rec["wheel"]["seconds"] / rec["nested"]["seconds"]
+        if rec.get("nested", {}).get("ok") and rec.get("wheel", {}).get("ok"):
+            rec["time_ratio_wheel_over_nested"] = rec["wheel"]["seconds"] / rec["nested"]["seconds"]
         results.append(rec)
-        summary = {"mesh_dir": str(args.mesh_dir), "skipped_open": skipped, "wheel": have_wheel,
-                   "timeout": args.timeout, "results": results}
-        (out / "cages.json").write_text(json.dumps(summary, indent=1, default=float))
-        _plot(results, out / "cages.png")
-
-    summary = {"mesh_dir": str(args.mesh_dir), "skipped_open": skipped, "wheel": have_wheel,
-               "timeout": args.timeout, "results": results}
+        (out / f"{args.tag}.json").write_text(json.dumps(_summary(), indent=1, default=float))
+        _plot(results, out / f"{args.tag}.png")
+    summary = _summary()
     print(json.dumps(summary, indent=1, default=float))
     return 0
 

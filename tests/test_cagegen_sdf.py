@@ -75,6 +75,43 @@ def test_amplification_separates_nearly_touching_parts():
     assert verify_nesting([(Vn, F), (amp.V, amp.F)]).ok
 
 
+def test_active_points_found_between_coarse_parts():
+    """Two coarse boxes 0.02 apart (edges ~0.3, much longer than r): no vertex pair is within r, but the
+    paper's criterion is on surface points -- the vertices facing the other box are active."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    a = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    b = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    b.apply_translation((0.12, 0.15, 0.32))  # 0.02 above a, shifted so no corner faces a corner
+    V = np.vstack([a.vertices, b.vertices])
+    F = np.vstack([a.faces, b.faces + len(a.vertices)]).astype(np.int64)
+    r = 0.025
+    assert len(cKDTree(V).query_pairs(r)) == 0  # a vertex-pair test finds nothing
+    act = active_points(V, F, r, 0.15)
+    top_a = np.flatnonzero(np.isclose(V[:8, 2], 0.15))
+    bottom_b = 8 + np.flatnonzero(np.isclose(V[8:, 2], 0.17))
+    # b's bottom corners inside a's top square are within r of it, a's top corners under b likewise
+    assert set(act) <= set(top_a) | set(bottom_b)
+    assert len(set(act) & set(bottom_b)) >= 1 and len(set(act) & set(top_a)) >= 1
+
+
+def test_flip_pass_never_makes_an_edge_twice(monkeypatch):
+    """Octahedron: flipping two opposite equator edges would both create the pole-to-pole edge (non-manifold);
+    only one of them may be applied."""
+    import cagegen.sdf.optimize as opt
+    from cagegen._geometry import edge_stats
+
+    V = np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    a, b, c, d, k, l = range(6)
+    F = np.array([[a, b, k], [b, c, k], [c, d, k], [d, a, k], [b, a, l], [c, b, l], [d, c, l], [a, d, l]])
+    # make every flip to the pole-to-pole edge look like a large angle gain
+    monkeypatch.setattr(opt, "_min_angles", lambda C, T: np.where((T == k).any(1) & (T == l).any(1), 90.0, 0.0))
+    F2, n = opt._flip_pass(V, F, 0.05 * V + np.array([5.0, 0, 0]), F, max_flips=8)
+    assert n == 1
+    assert edge_stats(F2, len(V)).closed_manifold
+
+
 def test_active_points_none_on_a_sphere():
     V, F = shapes.sphere(res=20)
     assert len(active_points(_unit(V), F, 0.025, 0.15)) == 0

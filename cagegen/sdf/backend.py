@@ -155,7 +155,8 @@ def sdf_cage_layer(
     opt_iters, flip_rounds : int
         Descent steps per round, rounds of edge flips.
     opt_time_limit : float
-        Seconds after which the descent stops (the cage so far is kept).
+        CPU seconds after which the descent stops (the cage so far is kept; CPU, not wall, so a loaded
+        machine gives the same cage).
     prepass : bool
         Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
     max_retries : int
@@ -206,16 +207,30 @@ def sdf_cage_layer(
             env = build_envelope(Vn, F, c=ck, h=ck if h is None else h * 2.0 ** attempt, amplify=amplify,
                                  r=r, l=l, alpha=alpha, beta=beta)
             # the envelope must contain the fine layer: marching cubes on a grid of spacing ~c can cut
-            # through sharp features of a coarse input; refine the grid (same c) before giving up
+            # through sharp features of a coarse input; and it should have the fine layer's genus (paper
+            # Sec. 3.1: the amplified field separates nearly-touching parts only where the grid resolves
+            # the amplified iso-level c / alpha; its "Limitation": finite SDF resolution). Refine the
+            # grid (same c, at most twice) before giving up; a genus still wrong is reported.
             hk = ck if h is None else h * 2.0 ** attempt
             k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
+            g_env = genus(env.V, env.F)
+            tried_env = [{"h": hk, "crossings": k_cross, "genus": g_env}]
+            first_clean = env if not k_cross else None
             refine = 0
-            while k_cross and refine < 2:
+            while (k_cross or g_env != g_fine) and refine < 2:
                 hk *= 0.5
                 refine += 1
                 env = build_envelope(Vn, F, c=ck, h=hk, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta)
                 k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
+                g_env = genus(env.V, env.F)
+                tried_env.append({"h": hk, "crossings": k_cross, "genus": g_env})
+                if first_clean is None and not k_cross:
+                    first_clean = env
+            if (k_cross or g_env != g_fine) and first_clean is not None:
+                env = first_clean  # genus not repaired by the finer grids: keep the coarsest clean envelope
+                k_cross = 0
             env.info["grid_refinements"] = refine
+            env.info["grids_tried"] = tried_env
             if k_cross:
                 raise SimplifyStuck(f"envelope crosses the fine layer ({k_cross} pairs) even at h={hk:.3g}")
             sec["envelope"] = time.perf_counter() - t

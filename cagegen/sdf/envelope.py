@@ -1,14 +1,14 @@
 """Step 1 of the ``sdf`` backend: an enveloping iso-surface of a locally amplified signed distance.
 
 Qiu, Liao, Chen (2024), Sec. 3.1. All lengths are relative to a surface normalised to a unit
-bounding-box diagonal (the paper normalises into the unit circle; we keep its numbers on the unit
-diagonal, see ``docs/sdf.md``).
+bounding-box diagonal (the paper normalises "into unit circle"; we keep its numbers on the unit
+diagonal, see ``docs/sdf.md`` for why).
 
 * ``xi(x)``: signed distance to the input ``M`` (eq. 1), positive outside, on a regular grid
   (``igl.signed_distance`` with pseudo-normal signs, clamped to a narrow band ``|xi| <= band``:
   values beyond the band never reach the iso-value, so they are not computed exactly).
-* Active points ``A`` (vertices ``p`` with a vertex ``q``, ``|p - q| < r``, geodesically farther than
-  ``l``): nearly-touching parts. Geodesic distances are edge-graph (Dijkstra) distances *on the
+* Active points ``A`` (vertices ``p`` with a surface point ``q``, ``|p - q| < r``, geodesically farther
+  than ``l``): nearly-touching parts. Geodesic distances are edge-graph (Dijkstra) distances *on the
   surface*, an upper bound of the paper's interior geodesic (a deviation: it may also mark the two
   faces of a thin plate as active, which only makes the envelope tighter there).
 * ``d_hat(x) = g_A(P_M(x)) + d_M(x)`` (eq. 2), ``phi = (alpha - 1) exp(-beta^2 d_hat^2) + 1``
@@ -81,7 +81,7 @@ class SDFGrid:
 
 @dataclass
 class Envelope:
-    """Result of :func:`build_envelope` (unit-diagonal coordinates)."""
+    """Result of :func:`build_envelope` (normalised coordinates)."""
 
     V: np.ndarray
     F: np.ndarray
@@ -99,46 +99,80 @@ def _edge_graph(V: np.ndarray, F: np.ndarray) -> sp.csr_matrix:
 
 
 def active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int = 256) -> np.ndarray:
-    """Indices of the active vertices: a vertex ``q`` within ``r`` (Euclidean) is farther than ``l``
-    along the surface (paper Sec. 3.1).
+    """Indices of the active vertices (paper Sec. 3.1): a point ``q`` of the surface within ``r``
+    (Euclidean) of vertex ``p`` is farther than ``l`` along the surface.
 
-    Pairs are pre-filtered before the Dijkstra searches (limited to ``l``): ``q`` outside the two-ring
-    of ``p`` and vertex normals more than 60 degrees apart (two parts that nearly touch face each
-    other; neighbours on one sheet have similar normals). The normal filter is a heuristic of ours:
-    the paper tests every pair.
+    The paper's points are points of the surface, not only vertices: on a mesh whose edges are
+    longer than ``r`` (coarse inputs, and every cage layer re-run as an input), two parts closer than
+    ``r`` can have no *vertex* pair within ``r``. So the partners ``q`` are points of triangles: for
+    each vertex ``p`` the triangles within ``r`` (exact point-triangle distance). ``g(p, q) > l`` is
+    decided on the edge graph (Dijkstra from ``p`` limited to ``l``): no corner of the triangle is
+    reached. ``p`` and the triangle's corners are marked active.
+
+    Pairs are pre-filtered before the Dijkstra searches: the triangle is not incident to the two-ring
+    of ``p``, and its normal is more than 60 degrees from ``p``'s vertex normal (two parts that nearly
+    touch face each other; neighbours on one sheet have similar normals). The normal filter is a
+    heuristic of ours: the paper tests every pair.
     """
     import igl
 
+    from .simplify import _point_triangle_sqdist
+
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
     G = _edge_graph(V, F)
-    pairs = cKDTree(V).query_pairs(r, output_type="ndarray")
-    if len(pairs) == 0:
+    cen = V[F].mean(axis=1)
+    rad = np.linalg.norm(V[F] - cen[:, None, :], axis=2).max(axis=1)
+    # candidate (vertex, triangle) pairs within r: small and large triangles queried separately so one
+    # long sliver does not widen every query
+    big = rad > 4 * np.median(rad)
+    pv, pf = [], []
+    for sel in (~big, big):
+        fids = np.flatnonzero(sel)
+        if len(fids) == 0:
+            continue
+        lists = cKDTree(cen[fids]).query_ball_point(V, r + float(rad[fids].max()))
+        cnt = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+        if cnt.sum():
+            pv.append(np.repeat(np.arange(len(V)), cnt))
+            pf.append(fids[np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])])
+    if not pv:
         return np.zeros(0, dtype=np.int64)
+    pv, pf = np.concatenate(pv), np.concatenate(pf)
     N = igl.per_vertex_normals(V, F)
-    pairs = pairs[np.einsum("ij,ij->i", N[pairs[:, 0]], N[pairs[:, 1]]) < 0.5]
-    if len(pairs) == 0:
+    FN = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
+    keep = np.einsum("ij,ij->i", N[pv], FN[pf]) < 0.5
+    pv, pf = pv[keep], pf[keep]
+    if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
     A = (G > 0).astype(np.int8)
-    ring2 = (A + A @ A).tocsr()
-    near = np.asarray(ring2[pairs[:, 0], pairs[:, 1]]).ravel() > 0
-    pairs = pairs[~near]
-    if len(pairs) == 0:
+    ring2 = (A + A @ A + sp.identity(len(V), dtype=np.int8, format="csr")).tocsr()
+    near = np.zeros(len(pv), dtype=bool)
+    for k in range(3):
+        near |= np.asarray(ring2[pv, F[pf, k]]).ravel() > 0
+    pv, pf = pv[~near], pf[~near]
+    if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
-    src = np.unique(pairs[:, 0])
+    X = V[F[pf]]
+    d2 = _point_triangle_sqdist(V[pv], X[:, 0], X[:, 1], X[:, 2])
+    pv, pf = pv[d2 < r * r], pf[d2 < r * r]
+    if len(pv) == 0:
+        return np.zeros(0, dtype=np.int64)
+    src = np.unique(pv)
     active = np.zeros(len(V), dtype=bool)
-    # partner lists of each source
-    order = np.argsort(pairs[:, 0], kind="stable")
-    ps = pairs[order]
-    starts = np.searchsorted(ps[:, 0], src)
-    ends = np.searchsorted(ps[:, 0], src, side="right")
+    order = np.argsort(pv, kind="stable")
+    ps_v, ps_f = pv[order], pf[order]
+    starts = np.searchsorted(ps_v, src)
+    ends = np.searchsorted(ps_v, src, side="right")
     for s in range(0, len(src), chunk):
         idx = src[s:s + chunk]
         D = dijkstra(G, directed=False, indices=idx, limit=l)
         for k, p in enumerate(idx):
-            q = ps[starts[s + k]:ends[s + k], 1]
-            far = ~np.isfinite(D[k, q])  # not reached within l
+            tri = F[ps_f[starts[s + k]:ends[s + k]]]
+            far = ~np.isfinite(D[k][tri]).any(axis=1)  # no corner reached within l
             if far.any():
                 active[p] = True
-                active[q[far]] = True
+                active[tri[far].ravel()] = True
     return np.flatnonzero(active)
 
 

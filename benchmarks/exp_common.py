@@ -214,3 +214,229 @@ def best_cpu_time(f, repeat: int) -> float:
         f()
         ts.append(time.process_time() - t0)
     return min(ts)
+
+
+# ------------------------------------------------------------------ reuse benchmarks (issue 15 item 5)
+def load_hierarchy(path: Path, *, levels: int = 3, max_tets: int = 1_200_000, method: str = "nested",
+                   edge_length_fac: float | None = None):
+    """``nestmg.build_hierarchy`` of a mesh file with the project defaults, through the on-disk cache
+    (``edge_length_fac``: fine edge / bounding-box diagonal, default the input's mean edge).
+
+    Returns ``(hierarchy, seconds)``; on a cache hit ``seconds`` is the load time, and
+    ``hierarchy.timings`` keeps the stage times of the original build.
+    """
+    import nestmg
+    from nestmg.io import load_mesh
+
+    V, F = load_mesh(Path(path))
+    t0 = time.perf_counter()
+    h = nestmg.build_hierarchy(V, F, levels=levels, method=method, cache=True, max_tets=max_tets, progress=False,
+                               edge_length_fac=edge_length_fac)
+    return h, time.perf_counter() - t0
+
+
+def blas_info() -> dict:
+    """BLAS / LAPACK libraries mapped into this process (resolved paths, from ``/proc/self/maps``) and the
+    thread count of a system OpenBLAS, if one is loaded. Call after importing the solvers to check."""
+    import ctypes
+    import os
+
+    libs = set()
+    with open("/proc/self/maps") as fh:
+        for line in fh:
+            p = line.split()[-1]
+            if p.startswith("/") and any(s in os.path.basename(p) for s in ("blas", "lapack")):
+                libs.add(os.path.realpath(p))
+    info: dict = {"libraries": sorted(libs), "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")}
+    sys_openblas = [p for p in libs if "openblas" in p and "site-packages" not in p]
+    if sys_openblas:
+        try:
+            info["system_openblas_threads"] = int(ctypes.CDLL(sys_openblas[0]).openblas_get_num_threads())
+        except (OSError, AttributeError):
+            pass
+    return info
+
+
+def relres(A, b, x) -> float:
+    """``||b - A x|| / ||b||`` (0 for ``b = 0``)."""
+    nb = float(np.linalg.norm(b))
+    return float(np.linalg.norm(b - A @ x) / nb) if nb else 0.0
+
+
+def pyamg_sa_solve(A, b, *, x0=None, tol: float = 1e-8, maxiter: int = 500, ml=None) -> tuple[np.ndarray, dict]:
+    """pyamg smoothed aggregation (defaults) + CG from ``x0``; set up unless ``ml`` (a hierarchy to reuse) is
+    given. Returns ``(x, info)`` with ``setup``/``solve`` wall and ``setup_cpu``/``solve_cpu`` CPU seconds,
+    iterations, the hierarchy ``ml``."""
+    import pyamg
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    if ml is None:
+        ml = pyamg.smoothed_aggregation_solver(A)
+    t1, c1 = time.perf_counter(), time.process_time()
+    res: list = []
+    x = ml.solve(b, x0=x0, tol=tol, maxiter=maxiter, accel="cg", residuals=res)
+    t2, c2 = time.perf_counter(), time.process_time()
+    return x, {"setup": t1 - t0, "solve": t2 - t1, "setup_cpu": c1 - c0, "solve_cpu": c2 - c1,
+               "iterations": len(res) - 1, "final_residual": relres(A, b, x),
+               "operator_complexity": float(ml.operator_complexity()), "ml": ml}
+
+
+class PetscAmg:
+    """CG + PETSc GAMG or hypre BoomerAMG (1 rank), set up per matrix, reusable for many right-hand sides.
+
+    :meth:`setup` with ``reuse_interpolation=False`` builds a new matrix, KSP and preconditioner (a full
+    AMG setup). ``reuse_interpolation=True`` (GAMG only): after the first setup, new values (same
+    pattern) are copied into the same matrix and GAMG keeps its prolongators
+    (``-pc_gamg_reuse_interpolation``), re-doing only the Galerkin products and smoothers: AMG's own
+    form of reuse. :meth:`apply` solves with the current setup. Tolerance: unpreconditioned
+    ``||r|| <= tol ||b||``, as the other methods. ``nullspace="constant"`` attaches the constants.
+    """
+
+    def __init__(self, kind: str = "gamg", *, reuse_interpolation: bool = False, nullspace: str | None = None):
+        from solvers.petsc_common import _petsc
+
+        self.PETSc = _petsc()
+        if kind not in ("gamg", "hypre") or (reuse_interpolation and kind != "gamg"):
+            raise ValueError(f"kind must be 'gamg' or 'hypre' (reuse_interpolation only with gamg), got {kind!r}")
+        self.kind, self.reuse, self.nullspace = kind, reuse_interpolation, nullspace
+        self.mat = self.ksp = self.ns = self.A = None
+
+    def _new(self, A):
+        PETSc = self.PETSc
+        it = PETSc.IntType
+        self.destroy()
+        self.mat = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr.astype(it), A.indices.astype(it), A.data),
+                                         comm=PETSc.COMM_SELF)
+        self.mat.assemble()
+        if self.nullspace == "constant":
+            self.ns = PETSc.NullSpace().create(constant=True, comm=PETSc.COMM_SELF)
+            self.mat.setNullSpace(self.ns)
+            self.mat.setNearNullSpace(self.ns)
+        ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        pc = ksp.getPC()
+        if self.kind == "gamg":
+            pc.setType("gamg")
+            pc.setGAMGType(PETSc.PC.GAMGType.AGG)
+            if self.reuse:
+                opts = PETSc.Options()
+                opts["nestmg_reuse_pc_gamg_reuse_interpolation"] = "true"
+                ksp.setOptionsPrefix("nestmg_reuse_")
+                ksp.setFromOptions()
+                del opts["nestmg_reuse_pc_gamg_reuse_interpolation"]
+        else:
+            pc.setType("hypre")
+            pc.setHYPREType("boomeramg")
+        self.ksp = ksp
+
+    def setup(self, A) -> tuple[float, float]:
+        """Set up for ``A`` (canonical csr); returns wall and CPU seconds (matrix copy included)."""
+        PETSc = self.PETSc
+        t0, c0 = time.perf_counter(), time.process_time()
+        if self.reuse and self.mat is not None:
+            it = PETSc.IntType
+            self.mat.setValuesCSR(A.indptr.astype(it), A.indices.astype(it), A.data)
+            self.mat.assemble()
+        else:
+            self._new(A)
+        self.ksp.setOperators(self.mat)
+        self.ksp.setUp()
+        self.A = A
+        return time.perf_counter() - t0, time.process_time() - c0
+
+    def apply(self, b, *, x0=None, tol: float = 1e-8, maxiter: int = 500) -> tuple[np.ndarray, dict]:
+        """Solve with the current setup from ``x0`` (default 0); returns ``(x, info)``."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        self.ksp.setTolerances(rtol=tol, atol=1e-300, max_it=maxiter)
+        xv, bv = self.mat.createVecs()
+        bv.setArray(b)
+        self.ksp.setInitialGuessNonzero(x0 is not None)
+        if x0 is None:
+            xv.set(0.0)
+        else:
+            xv.setArray(x0)
+        self.ksp.solve(bv, xv)
+        x = xv.getArray().copy()
+        t1, c1 = time.perf_counter(), time.process_time()
+        its, reason = self.ksp.getIterationNumber(), self.ksp.getConvergedReason()
+        xv.destroy()
+        bv.destroy()
+        if self.nullspace == "constant":
+            x -= x.mean()
+        return x, {"solve": t1 - t0, "solve_cpu": c1 - c0, "iterations": int(its), "reason": int(reason),
+                   "final_residual": relres(self.A, b, x)}
+
+    def solve(self, A, b, *, x0=None, tol: float = 1e-8, maxiter: int = 500) -> tuple[np.ndarray, dict]:
+        """:meth:`setup` then :meth:`apply`; ``info`` has ``setup``/``solve`` (wall) and ``*_cpu`` seconds."""
+        ts, cs = self.setup(A)
+        x, info = self.apply(b, x0=x0, tol=tol, maxiter=maxiter)
+        return x, dict(info, setup=ts, setup_cpu=cs)
+
+    def destroy(self) -> None:
+        """Free the PETSc objects."""
+        for obj in (self.ksp, self.mat, self.ns):
+            if obj is not None:
+                obj.destroy()
+        self.mat = self.ksp = self.ns = None
+
+
+class Cholmod:
+    """CHOLMOD (scikit-sparse, optional, benchmark-only) for a sequence of SPD matrices with one pattern.
+
+    The symbolic analysis (fill-reducing ordering, supernodes) is done once, at the first matrix; every
+    :meth:`factor` re-does only the numeric factorisation (``cholesky_inplace``). ``pin``: drop row and
+    column ``pin`` (a pure Neumann matrix; the solution gets 0 there, then zero mean).
+    """
+
+    def __init__(self, *, pin: int | None = None):
+        from sksparse.cholmod import analyze  # optional; never imported by nestmg / solvers / cagegen
+
+        self._analyze = analyze
+        self.pin, self.factor_ = pin, None
+        self.analyze_seconds = self.analyze_cpu = 0.0
+
+    def _reduce(self, A):
+        if self.pin is None:
+            return A.tocsc()
+        keep = np.delete(np.arange(A.shape[0]), self.pin)
+        return A[keep][:, keep].tocsc()
+
+    def factor(self, A) -> tuple[float, float]:
+        """(Re-)factorise ``A``; returns the numeric factorisation's wall and CPU seconds (the first call's
+        analysis is in :attr:`analyze_seconds` and :attr:`analyze_cpu`)."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        Ak = self._reduce(A)
+        if self.factor_ is None:
+            ta, ca = time.perf_counter(), time.process_time()
+            self.factor_ = self._analyze(Ak)
+            self.analyze_seconds = time.perf_counter() - ta
+            self.analyze_cpu = time.process_time() - ca
+            t0 += self.analyze_seconds
+            c0 += self.analyze_cpu
+        self.factor_.cholesky_inplace(Ak)
+        return time.perf_counter() - t0, time.process_time() - c0
+
+    def solve(self, b) -> np.ndarray:
+        """Solve with the current factor (full-length ``b``)."""
+        if self.pin is None:
+            return self.factor_(b)
+        keep = np.delete(np.arange(len(b)), self.pin)
+        x = np.zeros(len(b))
+        x[keep] = self.factor_(b[keep])
+        return x - x.mean()
+
+
+def add_hierarchy_arguments(ap) -> None:
+    """Mesh files and their fine edge lengths (argparse) for :func:`hierarchies_from_args`."""
+    ap.add_argument("meshes", type=Path, nargs="+", help="closed surface files (e.g. /work/shared/data/meshes/*.off)")
+    ap.add_argument("--edge-length", type=float, nargs="+", default=None,
+                    help="fine edge / bounding-box diagonal, one per mesh (default: build_hierarchy's)")
+
+
+def hierarchies_from_args(a) -> list[tuple[Path, float | None]]:
+    """``(mesh path, edge_length_fac)`` pairs from :func:`add_hierarchy_arguments`' arguments."""
+    edges = a.edge_length or [None] * len(a.meshes)
+    if len(edges) != len(a.meshes):
+        raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)}), got {len(edges)}")
+    return list(zip(a.meshes, edges))

@@ -5,7 +5,9 @@ method="nested")`` with the default sizing budget, TetWild layers, Galerkin coar
 input, every input in a fresh subprocess so that its peak memory is its own, and records per input:
 stage seconds, peak RSS, tets / nodes / operator complexity per level, n_outside, tet quality per level
 (min dihedral angle, slivers < 5 degrees), and for the three model problems the V(1,1) factor and the
-MG-PCG iterations to 1e-8 (with seconds). The Neumann Poisson solve to 1e-8 is the end-to-end goal of
+MG-PCG iterations to 1e-8 (with seconds). The V(1,1) is the pipeline's default cycle (one symmetric
+Gauss-Seidel sweep on the fine level, two on coarser levels, one local sweep on the Neumann boundary
+layer); ``v11_plain`` is the plain V(1,1) beside it. The Neumann Poisson solve to 1e-8 is the end-to-end goal of
 issue 14 (<= 10 min and <= 8 GB for a 100k-face input on 2 cores).
 
     python benchmarks/scale.py MESH [MESH ...] --json benchmarks/results/scale/scale.json \\
@@ -49,6 +51,9 @@ for problem in ("poisson-neumann", "poisson-dirichlet", "diffusion-neumann"):
         r["wall_seconds"] = time.perf_counter() - t1
         r.pop("residuals_by_level", None)
         row["pcg" if accel else "v11"] = r
+        if accel is None:  # the plain V(1,1) (no boundary-layer sweeps, one sweep on coarse levels)
+            r0 = solve_on_hierarchy(tets, h.P, problem, tol=1e-8, maxiter=100, cost=True, local=False, coarse_nu=1)
+            row["v11_plain"] = {k: r0[k] for k in ("factor", "iterations", "cycle_cost", "nu", "coarse_nu")}
         if problem == "poisson-neumann" and accel == "cg":
             out["end_to_end_neumann_seconds"] = time.perf_counter() - t_start
             out["end_to_end_neumann_from_hierarchy_start"] = time.perf_counter() - t0
@@ -83,6 +88,8 @@ def summary(r: dict) -> dict:
          "slivers": [q["n_slivers"] for q in r["quality"]]}
     for p, row in r["solves"].items():
         s[p] = {"v11_factor": round(row["v11"]["factor"], 3), "pcg_iterations": row["pcg"]["iterations"],
+                "v11_plain_factor": round(row["v11_plain"]["factor"], 3) if "v11_plain" in row else None,
+                "cycle_spmv": round(row["v11"]["cycle_cost"]["counted_spmv_units"], 2),
                 "operator_complexity": round(row["v11"]["operator_complexity"], 3),
                 "pcg_seconds": round(row["pcg"]["seconds"]["solve"], 2)}
     return s

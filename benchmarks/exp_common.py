@@ -263,21 +263,35 @@ def relres(A, b, x) -> float:
     return float(np.linalg.norm(b - A @ x) / nb) if nb else 0.0
 
 
-def pyamg_sa_solve(A, b, *, x0=None, tol: float = 1e-8, maxiter: int = 500, ml=None) -> tuple[np.ndarray, dict]:
+def pyamg_sa_solve(A, b, *, x0=None, tol: float = 1e-8, maxiter: int = 500, ml=None,
+                   nullspace: str | None = None) -> tuple[np.ndarray, dict]:
     """pyamg smoothed aggregation (defaults) + CG from ``x0``; set up unless ``ml`` (a hierarchy to reuse) is
     given. Returns ``(x, info)`` with ``setup``/``solve`` wall and ``setup_cpu``/``solve_cpu`` CPU seconds,
-    iterations, the hierarchy ``ml``."""
+    iterations, the hierarchy ``ml``.
+
+    ``nullspace="constant"`` (singular Neumann matrix): pyamg's own CG stagnates or diverges on these
+    (measured: 500 iterations to a residual of 1.7 at 1M tets), so the SA cycle preconditions the project's
+    CG with the constants projected out (:func:`solvers.krylov.pcg`, as for nestmg's MG-PCG): only the
+    preconditioner differs.
+    """
     import pyamg
+
+    from solvers.krylov import pcg
 
     t0, c0 = time.perf_counter(), time.process_time()
     if ml is None:
         ml = pyamg.smoothed_aggregation_solver(A)
     t1, c1 = time.perf_counter(), time.process_time()
-    res: list = []
-    x = ml.solve(b, x0=x0, tol=tol, maxiter=maxiter, accel="cg", residuals=res)
+    if nullspace == "constant":
+        r = pcg(A, b - b.mean(), M=ml.aspreconditioner(), x0=x0, tol=tol, maxiter=maxiter, nullspace="constant")
+        x, its = r.x, r.iterations
+    else:
+        res: list = []
+        x = ml.solve(b, x0=x0, tol=tol, maxiter=maxiter, accel="cg", residuals=res)
+        its = len(res) - 1
     t2, c2 = time.perf_counter(), time.process_time()
     return x, {"setup": t1 - t0, "solve": t2 - t1, "setup_cpu": c1 - c0, "solve_cpu": c2 - c1,
-               "iterations": len(res) - 1, "final_residual": relres(A, b, x),
+               "iterations": its, "final_residual": relres(A, b, x),
                "operator_complexity": float(ml.operator_complexity()), "ml": ml}
 
 

@@ -9,7 +9,7 @@ triangular solves). Iterative methods start from zero and stop at ``||b - A x|| 
 ``nestmg``    :func:`nestmg.problems.setup_problem` (``diffusion-neumann`` with ``λ = t``,
               ``poisson-neumann``; the pruning of :func:`nestmg.geodesics.multigrid_solve`) and
               ``Problem.multigrid()`` (project defaults), MG-PCG.
-``pyamg_sa``  pyamg smoothed aggregation, CG.
+``pyamg_sa``  pyamg smoothed aggregation, CG (Poisson step: the project's CG with the constants projected).
 ``gamg``      PETSc CG + GAMG.  ``hypre``: PETSc CG + hypre BoomerAMG.
 ``cholmod``   CHOLMOD (OpenBLAS), one node pinned for the Poisson step.
 
@@ -91,7 +91,7 @@ def make_solvers(methods, h, pre) -> tuple[dict, dict]:
                 rec[kind] = {"wall": tw, "cpu": tc, "operator_complexity": float(mls[kind].operator_complexity())}
 
             def fn(A, b, kind, mls=mls):
-                x, i = pyamg_sa_solve(A, b, tol=TOL, ml=mls[kind])
+                x, i = pyamg_sa_solve(A, b, tol=TOL, ml=mls[kind], nullspace="constant" if kind == "poisson" else None)
                 return x, {"iterations": i["iterations"], "final_residual": i["final_residual"]}
         elif m in ("gamg", "hypre"):
             amgs = {}

@@ -29,6 +29,9 @@ CONFIGS = {
     "1thread_stop30_it20": {"epsilon": 1e-3, "stop_energy": 30.0, "max_opt_iter": 20, "threads": 1},
     "predec": {"epsilon": 1e-3, "stop_energy": 10.0, "max_opt_iter": 80, "predecimate": True},
     "predec_stop30_it20": {"epsilon": 1e-3, "stop_energy": 30.0, "max_opt_iter": 20, "predecimate": True},
+    "predec_eps2e-3": {"epsilon": 2e-3, "stop_energy": 10.0, "max_opt_iter": 80, "predecimate": True},
+    "predec_eps5e-4": {"epsilon": 5e-4, "stop_energy": 10.0, "max_opt_iter": 80, "predecimate": True},
+    "predec_1thread": {"epsilon": 1e-3, "stop_energy": 10.0, "max_opt_iter": 80, "threads": 1, "predecimate": True},
 }
 
 _CHILD = r"""

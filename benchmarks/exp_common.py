@@ -443,7 +443,7 @@ class Cholmod:
 
 def add_hierarchy_arguments(ap) -> None:
     """Mesh files and their fine edge lengths (argparse) for :func:`hierarchies_from_args`."""
-    ap.add_argument("meshes", type=Path, nargs="+", help="closed surface files (e.g. /work/shared/data/meshes/*.off)")
+    ap.add_argument("meshes", type=Path, nargs="*", help="closed surface files (e.g. /work/shared/data/meshes/*.off)")
     ap.add_argument("--edge-length", type=float, nargs="+", default=None,
                     help="fine edge / bounding-box diagonal, one per mesh (default: build_hierarchy's)")
 

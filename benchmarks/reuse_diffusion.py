@@ -60,7 +60,7 @@ def time_steps(n: int, dt_min: float, dt_max: float, diag: float, seed: int) -> 
 
 
 def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float, dt_max: float, seed: int,
-             tol: float) -> dict:
+             tol: float, steps_for: dict | None = None, states_dir: Path | None = None) -> dict:
     from nestmg.timestepping import diffusion_stepper
 
     h, load_s = load_hierarchy(path, edge_length_fac=edge)
@@ -87,11 +87,16 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
         solvers["hypre"] = PetscAmg("hypre")
     chol = Cholmod() if "cholmod" in methods else None
     runs: dict = {m: [] for m in methods}
+    steps_for = {m: min(steps, (steps_for or {}).get(m, steps)) for m in methods}
+    states: dict = {m: [] for m in methods}
     for k, dt in enumerate(dts):
         A = st.family.operators(1.0, dt)[0]
         b = st.M @ u
         sol = {}
-        for m in methods:
+        active = [m for m in methods if k < steps_for[m]]
+        if not active:
+            break
+        for m in active:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 if m == "nestmg":
@@ -125,12 +130,14 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
                     raise ValueError(f"unknown method {m!r}")
             sol[m] = x
             runs[m].append(row)
-        ref = sol.get("cholmod", sol.get("nestmg"))
-        for m in methods:
+            states[m].append(x)
+        # the shared state: CHOLMOD's solution, else the first active method's (nestmg's when it runs)
+        ref = sol.get("cholmod", sol[active[0]])
+        for m in active:
             runs[m][-1]["max_diff_vs_ref_rel"] = float(np.abs(sol[m] - ref).max() / np.abs(ref).max())
         print(f"  step {k + 1:2d} dt {dt / diag**2:.2e} diag²: "
-              + "  ".join(f"{m} {r[-1]['setup_cpu'] + r[-1]['solve_cpu']:.2f}s/{r[-1]['iterations']}it"
-                          for m, r in runs.items()), file=sys.stderr, flush=True)
+              + "  ".join(f"{m} {runs[m][-1]['setup_cpu'] + runs[m][-1]['solve_cpu']:.2f}s/{runs[m][-1]['iterations']}it"
+                          for m in active), file=sys.stderr, flush=True)
         u = ref
     for s in solvers.values():
         s.destroy()
@@ -138,29 +145,84 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
             "cholmod": chol.analyze_seconds if chol else 0.0}
     once_cpu = {"nestmg": st.setup_seconds["cpu"]["galerkin"] + st.setup_seconds["cpu"]["problem"],
                 "cholmod": chol.analyze_cpu if chol else 0.0}
+    rec["runs"], rec["once"], rec["once_cpu"] = runs, once, once_cpu
+    rec["reference"] = "cholmod" if "cholmod" in methods else methods[0]
+    if states_dir is not None:  # the states, for cross-process comparisons (--merge)
+        states_dir.mkdir(parents=True, exist_ok=True)
+        for m, xs in states.items():
+            np.save(states_dir / f"{path.stem}_{m}.npy", np.array(xs))
+    summarize(rec)
+    return rec
+
+
+def summarize(rec: dict) -> None:
+    """Per-method totals and the speed-ups; a method run on fewer steps than ``dts`` (``--steps-for``) gets
+    its measured per-step mean scaled to all steps (``*_extrapolated``, flagged ``steps_measured``)."""
+    n_steps = len(rec["dts"])
     summary = {}
-    for m, rows in runs.items():
-        setup = sum(r["setup"] for r in rows)
-        solve = sum(r["solve"] for r in rows)
-        summary[m] = {"once": once.get(m, 0.0), "setup": setup, "solve": solve, "total": once.get(m, 0.0) + setup + solve,
-                      "once_cpu": once_cpu.get(m, 0.0), "setup_cpu": sum(r["setup_cpu"] for r in rows),
-                      "solve_cpu": sum(r["solve_cpu"] for r in rows),
-                      "cpu": once_cpu.get(m, 0.0) + sum(r["setup_cpu"] + r["solve_cpu"] for r in rows),
+    for m, rows in rec["runs"].items():
+        k = len(rows)
+        once, once_cpu = rec["once"].get(m, 0.0), rec["once_cpu"].get(m, 0.0)
+        setup, solve = sum(r["setup"] for r in rows), sum(r["solve"] for r in rows)
+        setup_cpu, solve_cpu = sum(r["setup_cpu"] for r in rows), sum(r["solve_cpu"] for r in rows)
+        summary[m] = {"steps_measured": k, "once": once, "setup": setup, "solve": solve, "total": once + setup + solve,
+                      "once_cpu": once_cpu, "setup_cpu": setup_cpu, "solve_cpu": solve_cpu,
+                      "cpu": once_cpu + setup_cpu + solve_cpu,
+                      "cpu_per_step": (setup_cpu + solve_cpu) / k,
+                      "cpu_all_steps": once_cpu + (setup_cpu + solve_cpu) * n_steps / k,
+                      "wall_all_steps": once + (setup + solve) * n_steps / k,
+                      "extrapolated": k < n_steps,
                       "iterations": [r["iterations"] for r in rows],
                       "max_final_residual": max(r["final_residual"] for r in rows),
                       "max_diff_vs_ref_rel": max(r["max_diff_vs_ref_rel"] for r in rows)}
-    rec["runs"], rec["summary"] = runs, summary
+    rec["summary"] = summary
     alts = [m for m in RESETUP if m in summary and m != "nestmg_rap"]
     if "nestmg" in summary and alts:
-        best = min(alts, key=lambda m: summary[m]["total"])
+        best = min(alts, key=lambda m: summary[m]["wall_all_steps"])
         rec["best_resetup_alternative"] = best
-        rec["speedup_vs_best_resetup"] = summary[best]["total"] / summary["nestmg"]["total"]
-        best_cpu = min(alts, key=lambda m: summary[m]["cpu"])
+        rec["speedup_vs_best_resetup"] = summary[best]["wall_all_steps"] / summary["nestmg"]["wall_all_steps"]
+        best_cpu = min(alts, key=lambda m: summary[m]["cpu_all_steps"])
         rec["best_resetup_alternative_cpu"] = best_cpu
-        rec["speedup_vs_best_resetup_cpu"] = summary[best_cpu]["cpu"] / summary["nestmg"]["cpu"]
+        rec["speedup_vs_best_resetup_cpu"] = summary[best_cpu]["cpu_all_steps"] / summary["nestmg"]["cpu_all_steps"]
     if "nestmg" in summary and "gamg_reuse" in summary:
-        rec["speedup_vs_gamg_reuse"] = summary["gamg_reuse"]["total"] / summary["nestmg"]["total"]
-    return rec
+        rec["speedup_vs_gamg_reuse_cpu"] = summary["gamg_reuse"]["cpu_all_steps"] / summary["nestmg"]["cpu_all_steps"]
+
+
+def merge(files: list[Path], states_dir: Path | None) -> dict:
+    """One result from runs of the same meshes with different ``--methods`` (separate processes): runs are
+    joined per mesh, the states compared with the reference's (CHOLMOD, else nestmg) step by step."""
+    res = None
+    for f in files:
+        r = json.loads(Path(f).read_text())
+        if res is None:
+            res = dict(r, merged_from=[str(f) for f in files], commands=[])
+            res["meshes"] = []
+        res["commands"].append(r["params"]["command"])
+        for rec in r["meshes"]:
+            tgt = next((x for x in res["meshes"] if x["mesh"] == rec["mesh"]), None)
+            if tgt is None:
+                res["meshes"].append(rec)
+                continue
+            if tgt["dts"] != rec["dts"] or tgt["tets"] != rec["tets"]:
+                raise SystemExit(f"{f}: {rec['mesh']} has other time steps or another hierarchy")
+            tgt["runs"].update(rec["runs"])
+            tgt["once"].update({k: v for k, v in rec["once"].items() if k in rec["runs"]})
+            tgt["once_cpu"].update({k: v for k, v in rec["once_cpu"].items() if k in rec["runs"]})
+    for rec in res["meshes"]:
+        ref = "cholmod" if "cholmod" in rec["runs"] else "nestmg"
+        rec["reference"] = ref
+        if states_dir is not None and (states_dir / f"{Path(rec['mesh']).stem}_{ref}.npy").exists():
+            R = np.load(states_dir / f"{Path(rec['mesh']).stem}_{ref}.npy")
+            for m, rows in rec["runs"].items():
+                X = np.load(states_dir / f"{Path(rec['mesh']).stem}_{m}.npy")
+                for k in range(min(len(X), len(R))):
+                    rows[k]["max_diff_vs_ref_rel"] = float(np.abs(X[k] - R[k]).max() / np.abs(R[k]).max())
+        # only the runs' own methods' one-time costs
+        rec["once"] = {k: v for k, v in rec["once"].items() if k in rec["runs"]}
+        rec["once_cpu"] = {k: v for k, v in rec["once_cpu"].items() if k in rec["runs"]}
+        rec["runs"] = {m: rec["runs"][m] for m in METHODS if m in rec["runs"]}
+        summarize(rec)
+    return res
 
 
 def plot(res: dict, path: Path) -> None:
@@ -173,23 +235,27 @@ def plot(res: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 2 * len(meshes), figsize=(7 * len(meshes), 4.2), squeeze=False)
     for j, rec in enumerate(meshes):
         ax = axes[0, 2 * j]
-        ms = list(rec["summary"])
-        once = [rec["summary"][m]["once_cpu"] for m in ms]
-        setup = [rec["summary"][m]["setup_cpu"] for m in ms]
-        solve = [rec["summary"][m]["solve_cpu"] for m in ms]
+        sm = rec["summary"]
+        ms = list(sm)
+        scale = [len(rec["dts"]) / sm[m]["steps_measured"] for m in ms]  # > 1: extrapolated from fewer steps
+        once = [sm[m]["once_cpu"] for m in ms]
+        setup = [sm[m]["setup_cpu"] * f for m, f in zip(ms, scale)]
+        solve = [sm[m]["solve_cpu"] * f for m, f in zip(ms, scale)]
+        ms = [m if f == 1 else f"{m}*" for m, f in zip(ms, scale)]
         ax.bar(ms, once, color="0.6", label="once (Galerkin M, K / CHOLMOD analysis)")
         ax.bar(ms, setup, bottom=once, color="tab:orange", label="per-step setup / factorisation")
         ax.bar(ms, solve, bottom=np.add(once, setup), color="tab:blue", label="per-step solve")
-        ax.set_ylabel(f"CPU seconds for {len(rec['dts'])} steps")
+        ax.set_ylabel(f"CPU seconds for {len(rec['dts'])} steps (*: per-step mean x {len(rec['dts'])})")
         ax.set_title(f"{rec['mesh']}: {rec['tets'][0]:,} tets, diffusion steps")
         ax.tick_params(axis="x", rotation=30)
         ax.legend(fontsize=7)
         ax = axes[0, 2 * j + 1]
         x = np.array(rec["dts"]) / rec["diag"] ** 2
-        order = np.argsort(x)
-        for m in ms:
+        for m in sm:
             y = np.array([r["setup_cpu"] + r["solve_cpu"] for r in rec["runs"][m]])
-            ax.loglog(x[order], y[order], marker="o", ms=3, label=m)
+            xm = x[: len(y)]
+            o = np.argsort(xm)
+            ax.loglog(xm[o], y[o], marker="o", ms=3, label=m)
         ax.set_xlabel("Δt / diag²")
         ax.set_ylabel("CPU seconds per step")
         ax.set_title(f"{rec['mesh']}: per step")
@@ -206,8 +272,25 @@ def main(argv=None) -> int:
     ap.add_argument("--dt-max", type=float, default=1e-2, help="largest Δt / diag²")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tol", type=float, default=1e-8)
+    ap.add_argument("--steps-for", nargs="+", default=[], metavar="METHOD=N",
+                    help="run METHOD on the first N steps only (its 20-step cost is then extrapolated, flagged)")
+    ap.add_argument("--states-dir", type=Path, default=None, help="save every method's states here (for --merge)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="merge these reuse_diffusion.json files (runs of other --methods) into --out")
     ap.add_argument("--out", type=Path, default=Path("bench_out/reuse"))
     a = ap.parse_args(argv)
+    if not a.merge and not a.meshes:
+        ap.error("give mesh files (or --merge JSON files)")
+    if a.merge:
+        res = merge(a.merge, a.states_dir)
+        res["params"]["command"] = " ".join(sys.argv)
+        write_json(res, a.out / "reuse_diffusion.json")
+        plot(res, a.out / "reuse_diffusion.png")
+        print(json.dumps({r["mesh"]: {"speedup_vs_best_resetup_cpu": r.get("speedup_vs_best_resetup_cpu"),
+                                      "best_resetup_alternative_cpu": r.get("best_resetup_alternative_cpu")}
+                          for r in res["meshes"]}, indent=1))
+        return 0
+    steps_for = {k: int(v) for k, v in (x.split("=") for x in a.steps_for)}
     methods = [m for m in METHODS if m in a.methods]
     if "cholmod" in methods:
         try:
@@ -217,15 +300,16 @@ def main(argv=None) -> int:
             methods.remove("cholmod")
     res = {"case": "a: implicit diffusion, changing time step",
            "params": {"steps": a.steps, "dt_range_over_diag2": [a.dt_min, a.dt_max], "seed": a.seed, "tol": a.tol,
-                      "methods": methods, "command": " ".join(sys.argv)},
+                      "methods": methods, "steps_for": steps_for, "command": " ".join(sys.argv)},
            "environment": environment(), "meshes": []}
     for p, edge in hierarchies_from_args(a):
-        res["meshes"].append(run_mesh(p, edge, methods, a.steps, a.dt_min, a.dt_max, a.seed, a.tol))
+        res["meshes"].append(run_mesh(p, edge, methods, a.steps, a.dt_min, a.dt_max, a.seed, a.tol, steps_for,
+                                      a.states_dir))
     res["blas"] = blas_info()
     write_json(res, a.out / "reuse_diffusion.json")
     plot(res, a.out / "reuse_diffusion.png")
-    print(json.dumps({r["mesh"]: {"summary": {m: {k: v for k, v in s.items() if k != "iterations"}
-                                              for m, s in r["summary"].items()},
+    print(json.dumps({r["mesh"]: {"summary": {m: {k: v for k, v in sm.items() if k != "iterations"}
+                                              for m, sm in r["summary"].items()},
                                   "speedup_vs_best_resetup": r.get("speedup_vs_best_resetup"),
                                   "speedup_vs_best_resetup_cpu": r.get("speedup_vs_best_resetup_cpu"),
                                   "best_resetup_alternative": r.get("best_resetup_alternative")}

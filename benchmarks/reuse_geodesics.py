@@ -126,7 +126,7 @@ def make_solvers(methods, h, pre) -> tuple[dict, dict]:
 TOL = 1e-8
 
 
-def run_mesh(path: Path, edge, methods, n_sources: int, seed: int) -> dict:
+def run_mesh(path: Path, edge, methods, n_sources: int, seed: int, states_dir: Path | None = None) -> dict:
     from nestmg.geodesics import heat_geodesic, heat_precompute
 
     h, _ = load_hierarchy(path, edge_length_fac=edge)
@@ -142,6 +142,7 @@ def run_mesh(path: Path, edge, methods, n_sources: int, seed: int) -> dict:
     sources = np.random.default_rng(seed).choice(len(V0), size=n_sources, replace=False)
     rec["sources"] = sources.tolist()
     runs: dict = {m: [] for m in methods}
+    dists: dict = {m: [] for m in methods}
     for j, s in enumerate(sources):
         dist = {}
         for m in methods:
@@ -149,21 +150,37 @@ def run_mesh(path: Path, edge, methods, n_sources: int, seed: int) -> dict:
                 warnings.simplefilter("ignore")
                 out, tw, tc = _timed(lambda s=s, m=m: heat_geodesic(V0, T0, int(s), pre=pre, solve=solve_fns[m]))
             dist[m] = out.distance
+            dists[m].append(out.distance.astype(np.float32))
             runs[m].append({"wall": tw, "cpu": tc,
                             "iterations": [out.info["heat"]["iterations"], out.info["poisson"]["iterations"]],
                             "final_residual": max(out.info["heat"]["final_residual"],
                                                   out.info["poisson"]["final_residual"])})
-        ref = dist.get("cholmod", dist.get("nestmg"))
+        ref = dist.get("cholmod", dist[methods[0]])
         for m in methods:
-            e = np.abs(dist[m] - ref) / np.abs(ref).max()
-            runs[m][-1]["max_diff_vs_ref_rel"] = float(e.max())
-            runs[m][-1]["p99_diff_vs_ref_rel"] = float(np.quantile(e, 0.99))
-            runs[m][-1]["median_diff_vs_ref_rel"] = float(np.median(e))
+            runs[m][-1].update(_diff_stats(dist[m], ref))
         print(f"  source {j + 1:2d}: " + "  ".join(f"{m} {r[-1]['cpu']:.2f}s/{r[-1]['iterations']}it"
                                                    for m, r in runs.items()), file=sys.stderr, flush=True)
     for group in objects:
         for o in group.values():
             o.destroy()
+    if states_dir is not None:  # distances (float32), for cross-process comparisons (--merge)
+        states_dir.mkdir(parents=True, exist_ok=True)
+        for m, d in dists.items():
+            np.save(states_dir / f"geo_{path.stem}_{m}.npy", np.array(d))
+    rec["setups"], rec["runs"] = setups, runs
+    summarize(rec)
+    return rec
+
+
+def _diff_stats(d: np.ndarray, ref: np.ndarray) -> dict:
+    e = np.abs(np.asarray(d, dtype=np.float64) - ref) / np.abs(ref).max()
+    return {"max_diff_vs_ref_rel": float(e.max()), "p99_diff_vs_ref_rel": float(np.quantile(e, 0.99)),
+            "median_diff_vs_ref_rel": float(np.median(e))}
+
+
+def summarize(rec: dict) -> None:
+    """Per-method totals, distance differences and the break-even source count against CHOLMOD."""
+    setups, runs = rec["setups"], rec["runs"]
     summary = {}
     for m, rows in runs.items():
         per = [r["wall"] for r in rows]
@@ -186,8 +203,40 @@ def run_mesh(path: Path, edge, methods, n_sources: int, seed: int) -> dict:
             gap_per = s["per_source_median_cpu"] - c["per_source_median_cpu"]  # positive: CHOLMOD solves faster
             s["break_even_sources_vs_cholmod"] = (gap_setup / gap_per if gap_per > 0 else float("inf")) \
                 if gap_setup > 0 else 0.0
-    rec["setups"], rec["runs"], rec["summary"] = setups, runs, summary
-    return rec
+    rec["summary"] = summary
+
+
+def merge(files: list[Path], states_dir: Path | None) -> dict:
+    """One result from runs of the same mesh and sources with different ``--methods`` (separate processes);
+    distances compared with CHOLMOD's (else nestmg's) from the saved states."""
+    res = None
+    for f in files:
+        r = json.loads(Path(f).read_text())
+        if res is None:
+            res = dict(r, merged_from=[str(x) for x in files], commands=[], meshes=[])
+        res["commands"].append(r["params"]["command"])
+        for rec in r["meshes"]:
+            tgt = next((x for x in res["meshes"] if x["mesh"] == rec["mesh"]), None)
+            if tgt is None:
+                res["meshes"].append(rec)
+                continue
+            if tgt["sources"] != rec["sources"] or tgt["tets"] != rec["tets"]:
+                raise SystemExit(f"{f}: {rec['mesh']} has other sources or another hierarchy")
+            tgt["runs"].update(rec["runs"])
+            tgt["setups"].update(rec["setups"])
+    for rec in res["meshes"]:
+        ref = "cholmod" if "cholmod" in rec["runs"] else "nestmg"
+        rec["reference"] = ref
+        stem = Path(rec["mesh"]).stem
+        if states_dir is not None and (states_dir / f"geo_{stem}_{ref}.npy").exists():
+            R = np.load(states_dir / f"geo_{stem}_{ref}.npy").astype(np.float64)
+            for m, rows in rec["runs"].items():
+                X = np.load(states_dir / f"geo_{stem}_{m}.npy")
+                for j, row in enumerate(rows):
+                    row.update(_diff_stats(X[j], R[j]))
+        rec["runs"] = {m: rec["runs"][m] for m in METHODS if m in rec["runs"]}
+        summarize(rec)
+    return res
 
 
 def plot(res: dict, path: Path) -> None:
@@ -218,9 +267,21 @@ def main(argv=None) -> int:
     ap.add_argument("--sources", type=int, default=50)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tol", type=float, default=1e-8)
+    ap.add_argument("--states-dir", type=Path, default=None, help="save the distances here (for --merge)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="merge these reuse_geodesics.json files (runs of other --methods) into --out")
     ap.add_argument("--out", type=Path, default=Path("bench_out/reuse"))
     a = ap.parse_args(argv)
     TOL = a.tol
+    if a.merge:
+        res = merge(a.merge, a.states_dir)
+        res["params"]["command"] = " ".join(sys.argv)
+        write_json(res, a.out / "reuse_geodesics.json")
+        plot(res, a.out / "reuse_geodesics.png")
+        print(json.dumps({r["mesh"]: r["summary"] for r in res["meshes"]}, indent=1))
+        return 0
+    if not a.meshes:
+        ap.error("give mesh files (or --merge JSON files)")
     methods = [m for m in METHODS if m in a.methods]
     if "cholmod" in methods:
         try:
@@ -233,7 +294,7 @@ def main(argv=None) -> int:
                       "command": " ".join(sys.argv)},
            "environment": environment(), "meshes": []}
     for p, edge in hierarchies_from_args(a):
-        res["meshes"].append(run_mesh(p, edge, methods, a.sources, a.seed))
+        res["meshes"].append(run_mesh(p, edge, methods, a.sources, a.seed, a.states_dir))
     res["blas"] = blas_info()
     res["environment_end"] = environment()
     write_json(res, a.out / "reuse_geodesics.json")

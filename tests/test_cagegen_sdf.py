@@ -75,6 +75,19 @@ def test_amplification_separates_nearly_touching_parts():
     assert verify_nesting([(Vn, F), (amp.V, amp.F)]).ok
 
 
+@pytest.mark.slow
+def test_layer_refines_the_grid_when_the_envelope_glues_parts():
+    """The slit ring at c = 0.02: the amplified field on a grid of spacing c still glues the slit (genus 1);
+    the backend sees the genus differ and halves the grid, which separates it: a genus-0 certified cage."""
+    V, F = _c_ring(0.1, res=48)
+    m = int(2 * round(len(F) / 8))
+    U, G, info = sdf_cage_layer(V, F, m, c=0.02, r=0.05)
+    tried = info["envelope"]["grids_tried"]
+    assert [t["genus"] for t in tried] == [1, 0] and tried[1]["h"] == pytest.approx(0.5 * tried[0]["h"])
+    assert info["genus"] == 0 == info["genus_fine"] and not info["genus_changed"]
+    assert len(G) == m and verify_nesting([(V, F), (U, G)]).ok
+
+
 def test_active_points_found_between_coarse_parts():
     """Two coarse boxes 0.02 apart (edges ~0.3, much longer than r): no vertex pair is within r, but the
     paper's criterion is on surface points -- the vertices facing the other box are active."""

@@ -66,7 +66,7 @@ def two_grid(Vc, Tc) -> dict:
             res: list = []
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # a stalled factor is a result here
-                ml.solve(prob.b, tol=1e-10, maxiter=40, residuals=res)
+                ml.solve(prob.b, tol=1e-10, maxiter=25, residuals=res)
             out[f"{name}_{label}"] = round(convergence_factor(res), 4)
     return out
 

@@ -15,8 +15,9 @@ We relocate all vertices at once (the paper moves one vertex at a time); the bar
 eq. 7 is ipctk's normal-collision set of cage-cage and cage-input pairs within ``dhat``.
 
 Edge flips (paper: "where they lower the energy") are applied between descent rounds to edges
-whose flip raises the smaller of the two triangles' minimum angles, only when the flipped pair
-passes the same exact intersection tests (:mod:`cagegen.intersect`).
+whose flip lowers the two triangles' share of ``E`` (spacing at their corners and centroids + MIPS;
+a flip judged by angles alone can bridge a concavity and move the cage away from the input), only
+when the flipped pair passes the same exact intersection tests (:mod:`cagegen.intersect`).
 """
 
 from __future__ import annotations
@@ -78,6 +79,20 @@ class _Energy:
         self.Fc, self.Vin, self.Fin = Fc, Vin, Fin
         self.h, self.w_s, self.w_q, self.h_ref = h, w_s, w_q, h_ref
 
+    def triangles(self, C):
+        """Per-triangle share of the energy (spacing at the corners and centroid + MIPS), up to the
+        common normalisation, as a function of the triangles ``T`` (k,3) of the cage ``C``: what an
+        edge flip changes."""
+        rv = np.sqrt(self.igl.point_mesh_squared_distance(C, self.Vin, self.Fin)[0]) - self.h
+
+        def e(T):
+            X = C[T]
+            A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
+            rc = np.sqrt(self.igl.point_mesh_squared_distance(X.mean(axis=1), self.Vin, self.Fin)[0]) - self.h
+            spacing = (rv[T] ** 2).sum(axis=1) / 6 + 0.5 * rc ** 2
+            return A * (self.w_s * spacing / self.h_ref ** 2 + self.w_q * (mips(C, T) - 2.0))
+        return e
+
     def __call__(self, C, grad=False):
         Fc = self.Fc
         X = C[Fc]
@@ -112,8 +127,10 @@ class _Energy:
         return Es + Eq, g
 
 
-def _flip_pass(C, F, Vin, Fin, max_flips, clear=0.0):
-    """Flip edges whose flip raises the smaller minimum angle of the two triangles (exactly checked)."""
+def _flip_pass(C, F, Vin, Fin, max_flips, clear=0.0, tri_energy=None):
+    """Flip edges whose flip lowers the energy of the two triangles (``tri_energy(T)``: per-triangle
+    share of the descent's energy, paper Sec. 3.3 "where they lower the energy"), or, without
+    ``tri_energy``, raises their smaller minimum angle by > 2 degrees; every flip exactly checked."""
     he = np.stack([F, np.roll(F, -1, axis=1)], 2).reshape(-1, 2)
     fid = np.repeat(np.arange(len(F)), 3)
     opp = np.roll(F, 1, axis=1).reshape(-1)  # corner opposite half-edge (F[k], F[k+1])
@@ -130,6 +147,13 @@ def _flip_pass(C, F, Vin, Fin, max_flips, clear=0.0):
     T1 = np.stack([k, l_, j], 1)  # new triangles (i, j) -> (k, l): (k, l, j) and (l, k, i)
     T2 = np.stack([l_, k, i], 1)
     after = np.minimum(_min_angles(C, T1), _min_angles(C, T2))
+    if tri_energy is not None:
+        e_old = tri_energy(F[f1]) + tri_energy(F[f2])
+        gain = e_old - (tri_energy(T1) + tri_energy(T2))
+        better = gain > 1e-12 * np.maximum(np.abs(e_old), 1e-300)
+    else:
+        gain = after - before
+        better = gain > 2.0
     # the flipped edge must not exist already (keeps the mesh manifold), and must improve clearly
     ekey = np.minimum(k, l_) * n + np.maximum(k, l_)
     exists = np.isin(ekey, key)
@@ -137,10 +161,10 @@ def _flip_pass(C, F, Vin, Fin, max_flips, clear=0.0):
     def nrm(T):
         return np.cross(C[T[:, 1]] - C[T[:, 0]], C[T[:, 2]] - C[T[:, 0]])
     n_old = nrm(F[f1]) + nrm(F[f2])
-    ok = (~exists & (after > before + 2.0) & (np.einsum("ij,ij->i", nrm(T1), n_old) > 0)
+    ok = (~exists & better & (np.einsum("ij,ij->i", nrm(T1), n_old) > 0)
           & (np.einsum("ij,ij->i", nrm(T2), n_old) > 0))
     cand = np.flatnonzero(ok)
-    cand = cand[np.argsort(-(after - before)[cand])]
+    cand = cand[np.argsort(-gain[cand])]
     used = np.zeros(len(F), dtype=bool)
     made: set[int] = set()  # two flips creating the same edge would make it non-manifold
     sel = []
@@ -312,7 +336,7 @@ def optimize_cage(
             f, g = total(pm, X, C, grad=True)
             info["steps"] += 1
         if rnd < flip_rounds:
-            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=min_dist)
+            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=min_dist, tri_energy=energy.triangles(C))
             info["flips"] += nfl
             if nfl == 0 and rnd > 0:
                 break

@@ -298,6 +298,11 @@ def main(argv=None) -> int:
         except ImportError:
             print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
             methods.remove("cholmod")
+    from solvers.petsc_common import petsc_available
+
+    if not petsc_available():
+        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
+        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
     res = {"case": "a: implicit diffusion, changing time step",
            "params": {"steps": a.steps, "dt_range_over_diag2": [a.dt_min, a.dt_max], "seed": a.seed, "tol": a.tol,
                       "methods": methods, "steps_for": steps_for, "command": " ".join(sys.argv)},

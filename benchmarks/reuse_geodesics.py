@@ -289,6 +289,11 @@ def main(argv=None) -> int:
         except ImportError:
             print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
             methods.remove("cholmod")
+    from solvers.petsc_common import petsc_available
+
+    if not petsc_available():
+        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
+        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
     res = {"case": "b: heat-method geodesics from many sources",
            "params": {"sources": a.sources, "seed": a.seed, "tol": a.tol, "methods": methods,
                       "command": " ".join(sys.argv)},

@@ -205,6 +205,11 @@ def main(argv=None) -> int:
         except ImportError:
             print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
             methods.remove("cholmod")
+    from solvers.petsc_common import petsc_available
+
+    if not petsc_available():
+        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
+        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
     res = {"case": "c: one solve from scratch, assembly included",
            "params": {"tol": a.tol, "repeat": a.repeat, "methods": methods, "command": " ".join(sys.argv),
                       "times": "[wall, cpu] seconds; best of repeat by CPU total"},

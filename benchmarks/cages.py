@@ -272,7 +272,7 @@ def _plot(results: list[dict], path: Path) -> None:
         ax.set_xticks(x)
         ax.set_xticklabels(names, rotation=60, fontsize=7)
         ax.set_title(title)
-        if key == "seconds":
+        if key == "seconds" and np.nanmax(np.r_[ours, wheel, 0.0]) > 0:
             ax.set_yscale("log")
         ax.legend(fontsize=8)
     fig.tight_layout()

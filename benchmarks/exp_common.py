@@ -454,3 +454,23 @@ def hierarchies_from_args(a) -> list[tuple[Path, float | None]]:
     if len(edges) != len(a.meshes):
         raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)}), got {len(edges)}")
     return list(zip(a.meshes, edges))
+
+
+def available_methods(requested, order) -> list[str]:
+    """``requested`` methods in ``order``, minus those whose optional package is missing (said on stderr):
+    CHOLMOD needs scikit-sparse, the PETSc baselines petsc4py."""
+    import sys
+
+    methods = [m for m in order if m in requested]
+    if "cholmod" in methods:
+        try:
+            import sksparse.cholmod  # noqa: F401
+        except ImportError:
+            print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
+            methods.remove("cholmod")
+    from solvers.petsc_common import petsc_available
+
+    if not petsc_available():
+        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
+        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
+    return methods

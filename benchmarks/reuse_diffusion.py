@@ -39,6 +39,7 @@ from exp_common import (
     Cholmod,
     PetscAmg,
     add_hierarchy_arguments,
+    available_methods,
     blas_info,
     environment,
     hierarchies_from_args,
@@ -291,18 +292,7 @@ def main(argv=None) -> int:
                           for r in res["meshes"]}, indent=1))
         return 0
     steps_for = {k: int(v) for k, v in (x.split("=") for x in a.steps_for)}
-    methods = [m for m in METHODS if m in a.methods]
-    if "cholmod" in methods:
-        try:
-            import sksparse.cholmod  # noqa: F401
-        except ImportError:
-            print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
-            methods.remove("cholmod")
-    from solvers.petsc_common import petsc_available
-
-    if not petsc_available():
-        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
-        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
+    methods = available_methods(a.methods, METHODS)
     res = {"case": "a: implicit diffusion, changing time step",
            "params": {"steps": a.steps, "dt_range_over_diag2": [a.dt_min, a.dt_max], "seed": a.seed, "tol": a.tol,
                       "methods": methods, "steps_for": steps_for, "command": " ".join(sys.argv)},

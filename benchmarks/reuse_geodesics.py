@@ -35,6 +35,7 @@ from exp_common import (
     Cholmod,
     PetscAmg,
     add_hierarchy_arguments,
+    available_methods,
     blas_info,
     environment,
     hierarchies_from_args,
@@ -282,18 +283,7 @@ def main(argv=None) -> int:
         return 0
     if not a.meshes:
         ap.error("give mesh files (or --merge JSON files)")
-    methods = [m for m in METHODS if m in a.methods]
-    if "cholmod" in methods:
-        try:
-            import sksparse.cholmod  # noqa: F401
-        except ImportError:
-            print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
-            methods.remove("cholmod")
-    from solvers.petsc_common import petsc_available
-
-    if not petsc_available():
-        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
-        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
+    methods = available_methods(a.methods, METHODS)
     res = {"case": "b: heat-method geodesics from many sources",
            "params": {"sources": a.sources, "seed": a.seed, "tol": a.tol, "methods": methods,
                       "command": " ".join(sys.argv)},

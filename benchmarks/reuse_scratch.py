@@ -36,6 +36,7 @@ from exp_common import (
     Cholmod,
     PetscAmg,
     add_hierarchy_arguments,
+    available_methods,
     blas_info,
     environment,
     hierarchies_from_args,
@@ -198,18 +199,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("bench_out/reuse"))
     a = ap.parse_args(argv)
-    methods = [m for m in METHODS if m in a.methods]
-    if "cholmod" in methods:
-        try:
-            import sksparse.cholmod  # noqa: F401
-        except ImportError:
-            print("scikit-sparse not installed: CHOLMOD skipped", file=sys.stderr)
-            methods.remove("cholmod")
-    from solvers.petsc_common import petsc_available
-
-    if not petsc_available():
-        print("petsc4py not importable (scripts/install-petsc.sh): PETSc GAMG / hypre skipped", file=sys.stderr)
-        methods = [m for m in methods if m not in ("gamg", "gamg_reuse", "hypre")]
+    methods = available_methods(a.methods, METHODS)
     res = {"case": "c: one solve from scratch, assembly included",
            "params": {"tol": a.tol, "repeat": a.repeat, "methods": methods, "command": " ".join(sys.argv),
                       "times": "[wall, cpu] seconds; best of repeat by CPU total"},

@@ -232,7 +232,8 @@ class MultigridSolver:
                 # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
                 # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
                 Ps, _ = restrict_prolongations(Ps, np.arange(A.shape[0]))
-            ops = galerkin_operators(A, Ps)
+            sym0 = _is_symmetric(A)
+            ops = galerkin_operators(A, Ps, symmetric=sym0)
             self.coarse = "galerkin"
         else:
             coarse_operators = list(coarse)
@@ -284,7 +285,8 @@ class MultigridSolver:
         #: null vectors of the coarsest operator (1 expected for Neumann, 0 for Dirichlet; more means a
         #: rank-deficient prolongation, handled by the pseudo-inverse)
         self.coarse_nullity = self._coarse_solver.nullity
-        self.symmetric = all(_is_symmetric(L.A) for L in self.levels)
+        # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
+        self.symmetric = sym0 if self.coarse == "galerkin" else all(_is_symmetric(L.A) for L in self.levels)
         # a cycle is a symmetric operator iff A_k are symmetric and post = adjoint(pre) on every level
         self.symmetric_cycle = self.symmetric and (
             len(self.levels) == 1

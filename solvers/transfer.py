@@ -34,11 +34,13 @@ def _is_symmetric(A: sp.csr_matrix, rtol: float = 1e-10) -> bool:
     return (d.max() if d.nnz else 0.0) <= rtol * (abs(A).max() if A.nnz else 1.0)
 
 
-def galerkin_operators(A: sp.spmatrix, Ps) -> list[sp.csr_matrix]:
+def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None) -> list[sp.csr_matrix]:
     """Galerkin hierarchy ``[A, P_0ᵀ A P_0, P_1ᵀ (P_0ᵀ A P_0) P_1, ...]``.
 
-    The products are symmetrised, ``(Ac + Acᵀ)/2``, to remove the round-off asymmetry of the sparse
-    triple product (so the hierarchy is exactly symmetric for CG).
+    For a symmetric ``A`` the products are symmetrised, ``(Ac + Acᵀ)/2``, to remove the round-off
+    asymmetry of the sparse triple product (so the hierarchy is exactly symmetric for CG); a
+    non-symmetric ``A`` keeps its exact products. ``symmetric=None`` (default) tests ``A`` (relative
+    tolerance 1e-10).
 
     Parameters
     ----------
@@ -56,6 +58,8 @@ def galerkin_operators(A: sp.spmatrix, Ps) -> list[sp.csr_matrix]:
         memory available (``$NESTMG_MEMORY_LIMIT`` or the system's).
     """
     ops = [_as_csr(A, "A")]
+    if symmetric is None:
+        symmetric = _is_symmetric(ops[0])
     for k, P in enumerate(Ps):
         P = sp.csr_matrix(P, dtype=np.float64)
         if P.shape[0] != ops[-1].shape[0]:
@@ -63,7 +67,8 @@ def galerkin_operators(A: sp.spmatrix, Ps) -> list[sp.csr_matrix]:
         # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
         check_memory(galerkin_bytes(ops[-1], P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
         Ac = sp.csr_matrix(P.T @ ops[-1] @ P)
-        Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
+        if symmetric:
+            Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
         Ac.sum_duplicates()
         Ac.sort_indices()
         ops.append(Ac)

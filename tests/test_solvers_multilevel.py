@@ -556,3 +556,18 @@ def test_restrict_prolongations_prunes_with_orphan_rule(cube):
     Pr, frees = restrict_prolongations([P0.tocsr()], np.arange(n0), min_column_sum=1.5)
     assert frees[1][-1] != P0.shape[1] - 1  # now weak (0.01) and nobody's only support: dropped
     assert np.allclose(np.asarray(Pr[0].sum(axis=1)).ravel(), 1.0)
+
+
+def test_galerkin_of_nonsymmetric_operator_is_exact():
+    """Only symmetric operators get their Galerkin products symmetrised; a non-symmetric A keeps PᵀAP."""
+    meshes, Ps = kuhn_cube_hierarchy(6, 2)
+    K = fem.stiffness_matrix(*meshes[0])
+    n = K.shape[0]
+    N = sp.random(n, n, density=2e-3, random_state=1)
+    A = (K + sp.eye(n) + 0.01 * (N - N.T)).tocsr()
+    ops = transfer.galerkin_operators(A, Ps)
+    assert abs(ops[1] - (Ps[0].T @ A @ Ps[0])).max() < 1e-14
+    assert abs(ops[1] - ops[1].T).max() > 1e-3
+    assert not MultigridSolver(A, Ps).symmetric
+    S = transfer.galerkin_operators((K + sp.eye(n)).tocsr(), Ps)[1]
+    assert abs(S - S.T).max() == 0.0 and MultigridSolver((K + sp.eye(n)).tocsr(), Ps).symmetric

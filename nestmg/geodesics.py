@@ -235,7 +235,13 @@ def multigrid_solve(
         raise GeodesicInputError(f"coarse must be 'galerkin' or 'rediscretized', got {coarse!r}")
     n0 = len(tets[0][0])
 
+    solvers_by_kind: dict = {}  # kind -> (A, MultigridSolver): set up once per operator, reused per source
+
     def solve(A: sp.csr_matrix, b: np.ndarray, kind: str) -> tuple[np.ndarray, dict]:
+        hit = solvers_by_kind.get(kind)
+        if hit is not None and hit[0] is A:
+            x, info = hit[1].solve(b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)
+            return x, {k: info[k] for k in ("iterations", "converged", "residuals", "factor")}
         name = "diffusion-neumann" if kind == "heat" else "poisson-neumann"
         prob = setup_problem(tets, P, name, coarse=coarse, lam=t, prune=0.0 if kind == "heat" else 0.5)
         if prob.A.shape != A.shape or prob.free[0].size != n0:
@@ -245,6 +251,7 @@ def multigrid_solve(
                                           ("symmetric_gauss_seidel", {"iterations": 2 * nu})],
                              local_nodes=prob.local_nodes,
                              nullspace="constant" if kind == "poisson" else None)
+        solvers_by_kind[kind] = (A, ml)
         x, info = ml.solve(b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)
         return x, {k: info[k] for k in ("iterations", "converged", "residuals", "factor")}
 

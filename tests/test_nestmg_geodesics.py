@@ -141,3 +141,23 @@ def test_docstring_examples():
     import nestmg.geodesics as mod
 
     assert doctest.testmod(mod).failed == 0
+
+
+def test_multigrid_solve_sets_up_once_per_operator(torus_iso_tets, monkeypatch):
+    """Many sources reuse one multigrid setup per operator (heat, Poisson); a new operator sets up again."""
+    import nestmg.problems
+
+    _, tets, P, _ = torus_iso_tets
+    Vf, Tf = tets[0]
+    pre = heat_precompute(Vf, Tf)
+    calls = []
+    real = nestmg.problems.setup_problem
+    monkeypatch.setattr(nestmg.problems, "setup_problem", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    solve = multigrid_solve(tets, P, t=pre.t, accel="cg", tol=1e-11)
+    ref = [heat_geodesic(Vf, Tf, s, pre=pre) for s in (0, 5, 9)]
+    for s, r0 in zip((0, 5, 9), ref):
+        r = heat_geodesic(Vf, Tf, s, pre=pre, solve=solve)
+        assert np.abs(r.distance - r0.distance).max() < 1e-4 * r0.distance.max()
+    assert calls == ["diffusion-neumann", "poisson-neumann"]
+    solve(pre.K.copy(), np.zeros(pre.K.shape[0]), "poisson")  # another matrix object: set up again
+    assert calls[-1] == "poisson-neumann" and len(calls) == 3

@@ -31,40 +31,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _in_subprocess, _is_closed, _read, _verify
+from cages import _in_subprocess, _is_closed, _layer_figures, _read, _verify
 
 MESH_EXT = (".off", ".obj", ".ply", ".stl")
 SDF_OPTS: dict = {}
-
-
-def _layer_figures(V, F, layers) -> list[dict]:
-    import igl
-
-    from cagegen._geometry import signed_volume
-    from cagegen.sdf.backend import _min_angle_deg, genus
-    from cagegen.sdf.optimize import mips
-
-    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
-    vol0 = signed_volume(V, F)
-    out = []
-    for Vk, Fk in layers:
-        X = Vk[Fk]
-        A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
-        Q = np.vstack([X.mean(1), 0.5 * (X[:, 0] + X[:, 1]), 0.5 * (X[:, 1] + X[:, 2]), 0.5 * (X[:, 2] + X[:, 0])])
-        w = np.tile(A / 4, 4)
-        d2 = igl.point_mesh_squared_distance(Q, V, F)[0]
-        m = mips(Vk, Fk)
-        out.append({
-            "n_faces": len(Fk),
-            "max_distance_relative": float(igl.hausdorff(Vk, Fk, V, F)) / diag,
-            "mean_distance_relative": float(np.sum(w * np.sqrt(d2)) / np.sum(w)) / diag,
-            "volume_ratio": float(signed_volume(Vk, Fk) / vol0),
-            "genus": genus(Vk, Fk),
-            "min_angle_deg": _min_angle_deg(Vk, Fk),
-            "mips_mean": float(m.mean()),
-            "mips_max": float(m.max()),
-        })
-    return out
 
 
 def _run(method: str):

@@ -38,65 +38,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 ZOO = ("homer.obj", "cheburashka.obj", "elephant.obj", "spot.obj")
 
 
-# ----------------------------------------------------------------------------- procedural shapes
-def star_of_capsules(res: int = 44):
-    """Four capsule arms (radius 0.2, length 1) from a ball of radius 0.4; skeleton centre-elbow-tip."""
-    from cagegen.skeleton import Skeleton
-    from nestmg.shapes import _capsule_sdf, _smooth_min, mesh_implicit
-
-    arms = [np.array(a, float) for a in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))]
-
-    def f(P):
-        d = np.linalg.norm(P, axis=1) - 0.4
-        for a in arms:
-            d = _smooth_min(d, _capsule_sdf(P, (0, 0, 0), a, 0.2), 0.08)
-        return d
-
-    V, F = mesh_implicit(f, np.array([[-1.25] * 3, [1.25] * 3]), res=res)
-    nodes, edges, bend = [np.zeros(3)], [], []
-    for a in arms:
-        nodes.append(0.6 * a)
-        bend.append(len(nodes) - 1)
-        edges.append((0, len(nodes) - 1))
-        nodes.append(1.0 * a)
-        edges.append((len(nodes) - 2, len(nodes) - 1))
-    return V, F, Skeleton(np.array(nodes), np.array(edges), bend)
-
-
-def stick_figure(res: int = 56):
-    """Torso, head, bent arms and legs of tubes; skeleton = bone axes, elbows and knees bending."""
-    from cagegen.skeleton import Skeleton
-    from nestmg.shapes import _capsule_sdf, _smooth_min, mesh_implicit
-
-    J = {"pelvis": (0, -0.3, 0), "neck": (0, 0.45, 0), "head": (0, 0.85, 0),
-         "elbow_l": (-0.45, 0.25, 0), "hand_l": (-0.75, -0.05, 0), "elbow_r": (0.45, 0.25, 0),
-         "hand_r": (0.75, -0.05, 0), "knee_l": (-0.2, -0.75, 0.05), "foot_l": (-0.25, -1.2, 0.0),
-         "knee_r": (0.2, -0.75, 0.05), "foot_r": (0.25, -1.2, 0.0)}
-    names = list(J)
-    bones = [("pelvis", "neck"), ("neck", "head"), ("neck", "elbow_l"), ("elbow_l", "hand_l"),
-             ("neck", "elbow_r"), ("elbow_r", "hand_r"), ("pelvis", "knee_l"), ("knee_l", "foot_l"),
-             ("pelvis", "knee_r"), ("knee_r", "foot_r")]
-    radii = [0.2, 0.17, 0.1, 0.09, 0.1, 0.09, 0.12, 0.11, 0.12, 0.11]
-
-    def f(P):
-        d = None
-        for (a, b), r in zip(bones, radii):
-            c = _capsule_sdf(P, J[a], J[b], r)
-            d = c if d is None else _smooth_min(d, c, 0.06)
-        return d
-
-    V, F = mesh_implicit(f, np.array([[-1.0, -1.45, -0.35], [1.0, 1.15, 0.35]]), res=res)
-    idx = {n: i for i, n in enumerate(names)}
-    S = Skeleton(np.array([J[n] for n in names], float), np.array([(idx[a], idx[b]) for a, b in bones]),
-                 [idx["elbow_l"], idx["elbow_r"], idx["knee_l"], idx["knee_r"]])
-    return V, F, S
-
-
 # ----------------------------------------------------------------------------- one case
 def _load(case: str, zoo: Path | None):
     import trimesh
 
     from cagegen import check_mesh
+    from nestmg.shapes import star_of_capsules, stick_figure
 
     if case == "star":
         V, F, S = star_of_capsules()
@@ -194,6 +141,7 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     defaults), V(1,1) cycles (``MultigridSolver`` defaults), mean residual reduction per cycle to 1e-8."""
     from nestmg import build_hierarchy, setup_problem
     from nestmg.io import normalize
+    from nestmg.shapes import stick_figure
     from solvers import MultigridSolver
 
     V, F, S = stick_figure()

@@ -26,6 +26,8 @@ __all__ = [
     "nested_isosurfaces",
     "shape_sdf",
     "sphere",
+    "star_of_capsules",
+    "stick_figure",
     "thin_plate",
     "torus",
 ]
@@ -208,6 +210,73 @@ def neck_blobs(res: int = 48) -> tuple[np.ndarray, np.ndarray]:
 def thin_plate(res: int = 60) -> tuple[np.ndarray, np.ndarray]:
     """A thin rounded plate 2 x 1.4 x 0.16. Returns ``(V, F)``."""
     return _named("thin_plate", res)
+
+
+# ----------------------------------------------------------------------------- articulated shapes
+def _capsule_union(segments, radii, blend: float) -> SDF:
+    def f(P):
+        d = None
+        for (a, b), r in zip(segments, radii):
+            c = _capsule_sdf(P, a, b, r)
+            d = c if d is None else _smooth_min(d, c, blend)
+        return d
+    return f
+
+
+def star_of_capsules(res: int = 44):
+    """Four capsule arms (radius 0.2, length 1) from a ball of radius 0.4, with its skeleton.
+
+    Returns ``(V, F, S)``; ``S`` is a :class:`cagegen.skeleton.Skeleton`: centre, elbows (bending
+    nodes, 0.6 along each arm) and tips.
+    """
+    from cagegen.skeleton import Skeleton
+
+    arms = [np.array(a, float) for a in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))]
+
+    def f(P):
+        d = np.linalg.norm(P, axis=1) - 0.4
+        for a in arms:
+            d = _smooth_min(d, _capsule_sdf(P, (0, 0, 0), a, 0.2), 0.08)
+        return d
+
+    V, F = mesh_implicit(f, np.array([[-1.25] * 3, [1.25] * 3]), res=res)
+    nodes, edges, bend = [np.zeros(3)], [], []
+    for a in arms:
+        nodes.append(0.6 * a)
+        bend.append(len(nodes) - 1)
+        edges.append((0, len(nodes) - 1))
+        nodes.append(1.0 * a)
+        edges.append((len(nodes) - 2, len(nodes) - 1))
+    return V, F, Skeleton(np.array(nodes), np.array(edges), bend)
+
+
+def stick_figure(res: int = 56):
+    """Torso, head, two bent arms and two bent legs made of tubes, with its skeleton.
+
+    Returns ``(V, F, S)``; ``S`` is the bones' axes (:class:`cagegen.skeleton.Skeleton`): leaves at
+    the capsule end points, the neck a branching node of 4 bones, the pelvis of 3, elbows and knees
+    bending nodes.
+    """
+    from cagegen.skeleton import Skeleton
+
+    J = {
+        "pelvis": (0, -0.3, 0), "neck": (0, 0.45, 0), "head": (0, 0.85, 0),
+        "elbow_l": (-0.45, 0.25, 0), "hand_l": (-0.75, -0.05, 0),
+        "elbow_r": (0.45, 0.25, 0), "hand_r": (0.75, -0.05, 0),
+        "knee_l": (-0.2, -0.75, 0.05), "foot_l": (-0.25, -1.2, 0.0),
+        "knee_r": (0.2, -0.75, 0.05), "foot_r": (0.25, -1.2, 0.0),
+    }
+    names = list(J)
+    bones = [("pelvis", "neck"), ("neck", "head"), ("neck", "elbow_l"), ("elbow_l", "hand_l"),
+             ("neck", "elbow_r"), ("elbow_r", "hand_r"), ("pelvis", "knee_l"), ("knee_l", "foot_l"),
+             ("pelvis", "knee_r"), ("knee_r", "foot_r")]
+    radii = [0.2, 0.17, 0.1, 0.09, 0.1, 0.09, 0.12, 0.11, 0.12, 0.11]
+    f = _capsule_union([(J[a], J[b]) for a, b in bones], radii, 0.06)
+    V, F = mesh_implicit(f, np.array([[-1.0, -1.45, -0.35], [1.0, 1.15, 0.35]]), res=res)
+    idx = {n: i for i, n in enumerate(names)}
+    S = Skeleton(np.array([J[n] for n in names], float), np.array([(idx[a], idx[b]) for a, b in bones]),
+                 [idx["elbow_l"], idx["elbow_r"], idx["knee_l"], idx["knee_r"]])
+    return V, F, S
 
 
 SHAPES: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {

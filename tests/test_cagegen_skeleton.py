@@ -1,7 +1,7 @@
 """Tests of the skeleton cage backend (cagegen.skeleton) on procedural articulated shapes.
 
-Shapes: implicit unions of capsules meshed by marching cubes (nestmg.shapes' pattern), with their
-known skeletons (capsule axes).
+Shapes: ``nestmg.shapes.star_of_capsules`` and ``stick_figure``, implicit unions of capsules meshed by
+marching cubes, with their known skeletons (capsule axes).
 """
 
 from __future__ import annotations
@@ -14,66 +14,10 @@ from cagegen import MeshInputError, build_cages, verify_nesting
 from cagegen.skeleton import Skeleton, read_skeleton, skeleton_cage, write_skeleton
 from cagegen.skeleton.cage import best_quad
 from cagegen.skeleton.field import GuidingField
-from nestmg.shapes import _capsule_sdf, _smooth_min, mesh_implicit
+from nestmg.shapes import star_of_capsules, stick_figure
 
 
 # ----------------------------------------------------------------------------- shapes
-def _union(segments, radii, blend=0.06):
-    def f(P):
-        d = None
-        for (a, b), r in zip(segments, radii):
-            c = _capsule_sdf(P, a, b, r)
-            d = c if d is None else _smooth_min(d, c, blend)
-        return d
-    return f
-
-
-def star_of_capsules(res: int = 44):
-    """Four capsule arms (radius 0.2) from a ball of radius 0.4; skeleton: centre, elbows, tips."""
-    arms = [np.array(a, float) for a in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))]
-
-    def f(P):
-        d = np.linalg.norm(P, axis=1) - 0.4
-        for a in arms:
-            d = _smooth_min(d, _capsule_sdf(P, (0, 0, 0), a, 0.2), 0.08)
-        return d
-
-    V, F = mesh_implicit(f, np.array([[-1.25] * 3, [1.25] * 3]), res=res)
-    nodes, edges, bend = [np.zeros(3)], [], []
-    for a in arms:
-        nodes.append(0.6 * a)
-        bend.append(len(nodes) - 1)
-        edges.append((0, len(nodes) - 1))
-        nodes.append(1.0 * a)
-        edges.append((len(nodes) - 2, len(nodes) - 1))
-    return V, F, Skeleton(np.array(nodes), np.array(edges), bend)
-
-
-def stick_figure(res: int = 56):
-    """Torso, head, two bent arms and two bent legs made of tubes; skeleton with elbows and knees."""
-    J = {
-        "pelvis": (0, -0.3, 0), "neck": (0, 0.45, 0), "head": (0, 0.85, 0),
-        "elbow_l": (-0.45, 0.25, 0), "hand_l": (-0.75, -0.05, 0),
-        "elbow_r": (0.45, 0.25, 0), "hand_r": (0.75, -0.05, 0),
-        "knee_l": (-0.2, -0.75, 0.05), "foot_l": (-0.25, -1.2, 0.0),
-        "knee_r": (0.2, -0.75, 0.05), "foot_r": (0.25, -1.2, 0.0),
-    }
-    names = list(J)
-    P = np.array([J[n] for n in names], float)
-    bones = [("pelvis", "neck"), ("neck", "head"), ("neck", "elbow_l"), ("elbow_l", "hand_l"),
-             ("neck", "elbow_r"), ("elbow_r", "hand_r"), ("pelvis", "knee_l"), ("knee_l", "foot_l"),
-             ("pelvis", "knee_r"), ("knee_r", "foot_r")]
-    radii = [0.2, 0.17, 0.1, 0.09, 0.1, 0.09, 0.12, 0.11, 0.12, 0.11]
-    segs = [(J[a], J[b]) for a, b in bones]
-    V, F = mesh_implicit(_union(segs, radii), np.array([[-1.0, -1.45, -0.35], [1.0, 1.15, 0.35]]), res=res)
-    # the skeleton is the bones' axes: leaves at the capsule end points (inside: radius > 0), the neck
-    # a branching node of 4 bones, the pelvis of 3, elbows and knees bending nodes
-    idx = {n: i for i, n in enumerate(names)}
-    E = np.array([(idx[a], idx[b]) for a, b in bones])
-    S = Skeleton(P, E, [idx["elbow_l"], idx["elbow_r"], idx["knee_l"], idx["knee_r"]])
-    return V, F, S
-
-
 @pytest.fixture(scope="module")
 def star():
     return star_of_capsules()

@@ -229,7 +229,7 @@ def multigrid_solve(
     """
     from solvers import MultigridSolver
 
-    from .problems import setup_problem
+    from .problems import cycle_smoothers, setup_problem
 
     if coarse not in ("galerkin", "rediscretized"):
         raise GeodesicInputError(f"coarse must be 'galerkin' or 'rediscretized', got {coarse!r}")
@@ -247,8 +247,7 @@ def multigrid_solve(
         if prob.A.shape != A.shape or prob.free[0].size != n0:
             raise GeodesicInputError("the hierarchy's finest tet mesh is not the mesh of the problem")
         ml = MultigridSolver(A, prob.P, coarse="galerkin" if prob.coarse_ops is None else prob.coarse_ops,
-                             presmoother=[("symmetric_gauss_seidel", {"iterations": nu}),
-                                          ("symmetric_gauss_seidel", {"iterations": 2 * nu})],
+                             presmoother=cycle_smoothers(nu=nu),
                              local_nodes=prob.local_nodes,
                              nullspace="constant" if kind == "poisson" else None)
         solvers_by_kind[kind] = (A, ml)

@@ -33,10 +33,20 @@ __all__ = ["COARSE", "PROBLEMS", "Problem", "default_rhs", "setup_problem", "vol
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
+def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coarse_nu: int | None = None) -> list:
+    """Per-level smoother specs of the pipeline's variable V-cycle, finest level first.
+
+    ``nu`` sweeps of ``smoother`` on the fine level and ``coarse_nu`` (default ``2 * nu``) on every
+    coarser one (``MultigridSolver(presmoother=...)``).
+    """
+    cnu = 2 * nu if coarse_nu is None else coarse_nu
+    return [(smoother, {"iterations": nu}), (smoother, {"iterations": cnu})]
+
+
 #: The pipeline's smoothers, finest level first: one symmetric Gauss–Seidel sweep on the fine level,
 #: two on the coarser ones (a variable V-cycle; the coarse levels are ~8x smaller, so the extra sweeps
 #: cost ~0.5 fine SpMV per cycle). Measured in docs/scale.md ("Smoothing").
-DEFAULT_SMOOTHERS = [("symmetric_gauss_seidel", {"iterations": 1}), ("symmetric_gauss_seidel", {"iterations": 2})]
+DEFAULT_SMOOTHERS = cycle_smoothers()
 
 
 @dataclass

@@ -10,7 +10,7 @@ import numpy as np
 
 from solvers import DivergenceError, MultigridSolver, convergence_factor
 
-from .problems import setup_problem
+from .problems import cycle_smoothers, setup_problem
 
 __all__ = ["measure_cycle_cost", "solve_on_hierarchy"]
 
@@ -108,9 +108,9 @@ def solve_on_hierarchy(
     prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
-    cnu = 2 * nu if coarse_nu is None else coarse_nu
-    ml = prob.multigrid(presmoother=[(smoother, {"iterations": nu}), (smoother, {"iterations": cnu})],
-                        coarse_scaling=coarse_scaling, local=local)
+    pre = cycle_smoothers(smoother, nu, coarse_nu)
+    cnu = pre[1][1]["iterations"]
+    ml = prob.multigrid(presmoother=pre, coarse_scaling=coarse_scaling, local=local)
     t_setup = time.perf_counter() - t0
     out: dict[str, Any] = {
         "problem": problem, "coarse": coarse, "smoother": smoother, "nu": nu, "coarse_nu": cnu,

@@ -51,14 +51,13 @@ from .petsc_common import (
     _fine_owner,
     _gather,
     _ghost_count,
-    _history,
+    _ksp_solve,
     _Layout,
     _noop_monitor,
     _options,
     _petsc,
     _petsc_message,
     _prepare_rhs,
-    _reason_name,
     _to_petsc,
     petsc_available,
     row_partition,
@@ -520,28 +519,13 @@ class PetscMultigrid:
         ksp = self.ksp
         ksp.setTolerances(rtol=tol, atol=1e-300, divtol=divtol, max_it=maxiter)
         ksp.setConvergenceHistory(length=maxiter + 1, reset=True)
-        t0 = _barrier_time(self.comm)
-        if normb == 0.0:
-            xv.set(0.0)
-            hist, reason, its = [0.0], "CONVERGED_ATOL", 0
-        else:
-            try:
-                ksp.solve(bv, xv)
-            except PETSc.Error as e:
-                raise SolverError(f"PETSc KSPSolve failed: {_petsc_message(e)}") from None
-            hist = _history(ksp, normb)
-            its = ksp.getIterationNumber()
-            code = ksp.getConvergedReason()
-            reason = _reason_name(PETSc, code)
-        solve_seconds = _barrier_time(self.comm) - t0
+        out = _ksp_solve(PETSc, ksp, self._A, bv, xv, normb, self.comm)
+        hist, its, reason = out["history"], out["iterations"], out["reason"]
+        solve_seconds, final = out["solve_seconds"], out["final"]
         x = lay.to_old(_gather(PETSc, xv))
         if self.nullspace == "constant":
             x -= x.mean()
-        rv = bv.duplicate()
-        self._A.mult(xv, rv)
-        rv.aypx(-1.0, bv)
-        final = float(rv.norm()) / normb if normb > 0 else 0.0
-        for v in (xv, bv, rv):
+        for v in (xv, bv):
             v.destroy()
         _check_reason(reason, its, hist, f"PETSc KSP {self.krylov}+PCMG", tol)
         return x, {

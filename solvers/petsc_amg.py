@@ -14,13 +14,12 @@ from .petsc_common import (
     _check_nullspace,
     _check_reason,
     _gather,
-    _history,
+    _ksp_solve,
     _Layout,
     _options,
     _petsc,
     _petsc_message,
     _prepare_rhs,
-    _reason_name,
     _to_petsc,
 )
 
@@ -123,26 +122,13 @@ def petsc_amg_solve(
     xv.set(0.0)
     normb = float(np.linalg.norm(b))
     ksp.setConvergenceHistory(length=maxiter + 1, reset=True)
-    t0 = _barrier_time(comm)
-    if normb > 0:
-        try:
-            ksp.solve(bv, xv)
-        except PETSc.Error as e:
-            raise SolverError(f"PETSc KSPSolve (CG+{kind}) failed: {_petsc_message(e)}") from None
-        hist = _history(ksp, normb)
-        its = ksp.getIterationNumber()
-        reason = _reason_name(PETSc, ksp.getConvergedReason())
-    else:
-        hist, its, reason = [0.0], 0, "CONVERGED_ATOL"
-    solve_seconds = _barrier_time(comm) - t0
+    out = _ksp_solve(PETSc, ksp, Ap, bv, xv, normb, comm, f" (CG+{kind})")
+    hist, its, reason = out["history"], out["iterations"], out["reason"]
+    solve_seconds, final = out["solve_seconds"], out["final"]
     x = _gather(PETSc, xv)
     if nullspace == "constant":
         x -= x.mean()
-    rv = bv.duplicate()
-    Ap.mult(xv, rv)
-    rv.aypx(-1.0, bv)
-    final = float(rv.norm()) / normb if normb > 0 else 0.0
-    for obj in (xv, bv, rv, ksp, Ap) + ((ns,) if ns is not None else ()):
+    for obj in (xv, bv, ksp, Ap) + ((ns,) if ns is not None else ()):
         obj.destroy()
     _check_reason(reason, its, hist, f"PETSc CG+{kind}", tol)
     return x, {

@@ -324,6 +324,34 @@ def _history(ksp, normb: float) -> list[float]:
     return [float(v) / normb for v in h]
 
 
+def _ksp_solve(PETSc, ksp, A, bv, xv, normb: float, comm, what: str = "") -> dict:
+    """``ksp.solve(bv, xv)`` (nothing to do for ``b = 0``), timed across ranks, with the true residual.
+
+    Returns ``history`` (relative residuals), ``iterations``, ``reason``, ``solve_seconds`` and
+    ``final`` (``||b - A x|| / ||b||``); a PETSc error becomes :class:`SolverError`
+    ("PETSc KSPSolve<what> failed").
+    """
+    t0 = _barrier_time(comm)
+    if normb == 0.0:
+        xv.set(0.0)
+        hist, its, reason = [0.0], 0, "CONVERGED_ATOL"
+    else:
+        try:
+            ksp.solve(bv, xv)
+        except PETSc.Error as e:
+            raise SolverError(f"PETSc KSPSolve{what} failed: {_petsc_message(e)}") from None
+        hist = _history(ksp, normb)
+        its = ksp.getIterationNumber()
+        reason = _reason_name(PETSc, ksp.getConvergedReason())
+    solve_seconds = _barrier_time(comm) - t0
+    rv = bv.duplicate()
+    A.mult(xv, rv)
+    rv.aypx(-1.0, bv)
+    final = float(rv.norm()) / normb if normb > 0 else 0.0
+    rv.destroy()
+    return {"history": hist, "iterations": its, "reason": reason, "solve_seconds": solve_seconds, "final": final}
+
+
 def _coarse_choice(coarse, galerkin, coarse_ops):
     """``coarse=`` ("galerkin" or a list), with the deprecated ``galerkin=`` / ``coarse_ops=`` spelling."""
     if galerkin is not None or coarse_ops is not None:

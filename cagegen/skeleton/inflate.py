@@ -100,22 +100,10 @@ def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarra
             info["rounds"].append({"samples_inside": 0})
             break
         dv = _vertex_displacements(V, F, disp) * (1.0 + margin)
-        V0 = V.copy()
-        V = V0 + dv
-        n_back = 0
-        pairs = self_intersection_pairs(V, F)
-        while len(pairs) and n_back < max_backoff:
-            bad = np.unique(F[np.unique(np.asarray(pairs).ravel())].ravel())
-            V[bad] -= backoff * dv[bad]
-            # never past the previous position
-            dv[bad] *= 1.0 - backoff
-            n_back += 1
-            pairs = self_intersection_pairs(V, F)
-        if len(pairs):
-            V = V0  # give up this round: keep the last intersection-free cage
+        V, dv, n_back, reverted = _move_without_intersection(V, F, dv, backoff, max_backoff)
         L = np.linalg.norm(dv, axis=1)
         info["rounds"].append({"samples_inside": n_in, "mean_move": float(L.mean()), "max_move": float(L.max()),
-                               "backoff_iterations": n_back, "reverted": bool(len(pairs))})
+                               "backoff_iterations": n_back, "reverted": reverted})
     V, cinfo = _contain(V, F, Vm, Fm, rounds=contain_rounds, clearance=clearance, backoff=backoff,
                         max_backoff=max_backoff)
     info["containment"] = cinfo
@@ -147,18 +135,29 @@ def _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff):
         np.maximum.at(best, I, L)
         pick = best[I] == L
         disp[I[pick]] = d[pick]
-        dv = _vertex_displacements(V, F, disp)
-        V0 = V.copy()
-        V = V0 + dv
-        n_back = 0
-        pairs = self_intersection_pairs(V, F)
-        while len(pairs) and n_back < max_backoff:
-            bad = np.unique(F[np.unique(np.asarray(pairs).ravel())].ravel())
-            V[bad] -= backoff * dv[bad]
-            dv[bad] *= 1.0 - backoff
-            n_back += 1
-            pairs = self_intersection_pairs(V, F)
-        if len(pairs):
-            V = V0
+        V, _, _, reverted = _move_without_intersection(V, F, _vertex_displacements(V, F, disp), backoff,
+                                                       max_backoff)
+        if reverted:
             break
     return V, {"outside_per_round": out_log}
+
+
+def _move_without_intersection(V, F, dv, backoff, max_backoff):
+    """``V + dv``, stepping the vertices of self-intersecting faces back by ``backoff`` of their move
+    (never past ``V``) up to ``max_backoff`` times; if the cage still self-intersects, ``V`` unchanged.
+
+    Returns ``(V_new, dv_used, n_backoff, reverted)``.
+    """
+    dv = dv.copy()
+    V1 = V + dv
+    n_back = 0
+    pairs = self_intersection_pairs(V1, F)
+    while len(pairs) and n_back < max_backoff:
+        bad = np.unique(F[np.unique(np.asarray(pairs).ravel())].ravel())
+        V1[bad] -= backoff * dv[bad]
+        dv[bad] *= 1.0 - backoff
+        n_back += 1
+        pairs = self_intersection_pairs(V1, F)
+    if len(pairs):
+        return V, dv, n_back, True  # keep the last intersection-free cage
+    return V1, dv, n_back, False

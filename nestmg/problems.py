@@ -29,7 +29,8 @@ import scipy.sparse as sp
 from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
 from solvers.multilevel import restrict_prolongations
 
-__all__ = ["COARSE", "PROBLEMS", "Problem", "default_rhs", "setup_problem", "volume_fractions"]
+__all__ = ["COARSE", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
+           "volume_fractions"]
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
@@ -47,6 +48,15 @@ def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coars
 #: two on the coarser ones (a variable V-cycle; the coarse levels are ~8x smaller, so the extra sweeps
 #: cost ~0.5 fine SpMV per cycle). Measured in docs/scale.md ("Smoothing").
 DEFAULT_SMOOTHERS = cycle_smoothers()
+
+#: The textbook V(1,1) cycle: one forward Gauss–Seidel sweep before the coarse-grid correction and one
+#: backward sweep after it (the adjoint, so the cycle is symmetric and preconditions CG) on every level,
+#: no local sweeps. A weaker cycle than :data:`DEFAULT_SMOOTHERS` but about half its cost; under CG it
+#: is the faster choice in wall time at 1M tets (docs/reuse.md, "Which cycle under CG").
+FAST_SMOOTHERS = [("gauss_seidel", {"sweep": "forward", "iterations": 1})]
+
+#: Names of :meth:`Problem.multigrid`'s smoothing presets.
+SMOOTHING = ("robust", "fast")
 
 
 @dataclass
@@ -88,7 +98,8 @@ class Problem:
     params: dict = field(default_factory=dict)
     local_nodes: np.ndarray | None = None
 
-    def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, **kwargs):
+    def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, smoothing: str = "robust",
+                  **kwargs):
         """The :class:`solvers.MultigridSolver` of this problem (its coarse operators and null space).
 
         Parameters
@@ -99,9 +110,14 @@ class Problem:
         local : bool
             Give :attr:`local_nodes` one extra symmetric Gauss–Seidel sweep per smoothing step
             (``MultigridSolver(local_nodes=...)``); ``local_nodes=`` in ``kwargs`` overrides it.
+        smoothing : {"robust", "fast"}
+            Preset used where ``kwargs`` give no ``presmoother``: ``"robust"`` (default) the variable
+            V-cycle of :data:`DEFAULT_SMOOTHERS` plus the boundary-layer sweeps (best factor per cycle,
+            for stationary cycling and hard Neumann problems); ``"fast"`` the textbook V(1,1) of
+            :data:`FAST_SMOOTHERS` without local sweeps (about half the cost per cycle, a few more CG
+            iterations; the faster MG-PCG in wall time where the operator is easy, e.g. diffusion steps).
         **kwargs
-            Passed on (smoothers, ``coarse_solver``, ...). Without ``presmoother``: the variable
-            V-cycle of :data:`DEFAULT_SMOOTHERS`.
+            Passed on (smoothers, ``coarse_solver``, ...).
 
         Returns
         -------
@@ -112,8 +128,11 @@ class Problem:
         if coarse_scaling == "auto":
             coarse_scaling = None if self.coarse_ops is None else "energy"
         coarse = "galerkin" if self.coarse_ops is None else self.coarse_ops
-        kwargs.setdefault("presmoother", DEFAULT_SMOOTHERS)
-        kwargs.setdefault("local_nodes", self.local_nodes if local else None)
+        if smoothing not in SMOOTHING:
+            raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+        fast = smoothing == "fast"
+        kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else DEFAULT_SMOOTHERS)
+        kwargs.setdefault("local_nodes", self.local_nodes if local and not fast else None)
         return MultigridSolver(self.A, self.P, coarse=coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 

@@ -20,10 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from solvers.fem import check_tet_mesh, mass_matrix, stiffness_matrix
+from solvers.fem import boundary_layer_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
+from solvers.multilevel import restrict_prolongations
 from solvers.shifted import ShiftedGalerkin
 
-from .problems import Problem, setup_problem
+from .problems import Problem
 
 __all__ = ["DiffusionStepper", "diffusion_stepper", "implicit_diffusion"]
 
@@ -41,8 +42,11 @@ class DiffusionStepper:
     family : ShiftedGalerkin
         Galerkin ``M`` and ``K`` on every level.
     setup_seconds : dict
-        Wall seconds of ``problem`` (:func:`setup_problem`), ``assembly`` (``K``, ``M``), ``galerkin``
-        (the two hierarchies of triple products); ``cpu``: the same in process CPU time.
+        Wall seconds of ``assembly`` (``K``, ``M``; 0 when given), ``problem`` (pruned prolongations,
+        boundary layer), ``galerkin`` (the two hierarchies of triple products); ``cpu``: the same in
+        process CPU time.
+    smoothing : str
+        Cycle preset of every step (:meth:`nestmg.problems.Problem.multigrid`).
     """
 
     problem: Problem
@@ -50,6 +54,7 @@ class DiffusionStepper:
     K: sp.csr_matrix
     family: ShiftedGalerkin
     setup_seconds: dict
+    smoothing: str = "fast"
 
     def step(self, u_prev: np.ndarray, dt: float, *, tol: float = 1e-8, maxiter: int = 200,
              **multigrid_kwargs) -> tuple[np.ndarray, dict]:
@@ -86,7 +91,10 @@ class DiffusionStepper:
         t1, c1 = time.perf_counter(), time.process_time()
         prob = dataclasses.replace(self.problem, A=A, b=b, coarse_ops=coarse,
                                    params=dict(self.problem.params, lam=dt, coarse="galerkin (sparse sum)"))
-        # the sparse sums are Galerkin operators: no energy scaling
+        # the sparse sums are Galerkin operators: no energy scaling; symmetric by construction (M, K
+        # symmetric, products symmetrised), so the solver need not test it at every step
+        multigrid_kwargs.setdefault("symmetric", True)
+        multigrid_kwargs.setdefault("smoothing", self.smoothing)
         ml = prob.multigrid(coarse_scaling=None, **multigrid_kwargs)
         t2, c2 = time.perf_counter(), time.process_time()
         u, info = ml.solve(b, x0=u_prev, tol=tol, maxiter=maxiter, accel="cg", return_info=True)
@@ -99,7 +107,8 @@ class DiffusionStepper:
 
 
 def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_matrix], *,
-                      prune: float = 0.2) -> DiffusionStepper:
+                      K: sp.spmatrix | None = None, M: sp.spmatrix | None = None, prune: float = 0.2,
+                      smoothing: str = "fast") -> DiffusionStepper:
     """Set up backward-Euler diffusion on a hierarchy (once; every step reuses it).
 
     Parameters
@@ -108,25 +117,54 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
         Tet meshes, finest first (``Hierarchy.tets``).
     P : list of (n_k, n_{k+1}) csr_matrix
         Prolongations (``Hierarchy.P``).
+    K, M : (n_0, n_0) sparse matrices, optional
+        The fine stiffness and mass matrices, e.g. a simulation code's own (any symmetric pair on the
+        fine nodes: a consistent mass matrix or a conductivity-weighted stiffness work too). Default:
+        P1 stiffness and lumped mass assembled on ``tets[0]``.
     prune : float
         As :func:`setup_problem` (weak coarse nodes dropped from the prolongations).
+    smoothing : {"fast", "robust"}
+        Cycle preset of :meth:`Problem.multigrid` used by :meth:`DiffusionStepper.step` (default
+        ``"fast"``, the textbook V(1,1): with the mass term the steps are easy and under CG the cheaper
+        cycle wins in wall time, docs/reuse.md).
 
     Returns
     -------
     DiffusionStepper
     """
+    from .problems import SMOOTHING
+
+    if smoothing not in SMOOTHING:
+        raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+    if len(P) != len(tets) - 1:
+        raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
     t0, c0 = time.perf_counter(), time.process_time()
-    prob = setup_problem(tets, P, "diffusion-neumann", lam=1.0, prune=prune)
+    V0, T0 = tets[0]
+    n0 = len(V0)
+    if K is None or M is None:
+        V0, T0, vol0 = check_tet_mesh(V0, T0, return_volumes=True)
+        K = stiffness_matrix(V0, T0, check=False) if K is None else K
+        M = mass_matrix(V0, T0, check=False, volumes=vol0) if M is None else M
+    K, M = sp.csr_matrix(K, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64)
+    for name, X in (("K", K), ("M", M)):
+        if X.shape != (n0, n0):
+            raise ValueError(f"{name} must have shape ({n0}, {n0}) (the fine nodes), got {X.shape}")
+        if not np.all(np.isfinite(X.data)):
+            raise ValueError(f"{name} contains NaN/inf entries")
     t1, c1 = time.perf_counter(), time.process_time()
-    V0, T0, vol0 = check_tet_mesh(*tets[0], return_volumes=True)
-    K = stiffness_matrix(V0, T0, check=False)
-    M = mass_matrix(V0, T0, check=False, volumes=vol0)
+    # natural boundary: every fine node is free; the prolongations are pruned as in setup_problem
+    Pr, free = restrict_prolongations(P, np.arange(n0), min_column_sum=prune)
+    local = boundary_layer_nodes(T0, rings=1, n=n0) if smoothing == "robust" else None
+    prob = Problem(name="diffusion-neumann", A=M + K, b=np.zeros(n0), P=Pr, coarse_ops=None, free=free,
+                   n_fine=n0, nullspace=None, params={"lam": 1.0, "coarse": "galerkin", "prune": prune,
+                                                      "smoothing": smoothing}, local_nodes=local)
     t2, c2 = time.perf_counter(), time.process_time()
     fam = ShiftedGalerkin(M, K, prob.P)
     t3, c3 = time.perf_counter(), time.process_time()
-    return DiffusionStepper(prob, sp.csr_matrix(M), sp.csr_matrix(K), fam,
-                            {"problem": t1 - t0, "assembly": t2 - t1, "galerkin": t3 - t2,
-                             "cpu": {"problem": c1 - c0, "assembly": c2 - c1, "galerkin": c3 - c2}})
+    return DiffusionStepper(prob, M, K, fam,
+                            {"assembly": t1 - t0, "problem": t2 - t1, "galerkin": t3 - t2,
+                             "cpu": {"assembly": c1 - c0, "problem": c2 - c1, "galerkin": c3 - c2}},
+                            smoothing)
 
 
 def implicit_diffusion(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_matrix], u0: np.ndarray, dts,

@@ -153,6 +153,11 @@ class MultigridSolver:
         Extra symmetric sweeps per application (default 1).
     local_levels : int, optional
         Number of levels, from the finest, that get local sweeps.
+    symmetric : bool, optional
+        The caller's statement that ``A`` and the given coarse operators are symmetric (e.g. the sparse
+        sums of :class:`solvers.shifted.ShiftedGalerkin`, symmetric by construction), which skips the
+        symmetry tests (~40 ms per level visit of a 2.5M-nonzero operator, a third of a time step's
+        set-up in ``benchmarks/reuse_diffusion.py``). ``None`` (default): tested (relative 1e-10).
 
     Attributes
     ----------
@@ -191,6 +196,7 @@ class MultigridSolver:
         local_nodes=None,
         local_sweeps: int = 1,
         local_levels: int | None = None,
+        symmetric: bool | None = None,
     ):
         t0 = time.perf_counter()
         if nullspace not in (None, "constant"):
@@ -232,7 +238,7 @@ class MultigridSolver:
                 # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
                 # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
                 Ps, _ = restrict_prolongations(Ps, np.arange(A.shape[0]))
-            sym0 = _is_symmetric(A)
+            sym0 = _is_symmetric(A) if symmetric is None else bool(symmetric)
             ops = galerkin_operators(A, Ps, symmetric=sym0)
             self.coarse = "galerkin"
         else:
@@ -281,12 +287,17 @@ class MultigridSolver:
             else:
                 lvl = Level(Ak)
             self.levels.append(lvl)
-        self._coarse_solver = _CoarseSolver(ops[-1], nullspace, len(ops) - 1, coarse_solver, pinv_max)
+        # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
+        if self.coarse == "galerkin":
+            self.symmetric = sym0
+        else:
+            self.symmetric = (all(_is_symmetric(L.A) for L in self.levels) if symmetric is None
+                              else bool(symmetric))
+        self._coarse_solver = _CoarseSolver(ops[-1], nullspace, len(ops) - 1, coarse_solver, pinv_max,
+                                            symmetric=self.symmetric or None)
         #: null vectors of the coarsest operator (1 expected for Neumann, 0 for Dirichlet; more means a
         #: rank-deficient prolongation, handled by the pseudo-inverse)
         self.coarse_nullity = self._coarse_solver.nullity
-        # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
-        self.symmetric = sym0 if self.coarse == "galerkin" else all(_is_symmetric(L.A) for L in self.levels)
         # a cycle is a symmetric operator iff A_k are symmetric and post = adjoint(pre) on every level
         self.symmetric_cycle = self.symmetric and (
             len(self.levels) == 1

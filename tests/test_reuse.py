@@ -22,6 +22,7 @@ def torus3():
 
 
 def test_sparse_sum_equals_galerkin_of_the_step_matrix(torus3):
+    from nestmg.problems import setup_problem
     from nestmg.timestepping import diffusion_stepper
     from solvers import galerkin_operators
 
@@ -29,7 +30,9 @@ def test_sparse_sum_equals_galerkin_of_the_step_matrix(torus3):
     st = diffusion_stepper(tets, P)
     assert st.family.n_levels == 3
     # the stepper's fine matrices are those of setup_problem: A(lam) = M + lam K
-    assert abs(st.problem.A - (st.M + 1.0 * st.K)).max() < 1e-12 * abs(st.problem.A).max()
+    ref_prob = setup_problem(tets, P, "diffusion-neumann", lam=1.0)
+    assert abs(ref_prob.A - (st.M + 1.0 * st.K)).max() < 1e-12 * abs(ref_prob.A).max()
+    assert all(abs(a - b).max() == 0 for a, b in zip(st.problem.P, ref_prob.P))  # same pruned prolongations
     for dt in (1e-4, 3.7e-2, 2.0):
         ops = st.family.operators(1.0, dt)
         ref = galerkin_operators(st.M + dt * st.K, st.problem.P)
@@ -81,3 +84,40 @@ def test_stepper_rejects_bad_input(torus3):
         st.step(np.zeros(n + 1), 0.1)
     with pytest.raises(SolverInputError, match="same shape"):
         ShiftedGalerkin(st.M, st.K[:-1, :-1], st.problem.P)
+
+
+def test_stepper_with_user_matrices_and_both_cycles(torus3):
+    """A simulation code's own K and M (here: a consistent mass matrix and a conductivity of 3) and the
+    two cycle presets: same states to the tolerance; the fast cycle is the textbook V(1,1) (forward GS,
+    no local sweeps), the robust one needs fewer iterations."""
+    from nestmg.timestepping import diffusion_stepper
+    from solvers.fem import stiffness_matrix
+
+    tets, P = torus3
+    V0, T0 = tets[0]
+    K = 3.0 * stiffness_matrix(V0, T0)
+    # consistent P1 mass matrix: vol/20 (1 + delta_ij) per tet
+    e = V0[T0[:, 1:]] - V0[T0[:, :1]]
+    vol = np.abs(np.linalg.det(e)) / 6.0
+    rows = np.repeat(T0, 4, axis=1).ravel()
+    cols = np.tile(T0, (1, 4)).ravel()
+    vals = (vol[:, None] / 20.0 * (1.0 + np.eye(4).ravel()[None, :])).ravel()
+    Mc = sp.csr_matrix((vals, (rows, cols)), shape=(len(V0), len(V0)))
+    fast = diffusion_stepper(tets, P, K=K, M=Mc)
+    assert fast.setup_seconds["assembly"] < 0.5 and fast.problem.local_nodes is None
+    robust = diffusion_stepper(tets, P, K=K, M=Mc, smoothing="robust")
+    assert robust.problem.local_nodes is not None and len(robust.problem.local_nodes) > 0
+    u0 = np.exp(-20 * np.sum((V0 - V0[0]) ** 2, axis=1))
+    dt = 3e-3
+    uf, i_f = fast.step(u0, dt, tol=1e-10)
+    ur, i_r = robust.step(u0, dt, tol=1e-10)
+    ref = spla.spsolve(sp.csc_matrix(Mc + dt * K), Mc @ u0)
+    for u in (uf, ur):
+        assert np.abs(u - ref).max() <= 1e-7 * np.abs(ref).max()
+    assert i_r["iterations"] <= i_f["iterations"] <= 30
+    ml = fast.problem.multigrid(smoothing="fast")
+    assert ml.levels[0].presmoother.params.get("sweep") == "forward" and "local_nodes" not in ml.levels[0].presmoother.params
+    with pytest.raises(ValueError, match="smoothing"):
+        diffusion_stepper(tets, P, smoothing="quick")
+    with pytest.raises(ValueError, match="shape"):
+        diffusion_stepper(tets, P, K=K[:-1, :-1], M=Mc)

@@ -571,3 +571,54 @@ def test_galerkin_of_nonsymmetric_operator_is_exact():
     assert not MultigridSolver(A, Ps).symmetric
     S = transfer.galerkin_operators((K + sp.eye(n)).tocsr(), Ps)[1]
     assert abs(S - S.T).max() == 0.0 and MultigridSolver((K + sp.eye(n)).tocsr(), Ps).symmetric
+
+
+def test_is_symmetric_fast_path_agrees_with_subtraction():
+    # the canonical-CSR fast path (transpose, compare arrays) must decide exactly as |A - A^T| does
+    rng = np.random.default_rng(5)
+    R = sp.random(300, 300, density=0.02, random_state=7, format="csr")
+    S = transfer._as_csr(R + R.T + sp.eye(300), "S")
+    cases = {"symmetric": (S, True), "pattern asymmetric": (transfer._as_csr(R + sp.eye(300), "R"), False)}
+    V = S.copy()
+    i = int(np.flatnonzero(V.indices != np.repeat(np.arange(300), np.diff(V.indptr)))[0])
+    V.data[i] *= 1.0 + 1e-6  # one off-diagonal value perturbed: same pattern, asymmetric values
+    cases["values asymmetric"] = (V, False)
+    W = S.copy()
+    W.data[i] *= 1.0 + 1e-13  # below the 1e-10 relative tolerance: still symmetric
+    cases["round-off"] = (W, True)
+    Z = sp.csr_matrix(S.copy())
+    Z.data[i] = 0.0
+    Z.eliminate_zeros()  # a dropped entry: the general path, asymmetric
+    cases["dropped entry"] = (transfer._as_csr(Z, "Z"), False)
+    for name, (A, want) in cases.items():
+        d = abs(A - A.T)
+        ref = (d.max() if d.nnz else 0.0) <= 1e-10 * abs(A).max()
+        assert ref == want, name
+        assert transfer._is_symmetric(A) == want, name
+    assert not transfer._is_symmetric(sp.csr_matrix(rng.standard_normal((3, 4))))
+
+
+def test_sparse_lu_symmetric_mode_and_symmetric_hint(cube):
+    from solvers.coarse import sparse_lu
+
+    meshes, Ps, K, M = cube
+    _V, T = meshes[0]
+    ds = fem.eliminate_dirichlet(K, fem.load_vector(M, 1.0), fem.boundary_nodes(T))
+    A = ds.A
+    b = _random_rhs(A.shape[0], 2)
+    x_ref = spla.spsolve(sp.csc_matrix(A), b)
+    lu = sparse_lu(A)  # symmetric: SuperLU's symmetric mode, no pivoting
+    assert np.abs(lu.solve(b) - x_ref).max() < 1e-10 * np.abs(x_ref).max()
+    # the symmetric ordering keeps the fill of a Cholesky-like factor: no more than the pivoting LU's
+    assert lu.L.nnz + lu.U.nnz <= spla.splu(sp.csc_matrix(A)).L.nnz + spla.splu(sp.csc_matrix(A)).U.nnz
+    N_ = A + sp.triu(A, 1) * 0.3  # non-symmetric: the pivoting LU, still exact
+    luN = sparse_lu(N_)
+    xN = spla.spsolve(sp.csc_matrix(N_), b)
+    assert np.abs(luN.solve(b) - xN).max() < 1e-10 * np.abs(xN).max()
+    # the symmetric hint skips the tests and gives the same solver
+    Pf, _ = restrict_prolongations(Ps[:3], ds.free)
+    ops = transfer.galerkin_operators(A, Pf)
+    x1 = MultigridSolver(A, Pf, coarse=ops[1:]).solve(b, tol=1e-10)
+    ml2 = MultigridSolver(A, Pf, coarse=ops[1:], symmetric=True)
+    assert ml2.symmetric and ml2.symmetric_cycle
+    assert np.abs(ml2.solve(b, tol=1e-10) - x1).max() < 1e-9 * np.abs(x1).max()

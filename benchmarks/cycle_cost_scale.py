@@ -31,6 +31,8 @@ SMOOTHERS = {
     "sgs/sgs": (("gauss_seidel", {"sweep": "symmetric", "iterations": 1}), None),
     "fgs/bgs": (("gauss_seidel", {"sweep": "forward", "iterations": 1}), None),  # post = adjoint = backward
 }
+#: ``--presets``: the two cycles of ``Problem.multigrid(smoothing=...)`` instead of the two smoothers above
+PRESETS = ("robust", "fast")
 
 
 def main(argv=None):
@@ -39,6 +41,11 @@ def main(argv=None):
     ap.add_argument("--fine-tets", type=int, default=1_150_000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("bench_out/cycle_cost_scale"))
+    ap.add_argument("--edge-length", type=float, default=None,
+                    help="use the 3-level TetWild hierarchy of the reuse benchmarks (exp_common.load_hierarchy, "
+                         "this fine edge / diagonal) instead of the 4-level TetGen one")
+    ap.add_argument("--presets", action="store_true",
+                    help="compare Problem.multigrid(smoothing='robust'|'fast') (Galerkin only) instead of the smoothers")
     args = ap.parse_args(argv)
 
     import igl
@@ -52,8 +59,13 @@ def main(argv=None):
     V, F = load_mesh(args.mesh)
     V, _, _ = normalize(V)
     t0 = time.perf_counter()
-    h = build_hierarchy(V, F, 4, method="nested", mesher="tetgen", edge_length_fac=edge_for_tets(V, F, args.fine_tets),
-                        same_domain_levels=1, progress=False)
+    if args.edge_length is not None:
+        from exp_common import load_hierarchy
+
+        h, _ = load_hierarchy(args.mesh, edge_length_fac=args.edge_length)
+    else:
+        h = build_hierarchy(V, F, 4, method="nested", mesher="tetgen",
+                            edge_length_fac=edge_for_tets(V, F, args.fine_tets), same_domain_levels=1, progress=False)
     doc: dict = {"benchmark": "cycle_cost_scale", "mesh": args.mesh.name, "build_seconds": time.perf_counter() - t0,
                  "tets": [len(T) for _, T in h.tets], "nodes": [len(Vk) for Vk, _ in h.tets],
                  "n_outside": [int(x) for x in h.n_outside]}
@@ -72,16 +84,18 @@ def main(argv=None):
     doc["fractions_seconds"] = time.perf_counter() - t0
     doc["runs"] = []
     for prob in ("poisson-dirichlet", "poisson-neumann"):
-        for coarse in ("galerkin", "weighted"):
+        for coarse in ("galerkin",) if args.presets else ("galerkin", "weighted"):
             t0 = time.perf_counter()
             pr = setup_problem(h.tets, h.P, prob, coarse=coarse, fractions=fr)
             t_prob = time.perf_counter() - t0
             A = pr.A
             x = np.random.default_rng(0).standard_normal(A.shape[0])
             t_spmv = best(lambda: [A @ x for _ in range(20)], args.repeat) / 20  # noqa: B023
-            for sname, (pre, post) in SMOOTHERS.items():
+            variants = ({p: {"smoothing": p} for p in PRESETS} if args.presets else
+                        {k: {"presmoother": pre, "postsmoother": post} for k, (pre, post) in SMOOTHERS.items()})
+            for sname, kw in variants.items():
                 t0 = time.perf_counter()
-                ml = pr.multigrid(presmoother=pre, postsmoother=post)
+                ml = pr.multigrid(**kw)
                 t_setup = time.perf_counter() - t0
                 M = ml.aspreconditioner()
                 t_cyc = best(lambda: M.matvec(x), args.repeat)  # noqa: B023
@@ -96,7 +110,9 @@ def main(argv=None):
                        "cycle_counted_spmv": ml.cycle_complexity("V"), "cycle_measured_spmv": t_cyc / t_spmv,
                        "pcg_iterations": info["iterations"], "pcg_converged": info["converged"],
                        "solve_cpu_seconds": c_solve, "solve_wall_seconds": w_solve,
-                       "solve_spmv": c_solve / t_spmv}
+                       "solve_spmv": c_solve / t_spmv, "solve_wall_spmv": w_solve / t_spmv,
+                       "local_nodes": int(pr.local_nodes.size) if pr.local_nodes is not None and kw.get("smoothing")
+                       != "fast" else 0}
                 doc["runs"].append(rec)
                 print(f"{prob:18s} {coarse:9s} {sname}: opc {rec['operator_complexity']:.2f} cycle "
                       f"{rec['cycle_measured_spmv']:.1f} SpMV (counted {rec['cycle_counted_spmv']:.1f}); PCG "

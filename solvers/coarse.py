@@ -28,8 +28,9 @@ def sparse_lu(A: sp.spmatrix, symmetric: bool | None = None):
     fill. With SuperLU's default threshold pivoting the row swaps destroy the symmetric ordering; measured
     on a Galerkin level of a 1M-tet hierarchy (24,616 unknowns, 331k nonzeros) that took 133 s against
     0.86 s in symmetric mode (same fill, 8.07M), and 0.075 s against 0.050 s on its 2,708-unknown
-    coarsest level (``benchmarks/setup_cost.py``). Without pivoting an indefinite or singular matrix can
-    give a useless factor without an error: callers validate the factor (as :class:`_CoarseSolver` does).
+    coarsest level (``benchmarks/coarse_factor.py``, docs/reuse.md). Without pivoting an indefinite or
+    singular matrix can give a useless factor without an error: callers validate the factor (as
+    :class:`_CoarseSolver` does).
     """
     A = sp.csc_matrix(A)
     if symmetric is None:

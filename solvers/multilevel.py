@@ -234,12 +234,14 @@ class MultigridSolver:
                 raise SolverInputError(
                     f"coarse must be 'galerkin' or a list of coarse operators, got {coarse!r} (named coarse "
                     "operators such as 'weighted' are built by nestmg.problems.setup_problem)")
-            if any((np.diff(P.tocsc().indptr) == 0).any() for P in Ps):
+            Rs = [sp.csr_matrix(P.T) for P in Ps]  # one transpose per level, reused by the cycle
+            if any((np.diff(R.indptr) == 0).any() for R in Rs):
                 # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
                 # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
                 Ps, _ = restrict_prolongations(Ps, np.arange(A.shape[0]))
+                Rs = [sp.csr_matrix(P.T) for P in Ps]
             sym0 = _is_symmetric(A) if symmetric is None else bool(symmetric)
-            ops = galerkin_operators(A, Ps, symmetric=sym0)
+            ops = galerkin_operators(A, Ps, symmetric=sym0, Rs=Rs)
             self.coarse = "galerkin"
         else:
             coarse_operators = list(coarse)
@@ -252,6 +254,7 @@ class MultigridSolver:
                         f"coarse_operators[{k}] has shape {Ac.shape}, expected {(P.shape[1], P.shape[1])}"
                     )
             self.coarse = "given"
+            Rs = [sp.csr_matrix(P.T) for P in Ps]
         for k, Ak in enumerate(ops):
             d = Ak.diagonal()
             if np.any(d <= 0):
@@ -283,7 +286,7 @@ class MultigridSolver:
                 if local[k] is not None:
                     pre, post = (with_local_sweeps(pre, Ak, local[k], local_sweeps),
                                  with_local_sweeps(post, Ak, local[k], local_sweeps, first=True))
-                lvl = Level(Ak, P, sp.csr_matrix(P.T), pre, post)
+                lvl = Level(Ak, P, Rs[k], pre, post)
             else:
                 lvl = Level(Ak)
             self.levels.append(lvl)

@@ -47,7 +47,7 @@ def _is_symmetric(A: sp.csr_matrix, rtol: float = 1e-10) -> bool:
     return (d.max() if d.nnz else 0.0) <= scale
 
 
-def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None) -> list[sp.csr_matrix]:
+def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=None) -> list[sp.csr_matrix]:
     """Galerkin hierarchy ``[A, P_0ᵀ A P_0, P_1ᵀ (P_0ᵀ A P_0) P_1, ...]``.
 
     For a symmetric ``A`` the products are symmetrised, ``(Ac + Acᵀ)/2``, to remove the round-off
@@ -59,6 +59,9 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None) -> lis
     ----------
     A : (n_0, n_0) sparse
     Ps : list of sparse, ``Ps[k]`` of shape (n_k, n_{k+1})
+    Rs : list of csr_matrix, optional
+        The transposes ``Ps[k]ᵀ`` in CSR form, if the caller has them (saves one O(nnz) transpose per
+        level).
 
     Returns
     -------
@@ -79,7 +82,8 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None) -> lis
             raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {ops[-1].shape[0]} nodes")
         # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
         check_memory(galerkin_bytes(ops[-1], P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
-        Ac = sp.csr_matrix(P.T @ ops[-1] @ P)
+        R = sp.csr_matrix(P.T) if Rs is None else Rs[k]
+        Ac = sp.csr_matrix(R @ (ops[-1] @ P))
         if symmetric:
             Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
         Ac.sum_duplicates()

@@ -4,7 +4,9 @@ For each mesh and cage method, ``nestmg.build_hierarchy(V, F, levels, method=...
 cache=True)`` (nestmg's defaults otherwise: TetWild, the fine level a red refinement of the input meshed
 at twice the fine edge, the cages below it, ``min_gap = 2.5 epsilon`` for the certified methods), then for
 Dirichlet and Neumann Poisson with Galerkin and re-discretised coarse operators
-(``nestmg.run.solve_on_hierarchy``, symmetric Gauss–Seidel V(1,1)):
+(``nestmg.run.solve_on_hierarchy`` with its defaults: the pipeline's variable V-cycle,
+``nestmg.problems.DEFAULT_SMOOTHERS`` -- one symmetric Gauss–Seidel sweep before and after on the fine
+level, two on the coarser ones -- plus the local boundary-layer sweeps of Neumann problems):
 
 * the stationary V-cycle convergence factor (cycles to ``1e-8``, at most ``--cycles``),
 * the MG-preconditioned CG iterations to ``1e-8``,
@@ -18,6 +20,9 @@ Usage::
 
     nice -n 10 python benchmarks/sdf_multigrid.py /work/shared/data/meshes --meshes bunny.off gargo.off \\
         --methods sdf nested decimate --levels 3 --max-tets 300000 --out benchmarks/results/sdf --tag sdf_multigrid
+
+``--levels 4`` (fine level = red refinement of the input meshed at 2h, then two cage levels) makes the
+cages two of the levels.
 """
 
 from __future__ import annotations
@@ -114,10 +119,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--tag", default="sdf_multigrid")
     args = ap.parse_args(argv)
     from nestmg.io import json_default
+    from nestmg.problems import DEFAULT_SMOOTHERS
 
     doc: dict = {"benchmark": "benchmarks/sdf_multigrid.py", "command": " ".join(sys.argv), "levels": args.levels,
                  "max_tets": args.max_tets, "problems": list(PROBLEMS), "coarse": list(COARSE),
-                 "smoother": "symmetric_gauss_seidel V(1,1)", "tol": 1e-8, "results": []}
+                 "smoother": "symmetric_gauss_seidel, nu=1 (solve_on_hierarchy defaults)",
+                 "default_smoothers": [list(s) for s in DEFAULT_SMOOTHERS], "local_sweeps": True, "tol": 1e-8, "results": []}
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     c0 = time.process_time()

@@ -30,6 +30,7 @@ import numpy as np
 
 from .._geometry import as_mesh_arrays, bbox_diagonal, cross_intersection_pairs, edge_stats, n_components
 from .._geometry import signed_volume as _signed_volume
+from ..audit import check_mesh
 from ..decimate import decimate_surface
 from ..errors import CageError
 from ..verify import verify_nesting
@@ -64,11 +65,23 @@ def _min_angle_deg(V: np.ndarray, F: np.ndarray) -> float:
     return best
 
 
-def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2)):
+def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0):
     """Plain QEM in steps to ``mult * n_faces`` faces (each step from the last accepted one), a step
     being accepted only when its result satisfies the constraints (closed, same genus, no
-    self-intersection: :func:`decimate_surface`; no crossing and the fine layer inside: here)."""
+    self-intersection: :func:`decimate_surface`; no crossing, the fine layer inside and, with
+    ``clear > 0``, the cage no closer than ``clear`` to the fine layer (the caller's ``min_gap``: the
+    sampled test of the constrained collapses, then ipctk's exact vertex-face / edge-edge distance):
+    here). Without the clearance test a pre-pass
+    step could come within 2e-4 of a coarse fine layer: the constrained collapses only check the
+    triangles they create, so the layer then failed its ``min_gap`` certificate and was rebuilt with
+    ``c`` doubled (nestmg's second cage layer on bunny and gargo, 7-9% of the diagonal)."""
     import igl
+    from scipy.spatial import cKDTree
+
+    from ..nested.collision import min_distance
+    from .simplify import too_close
+
+    tree = cKDTree(Vf) if clear > 0 else None
 
     tried = []
     for mult in mults:
@@ -87,9 +100,30 @@ def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2)):
         if igl.winding_number(U2, G2, Vf[:1])[0] < 0.5:
             tried.append({"faces": m, "ok": False, "reason": "fine layer outside"})
             break
+        if clear > 0:
+            k = int(too_close(U2[G2], Vf, Ff, tree, clear).sum())
+            dmin = min_distance(U2, G2, Vf, Ff, upper=2 * clear) if not k else 0.0
+            if k or dmin < clear:
+                tried.append({"faces": m, "ok": False,
+                              "reason": f"closer than min_gap ({k} faces sampled, exact distance {dmin:.3g})"})
+                break
         tried.append({"faces": len(G2), "ok": True, "reason": "", "seconds": dinfo["seconds"]})
         U, G = U2, G2
     return U, G, tried
+
+
+def _pick_envelope(tried: list[dict], g_fine: int | None) -> int | None:
+    """Index of the envelope to keep among the grids tried (``{"crossings", "genus"}`` each, coarsest
+    first): the clean ones (no crossing of the fine layer), the closest genus to ``g_fine``, the coarsest
+    on ties; None if every one crosses the fine layer."""
+    clean = [i for i, t in enumerate(tried) if not t["crossings"]]
+    if not clean:
+        return None
+
+    def dist(g):
+        return abs(g - g_fine) if g is not None and g_fine is not None else float("inf")
+
+    return min(clean, key=lambda i: (dist(tried[i]["genus"]), i))
 
 
 def _check_target(n_faces) -> int:
@@ -120,9 +154,11 @@ def sdf_cage_layer(
     opt_iters: int = 15,
     flip_rounds: int = 1,
     opt_time_limit: float = 30.0,
+    pull: float = 50.0,
     prepass: bool = True,
     max_retries: int = 3,
     min_gap: float = 0.0,
+    check_input: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
 
@@ -157,6 +193,10 @@ def sdf_cage_layer(
     opt_time_limit : float
         CPU seconds after which the descent stops (the cage so far is kept; CPU, not wall, so a loaded
         machine gives the same cage).
+    pull : float
+        Weight of the input-to-cage pull in the optimisation (not in the paper; 0 = off): input
+        vertices farther than ``c`` from the cage (concavities the envelope bridged) pull the cage
+        toward them, under the same barrier and CCD (:func:`cagegen.sdf.optimize.optimize_cage`, ``w_p``).
     prepass : bool
         Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
     max_retries : int
@@ -164,6 +204,13 @@ def sdf_cage_layer(
     min_gap : float
         Clearance the cage must keep from ``(V, F)``, relative to ``unit`` (certified exactly; the
         simplification keeps twice that on its distance grid).
+    check_input : bool
+        Audit ``(V, F)`` first (:func:`cagegen.check_mesh`: closed, manifold, oriented, exact
+        self-intersection test, ~1 s per 10k faces) and refuse a bad surface at once with
+        :class:`cagegen.MeshInputError` (a self-intersecting input has no cage that contains it
+        strictly; without the check the backend spends minutes of rebuilds before giving up). False:
+        the caller guarantees an audited input (``build_cages`` does, and every layer it returns is
+        certified).
 
     Returns
     -------
@@ -179,7 +226,8 @@ def sdf_cage_layer(
     Raises
     ------
     cagegen.MeshInputError
-        Malformed arrays.
+        Malformed arrays; with ``check_input``, a surface that fails the audit (self-intersecting,
+        open, non-manifold, ...), before any work.
     ValueError
         Bad option values (odd or too small ``n_faces``, ...).
     cagegen.CageError
@@ -190,8 +238,13 @@ def sdf_cage_layer(
     t0 = time.perf_counter()
     V, F = as_mesh_arrays(V, F, "fine layer")
     n_faces = _check_target(n_faces)
-    if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0:
-        raise ValueError("c and dhat must be > 0; margin, spacing and min_gap >= 0")
+    if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0 or not pull >= 0:
+        raise ValueError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
+    t_check = None
+    if check_input:
+        t = time.perf_counter()
+        check_mesh(V, F, name="sdf input")  # MeshInputError naming every problem (self-intersections, ...)
+        t_check = time.perf_counter() - t
     unit = float(bbox_diagonal(V) if unit is None else unit)
     lo, hi = V.min(0), V.max(0)
     center = 0.5 * (lo + hi)
@@ -215,7 +268,7 @@ def sdf_cage_layer(
             k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
             g_env = genus(env.V, env.F)
             tried_env = [{"h": hk, "crossings": k_cross, "genus": g_env}]
-            first_clean = env if not k_cross else None
+            envs = [env]
             refine = 0
             while (k_cross or g_env != g_fine) and refine < 2:
                 hk *= 0.5
@@ -224,11 +277,13 @@ def sdf_cage_layer(
                 k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
                 g_env = genus(env.V, env.F)
                 tried_env.append({"h": hk, "crossings": k_cross, "genus": g_env})
-                if first_clean is None and not k_cross:
-                    first_clean = env
-            if (k_cross or g_env != g_fine) and first_clean is not None:
-                env = first_clean  # genus not repaired by the finer grids: keep the coarsest clean envelope
-                k_cross = 0
+                envs.append(env)
+            pick = _pick_envelope(tried_env, g_fine)
+            if pick is not None:
+                # genus not repaired by the finer grids: the clean envelope whose genus is closest to the
+                # fine layer's (the coarsest of those: fewer faces to simplify)
+                env, k_cross = envs[pick], 0
+                tried_env[pick]["kept"] = True
             env.info["grid_refinements"] = refine
             env.info["grids_tried"] = tried_env
             if k_cross:
@@ -241,12 +296,13 @@ def sdf_cage_layer(
             t = time.perf_counter()
             pre = []
             if prepass:
-                U, G, pre = _prepass(U, G, Vn, F, n_faces)
+                U, G, pre = _prepass(U, G, Vn, F, n_faces, clear=float(min_gap))
             sec["prepass"] = time.perf_counter() - t
             t = time.perf_counter()
             if len(G) > n_faces:
                 U, G, sinfo = constrained_simplify(U, G, Vn, F, n_faces, env.sdf,
-                                                   margin=max(margin * ck, 2 * float(min_gap)))
+                                                   margin=max(margin * ck, 2 * float(min_gap)),
+                                                   edge_clear=float(min_gap))
             else:
                 sinfo = {"batches": 0, "collapses": 0}
             sec["simplify"] = time.perf_counter() - t
@@ -259,9 +315,12 @@ def sdf_cage_layer(
             if optimize:
                 t = time.perf_counter()
                 try:
-                    U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=spacing * ck, dhat=dhat * ck,
+                    # the CCD keeps min_gap (+5%) and the barrier acts beyond it, so the optimised cage
+                    # can pass the same certificate as the simplified one
+                    U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=spacing * ck, dhat=max(dhat * ck, 2 * min_gap),
                                                   iters=opt_iters, flip_rounds=flip_rounds,
-                                                  time_limit=opt_time_limit)
+                                                  time_limit=opt_time_limit, w_p=pull, pull_target=ck,
+                                                  min_distance=1.05 * float(min_gap))
                     oinfo["ran"] = True
                     rep2 = verify_nesting([(Vn, F), (U2, G2)], min_gap=gap_rel)
                     oinfo["certified"] = bool(rep2.ok)
@@ -305,6 +364,8 @@ def sdf_cage_layer(
         "verification": rep.to_dict(),
         "seconds": {**sec, "total": time.perf_counter() - t0},
     }
+    if t_check is not None:
+        info["seconds"]["check_input"] = t_check
     info["genus_changed"] = bool(info["genus"] != g_fine)
     return Uo, np.ascontiguousarray(G, dtype=np.int64), info
 
@@ -335,7 +396,8 @@ def sdf_backend(
         rebuild), so False changes nothing.
     **opts
         Passed to :func:`sdf_cage_layer` (``c``, ``amplify``, ``optimize``, ``min_gap``, ...). Lengths
-        are relative to the *input's* bounding-box diagonal on every layer.
+        are relative to the *input's* bounding-box diagonal on every layer. ``check_input`` (default
+        True) audits the input (layer 0) only: the coarser layers' inputs are certified cages.
 
     Returns
     -------
@@ -348,6 +410,8 @@ def sdf_backend(
 
     Raises
     ------
+    cagegen.MeshInputError
+        The input fails the audit (``check_input``), before any cage is built.
     cagegen.CageError
         With ``layer`` set (1 = first cage) when a layer could not be built and certified.
     """
@@ -363,13 +427,14 @@ def sdf_backend(
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
     counts = [_check_target(m) for m in face_counts]
+    check0 = bool(opts.pop("check_input", True))
     diag0 = bbox_diagonal(V)
     vol0 = _signed_volume(V, F)
     layers, per_layer, changes = [], [], []
     Vp, Fp = V, F
     for k, m in enumerate(counts, start=1):
         try:
-            U, G, li = sdf_cage_layer(Vp, Fp, m, unit=diag0, **opts)
+            U, G, li = sdf_cage_layer(Vp, Fp, m, unit=diag0, check_input=check0 and k == 1, **opts)
         except CageError as exc:
             raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
         li["layer"] = k
@@ -403,7 +468,7 @@ def nested_fallback(Vf, Ff, m, exc, rep, log, k):
     m = int(m) + int(m) % 2
     rep.say(f"layer {k}: flow and intermediate layers failed; falling back to an sdf cage")
     try:
-        C, G, info = sdf_cage_layer(Vf, Ff, m)
+        C, G, info = sdf_cage_layer(Vf, Ff, m, check_input=False)  # audited input or a certified layer
     except (CageError, ValueError) as exc2:
         raise CageError(f"{exc}; the sdf fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
     log.append({"layer": k, "action": f"fall back to an sdf cage of {len(G)} faces (cagegen.sdf)",

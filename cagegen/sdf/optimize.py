@@ -71,13 +71,64 @@ def _min_angles(V, F):
     return np.min(np.stack(out, 1), axis=1)
 
 
+def _barycentric(Q, A, B, C):
+    """Barycentric coordinates (k,3) of points ``Q`` lying on the triangles ``(A, B, C)`` (clipped to the
+    triangle: ``Q`` comes from a closest-point query, so it is on it up to rounding)."""
+    v0, v1, v2 = B - A, C - A, Q - A
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-300, den, 1e-300)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    L = np.clip(np.c_[1.0 - v - w, v, w], 0.0, 1.0)
+    return L / np.maximum(L.sum(axis=1, keepdims=True), 1e-300)
+
+
 class _Energy:
-    def __init__(self, Fc, Vin, Fin, h, w_s, w_q, h_ref):
+    def __init__(self, Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=0.0, t_pull=None):
         import igl
 
         self.igl = igl
         self.Fc, self.Vin, self.Fin = Fc, Vin, Fin
         self.h, self.w_s, self.w_q, self.h_ref = h, w_s, w_q, h_ref
+        # input-to-cage pull (not in the paper): input vertices farther than t_pull from the cage (a
+        # concavity the offset bridged) pull the closest cage point toward them
+        self.w_p = float(w_p)
+        self.t_pull = t_pull
+        if self.w_p > 0:
+            X = Vin[Fin]
+            Ain = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
+            a = np.zeros(len(Vin))
+            for k in range(3):
+                np.add.at(a, Fin[:, k], Ain / 3)
+            self.a_in = a / float(Ain.sum())
+
+    def pull(self, C, grad=False):
+        """``w_p * sum_i a_i (d_i - t)_+^2 / h_ref^2``, ``d_i`` the distance of input vertex ``i`` to the cage,
+        ``a_i`` its share of the input's area; the gradient moves the closest cage point's corners
+        (barycentric weights held fixed) toward the input vertex."""
+        if self.w_p <= 0:
+            return (0.0, np.zeros_like(C)) if grad else 0.0
+        d2, fi, Q = self.igl.point_mesh_squared_distance(self.Vin, C, self.Fc)
+        d = np.sqrt(d2)
+        ex = np.maximum(d - self.t_pull, 0.0)
+        e = self.w_p * float(np.sum(self.a_in * ex * ex)) / self.h_ref ** 2
+        if not grad:
+            return e
+        g = np.zeros_like(C)
+        on = np.flatnonzero(ex > 0)
+        if len(on):
+            T = self.Fc[fi[on]]
+            L = _barycentric(Q[on], C[T[:, 0]], C[T[:, 1]], C[T[:, 2]])
+            u = (Q[on] - self.Vin[on]) / np.maximum(d[on], 1e-300)[:, None]  # d d_i / d q
+            coef = (self.w_p * 2 * self.a_in[on] * ex[on] / self.h_ref ** 2)[:, None] * u
+            for k in range(3):
+                np.add.at(g, T[:, k], L[:, k:k + 1] * coef)
+        return e, g
 
     def triangles(self, C):
         """Per-triangle share of the energy (spacing at the corners and centroid + MIPS), up to the
@@ -115,7 +166,7 @@ class _Energy:
             m = mips(C, Fc)
         Eq = self.w_q * float(np.sum(A * (m - 2.0))) / At
         if not grad:
-            return Es + Eq
+            return Es + Eq + self.pull(C)
         u = (Q - P) / np.maximum(d, 1e-300)[:, None]
         gq = (self.w_s * 2 * w * r / (At * self.h_ref ** 2))[:, None] * u  # area weights held fixed
         g = gq[: len(C)].copy()
@@ -124,6 +175,9 @@ class _Energy:
         # d(A_f (m_f - 2)) = A_f dm_f + (m_f - 2) dA_f; the dA term is dropped (quality, not area)
         for k in range(3):
             np.add.at(g, Fc[:, k], (self.w_q * A / At)[:, None] * Gm[:, k])
+        if self.w_p > 0:
+            ep, gp = self.pull(C, grad=True)
+            return Es + Eq + ep, g + gp
         return Es + Eq, g
 
 
@@ -237,6 +291,9 @@ def optimize_cage(
     iters: int = 60,
     flip_rounds: int = 2,
     time_limit: float = 10.0,
+    w_p: float = 0.0,
+    pull_target: float | None = None,
+    min_distance: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Relocate the cage's vertices (and flip edges) to lower spacing + MIPS energy, intersection-free.
 
@@ -254,6 +311,16 @@ def optimize_cage(
         Gradient steps per round (``flip_rounds + 1`` rounds of descent, flips between rounds).
     time_limit : float
         CPU seconds of this process; the descent stops early beyond it.
+    w_p : float
+        Weight of the input-to-cage pull (not in the paper; 0 = off): input vertices farther than
+        ``pull_target`` (default ``2 h``) from the cage pull the closest cage point toward them, so the
+        descent can lower the cage into a concavity the envelope bridged (still under the barrier and
+        the CCD line search: nothing may intersect).
+    min_distance : float
+        Clearance a second CCD (cage-input pairs only) keeps between the cage and the input (the
+        caller's ``min_gap``; at most the starting gap). The first CCD (all pairs, cage-cage too) keeps
+        ``min(dhat / 10, half the starting gap)``: below a ``min_gap`` of the order of ``dhat``, so
+        without it the optimised cage failed the caller's certificate and the simplified one was kept.
 
     Returns
     -------
@@ -268,7 +335,7 @@ def optimize_cage(
     Fc = np.array(Fc, dtype=np.int64)
     h_ref = max(h, dhat)
     step = 2 * dhat if step is None else float(step)
-    energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref)
+    energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=w_p, t_pull=2 * h if pull_target is None else pull_target)
     barrier = ipctk.BarrierPotential(dhat, kappa)
     info = {"steps": 0, "flips": 0, "ccd_limited": 0}
     nc = len(C)
@@ -300,6 +367,19 @@ def optimize_cage(
         d0 = float(np.sqrt(col.compute_minimum_distance(pm.mesh, X))) if len(col) else dhat
         min_dist = min(0.1 * dhat, 0.5 * d0)
         info.setdefault("min_distance_start", d0)
+        pmf, mdf = None, 0.0
+        if min_distance > 0:  # the caller's min_gap between cage and input: a second CCD on those pairs
+            pmf = PairMesh(C, Fc, Vin, Fin, cage_fine_only=True)
+            colf = pmf.collisions(pmf.stack(C, Xf), 2 * float(min_distance))
+            d0f = float(np.sqrt(colf.compute_minimum_distance(pmf.mesh, pmf.stack(C, Xf)))) if len(colf) else np.inf
+            mdf = min(float(min_distance), 0.999 * d0f)
+
+        def ccd(Ca, Cb):
+            a_ = pm.stepsize(pm.stack(Ca, Xf), pm.stack(Cb, Xf), min_dist)
+            if pmf is not None and a_ > 0:
+                a_ = min(a_, pmf.stepsize(pmf.stack(Ca, Xf), pmf.stack(Cb, Xf), mdf))
+            return a_
+
         for _ in range(iters):
             if time.process_time() - c0 > time_limit:  # CPU time: a loaded machine does not cut it short
                 break
@@ -309,12 +389,11 @@ def optimize_cage(
             # per-vertex normalised gradient (a positive diagonal scaling: still a descent direction)
             gref = float(np.quantile(gn, 0.9))
             d = -g * (step / np.maximum(gn, gref if gref > 0 else float(gn.max())))[:, None]
-            X1 = pm.stack(C + d, Xf)
-            amax = pm.stepsize(X, X1, min_dist)
+            amax = ccd(C, C + d)
             if amax < 0.3 and active.any():
                 # a pair in contact range blocks the step: hold its cage vertices, move the others
                 d2_ = np.where(active[:, None], 0.0, d)
-                amax2 = pm.stepsize(X, pm.stack(C + d2_, Xf), min_dist)
+                amax2 = ccd(C, C + d2_)
                 if amax2 > amax:
                     d, amax = d2_, amax2
                     info["held"] = info.get("held", 0) + 1
@@ -336,12 +415,15 @@ def optimize_cage(
             f, g = total(pm, X, C, grad=True)
             info["steps"] += 1
         if rnd < flip_rounds:
-            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=min_dist, tri_energy=energy.triangles(C))
+            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=max(min_dist, mdf),
+                                 tri_energy=energy.triangles(C))
             info["flips"] += nfl
             if nfl == 0 and rnd > 0:
                 break
     energy.Fc = Fc
     pm = PairMesh(C, Fc, Vin, Fin)
+    if w_p > 0:
+        info["pull_after"] = energy.pull(C)
     info.update({"energy_before": E0, "energy_after": total(pm, pm.stack(C, Vin), C),
                  "seconds": time.perf_counter() - t0})
     return C, Fc, info

@@ -19,6 +19,9 @@ Usage::
 
     nice -n 10 python benchmarks/cages_skeleton.py --zoo /work/shared/data/meshes \\
         --out benchmarks/results/skeleton/cages_skeleton.json --png docs/images/skeleton
+
+``--min-nested``: per certified case, the smallest ``nested`` face count whose max distance is at most
+the skeleton cage's (:func:`smallest_nested`), instead of the one nested cage at equal face count.
 """
 
 from __future__ import annotations
@@ -56,7 +59,70 @@ def _load(case: str, zoo: Path | None):
     return V, F, None, "auto"
 
 
-def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool) -> dict:
+def smallest_nested(V, F, k: int, d_skel: float, max_tries: int = 6, bisect: int = 2) -> dict:
+    """The smallest ``nested`` face count (build_cages(method="nested"), one layer) whose max distance
+    (``tightness``) is <= ``d_skel``, the skeleton cage's: start at the skeleton cage's face count k,
+    go down (3k/4, k/2, k/4, ...) while the nested cage is as tight, else up (1.5k, 2k, 3k, 4k, 6k)
+    until it is, then ``bisect`` bisection steps between the last failing and the first passing
+    count (targets rounded to even numbers). Returns every try (target, faces, max / mean distance, seconds or error) and the answer
+    (``None`` if no try reached ``d_skel``)."""
+    from cages_lazy import tightness
+
+    from cagegen import build_cages
+
+    tries: list = []
+
+    def run(n):
+        t = time.perf_counter()
+        try:
+            layers = build_cages(V, F, face_counts=[int(n)], method="nested", fallback=None)
+            tt = tightness(*layers[1], V, F, 20000)
+            r = {"target": int(n), "faces": len(layers[1][1]), "max_dist_rel": tt["max_dist_rel"],
+                 "mean_dist_rel": tt["mean_dist_rel"], "volume_ratio": tt["volume_ratio"],
+                 "seconds": time.perf_counter() - t}
+        except Exception as exc:  # noqa: BLE001 -- recorded
+            r = {"target": int(n), "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t}
+        tries.append(r)
+        print(json.dumps({"nested_try": r}), file=sys.stderr, flush=True)
+        return r.get("max_dist_rel", np.inf) <= d_skel
+
+    def even(x):
+        return max(8, 2 * int(round(x / 2)))
+
+    best, fail = None, None
+    if run(k):
+        best = k
+        for f in (0.75, 0.5, 0.25, 0.125)[:max_tries - 1]:
+            if not run(even(f * k)):
+                fail = even(f * k)
+                break
+            best = even(f * k)
+    else:
+        fail = k
+        for f in (1.5, 2, 3, 4, 6)[:max_tries - 1]:
+            if run(even(f * k)):
+                best = even(f * k)
+                break
+            fail = even(f * k)
+    for _ in range(bisect):  # narrow the bracket (fail, best]
+        if best is None or fail is None or best - fail <= 2:
+            break
+        mid = even(0.5 * (best + fail))
+        if mid in (best, fail):
+            break
+        if run(mid):
+            best = mid
+        else:
+            fail = mid
+    ok = [r for r in tries if r.get("max_dist_rel", np.inf) <= d_skel]
+    smallest = min(ok, key=lambda r: r["faces"]) if ok else None
+    return {"skeleton_faces": int(k), "skeleton_max_dist_rel": float(d_skel), "tries": tries,
+            "smallest_target": best, "largest_failing_target": fail, "smallest_faces": smallest["faces"] if smallest else None,
+            "face_ratio_nested_over_skeleton": (smallest["faces"] / k) if smallest else None}
+
+
+def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool,
+             min_nested: bool = False) -> dict:
     from cages_lazy import tightness
 
     from cagegen import build_cages, verify_nesting
@@ -95,6 +161,9 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
                                         "tightness": tightness(*layers[1], V, F, 20000)}
         except Exception as exc:  # noqa: BLE001 -- recorded
             out["nested_same_faces"] = {"error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t}
+    if min_nested:
+        out["smallest_nested_at_same_distance"] = smallest_nested(V, F, len(c.F),
+                                                                  out["tightness"]["max_dist_rel"])
     if png is not None:
         png.mkdir(parents=True, exist_ok=True)
         picture(V, F, c, png / f"skeleton_{Path(case).stem}.png", title=case)
@@ -169,9 +238,9 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     return out
 
 
-def _child(q, case, zoo, png, compare):
+def _child(q, case, zoo, png, compare, min_nested=False):
     try:
-        q.put(run_case(case, zoo, png, compare))
+        q.put(run_case(case, zoo, png, compare, min_nested))
     except Exception:  # noqa: BLE001 -- recorded as the result
         q.put({"case": case, "certified": False, "error": traceback.format_exc(limit=3)})
 
@@ -183,6 +252,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/skeleton/cages_skeleton.json"))
     ap.add_argument("--png", type=Path, default=None)
     ap.add_argument("--timeout", type=float, default=900.0)
+    ap.add_argument("--min-nested", action="store_true",
+                    help="per certified case, the smallest nested face count at the skeleton cage's max distance")
     ap.add_argument("--hierarchy", action="store_true",
                     help="only the stick-figure hierarchy (skeleton cage coarsest) beside nested-only, V-cycles")
     args = ap.parse_args(argv)
@@ -200,7 +271,8 @@ def main(argv=None) -> dict:
     for case in cases:
         q = ctx.Queue()
         t = time.perf_counter()
-        p = ctx.Process(target=_child, args=(q, case, args.zoo, args.png, case in ("star", "stick")))
+        p = ctx.Process(target=_child, args=(q, case, args.zoo, args.png,
+                                             case in ("star", "stick") and not args.min_nested, args.min_nested))
         p.start()
         p.join(args.timeout)
         if p.is_alive():

@@ -168,3 +168,154 @@ def test_stick_figure_cage_via_build_cages():
     assert sk["skeleton"]["n_leaves"] == 5 and sk["skeleton"]["n_branching"] == 2
     assert sk["n_quads"] >= 4 * 4 + 5
     assert len(layers[1][1]) < 200
+
+
+# ----------------------------------------------------------------------------- robustness additions
+def _junction_star(seed: int, n_arms: int):
+    """A star skeleton (centre 0; arm k: bending node 1+2k at distance 1, leaf 2+2k at distance 2) with
+    random quad sections (random radii and corner angles) in the planes orthogonal to the arms."""
+    from cagegen.skeleton.cage import CrossSection, _frame
+
+    rng = np.random.default_rng(seed)
+    dirs = rng.normal(size=(n_arms, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    nodes, edges, bend = [np.zeros(3)], [], []
+    for d in dirs:
+        nodes += [d, 2 * d]
+        b = len(nodes) - 2
+        edges += [(0, b), (b, b + 1)]
+        bend.append(b)
+    S = Skeleton(np.array(nodes), np.array(edges), bend)
+    sections = {}
+    for k, d in enumerate(dirs):
+        u, w = _frame(d)
+        th = rng.uniform(0, 2 * np.pi) + np.array([0, 0.5, 1, 1.5]) * np.pi + rng.uniform(-0.3, 0.3, 4)
+        rad = rng.uniform(0.2, 1.0, 4)
+        for nd, dist in ((1 + 2 * k, 1.0), (2 + 2 * k, 2.0)):
+            q = d * dist + rad[:, None] * (np.cos(th)[:, None] * u + np.sin(th)[:, None] * w)
+            sections[nd] = CrossSection(nd, d * dist, d, 1.0, q, q, q)
+    cc = [(ch, [n for n in ch.nodes if n in bend or S.degree[n] == 1]) for ch in S.chains()]
+    return S, sections, cc
+
+
+def test_junction_steiner_vertex_fix():
+    """Paper Sec. 3.3: a junction hull that misses a section edge gets the edge's midpoint as a Steiner
+    vertex. On this random 4-arm junction (found by search: the first hull misses one edge) the fix
+    adds exactly one vertex and the tight cage is closed and manifold; without it, JunctionError."""
+    from cagegen.skeleton.cage import JunctionError, tight_cage
+
+    S, sections, cc = _junction_star(15, 4)
+    with pytest.raises(JunctionError, match="junction at node 0"):
+        tight_cage(S, sections, cc, max_steiner_rounds=0)
+    tc = tight_cage(S, sections, cc)
+    assert tc["n_steiner"] == 1
+    assert len(tc["V"]) == 8 * 4 + 1
+    steiner = 32
+    owner = [nd for nd, r in tc["section_rings"].items() if steiner in r]
+    assert len(owner) == 1
+    r = tc["section_rings"][owner[0]]
+    i = r.index(steiner)
+    a, b = r[i - 1], r[(i + 1) % len(r)]
+    assert np.allclose(tc["V"][steiner], 0.5 * (tc["V"][a] + tc["V"][b]))  # midpoint of a section edge
+    # the two tube sides along the split edge became triangles; closed surface: V - E + F = 2
+    F = tc["F"]
+    E = {tuple(sorted(e)) for t in F for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+    assert len(tc["V"]) - len(E) + len(F) == 2
+    assert len(tc["quads"]) == 4 * 4 + 4 - 1  # one side quad of the split edge's tube is now a strip
+
+
+def test_merge_close_branching_nodes():
+    """Two branching nodes 0.6 apart inside a unit sphere (inscribed radius ~0.7) merge into one junction
+    of degree 4 at the middle with merge=2 (0.6 < 1.4), and stay apart with merge=0.5 (0.6 > 0.35)."""
+    import trimesh
+
+    from cagegen.skeleton.extract import _merge_close_branching
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(s.vertices), np.asarray(s.faces, np.int64)
+    P = np.array([[-0.3, 0, 0], [0.3, 0, 0], [-0.6, 0.4, 0], [-0.6, -0.4, 0], [0.6, 0.4, 0], [0.6, -0.4, 0]])
+    E = np.array([[0, 1], [0, 2], [0, 3], [1, 4], [1, 5]])
+    P2, E2, merged = _merge_close_branching(P, E, V, F, merge=2.0)
+    assert len(P2) == 5 and len(E2) == 4 and len(merged) == 1
+    deg = np.bincount(E2.ravel())
+    assert deg.max() == 4
+    assert np.allclose(P2[deg.argmax()], 0.0)
+    assert abs(merged[0]["length"] - 0.6) < 1e-12
+    P3, E3, merged3 = _merge_close_branching(P, E, V, F, merge=0.5)
+    assert len(P3) == 6 and len(E3) == 5 and merged3 == []
+
+
+def test_move_without_intersection_freezes_offending_vertices():
+    """A move that pushes one corner of a cube through the opposite side: the vertices of the faces
+    still intersecting after the step-backs do not move, the others do, and the result is free of
+    self-intersections."""
+    import trimesh
+
+    from cagegen._geometry import self_intersection_pairs
+    from cagegen.skeleton.inflate import _move_without_intersection
+
+    c = trimesh.creation.box()
+    V, F = np.asarray(c.vertices, float), np.asarray(c.faces, np.int64)
+    dv = 0.1 * V
+    i = int(np.argmin(V.sum(axis=1)))  # corner (-.5,-.5,-.5)
+    dv[i] = -2.2 * V[i]  # through the cube to beyond the opposite corner
+    assert len(self_intersection_pairs(V + dv, F))
+    V1, used, _, partly = _move_without_intersection(V, F, dv, backoff=0.1, max_backoff=0)
+    assert partly and len(self_intersection_pairs(V1, F)) == 0
+    assert np.allclose(V1[i], V[i])
+    moved = np.flatnonzero(np.linalg.norm(V1 - V, axis=1) > 1e-12)
+    assert len(moved) >= 1 and np.allclose(V1[moved], 1.1 * V[moved])
+
+
+def test_section_positions_order():
+    """Relocation order of a failing section: the node itself, then alternately both sides within one
+    radius (bending node), or inwards up to half the chain (leaf)."""
+    from cagegen.skeleton.backend import _section_positions
+    from cagegen.skeleton.graph import Chain
+
+    nodes = np.column_stack([np.arange(11) * 0.1, np.zeros(11), np.zeros(11)])
+    S = Skeleton(nodes, np.column_stack([np.arange(10), np.arange(1, 11)]))
+    ch = Chain(list(range(11)))  # arc length 0 .. 1
+    assert list(_section_positions(S, ch, 5, 0.25, False)) == [5, 4, 6, 3, 7]
+    assert list(_section_positions(S, ch, 0, 0.25, True)) == [0, 1, 2, 3, 4, 5]
+    assert list(_section_positions(S, ch, 10, 0.25, True)) == [10, 9, 8, 7, 6, 5]
+    assert list(_section_positions(S, ch, 5, 0.25, None)) == [5]
+
+
+def _mirror_error(P, point, normal):
+    """Largest distance from the mirror image of each point to the nearest point of the set."""
+    from scipy.spatial import cKDTree
+
+    from cagegen.skeleton.symmetry import reflect
+
+    d, _ = cKDTree(P).query(reflect(P, np.asarray(point), np.asarray(normal)))
+    return float(d.max())
+
+
+def test_symmetry_detection_and_enforcement_on_the_stick_figure():
+    """Paper Sec. 3.4 on the stick figure (mirror-symmetric about x = 0 by construction): the detected
+    plane is x = 0; with symmetry="auto" the tight cage's sections are exact mirror images (two arm and
+    two leg pairs; torso and head crossed by the plane), without it they are not; both certified."""
+    from cagegen.skeleton.symmetry import detect_mirror_plane
+
+    V, F, S = stick_figure()
+    diag = float(np.linalg.norm(np.ptp(V, 0)))
+    plane = detect_mirror_plane(V, F)
+    assert plane["symmetric"] and plane["score"] < 0.005
+    assert abs(plane["normal"][0]) > 0.999 and abs(plane["point"][0]) < 1e-3 * diag
+    c0 = skeleton_cage(V, F, S, bending="given")
+    c1 = skeleton_cage(V, F, S, bending="given", symmetry="auto")
+    assert c0.info["verification"]["ok"] and c1.info["verification"]["ok"]
+    si = c1.info["symmetry"]
+    assert si["detected"] and len(si["pairs"]) >= 4 and len(si["self"]) >= 1
+    assert c1.info["tight_cage_shrink_steps"] == 0 and not c1.info["assembly_dropped"]
+    n = np.array(si["normal"])
+    p = np.array(si["point"])
+    err1 = _mirror_error(c1.tight_V, p, n)
+    err0 = _mirror_error(c0.tight_V, p, n)
+    assert err1 < 1e-9 * diag, err1
+    assert err0 > 1e-4 * diag, err0  # the enforcement did something
+    # the inflation does not enforce it, but the certified cage stays far more symmetric (measured:
+    # 0.0072 vs 0.058 of the diagonal)
+    assert _mirror_error(c1.V, p, n) < 0.5 * _mirror_error(c0.V, p, n)
+    assert len(c1.F) == len(c0.F)

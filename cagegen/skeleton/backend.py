@@ -97,6 +97,31 @@ def _tangent(S: Skeleton, chain, i: int, reach: float) -> np.ndarray:
     return t / np.linalg.norm(t)
 
 
+def _section_positions(S: Skeleton, chain, i: int, radius: float, leaf):
+    """Chain indices to try for the section of the chain's i-th node: i first, then (``leaf`` False)
+    alternately farther on both sides up to ``radius`` of arc length, or (``leaf`` True) inwards up to
+    half the chain; ``leaf`` None: only i."""
+    yield i
+    if leaf is None:
+        return
+    X = S.nodes[np.asarray(chain.nodes)]
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
+    n = len(chain.nodes)
+    if leaf:
+        step = 1 if i == 0 else -1
+        j = i + step
+        while 0 < j < n - 1 and abs(s[j] - s[i]) <= 0.5 * s[-1]:
+            yield j
+            j += step
+        return
+    for k in range(1, n):
+        for j in (i - k, i + k):
+            if 0 < j < n - 1 and abs(s[j] - s[i]) <= radius:
+                yield j
+        if abs(s[min(i + k, n - 1)] - s[i]) > radius and abs(s[max(i - k, 0)] - s[i]) > radius:
+            return
+
+
 def skeleton_cage(
     V: np.ndarray,
     F: np.ndarray,
@@ -110,6 +135,8 @@ def skeleton_cage(
     mesher: str = "delaunay",
     preinflate_rounds: int = 3,
     drop_bad_sections: bool = True,
+    relocate_sections: bool = True,
+    symmetry=None,
     min_gap: float = 0.0,
     certify: bool = True,
     inner: tuple | None = None,
@@ -145,7 +172,20 @@ def skeleton_cage(
     drop_bad_sections : bool
         When a junction's convex hull misses an edge of an incident bending section (the paper fixes
         this with Steiner vertices, not implemented), drop that bending node and use the next section
-        along its chain (recorded in ``info["junction_recovery"]``); False: raise.
+        along its chain (recorded in ``info["junction_recovery"]``); False: raise. Also: when the tight
+        cage intersects itself and shrinking the offending sections does not help, drop the bending
+        node with most intersecting faces and rebuild (``info["assembly_dropped"]``).
+    relocate_sections : bool
+        When fewer than 4 integral lines of a section reach M (thin parts), move the section along its
+        chain (bending nodes: up to one inscribed radius either way; leaves: inwards, up to half the
+        chain), then drop a bending node whose chain keeps another section (``info["sections_moved"]``,
+        ``info["sections_dropped"]``); False: raise.
+    symmetry : None, "auto" or (point, normal)
+        Mirror symmetry of the sections (paper Sec. 3.4): ``"auto"`` detects a plane
+        (:func:`cagegen.skeleton.symmetry.detect_mirror_plane`) and, if found, symmetrises the sections
+        (:func:`~cagegen.skeleton.symmetry.symmetrize_sections`); a (point, normal) pair (caller's
+        coordinates) imposes that plane. The tight cage is then symmetric unless the assembly had to
+        shrink or drop sections; the final inflation does not enforce it (``info["symmetry"]``).
     min_gap : float
         Clearance demanded between M and the cage, relative to M's bounding-box diagonal.
     certify : bool
@@ -251,6 +291,9 @@ def skeleton_cage(
     # 4. cross-sections
     t = time.perf_counter()
     sections = {}
+    moved: list = []
+    sec_dropped: list = []
+    first_error = None
     for ch, ctrl in chain_controls:
         ref = None  # first axis of the previous section along the chain (untwisted round sections)
         for n in ctrl:
@@ -258,49 +301,199 @@ def skeleton_cage(
                 ref = sections[n].axis
                 continue
             i = ch.nodes.index(n)
-            tan = _tangent(S, ch, i, reach=max(rad_of[n], 2 * spacing))
-            sections[n] = cross_section(field, n, S.nodes[n], tan, rad_of[n], n_seeds=n_seeds,
-                                        seed_radius=seed_radius, ref=ref)
-            ref = sections[n].axis
+            cs = None
+            for j in _section_positions(S, ch, i, rad_of[n], deg[n] == 1 if relocate_sections else None):
+                m = ch.nodes[j]
+                tan = _tangent(S, ch, j, reach=max(rad_of[n], 2 * spacing))
+                rm = rad_of[n] if j == i else float(inscribed_radius(S.nodes[m], Vn, F)[0])
+                try:
+                    cs = cross_section(field, n, S.nodes[m], tan, rm, n_seeds=n_seeds, seed_radius=seed_radius,
+                                       ref=ref)
+                except CageError as exc:
+                    first_error = exc if j == i else first_error
+                    continue
+                if j != i:
+                    moved.append({"node": int(n), "moved_to": int(m),
+                                  "distance": float(np.linalg.norm(S.nodes[m] - S.nodes[n]))})
+                    say(f"section at node {n}: integral lines failed, moved to node {m}")
+                break
+            if cs is None:
+                others = [c for c in ctrl if c != n]
+                if relocate_sections and deg[n] == 2 and others:
+                    sec_dropped.append(int(n))
+                    say(f"section at node {n}: integral lines failed, bending node dropped")
+                    continue
+                raise first_error
+            sections[n] = cs
+            ref = cs.axis
+    if sec_dropped:
+        chain_controls = [(ch, [c for c in ctrl if c not in sec_dropped]) for ch, ctrl in chain_controls]
+    if symmetry is not None:  # paper Sec. 3.4: mirror-symmetric sections
+        from .symmetry import detect_mirror_plane, symmetrize_sections
+
+        if isinstance(symmetry, str):
+            if symmetry != "auto":
+                raise ValueError(f"symmetry must be None, 'auto' or (point, normal), got {symmetry!r}")
+            plane = detect_mirror_plane(Vn, F)
+        else:
+            pt, nr = (np.asarray(x, float) for x in symmetry)
+            plane = {"point": (pt - center) / diag, "normal": nr / np.linalg.norm(nr), "symmetric": True}
+        sinfo = {"detected": plane["symmetric"], "score": plane.get("score"),
+                 "normal": plane["normal"].tolist(), "point": (plane["point"] * diag + center).tolist()}
+        if plane["symmetric"]:
+            new_q, si = symmetrize_sections({n: cs.quad for n, cs in sections.items()}, plane["point"],
+                                            plane["normal"])
+            for n, q in new_q.items():
+                sections[n].quad = q
+            sinfo.update(si)
+            say(f"symmetry: plane normal {np.round(plane['normal'], 3).tolist()}, {len(si['pairs'])} section "
+                f"pairs mirrored, {len(si['self'])} sections crossed by the plane")
+        info["symmetry"] = sinfo
+    info["sections_moved"], info["sections_dropped"] = moved, sec_dropped
     sec["sections"] = time.perf_counter() - t
 
     # 5. tight cage
     t = time.perf_counter()
+    from .._geometry import self_intersection_pairs
+
     dropped: list = []
+    asm_dropped: list = []
+    shrunk: dict = {}
+    moved_away: dict = {}
+    away_log: list = []
+
+    def _move_away(ch, ctrl, nd, junction):
+        """New control list of chain ``ch`` after moving the section ``nd`` away from ``junction`` (or
+        adding a middle section for a lone leaf section); None when impossible."""
+        nodes = ch.nodes
+        X = S.nodes[np.asarray(nodes)]
+        s_arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
+        if ch.start != junction and ch.end != junction:
+            return None
+        step = 1 if ch.start == junction else -1
+        i = nodes.index(nd)
+        if deg[nd] == 1:  # a lone leaf section at the junction: add one at the middle of the chain
+            if len(ctrl) != 1 or len(nodes) < 3:
+                return None
+            j = int(np.clip(np.argmin(np.abs(s_arc - s_arc[-1] / 2)), 1, len(nodes) - 2))
+            key, target = int(nodes[j]), j
+        else:
+            key = nd
+            r0 = rad_of.get(nd, 0.0)
+            nxt = [nodes.index(c) for c in ctrl if (nodes.index(c) - i) * step > 0]
+            lim = s_arc[nxt[0] if step > 0 else nxt[-1]] if nxt else s_arc[-1 if step > 0 else 0]
+            want = s_arc[i] + step * 0.5 * r0
+            target = int(np.argmin(np.abs(s_arc - want)))
+            if target == i:
+                target = i + step
+            if not (0 < target < len(nodes) - 1) or abs(lim - s_arc[target]) < 0.5 * r0:
+                return None
+        m = nodes[target]
+        rm = float(inscribed_radius(S.nodes[m], Vn, F)[0])
+        try:
+            cs = cross_section(field, key, S.nodes[m], _tangent(S, ch, target, reach=max(rm, 2 * spacing)), rm,
+                               n_seeds=n_seeds, seed_radius=seed_radius,
+                               ref=sections[nd].axis if nd in sections else None)
+        except CageError:
+            return None
+        moved_away[nd] = moved_away.get(nd, 0) + 1
+        away_log.append({"junction": int(junction), "section": int(nd), "to_node": int(m),
+                         "added": key != nd})
+        if key != nd:  # new middle section
+            rad_of[key] = rm
+            sections[key] = cs
+            S.bending = sorted(set(S.bending) | {key})
+            say(f"junction at node {junction}: new section at node {key} (middle of the leaf chain of {nd})")
+            return sorted([key] + list(ctrl), key=nodes.index)
+        # the moved section keeps its key; its skeleton node is now m (for the shrink steps)
+        sections[nd] = cs
+        rad_of[nd] = rm
+        ctrl_new = list(ctrl)
+        # the moved section replaces nd at its new place along the chain: re-key it to m
+        sections[int(m)] = sections.pop(nd)
+        rad_of[int(m)] = rm
+        moved_away[int(m)] = moved_away.pop(nd)
+        ctrl_new[ctrl_new.index(nd)] = int(m)
+        S.bending = sorted((set(S.bending) - {nd}) | {int(m)})
+        say(f"junction at node {junction}: section at node {nd} moved away to node {m}")
+        return ctrl_new
     while True:
         try:
             tc = tight_cage(S, sections, chain_controls)
-            break
         except JunctionError as exc:
-            # recovery (ours): the junction's section is too close to it; use the next section along
-            # that chain instead (drop the bending node), when the chain keeps a section
             nd = exc.section
             k = next((j for j, (_, c) in enumerate(chain_controls) if nd in c), None)
+            # recovery 1 (ours): move the junction's section away from it along its chain (its projection
+            # on the junction's sphere shrinks), half an inscribed radius at a time, 4 times at most,
+            # never past the chain's next section; a leaf section alone on its chain gets a new section
+            # at the chain's middle instead
+            if drop_bad_sections and k is not None and moved_away.get(nd, 0) < 4:
+                ch, ctrl = chain_controls[k]
+                res = _move_away(ch, ctrl, nd, exc.junction)
+                if res is not None:
+                    chain_controls[k] = (ch, res)
+                    continue
+            # recovery 2 (ours): use the next section along that chain instead (drop the bending node),
+            # when the chain keeps a section
             if (not drop_bad_sections or k is None or deg[nd] != 2 or len(chain_controls[k][1]) < 2
                     or len(dropped) >= 20):
-                raise
+                # no bending node to drop (a leaf section, or the chain's only one): shrink the section
+                # towards its skeleton node, 20% at a time, so that its projection on the junction's
+                # sphere no longer overlaps its neighbours'
+                if not drop_bad_sections or shrunk.get(nd, 0) >= 4:
+                    raise
+                cs = sections[nd]
+                cs.quad = cs.center + 0.8 * (cs.quad - cs.center)
+                shrunk[nd] = shrunk.get(nd, 0) + 1
+                say(f"junction at node {exc.junction}: shrinking the section at node {nd}")
+                continue
             chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
             dropped.append({"junction": exc.junction, "bending_node_dropped": nd})
             say(f"junction at node {exc.junction}: dropping the bending node {nd} next to it")
-    info["junction_recovery"] = dropped
-    # a tight cage that intersects itself (sections of neighbouring limbs crossing): shrink the
-    # offending sections towards their skeleton node, 20% per step (ours; the paper has no such case)
-    from .._geometry import self_intersection_pairs
-
-    owner_center = np.zeros((len(tc["V"]), 3))
-    for nd, vids in tc["section_vertices"].items():
-        owner_center[vids] = S.nodes[nd]
-    shrink_steps = 0
-    pairs = self_intersection_pairs(tc["V"], tc["F"])
-    while len(pairs) and shrink_steps < 10:
-        bad = np.unique(tc["F"][np.unique(pairs.ravel())].ravel())
-        tc["V"][bad] += 0.2 * (owner_center[bad] - tc["V"][bad])
-        shrink_steps += 1
+            continue
+        # a tight cage that intersects itself (sections of neighbouring limbs crossing, or consecutive
+        # sections of a bent limb crossing): shrink the offending sections towards their skeleton node,
+        # 20% per step; if that fails, drop the bending node owning most intersecting faces and rebuild
+        # (ours; the paper has no such case)
+        owner = np.full(len(tc["V"]), -1)
+        owner_center = np.zeros((len(tc["V"]), 3))
+        for nd, vids in tc["section_rings"].items():
+            owner[vids] = nd
+            owner_center[vids] = S.nodes[nd]
         pairs = self_intersection_pairs(tc["V"], tc["F"])
+        pairs0 = pairs
+        shrink_steps = 0
+        while len(pairs) and shrink_steps < 10:
+            bad = np.unique(tc["F"][np.unique(pairs.ravel())].ravel())
+            tc["V"][bad] += 0.2 * (owner_center[bad] - tc["V"][bad])
+            shrink_steps += 1
+            pairs = self_intersection_pairs(tc["V"], tc["F"])
+        if not len(pairs):
+            break
+        votes: dict = {}
+        for f in np.unique(np.asarray(pairs0).ravel()):
+            for v in tc["F"][f]:
+                nd = int(owner[v])
+                if deg[nd] == 2:
+                    votes[nd] = votes.get(nd, 0) + 1
+        cand = [nd for nd in sorted(votes, key=lambda n: -votes[n])
+                if len(next(c for _, c in chain_controls if nd in c)) >= 2]
+        if not drop_bad_sections or not cand or len(asm_dropped) >= 30:
+            culprits = sorted({int(owner[v]) for f in np.unique(np.asarray(pairs0).ravel()) for v in tc["F"][f]})
+            raise CageError(f"skeleton cage, assembly: the tight cage intersects itself ({len(pairs)} face pairs) "
+                            f"after 10 shrink steps and {len(asm_dropped)} dropped bending nodes; sections "
+                            f"involved at skeleton nodes {culprits}; add or move bending nodes", layer=1)
+        nd = cand[0]
+        k = next(j for j, (_, c) in enumerate(chain_controls) if nd in c)
+        chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
+        asm_dropped.append({"bending_node_dropped": nd, "face_pairs": int(len(pairs0))})
+        say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
+    info["junction_recovery"] = dropped
+    info["assembly_dropped"] = asm_dropped
+    info["junction_sections_shrunk"] = {int(k): v for k, v in shrunk.items()}
+    info["junction_sections_moved_away"] = away_log
+    info["steiner_vertices"] = tc["n_steiner"]
     info["tight_cage_shrink_steps"] = shrink_steps
-    if len(pairs):
-        raise CageError(f"skeleton cage, assembly: the tight cage intersects itself ({len(pairs)} face pairs) "
-                        "after 10 shrink steps; add or move bending nodes", layer=1)
     sec["assembly"] = time.perf_counter() - t
     Vt, Ft = tc["V"], tc["F"]
     info["tight_cage"] = {"n_vertices": len(Vt), "n_faces": len(Ft), "n_quads": len(tc["quads"]),

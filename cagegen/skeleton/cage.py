@@ -224,7 +224,7 @@ def _align(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
     return np.roll(cur, -best, axis=0)
 
 
-def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
+def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner_rounds: int = 6) -> dict:
     """Assemble the tight cage from the sections (vertices on M).
 
     Parameters
@@ -232,11 +232,16 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
     skel : Skeleton
     sections : dict node -> CrossSection
     chain_controls : list of (chain, [control nodes in chain order])
+    max_steiner_rounds : int
+        Rounds of Steiner vertices (midpoints of the section edges a junction hull misses, paper Sec. 3.3).
 
     Returns
     -------
     dict with ``V`` (n,3), ``quads`` (q,4) int, ``tris`` (t,3) int (junction faces), ``F`` (m,3) int
-    (all faces triangulated, outward), ``section_vertices`` node -> 4 vertex indices.
+    (all faces triangulated, outward), ``section_vertices`` node -> 4 corner vertex indices,
+    ``section_rings`` node -> its corners and Steiner vertices in ring order, ``n_steiner``. Tube sides
+    and caps holding Steiner vertices are triangulated (in ``tris``); the paper removes the Steiner
+    vertices afterwards by edge collapses, we keep them (the cage stays certified as built).
 
     Raises
     ------
@@ -258,18 +263,20 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
             sec_vid[nd] = list(range(len(verts), len(verts) + 4))
             verts.extend(q)
             prev = q
-    V = np.asarray(verts, dtype=float)
-    quads, tris = [], []
+    extra: dict = {}  # (node, k) -> Steiner vertices on edge k (corner k -> k+1) of that section, in order
+
+    def ring(nd):
+        out = []
+        for k in range(4):
+            out.append(sec_vid[nd][k])
+            out.extend(extra.get((nd, k), []))
+        return out
+
     deg = skel.degree
-    for ch, ctrl in chain_controls:
-        for a, b in itertools.pairwise(ctrl):
-            A, B = sec_vid[a], sec_vid[b]
-            for k in range(4):
-                quads.append([A[k], A[(k + 1) % 4], B[(k + 1) % 4], B[k]])
-        for end in (ch.start, ch.end):
-            if deg[end] == 1:  # leaf: cap quad
-                quads.append(list(sec_vid[end]))
-    # junctions: convex hull of the incident sections projected on a sphere (paper Sec. 3.3, Fig. 5)
+    # junctions: convex hull of the incident sections projected on a sphere (paper Sec. 3.3, Fig. 5);
+    # a hull that misses a section edge gets a Steiner vertex at the edge's midpoint, iterated until all
+    # section edges are hull edges (paper Sec. 3.3, "pathological cases")
+    incident = {}
     for b in skel.branching:
         inc = []
         for ch, ctrl in chain_controls:
@@ -277,23 +284,74 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
                 inc.append(ctrl[0])
             if ch.end == b:
                 inc.append(ctrl[-1])
-        ids = np.array([i for nd in inc for i in sec_vid[nd]])
-        if len(np.unique(ids)) != len(ids):
+        if len(set(inc)) != len(inc):
             raise CageError(f"skeleton cage, junction at node {b}: a section is incident twice (a chain "
                             "from this node back to it); add bending nodes", layer=1)
-        P = V[ids]
-        sec_of = {int(v): k for k, nd in enumerate(inc) for v in sec_vid[nd]}
-        # sphere centre: the sections' centroid (paper), else the branching node itself
-        failed = None
-        for c in (P.mean(axis=0), skel.nodes[b]):
-            H, inside_one, failed = _junction_hull(P, ids, c, inc, sec_vid, sec_of)
-            if failed is None:
-                break
-        if failed is not None:
-            raise JunctionError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
-                                f"section at node {failed} (the paper's Steiner-vertex fix is not implemented); "
-                                "move or add bending nodes near this junction", b, failed)
-        tris.extend(H[~inside_one].tolist())
+        incident[b] = inc
+    n_steiner = 0
+    junction_tris: dict = {}
+    for rnd in range(max_steiner_rounds + 1):
+        added = False
+        junction_tris = {}
+        for b, inc in incident.items():
+            rings = [ring(nd) for nd in inc]
+            ids = np.array([i for r in rings for i in r])
+            Vc = np.asarray(verts, dtype=float)
+            best = None
+            # sphere centre: the sections' centroid (paper), else the node; last, the plain hull (no sphere)
+            for c in (Vc[ids].mean(axis=0), skel.nodes[b], None):
+                H, keep, missing, bad_sec = _junction_hull(Vc, ids, c, rings)
+                if bad_sec is None:
+                    best = None
+                    junction_tris[b] = H[keep]
+                    break
+                if c is None and not missing:
+                    continue
+                if best is None or len(missing) < len(best[0]):
+                    best = (missing, bad_sec)
+            if best is None:
+                continue
+            missing, bad_sec = best
+            if not missing or rnd == max_steiner_rounds:
+                raise JunctionError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
+                                    f"section at node {inc[bad_sec]} (after {n_steiner} Steiner vertices); "
+                                    "move or add bending nodes near this junction", b, inc[bad_sec])
+            for k_sec, u, v in missing:  # Steiner vertex at the middle of each missed edge
+                nd = inc[k_sec]
+                corners = sec_vid[nd]
+                for k in range(4):  # the corner edge k holding (u, v)
+                    seg = [corners[k]] + extra.get((nd, k), []) + [corners[(k + 1) % 4]]
+                    pos = next((j for j in range(len(seg) - 1) if {seg[j], seg[j + 1]} == {u, v}), None)
+                    if pos is not None:
+                        verts.append(0.5 * (np.asarray(verts[u]) + np.asarray(verts[v])))
+                        lst = extra.setdefault((nd, k), [])
+                        lst.insert(pos, len(verts) - 1)
+                        n_steiner += 1
+                        added = True
+                        break
+        if not added:
+            break
+    V = np.asarray(verts, dtype=float)
+    quads, tris = [], []
+    for ch, ctrl in chain_controls:
+        for a, b in itertools.pairwise(ctrl):
+            A, B = sec_vid[a], sec_vid[b]
+            for k in range(4):
+                sa = [A[k]] + extra.get((a, k), []) + [A[(k + 1) % 4]]
+                sb = [B[k]] + extra.get((b, k), []) + [B[(k + 1) % 4]]
+                if len(sa) == 2 and len(sb) == 2:
+                    quads.append([A[k], A[(k + 1) % 4], B[(k + 1) % 4], B[k]])
+                else:
+                    tris.extend(_zip_strip(V, sa, sb))
+        for end in (ch.start, ch.end):
+            if deg[end] == 1:  # leaf: cap quad (a fan when it holds Steiner vertices)
+                r = ring(end)
+                if len(r) == 4:
+                    quads.append(list(r))
+                else:
+                    tris.extend([r[0], r[j], r[j + 1]] for j in range(1, len(r) - 1))
+    for b in skel.branching:
+        tris.extend(junction_tris[b].tolist())
     quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
     tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
     F = np.vstack([_split_quads(V, quads), tris])
@@ -301,26 +359,49 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list) -> dict:
     _check_closed(V, F)
     # orient the quads like the triangles
     quads = _orient_quads(quads, F)
-    return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid}
+    return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid,
+            "section_rings": {nd: ring(nd) for nd in sec_vid}, "n_steiner": n_steiner}
 
 
-def _junction_hull(P, ids, c, inc, sec_vid, sec_of):
-    """Hull of the junction's section corners projected on the unit sphere around ``c``.
+def _zip_strip(V: np.ndarray, sa: list, sb: list) -> list:
+    """Triangles of the strip between two polylines running the same way (shorter diagonal first)."""
+    out, i, j = [], 0, 0
+    while i < len(sa) - 1 or j < len(sb) - 1:
+        adv_a = j == len(sb) - 1 or (i < len(sa) - 1 and np.linalg.norm(V[sa[i + 1]] - V[sb[j]])
+                                     <= np.linalg.norm(V[sb[j + 1]] - V[sa[i]]))
+        if adv_a:
+            out.append([sa[i], sa[i + 1], sb[j]])
+            i += 1
+        else:
+            out.append([sa[i], sb[j + 1], sb[j]])
+            j += 1
+    return out
 
-    Returns (triangles, mask of triangles inside one section, first section whose edges the hull
-    misses or None).
+
+def _junction_hull(V, ids, c, rings):
+    """Hull of the junction's section rings projected on the unit sphere around ``c`` (None: not projected).
+
+    Returns (triangles, mask of the triangles to keep (not inside one section), the missed ring edges
+    as (section index, u, v), index of the first failing section or None).
     """
-    S = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)
-    H = ids[ConvexHull(S).simplices]
+    P = V[ids]
+    S = P if c is None else (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)
+    hull = ConvexHull(S)
+    H = ids[hull.simplices]
+    if c is None and len(hull.vertices) < len(ids):  # a corner inside the hull: no valid junction
+        return H, np.zeros(len(H), bool), [], 0
+    sec_of = {int(v): k for k, r in enumerate(rings) for v in r}
     owner = np.array([[sec_of[int(v)] for v in tri] for tri in H])
     inside_one = (owner == owner[:, :1]).all(axis=1)
     hull_edges = {tuple(sorted(e)) for tri in H for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
-    for k, nd in enumerate(inc):
-        q = sec_vid[nd]
-        missing = [i for i in range(4) if tuple(sorted((q[i], q[(i + 1) % 4]))) not in hull_edges]
-        if missing or int(np.sum(inside_one & (owner[:, 0] == k))) != 2:
-            return H, inside_one, nd
-    return H, inside_one, None
+    missing, bad = [], None
+    for k, r in enumerate(rings):
+        miss = [(k, r[i], r[(i + 1) % len(r)]) for i in range(len(r))
+                if tuple(sorted((r[i], r[(i + 1) % len(r)]))) not in hull_edges]
+        if miss or int(np.sum(inside_one & (owner[:, 0] == k))) != len(r) - 2:
+            missing.extend(miss)
+            bad = k if bad is None else bad
+    return H, ~inside_one, missing, bad
 
 
 def _split_quads(V: np.ndarray, Q: np.ndarray) -> np.ndarray:

@@ -59,7 +59,7 @@ def _vertex_displacements(V: np.ndarray, F: np.ndarray, disp: np.ndarray) -> np.
 
 def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarray, Fm: np.ndarray,
                 rounds: int = 3, margin: float = 0.05, backoff: float = 0.1,
-                max_backoff: int = 40, contain_rounds: int = 6,
+                max_backoff: int = 40, contain_rounds: int = 12,
                 clearance: float = 2e-3) -> tuple[np.ndarray, dict]:
     """Pull the tight cage ``(V, F)`` out to the surface ``(Vm, Fm)`` along the integral lines of f.
 
@@ -135,18 +135,20 @@ def _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff):
         np.maximum.at(best, I, L)
         pick = best[I] == L
         disp[I[pick]] = d[pick]
-        V, _, _, reverted = _move_without_intersection(V, F, _vertex_displacements(V, F, disp), backoff,
-                                                       max_backoff)
-        if reverted:
+        V, dvu, _, _ = _move_without_intersection(V, F, _vertex_displacements(V, F, disp), backoff,
+                                                  max_backoff)
+        if not np.any(dvu):
             break
     return V, {"outside_per_round": out_log}
 
 
 def _move_without_intersection(V, F, dv, backoff, max_backoff):
     """``V + dv``, stepping the vertices of self-intersecting faces back by ``backoff`` of their move
-    (never past ``V``) up to ``max_backoff`` times; if the cage still self-intersects, ``V`` unchanged.
+    (never past ``V``) up to ``max_backoff`` times; if the cage still self-intersects, the vertices of
+    the faces still intersecting do not move (repeated until the cage is free of intersections, at
+    worst ``V`` itself).
 
-    Returns ``(V_new, dv_used, n_backoff, reverted)``.
+    Returns ``(V_new, dv_used, n_backoff, partly_reverted)``.
     """
     dv = dv.copy()
     V1 = V + dv
@@ -158,6 +160,14 @@ def _move_without_intersection(V, F, dv, backoff, max_backoff):
         dv[bad] *= 1.0 - backoff
         n_back += 1
         pairs = self_intersection_pairs(V1, F)
-    if len(pairs):
-        return V, dv, n_back, True  # keep the last intersection-free cage
-    return V1, dv, n_back, False
+    frozen = 0
+    while len(pairs):  # the vertices of faces still intersecting do not move at all (V is free of them)
+        bad = np.unique(F[np.unique(np.asarray(pairs).ravel())].ravel())
+        bad = bad[np.any(dv[bad] != 0, axis=1)]
+        if len(bad) == 0:
+            return V, np.zeros_like(dv), n_back, True  # keep the last intersection-free cage
+        dv[bad] = 0.0
+        V1 = V + dv
+        frozen += len(bad)
+        pairs = self_intersection_pairs(V1, F)
+    return V1, dv, n_back, frozen > 0

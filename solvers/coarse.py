@@ -26,8 +26,8 @@ def sparse_lu(A: sp.spmatrix, symmetric: bool | None = None):
     of ``A`` itself and SuperLU runs in its symmetric mode with no partial pivoting
     (``diag_pivot_thresh=0``, ``SymmetricMode``): a Cholesky-like factorisation that keeps the ordering's
     fill. With SuperLU's default threshold pivoting the row swaps destroy the symmetric ordering; measured
-    on a Galerkin level of a 1M-tet hierarchy (24,616 unknowns, 331k nonzeros) that took 133 s against
-    0.86 s in symmetric mode (same fill, 8.07M), and 0.075 s against 0.050 s on its 2,708-unknown
+    on a Galerkin level of a 0.97M-tet hierarchy (24,616 unknowns, 331k nonzeros) that took 70 s against
+    0.50 s in symmetric mode (same fill, 8.07M), and 0.043 s against 0.024 s on its 2,708-unknown
     coarsest level (``benchmarks/coarse_factor.py``, docs/reuse.md). Without pivoting an indefinite or
     singular matrix can give a useless factor without an error: callers validate the factor (as
     :class:`_CoarseSolver` does).

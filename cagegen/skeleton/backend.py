@@ -6,8 +6,12 @@ Steps (each timed in ``info["seconds"]``, each failure raised as a :class:`CageE
    automatic extraction (:func:`cagegen.skeleton.extract.extract_skeleton`, needs ``pygel3d``).
 2. ``bending``: the user's bending nodes, or automatic ones where the thickness changes (Sec. 4).
 3. ``field``: TetWild mesh + harmonic field f (0 on the skeleton, 1 on M; Sec. 3.1).
-4. ``sections``: one quad per control node (leaf or bending) from integral lines of ∇f (Sec. 3.3).
-5. ``assembly``: tubes, junction hulls, leaf caps -> closed tight cage with its vertices on M.
+4. ``sections``: one quad per control node (leaf or bending) from integral lines of ∇f (Sec. 3.3),
+   moved along the chain or dropped when the lines do not reach M; optionally mirror-symmetrised
+   (Sec. 3.4, :mod:`cagegen.skeleton.symmetry`).
+5. ``assembly``: tubes, junction hulls (with Steiner vertices, Sec. 3.3), leaf caps -> closed tight
+   cage with its vertices on M; junction sections moved away / dropped / shrunk and self-intersecting
+   tight cages repaired by shrinking or dropping sections (ours, recorded in ``info``).
 6. ``pre_inflation``: along the integral lines (Sec. 3.5).
 7. ``inflation``: the ``nested`` backend's flow + re-inflation (Nested Cages), then certification by
    :func:`cagegen.verify_nesting`.

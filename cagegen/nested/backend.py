@@ -213,6 +213,7 @@ def nest_pair(
     quad_order: int = 2,
     flow_step: float = 1e-3,
     flow_max_iter: int = 1000,
+    flow_active_depth: float | None = None,
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
@@ -238,8 +239,10 @@ def nest_pair(
         Target cage Ĉ (closed, free of self-intersections).
     energy : str
         Final cage energy (:data:`cagegen.nested.energies.ENERGIES`).
-    quad_order, flow_step, flow_max_iter
-        Flow options (:func:`cagegen.nested.flow.flow_inside`).
+    quad_order, flow_step, flow_max_iter, flow_active_depth
+        Flow options (:func:`cagegen.nested.flow.flow_inside`: ``step``, ``max_iter``,
+        ``active_depth``; ``flow_active_depth`` flows only the parts of the fine surface outside Ĉ or
+        shallower than that depth, e.g. for a cage that already contains most of it).
     dhat, kappa, dhat_final, kappa_final, max_move, final_iters
         Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
     gap : float
@@ -301,7 +304,7 @@ def nest_pair(
     t = time.perf_counter()
     upd = rep.phase("flow", flow_max_iter)
     fl = flow_inside(flowed, Ff, Vc, Fc, quad_order=quad_order, step=flow_step,
-                     max_iter=flow_max_iter, callback=lambda it: upd(it))
+                     max_iter=flow_max_iter, active_depth=flow_active_depth, callback=lambda it: upd(it))
     info["seconds"]["flow"] = time.perf_counter() - t
     info["flow"] = fl.to_dict()
     if not fl.success:

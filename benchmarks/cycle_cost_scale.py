@@ -31,7 +31,8 @@ SMOOTHERS = {
     "sgs/sgs": (("gauss_seidel", {"sweep": "symmetric", "iterations": 1}), None),
     "fgs/bgs": (("gauss_seidel", {"sweep": "forward", "iterations": 1}), None),  # post = adjoint = backward
 }
-#: ``--presets``: the two cycles of ``Problem.multigrid(smoothing=...)`` instead of the two smoothers above
+#: ``--presets``: the two cycles of ``Problem.multigrid(smoothing=...)`` instead of the two smoothers above,
+#: plus, where the problem has boundary-layer nodes (Neumann), both with one-way local sweeps
 PRESETS = ("robust", "fast")
 
 
@@ -105,7 +106,12 @@ def main(argv=None):
             A = pr.A
             x = np.random.default_rng(0).standard_normal(A.shape[0])
             t_spmv = best(lambda: [A @ x for _ in range(20)], args.repeat) / 20  # noqa: B023
-            variants = ({p: {"smoothing": p} for p in PRESETS} if args.presets else
+            from nestmg.problems import FAST_SMOOTHERS
+
+            one_way = {"robust+one-way-local": {"local_sweep": "one-way"},
+                       "fast+one-way-local": {"presmoother": FAST_SMOOTHERS, "local_sweep": "one-way"}}
+            variants = ({**{p: {"smoothing": p} for p in PRESETS}, **(one_way if pr.local_nodes is not None else {})}
+                        if args.presets else
                         {k: {"presmoother": pre, "postsmoother": post} for k, (pre, post) in SMOOTHERS.items()})
             for sname, kw in variants.items():
                 t0 = time.perf_counter()
@@ -126,7 +132,7 @@ def main(argv=None):
                        "solve_cpu_seconds": c_solve, "solve_wall_seconds": w_solve,
                        "solve_spmv": c_solve / t_spmv, "solve_wall_spmv": w_solve / t_spmv,
                        "local_nodes": int(pr.local_nodes.size) if pr.local_nodes is not None and kw.get("smoothing")
-                       != "fast" else 0}
+                       != "fast" else 0, "local_sweep": kw.get("local_sweep", "symmetric")}
                 doc["runs"].append(rec)
                 print(f"{prob:18s} {coarse:9s} {sname}: opc {rec['operator_complexity']:.2f} cycle "
                       f"{rec['cycle_measured_spmv']:.1f} SpMV (counted {rec['cycle_counted_spmv']:.1f}); PCG "

@@ -153,6 +153,10 @@ class MultigridSolver:
         Extra symmetric sweeps per application (default 1).
     local_levels : int, optional
         Number of levels, from the finest, that get local sweeps.
+    local_sweep : {"symmetric", "one-way"}
+        ``"symmetric"`` (default): each local sweep is a forward and a backward pass. ``"one-way"``:
+        forward after pre-smoothing, backward before post-smoothing (still an adjoint pair, half the
+        cost).
     symmetric : bool, optional
         The caller's statement that ``A`` and the given coarse operators are symmetric (e.g. the sparse
         sums of :class:`solvers.shifted.ShiftedGalerkin`, symmetric by construction), which skips the
@@ -196,6 +200,7 @@ class MultigridSolver:
         local_nodes=None,
         local_sweeps: int = 1,
         local_levels: int | None = None,
+        local_sweep: str = "symmetric",
         symmetric: bool | None = None,
     ):
         t0 = time.perf_counter()
@@ -226,6 +231,8 @@ class MultigridSolver:
             if not (isinstance(coarse, str) and coarse == "galerkin"):
                 raise SolverInputError("give the coarse operators once: coarse=[...] (coarse_operators is deprecated)")
             coarse = coarse_operators
+        if local_sweep not in ("symmetric", "one-way"):
+            raise SolverInputError(f"local_sweep must be 'symmetric' or 'one-way', got {local_sweep!r}")
         if coarse_scaling not in (None, "energy"):
             raise SolverInputError(f"coarse_scaling must be None or 'energy', got {coarse_scaling!r}")
         self.coarse_scaling = coarse_scaling
@@ -284,8 +291,11 @@ class MultigridSolver:
                 # a self-adjoint smoother is shared (one spectral radius estimate per level)
                 post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec)
                 if local[k] is not None:
-                    pre, post = (with_local_sweeps(pre, Ak, local[k], local_sweeps),
-                                 with_local_sweeps(post, Ak, local[k], local_sweeps, first=True))
+                    one_way = local_sweep == "one-way"
+                    pre, post = (with_local_sweeps(pre, Ak, local[k], local_sweeps,
+                                                   sweep="forward" if one_way else "symmetric"),
+                                 with_local_sweeps(post, Ak, local[k], local_sweeps, first=True,
+                                                   sweep="backward" if one_way else "symmetric"))
                 lvl = Level(Ak, P, Rs[k], pre, post)
             else:
                 lvl = Level(Ak)
@@ -699,7 +709,9 @@ def _smoothers_adjoint(pre: Smoother, post: Smoother) -> bool:
     if pre.name in ("gauss_seidel", "symmetric_gauss_seidel"):
         flip = {"forward": "backward", "backward": "forward", "symmetric": "symmetric"}
         a, b = pre.params, post.params
-        return flip[a["sweep"]] == b["sweep"] and a["iterations"] == b["iterations"] and a["omega"] == b["omega"]
+        return (flip[a["sweep"]] == b["sweep"] and a["iterations"] == b["iterations"] and a["omega"] == b["omega"]
+                and flip[a.get("local_sweep", "symmetric")] == b.get("local_sweep", "symmetric")
+                and a.get("local_nodes") == b.get("local_nodes") and a.get("local_sweeps") == b.get("local_sweeps"))
     return pre.params == post.params
 
 

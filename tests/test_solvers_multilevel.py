@@ -622,3 +622,26 @@ def test_sparse_lu_symmetric_mode_and_symmetric_hint(cube):
     ml2 = MultigridSolver(A, Pf, coarse=ops[1:], symmetric=True)
     assert ml2.symmetric and ml2.symmetric_cycle
     assert np.abs(ml2.solve(b, tol=1e-10) - x1).max() < 1e-9 * np.abs(x1).max()
+
+
+def test_coarsest_symmetric_indefinite_falls_back_to_pivoting_lu():
+    """A symmetric indefinite coarsest operator whose unpivoted (symmetric-mode) factor breaks down
+    must still be solved exactly: the coarse solver retries SuperLU with pivoting."""
+    from solvers.coarse import _CoarseSolver
+
+    from solvers.coarse import sparse_lu
+
+    # [[±1e-13, 1], [1, ∓1e-13]] blocks: symmetric, well-conditioned, tiny diagonal; the unpivoted factor
+    # has growth ~1e13 (measured residual 5e-4), the pivoting LU is exact
+    n = 40
+    B = sp.kron(sp.eye(n // 2), sp.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]])))
+    A = sp.csr_matrix(B + 1e-13 * sp.diags(np.r_[np.ones(n // 2), -np.ones(n // 2)]))
+    b = _random_rhs(n, 4)
+    bad = np.linalg.norm(A @ sparse_lu(A, True).solve(b) - b) / np.linalg.norm(b)
+    assert bad > 1e-6  # the symmetric mode alone would fail validation
+    cs = _CoarseSolver(A, None, 1, "splu")
+    assert np.linalg.norm(A @ cs(b) - b) <= 1e-12 * np.linalg.norm(b)
+    # an SPD operator keeps the symmetric mode (no pivoting): fill equal to the symmetric factor's
+    S = sp.csr_matrix(sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)))
+    cs2 = _CoarseSolver(S, None, 1, "splu")
+    assert cs2.nnz == sparse_lu(S, True).L.nnz + sparse_lu(S, True).U.nnz

@@ -4,7 +4,13 @@ Usage::
 
     python benchmarks/cages.py MESH_DIR --out DIR [--timeout 300] [--levels 3] [--no-wheel]
                                [--counts bunny.off=1000,250 ...] [--only gargo.off ...]
-                               [--methods nested,sdf,lazy] [--tag cages]
+                               [--methods nested,sdf,lazy] [--tag cages] [--wheel-timeout 180] [--audit]
+                               [--counts none]
+
+``--audit`` runs :func:`cagegen.audit.audit_mesh` (self-intersections included) on every closed input: a
+refused input (e.g. the self-intersecting cow) is recorded under ``refused_by_audit``, only ``sdf`` (which
+audits its own input) runs on it, and the cases run smallest first. ``--wheel-timeout`` gives the slow
+wheel its own timeout; ``--counts none`` drops the default extra case. Each row records the input genus.
 
 For every closed mesh of ``MESH_DIR`` (open ones are detected from their boundary edges and
 skipped), both methods get the same input and face counts (default: 4x fewer faces per layer,
@@ -217,6 +223,16 @@ def _in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
     return res
 
 
+def _git_head() -> str | None:
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
+                              text=True, timeout=10).stdout.strip() or None
+    except Exception:  # noqa: BLE001 -- not a git checkout
+        return None
+
+
 def _children_cpu() -> float:
     """CPU seconds (user + system) of the finished subprocesses of this run."""
     import resource
@@ -284,9 +300,14 @@ def main(argv=None) -> int:
     ap.add_argument("mesh_dir")
     ap.add_argument("--out", required=True)
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per mesh and method")
+    ap.add_argument("--wheel-timeout", type=float, default=None,
+                    help="seconds per mesh for the wheel (default: --timeout)")
+    ap.add_argument("--audit", action="store_true",
+                    help="audit every closed input (cagegen.audit.audit_mesh, self-intersections included); a "
+                         "refused input is recorded as such and only sdf (which audits its own input) runs on it")
     ap.add_argument("--levels", type=int, default=3, help="layers including the input (default 3)")
     ap.add_argument("--counts", action="append", default=None,
-                    help="extra case NAME=c1,c2,... (default: bunny.off=1000,250)")
+                    help="extra case NAME=c1,c2,... (default: bunny.off=1000,250; 'none': no extra case)")
     ap.add_argument("--only", action="append", default=None, help="restrict to these file names")
     ap.add_argument("--no-wheel", action="store_true")
     ap.add_argument("--no-default", action="store_true", help="run only the --counts cases")
@@ -301,9 +322,10 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     extra = args.counts if args.counts is not None else ["bunny.off=1000,250"]
+    extra = [s for s in extra if s and s != "none"]
     cases = []
     files = sorted(p for p in Path(args.mesh_dir).iterdir() if p.suffix.lower() in MESH_EXT)
-    skipped = []
+    skipped, refused = [], []
     for p in files:
         if args.no_default or (args.only and p.name not in args.only):
             continue
@@ -312,6 +334,15 @@ def main(argv=None) -> int:
         if not closed:
             skipped.append({"mesh": p.name, "reason": why})
             continue
+        if args.audit:
+            from cagegen.audit import audit_mesh
+
+            t_a = time.perf_counter()
+            a = audit_mesh(V, F, name=p.name)
+            if not a.ok:
+                refused.append({"mesh": p.name, "n_faces": len(F), "problems": [str(x) for x in a.problems],
+                                "n_self_intersections": a.n_self_intersections,
+                                "audit_seconds": time.perf_counter() - t_a})
         levels = args.levels
         while True:
             try:
@@ -322,6 +353,8 @@ def main(argv=None) -> int:
                 if levels < 2:
                     skipped.append({"mesh": p.name, "reason": "too small for a cage"})
                     break
+    if args.audit:  # smallest first: a run cut short still covers the most meshes
+        cases.sort(key=lambda c: len(_read(c[0])[1]))
     for spec in extra:
         name, counts = spec.split("=")
         p = Path(args.mesh_dir) / name
@@ -342,18 +375,31 @@ def main(argv=None) -> int:
 
     def _summary() -> dict:
         return {"mesh_dir": str(args.mesh_dir), "command": " ".join(sys.argv), "methods": methods,
-                "skipped_open": skipped, "wheel": have_wheel, "timeout": args.timeout,
+                "skipped_open": skipped, "refused_by_audit": refused, "wheel": have_wheel, "timeout": args.timeout,
+                "wheel_timeout": args.wheel_timeout or args.timeout, "git_head": _git_head(),
                 "wall_seconds": time.perf_counter() - t_all, "cpu_seconds_all_runs": _children_cpu(),
                 "results": results}
 
     for p, counts in cases:
         V, F = _read(p)
         rec = {"mesh": p.name, "n_faces": len(F), "face_counts": counts}
+        try:
+            from cagegen.sdf.backend import genus
+
+            rec["input_genus"] = genus(V, F)
+        except Exception:  # noqa: BLE001 -- a figure only
+            pass
+        ref = next((r for r in refused if r["mesh"] == p.name), None)
+        if ref is not None:
+            rec["refused_by_audit"] = ref["problems"]
         for m in methods + (["wheel"] if have_wheel else []):
+            if ref is not None and m != "sdf":
+                continue
             fn = _run_ours if m == "nested" else _run_wheel if m == "wheel" else _run_backend(m)
             print(f"[cages] {p.name} {counts}: {m} ...", file=sys.stderr, flush=True)
             load0 = os.getloadavg()[0]
-            rec[m] = _summarise(V, F, _in_subprocess(fn, p, counts, args.timeout), counts)
+            tmo = (args.wheel_timeout or args.timeout) if m == "wheel" else args.timeout
+            rec[m] = _summarise(V, F, _in_subprocess(fn, p, counts, tmo), counts)
             rec[m]["loadavg_1min"] = [load0, os.getloadavg()[0]]
             print(f"[cages]   {m}: ok={rec[m].get('ok')} {rec[m].get('seconds', 0):.1f} s "
                   f"(cpu {rec[m].get('cpu_seconds', float('nan')):.1f}) "

@@ -5,6 +5,7 @@ Usage::
     nice -n 10 python benchmarks/cages_sdf.py MESH_DIR --out DIR [--methods sdf,nested,lazy] [--wheel]
                                    [--levels 3] [--timeout 600] [--only bunny.off ...] [--tag NAME]
                                    [--sdf-opt c=0.008 ...]
+    python benchmarks/cages_sdf.py --table RUN.json   # Markdown table of a benchmarks/cages.py JSON
 
 Every closed mesh of ``MESH_DIR`` (open ones are skipped, as in ``benchmarks/cages.py``) gets the same
 face counts for every method (``cagegen.default_face_counts``: 4x fewer faces per layer). Each run is
@@ -87,7 +88,56 @@ def _write(args, methods, skipped, results) -> dict:
     return doc
 
 
+def _fmt(xs, f):
+    return " / ".join("--" if x is None else format(x, f) for x in xs)
+
+
+def markdown_table(doc: dict, methods=("sdf", "nested", "lazy", "wheel")) -> str:
+    """Markdown table (one row per mesh and method) of a ``benchmarks/cages.py`` JSON.
+
+    Usage: ``python benchmarks/cages_sdf.py --table RUN.json``. Columns: wall s (CPU s) for all layers,
+    wall s per layer where the backend reports it, then per layer (finest first) max / mean distance
+    to the input in % of its diagonal, volume ratio, genus (input genus in brackets), smallest angle, MIPS
+    mean / max, and the verifier's verdict with the min gap / diagonal per pair.
+    """
+    head = ("| mesh | faces | cage faces | method | wall s (CPU s) | s per layer | max dist % | mean dist % | "
+            "vol. ratio | genus (input) | min angle ° | MIPS mean | MIPS max | certified, min gap / diag |")
+    lines = [head, "|" + "---|" * 14]
+    for r in doc["results"]:
+        for m in methods:
+            res = r.get(m)
+            if res is None:
+                continue
+            cf = _fmt(res.get("face_counts") or r["face_counts"], "d")
+            if not res.get("ok"):
+                err = " ".join((res.get("error") or "").split())[:160].replace("|", "/")
+                lines.append(f"| {r['mesh']} | {r['n_faces']} | {cf} | {m} | -- ({res.get('seconds', 0):.1f}) | | | | "
+                             f"| | | | | fails: {err} |")
+                continue
+            L = res["layers"]
+            per = res.get("per_layer_seconds")
+            per_s = _fmt(per, ".1f") if per else ""
+            cpu = res.get("cpu_seconds")
+            ver = res["verification"]
+            gaps = _fmt([q.get("min_gap_rel") for q in ver["pairs"]], ".1e")
+            lines.append(
+                f"| {r['mesh']} | {r['n_faces']} | {cf} | {m} | {res['seconds']:.1f} "
+                f"({'--' if cpu is None else format(cpu, '.1f')}) | {per_s} | "
+                f"{_fmt([100 * x['max_distance_relative'] for x in L], '.2f')} | "
+                f"{_fmt([100 * x['mean_distance_relative'] for x in L], '.2f')} | "
+                f"{_fmt([x['volume_ratio'] for x in L], '.3f')} | "
+                f"{_fmt([x['genus'] for x in L], 'd')} ({r.get('input_genus', '?')}) | "
+                f"{_fmt([x['min_angle_deg'] for x in L], '.1f')} | {_fmt([x['mips_mean'] for x in L], '.2f')} | "
+                f"{_fmt([x['mips_max'] for x in L], '.1f')} | {'yes' if ver['ok'] else 'NO'}, {gaps} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--table":
+        for f in argv[1:]:
+            print(markdown_table(json.loads(Path(f).read_text())))
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("mesh_dir")
     ap.add_argument("--out", required=True)

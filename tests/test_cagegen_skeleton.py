@@ -222,6 +222,20 @@ def test_junction_steiner_vertex_fix():
     E = {tuple(sorted(e)) for t in F for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
     assert len(tc["V"]) - len(E) + len(F) == 2
     assert len(tc["quads"]) == 4 * 4 + 4 - 1  # one side quad of the split edge's tube is now a strip
+    assert tc["n_steiner_per_junction"] == {0: 1}
+
+
+def test_junction_steiner_vertex_cap():
+    """The Steiner vertices of one junction are capped: a hull that would need more raises a
+    JunctionError naming the cap (on spot a junction once took 431 midpoints before failing)."""
+    from cagegen.skeleton.cage import JunctionError, tight_cage
+
+    S, sections, cc = _junction_star(15, 4)
+    with pytest.raises(JunctionError, match=r"Steiner-vertex cap reached \(0 added, 1 more needed, cap 0") as e:
+        tight_cage(S, sections, cc, max_steiner_per_junction=0)
+    assert (e.value.junction, e.value.section) == (0, e.value.section) and e.value.section in S.bending
+    tc = tight_cage(S, sections, cc, max_steiner_per_junction=1)  # exactly enough
+    assert tc["n_steiner"] == 1 and tc["n_steiner_per_junction"] == {0: 1}
 
 
 def test_merge_close_branching_nodes():
@@ -319,3 +333,51 @@ def test_symmetry_detection_and_enforcement_on_the_stick_figure():
     # 0.0072 vs 0.058 of the diagonal)
     assert _mirror_error(c1.V, p, n) < 0.5 * _mirror_error(c0.V, p, n)
     assert len(c1.F) == len(c0.F)
+
+
+def test_unfold_opens_a_folded_vertex():
+    """unfold: a coarse sphere whose top vertex is dragged past a ring neighbour (6 faces folded over,
+    smallest normal cosine -0.93, no self-intersection) is unfolded in one round."""
+    import igl
+
+    from cagegen._geometry import self_intersection_pairs
+    from cagegen.skeleton.inflate import _fold_cosines, unfold
+    from nestmg.shapes import sphere
+
+    V, F = sphere(6)
+    V = V / np.linalg.norm(V, axis=1, keepdims=True)
+    top = int(np.argmax(V[:, 2]))
+    nb = igl.adjacency_list(F)[top][0]
+    V[top] = V[top] + 1.5 * (V[nb] - V[top]) + np.array([0.0, 0.0, -0.075])
+    c = _fold_cosines(V, F)
+    assert len(self_intersection_pairs(V, F)) == 0
+    assert (c < -0.3).any(axis=1).sum() == 6 and c.min() < -0.9
+    V2, rounds, left = unfold(V, F)
+    assert (rounds, left) == (1, 0)
+    assert len(self_intersection_pairs(V2, F)) == 0
+    assert _fold_cosines(V2, F).min() > 0.8
+
+
+def test_crease_push_contains_a_dented_sphere():
+    """crease_push: a coarse cage (102 vertices) around a unit sphere M (1,806 vertices) with one
+    vertex dented to 0.1 of its radius (17 vertices of M outside, max signed distance 0.185) ends with
+    M inside, no self-intersection, no fold."""
+    import igl
+
+    from cagegen._geometry import self_intersection_pairs
+    from cagegen.skeleton.inflate import crease_push
+    from nestmg.shapes import sphere
+
+    Vm, Fm = sphere(20)
+    Vc, Fc = sphere(6)
+    Vc = 1.08 * Vc / np.linalg.norm(Vc, axis=1, keepdims=True)
+    Vc[np.argmax(Vc[:, 2])] *= 0.1
+    s0, *_ = igl.signed_distance(Vm, Vc, Fc)
+    assert (s0 > 0).sum() == 17 and s0.max() > 0.18
+    V2, info = crease_push(Vc, Fc, Vm)
+    assert info["outside_per_round"][0] == 17 and info["outside"] == 0 and info["folds"] == 0
+    assert info["best_round"] == len(info["outside_per_round"]) - 1 <= 8
+    s, *_ = igl.signed_distance(Vm, V2, Fc)
+    assert s.max() < 0 and len(self_intersection_pairs(V2, Fc)) == 0
+    assert np.abs(V2 - Vc).max() < 1.0  # only the dent moved far
+    assert np.sort(np.linalg.norm(V2 - Vc, axis=1))[-10] < 0.1

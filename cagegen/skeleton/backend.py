@@ -497,6 +497,7 @@ def skeleton_cage(
     info["junction_sections_shrunk"] = {int(k): v for k, v in shrunk.items()}
     info["junction_sections_moved_away"] = away_log
     info["steiner_vertices"] = tc["n_steiner"]
+    info["steiner_per_junction"] = tc["n_steiner_per_junction"]
     info["tight_cage_shrink_steps"] = shrink_steps
     sec["assembly"] = time.perf_counter() - t
     Vt, Ft = tc["V"], tc["F"]
@@ -521,6 +522,7 @@ def skeleton_cage(
     else:
         Vi, Fi = Vn, F
     gap = 1.1 * float(min_gap)
+    nested_opts.setdefault("flow_max_iter", 2000)  # spot: 945 iterations after the crease push
     try:
         C, ninfo = nest_pair(Vi, Fi, Vp, Ft, gap=gap, **nested_opts)
     except _PairFailure as exc:

@@ -224,7 +224,8 @@ def _align(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
     return np.roll(cur, -best, axis=0)
 
 
-def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner_rounds: int = 6) -> dict:
+def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner_rounds: int = 6,
+               max_steiner_per_junction: int = 16) -> dict:
     """Assemble the tight cage from the sections (vertices on M).
 
     Parameters
@@ -234,6 +235,10 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
     chain_controls : list of (chain, [control nodes in chain order])
     max_steiner_rounds : int
         Rounds of Steiner vertices (midpoints of the section edges a junction hull misses, paper Sec. 3.3).
+    max_steiner_per_junction : int
+        Cap on the Steiner vertices added for one junction (all rounds); a round that would pass it
+        raises :class:`JunctionError` naming the cap (the misses then double every round: the
+        sections' projections overlap, which midpoints cannot fix).
 
     Returns
     -------
@@ -289,6 +294,7 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
                             "from this node back to it); add bending nodes", layer=1)
         incident[b] = inc
     n_steiner = 0
+    steiner_at: dict = {}  # junction -> Steiner vertices added for it
     junction_tris: dict = {}
     for rnd in range(max_steiner_rounds + 1):
         added = False
@@ -316,6 +322,13 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
                 raise JunctionError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
                                     f"section at node {inc[bad_sec]} (after {n_steiner} Steiner vertices); "
                                     "move or add bending nodes near this junction", b, inc[bad_sec])
+            if steiner_at.get(b, 0) + len(missing) > max_steiner_per_junction:
+                raise JunctionError(f"skeleton cage, junction at node {b}: Steiner-vertex cap reached "
+                                    f"({steiner_at.get(b, 0)} added, {len(missing)} more needed, cap "
+                                    f"{max_steiner_per_junction} per junction); the convex hull misses an edge "
+                                    f"of the section at node {inc[bad_sec]}; move or add bending nodes near "
+                                    "this junction", b, inc[bad_sec])
+            steiner_at[b] = steiner_at.get(b, 0) + len(missing)
             for k_sec, u, v in missing:  # Steiner vertex at the middle of each missed edge
                 nd = inc[k_sec]
                 corners = sec_vid[nd]
@@ -360,7 +373,8 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
     # orient the quads like the triangles
     quads = _orient_quads(quads, F)
     return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid,
-            "section_rings": {nd: ring(nd) for nd in sec_vid}, "n_steiner": n_steiner}
+            "section_rings": {nd: ring(nd) for nd in sec_vid}, "n_steiner": n_steiner,
+            "n_steiner_per_junction": {int(k): int(v) for k, v in steiner_at.items()}}
 
 
 def _zip_strip(V: np.ndarray, sa: list, sb: list) -> list:

@@ -17,7 +17,7 @@ import numpy as np
 from .._geometry import self_intersection_pairs
 from .field import GuidingField
 
-__all__ = ["pre_inflate"]
+__all__ = ["crease_push", "pre_inflate", "unfold"]
 
 # barycentric sample pattern per triangle (vertices excluded: they are on M already)
 _B = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4], [2, 2, 1], [2, 1, 2], [1, 2, 2],
@@ -60,7 +60,7 @@ def _vertex_displacements(V: np.ndarray, F: np.ndarray, disp: np.ndarray) -> np.
 def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarray, Fm: np.ndarray,
                 rounds: int = 3, margin: float = 0.05, backoff: float = 0.1,
                 max_backoff: int = 40, contain_rounds: int = 12,
-                clearance: float = 2e-3) -> tuple[np.ndarray, dict]:
+                clearance: float = 2e-3, crease_rounds: int = 20) -> tuple[np.ndarray, dict]:
     """Pull the tight cage ``(V, F)`` out to the surface ``(Vm, Fm)`` along the integral lines of f.
 
     Parameters
@@ -84,6 +84,9 @@ def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarra
         Rounds of the containment push that follows (0: the paper's pre-inflation only).
     clearance : float
         Distance (units of V) by which the containment push passes the vertices of M.
+    crease_rounds : int
+        Rounds of the crease push (:func:`crease_push`) when vertices of M are still outside after the
+        containment push (0: none).
 
     Returns
     -------
@@ -107,6 +110,9 @@ def pre_inflate(field: GuidingField, V: np.ndarray, F: np.ndarray, Vm: np.ndarra
     V, cinfo = _contain(V, F, Vm, Fm, rounds=contain_rounds, clearance=clearance, backoff=backoff,
                         max_backoff=max_backoff)
     info["containment"] = cinfo
+    if crease_rounds and cinfo["outside_per_round"] and cinfo["outside_per_round"][-1] > 0:
+        V, info["crease_push"] = crease_push(V, F, Vm, rounds=crease_rounds, clearance=clearance,
+                                             backoff=backoff, max_backoff=max_backoff)
     info["self_intersections"] = len(self_intersection_pairs(V, F))
     return V, info
 
@@ -171,3 +177,72 @@ def _move_without_intersection(V, F, dv, backoff, max_backoff):
         frozen += len(bad)
         pairs = self_intersection_pairs(V1, F)
     return V1, dv, n_back, frozen > 0
+
+
+def _fold_cosines(V, F):
+    """Cosine between the normals of the faces on either side of each edge, (m, 3) (-1: folded flat)."""
+    N = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
+    TT, _ = igl.triangle_triangle_adjacency(F)
+    return np.einsum("ij,ikj->ik", N, N[np.maximum(TT, 0)])
+
+
+def unfold(V, F, fold_cos: float = -0.3, step: float = 0.5, iters: int = 20, backoff: float = 0.1,
+           max_backoff: int = 40):
+    """Open the folds of the cage: the vertices of every face whose normal makes a cosine below
+    ``fold_cos`` with a neighbour's move ``step`` of the way to their 1-ring centroid (stepping back
+    where the cage would intersect itself), until no fold is left or ``iters`` rounds.
+
+    Folds appear where the pre-inflation or the containment push drives a tube into a junction
+    (a concave crease closing on itself): a folded fin that points into M cannot be removed by the
+    Nested Cages flow, and it blocks every outward push there. Returns ``(V, rounds, folds_left)``.
+    """
+    V = np.array(V, dtype=float)
+    ring = igl.adjacency_list(F)
+    for it in range(iters):
+        bad = np.flatnonzero((_fold_cosines(V, F) < fold_cos).any(axis=1))
+        if len(bad) == 0:
+            return V, it, 0
+        dv = np.zeros_like(V)
+        for v in np.unique(F[bad].ravel()):
+            dv[v] = step * (V[ring[v]].mean(axis=0) - V[v])
+        V, _, _, _ = _move_without_intersection(V, F, dv, backoff, max_backoff)
+    return V, iters, int((_fold_cosines(V, F) < fold_cos).any(axis=1).sum())
+
+
+def crease_push(V, F, Vm, rounds: int = 20, clearance: float = 2e-3, fold_cos: float = -0.3,
+                backoff: float = 0.1, max_backoff: int = 40):
+    """Push the cage out past the vertices of M still outside it or within ``clearance`` inside,
+    along the cage's angle-weighted vertex normals, alternated with :func:`unfold` (our addition).
+
+    Each round: every vertex of M with signed distance s > -clearance to the cage gives the three
+    vertices of its closest cage face an outward move of s + clearance along their vertex normals
+    (largest over the points); the move steps back where the cage would intersect itself
+    (:func:`_move_without_intersection`); then the folds are opened. Unlike the containment push
+    (moves towards the points, which closes concave creases into folds), the normal direction opens a
+    concave crease. The round with the fewest vertices of M outside is kept.
+
+    Returns ``(V, info)``: ``info["outside_per_round"]`` (before each round), ``best_round``,
+    ``outside`` and ``folds`` of the kept cage.
+    """
+    V = np.array(V, dtype=float)
+    V, _, _ = unfold(V, F, fold_cos, backoff=backoff, max_backoff=max_backoff)
+    log = []
+    best = None
+    for r in range(rounds + 1):
+        s, I, _, _ = igl.signed_distance(Vm, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
+        n_out = int((s > 0).sum())
+        log.append(n_out)
+        if best is None or n_out < best[0]:
+            best = (n_out, r, V.copy())
+        if n_out == 0 or r == rounds:
+            break
+        sel = s > -clearance
+        a = np.zeros(len(V))
+        for k in range(3):
+            np.maximum.at(a, F[I[sel], k], s[sel] + clearance)
+        Nv = igl.per_vertex_normals(V, F, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
+        V, _, _, _ = _move_without_intersection(V, F, a[:, None] * Nv, backoff, max_backoff)
+        V, _, _ = unfold(V, F, fold_cos, backoff=backoff, max_backoff=max_backoff)
+    n_out, r, V = best
+    folds = int((_fold_cosines(V, F) < fold_cos).any(axis=1).sum())
+    return V, {"outside_per_round": log, "best_round": r, "outside": n_out, "folds": folds}

@@ -381,3 +381,17 @@ def test_crease_push_contains_a_dented_sphere():
     assert s.max() < 0 and len(self_intersection_pairs(V2, Fc)) == 0
     assert np.abs(V2 - Vc).max() < 1.0  # only the dent moved far
     assert np.sort(np.linalg.norm(V2 - Vc, axis=1))[-10] < 0.1
+
+
+def test_extraction_that_collapses_to_one_node_is_a_named_cage_error(star, monkeypatch):
+    """When pruning leaves a single node (a limbless shape), extraction raises a CageError naming the
+    step and the remedy, not a MeshInputError from the Skeleton constructor."""
+    pytest.importorskip("pygel3d")
+    from cagegen.errors import CageError, MeshInputError
+    from cagegen.skeleton import extract
+
+    V, F, _ = star
+    monkeypatch.setattr(extract, "_prune", lambda P, E, r, prune: (P[:1], E[:0], len(P) - 1))
+    with pytest.raises(CageError, match="1 node.*no edge.*give a skeleton") as ei:
+        extract.extract_skeleton(V, F)
+    assert not isinstance(ei.value, MeshInputError)

@@ -271,6 +271,12 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
             d2, _, _ = igl.point_mesh_squared_distance(P, V, F)
             P, E, n2 = _prune(P, E, np.sqrt(d2), prune)
             n_pruned += n2
+    if len(P) < 2 or len(E) == 0:
+        # pruning and junction merging can reduce a blob-like shape's skeleton to one node: that is a
+        # failed extraction (no tube to build), not a bad user skeleton
+        raise CageError(f"skeleton extraction (pygel3d): the cleaned skeleton has {len(P)} node(s) and no edge "
+                        f"({n_pruned} spurs pruned, {len(junctions_merged)} junctions merged); the shape has no "
+                        "limbs for a skeleton cage: give a skeleton or use another method", layer=1)
     S = Skeleton(P, E)
     info.update({"n_nodes": len(P), "n_edges": len(E), "spurs_pruned": n_pruned,
                  "leaves_outside_dropped": dropped, "outside_node_moves": moved, "outside_nodes_merged": merged,

@@ -56,7 +56,7 @@ def main(argv=None):
 
     from nestmg.hierarchy import build_hierarchy
     from nestmg.io import json_default, load_mesh, normalize
-    from nestmg.problems import setup_problem, volume_fractions
+    from nestmg.problems import FAST_SMOOTHERS, setup_problem, volume_fractions
 
     V, F = load_mesh(args.mesh)
     V, _, _ = normalize(V)
@@ -106,8 +106,6 @@ def main(argv=None):
             A = pr.A
             x = np.random.default_rng(0).standard_normal(A.shape[0])
             t_spmv = best(lambda: [A @ x for _ in range(20)], args.repeat) / 20  # noqa: B023
-            from nestmg.problems import FAST_SMOOTHERS
-
             one_way = {"robust+one-way-local": {"local_sweep": "one-way"},
                        "fast+one-way-local": {"presmoother": FAST_SMOOTHERS, "local_sweep": "one-way"}}
             variants = ({**{p: {"smoothing": p} for p in PRESETS}, **(one_way if pr.local_nodes is not None else {})}

@@ -3,7 +3,7 @@
 Conventions
 -----------
 * ``V : (n, 3) float64`` node positions, ``T : (t, 4) int64`` tets (any orientation).
-* The stiffness ``K = -igl.cotmatrix(V, T)`` is symmetric positive semi-definite with
+* The stiffness ``K`` (= ``-igl.cotmatrix(V, T)``, assembled from libigl's per-tet cotangent weights) is symmetric positive semi-definite with
   ``K @ ones == 0``; ``u @ K @ u = ∫ |∇u|²`` for the P1 function with nodal values ``u``.
 * Poisson ``-Δu = f``  →  ``K u = M f`` (``M`` the mass matrix, ``f`` nodal values).
 * Diffusion / implicit heat step ``(λ K + M) x = M b``  (symmetric positive definite for ``λ >= 0``).
@@ -95,14 +95,21 @@ def check_tet_mesh(V, T, *, return_volumes: bool = False):
     # flatness is judged by shape, not size: |vol| <= 1e-12 * (longest edge)^3 (a regular tet has
     # 0.118); small but well-shaped tets (refinement near a thin feature) are legitimate.
     # 6 vol = |det(e1, e2, e3)| with e_k = x_k - x_0; squared lengths avoid the square roots.
-    vol6, l2 = _volumes6(V, T)
-    # the longest edge is at most twice the longest edge from corner 0: |vol| <= 1e-12 (2 l)^3
-    tiny = vol6 <= 48e-12 * l2**1.5
-    if np.any(tiny):
-        bad = np.flatnonzero(tiny)
-        raise SolverInputError(f"{bad.size} tets have zero volume (first: tet {bad[0]})")
+    # libigl's volumes (one C++ pass, ~25x faster than the numpy formula at 1M tets); the edge-length
+    # test only runs on the tets that could fail it: l <= bounding-box diagonal, so a tet with
+    # 6|vol| > 48e-12 diag^3 passes whatever its edges
+    vol = np.abs(np.asarray(igl.volume(V, T), dtype=np.float64).reshape(-1))
+    diag2 = float(np.sum((V.max(axis=0) - V.min(axis=0)) ** 2))
+    cand = np.flatnonzero(6.0 * vol <= 48e-12 * diag2**1.5)
+    if cand.size:
+        vol6, l2 = _volumes6(V, T[cand])
+        # the longest edge is at most twice the longest edge from corner 0: |vol| <= 1e-12 (2 l)^3
+        tiny = vol6 <= 48e-12 * l2**1.5
+        if np.any(tiny):
+            bad = cand[tiny]
+            raise SolverInputError(f"{bad.size} tets have zero volume (first: tet {bad[0]})")
     if return_volumes:
-        return V, T, vol6 / 6.0
+        return V, T, vol
     return V, T
 
 
@@ -140,24 +147,15 @@ def stiffness_matrix(V, T, weights=None, *, check: bool = True) -> sp.csr_matrix
     else:
         V = np.ascontiguousarray(V, dtype=np.float64)
         T = np.ascontiguousarray(T, dtype=np.int64)
-    if weights is not None:
-        return _weighted_stiffness(V, T, _element_weights(weights, len(T)))
-    # K scales like length in 3D: assemble on a unit-sized copy and rescale, so that tiny or huge
-    # meshes do not under/overflow inside libigl's cotangent formula (NaN/inf at edge lengths ~1e-30)
+    w = None if weights is None else _element_weights(weights, len(T))
+    # K scales like length in 3D: the cotangent weights are computed on a unit-sized copy and rescaled,
+    # so that tiny or huge meshes do not under/overflow inside libigl's formula (NaN/inf at edge
+    # lengths ~1e-30)
     lo = V.min(axis=0)
     s = float(np.abs(V.max(axis=0) - lo).max())
-    L = igl.cotmatrix(np.ascontiguousarray((V - lo) / s), T)
-    # libigl returns CSC; the matrix is symmetric, so its CSC arrays are its CSR arrays (no conversion)
-    if sp.isspmatrix_csc(L) and L.has_canonical_format:
-        K = sp.csr_matrix((-s * L.data, L.indices, L.indptr), shape=L.shape)
-        K.has_canonical_format = True  # inherited from libigl's CSC: skips two O(nnz) passes
-    else:
-        K = sp.csr_matrix(-s * L)
-    if not np.all(np.isfinite(K.data)):
-        raise SolverInputError("stiffness matrix has NaN/inf entries (degenerate tets?)")
-    K.sum_duplicates()
-    K.sort_indices()
-    return K
+    C = igl.cotmatrix_entries(np.ascontiguousarray((V - lo) / s), T)  # (t, 6) per-edge weights
+    C *= s if w is None else s * w[:, None]
+    return _assemble_edge_weights(T, C, V.shape[0])
 
 
 def _element_weights(weights, t: int) -> np.ndarray:
@@ -171,20 +169,25 @@ def _element_weights(weights, t: int) -> np.ndarray:
 _COT_EDGES = np.array([[1, 2], [2, 0], [0, 1], [3, 0], [3, 1], [3, 2]])
 
 
-def _weighted_stiffness(V: np.ndarray, T: np.ndarray, w: np.ndarray) -> sp.csr_matrix:
-    lo = V.min(axis=0)
-    s = float(np.abs(V.max(axis=0) - lo).max())
-    C = igl.cotmatrix_entries(np.ascontiguousarray((V - lo) / s), T) * (s * w[:, None])  # (t, 6) edge weights
-    n = V.shape[0]
-    i = T[:, _COT_EDGES[:, 0]].ravel()
-    j = T[:, _COT_EDGES[:, 1]].ravel()
-    W = sp.coo_matrix((-C.ravel(), (i, j)), shape=(n, n)).tocsr()
-    W = W + W.T
-    K = sp.csr_matrix(W - sp.diags(np.asarray(W.sum(axis=1)).ravel()))
-    if not np.all(np.isfinite(K.data)):
+def _assemble_edge_weights(T: np.ndarray, C: np.ndarray, n: int) -> sp.csr_matrix:
+    """Stiffness from per-tet edge weights: ``K_ij = -Σ_e C_e(ij)``, ``K_ii = Σ_{j≠i} -K_ij``.
+
+    libigl's ``cotmatrix`` does the same through Eigen triplets; one COO->CSR pass over both halves and
+    the diagonal (int32 indices) is ~1.6x faster at 1M tets and gives the same matrix to round-off.
+    """
+    idx = np.int32 if n < 2**31 - 1 else np.int64
+    Ti = T.astype(idx, copy=False)
+    i = Ti[:, _COT_EDGES[:, 0]].ravel()
+    j = Ti[:, _COT_EDGES[:, 1]].ravel()
+    c = C.ravel()
+    if not np.all(np.isfinite(c)):
         raise SolverInputError("stiffness matrix has NaN/inf entries (degenerate tets?)")
-    K.sum_duplicates()
-    K.sort_indices()
+    d = np.bincount(i, c, minlength=n) + np.bincount(j, c, minlength=n)
+    ar = np.flatnonzero(d).astype(idx)  # nodes in no tet keep an empty row (as libigl's)
+    d = d[ar]
+    K = sp.coo_matrix((np.concatenate([-c, -c, d]), (np.concatenate([i, j, ar]), np.concatenate([j, i, ar]))),
+                      shape=(n, n)).tocsr()
+    K.sum_duplicates()  # sorts the column indices too
     return K
 
 

@@ -1,5 +1,6 @@
 """Tests of solvers.fem: P1 stiffness/mass on tets, boundary nodes, Dirichlet elimination, Neumann helpers."""
 
+import igl
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -45,6 +46,23 @@ def test_stiffness_matches_reference_and_is_psd(jittered_cube):
     ev = np.linalg.eigvalsh(Kd)
     assert ev[0] > -1e-12 and ev[1] > 1e-3  # PSD, one-dimensional null space (connected mesh)
 
+
+
+def test_stiffness_equals_libigl_cotmatrix_with_unused_nodes(jittered_cube):
+    """The own COO assembly of libigl's cotangent weights gives libigl's matrix; unused nodes keep
+    empty rows; the CSR arrays are canonical (sorted, no duplicates)."""
+    V, T = jittered_cube
+    V2 = np.vstack([V, [[5.0, 5.0, 5.0]]])  # one node in no tet
+    K = fem.stiffness_matrix(V2, T)
+    ref = -igl.cotmatrix(V2, T)
+    assert abs(K - ref).max() < 1e-13
+    assert K.getrow(len(V)).nnz == 0
+    assert K.has_canonical_format and np.all(np.diff(K.indptr) >= 0)
+    for r in range(0, K.shape[0], 7):
+        cols = K.indices[K.indptr[r]:K.indptr[r + 1]]
+        assert np.all(np.diff(cols) > 0)
+    _, _, vol = fem.check_tet_mesh(V, T, return_volumes=True)
+    assert vol.sum() == pytest.approx(1.0, rel=1e-12) and np.all(vol > 0)
 
 def test_stiffness_energy_of_linear_functions(jittered_cube):
     V, T = jittered_cube

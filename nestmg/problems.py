@@ -300,7 +300,7 @@ def setup_problem(
     A_full = (lam * K0 + M0).tocsr() if name == "diffusion-neumann" else K0
     b_full = M0 @ f
     dirichlet = name == "poisson-dirichlet"
-    bnd = boundary_nodes(T0) if dirichlet else np.zeros(0, dtype=np.int64)
+    bnd = boundary_nodes(T0, stiffness=K0) if dirichlet else np.zeros(0, dtype=np.int64)
     free0 = np.setdiff1d(np.arange(n0), bnd, assume_unique=True) if dirichlet else np.arange(n0)
 
     ops: list[sp.csr_matrix] | None = None
@@ -322,7 +322,7 @@ def setup_problem(
     A = A_full[free0][:, free0].tocsr() if dirichlet else A_full.tocsr()
     local = None
     if not dirichlet:  # natural boundary: the boundary layer gets extra local sweeps (free0 = all nodes)
-        local = boundary_layer_nodes(T0, rings=1, n=n0)
+        local = boundary_layer_nodes(T0, rings=1, boundary=boundary_nodes(T0, stiffness=K0), n=n0)
     return Problem(
         name=name,
         A=A,

@@ -101,6 +101,41 @@ def test_boundary_nodes_of_cube():
     np.testing.assert_array_equal(b, np.flatnonzero(on_face))
 
 
+
+def _cube_with_cavity_and_pinch():
+    """4x4x4 Kuhn cube minus its 2x2x2 centre (an inner boundary surface), plus one extra cube of 6 tets
+    touching the big cube at a single corner node (a pinched vertex), plus an unused node."""
+    V, T = kuhn_cube_mesh(4)
+    c = V[T].mean(axis=1)
+    T = T[~np.all((c > 0.25) & (c < 0.75), axis=1)]
+    V2, T2 = kuhn_cube_mesh(1)
+    V2 = V2 * 0.25 + 1.0  # corner (1, 1, 1) coincides with the big cube's node (1, 1, 1)
+    shared = int(np.flatnonzero(np.all(np.abs(V - 1.0) < 1e-12, axis=1))[0])
+    own = np.all(np.abs(V2 - 1.0) < 1e-12, axis=1)
+    idx = np.where(own, shared, len(V) + np.cumsum(~own) - 1)
+    V = np.vstack([V, V2[~own], [[9.0, 9.0, 9.0]]])
+    return V, np.vstack([T, idx[T2]])
+
+
+def test_boundary_nodes_from_stiffness_link_topology(jittered_cube):
+    """The O(n) link-Euler classification equals the face count on a convex mesh, one with a cavity
+    and a pinched vertex; the cavity's nodes and the pinched node are boundary, the unused node not."""
+    V, T = _cube_with_cavity_and_pinch()
+    K = fem.stiffness_matrix(V, T)
+    b_faces = fem.boundary_nodes(T)
+    b_link = fem.boundary_nodes(T, stiffness=K)
+    np.testing.assert_array_equal(b_link, b_faces)
+    on_cavity = np.all((V >= 0.25 - 1e-12) & (V <= 0.75 + 1e-12), axis=1)
+    on_cavity &= np.abs(V - 0.5).max(axis=1) > 1e-12  # the removed block's centre node is unused
+    assert np.all(np.isin(np.flatnonzero(on_cavity), b_link))
+    assert np.count_nonzero(on_cavity) == 26  # 3x3x3 nodes of the removed block minus its centre
+    assert len(V) - 1 not in b_link
+    Vj, Tj = jittered_cube
+    np.testing.assert_array_equal(fem.boundary_nodes(Tj, stiffness=fem.stiffness_matrix(Vj, Tj)),
+                                  fem.boundary_nodes(Tj))
+    with pytest.raises(SolverInputError, match="square CSR"):
+        fem.boundary_nodes(T, stiffness=K[:5])
+
 def test_dirichlet_linear_solution_is_exact(jittered_cube):
     V, T = jittered_cube
     K = fem.stiffness_matrix(V, T)

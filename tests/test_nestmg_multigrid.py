@@ -142,3 +142,26 @@ def test_incompatible_neumann_data_raises(torus_iso_tets):
     x = ml.solve(b, project=True, tol=1e-9, maxiter=100)
     r = (b - b.mean()) - pr.A @ x
     assert np.linalg.norm(r) <= 1e-8 * np.linalg.norm(b)
+
+
+def test_fast_preset_on_pure_neumann_uses_boundary_layer_sweeps(torus_iso_tets):
+    """smoothing="fast" on pure Neumann: one-way boundary-layer sweeps on the fine level, two sweeps on
+    coarser levels, a symmetric cycle, and fewer MG-PCG iterations than the plain textbook V(1,1)."""
+    from nestmg.problems import FAST_SMOOTHERS
+
+    _, tets, P, _ = torus_iso_tets
+    pr = setup_problem(tets, P, "poisson-neumann")
+    fast = pr.multigrid(smoothing="fast")
+    L0, L1 = fast.levels[0], fast.levels[1]
+    assert L0.presmoother.params["local_sweep"] == "forward" and L0.postsmoother.params["local_sweep"] == "backward"
+    assert L0.presmoother.params["local_nodes"] == len(pr.local_nodes) and L0.presmoother.params["iterations"] == 1
+    assert "local_nodes" not in L1.presmoother.params and L1.presmoother.params["iterations"] == 2
+    assert fast.symmetric_cycle
+    plain = pr.multigrid(smoothing="fast", presmoother=FAST_SMOOTHERS, local=False)
+    _, i_fast = fast.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
+    _, i_plain = plain.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
+    assert i_fast["converged"] and i_plain["converged"]
+    assert i_fast["iterations"] <= i_plain["iterations"] - 3, (i_fast["iterations"], i_plain["iterations"])
+    # Dirichlet keeps the textbook cycle (no local nodes)
+    prd = setup_problem(tets, P, "poisson-dirichlet")
+    assert "local_nodes" not in prd.multigrid(smoothing="fast").levels[0].presmoother.params

@@ -1,5 +1,5 @@
 """Coarse operators compared (issue 15, item 1): Galerkin, re-discretised, volume-fraction weighted,
-each with and without the energy-optimal scaling of the coarse correction, on nested and naive
+sparsified Galerkin (``solvers.reroute_to_pattern`` onto the coarse meshes' sparsity), each with and without the energy-optimal scaling of the coarse correction, on nested and naive
 (``method="decimate"``) hierarchies of dev-zoo meshes.
 
     nice -n 10 python benchmarks/coarse_operators.py /work/shared/data/meshes \
@@ -29,6 +29,8 @@ VARIANTS = (  # (coarse, coarse_scaling)
     ("rediscretized", "energy"),
     ("weighted", None),
     ("weighted", "energy"),
+    ("sparsified", None),
+    ("sparsified", "energy"),
 )
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 

@@ -257,7 +257,7 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
 
 def _solver_opts(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("solver")
-    g.add_argument("--coarse", choices=["galerkin", "rediscretized", "weighted"], default="galerkin")
+    g.add_argument("--coarse", choices=["galerkin", "rediscretized", "weighted", "sparsified"], default="galerkin")
     g.add_argument("--smoother", default="symmetric_gauss_seidel",
                    help="symmetric_gauss_seidel | gauss_seidel | jacobi | chebyshev")
     g.add_argument("--nu", type=int, default=1, help="pre/post smoothing sweeps")

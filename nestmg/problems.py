@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
-from solvers.multilevel import restrict_prolongations
+from solvers.multilevel import restrict_prolongations, sparsified_galerkin_operators
 
 __all__ = ["COARSE", "FAST_NEUMANN_SMOOTHERS", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
            "volume_fractions"]
@@ -245,7 +245,7 @@ def _boundary_penalty(K0: sp.csr_matrix, bnd: np.ndarray) -> np.ndarray:
     return np.maximum((K0 @ ind)[bnd], 0.0)
 
 
-COARSE = ("galerkin", "rediscretized", "weighted")
+COARSE = ("galerkin", "rediscretized", "weighted", "sparsified")
 
 
 def setup_problem(
@@ -268,14 +268,18 @@ def setup_problem(
     P : list of (n_k, n_{k+1}) csr_matrix
         Prolongations (``Hierarchy.P``).
     name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann"}
-    coarse : {"galerkin", "rediscretized", "weighted"}
+    coarse : {"galerkin", "rediscretized", "weighted", "sparsified"}
         ``"galerkin"``: the solver forms ``Pᵀ A P``. ``"rediscretized"``: the same FEM problem on every
         coarse tet mesh (Dirichlet on the coarse boundary). ``"weighted"``: re-discretised with every
         coarse tet's stiffness and mass scaled by the fraction of its volume covered by the fine domain
         (:func:`volume_fractions`), and, for ``poisson-dirichlet``, the fine Dirichlet condition as
         the boundary-layer term ``Gᵀ diag(d) G`` (:func:`_boundary_penalty`) instead of a Dirichlet
         condition on the cage: sparse (coarse-mesh sparsity) and consistent with ``Pᵀ A P`` on
-        constants. ``"rediscretised"`` is a deprecated alias of ``"rediscretized"``.
+        constants. ``"sparsified"``: the Galerkin product of each level moved onto the coarse tet
+        mesh's own sparsity by :func:`solvers.reroute_to_pattern` (dropped couplings rerouted along
+        two-edge paths; row sums kept; never softer than Galerkin), level by level: Galerkin's
+        consistency at the re-discretised operator complexity. ``"rediscretised"`` is a deprecated
+        alias of ``"rediscretized"``.
     lam : float
         Diffusion coefficient λ of ``diffusion-neumann`` (time step x conductivity).
     f : (n_fine,) float array, optional
@@ -319,6 +323,8 @@ def setup_problem(
     bnd = boundary_nodes(T0, stiffness=K0) if dirichlet else np.zeros(0, dtype=np.int64)
     free0 = np.setdiff1d(np.arange(n0), bnd, assume_unique=True) if dirichlet else np.arange(n0)
 
+    # natural boundary: every node is free, no submatrix copy (two O(nnz) fancy-index passes at 1M tets)
+    A = A_full[free0][:, free0].tocsr() if dirichlet else A_full.tocsr()
     ops: list[sp.csr_matrix] | None = None
     if coarse == "rediscretized" and P:
         cand = [np.setdiff1d(np.arange(len(Vc)), boundary_nodes(Tc)) if dirichlet else np.arange(len(Vc))
@@ -329,13 +335,15 @@ def setup_problem(
         Pr, free = [], [free0]
     else:
         Pr, free = restrict_prolongations(P, free0, min_column_sum=prune)
+        if coarse == "sparsified":
+            # allowed couplings: the edges of each coarse tet mesh among its kept nodes
+            pats = [stiffness_matrix(Vc, Tc)[c][:, c] for (Vc, Tc), c in zip(tets[1:], free[1:])]
+            ops = sparsified_galerkin_operators(A, Pr, pats)[1:]
         if coarse == "weighted":
             w = volume_fractions(tets) if fractions is None else fractions
             if len(w) != len(tets):
                 raise ValueError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
             ops = _weighted_operators(name, tets, w, free, lam, K0, bnd)
-    # natural boundary: every node is free, no submatrix copy (two O(nnz) fancy-index passes at 1M tets)
-    A = A_full[free0][:, free0].tocsr() if dirichlet else A_full.tocsr()
     local = None
     if not dirichlet:  # natural boundary: the boundary layer gets extra local sweeps (free0 = all nodes)
         local = boundary_layer_nodes(T0, rings=1, boundary=boundary_nodes(T0, stiffness=K0), n=n0)

@@ -33,7 +33,9 @@ from .multilevel import (
     convergence_factor,
     galerkin_operators,
     prune_prolongations,
+    reroute_to_pattern,
     restrict_prolongations,
+    sparsified_galerkin_operators,
 )
 from .smoothing import SMOOTHERS, Smoother, make_smoother
 
@@ -67,6 +69,8 @@ __all__ = [
     "project_rhs",
     "prune_prolongations",
     "remove_mean",
+    "reroute_to_pattern",
     "restrict_prolongations",
+    "sparsified_galerkin_operators",
     "stiffness_matrix",
 ]

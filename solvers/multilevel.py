@@ -29,7 +29,15 @@ import scipy.sparse.linalg as spla
 from .coarse import _CoarseSolver
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, make_smoother, with_local_sweeps
-from .transfer import _as_csr, _is_symmetric, galerkin_operators, prune_prolongations, restrict_prolongations
+from .transfer import (
+    _as_csr,
+    _is_symmetric,
+    galerkin_operators,
+    prune_prolongations,
+    reroute_to_pattern,
+    restrict_prolongations,
+    sparsified_galerkin_operators,
+)
 
 __all__ = [
     "Level",
@@ -37,7 +45,9 @@ __all__ = [
     "convergence_factor",
     "galerkin_operators",
     "prune_prolongations",
+    "reroute_to_pattern",
     "restrict_prolongations",
+    "sparsified_galerkin_operators",
 ]
 
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})

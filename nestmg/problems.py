@@ -277,7 +277,7 @@ def setup_problem(
         condition on the cage: sparse (coarse-mesh sparsity) and consistent with ``Pᵀ A P`` on
         constants. ``"sparsified"``: the Galerkin product of each level moved onto the coarse tet
         mesh's own sparsity by :func:`solvers.reroute_to_pattern` (dropped couplings rerouted along
-        two-edge paths; row sums kept; never softer than Galerkin), level by level: Galerkin's
+        two-edge paths; row sums kept; spectrally equivalent), level by level: Galerkin's
         consistency at the re-discretised operator complexity. ``"rediscretised"`` is a deprecated
         alias of ``"rediscretized"``.
     lam : float

@@ -9,6 +9,8 @@ triangular solves). Iterative methods start from zero and stop at ``||b - A x|| 
 ``nestmg``    :func:`nestmg.problems.setup_problem` (``diffusion-neumann`` with ``λ = t``,
               ``poisson-neumann``; the pruning of :func:`nestmg.geodesics.multigrid_solve`) and
               ``Problem.multigrid()`` (project defaults), MG-PCG.
+``nestmg_fast`` the same with ``Problem.multigrid(smoothing="fast")`` (textbook V(1,1) for the heat step,
+              plus the boundary-layer sweeps for the pure Neumann Poisson step).
 ``pyamg_sa``  pyamg smoothed aggregation, CG (Poisson step: the project's CG with the constants projected).
 ``gamg``      PETSc CG + GAMG.  ``hypre``: PETSc CG + hypre BoomerAMG.
 ``cholmod``   CHOLMOD (OpenBLAS), one node pinned for the Poisson step.
@@ -46,7 +48,7 @@ from exp_common import (
     write_json,
 )
 
-METHODS = ("nestmg", "pyamg_sa", "gamg", "hypre", "cholmod")
+METHODS = ("nestmg", "nestmg_fast", "pyamg_sa", "gamg", "hypre", "cholmod")
 
 
 def _timed(f):
@@ -64,7 +66,8 @@ def make_solvers(methods, h, pre) -> tuple[dict, dict]:
     mats = {"heat": pre.A_heat, "poisson": pre.K}
     for m in methods:
         rec: dict = {}
-        if m == "nestmg":
+        if m in ("nestmg", "nestmg_fast"):
+            kw = {"smoothing": "fast"} if m == "nestmg_fast" else {}
             mls = {}
             for kind, name, prune in (("heat", "diffusion-neumann", 0.0), ("poisson", "poisson-neumann", 0.5)):
                 prob, tp, cp = _timed(lambda name=name, prune=prune: setup_problem(h.tets, h.P, name, lam=pre.t,
@@ -72,7 +75,7 @@ def make_solvers(methods, h, pre) -> tuple[dict, dict]:
                 diff = abs(prob.A - mats[kind]).max() / abs(mats[kind]).max()
                 if diff > 1e-12:
                     raise RuntimeError(f"setup_problem's {kind} matrix differs from the heat method's ({diff:.2e})")
-                ml, tm, cm = _timed(prob.multigrid)
+                ml, tm, cm = _timed(lambda prob=prob, kw=kw: prob.multigrid(**kw))
                 mls[kind] = ml
                 rec[kind] = {"setup_problem": tp, "multigrid": tm, "cpu": cp + cm,
                              "operator_complexity": ml.operator_complexity()}

@@ -28,7 +28,7 @@ import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
-from .smoothing import Smoother, make_smoother, with_local_sweeps
+from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
 from .transfer import (
     _as_csr,
     _is_symmetric,
@@ -302,10 +302,11 @@ class MultigridSolver:
                 post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec)
                 if local[k] is not None:
                     one_way = local_sweep == "one-way"
+                    rows = local_rows(Ak, local[k])  # one copy of the rows for both smoothers
                     pre, post = (with_local_sweeps(pre, Ak, local[k], local_sweeps,
-                                                   sweep="forward" if one_way else "symmetric"),
+                                                   sweep="forward" if one_way else "symmetric", rows=rows),
                                  with_local_sweeps(post, Ak, local[k], local_sweeps, first=True,
-                                                   sweep="backward" if one_way else "symmetric"))
+                                                   sweep="backward" if one_way else "symmetric", rows=rows))
                 lvl = Level(Ak, P, Rs[k], pre, post)
             else:
                 lvl = Level(Ak)

@@ -134,3 +134,30 @@ def test_one_way_local_sweeps_adjoint_and_cheaper(cube, rng):
         MultigridSolver(K, Ps, nullspace="constant", local_nodes=L, local_sweep="both")
     with pytest.raises(SolverInputError, match="local sweep"):
         with_local_sweeps(make_smoother(A, fgs), A, L, sweep="sideways")
+
+
+def test_local_rows_copy_gives_the_in_place_sweep(cube):
+    """The sweeps relax a contiguous copy of the layer's rows: the same iterate as pyamg's indexed sweep
+    on A itself; a pre/post pair can share one copy; a copy of other rows is refused."""
+    from pyamg.relaxation import relaxation
+
+    from solvers.smoothing import local_rows
+
+    _V, T, K, _ = cube
+    A = K.tocsr()
+    idx = boundary_layer_nodes(T, 1)
+    rng = np.random.default_rng(3)
+    x0, b = rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
+    base = make_smoother(A, ("gauss_seidel", {"sweep": "forward", "iterations": 1}))
+    rows = local_rows(A, idx)
+    assert rows.nnz == int((A.indptr[idx + 1] - A.indptr[idx]).sum()) and rows.shape == A.shape
+    for sweep in ("forward", "backward", "symmetric"):
+        sm = with_local_sweeps(base, A, idx, 1, first=True, sweep=sweep, rows=rows)
+        x1 = x0.copy()
+        sm(A, x1, b)
+        x2 = x0.copy()
+        relaxation.gauss_seidel_indexed(A, x2, b, idx.astype(A.indices.dtype), iterations=1, sweep=sweep)
+        base(A, x2, b)
+        np.testing.assert_allclose(x1, x2, rtol=0, atol=1e-13)
+    with pytest.raises(SolverInputError, match="local_rows"):
+        with_local_sweeps(base, A, idx, rows=local_rows(A, idx[::2]))

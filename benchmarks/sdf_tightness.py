@@ -9,8 +9,12 @@ CPU seconds of the phase. ``--pull w1 w2 ...`` optimises the same simplified cag
 input-to-cage pull (``optimize_cage(..., w_p=w, pull_target=c)``; 0 = the paper's energy), each result
 certified by ``verify_nesting``. ``--norm radius`` scales ``c``, ``r``, ``l`` and ``1/beta`` as the paper's
 normalisation "into unit circle" does (lengths relative to the largest distance of a vertex from the
-bounding-box centre instead of the diagonal). No retries: a crossing envelope or a stuck simplification
-is recorded as such.
+bounding-box centre instead of the diagonal). ``--dhat d1 d2 ...`` adds one optimised cage per barrier
+activation distance (units of ``c``; default: the backend's), ``--concave t`` builds the envelope with
+``build_envelope(..., concave=t)``, ``--h-div k`` on a grid of spacing ``c / k`` (the backend's refined grids),
+and ``--bridges`` records where the envelope and each optimised cage bridge the input (clusters of input
+vertices farther than 1.5 ``c``, each with the width of the outside channel toward the cage). No retries: a
+crossing envelope or a stuck simplification is recorded as such.
 
 Usage::
 
@@ -33,6 +37,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cages import _read
 
 
+def _default(name):
+    import inspect
+
+    from cagegen.sdf.backend import sdf_cage_layer
+
+    return inspect.signature(sdf_cage_layer).parameters[name].default
+
+
+_DHAT = _default("dhat")  # the backend's barrier activation distance (units of c); the JSON key has no suffix
+
+
 def _distances(U, G, V, F, diag) -> dict:
     import igl
 
@@ -48,7 +63,39 @@ def _distances(U, G, V, F, diag) -> dict:
             "min_angle_deg": _min_angle_deg(U, G), "mips_mean": float(mips(U, G).mean())}
 
 
-def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15) -> dict:
+def _bridges(U, G, V, F, c, top: int = 6) -> list:
+    """Where the cage bridges the input: clusters (edge-connected) of input vertices farther than 1.5 ``c`` from
+    the cage, largest distance first. Per cluster: size, largest distance (in ``c``), that vertex, and the
+    *channel profile* between it and its closest cage point: 2 x the signed distance to the input at 5
+    points of that segment (t = 0.1 ... 0.9, in ``c``) -- the width of the outside channel the cage would
+    have to enter (a slit: small and constant; a wedge: growing toward the cage; negative: the segment
+    passes through the input, an undercut)."""
+    import igl
+    from scipy.sparse.csgraph import connected_components
+
+    from cagegen.sdf.envelope import _edge_graph, _signed
+
+    d2, _, Q = igl.point_mesh_squared_distance(V, U, G)
+    d = np.sqrt(d2)
+    far = np.flatnonzero(d > 1.5 * c)
+    if len(far) == 0:
+        return []
+    n, lab = connected_components(_edge_graph(V, F)[far][:, far], directed=False)
+    out = []
+    for k in range(n):
+        ids = far[lab == k]
+        j = int(ids[np.argmax(d[ids])])
+        t = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
+        P = V[j] + t[:, None] * (Q[j] - V[j])
+        sd = _signed(P, V, F, 10 * c)[0]
+        out.append({"n_vertices": len(ids), "max_c": float(d[j] / c), "vertex": V[j].tolist(),
+                    "channel_width_c": (2 * sd / c).round(2).tolist()})
+    out.sort(key=lambda x: -x["max_c"])
+    return out[:top]
+
+
+def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15, concave: float = 0.0,
+             h_div: float = 1.0, bridges: bool = False, dhats=(_DHAT,)) -> dict:
     from cagegen._geometry import bbox_diagonal, cross_intersection_pairs
     from cagegen.sdf.backend import DEFAULTS, _prepass, genus
     from cagegen.sdf.envelope import build_envelope
@@ -61,13 +108,16 @@ def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15) -> 
     c, r, l, beta = DEFAULTS["c"] * s, DEFAULTS["r"] * s, DEFAULTS["l"] * s, DEFAULTS["beta"] / s
     n = int(2 * round(len(F) / div / 2))
     rec: dict = {"mesh": path.name, "input_faces": len(F), "target": n, "norm": norm, "scale": s,
-                 "c": c, "r": r, "l": l, "beta": beta, "genus_input": genus(Vn, F), "phases": {},
+                 "c": c, "r": r, "l": l, "beta": beta, "concave": concave, "h": c / h_div,
+                 "genus_input": genus(Vn, F), "phases": {},
                  "loadavg_1min": [os.getloadavg()[0]]}
     t = time.process_time()
-    env = build_envelope(Vn, F, c=c, h=c, r=r, l=l, beta=beta)
+    env = build_envelope(Vn, F, c=c, h=c / h_div, r=r, l=l, beta=beta, concave=concave)
     rec["phases"]["envelope"] = {**_distances(env.V, env.F, Vn, F, 1.0), "cpu_seconds": time.process_time() - t,
-                                 "n_active": env.info["n_active"],
+                                 "n_active": env.info["n_active"], "concave": env.info.get("concave"),
                                  "crossings": len(cross_intersection_pairs(env.V, env.F, Vn, F))}
+    if bridges:
+        rec["phases"]["envelope"]["bridges"] = _bridges(env.V, env.F, Vn, F, c)
     t = time.process_time()
     U, G, pre = _prepass(env.V, env.F, Vn, F, n)
     rec["phases"]["prepass"] = {**_distances(U, G, Vn, F, 1.0), "cpu_seconds": time.process_time() - t,
@@ -82,15 +132,18 @@ def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15) -> 
                                    "collapses": si["collapses"]}
     from cagegen import verify_nesting
 
-    for w in pulls:  # every variant of the optimisation starts from the same simplified cage
+    for w, dh in [(w, dh) for w in pulls for dh in dhats]:  # every variant starts from the same simplified cage
         t = time.process_time()
-        U2, G2, oi = optimize_cage(U, G, Vn, F, h=0.5 * c, dhat=0.25 * c, iters=iters, flip_rounds=1,
+        U2, G2, oi = optimize_cage(U, G, Vn, F, h=0.5 * c, dhat=dh * c, iters=iters, flip_rounds=1,
                                    time_limit=30.0, w_p=w, pull_target=c)
         cpu = time.process_time() - t
         rep = verify_nesting([(Vn, F), (U2, G2)])
-        rec["phases"]["optimized" if w == 0 else f"optimized_pull{w:g}"] = {
+        key = ("optimized" if w == 0 else f"optimized_pull{w:g}") + ("" if dh == _DHAT else f"_dhat{dh:g}")
+        rec["phases"][key] = {
             **_distances(U2, G2, Vn, F, 1.0), "cpu_seconds": cpu, "steps": oi["steps"], "flips": oi["flips"],
-            "pull_weight": w, "iters": iters, "certified": bool(rep.ok), "min_gap": rep.pairs[0].min_gap}
+            "pull_weight": w, "dhat_c": dh, "iters": iters, "certified": bool(rep.ok), "min_gap": rep.pairs[0].min_gap}
+        if bridges:
+            rec["phases"][key]["bridges"] = _bridges(U2, G2, Vn, F, c)
     rec["cpu_seconds"] = sum(p["cpu_seconds"] for p in rec["phases"].values())
     rec["loadavg_1min"].append(os.getloadavg()[0])
     return rec
@@ -106,12 +159,23 @@ def main(argv=None) -> dict:
                     help="weights of the input-to-cage pull in the optimisation (0 = the paper's energy); one "
                          "optimised cage per weight, all from the same simplified cage")
     ap.add_argument("--iters", type=int, default=15, help="descent steps per round (the backend's opt_iters)")
+    ap.add_argument("--concave", type=float, default=0.0,
+                    help="build_envelope's concave threshold in units of c (0 = off, the paper's envelope)")
+    ap.add_argument("--h-div", type=float, default=1.0, help="grid spacing h = c / H_DIV (the backend refines "
+                    "the grid by 2 or 4 when the envelope's genus is wrong)")
+    ap.add_argument("--bridges", action="store_true", help="record where the envelope and the optimised cage "
+                    "bridge the input (clusters of input vertices > 1.5 c away, with the channel's width)")
+    ap.add_argument("--dhat", type=float, nargs="+", default=[_DHAT],
+                    help="barrier activation distances of the optimisation, in units of c (the backend's default "
+                         "0.25); one optimised cage per (pull, dhat)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     doc = {"benchmark": "benchmarks/sdf_tightness.py", "command": " ".join(sys.argv), "results": []}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name in args.meshes:
-        doc["results"].append(run_mesh(args.zoo / name, args.div, args.norm, args.pull, args.iters))
+        doc["results"].append(run_mesh(args.zoo / name, args.div, args.norm, args.pull, args.iters,
+                                        args.concave, args.h_div, args.bridges,
+                                        args.dhat))
         args.out.write_text(json.dumps(doc, indent=1, default=float))
         r = doc["results"][-1]
         print(name, {k: (round(100 * v.get("hausdorff", float("nan")), 2), v.get("genus"), round(v["cpu_seconds"], 1))

@@ -155,6 +155,7 @@ def sdf_cage_layer(
     flip_rounds: int = 1,
     opt_time_limit: float = 30.0,
     pull: float = 50.0,
+    concave: float = 0.0,
     prepass: bool = True,
     max_retries: int = 3,
     min_gap: float = 0.0,
@@ -197,6 +198,9 @@ def sdf_cage_layer(
         Weight of the input-to-cage pull in the optimisation (not in the paper; 0 = off): input
         vertices farther than ``c`` from the cage (concavities the envelope bridged) pull the cage
         toward them, under the same barrier and CCD (:func:`cagegen.sdf.optimize.optimize_cage`, ``w_p``).
+    concave : float
+        Not in the paper (0 = off): input vertices farther than ``concave * c`` from a first envelope
+        (concavities it bridges) also amplify the field, locally (:func:`cagegen.sdf.envelope.build_envelope`).
     prepass : bool
         Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
     max_retries : int
@@ -258,7 +262,7 @@ def sdf_cage_layer(
         try:
             t = time.perf_counter()
             env = build_envelope(Vn, F, c=ck, h=ck if h is None else h * 2.0 ** attempt, amplify=amplify,
-                                 r=r, l=l, alpha=alpha, beta=beta)
+                                 r=r, l=l, alpha=alpha, beta=beta, concave=concave)
             # the envelope must contain the fine layer: marching cubes on a grid of spacing ~c can cut
             # through sharp features of a coarse input; and it should have the fine layer's genus (paper
             # Sec. 3.1: the amplified field separates nearly-touching parts only where the grid resolves
@@ -273,7 +277,8 @@ def sdf_cage_layer(
             while (k_cross or g_env != g_fine) and refine < 2:
                 hk *= 0.5
                 refine += 1
-                env = build_envelope(Vn, F, c=ck, h=hk, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta)
+                env = build_envelope(Vn, F, c=ck, h=hk, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta,
+                                     concave=concave)
                 k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
                 g_env = genus(env.V, env.F)
                 tried_env.append({"h": hk, "crossings": k_cross, "genus": g_env})

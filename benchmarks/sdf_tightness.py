@@ -12,8 +12,9 @@ normalisation "into unit circle" does (lengths relative to the largest distance 
 bounding-box centre instead of the diagonal). ``--dhat d1 d2 ...`` adds one optimised cage per barrier
 activation distance (units of ``c``; default: the backend's), ``--concave t`` builds the envelope with
 ``build_envelope(..., concave=t)``, ``--h-div k`` on a grid of spacing ``c / k`` (the backend's refined grids),
-and ``--bridges`` records where the envelope and each optimised cage bridge the input (clusters of input
-vertices farther than 1.5 ``c``, each with the width of the outside channel toward the cage). No retries: a
+``--bridges`` records where the envelope and each optimised cage bridge the input (clusters of input
+vertices farther than 1.5 ``c``, each with the width of the outside channel toward the cage), and ``--gaps``
+how far apart the nearly-touching parts are (at the active points) on the input and on each optimised cage. No retries: a
 crossing envelope or a stuck simplification is recorded as such.
 
 Usage::
@@ -94,8 +95,42 @@ def _bridges(U, G, V, F, c, top: int = 6) -> list:
     return out[:top]
 
 
+def _part_gaps(V, F, r: float, l: float) -> dict:
+    """How far apart the nearly-touching parts are: for each active vertex ``p`` (the paper's criterion,
+    :func:`cagegen.sdf.envelope.active_points`), the distance to the nearest triangle within ``r`` none of
+    whose corners is within ``l`` of ``p`` along the surface. Two nested layers with offsets ``o1``, ``o2``
+    keep two parts separated only if that gap exceeds about ``2 (o1 + o2)``."""
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    from cagegen.sdf.envelope import _edge_graph, active_points
+    from cagegen.sdf.simplify import _point_triangle_sqdist
+
+    A = active_points(V, F, r, l)
+    if len(A) == 0:
+        return {"n_active": 0}
+    G = _edge_graph(V, F)
+    cen = V[F].mean(axis=1)
+    rad = float(np.linalg.norm(V[F] - cen[:, None, :], axis=2).max())
+    tree = cKDTree(cen)
+    gaps = np.full(len(A), np.inf)
+    D = dijkstra(G, directed=False, indices=A, limit=l)
+    for k, p in enumerate(A):
+        f = np.asarray(tree.query_ball_point(V[p], r + rad), dtype=np.int64)
+        if len(f) == 0:
+            continue
+        f = f[~np.isfinite(D[k][F[f]]).any(axis=1)]
+        if len(f):
+            X = V[F[f]]
+            gaps[k] = np.sqrt(_point_triangle_sqdist(np.repeat(V[p][None], len(f), 0), X[:, 0], X[:, 1], X[:, 2]).min())
+    ok = np.isfinite(gaps)
+    j = int(A[np.argmin(gaps)])
+    return {"n_active": int(len(A)), "gap_min": float(gaps[ok].min()), "gap_median": float(np.median(gaps[ok])),
+            "gap_min_vertex": V[j].tolist()}
+
+
 def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15, concave: float = 0.0,
-             h_div: float = 1.0, bridges: bool = False, dhats=(_DHAT,)) -> dict:
+             h_div: float = 1.0, bridges: bool = False, dhats=(_DHAT,), gaps: bool = False) -> dict:
     from cagegen._geometry import bbox_diagonal, cross_intersection_pairs
     from cagegen.sdf.backend import DEFAULTS, _prepass, genus
     from cagegen.sdf.envelope import build_envelope
@@ -118,6 +153,8 @@ def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15, con
                                  "crossings": len(cross_intersection_pairs(env.V, env.F, Vn, F))}
     if bridges:
         rec["phases"]["envelope"]["bridges"] = _bridges(env.V, env.F, Vn, F, c)
+    if gaps:
+        rec["part_gaps_input"] = _part_gaps(Vn, F, r, l)
     t = time.process_time()
     U, G, pre = _prepass(env.V, env.F, Vn, F, n)
     rec["phases"]["prepass"] = {**_distances(U, G, Vn, F, 1.0), "cpu_seconds": time.process_time() - t,
@@ -144,6 +181,8 @@ def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15, con
             "pull_weight": w, "dhat_c": dh, "iters": iters, "certified": bool(rep.ok), "min_gap": rep.pairs[0].min_gap}
         if bridges:
             rec["phases"][key]["bridges"] = _bridges(U2, G2, Vn, F, c)
+        if gaps:  # the optimised cage as the next layer's input
+            rec["phases"][key]["part_gaps"] = _part_gaps(U2, G2, r, l)
     rec["cpu_seconds"] = sum(p["cpu_seconds"] for p in rec["phases"].values())
     rec["loadavg_1min"].append(os.getloadavg()[0])
     return rec
@@ -168,6 +207,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--dhat", type=float, nargs="+", default=[_DHAT],
                     help="barrier activation distances of the optimisation, in units of c (the backend's default "
                          "0.25); one optimised cage per (pull, dhat)")
+    ap.add_argument("--gaps", action="store_true", help="record how far apart the nearly-touching parts (active "
+                    "points) are, on the input and on each optimised cage (the next layer's input)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     doc = {"benchmark": "benchmarks/sdf_tightness.py", "command": " ".join(sys.argv), "results": []}
@@ -175,7 +216,7 @@ def main(argv=None) -> dict:
     for name in args.meshes:
         doc["results"].append(run_mesh(args.zoo / name, args.div, args.norm, args.pull, args.iters,
                                         args.concave, args.h_div, args.bridges,
-                                        args.dhat))
+                                        args.dhat, args.gaps))
         args.out.write_text(json.dumps(doc, indent=1, default=float))
         r = doc["results"][-1]
         print(name, {k: (round(100 * v.get("hausdorff", float("nan")), 2), v.get("genus"), round(v["cpu_seconds"], 1))

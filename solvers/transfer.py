@@ -294,7 +294,9 @@ def restrict_prolongations(Ps, free, coarse_free="support", *, min_column_sum: f
     Ps = [sp.csr_matrix(P, dtype=np.float64) for P in Ps]
 
     def _idx(f, n, what):
-        f = np.unique(node_indices(f, n, what))
+        f = node_indices(f, n, what)
+        if f.size > 1 and not np.all(f[1:] > f[:-1]):  # already sorted and unique: skip the O(n log n) pass
+            f = np.unique(f)
         if f.size == 0:
             raise SolverInputError(f"{what}: no free node")
         return f

@@ -283,13 +283,16 @@ def _ray_in_angle(r, u, v, n) -> np.ndarray:
     return (s1 >= 0) & (s2 >= 0)
 
 
-def self_pairs(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+def self_pairs(V: np.ndarray, F: np.ndarray, only=None) -> np.ndarray:
     """Face pairs of one mesh that intersect beyond what they share (a vertex or an edge).
 
     Parameters
     ----------
     V : (n,3) float array
     F : (m,3) int array
+    only : int array, optional
+        Report only pairs with at least one face in ``only`` (indices into ``F``); the pairs between
+        two other faces are not tested (a local edit of a mesh known to be clean: the new faces).
 
     Returns
     -------
@@ -304,8 +307,14 @@ def self_pairs(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
-    C = _candidates(V, F, V, F, _slop(V))
-    C = C[C[:, 0] < C[:, 1]]
+    if only is None:
+        C = _candidates(V, F, V, F, _slop(V))
+        C = C[C[:, 0] < C[:, 1]]
+    else:
+        rows = np.unique(np.asarray(only, dtype=np.int64))
+        C = _candidates(V, F[rows], V, F, _slop(V)) if len(rows) else np.zeros((0, 2), dtype=np.int64)
+        C[:, 0] = rows[C[:, 0]]
+        C = np.unique(np.sort(C[C[:, 0] != C[:, 1]], axis=1), axis=0)
     if not len(C):
         return C
     FA, FB = F[C[:, 0]], F[C[:, 1]]

@@ -65,7 +65,8 @@ def _min_angle_deg(V: np.ndarray, F: np.ndarray) -> float:
     return best
 
 
-def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0):
+def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0, bisect: int = 3,
+             min_step: float = 0.75):
     """Plain QEM in steps to ``mult * n_faces`` faces (each step from the last accepted one), a step
     being accepted only when its result satisfies the constraints (closed, same genus, no
     self-intersection: :func:`decimate_surface`; no crossing, the fine layer inside and, with
@@ -74,7 +75,15 @@ def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0)
     here). Without the clearance test a pre-pass
     step could come within 2e-4 of a coarse fine layer: the constrained collapses only check the
     triangles they create, so the layer then failed its ``min_gap`` certificate and was rebuilt with
-    ``c`` doubled (nestmg's second cage layer on bunny and gargo, 7-9% of the diagonal)."""
+    ``c`` doubled (nestmg's second cage layer on bunny and gargo, 7-9% of the diagonal).
+
+    A refused step is not the end: plain QEM shortens a thin protrusion of the fine layer (a spike of a
+    coarse input, wrapped by the envelope at distance ``c``) once the cage's edges there grow past ~``c``,
+    so the step that fails is the one whose reduction is too large *near the spikes*, while a smaller
+    reduction is still clean. The face count is then bisected (geometric mean) between the last accepted
+    cage and the refused count, at most ``bisect`` times, and no step smaller than ``min_step`` times
+    the current count is tried (it would not pay for its test). Each bisected step is tested like the
+    others, so the constrained collapses still start from a cage satisfying every constraint."""
     import igl
     from scipy.spatial import cKDTree
 
@@ -83,32 +92,47 @@ def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0)
 
     tree = cKDTree(Vf) if clear > 0 else None
 
-    tried = []
-    for mult in mults:
-        m = int(2 * round(mult * n_faces / 2))
-        if m >= len(G):
-            continue
+    def step(U, G, m):
         try:
             U2, G2, dinfo = decimate_surface(U, G, m)
         except CageError as exc:
-            tried.append({"faces": m, "ok": False, "reason": str(exc)})
-            break
+            return None, {"faces": m, "ok": False, "reason": str(exc)}
         k = len(cross_intersection_pairs(U2, G2, Vf, Ff))
         if k:
-            tried.append({"faces": m, "ok": False, "reason": f"crosses the fine layer ({k} pairs)"})
-            break
+            return None, {"faces": m, "ok": False, "reason": f"crosses the fine layer ({k} pairs)"}
         if igl.winding_number(U2, G2, Vf[:1])[0] < 0.5:
-            tried.append({"faces": m, "ok": False, "reason": "fine layer outside"})
-            break
+            return None, {"faces": m, "ok": False, "reason": "fine layer outside"}
         if clear > 0:
             k = int(too_close(U2[G2], Vf, Ff, tree, clear).sum())
             dmin = min_distance(U2, G2, Vf, Ff, upper=2 * clear) if not k else 0.0
             if k or dmin < clear:
-                tried.append({"faces": m, "ok": False,
-                              "reason": f"closer than min_gap ({k} faces sampled, exact distance {dmin:.3g})"})
-                break
-        tried.append({"faces": len(G2), "ok": True, "reason": "", "seconds": dinfo["seconds"]})
-        U, G = U2, G2
+                return None, {"faces": m, "ok": False,
+                              "reason": f"closer than min_gap ({k} faces sampled, exact distance {dmin:.3g})"}
+        return (U2, G2), {"faces": len(G2), "ok": True, "reason": "", "seconds": dinfo["seconds"]}
+
+    tried = []
+    refused = None
+    for mult in mults:
+        m = int(2 * round(mult * n_faces / 2))
+        if m >= len(G):
+            continue
+        res, rec = step(U, G, m)
+        tried.append(rec)
+        if res is None:
+            refused = m
+            break
+        U, G = res
+    for _ in range(int(bisect) if refused is not None else 0):
+        m = int(2 * round(np.sqrt(len(G) * refused) / 2))
+        if m <= refused or m > min_step * len(G):
+            break
+        res, rec = step(U, G, m)
+        rec["bisected"] = True
+        tried.append(rec)
+        if res is None:
+            refused = m
+        else:
+            U, G = res
     return U, G, tried
 
 

@@ -419,7 +419,8 @@ def constrained_simplify(
                 R = ext[live_idx].max() + ext[newf]
                 near = tree.query_ball_point(cen[newf], R)
                 sub = np.unique(np.concatenate([live_idx[np.asarray(x, dtype=np.int64)] for x in near] + [newf]))
-                pr = self_pairs(Vc, Fc[sub])
+                # only pairs with a new face: the rest of the cage is clean (checked when it was made)
+                pr = self_pairs(Vc, Fc[sub], only=np.searchsorted(sub, newf))
                 if len(pr):
                     pos = -np.ones(len(F), dtype=np.int64)
                     pos[nf] = nown  # owner of each new face

@@ -214,6 +214,7 @@ def nest_pair(
     flow_step: float = 1e-3,
     flow_max_iter: int = 1000,
     flow_active_depth: float | None = None,
+    flow_stall_window: int | None = None,
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
@@ -243,6 +244,9 @@ def nest_pair(
         Flow options (:func:`cagegen.nested.flow.flow_inside`: ``step``, ``max_iter``,
         ``active_depth``; ``flow_active_depth`` flows only the parts of the fine surface outside Ĉ or
         shallower than that depth, e.g. for a cage that already contains most of it).
+    flow_stall_window : int, optional
+        :func:`cagegen.nested.flow.flow_inside`'s ``stall_window`` (fail fast when the flow cannot
+        finish within ``flow_max_iter`` at its current rate; None: run to the cap).
     dhat, kappa, dhat_final, kappa_final, max_move, final_iters
         Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
     gap : float
@@ -279,8 +283,9 @@ def nest_pair(
     if gap > 0 and clearance == "offset":
         # tight cage first (no clearance: the fast path), then the cage itself is pushed out by the gap
         C, info = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
-                            flow_max_iter=flow_max_iter, dhat=dhat, kappa=kappa, dhat_final=dhat_final,
-                            kappa_final=kappa_final, max_move=max_move, final_iters=final_iters, gap=0.0,
+                            flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window, dhat=dhat,
+                            kappa=kappa, dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
+                            final_iters=final_iters, gap=0.0,
                             reporter=rep)
         t = time.perf_counter()
         rep.phase("clearance (cage offset)", None)
@@ -293,8 +298,9 @@ def nest_pair(
         # re-inflation instead, with the fine surface's offset as its rest pose
         rep.say(f"cage offset blocked ({oinfo['reason']}); building the clearance by re-inflation")
         C, info2 = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
-                             flow_max_iter=flow_max_iter, dhat=dhat, kappa=kappa, dhat_final=dhat_final,
-                             kappa_final=kappa_final, max_move=max_move, final_iters=final_iters, gap=gap,
+                             flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window, dhat=dhat,
+                             kappa=kappa, dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
+                             final_iters=final_iters, gap=gap,
                              clearance="reinflate", reporter=rep)
         info2["clearance"] = dict(oinfo, fallback="reinflate")
         return C, info2
@@ -304,7 +310,8 @@ def nest_pair(
     t = time.perf_counter()
     upd = rep.phase("flow", flow_max_iter)
     fl = flow_inside(flowed, Ff, Vc, Fc, quad_order=quad_order, step=flow_step,
-                     max_iter=flow_max_iter, active_depth=flow_active_depth, callback=lambda it: upd(it))
+                     max_iter=flow_max_iter, active_depth=flow_active_depth, stall_window=flow_stall_window,
+                     callback=lambda it: upd(it))
     info["seconds"]["flow"] = time.perf_counter() - t
     info["flow"] = fl.to_dict()
     if not fl.success:

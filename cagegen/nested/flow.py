@@ -116,6 +116,7 @@ def flow_inside(
     active_depth: float | None = None,
     expand_after: int | None = 50,
     max_expansions: int = 20,
+    stall_window: int | None = None,
     callback: Callable[[int], None] | None = None,
 ) -> FlowResult:
     """Flow the fine surface along the signed distance to Ĉ until it is strictly inside Ĉ.
@@ -159,6 +160,12 @@ def flow_inside(
         ``None`` disables it (then ``FlowResult.target`` is Ĉ itself).
     max_expansions : int
         Cap on expansion steps.
+    stall_window : int, optional
+        Fail fast (None: never): every ``min(25, stall_window)`` iterations after ``2 * stall_window``,
+        while quadrature points are still outside Ĉ (or within the margin), the decrease of the largest
+        signed distance over the last ``stall_window`` iterations is extrapolated linearly; if reaching the margin at that rate
+        needs more iterations than ``max_iter`` leaves, the flow stops with a "stalled ... outside"
+        reason (it cannot succeed within the cap unless it speeds up).
     callback : callable, optional
         Called with the iteration number after each step (progress bars).
 
@@ -199,6 +206,7 @@ def flow_inside(
     success = False
     steps = []
     best, since_best, n_expand = float(S.max()), 0, 0
+    smax_log = [float(S.max())]  # largest signed distance after each iteration (stall_window)
     while True:
         if S.max() < best - 0.02 * max(abs(best), 1e-4 * diag):
             best, since_best = float(S.max()), 0
@@ -265,6 +273,17 @@ def flow_inside(
         steps.append(h / diag)
         h = min(h * 1.25, h_max)
         it += 1
+        if stall_window:
+            smax_log.append(float(S.max()))
+            if it >= 2 * stall_window and it % min(25, stall_window) == 0 and smax_log[-1] > -margin_abs:
+                drop = smax_log[-1 - stall_window] - smax_log[-1]
+                need = np.inf if drop <= 0 else (smax_log[-1] + margin_abs) / drop * stall_window
+                if need > max_iter - it:
+                    reason = (f"stalled: points outside after {it} iterations (largest signed distance "
+                              f"{smax_log[-1] / diag:.3g} of the diagonal, down {max(drop, 0.0) / diag:.2g} in the "
+                              f"last {stall_window}; about {need:.0f} more iterations needed at that rate, "
+                              f"{max_iter - it} left)")
+                    break
         if np.abs(V - last_kept).max() >= keep_abs:
             history.append(V.copy())
             last_kept = V.copy()

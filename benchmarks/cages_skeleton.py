@@ -151,6 +151,12 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
         "tight_cage_tightness": tightness(c.tight_V, c.F, V, F, 20000),
         "progress": log,
     })
+    import hashlib
+
+    out["cage_digest"] = hashlib.sha256(np.ascontiguousarray(c.V).tobytes()
+                                        + np.ascontiguousarray(c.F).tobytes()).hexdigest()
+    out["sections_flattened"] = c.info.get("sections_flattened")
+    out["inflation"] = {k: c.info["inflation"].get(k) for k in ("flow", "seconds")}
     if "extraction" in c.info:
         out["extraction"] = c.info["extraction"]
     if compare_nested:

@@ -29,7 +29,8 @@ import numpy as np
 
 from ..errors import CageError, MeshInputError
 from ..verify import verify_nesting
-from .cage import JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage
+from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage,
+                   untangle_sections)
 from .field import GuidingField
 from .graph import Skeleton, read_skeleton
 from .inflate import pre_inflate
@@ -145,6 +146,8 @@ def skeleton_cage(
     certify: bool = True,
     inner: tuple | None = None,
     progress=None,
+    skeleton_cache=None,
+    untangle: bool = True,
     **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
@@ -199,6 +202,16 @@ def skeleton_cage(
         final inflation and the certification are done around it instead of M.
     progress : callable, optional
         ``progress(message)`` at each step.
+    skeleton_cache : None, False or path
+        Cache of automatically extracted skeletons (:func:`cagegen.skeleton.extract.extract_skeleton`'s
+        ``cache``): None, ``$NESTMG_CACHE/skeleton``; False, none (then PyGEL3D's extraction may give
+        a different skeleton, hence a different cage, on every call). Unused with a given skeleton.
+    untangle : bool
+        Before each assembly, flatten a degenerate section (two corners closer than 0.25 x its
+        inscribed radius) or a section that crosses its neighbour along the chain onto the plane
+        orthogonal to the skeleton (:func:`cagegen.skeleton.cage.untangle_sections`; recorded in
+        ``info["sections_flattened"]``). False: leave such folds to the recoveries (dropping bending
+        nodes).
     **nested_opts
         Passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...).
 
@@ -232,7 +245,8 @@ def skeleton_cage(
         from .extract import extract_skeleton
 
         say("skeleton: automatic extraction (pygel3d)")
-        S, xinfo = extract_skeleton(Vn, F)
+        S, xinfo = extract_skeleton(Vn, F, cache=skeleton_cache)
+        say(f"skeleton: cache {xinfo['cache']}, digest {xinfo['skeleton_digest'][:12]}")
         info["extraction"] = xinfo
         S_in = S
     else:
@@ -421,7 +435,16 @@ def skeleton_cage(
         S.bending = sorted((set(S.bending) - {nd}) | {int(m)})
         say(f"junction at node {junction}: section at node {nd} moved away to node {m}")
         return ctrl_new
+    flattened: list = []
     while True:
+        # degenerate sections, and sections that cross their neighbour along the chain (the tube between
+        # them folds): flatten them onto the plane orthogonal to the skeleton (ours; idempotent, so every
+        # rebuild re-checks the sections the recoveries below moved or added)
+        if untangle:
+            for nd in untangle_sections(sections, chain_controls, V=Vn, F=F):
+                flattened.append(nd)
+                say(f"sections: the section at node {nd} is degenerate or crosses its neighbour along the chain, "
+                    "flattened")
         try:
             tc = tight_cage(S, sections, chain_controls)
         except JunctionError as exc:
@@ -493,6 +516,7 @@ def skeleton_cage(
         asm_dropped.append({"bending_node_dropped": nd, "face_pairs": int(len(pairs0))})
         say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
     info["junction_recovery"] = dropped
+    info["sections_flattened"] = flattened
     info["assembly_dropped"] = asm_dropped
     info["junction_sections_shrunk"] = {int(k): v for k, v in shrunk.items()}
     info["junction_sections_moved_away"] = away_log
@@ -523,11 +547,22 @@ def skeleton_cage(
         Vi, Fi = Vn, F
     gap = 1.1 * float(min_gap)
     nested_opts.setdefault("flow_max_iter", 2000)  # spot: 945 iterations after the crease push
+    # fail fast: stop a flow that cannot finish within flow_max_iter at its rate over the last 200
+    # iterations (zoo: stuck flows cost 86-439 s at the 2000-iteration cap)
+    nested_opts.setdefault("flow_stall_window", 200)
     try:
         C, ninfo = nest_pair(Vi, Fi, Vp, Ft, gap=gap, **nested_opts)
     except _PairFailure as exc:
-        raise CageError(f"skeleton cage, inflation (nested flow/re-inflation): {exc.stage} failed: {exc.reason}",
-                        layer=1, reason=exc.reason) from exc
+        hint = ""
+        if exc.stage == "flow":
+            n_out = int(np.sum(_winding(Vp, Ft, Vi) < 0.5))
+            where = ("give a skeleton or bending nodes closer to those parts" if n_out else
+                     "the cage's faces still cut its triangles; give bending nodes there")
+            hint = (f"; {n_out} of {len(Vi)} vertices of the input were outside the pre-inflated cage: {where}, "
+                    f"or raise flow_max_iter (now {nested_opts['flow_max_iter']}) / pass flow_stall_window=None "
+                    "to run the flow to its cap")
+        raise CageError(f"skeleton cage, inflation (nested flow/re-inflation): {exc.stage} failed: {exc.reason}"
+                        + hint, layer=1, reason=exc.reason) from exc
     sec["inflation"] = time.perf_counter() - t
     info["inflation"] = {k: v for k, v in ninfo.items() if k != "seconds"}
     info["inflation"]["seconds"] = ninfo["seconds"]

@@ -22,7 +22,8 @@ from ..errors import CageError
 from .field import GuidingField
 from .graph import Skeleton
 
-__all__ = ["CrossSection", "auto_bending_nodes", "cross_section", "inscribed_radius", "tight_cage"]
+__all__ = ["CrossSection", "auto_bending_nodes", "cross_section", "flatten_section", "inscribed_radius",
+           "section_degenerate", "sections_cross", "tight_cage", "untangle_sections"]
 
 
 def inscribed_radius(P: np.ndarray, V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -212,6 +213,159 @@ def cross_section(field: GuidingField, node: int, center: np.ndarray, tangent: n
     cs = CrossSection(node, center, tangent, radius, seeds, hits[ok], quad)
     cs.axis = axis
     return cs
+
+
+def _quad_normal(q: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """Unit normal of a (possibly non-planar) quad from its diagonals, oriented along ``towards``."""
+    n = np.cross(q[2] - q[0], q[3] - q[1])
+    n = n / max(np.linalg.norm(n), 1e-300)
+    return n if np.dot(n, towards) >= 0 else -n
+
+
+def sections_cross(a: CrossSection, b: CrossSection, margin: float = 0.25) -> bool:
+    """Whether the tube between consecutive sections ``a`` -> ``b`` of a chain folds over itself.
+
+    With n_a, n_b the quads' normals oriented from a to b, the tube is free of this fold when every
+    corner of b lies ahead of a's plane and every corner of a behind b's plane, by ``margin`` x the
+    smaller inscribed radius of the two sections (the quads are not planar: their corners are on M;
+    a smaller margin, 0.05, missed a leaf cap cut by its tube on the elephant); a section tilted by θ
+    with half-width w spans w tan θ along the chain, so two sections crossing each other is what makes their side quads cut
+    each other and the leaf cap: seen on the zoo at leaves, whose integral lines fan out into the tip).
+    """
+    u = b.center - a.center
+    if np.linalg.norm(u) < 1e-300:
+        return True
+    na, nb = _quad_normal(a.quad, u), _quad_normal(b.quad, u)
+    tol = margin * min(a.radius, b.radius)
+    ahead = np.min((b.quad - a.quad.mean(axis=0)) @ na)
+    behind = np.max((a.quad - b.quad.mean(axis=0)) @ nb)
+    return bool(ahead <= tol or behind >= -tol)
+
+
+def flatten_section(cs: CrossSection, V: np.ndarray | None = None, F: np.ndarray | None = None) -> None:
+    """Replace the section's quad by one in the plane orthogonal to the skeleton (in place).
+
+    The plane is orthogonal to the skeleton tangent t at the mean position of the integral-line ends
+    along t; the quad is centred on the skeleton, its axes are the principal axes of the ends projected
+    on the plane (the previous section's axis when the projection is nearly round), and its corners lie
+    on the ellipse whose semi-axes are the ends' largest extents along those axes, at least the
+    inscribed radius r (a disc of radius r about the skeleton node is inside M), at ±45° (the paper's
+    quad of an ellipse). Choosing among the projected ends instead gave degenerate (collinear) quads
+    where the ends fan into a thin tip. With the surface ``(V, F)``, each corner then moves along its
+    ray from the centre to where the ray leaves M (the paper's corners are on M; corners left inside M
+    made the flow stall on spot with M inside the cage but cut by it); without it they stay on the
+    ellipse, off M.
+    """
+    t = cs.tangent / np.linalg.norm(cs.tangent)
+    c = cs.center + float(np.dot(cs.hits.mean(axis=0) - cs.center, t)) * t
+    H = cs.hits - c
+    H = H - np.outer(H @ t, t)
+    w, U = np.linalg.eigh(H.T @ H)
+    e1 = U[:, np.argmax(w)]
+    e1 = e1 - np.dot(e1, t) * t
+    e1 /= np.linalg.norm(e1)
+    ref = getattr(cs, "axis", None)
+    x, y = H @ e1, H @ np.cross(t, e1)
+    if ref is not None and np.ptp(y) > 0.8 * np.ptp(x):  # nearly round: keep the chain's axis (no twist)
+        r = ref - np.dot(ref, t) * t
+        if np.linalg.norm(r) > 1e-6:
+            e1 = r / np.linalg.norm(r)
+    e2 = np.cross(t, e1)
+    a = max(float(np.abs(H @ e1).max()), cs.radius)
+    b = max(float(np.abs(H @ e2).max()), cs.radius)
+    k = 1.0 / np.sqrt(2.0)
+    signs = ((1, 1), (-1, 1), (-1, -1), (1, -1))
+    cs.quad = np.array([c + k * (sx * a * e1 + sy * b * e2) for sx, sy in signs])
+    if V is not None:
+        cs.quad = _corners_on_surface(cs.quad, c, cs.center, V, F, step=0.25 * cs.radius)
+    cs.axis = e1
+    cs.flattened = True
+
+
+def _corners_on_surface(Q: np.ndarray, c: np.ndarray, node: np.ndarray, V: np.ndarray, F: np.ndarray,
+                        step: float, reach: float = 4.0) -> np.ndarray:
+    """Move each corner of Q along its ray from the centre (``c``, else the skeleton ``node`` when c is
+    outside M) to the ray's first exit from M (samples every ``step`` up to ``reach`` x the corner's
+    distance, at most 128 samples, then 30 bisections of the winding number); a ray without an exit
+    keeps its corner."""
+    o = c if igl.winding_number(V, F, c[None])[0] >= 0.5 else node
+    if igl.winding_number(V, F, o[None])[0] < 0.5:
+        return Q
+    D = Q - o
+    L = np.linalg.norm(D, axis=1)
+    D = D / L[:, None]
+    step = max(step, reach * float(L.max()) / 128)  # at most 128 samples per ray
+    s = np.arange(1, int(np.ceil(reach * L.max() / step)) + 1) * step
+    w = igl.winding_number(V, F, (o + s[None, :, None] * D[:, None, :]).reshape(-1, 3)).reshape(4, -1)
+    found = (w < 0.5).any(axis=1)
+    j = np.argmax(w < 0.5, axis=1)  # first sample outside M along each ray
+    lo = np.where(j > 0, s[np.maximum(j - 1, 0)], 0.0)
+    hi = s[j]
+    for _ in range(30):  # bisection, the four rays at once
+        mid = 0.5 * (lo + hi)
+        inside = igl.winding_number(V, F, o + mid[:, None] * D) >= 0.5
+        lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+    return np.where(found[:, None], o + hi[:, None] * D, Q)
+
+
+def section_degenerate(cs: CrossSection, tol: float = 0.25) -> bool:
+    """Whether two corners of the section's quad are closer than ``tol`` x its inscribed radius.
+
+    Corners on an ellipse with semi-axes >= r at ±45° are at least √2 r apart; the paper's quads of
+    a tube of radius >= r are alike. Closer corners come from integral lines ending at (nearly) the same
+    point of M (seen at small leaves: homer's fingertips, r = 0.003 of the diagonal, had two equal
+    corners, so the tube's faces were degenerate and the tight cage "self-intersected").
+    """
+    q = cs.quad
+    d = [np.linalg.norm(q[i] - q[j]) for i in range(4) for j in range(i + 1, 4)]
+    return bool(min(d) < tol * cs.radius)
+
+
+def untangle_sections(sections: dict, chain_controls: list, margin: float = 0.25, V: np.ndarray | None = None,
+                      F: np.ndarray | None = None) -> list:
+    """Flatten degenerate sections (:func:`section_degenerate`) and sections whose tube to the next
+    section along their chain folds (:func:`sections_cross`).
+
+    Per crossing pair, the more tilted section (smaller |normal . tangent|) is flattened
+    (:func:`flatten_section`), then the other if they still cross; pairs that still cross are left to
+    the assembly's recoveries. ``(V, F)``: the surface; degenerate sections and leaf sections get
+    their corners on M (:func:`flatten_section`), bending sections flattened for crossing keep the
+    ellipse corners (>= r from the skeleton, inside M). Measured on the zoo: corners left inside M at a
+    degenerate section made spot's flow stall (M inside the cage but cut by it), corners moved onto M
+    at crossing bending sections next to a junction made cheburashka's junction hull fail (larger
+    sections overlap on the junction's sphere). Returns the flattened nodes (in order).
+    """
+    leaves = {int(e) for ch, _ in chain_controls for e in (ch.start, ch.end)}  # sections there are leaf caps
+
+    def surf(nd):
+        return (V, F) if int(nd) in leaves else (None, None)
+
+    done: list = []
+    for _, ctrl in chain_controls:
+        for nd in ctrl:
+            cs = sections[nd]
+            if not getattr(cs, "flattened", False) and section_degenerate(cs):
+                flatten_section(cs, V, F)
+                done.append(int(nd))
+    for _, ctrl in chain_controls:
+        for a, b in itertools.pairwise(ctrl):
+            A, B = sections[a], sections[b]
+            if not sections_cross(A, B, margin):
+                continue
+            u = B.center - A.center
+
+            def tilt(cs, u=u):
+                t = cs.tangent / np.linalg.norm(cs.tangent)
+                return abs(float(np.dot(_quad_normal(cs.quad, u), t)))
+
+            for nd, cs in sorted(((a, A), (b, B)), key=lambda x: tilt(x[1])):
+                if getattr(cs, "flattened", False):
+                    continue
+                flatten_section(cs, *surf(nd))
+                done.append(int(nd))
+                if not sections_cross(A, B, margin):
+                    break
+    return done
 
 
 def _align(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:

@@ -16,19 +16,44 @@ junction node (close junctions made the sections of their limbs overlap), then s
 PyGEL3D's ``MSLS_skeleton`` is not deterministic (its separator search is multi-threaded): two runs on
 the same mesh can give different node counts. ``LS_skeleton(g, sampling=False)`` was deterministic in
 our runs but took 150-220 s on the 6,000-vertex zoo characters (MSLS: 3-11 s), so it is not used.
+The source of the variation (GEL's ``multiscale_local_separators``): ``std::thread::hardware_concurrency()``
+threads share ``rand()`` (the separator sampling) and the ``touched`` counts, so the sampled separators
+depend on the threads' interleaving; the thread count is the number of online CPUs (not the affinity
+mask: ``taskset`` does not change it) and no option or environment variable sets it. The front-separator
+skeleton (``graph_front_skeleton``, deterministic, 0.4-5 s) was tried with coordinate fields along the
+principal and coordinate axes: it lost limbs on the zoo (homer's legs one path, cheburashka's arms
+missing), so it is not used either. Reproducibility therefore comes from a cache: the raw MSLS graph
+of the first usable extraction is stored under the SHA-256 of the input (``cache=``), and the cleaning
+below is deterministic, so the same input gives the same skeleton. Non-finite node positions (once in
+an MSLS result on spot) are dropped before cleaning; an extraction whose cleaned skeleton is unusable
+is repeated (``attempts``).
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
+import os
+import tempfile
 import time
+from pathlib import Path
 
 import igl
 import numpy as np
 
-from ..errors import BackendUnavailableError, CageError
+from ..errors import BackendUnavailableError, CageError, MeshInputError
 from .graph import Skeleton
 
-__all__ = ["extract_skeleton"]
+__all__ = ["extract_skeleton", "skeleton_cache_dir"]
+
+
+def _pygel_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("pygel3d")
+    except Exception:  # noqa: BLE001 -- only part of a cache key
+        return "unknown"
 
 
 def _pygel_graph(V: np.ndarray, F: np.ndarray, grow_thresh: int):
@@ -42,10 +67,75 @@ def _pygel_graph(V: np.ndarray, F: np.ndarray, grow_thresh: int):
     g = graph.from_mesh(m)
     s = graph.MSLS_skeleton(g, grow_thresh=int(grow_thresh))
     nodes = list(s.nodes())
-    pos = np.asarray(s.positions(), dtype=float)
+    # Graph.positions() is a view of the C++ graph's memory ("by reference"): copy it while ``s`` is alive.
+    # Returning the view (as before) let the positions change once ``s`` was freed: NaN nodes, skeletons
+    # that collapsed to one node, and a different cleaned skeleton from the same call's result.
+    pos = np.array(s.positions(), dtype=float, copy=True)
     idx = {n: i for i, n in enumerate(nodes)}
     E = {tuple(sorted((idx[n], idx[nb]))) for n in nodes for nb in s.neighbors(n)}
-    return pos[nodes] if len(pos) > len(nodes) else pos, np.array(sorted(E), dtype=np.int64).reshape(-1, 2)
+    P = pos[np.asarray(nodes, dtype=np.int64)]
+    del s, g, m
+    return P, np.array(sorted(E), dtype=np.int64).reshape(-1, 2)
+
+
+def skeleton_cache_dir() -> Path:
+    """Folder of cached raw skeletons: ``$NESTMG_CACHE/skeleton`` (default ``~/.cache/nestmg/skeleton``)."""
+    return Path(os.environ.get("NESTMG_CACHE", Path.home() / ".cache" / "nestmg")) / "skeleton"
+
+
+def _cache_key(V: np.ndarray, F: np.ndarray, grow_thresh: int) -> str:
+    """SHA-256 (32 hex digits) of the surface's bytes, the extraction option and pygel3d's version."""
+    h = hashlib.sha256(b"nestmg-skeleton-raw-v1")
+    for a in (np.ascontiguousarray(V, np.float64), np.ascontiguousarray(F, np.int64)):
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    h.update(f"grow_thresh={int(grow_thresh)};pygel3d={_pygel_version()}".encode())
+    return h.hexdigest()[:32]
+
+
+def _cache_load(path: Path):
+    """(P, E) stored at ``path`` when readable and consistent with its recorded digest, else None."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as z:
+            P, E, digest = np.asarray(z["P"], float), np.asarray(z["E"], np.int64), str(z["digest"])
+    except Exception:  # noqa: BLE001 -- an unreadable entry is a miss (re-extracted and rewritten)
+        return None
+    if digest != _raw_digest(P, E):
+        return None
+    return P, E
+
+
+def _raw_digest(P: np.ndarray, E: np.ndarray) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(P, np.float64).tobytes())
+    h.update(np.ascontiguousarray(E, np.int64).tobytes())
+    return h.hexdigest()
+
+
+def _cache_save(path: Path, P: np.ndarray, E: np.ndarray) -> None:
+    """Write (P, E) atomically (temporary file in the same folder, then a rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, P=P, E=E, digest=np.array(_raw_digest(P, E)))
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(buf.getvalue())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _finite_only(P: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Drop nodes with non-finite coordinates (seen once in an MSLS result on spot) and their edges."""
+    ok = np.all(np.isfinite(P), axis=1)
+    if ok.all():
+        return P, E, 0
+    P2, E2 = _compact(P, E, ok)
+    return P2, E2, int((~ok).sum())
 
 
 def _spanning_tree(P: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -171,40 +261,11 @@ def _merge_close_branching(P: np.ndarray, E: np.ndarray, V: np.ndarray, F: np.nd
         P, E = P[keep], new[E2]
 
 
-def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune: float = 2.0,
-                     merge: float = 2.0) -> tuple[Skeleton, dict]:
-    """Curve skeleton of a closed surface (PyGEL3D multi-scale local separators), cleaned to a tree.
-
-    Parameters
-    ----------
-    V : (n,3) float array
-    F : (m,3) int array
-    grow_thresh : int
-        PyGEL3D's separator growth limit (larger: coarser, faster).
-    prune : float
-        Leaf branches shorter than this many inscribed radii at their branching node are removed.
-    merge : float
-        Chains between two branching nodes shorter than this many inscribed radii (the larger of their
-        ends) are collapsed into one junction node, so that the sections of the limbs leaving two close
-        junctions do not overlap (0: no merging). Spurs are pruned again after merging.
-
-    Returns
-    -------
-    skeleton : Skeleton
-        A tree inside the surface (no bending nodes).
-    info : dict
-        ``seconds``, raw and final node/edge counts, spurs pruned, leaves dropped outside M.
-
-    Raises
-    ------
-    BackendUnavailableError
-        pygel3d is not installed.
-    CageError
-        The extracted skeleton is empty or leaves the surface away from its leaves.
-    """
-    t0 = time.perf_counter()
-    P, E = _pygel_graph(V, F, grow_thresh)
-    info = {"raw_nodes": len(P), "raw_edges": len(E)}
+def _clean(P: np.ndarray, E: np.ndarray, V: np.ndarray, F: np.ndarray, prune: float,
+           merge: float) -> tuple[Skeleton, dict]:
+    """The raw graph (P, E) cleaned into a tree inside (V, F) (module docstring); CageError when impossible."""
+    P, E, n_nonfinite = _finite_only(np.asarray(P, float), np.asarray(E, np.int64).reshape(-1, 2))
+    info = {"raw_nodes": len(P), "raw_edges": len(E), "raw_nonfinite_nodes": n_nonfinite}
     if len(E) == 0:
         raise CageError("skeleton extraction (pygel3d): empty skeleton", layer=1)
     P, E = _largest_component(P, E)
@@ -280,6 +341,89 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
     S = Skeleton(P, E)
     info.update({"n_nodes": len(P), "n_edges": len(E), "spurs_pruned": n_pruned,
                  "leaves_outside_dropped": dropped, "outside_node_moves": moved, "outside_nodes_merged": merged,
-                 "junctions_merged": junctions_merged, "n_leaves": len(S.leaves), "n_branching": len(S.branching),
-                 "seconds": time.perf_counter() - t0, "method": "pygel3d.graph.MSLS_skeleton"})
+                 "junctions_merged": junctions_merged, "n_leaves": len(S.leaves), "n_branching": len(S.branching)})
     return S, info
+
+
+def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune: float = 2.0,
+                     merge: float = 2.0, cache=None, attempts: int = 3) -> tuple[Skeleton, dict]:
+    """Curve skeleton of a closed surface (PyGEL3D multi-scale local separators), cleaned to a tree.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+    grow_thresh : int
+        PyGEL3D's separator growth limit (larger: coarser, faster).
+    prune : float
+        Leaf branches shorter than this many inscribed radii at their branching node are removed.
+    merge : float
+        Chains between two branching nodes shorter than this many inscribed radii (the larger of their
+        ends) are collapsed into one junction node, so that the sections of the limbs leaving two close
+        junctions do not overlap (0: no merging). Spurs are pruned again after merging.
+    cache : None, False or path
+        Folder of raw skeletons keyed by the SHA-256 of ``(V, F)``, ``grow_thresh`` and pygel3d's
+        version (None: :func:`skeleton_cache_dir`, ``$NESTMG_CACHE/skeleton``; False: no cache).
+        PyGEL3D's extraction is not deterministic (module docstring); with the cache, the same input
+        always gets the same raw skeleton, hence the same cleaned skeleton (the cleaning is
+        deterministic). The raw graph is stored, not the cleaned tree, so changes to the cleaning
+        apply to cached entries; an entry whose cleaning fails is extracted again.
+    attempts : int
+        Extractions tried when the cleaned skeleton is unusable (a ``CageError`` of the cleaning: one
+        node left, nodes outside M, empty); only a usable raw skeleton is cached.
+
+    Returns
+    -------
+    skeleton : Skeleton
+        A tree inside the surface (no bending nodes).
+    info : dict
+        ``seconds``, raw and final node/edge counts, spurs pruned, leaves dropped outside M, ``cache``
+        ("hit", "miss" or "off"), ``cache_key``, ``attempts``, ``raw_digest`` / ``skeleton_digest``
+        (SHA-256 of the raw graph / of the cleaned nodes and edges: equal digests, equal skeletons).
+
+    Raises
+    ------
+    BackendUnavailableError
+        pygel3d is not installed.
+    CageError
+        Every attempt's skeleton was empty, left the surface away from its leaves, or collapsed to one
+        node (the message is the last attempt's).
+    """
+    t0 = time.perf_counter()
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    key = _cache_key(V, F, grow_thresh)
+    path = None if cache is False else (Path(cache) if cache is not None else skeleton_cache_dir()) / f"{key}.npz"
+    status = "off" if path is None else "miss"
+    failures: list = []
+    cached = _cache_load(path) if path is not None else None
+    for k in range(max(int(attempts), 1) + (cached is not None)):
+        if cached is not None and k == 0:
+            P, E = cached
+        else:
+            P, E = _pygel_graph(V, F, grow_thresh)
+        try:
+            S, info = _clean(P, E, V, F, prune, merge)
+        except (CageError, MeshInputError) as exc:
+            failures.append(str(exc))
+            if k == 0 and cached is not None:
+                status = "stale"  # the cleaning of the cached raw skeleton fails: extract again
+            continue
+        if cached is not None and k == 0:
+            status = "hit"
+        elif path is not None:
+            try:
+                _cache_save(path, np.asarray(P, float), np.asarray(E, np.int64).reshape(-1, 2))
+            except OSError as exc:  # a read-only cache must not fail the extraction
+                status = f"not written ({exc.__class__.__name__})"
+        h = hashlib.sha256(np.ascontiguousarray(S.nodes, np.float64).tobytes())
+        h.update(np.ascontiguousarray(S.edges, np.int64).tobytes())
+        info.update({"cache": status, "cache_key": key, "attempts": len(failures) + 1,
+                     "failed_attempts": failures,
+                     "raw_digest": _raw_digest(np.asarray(P, float), np.asarray(E, np.int64).reshape(-1, 2)),
+                     "skeleton_digest": h.hexdigest(), "seconds": time.perf_counter() - t0,
+                     "method": "pygel3d.graph.MSLS_skeleton"})
+        return S, info
+    raise CageError(failures[-1] + f" ({len(failures)} extraction attempt(s))", layer=1)
+
+

@@ -175,8 +175,8 @@ def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
     fb = [r for r in info["recovery"] if r["stage"] == "fallback"]
     assert len(fb) == 1 and "lazy" in fb[0]["action"] and "layer 1" in fb[0]["reason"]
     assert any("falling back to a lazy cage" in m for m in msgs)
-    with pytest.raises(CageError) as exc:  # without the fallback (the default) the failure is raised
-        nb.nested_backend(V, F, [600], max_recovery_depth=0)
+    with pytest.raises(CageError) as exc:  # without a fallback the failure is raised
+        nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
     assert exc.value.layer == 1
 
 

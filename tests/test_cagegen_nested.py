@@ -286,6 +286,22 @@ def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch):
     assert exc.value.layer == 1
 
 
+
+def test_default_fallback_is_a_certified_sdf_layer(neck, monkeypatch):
+    """A layer whose flow fails (forced) and whose intermediate layers are not allowed falls back by
+    default to an sdf cage (MIT) of exactly the requested size, certified."""
+    V, F = neck
+    real = nested_backend_module.flow_inside
+    monkeypatch.setattr(nested_backend_module, "flow_inside",
+                        lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    layers, info = nested_backend(V, F, [600], max_recovery_depth=0)
+    li = info["layers"][0]
+    assert li["fallback"] == "sdf" and len(layers[0][1]) == 600
+    assert li["verification"]["ok"] is True
+    assert verify_nesting([(V, F)] + layers).ok
+    assert any(r["stage"] == "fallback" for r in info["recovery"])
+    # (that nothing copyleft is loaded is checked in a fresh process: test_nestmg_usermesh's licence probe)
+
 def test_decimate_from_input_nests_previous_layer(neck):
     """Targets decimated from the input (not the previous cage) still nest the previous layer."""
     V, F = neck

@@ -177,11 +177,14 @@ from nestmg import build_hierarchy, shapes
 V, F = shapes.sphere(res=12)
 h = build_hierarchy(V, F, levels=2, edge_length_fac=0.15, cache=False, progress=False)
 assert h.certified and h.fallbacks == [], h
-# the default nested backend, forced to fail: it raises instead of loading the GPL lazy fallback
+# the default nested backend, forced to fail: its default fallback is the MIT sdf cage, never the GPL
+# lazy one; without a fallback it raises
 real = nb.flow_inside
 nb.flow_inside = lambda *a, **kw: real(*a, **{**kw, "max_iter": 0})
+layers, info = nb.nested_backend(V, F, [300], max_recovery_depth=0)
+assert info["layers"][0]["fallback"] == "sdf", info["layers"][0].get("fallback")
 try:
-    nb.nested_backend(V, F, [300], max_recovery_depth=0)
+    nb.nested_backend(V, F, [300], max_recovery_depth=0, fallback=None)
     raise SystemExit("no CageError")
 except CageError:
     pass

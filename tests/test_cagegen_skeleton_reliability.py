@@ -113,7 +113,9 @@ def test_same_skeleton_gives_the_same_cage(star):
     V, F, S = star
     a = skeleton_cage(V, F, S, bending="given")
     b = skeleton_cage(V, F, S, bending="given")
-    np.testing.assert_array_equal(a.V, b.V)
+    # same cage up to round-off (multi-threaded BLAS may sum in a different order: 1e-16 differences
+    # were seen under CI); the connectivity is identical
+    np.testing.assert_allclose(a.V, b.V, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(a.F, b.F)
     assert a.info["sections_flattened"] == []  # well-behaved sections are left as the paper builds them
 

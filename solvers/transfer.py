@@ -93,7 +93,7 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=Non
     return ops
 
 
-def reroute_to_pattern(G: sp.spmatrix, pattern: sp.spmatrix, stretch: float = 1.5) -> sp.csr_matrix:
+def reroute_to_pattern(G: sp.spmatrix, pattern: sp.spmatrix, stretch: float = 1.0) -> sp.csr_matrix:
     """Sparsify a symmetric operator to a given pattern without making it softer anywhere.
 
     A non-Galerkin coarse operator in the spirit of Falgout & Schroder (2014, "Non-Galerkin coarse grids
@@ -114,9 +114,10 @@ def reroute_to_pattern(G: sp.spmatrix, pattern: sp.spmatrix, stretch: float = 1.
     whose off-diagonal entries are <= 0 (an M-matrix: a graph Laplacian plus a non-negative diagonal),
     ``G' >= min(1, s/2) G``, so ``G'`` stays positive semi-definite. ``s = 2`` over-stiffens smooth
     functions (a linear function's energy along a path through an ``m`` off the segment ``ij`` exceeds
-    the edge's); the default ``s = 1.5`` keeps ``G' >= 0.75 G`` on M-matrices and measured closer to
-    Galerkin's convergence (docs/coarse.md: the procedural torus and 18 dev-zoo hierarchies, all
-    within 0.05 of Galerkin's factor with the energy scaling, against 16 of 18 at ``s = 2``). The
+    the edge's; a single energy scaling cannot undo it where the mass term dominates the smooth modes);
+    the default ``s = 1`` (``G' >= G/2`` on M-matrices) measured closest to Galerkin's convergence
+    (docs/coarse.md: within 0.05 of Galerkin's factor with the energy scaling on the procedural torus and
+    on the TetGen and TetWild dev-zoo hierarchies, where ``s = 2`` missed 2 of 18 and ``s = 1.5`` 2 of 18). The
     coarse correction's global scale is undone by ``MultigridSolver(coarse_scaling="energy")``.
 
     Parameters
@@ -126,7 +127,7 @@ def reroute_to_pattern(G: sp.spmatrix, pattern: sp.spmatrix, stretch: float = 1.
         Allowed couplings: its nonzero off-diagonal positions (symmetrised), e.g. the stiffness matrix
         of the coarse mesh (its edges).
     stretch : float
-        Conductance factor of the rerouted paths (>= 2 for the never-softer guarantee; default 1.5).
+        Conductance factor of the rerouted paths (>= 2 for the never-softer guarantee; default 1).
 
     Returns
     -------
@@ -177,7 +178,7 @@ def reroute_to_pattern(G: sp.spmatrix, pattern: sp.spmatrix, stretch: float = 1.
     return Gn
 
 
-def sparsified_galerkin_operators(A: sp.spmatrix, Ps, patterns, *, stretch: float = 1.5,
+def sparsified_galerkin_operators(A: sp.spmatrix, Ps, patterns, *, stretch: float = 1.0,
                                   Rs=None) -> list[sp.csr_matrix]:
     """Galerkin hierarchy sparsified level by level with :func:`reroute_to_pattern`.
 

@@ -34,7 +34,7 @@ from ..audit import check_mesh
 from ..decimate import decimate_surface
 from ..errors import CageError
 from ..verify import verify_nesting
-from .envelope import build_envelope
+from .envelope import active_points, build_envelope
 from .optimize import mips, optimize_cage
 from .simplify import SimplifyStuck, constrained_simplify
 
@@ -184,6 +184,9 @@ def sdf_cage_layer(
     max_retries: int = 3,
     min_gap: float = 0.0,
     check_input: bool = True,
+    hug: float = 0.0,
+    hug_radius: float = 1.0,
+    hug_dhat: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
 
@@ -239,6 +242,18 @@ def sdf_cage_layer(
         strictly; without the check the backend spends minutes of rebuilds before giving up). False:
         the caller guarantees an audited input (``build_cages`` does, and every layer it returns is
         certified).
+    hug : float
+        Not in the paper (0 = off): spacing target of the optimisation near the input's active points
+        (where two parts nearly touch), in units of ``c``, so the cage hugs the input there and a coarser
+        layer built on it can still separate the parts; elsewhere ``spacing``.
+    hug_radius : float
+        Falloff radius of ``hug`` around the active points, in units of ``r``.
+    hug_dhat : float
+        With ``hug`` and active points found: the barrier activation distance becomes
+        ``min(dhat, hug_dhat)`` (units of ``c``; everywhere, ipctk's barrier has one ``dhat``): the
+        descent holds the cage vertices in barrier pairs when the CCD blocks a step, so with
+        ``dhat = 0.25 c`` the cage cannot come closer than ~0.25 ``c`` (homer: the lower target alone
+        and the lower barrier alone both leave the second layer at genus 1, together genus 0).
 
     Returns
     -------
@@ -280,6 +295,7 @@ def sdf_cage_layer(
     g_fine = genus(Vn, F)
     gap_rel = float(min_gap) / bbox_diagonal(Vn)  # verify_nesting's min_gap is relative to layer 0
     attempts = []
+    hug_pts = None
     for attempt in range(int(max_retries) + 1):
         ck = c * 2.0 ** attempt
         sec: dict = {}
@@ -341,16 +357,25 @@ def sdf_cage_layer(
             if not rep.ok:
                 raise SimplifyStuck(f"simplified cage not certified: {rep.pairs[0].reason}")
             oinfo: dict = {"ran": False}
+            h_local = None
+            if optimize and hug > 0 and amplify:
+                if hug_pts is None:
+                    hug_pts = Vn[active_points(Vn, F, r, l)]
+                if len(hug_pts):
+                    h_local = (hug_pts, hug * ck, hug_radius * r)
+            dh = min(dhat, hug_dhat) if h_local is not None else dhat
             if optimize:
                 t = time.perf_counter()
                 try:
                     # the CCD keeps min_gap (+5%) and the barrier acts beyond it, so the optimised cage
                     # can pass the same certificate as the simplified one
-                    U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=spacing * ck, dhat=max(dhat * ck, 2 * min_gap),
+                    U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=spacing * ck, dhat=max(dh * ck, 2 * min_gap),
                                                   iters=opt_iters, flip_rounds=flip_rounds,
                                                   time_limit=opt_time_limit, w_p=pull, pull_target=ck,
-                                                  min_distance=1.05 * float(min_gap))
+                                                  min_distance=1.05 * float(min_gap), h_local=h_local)
                     oinfo["ran"] = True
+                    if h_local is not None:
+                        oinfo["hug_points"] = int(len(h_local[0]))
                     rep2 = verify_nesting([(Vn, F), (U2, G2)], min_gap=gap_rel)
                     oinfo["certified"] = bool(rep2.ok)
                     if rep2.ok:

@@ -89,9 +89,17 @@ def _barycentric(Q, A, B, C):
 
 
 class _Energy:
-    def __init__(self, Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=0.0, t_pull=None):
+    def __init__(self, Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=0.0, t_pull=None, h_local=None):
         import igl
 
+        # local spacing target (not in the paper): (points, h_loc, radius) -> the target at a point whose
+        # closest input point is at distance s from the nearest of ``points`` is
+        # h + (h_loc - h) exp(-(s / radius)^2) (held fixed in the gradient: it varies on the scale radius)
+        self.h_local = None
+        if h_local is not None and len(h_local[0]):
+            from scipy.spatial import cKDTree
+
+            self.h_local = (cKDTree(np.asarray(h_local[0], dtype=float)), float(h_local[1]), float(h_local[2]))
         self.igl = igl
         self.Fc, self.Vin, self.Fin = Fc, Vin, Fin
         self.h, self.w_s, self.w_q, self.h_ref = h, w_s, w_q, h_ref
@@ -106,6 +114,14 @@ class _Energy:
             for k in range(3):
                 np.add.at(a, Fin[:, k], Ain / 3)
             self.a_in = a / float(Ain.sum())
+
+    def target(self, P):
+        """Spacing target at query points whose closest input points are ``P``."""
+        if self.h_local is None:
+            return self.h
+        tree, hl, rad = self.h_local
+        s = tree.query(P, distance_upper_bound=4 * rad)[0]
+        return self.h + (hl - self.h) * np.where(np.isfinite(s), np.exp(-np.minimum(s / rad, 4.0) ** 2), 0.0)
 
     def pull(self, C, grad=False):
         """``w_p * sum_i a_i (d_i - t)_+^2 / h_ref^2``, ``d_i`` the distance of input vertex ``i`` to the cage,
@@ -134,12 +150,14 @@ class _Energy:
         """Per-triangle share of the energy (spacing at the corners and centroid + MIPS), up to the
         common normalisation, as a function of the triangles ``T`` (k,3) of the cage ``C``: what an
         edge flip changes."""
-        rv = np.sqrt(self.igl.point_mesh_squared_distance(C, self.Vin, self.Fin)[0]) - self.h
+        d2v, _, Pv = self.igl.point_mesh_squared_distance(C, self.Vin, self.Fin)
+        rv = np.sqrt(d2v) - self.target(Pv)
 
         def e(T):
             X = C[T]
             A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
-            rc = np.sqrt(self.igl.point_mesh_squared_distance(X.mean(axis=1), self.Vin, self.Fin)[0]) - self.h
+            d2c, _, Pc = self.igl.point_mesh_squared_distance(X.mean(axis=1), self.Vin, self.Fin)
+            rc = np.sqrt(d2c) - self.target(Pc)
             spacing = (rv[T] ** 2).sum(axis=1) / 6 + 0.5 * rc ** 2
             return A * (self.w_s * spacing / self.h_ref ** 2 + self.w_q * (mips(C, T) - 2.0))
         return e
@@ -158,7 +176,7 @@ class _Energy:
         w = np.r_[Av, 0.5 * A]
         d2, _, P = self.igl.point_mesh_squared_distance(Q, self.Vin, self.Fin)
         d = np.sqrt(d2)
-        r = d - self.h
+        r = d - self.target(P)
         Es = self.w_s * float(np.sum(w * r * r)) / (At * self.h_ref ** 2)
         if grad:
             m, Gm = mips(C, Fc, grad=True)
@@ -294,6 +312,7 @@ def optimize_cage(
     w_p: float = 0.0,
     pull_target: float | None = None,
     min_distance: float = 0.0,
+    h_local: tuple | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Relocate the cage's vertices (and flip edges) to lower spacing + MIPS energy, intersection-free.
 
@@ -321,6 +340,10 @@ def optimize_cage(
         caller's ``min_gap``; at most the starting gap). The first CCD (all pairs, cage-cage too) keeps
         ``min(dhat / 10, half the starting gap)``: below a ``min_gap`` of the order of ``dhat``, so
         without it the optimised cage failed the caller's certificate and the simplified one was kept.
+    h_local : (points, h_loc, radius), optional
+        Not in the paper: a smaller spacing target near ``points`` (the envelope's active points), so the
+        cage hugs the input where two parts nearly touch: ``h + (h_loc - h) exp(-(s / radius)^2)``,
+        ``s`` the distance of a query's closest input point to the nearest of ``points``.
 
     Returns
     -------
@@ -335,7 +358,8 @@ def optimize_cage(
     Fc = np.array(Fc, dtype=np.int64)
     h_ref = max(h, dhat)
     step = 2 * dhat if step is None else float(step)
-    energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=w_p, t_pull=2 * h if pull_target is None else pull_target)
+    energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=w_p, t_pull=2 * h if pull_target is None else pull_target,
+                     h_local=h_local)
     barrier = ipctk.BarrierPotential(dhat, kappa)
     info = {"steps": 0, "flips": 0, "ccd_limited": 0}
     nc = len(C)

@@ -78,19 +78,24 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=Non
     if symmetric is None:
         symmetric = _is_symmetric(ops[0])
     for k, P in enumerate(Ps):
-        P = sp.csr_matrix(P, dtype=np.float64)
-        if P.shape[0] != ops[-1].shape[0]:
-            raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {ops[-1].shape[0]} nodes")
-        # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
-        check_memory(galerkin_bytes(ops[-1], P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
-        R = sp.csr_matrix(P.T) if Rs is None else Rs[k]
-        Ac = sp.csr_matrix(R @ (ops[-1] @ P))
-        if symmetric:
-            Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
-        Ac.sum_duplicates()
-        Ac.sort_indices()
-        ops.append(Ac)
+        ops.append(_galerkin_level(ops[-1], P, k, None if Rs is None else Rs[k], symmetric))
     return ops
+
+
+def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_matrix:
+    """``P_kᵀ A_k P_k`` (symmetrised when ``symmetric``), after checking the shapes and the memory."""
+    P = sp.csr_matrix(P, dtype=np.float64)
+    if P.shape[0] != Ak.shape[0]:
+        raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
+    # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
+    check_memory(galerkin_bytes(Ak, P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
+    R = sp.csr_matrix(P.T) if R is None else R
+    Ac = sp.csr_matrix(R @ (Ak @ P))
+    if symmetric:
+        Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
+    Ac.sum_duplicates()
+    Ac.sort_indices()
+    return Ac
 
 
 def reroute_to_pattern(G: sp.spmatrix, pattern: sp.spmatrix, stretch: float = 1.0) -> sp.csr_matrix:
@@ -207,13 +212,8 @@ def sparsified_galerkin_operators(A: sp.spmatrix, Ps, patterns, *, stretch: floa
     if not _is_symmetric(ops[0]):
         raise SolverInputError("sparsified Galerkin operators need a symmetric A")
     for k, P in enumerate(Ps):
-        P = sp.csr_matrix(P, dtype=np.float64)
-        if P.shape[0] != ops[-1].shape[0]:
-            raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {ops[-1].shape[0]} nodes")
-        check_memory(galerkin_bytes(ops[-1], P), f"the Galerkin product of level {k + 1} (before sparsifying)")
-        R = sp.csr_matrix(P.T) if Rs is None else Rs[k]
-        G = sp.csr_matrix(R @ (ops[-1] @ P))
-        ops.append(reroute_to_pattern(0.5 * (G + G.T), patterns[k], stretch))
+        G = _galerkin_level(ops[-1], P, k, None if Rs is None else Rs[k], True)
+        ops.append(reroute_to_pattern(G, patterns[k], stretch))
     return ops
 
 

@@ -89,7 +89,7 @@ def _barycentric(Q, A, B, C):
 
 
 class _Energy:
-    def __init__(self, Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=0.0, t_pull=None, h_local=None):
+    def __init__(self, Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=0.0, t_pull=None, h_local=None, pull_mask=None):
         import igl
 
         # local spacing target (not in the paper): (points, h_loc, radius) -> the target at a point whose
@@ -114,6 +114,8 @@ class _Energy:
             for k in range(3):
                 np.add.at(a, Fin[:, k], Ain / 3)
             self.a_in = a / float(Ain.sum())
+        # the input vertices that pull (all by default); the others are ignored by the pull term
+        self.pull_idx = np.arange(len(Vin)) if pull_mask is None else np.flatnonzero(pull_mask)
 
     def target(self, P):
         """Spacing target at query points whose closest input points are ``P``."""
@@ -127,12 +129,14 @@ class _Energy:
         """``w_p * sum_i a_i (d_i - t)_+^2 / h_ref^2``, ``d_i`` the distance of input vertex ``i`` to the cage,
         ``a_i`` its share of the input's area; the gradient moves the closest cage point's corners
         (barycentric weights held fixed) toward the input vertex."""
-        if self.w_p <= 0:
+        idx = self.pull_idx
+        if self.w_p <= 0 or len(idx) == 0:
             return (0.0, np.zeros_like(C)) if grad else 0.0
-        d2, fi, Q = self.igl.point_mesh_squared_distance(self.Vin, C, self.Fc)
+        d2, fi, Q = self.igl.point_mesh_squared_distance(self.Vin[idx], C, self.Fc)
         d = np.sqrt(d2)
         ex = np.maximum(d - self.t_pull, 0.0)
-        e = self.w_p * float(np.sum(self.a_in * ex * ex)) / self.h_ref ** 2
+        a_in = self.a_in[idx]
+        e = self.w_p * float(np.sum(a_in * ex * ex)) / self.h_ref ** 2
         if not grad:
             return e
         g = np.zeros_like(C)
@@ -140,8 +144,8 @@ class _Energy:
         if len(on):
             T = self.Fc[fi[on]]
             L = _barycentric(Q[on], C[T[:, 0]], C[T[:, 1]], C[T[:, 2]])
-            u = (Q[on] - self.Vin[on]) / np.maximum(d[on], 1e-300)[:, None]  # d d_i / d q
-            coef = (self.w_p * 2 * self.a_in[on] * ex[on] / self.h_ref ** 2)[:, None] * u
+            u = (Q[on] - self.Vin[idx[on]]) / np.maximum(d[on], 1e-300)[:, None]  # d d_i / d q
+            coef = (self.w_p * 2 * a_in[on] * ex[on] / self.h_ref ** 2)[:, None] * u
             for k in range(3):
                 np.add.at(g, T[:, k], L[:, k:k + 1] * coef)
         return e, g
@@ -313,6 +317,8 @@ def optimize_cage(
     pull_target: float | None = None,
     min_distance: float = 0.0,
     h_local: tuple | None = None,
+    free: np.ndarray | None = None,
+    pull_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Relocate the cage's vertices (and flip edges) to lower spacing + MIPS energy, intersection-free.
 
@@ -344,6 +350,12 @@ def optimize_cage(
         Not in the paper: a smaller spacing target near ``points`` (the envelope's active points), so the
         cage hugs the input where two parts nearly touch: ``h + (h_loc - h) exp(-(s / radius)^2)``,
         ``s`` the distance of a query's closest input point to the nearest of ``points``.
+    free : (n,) bool array, optional
+        Only these cage vertices move (default: all); the others are obstacles like the input (the
+        tightening pass optimises a patch of the cage, its border held).
+    pull_mask : (len(Vin),) bool array, optional
+        Only these input vertices pull (default: all; the patch's input vertices whose closest cage
+        point may lie outside the patch must not pull).
 
     Returns
     -------
@@ -359,10 +371,14 @@ def optimize_cage(
     h_ref = max(h, dhat)
     step = 2 * dhat if step is None else float(step)
     energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=w_p, t_pull=2 * h if pull_target is None else pull_target,
-                     h_local=h_local)
+                     h_local=h_local, pull_mask=pull_mask)
     barrier = ipctk.BarrierPotential(dhat, kappa)
     info = {"steps": 0, "flips": 0, "ccd_limited": 0}
     nc = len(C)
+    if free is not None:
+        free = np.asarray(free, dtype=bool)
+        if free.shape != (nc,):
+            raise ValueError(f"free must be a boolean mask of the {nc} cage vertices")
 
     active = np.zeros(nc, dtype=bool)  # cage vertices in barrier pairs at the last gradient
 
@@ -413,6 +429,8 @@ def optimize_cage(
             # per-vertex normalised gradient (a positive diagonal scaling: still a descent direction)
             gref = float(np.quantile(gn, 0.9))
             d = -g * (step / np.maximum(gn, gref if gref > 0 else float(gn.max())))[:, None]
+            if free is not None:
+                d[~free] = 0.0
             amax = ccd(C, C + d)
             if amax < 0.3 and active.any():
                 # a pair in contact range blocks the step: hold its cage vertices, move the others

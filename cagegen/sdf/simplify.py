@@ -200,6 +200,7 @@ def constrained_simplify(
     min_quality: float = 0.02,
     max_batches: int = 10000,
     edge_clear: float = 0.0,
+    frozen: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Collapse edges of the cage ``(V, F)`` (outside ``(Vin, Fin)``) down to exactly ``target`` faces.
 
@@ -228,6 +229,9 @@ def constrained_simplify(
         test this makes the clearance exact (a caller's ``min_gap``): the samples alone let a new edge
         pass next to a sharp input edge (a coarse input: the previous cage layer, 4e-4 for a 2.5e-3
         ``min_gap``), and the layer then failed its certificate.
+    frozen : (n,) bool array, optional
+        Vertices that must survive where they are: no edge incident to one is collapsed (the
+        tightening pass of :func:`cagegen.sdf.backend.sdf_cage_layer` freezes the vertices it inserted).
 
     Returns
     -------
@@ -246,6 +250,9 @@ def constrained_simplify(
         raise ValueError(f"cannot reach {target} faces from {len(F)} by edge collapses (parity)")
     Q = face_quadrics(V, F) if Q is None else np.array(Q)
     n = len(V)
+    frozen = np.zeros(n, dtype=bool) if frozen is None else np.asarray(frozen, dtype=bool)
+    if frozen.shape != (n,):
+        raise ValueError(f"frozen must be a boolean mask of the {n} vertices")
     # edge key -> (failed placements, batch of the last failure); reset when a neighbourhood changes
     attempts: dict[int, tuple[int, int]] = {}
     changed_at = np.zeros(n, dtype=np.int64)
@@ -273,6 +280,7 @@ def constrained_simplify(
         A = sp.coo_matrix((np.ones(2 * len(E)), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
         common = np.asarray((A @ A)[a, b]).ravel()
         ok = common == 2  # link condition: the collapse keeps a closed 2-manifold
+        ok &= ~(frozen[a] | frozen[b])
         key = a * n + b
         att = np.zeros(len(E), dtype=np.int64)
         if attempts:

@@ -185,7 +185,7 @@ def sdf_cage_layer(
     max_retries: int = 3,
     min_gap: float = 0.0,
     check_input: bool = True,
-    hug: float = 0.0,
+    hug: float = 0.1,
     hug_radius: float = 1.0,
     hug_dhat: float = 0.05,
     tighten: float = 1.5,
@@ -246,9 +246,11 @@ def sdf_cage_layer(
         the caller guarantees an audited input (``build_cages`` does, and every layer it returns is
         certified).
     hug : float
-        Not in the paper (0 = off): spacing target of the optimisation near the input's active points
+        Not in the paper (0 = off; default 0.1 since the zoo runs ``zoo_sdf_hug01.json`` /
+        ``zoo4_tighten_hug01.json``): spacing target of the optimisation near the input's active points
         (where two parts nearly touch), in units of ``c``, so the cage hugs the input there and a coarser
-        layer built on it can still separate the parts; elsewhere ``spacing``.
+        layer built on it can still separate the parts (homer's second layer: genus 0 instead of 1);
+        elsewhere ``spacing``. Inputs without active points are unaffected.
     hug_radius : float
         Falloff radius of ``hug`` around the active points, in units of ``r``.
     hug_dhat : float

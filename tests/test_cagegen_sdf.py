@@ -446,7 +446,7 @@ def test_hug_brings_the_cage_closer_near_active_points_only():
     V, F = _c_ring(0.1, res=40)
     Vn = _unit(V)
     m = int(2 * round(len(F) / 8))
-    kw = dict(c=0.02, r=0.05, h=0.01, tighten=0)  # the tightening pass is tested on its own
+    kw = {"c": 0.02, "r": 0.05, "h": 0.01, "tighten": 0}  # the tightening pass is tested on its own
     U0, G0, i0 = sdf_cage_layer(Vn, F, m, hug=0, **kw)
     U1, G1, i1 = sdf_cage_layer(Vn, F, m, hug=0.1, **kw)
     assert i1["optimize"]["hug_points"] > 0 and "hug_points" not in i0["optimize"]

@@ -246,7 +246,7 @@ def tighten_cage(
         t = time.process_time()
         rec: dict = {}
         C2, F2, picked = split_far_faces(C, Fc, Vin, Fin, trigger, separation, max_insert=max_insert)
-        rec["inserted"] = int(len(picked))
+        rec["inserted"] = len(picked)
         if len(picked) == 0:
             info["rounds"].append(rec)
             break

@@ -1,0 +1,78 @@
+"""Where is an ``sdf`` cage farthest from its input, and can a cage vertex get there? (issue 17)
+
+For each mesh, one ``sdf`` layer at the 4x level is built with the backend's defaults except
+``--tighten`` (default 0: the optimised cage the tightening pass starts from). For the ``--k`` input
+vertices farthest from the cage, the JSON records the distance, the position (unit-diagonal frame of the
+backend), and the smallest signed distance to the input along the straight segment from the vertex to
+its closest cage point (``--samples`` points): positive and tiny = the segment squeezes through a crevice
+that narrow; negative = the closest cage point is behind the input (an undercut). That is the path the
+pull and the tightening pass would drag a cage vertex along.
+
+Usage::
+
+    python benchmarks/sdf_far_points.py /work/shared/data/meshes --meshes homer.obj --k 12 \\
+        --out benchmarks/results/sdf/far_points_homer.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cages import _read
+
+
+def far_points(V: np.ndarray, F: np.ndarray, n_faces: int, k: int, samples: int, tighten: float) -> dict:
+    import igl
+
+    from cagegen.sdf.backend import sdf_cage_layer
+
+    c0 = time.process_time()
+    U, G, info = sdf_cage_layer(V, F, n_faces, tighten=tighten)
+    cpu = time.process_time() - c0
+    lo, hi = V.min(0), V.max(0)
+    center, unit = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    Vn, Un = (V - center) / unit, (U - center) / unit
+    d2, _, Q = igl.point_mesh_squared_distance(Vn, Un, G)
+    d = np.sqrt(d2)
+    order = np.argsort(-d)[:k]
+    t = np.linspace(0.05, 0.95, samples)
+    rows = []
+    for i in order:
+        P = Vn[i] + t[:, None] * (Q[i] - Vn[i])
+        s = igl.signed_distance(P, Vn, F)[0]
+        rows.append({"vertex": int(i), "distance": float(d[i]), "position": np.round(Vn[i], 4).tolist(),
+                     "min_signed_distance_on_path": float(s.min())})
+    return {"n_faces": n_faces, "cpu_seconds": cpu, "hausdorff": info["hausdorff_relative"],
+            "beyond_1.5c": int((d > 0.015).sum()), "farthest": rows}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mesh_dir")
+    ap.add_argument("--meshes", nargs="+", required=True)
+    ap.add_argument("--k", type=int, default=12)
+    ap.add_argument("--samples", type=int, default=19)
+    ap.add_argument("--tighten", type=float, default=0.0)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+    from cagegen import default_face_counts
+
+    res = {"tighten": a.tighten, "results": {}}
+    for name in a.meshes:
+        V, F = _read(Path(a.mesh_dir) / name)
+        V, F = np.asarray(V, float), np.asarray(F, np.int64)
+        res["results"][name] = far_points(V, F, default_face_counts(len(F), 2)[0], a.k, a.samples, a.tighten)
+        print(json.dumps({name: res["results"][name]}, indent=1), flush=True)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()

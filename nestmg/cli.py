@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from cagegen._geometry import bbox_diagonal
 from cagegen.errors import NestmgError
 
 from .cache import atomic_write_bytes
@@ -72,7 +73,7 @@ def _hierarchy(V, F, args, method=None):
         return hierarchy_from_tets(
             V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
             mesher=args.mesher, epsilon=args.epsilon,  # --edge-length is relative to the bbox diagonal
-            edge_length=None if args.edge_length is None else args.edge_length * float(np.linalg.norm(np.ptp(V, 0))),
+            edge_length=None if args.edge_length is None else args.edge_length * bbox_diagonal(np.asarray(V, float)),
             extrapolation=args.extrapolation, cache=not args.no_cache,
             progress=None if args.quiet is False else False, cage_opts={"repair": True} if args.repair else None,
         )

@@ -168,7 +168,9 @@ class Hierarchy:
 
 
 def _bbox_diag(V: np.ndarray) -> float:
-    return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    from cagegen._geometry import bbox_diagonal
+
+    return bbox_diagonal(np.asarray(V, dtype=np.float64))  # overflow-safe
 
 
 def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_opts=None, layer=None):
@@ -472,7 +474,9 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         raise MeshInputError(f"input: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     lo, hi = V.min(axis=0), V.max(axis=0)
     center = 0.5 * (lo + hi)
-    scale = float(np.linalg.norm(hi - lo))
+    from cagegen._geometry import bbox_diagonal
+
+    scale = bbox_diagonal(V)  # overflow-safe (no squaring of 1e154 extents, no numpy warning)
     if not (np.isfinite(scale) and scale > 0):
         raise MeshInputError(f"input: bounding-box diagonal {scale} (all vertices coincide, or overflow)")
     # the audit's scale rules apply to the input as given (the normalised copy would hide them)

@@ -92,9 +92,11 @@ def normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     if not np.isfinite(V).all():
         raise MeshInputError(f"{int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     lo, hi = V.min(axis=0), V.max(axis=0)
-    scale = float(np.linalg.norm(hi - lo))
-    if scale <= 0:
-        raise MeshInputError("all vertices coincide (zero bounding box)")
+    from cagegen._geometry import bbox_diagonal
+
+    scale = bbox_diagonal(V)  # overflow-safe
+    if not (np.isfinite(scale) and scale > 0):
+        raise MeshInputError(f"bounding-box diagonal {scale} (all vertices coincide, or overflow)")
     center = (lo + hi) / 2
     return (V - center) / scale, center, scale
 

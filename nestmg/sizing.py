@@ -201,7 +201,9 @@ def plan_hierarchy(
     F = np.asarray(F, dtype=np.int64)
     if mesher not in COUNT_RATIO:
         raise ValueError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
-    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    from cagegen._geometry import bbox_diagonal
+
+    diag = bbox_diagonal(V)  # overflow-safe
     vol = enclosed_volume(V, F)
     notes: list[str] = []
     if edge_length is not None:

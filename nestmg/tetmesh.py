@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cagegen._geometry import as_mesh_arrays
+from cagegen._geometry import as_mesh_arrays, bbox_diagonal
 from cagegen._tempdir import in_temp_dir
 from cagegen.errors import MeshInputError, NestmgError
 
@@ -184,7 +184,7 @@ def tetrahedralize(
     if mesher not in MESHERS:
         raise ValueError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
     lo, hi = V.min(axis=0), V.max(axis=0)
-    diag = float(np.linalg.norm(hi - lo))
+    diag = bbox_diagonal(V)  # overflow-safe
     if not (np.isfinite(diag) and diag > 0):
         raise MeshInputError(f"surface: bounding-box diagonal {diag} (all vertices coincide, or overflow)")
     h = float(edge_length) if edge_length is not None else edge_length_fac * diag

@@ -171,7 +171,11 @@ def _expectation(kind: str, V: np.ndarray, repair: bool) -> str:
     fin = np.isfinite(V).all()
     scale = "bad"
     if fin:
-        d = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+        from cagegen._geometry import bbox_diagonal
+
+        # overflow-safe: np.linalg.norm of 1e154 extents warns on stderr, which the CLI test reads as
+        # the command's own output
+        d = bbox_diagonal(np.asarray(V, dtype=float))
         scale = _scale_verdict(d, float(np.abs(V).max()))
     if (fin and scale == "bad") or (fatal and not (repair and repairable)):
         return "fail"

@@ -168,6 +168,15 @@ def test_constrained_simplify_exact_count_and_stays_outside():
     assert verify_nesting([(Vn, F), (U, G)]).ok
     with pytest.raises(ValueError, match="parity"):
         constrained_simplify(env.V, env.F, Vn, F, 401, env.sdf, margin=0.012)
+    # frozen vertices (the tightening pass's inserted ones) survive, unmoved, at the exact count
+    fr = np.zeros(len(env.V), dtype=bool)
+    fr[::37] = True
+    U2, G2, _ = constrained_simplify(env.V, env.F, Vn, F, 400, env.sdf, margin=0.012, frozen=fr)
+    assert len(G2) == 400 and verify_nesting([(Vn, F), (U2, G2)]).ok
+    kept = {tuple(p) for p in U2.tolist()}
+    assert all(tuple(p) in kept for p in env.V[fr].tolist())
+    with pytest.raises(ValueError, match="frozen"):
+        constrained_simplify(env.V, env.F, Vn, F, 400, env.sdf, margin=0.012, frozen=fr[:-1])
 
 
 def test_neck_blobs_layer_certified_tight_exact(blobs):

@@ -309,6 +309,28 @@ def test_pull_energy_gradient_and_direction():
     assert far(C) == pytest.approx(_Energy(F, V, F, 0.005, 1.0, 0.05, 0.005)(C) + e)
 
 
+def test_optimize_free_mask_and_pull_mask():
+    """``optimize_cage(free=)`` moves only the free vertices (the tightening pass's patch); ``pull_mask``
+    restricts the pull to the masked input vertices (none masked: no pull energy at all)."""
+    from cagegen.sdf.optimize import _Energy, optimize_cage
+
+    V, F = shapes.sphere(res=14)
+    V = _unit(V)
+    C = 1.08 * V  # a scaled copy: a cage ~0.03 outside, no intersection
+    free = V[:, 0] > 0.1
+    C2, F2, info = optimize_cage(C, F, V, F, h=0.005, dhat=0.0025, iters=5, flip_rounds=0, w_p=50.0,
+                                 pull_target=0.01, free=free)
+    assert info["steps"] > 0
+    assert np.array_equal(C2[~free], C[~free]) and np.abs(C2[free] - C[free]).max() > 1e-4
+    assert verify_nesting([(V, F), (C2, F2)]).ok
+    none = _Energy(F, V, F, 0.005, 1.0, 0.05, 0.005, w_p=5.0, t_pull=0.01, pull_mask=np.zeros(len(V), bool))
+    some = _Energy(F, V, F, 0.005, 1.0, 0.05, 0.005, w_p=5.0, t_pull=0.01, pull_mask=V[:, 0] > 0)
+    full = _Energy(F, V, F, 0.005, 1.0, 0.05, 0.005, w_p=5.0, t_pull=0.01)
+    assert none.pull(C) == 0.0 and 0.0 < some.pull(C) < full.pull(C)
+    with pytest.raises(ValueError, match="free"):
+        optimize_cage(C, F, V, F, h=0.005, dhat=0.0025, iters=1, free=free[:-1])
+
+
 def test_min_gap_layer_keeps_the_optimised_cage(blobs):
     """nestmg's min_gap (2.5e-3 of the diagonal): the pre-pass, the collapses (exact edge clearance) and the
     optimisation's second CCD keep it, so the layer is certified at the first c and the optimised cage

@@ -6,7 +6,9 @@ vertices farthest from the cage, the JSON records the distance, the position (un
 backend), and the smallest signed distance to the input along the straight segment from the vertex to
 its closest cage point (``--samples`` points): positive and tiny = the segment squeezes through a crevice
 that narrow; negative = the closest cage point is behind the input (an undercut). That is the path the
-pull and the tightening pass would drag a cage vertex along.
+pull and the tightening pass would drag a cage vertex along. The other side of the Hausdorff distance is
+recorded too: the cage point farthest from the input (faces sampled on a barycentric grid), with its
+face's longest edge beside the cage's median edge (a coarse cage's face spanning a concavity).
 
 Usage::
 
@@ -49,8 +51,18 @@ def far_points(V: np.ndarray, F: np.ndarray, n_faces: int, k: int, samples: int,
         s = igl.signed_distance(P, Vn, F)[0]
         rows.append({"vertex": int(i), "distance": float(d[i]), "position": np.round(Vn[i], 4).tolist(),
                      "min_signed_distance_on_path": float(s.min())})
-    return {"n_faces": n_faces, "cpu_seconds": cpu, "hausdorff": info["hausdorff_relative"],
-            "beyond_1.5c": int((d > 0.015).sum()), "farthest": rows}
+    m = 12  # barycentric grid on every cage face for the cage-to-input side
+    bc = np.array([(i / m, j / m, 1 - (i + j) / m) for i in range(m + 1) for j in range(m + 1 - i)])
+    S = np.einsum("bk,fkd->fbd", bc, Un[G]).reshape(-1, 3)
+    dc = np.sqrt(igl.point_mesh_squared_distance(S, Vn, F)[0])
+    j = int(dc.argmax())
+    f = G[j // len(bc)]
+    edges = np.linalg.norm(Un[G] - Un[np.roll(G, 1, axis=1)], axis=2)
+    return {"n_faces": n_faces, "tighten": tighten, "cpu_seconds": cpu, "hausdorff": info["hausdorff_relative"],
+            "input_to_cage_max": float(d.max()), "beyond_1.5c": int((d > 0.015).sum()), "farthest": rows,
+            "cage_to_input_max": float(dc.max()), "cage_to_input_at": np.round(S[j], 4).tolist(),
+            "its_face_longest_edge": float(np.linalg.norm(Un[f] - Un[np.roll(f, 1)], axis=1).max()),
+            "median_cage_edge": float(np.median(edges))}
 
 
 def main() -> None:

@@ -119,7 +119,7 @@ def tighten_cage(
     second_full: bool = True,
     max_insert: int | None = None,
     min_angle: float = 2.0,
-) -> tuple[np.ndarray, np.ndarray, dict]:
+) -> tuple[np.ndarray, np.ndarray, dict, object]:
     """Lower the cage into the concavities it bridges, at the same face count (see the module docstring).
 
     Parameters
@@ -174,6 +174,9 @@ def tighten_cage(
     info : dict
         ``rounds`` (per round: inserted vertices, max distance after, smallest angle, certified,
         kept, CPU seconds), ``max_before``, ``max_after``, ``min_angle_floor``.
+    report : cagegen.verify.NestingReport or None
+        The :func:`cagegen.verify_nesting` report of the returned cage when a round was kept (it
+        certifies it; the caller need not verify again), None when the input cage is returned.
     """
     C = np.asarray(C, float)
     Fc = np.asarray(Fc, np.int64)
@@ -193,6 +196,7 @@ def tighten_cage(
     best = float(input_to_cage(Vin, Fin, C, Fc)[0].max())
     angle_floor = min(float(min_angle), float(_min_angles(C, Fc).min()))
     info: dict = {"max_before": best, "rounds": [], "min_angle_floor": angle_floor}
+    report = None
     frozen_pts = np.zeros((0, 3))
     from scipy.spatial import cKDTree
 
@@ -204,7 +208,8 @@ def tighten_cage(
         if not full:
             return X, T
         T, _ = _flip_pass(X, T, Vin, Fin, max_flips=len(T), clear=1.05 * float(min_gap),
-                          tri_energy=_Energy(T, Vin, Fin, spacing, 1.0, 0.05, max(spacing, dhat)).triangles(X))
+                          tri_energy=_Energy(T, Vin, Fin, spacing, 1.0, 0.05,
+                                             max(spacing, dhat)).triangles(X))
         return patch_descent(X, T, centers), T
 
     def patch_descent(X, T, centers):
@@ -235,8 +240,8 @@ def tighten_cage(
         for lst in cKDTree(Vin[vin_sub]).query_ball_point(centers, radius):
             pm[lst] = True
         Xs, _, _ = optimize_cage(X[vsub], loc[T[fsub]], Vin[vin_sub], lin[Fin[fin]], h=spacing, dhat=dhat,
-                                     iters=iters, flip_rounds=0, time_limit=time_limit, w_p=pull, pull_target=c, step=step,
-                                     min_distance=1.05 * float(min_gap), free=free, pull_mask=pm)
+                                 iters=iters, flip_rounds=0, time_limit=time_limit, w_p=pull, pull_target=c,
+                                 step=step, min_distance=1.05 * float(min_gap), free=free, pull_mask=pm)
         X[vsub] = Xs
         return X
 
@@ -280,7 +285,7 @@ def tighten_cage(
         info["rounds"].append(rec)
         if not rec["kept"]:
             break
-        C, Fc, best = C5, F5, d5
+        C, Fc, best, report = C5, F5, d5, rep
         frozen_pts = C5[idx4]
     info["max_after"] = best
-    return C, Fc, info
+    return C, Fc, info, report

@@ -160,7 +160,7 @@ def polish(V, F, Vm, Fm, rounds: int = 12, clearance: float = 2e-3, backoff: flo
         V, c = _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff, fin_cos)
         passes.append(c["outside_per_round"])
     s, _, _, _ = igl.signed_distance(Vm, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
-    fins = int((_fold_cosines(V, F) < fin_cos).any(axis=1).sum())
+    fins = int(_fin_mask(V, F, fin_cos).sum())
     return V, {"outside_per_round": passes, "cage_vertices_inside": inside, "outside": int((s > 0).sum()),
                "max_signed_distance": float(s.max()), "fins": fins}
 
@@ -196,13 +196,18 @@ def _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff, fin_cos=None
     return V, {"outside_per_round": out_log}
 
 
+def _fin_mask(V, F, fin_cos: float) -> np.ndarray:
+    """Faces folded onto a neighbour: some neighbour's normal cosine below ``fin_cos`` (a thin fin)."""
+    return (_fold_cosines(V, F) < fin_cos).any(axis=1)
+
+
 def _offending_faces(V1, F, fin_cos, fins0):
     """Faces of ``(V1, F)`` that intersect another face, plus (``fin_cos`` given) faces folded onto a
     neighbour (normal cosine below ``fin_cos``) that were not folded so in ``fins0``."""
     pairs = self_intersection_pairs(V1, F)
     bad = np.unique(np.asarray(pairs).ravel()) if len(pairs) else np.zeros(0, dtype=np.int64)
     if fin_cos is not None:
-        new_fins = np.flatnonzero((_fold_cosines(V1, F) < fin_cos).any(axis=1) & ~fins0)
+        new_fins = np.flatnonzero(_fin_mask(V1, F, fin_cos) & ~fins0)
         bad = np.union1d(bad, new_fins)
     return bad.astype(np.int64)
 
@@ -223,7 +228,7 @@ def _move_without_intersection(V, F, dv, backoff, max_backoff, fin_cos=None):
     dv = dv.copy()
     V1 = V + dv
     n_back = 0
-    fins0 = (_fold_cosines(V, F) < fin_cos).any(axis=1) if fin_cos is not None else None
+    fins0 = _fin_mask(V, F, fin_cos) if fin_cos is not None else None
     bad_f = _offending_faces(V1, F, fin_cos, fins0)
     while len(bad_f) and n_back < max_backoff:
         bad = np.unique(F[bad_f].ravel())
@@ -296,11 +301,8 @@ def crease_push(V, F, Vm, rounds: int = 20, clearance: float = 2e-3, fold_cos: f
     """
     V = np.array(V, dtype=float)
 
-    def n_fins(X):
-        return int((_fold_cosines(X, F) < fin_cos).any(axis=1).sum())
-
     s, _, _, _ = igl.signed_distance(Vm, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
-    out_in, fins_in = int((s > 0).sum()), n_fins(V)
+    out_in, fins_in = int((s > 0).sum()), int(_fin_mask(V, F, fin_cos).sum())
     # the input competes only without a fin (or with M inside): a fin traps the flow
     best = (out_in, -1, V.copy()) if (out_in == 0 or fins_in == 0) else (np.inf, -1, None)
     V, _, _ = unfold(V, F, fold_cos, backoff=backoff, max_backoff=max_backoff)
@@ -323,4 +325,4 @@ def crease_push(V, F, Vm, rounds: int = 20, clearance: float = 2e-3, fold_cos: f
     n_out, r, V = best
     folds = int((_fold_cosines(V, F) < fold_cos).any(axis=1).sum())
     return V, {"outside_per_round": log, "outside_input": out_in, "fins_input": fins_in, "best_round": r,
-               "outside": n_out, "folds": folds, "fins": n_fins(V)}
+               "outside": n_out, "folds": folds, "fins": int(_fin_mask(V, F, fin_cos).sum())}

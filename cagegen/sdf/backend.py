@@ -234,7 +234,7 @@ def sdf_cage_layer(
         simplification keeps twice that on its distance grid).
     check_input : bool
         Audit ``(V, F)`` first (:func:`cagegen.check_mesh`: closed, manifold, oriented, exact
-        self-intersection test, ~1 s per 10k faces) and refuse a bad surface at once with
+        self-intersection test; measured 46 CPU s on an 85k-face input) and refuse a bad surface at once with
         :class:`cagegen.MeshInputError` (a self-intersecting input has no cage that contains it
         strictly; without the check the backend spends minutes of rebuilds before giving up). False:
         the caller guarantees an audited input (``build_cages`` does, and every layer it returns is

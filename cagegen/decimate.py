@@ -44,6 +44,14 @@ def _surface_problem(V: np.ndarray, F: np.ndarray, genus: int | None, check_self
         if g != genus:
             return f"genus changed ({genus} -> {g})"
     if check_self:
+        # ipctk's floating-point BVH test first (5-7x faster than the exact one, measured on 21-60k-face
+        # envelopes): a hit rejects the attempt at once; a clean result is confirmed by the exact test
+        import ipctk
+
+        F32 = np.ascontiguousarray(F, dtype=np.int32)
+        if ipctk.has_intersections(ipctk.CollisionMesh(np.ascontiguousarray(V, dtype=np.float64),
+                                                       ipctk.edges(F32), F32), V):
+            return "self-intersecting faces (ipctk)"
         k = len(self_intersection_pairs(V, F))
         if k:
             return f"{k} self-intersecting face pairs"

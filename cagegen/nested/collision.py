@@ -56,19 +56,41 @@ class PairMesh:
         """True if the cage intersects itself or the fine surface at positions ``X``."""
         return bool(ipctk.has_intersections(self.mesh, X))
 
-    def stepsize(self, X0: np.ndarray, X1: np.ndarray, min_distance: float = 0.0) -> float:
+    def stepsize(self, X0: np.ndarray, X1: np.ndarray, min_distance: float = 0.0,
+                 candidates: ipctk.Candidates | None = None) -> float:
         """Largest collision-free fraction in [0, 1] of the linear motion ``X0 -> X1`` (CCD).
 
         Additive CCD (Li et al. 2021, conservative: the returned step keeps a positive distance)
         with an LBVH broad phase: ~10-25x faster here than the default Tight-Inclusion CCD.
+        ``candidates`` (from :meth:`candidates` of a motion containing this one) skips the broad phase.
         """
+        if candidates is not None:
+            return float(candidates.compute_collision_free_stepsize(self.mesh, X0, X1, min_distance,
+                                                                    ipctk.AdditiveCCD()))
         return float(ipctk.compute_collision_free_stepsize(
             self.mesh, X0, X1, min_distance, ipctk.LBVH(), ipctk.AdditiveCCD()))
 
-    def collisions(self, X: np.ndarray, dhat: float) -> ipctk.NormalCollisions:
-        """Barrier collision set (pairs closer than ``dhat``) at positions ``X``."""
+    def candidates(self, X0: np.ndarray, X1: np.ndarray, inflation: float) -> ipctk.Candidates:
+        """Broad-phase candidates of the linear motion ``X0 -> X1``, boxes inflated by ``inflation``.
+
+        Every pair closer than ``inflation`` at some point of the motion, and every pair the motion
+        makes collide, is among them: the CCD of any sub-motion (a prefix, or some vertices held) and
+        the barrier collision set (``dhat <= inflation``) at any point on it can be computed from them
+        (IPC's line search, Li et al. 2020, Alg. 1), one broad phase per step instead of one per call.
+        """
+        cand = ipctk.Candidates()
+        cand.build(self.mesh, X0, X1, float(inflation), ipctk.LBVH())
+        return cand
+
+    def collisions(self, X: np.ndarray, dhat: float,
+                   candidates: ipctk.Candidates | None = None) -> ipctk.NormalCollisions:
+        """Barrier collision set (pairs closer than ``dhat``) at positions ``X`` (``candidates``: see
+        :meth:`candidates`)."""
         col = ipctk.NormalCollisions()
-        col.build(self.mesh, X, dhat, 0.0, ipctk.LBVH())
+        if candidates is not None:
+            col.build(candidates, self.mesh, X, dhat, 0.0)
+        else:
+            col.build(self.mesh, X, dhat, 0.0, ipctk.LBVH())
         return col
 
 

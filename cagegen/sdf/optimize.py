@@ -102,6 +102,12 @@ class _Energy:
             self.h_local = (cKDTree(np.asarray(h_local[0], dtype=float)), float(h_local[1]), float(h_local[2]))
         self.igl = igl
         self.Fc, self.Vin, self.Fin = Fc, Vin, Fin
+        # the input's AABB tree, built once (igl.point_mesh_squared_distance rebuilds it per call: about
+        # half of a query's time on a 5k-face input)
+        self._Vin = np.ascontiguousarray(Vin, dtype=np.float64)
+        self._Fin = np.ascontiguousarray(Fin, dtype=np.int64)
+        self._tree = igl.AABB()
+        self._tree.init(self._Vin, self._Fin)
         self.h, self.w_s, self.w_q, self.h_ref = h, w_s, w_q, h_ref
         # input-to-cage pull (not in the paper): input vertices farther than t_pull from the cage (a
         # concavity the offset bridged) pull the closest cage point toward them
@@ -116,6 +122,10 @@ class _Energy:
             self.a_in = a / float(Ain.sum())
         # the input vertices that pull (all by default); the others are ignored by the pull term
         self.pull_idx = np.arange(len(Vin)) if pull_mask is None else np.flatnonzero(pull_mask)
+
+    def to_input(self, P):
+        """Squared distances, closest input faces and closest points of the query points ``P``."""
+        return self._tree.squared_distance(self._Vin, self._Fin, np.ascontiguousarray(P, dtype=np.float64))
 
     def target(self, P):
         """Spacing target at query points whose closest input points are ``P``."""
@@ -154,13 +164,13 @@ class _Energy:
         """Per-triangle share of the energy (spacing at the corners and centroid + MIPS), up to the
         common normalisation, as a function of the triangles ``T`` (k,3) of the cage ``C``: what an
         edge flip changes."""
-        d2v, _, Pv = self.igl.point_mesh_squared_distance(C, self.Vin, self.Fin)
+        d2v, _, Pv = self.to_input(C)
         rv = np.sqrt(d2v) - self.target(Pv)
 
         def e(T):
             X = C[T]
             A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
-            d2c, _, Pc = self.igl.point_mesh_squared_distance(X.mean(axis=1), self.Vin, self.Fin)
+            d2c, _, Pc = self.to_input(X.mean(axis=1))
             rc = np.sqrt(d2c) - self.target(Pc)
             spacing = (rv[T] ** 2).sum(axis=1) / 6 + 0.5 * rc ** 2
             return A * (self.w_s * spacing / self.h_ref ** 2 + self.w_q * (mips(C, T) - 2.0))
@@ -178,7 +188,7 @@ class _Energy:
         cen = X.mean(axis=1)
         Q = np.vstack([C, cen])
         w = np.r_[Av, 0.5 * A]
-        d2, _, P = self.igl.point_mesh_squared_distance(Q, self.Vin, self.Fin)
+        d2, _, P = self.to_input(Q)
         d = np.sqrt(d2)
         r = d - self.target(P)
         Es = self.w_s * float(np.sum(w * r * r)) / (At * self.h_ref ** 2)
@@ -382,8 +392,8 @@ def optimize_cage(
 
     active = np.zeros(nc, dtype=bool)  # cage vertices in barrier pairs at the last gradient
 
-    def total(pm, X, Cc, grad=False):
-        col = pm.collisions(X, dhat)
+    def total(pm, X, Cc, grad=False, cand=None):
+        col = pm.collisions(X, dhat, cand)
         if grad:
             e, g = energy(Cc, grad=True)
             gb = barrier.gradient(col, pm.mesh, X)[: 3 * nc].reshape(-1, 3)
@@ -414,8 +424,8 @@ def optimize_cage(
             d0f = float(np.sqrt(colf.compute_minimum_distance(pmf.mesh, pmf.stack(C, Xf)))) if len(colf) else np.inf
             mdf = min(float(min_distance), 0.999 * d0f)
 
-        def ccd(Ca, Cb):
-            a_ = pm.stepsize(pm.stack(Ca, Xf), pm.stack(Cb, Xf), min_dist)
+        def ccd(Ca, Cb, cand=None):
+            a_ = pm.stepsize(pm.stack(Ca, Xf), pm.stack(Cb, Xf), min_dist, cand)
             if pmf is not None and a_ > 0:
                 a_ = min(a_, pmf.stepsize(pmf.stack(Ca, Xf), pmf.stack(Cb, Xf), mdf))
             return a_
@@ -431,11 +441,14 @@ def optimize_cage(
             d = -g * (step / np.maximum(gn, gref if gref > 0 else float(gn.max())))[:, None]
             if free is not None:
                 d[~free] = 0.0
-            amax = ccd(C, C + d)
+            # one broad phase per step: the CCD, the held variant, the line search and the next
+            # gradient all lie on the motion C -> C + d (boxes inflated by dhat cover the barrier)
+            cand = pm.candidates(X, pm.stack(C + d, Xf), dhat)
+            amax = ccd(C, C + d, cand)
             if amax < 0.3 and active.any():
                 # a pair in contact range blocks the step: hold its cage vertices, move the others
                 d2_ = np.where(active[:, None], 0.0, d)
-                amax2 = ccd(C, C + d2_)
+                amax2 = ccd(C, C + d2_, cand)
                 if amax2 > amax:
                     d, amax = d2_, amax2
                     info["held"] = info.get("held", 0) + 1
@@ -446,7 +459,7 @@ def optimize_cage(
             while a > 1e-3:
                 Cn = C + a * d
                 Xn = pm.stack(Cn, Xf)
-                fn = total(pm, Xn, Cn)
+                fn = total(pm, Xn, Cn, cand=cand)
                 if fn < f:
                     accepted = True
                     break
@@ -454,7 +467,7 @@ def optimize_cage(
             if not accepted:
                 break
             C, X = Cn, Xn
-            f, g = total(pm, X, C, grad=True)
+            f, g = total(pm, X, C, grad=True, cand=cand)
             info["steps"] += 1
         if rnd < flip_rounds:
             Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=max(min_dist, mdf),

@@ -64,6 +64,17 @@ def _write_json(path: str | Path, obj: Any) -> None:
     atomic_write_bytes(Path(path), json.dumps(obj, indent=1, default=json_default).encode())
 
 
+def _cage_opts(args, method: str) -> dict | None:
+    """Cage backend options from the command line (``--repair``; ``--cage-time-budget`` for ``sdf``)."""
+    opts = {"repair": True} if args.repair else {}
+    budget = getattr(args, "cage_time_budget", None)
+    if budget is not None:
+        if method != "sdf":
+            raise NestmgError(f"--cage-time-budget applies to --method sdf only, not {method!r}")
+        opts["time_budget"] = budget if budget > 0 else None
+    return opts or None
+
+
 def _hierarchy(V, F, args, method=None):
     from .hierarchy import build_hierarchy
 
@@ -75,7 +86,7 @@ def _hierarchy(V, F, args, method=None):
             mesher=args.mesher, epsilon=args.epsilon,  # --edge-length is relative to the bbox diagonal
             edge_length=None if args.edge_length is None else args.edge_length * bbox_diagonal(np.asarray(V, float)),
             extrapolation=args.extrapolation, cache=not args.no_cache,
-            progress=None if args.quiet is False else False, cage_opts={"repair": True} if args.repair else None,
+            progress=None if args.quiet is False else False, cage_opts=_cage_opts(args, method or args.method),
         )
 
     return build_hierarchy(
@@ -83,7 +94,7 @@ def _hierarchy(V, F, args, method=None):
         mesher=args.mesher, edge_length_fac=args.edge_length, epsilon=args.epsilon,
         max_tets=args.max_tets, time_budget=args.time_budget or None, fine_level=args.fine_level,
         extrapolation=args.extrapolation, cache=not args.no_cache, progress=None if args.quiet is False else False,
-        cage_opts={"repair": True} if args.repair else None,
+        cage_opts=_cage_opts(args, method or args.method),
     )
 
 
@@ -157,7 +168,7 @@ def cmd_cages(args) -> int:
     layers, info = build_cage_surfaces(
         V, F, n_layers, method=args.method, face_counts=args.face_counts, mesher=args.mesher,
         epsilon=args.epsilon, cache=not args.no_cache, progress=None if args.quiet is False else False,
-        cage_opts={"repair": True} if args.repair else None,
+        cage_opts=_cage_opts(args, args.method),
     )
     for k, (Vk, Fk) in enumerate(layers):
         save_mesh(out / f"layer_{k}.obj", Vk, Fk)
@@ -244,6 +255,9 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     g.add_argument("--time-budget", type=float, default=150.0,
                    help="seconds (2 cores) allowed for meshing the fine level; the fine edge grows to fit "
                         "(default %(default)s; 0: no time limit)")
+    g.add_argument("--cage-time-budget", type=float, default=None,
+                   help="seconds the sdf cage backend may take, estimated before any work (15 s + 5 ms per "
+                        "input face per layer); refused at once above it (default 900; 0: no limit)")
     g.add_argument("--fine-level", choices=["refine", "mesh"], default=None,
                    help="refine: the fine level is a red refinement of the input meshed at twice the edge "
                         "(default with TetWild and >= 3 levels); mesh: the input meshed at the fine edge "

@@ -495,3 +495,43 @@ def test_hug_brings_the_cage_closer_near_active_points_only():
     a = sdf_cage_layer(S, FS, 200, optimize=True, hug=0)
     b = sdf_cage_layer(S, FS, 200, optimize=True, hug=0.1)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_time_budget_refuses_in_milliseconds_and_names_the_option(blobs):
+    """A budget below the estimate (15 s + 5 ms per input face per layer) is refused before the audit or
+    any other work, naming ``time_budget``; the caller's arrays are untouched; the estimate grows with
+    the input and with the layers."""
+    import time
+
+    from cagegen.sdf.backend import estimate_layer_seconds, sdf_backend
+
+    V, F = blobs
+    V0, F0 = V.copy(), F.copy()
+    m = 2 * (len(F) // 8)
+    t = time.perf_counter()
+    with pytest.raises(CageError, match=r"time_budget=1 s") as e1:
+        sdf_cage_layer(V, F, m, time_budget=1.0)
+    with pytest.raises(CageError, match=r"time_budget") as e2:
+        build_cages(V, F, face_counts=[m, 2 * (m // 8)], method="sdf", time_budget=40.0)
+    assert time.perf_counter() - t < 1.0
+    assert e1.value.reason == "time budget" and e2.value.reason == "time budget"
+    assert np.array_equal(V, V0) and np.array_equal(F, F0)
+    # one layer of this input fits 40 s, two do not: the estimate sums the layers' inputs
+    assert estimate_layer_seconds(len(F)) < 40.0 < estimate_layer_seconds(len(F)) + estimate_layer_seconds(m)
+    assert estimate_layer_seconds(100_000) == pytest.approx(515.0)
+    with pytest.raises(CageError, match="time_budget"):
+        sdf_backend(V, F, [m, 2 * (m // 8)], time_budget=40.0)
+
+
+def test_tightening_starts_no_round_after_its_deadline():
+    """``tighten_cage(deadline=)`` in the past: no round, the input cage returned as is, and the reason
+    recorded (the backend sets the deadline from its time budget)."""
+    import time
+
+    from cagegen.sdf.tighten import tighten_cage
+
+    V, F = _pitted_sphere()
+    C = 1.2 * V  # any cage: no round runs
+    C2, F2, info, rep = tighten_cage(C, F, V, F, None, c=0.02, target=0.0, deadline=time.perf_counter() - 1.0)
+    assert C2 is not None and np.array_equal(C2, C) and np.array_equal(F2, F)
+    assert info["rounds"] == [] and info["stopped"] == "time budget" and rep is None

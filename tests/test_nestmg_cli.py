@@ -62,3 +62,19 @@ def test_readme_example_runs():
     assert h.certified
     assert residuals[-1] <= 1e-8 and len(residuals) - 1 <= 40
     assert abs(u.mean()) < 1e-10 and np.isfinite(u).all()
+
+
+def test_cli_cage_time_budget_refuses_at_once(tmp_path, capsys):
+    """``--cage-time-budget`` reaches the sdf backend: a budget below its estimate fails in well under a
+    second with exit code 2 and a message naming the option; with another method it is refused."""
+    import time
+
+    t = time.perf_counter()
+    rc = main(["cages", "shape:torus", "--method", "sdf", "--cage-time-budget", "1", "--out", str(tmp_path), "--quiet"])
+    assert rc == 2 and time.perf_counter() - t < 5.0
+    err = capsys.readouterr().err
+    assert "exceeds time_budget=1 s" in err and "--cage-time-budget" in err
+    assert not (tmp_path / "layer_1.obj").exists()
+    rc = main(["cages", "shape:torus", "--method", "nested", "--cage-time-budget", "1", "--out", str(tmp_path),
+               "--quiet"])
+    assert rc == 2 and "applies to --method sdf only" in capsys.readouterr().err

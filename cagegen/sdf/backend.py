@@ -39,7 +39,7 @@ from .optimize import _min_angles, mips, optimize_cage
 from .simplify import SimplifyStuck, constrained_simplify
 from .tighten import tighten_cage
 
-__all__ = ["genus", "sdf_backend", "sdf_cage_layer"]
+__all__ = ["estimate_layer_seconds", "genus", "sdf_backend", "sdf_cage_layer"]
 
 #: paper defaults (Sec. 4), lengths relative to the unit bounding-box diagonal
 DEFAULTS = {"c": 0.01, "r": 0.025, "l": 0.15, "alpha": 3.0, "beta": 8.0}
@@ -145,6 +145,37 @@ def _pick_envelope(tried: list[dict], g_fine: int | None) -> int | None:
     return min(clean, key=lambda i: (dist(tried[i]["genus"]), i))
 
 
+#: default wall-clock budget (seconds) of one sdf_backend / sdf_cage_layer call; None = no limit
+DEFAULT_TIME_BUDGET = 900.0
+
+
+def estimate_layer_seconds(n_input_faces: int) -> float:
+    """Seconds one :func:`sdf_cage_layer` call is expected to take (one core of the 2-core dev machine).
+
+    ``15 + 0.005 n`` for an ``n``-face input: an upper envelope of the measured layers of ``>= 5k``
+    input faces (``benchmarks/results/sdf/zoo_sdf_tighten_hug01_d89697c.json``: homer 12k faces 74 s,
+    gargo 5.3k 24 s, bumpy-cube 40k 48 s; gargo subdivided twice, 85k faces: 379 CPU s, docs/sdf.md).
+    The audit, the certificates and the optimisation's distance queries grow with the input; the
+    envelope's grid does not (``c`` fixes it). Coarse inputs with spikes can take longer per face
+    (decimated-knight, 1k faces: 55 s), which the constant covers only in part: it is a guard against
+    starting an hour of work, not a prediction.
+    """
+    return 15.0 + 5e-3 * float(n_input_faces)
+
+
+def _budget_check(n_input: list[int], time_budget: float | None, what: str) -> float:
+    """Raise :class:`CageError` (in milliseconds, before any work) when the estimate exceeds the budget."""
+    est = float(sum(estimate_layer_seconds(n) for n in n_input))
+    if time_budget is not None and est > float(time_budget):
+        raise CageError(
+            f"{what}: estimated {est:.0f} s for a {n_input[0]:,}-face input ({len(n_input)} layer(s), "
+            f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds time_budget="
+            f"{float(time_budget):.0f} s; pass a larger time_budget (None: no limit; nestmg CLI: "
+            f"--cage-time-budget, 0: no limit), or decimate the input "
+            f"first (nestmg.build_hierarchy does: predecimate_input=True)", layer=1, reason="time budget")
+    return est
+
+
 def _check_target(n_faces) -> int:
     if isinstance(n_faces, (bool, np.bool_)) or int(n_faces) != n_faces or int(n_faces) < 4:
         raise ValueError(f"n_faces must be an integer >= 4, got {n_faces!r}")
@@ -184,6 +215,8 @@ def sdf_cage_layer(
     hug_dhat: float = 0.05,
     tighten: float = 1.5,
     tighten_rounds: int = 3,
+    time_budget: float | None = DEFAULT_TIME_BUDGET,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
 
@@ -261,6 +294,15 @@ def sdf_cage_layer(
         inserted vertices frozen) and keeps the round only if it is certified and tighter.
     tighten_rounds : int
         Rounds of the tightening pass at most.
+    time_budget : float or None
+        Wall-clock seconds this call may take (None: no limit). Checked first, in milliseconds: when
+        :func:`estimate_layer_seconds` of the input exceeds it, :class:`CageError` (``reason="time
+        budget"``) names the option before the audit or any other work. During the run, a tightening
+        round is started only if the time already spent plus the last round's time fits the budget (the
+        pass is an improvement of an already certified cage; ``info["tighten"]["stopped"]`` records it).
+    deadline : float, optional
+        A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_backend`
+        sets it from its own ``time_budget`` and calls this with ``time_budget=None``).
 
     Returns
     -------
@@ -281,13 +323,18 @@ def sdf_cage_layer(
     ValueError
         Bad option values (odd or too small ``n_faces``, ...).
     cagegen.CageError
-        No certified cage after ``max_retries`` rebuilds (the message gives each attempt's reason).
+        No certified cage after ``max_retries`` rebuilds (the message gives each attempt's reason), or
+        the estimated time exceeds ``time_budget`` (raised before any work).
     """
     import igl
 
     t0 = time.perf_counter()
     V, F = as_mesh_arrays(V, F, "fine layer")
     n_faces = _check_target(n_faces)
+    _budget_check([len(F)], time_budget, f"sdf cage with {n_faces} faces")
+    tight_deadline = deadline
+    if time_budget is not None:
+        tight_deadline = min(t0 + float(time_budget), np.inf if deadline is None else deadline)
     if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0 or not pull >= 0:
         raise ValueError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
     t_check = None
@@ -399,7 +446,8 @@ def sdf_cage_layer(
                                                  rounds=tighten_rounds, pull=pull if pull > 0 else 50.0,
                                                  spacing=spacing * ck, margin=max(margin * ck, 2 * float(min_gap)),
                                                  min_gap=float(min_gap), gap_rel=gap_rel, iters=opt_iters,
-                                                 time_limit=opt_time_limit)
+                                                 time_limit=opt_time_limit,
+                                                 deadline=tight_deadline)
                 tinfo["ran"] = True
                 if trep is not None:  # a kept round: its verify_nesting report certifies the returned cage
                     rep = trep
@@ -493,7 +541,7 @@ def sdf_backend(
 
     import igl
 
-    allowed = set(list(inspect.signature(sdf_cage_layer).parameters)[3:]) - {"unit"}
+    allowed = set(list(inspect.signature(sdf_cage_layer).parameters)[3:]) - {"unit", "deadline"}
     unknown = set(opts) - allowed
     if unknown:
         raise ValueError(f"unknown option(s) for the sdf backend: {sorted(unknown)}")
@@ -501,6 +549,8 @@ def sdf_backend(
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
     counts = [_check_target(m) for m in face_counts]
+    budget = opts.pop("time_budget", DEFAULT_TIME_BUDGET)
+    _budget_check([len(F)] + counts[:-1], budget, f"sdf cages {counts}")
     check0 = bool(opts.pop("check_input", True))
     diag0 = bbox_diagonal(V)
     vol0 = _signed_volume(V, F)
@@ -508,7 +558,12 @@ def sdf_backend(
     Vp, Fp = V, F
     for k, m in enumerate(counts, start=1):
         try:
-            U, G, li = sdf_cage_layer(Vp, Fp, m, unit=diag0, check_input=check0 and k == 1, **opts)
+            # no tightening round after the budget less the estimate of the layers after this one (the
+            # layers themselves always run: the budget was checked before any work)
+            dl = None if budget is None else (t0 + float(budget)
+                                              - sum(estimate_layer_seconds(n) for n in counts[k - 1:-1]))
+            U, G, li = sdf_cage_layer(Vp, Fp, m, unit=diag0, check_input=check0 and k == 1,
+                                      time_budget=None, deadline=dl, **opts)
         except CageError as exc:
             raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
         li["layer"] = k

@@ -119,6 +119,7 @@ def tighten_cage(
     second_full: bool = True,
     max_insert: int | None = None,
     min_angle: float = 2.0,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict, object]:
     """Lower the cage into the concavities it bridges, at the same face count (see the module docstring).
 
@@ -160,6 +161,9 @@ def tighten_cage(
         A round is kept only if the cage's smallest angle (degrees) stays at least
         ``min(min_angle, its value before the round)`` (a vertex pulled deep into a narrow pit can
         make needles: gargo_1000 reached 0.0 degrees, MIPS max 1,694).
+    deadline : float, optional
+        ``time.perf_counter()`` value after which no round is started: a round starts only if the
+        previous round's wall time still fits before it (``info["stopped"] = "time budget"`` otherwise).
     second_full : bool
         The optimisation after the collapses also flips and descends twice (as the first; measured to
         matter on a slit).
@@ -245,9 +249,14 @@ def tighten_cage(
         X[vsub] = Xs
         return X
 
+    last = 0.0
     for _ in range(int(rounds)):
         if best <= target:
             break
+        if deadline is not None and time.perf_counter() + last > deadline:
+            info["stopped"] = "time budget"
+            break
+        tw = time.perf_counter()
         t = time.process_time()
         rec: dict = {}
         C2, F2, picked = split_far_faces(C, Fc, Vin, Fin, trigger, separation, max_insert=max_insert)
@@ -282,6 +291,7 @@ def tighten_cage(
         rec["kept"] = bool(rec.get("certified") and d5 < best and len(F5) == n_faces
                            and rec["min_angle"] >= angle_floor)
         rec["cpu_seconds"] = time.process_time() - t
+        last = time.perf_counter() - tw
         info["rounds"].append(rec)
         if not rec["kept"]:
             break

@@ -479,3 +479,31 @@ def test_polish_contains_a_dented_sphere_and_moves_cage_vertices_out_of_M():
     assert info["outside_per_round"][0][-1] == 0 and info["cage_vertices_inside"][0] >= 1
     assert info["fins"] == 0 and _fold_cosines(V2, Fc).min() > -0.9
     assert len(self_intersection_pairs(V2, Fc)) == 0
+
+
+def test_face_neighbours_turns_a_face_towards_the_other_knee():
+    """``face_neighbours``: a nearly round section close to another limb turns a face, not a corner,
+    towards it (issue 18: homer's leg tubes met corner to corner). Stick figure: the knees are 0.4
+    apart, about 3.5 inscribed radii."""
+    V, F, S = stick_figure()
+    knee_l, knee_r = 7, 9
+
+    def best_face_cos(cage, node, other):
+        sec = next(s for s in cage.sections if s["node"] == node)
+        q, c = sec["quad"], sec["center"]
+        t = np.cross(q[1] - q[0], q[2] - q[1])
+        t /= np.linalg.norm(t)
+        d = S.nodes[other] - c
+        d -= np.dot(d, t) * t
+        d /= np.linalg.norm(d)
+        m = 0.5 * (q + np.roll(q, -1, axis=0)) - c  # edge midpoints: the face directions
+        m -= np.outer(m @ t, t)
+        m /= np.linalg.norm(m, axis=1, keepdims=True)
+        return float(np.max(m @ d))
+
+    cage = skeleton_cage(V, F, S, bending="given", face_neighbours=4.0)
+    assert {knee_l, knee_r} <= set(cage.info["sections_faced"])
+    assert best_face_cos(cage, knee_l, knee_r) > 0.95 and best_face_cos(cage, knee_r, knee_l) > 0.95
+    assert cage.info["verification"]["ok"]
+    plain = skeleton_cage(V, F, S, bending="given")
+    assert plain.info["sections_faced"] == []

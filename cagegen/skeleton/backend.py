@@ -102,6 +102,22 @@ def _tangent(S: Skeleton, chain, i: int, reach: float) -> np.ndarray:
     return t / np.linalg.norm(t)
 
 
+def _neighbour_direction(S: Skeleton, chain, m: int, V: np.ndarray, F: np.ndarray):
+    """Vector from skeleton node ``m`` of ``chain`` to the closest node of another limb, or None.
+
+    Nodes of the chain itself and nodes within 1.5 inscribed radii of the chain's branching end(s) (the
+    junction, where limbs meet anyway) do not count."""
+    others = np.setdiff1d(np.arange(len(S.nodes)), np.asarray(chain.nodes))
+    for e in (chain.nodes[0], chain.nodes[-1]):
+        if S.degree[e] >= 3:
+            re = float(inscribed_radius(S.nodes[e], V, F)[0])
+            others = others[np.linalg.norm(S.nodes[others] - S.nodes[e], axis=1) > 1.5 * re]
+    if len(others) == 0:
+        return None
+    D = S.nodes[others] - S.nodes[m]
+    return D[int(np.argmin(np.linalg.norm(D, axis=1)))]
+
+
 def _section_positions(S: Skeleton, chain, i: int, radius: float, leaf):
     """Chain indices to try for the section of the chain's i-th node: i first, then (``leaf`` False)
     alternately farther on both sides up to ``radius`` of arc length, or (``leaf`` True) inwards up to
@@ -148,6 +164,7 @@ def skeleton_cage(
     progress=None,
     skeleton_cache=None,
     untangle: bool = True,
+    face_neighbours: float | None = None,
     **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
@@ -212,6 +229,11 @@ def skeleton_cage(
         orthogonal to the skeleton (:func:`cagegen.skeleton.cage.untangle_sections`; recorded in
         ``info["sections_flattened"]``). False: leave such folds to the recoveries (dropping bending
         nodes).
+    face_neighbours : float, optional
+        Turn nearly round sections so that a face, not a corner, faces the closest other limb when that
+        limb's skeleton is closer than ``face_neighbours`` x the section's inscribed radius (nodes
+        near the chain's own junction excluded); recorded in ``info["sections_faced"]``. None: the
+        previous section's axis along the chain (default).
     **nested_opts
         Passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
@@ -314,6 +336,7 @@ def skeleton_cage(
     moved: list = []
     sec_dropped: list = []
     first_error = None
+    faced: list = []
     for ch, ctrl in chain_controls:
         ref = None  # first axis of the previous section along the chain (untwisted round sections)
         for n in ctrl:
@@ -326,9 +349,16 @@ def skeleton_cage(
                 m = ch.nodes[j]
                 tan = _tangent(S, ch, j, reach=max(rad_of[n], 2 * spacing))
                 rm = rad_of[n] if j == i else float(inscribed_radius(S.nodes[m], Vn, F)[0])
+                ref_m = ref
+                if face_neighbours:
+                    d_nb = _neighbour_direction(S, ch, m, Vn, F)
+                    if d_nb is not None and np.linalg.norm(d_nb) < face_neighbours * rm:
+                        ref_m = d_nb
                 try:
                     cs = cross_section(field, n, S.nodes[m], tan, rm, n_seeds=n_seeds, seed_radius=seed_radius,
-                                       ref=ref)
+                                       ref=ref_m)
+                    if ref_m is not ref:
+                        faced.append(int(n))
                 except CageError as exc:
                     first_error = exc if j == i else first_error
                     continue
@@ -370,6 +400,9 @@ def skeleton_cage(
                 f"pairs mirrored, {len(si['self'])} sections crossed by the plane")
         info["symmetry"] = sinfo
     info["sections_moved"], info["sections_dropped"] = moved, sec_dropped
+    info["sections_faced"] = faced
+    if faced:
+        say(f"sections: {len(faced)} turned to face a neighbouring limb (nodes {faced})")
     sec["sections"] = time.perf_counter() - t
 
     # 5. tight cage

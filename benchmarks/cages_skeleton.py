@@ -20,6 +20,9 @@ Usage::
     nice -n 10 python benchmarks/cages_skeleton.py --zoo /work/shared/data/meshes \\
         --out benchmarks/results/skeleton/cages_skeleton.json --png docs/images/skeleton
 
+``--opt KEY=VALUE`` (repeatable): extra :func:`cagegen.skeleton.skeleton_cage` keywords for every case,
+e.g. ``--opt refine_levels=1 --opt face_neighbours=4.0`` (recorded under ``options``).
+
 ``--min-nested``: per certified case, the smallest ``nested`` face count whose max distance is at most
 the skeleton cage's (:func:`smallest_nested`), instead of the one nested cage at equal face count.
 """
@@ -39,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 ZOO = ("homer.obj", "cheburashka.obj", "elephant.obj", "spot.obj")
+_OPTS: dict = {}  # extra skeleton_cage keywords (--opt KEY=VALUE), inherited by the forked children
 
 
 # ----------------------------------------------------------------------------- one case
@@ -134,7 +138,7 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
     log: list = []
     t0 = time.perf_counter()
     try:
-        c = skeleton_cage(V, F, S, bending=bending,
+        c = skeleton_cage(V, F, S, bending=bending, **_OPTS,
                           progress=lambda msg: log.append((round(time.perf_counter() - t0, 2), msg)))
     except Exception as exc:  # noqa: BLE001 -- a failure is a result: the message names the step
         out.update({"certified": False, "error": f"{type(exc).__name__}: {exc}", "progress": log,
@@ -262,7 +266,12 @@ def main(argv=None) -> dict:
                     help="per certified case, the smallest nested face count at the skeleton cage's max distance")
     ap.add_argument("--hierarchy", action="store_true",
                     help="only the stick-figure hierarchy (skeleton cage coarsest) beside nested-only, V-cycles")
+    ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra skeleton_cage keyword (Python literal value), e.g. --opt refine_levels=1")
     args = ap.parse_args(argv)
+    import ast
+
+    _OPTS.update({k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in args.opt)})
     if args.hierarchy:
         from nestmg.io import json_default
 
@@ -293,7 +302,7 @@ def main(argv=None) -> dict:
               file=sys.stderr, flush=True)
     from nestmg.io import json_default
 
-    out = {"benchmark": "cages_skeleton", "command": " ".join(sys.argv), "results": results}
+    out = {"benchmark": "cages_skeleton", "command": " ".join(sys.argv), "options": _OPTS, "results": results}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1, default=json_default))
     print(json.dumps(out, default=json_default))

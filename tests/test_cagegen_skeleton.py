@@ -507,3 +507,59 @@ def test_face_neighbours_turns_a_face_towards_the_other_knee():
     assert cage.info["verification"]["ok"]
     plain = skeleton_cage(V, F, S, bending="given")
     assert plain.info["sections_faced"] == []
+
+
+def test_refine_faces_keeps_the_surface_and_quads_kept_after_a_split():
+    """refine_faces: conforming split (closed manifold, same area, volume and orientation), new vertices
+    at the recorded edge midpoints; the backend's _quads_kept keeps exactly the untouched quads."""
+    from cagegen._geometry import edge_stats
+    from cagegen.skeleton.backend import _quads_kept
+    from cagegen.skeleton.cage import triangulate_quads
+    from cagegen.skeleton.inflate import refine_faces
+
+    X = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    Q = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
+    F = triangulate_quads(X, Q)
+    vol = lambda V, F: np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6
+    assert vol(X, F) == pytest.approx(1.0)  # outward
+    mask = np.zeros(len(F), dtype=bool)
+    mask[0] = True  # one triangle of quad 0: 3 edges split, its 3 neighbours get one split edge each
+    V2, F2, parent, ends = refine_faces(X, F, mask)
+    es = edge_stats(F2, len(V2))
+    assert es.n_boundary_edges == es.n_nonmanifold_edges == es.n_inconsistent_edges == 0
+    assert len(V2) == 8 + 3 and len(F2) == 12 + 3 + 3 and np.bincount(parent)[0] == 4
+    assert vol(V2, F2) == pytest.approx(1.0)
+    np.testing.assert_allclose(V2[8:], 0.5 * (X[ends[:, 0]] + X[ends[:, 1]]))
+    N1 = igl.per_face_normals(X, F, np.zeros(3))
+    N2 = igl.per_face_normals(V2, F2, np.zeros(3))
+    np.testing.assert_allclose(N2, N1[parent], atol=1e-12)
+    q, t = _quads_kept(Q, F2)
+    # the quad of the split triangle and the quads holding its split edges lose their quad status
+    touched = {int(parent[i]) for i in range(len(F2)) if np.bincount(parent)[parent[i]] > 1}
+    lost = {k for k in range(6) if any(np.isin(F[f], Q[k]).all() for f in touched)}
+    assert len(q) == 6 - len(lost) and len(lost) >= 2
+    assert 2 * len(q) + len(t) == len(F2)
+
+
+def test_refine_polish_contains_a_dented_sphere():
+    """refine_polish: the dented cage of the polish test, one level: the faces near the dent are split,
+    M (vertices, edge midpoints, centroids) ends inside, no self-intersection, far faces untouched."""
+    from cagegen._geometry import self_intersection_pairs
+    from cagegen.skeleton.inflate import refine_polish
+    from nestmg.shapes import sphere
+
+    Vm, Fm = sphere(20)
+    Vm = Vm / np.linalg.norm(Vm, axis=1, keepdims=True)
+    Vc, Fc = sphere(6)
+    Vc = 1.08 * Vc / np.linalg.norm(Vc, axis=1, keepdims=True)
+    top = int(np.argmax(Vc[:, 2]))
+    Vc[top] *= 0.8
+    V2, F2, info = refine_polish(Vc, Fc, Vm, Fm, levels=1)
+    lv = info["levels"][0]
+    assert 0 < lv["marked"] < len(Fc) // 2 and lv["faces"] == len(F2) > len(Fc)
+    assert lv["samples_outside"] == 0 and lv["outside"] == 0
+    s, *_ = igl.signed_distance(Vm, V2, F2)
+    assert s.max() < 0 and len(self_intersection_pairs(V2, F2)) == 0
+    low = Vc[:, 2] < -0.5  # far from the dent: not moved
+    np.testing.assert_array_equal(V2[:len(Vc)][low], Vc[low])
+    assert len(info["midpoint_of"]) == len(V2) - len(Vc)

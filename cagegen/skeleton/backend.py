@@ -33,7 +33,7 @@ from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_r
                    untangle_sections)
 from .field import GuidingField
 from .graph import Skeleton, read_skeleton
-from .inflate import pre_inflate
+from .inflate import pre_inflate, refine_polish
 
 __all__ = ["SkeletonCage", "skeleton_backend", "skeleton_cage"]
 
@@ -165,6 +165,7 @@ def skeleton_cage(
     skeleton_cache=None,
     untangle: bool = True,
     face_neighbours: float | None = None,
+    refine_levels: int = 0,
     **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
@@ -234,6 +235,11 @@ def skeleton_cage(
         limb's skeleton is closer than ``face_neighbours`` x the section's inscribed radius (nodes
         near the chain's own junction excluded); recorded in ``info["sections_faced"]``. None: the
         previous section's axis along the chain (default).
+    refine_levels : int
+        When vertices of M are still outside the pre-inflated cage after the polish: levels of
+        :func:`cagegen.skeleton.inflate.refine_polish` (split the cage faces there 1-to-4, push again;
+        the split faces leave ``quads`` for ``tris``); ``info["pre_inflation"]["refine"]``. 0: none
+        (default).
     **nested_opts
         Passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
@@ -567,6 +573,14 @@ def skeleton_cage(
     # 6. pre-inflation
     t = time.perf_counter()
     Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=preinflate_rounds)
+    quads_out, tris_out = tc["quads"], tc["tris"]
+    if refine_levels and pinfo.get("polish", {}).get("outside", 0) > 0:
+        Vp, Ft, pinfo["refine"] = refine_polish(Vp, Ft, Vn, F, levels=refine_levels)
+        quads_out, tris_out = _quads_kept(tc["quads"], Ft)
+        for a, b in pinfo["refine"].pop("midpoint_of"):  # the tight cage in the split cage's vertices
+            Vt = np.vstack([Vt, 0.5 * (Vt[a] + Vt[b])])
+        pinfo["self_intersections"] = len(self_intersection_pairs(Vp, Ft))
+        say(f"pre-inflation: faces split where M is outside: {pinfo['refine']['levels']}")
     sec["pre_inflation"] = time.perf_counter() - t
     info["pre_inflation"] = pinfo
     if pinfo["self_intersections"]:
@@ -619,15 +633,29 @@ def skeleton_cage(
     sec["total"] = time.perf_counter() - t_all
     info["seconds"] = sec
     info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
-    info["n_quads"], info["n_junction_triangles"] = len(tc["quads"]), len(tc["tris"])
+    info["n_quads"], info["n_junction_triangles"] = len(quads_out), len(tris_out)
     sections_out = [{"node": int(n), "center": s.center * diag + center, "quad": s.quad * diag + center,
                      "hits": s.hits * diag + center} for n, s in sorted(sections.items())
                     if n in tc["section_vertices"]]
-    return SkeletonCage(V=Vc, F=Fc, quads=tc["quads"], tris=tc["tris"], tight_V=Vt * diag + center,
+    return SkeletonCage(V=Vc, F=Fc, quads=quads_out, tris=tris_out, tight_V=Vt * diag + center,
                         preinflated_V=Vp * diag + center,
                         skeleton=Skeleton(S.nodes * diag + center, S.edges,
                                           [b for b in S.bending if b in tc["section_vertices"]]),
                         input_skeleton=S_in, sections=sections_out, info=info)
+
+
+def _quads_kept(quads: np.ndarray, F: np.ndarray):
+    """Quads whose two triangles are still faces of ``F`` (after :func:`refine_faces`), and the other
+    faces of ``F`` (the split ones and the junction triangles)."""
+    key = {tuple(sorted(f)): i for i, f in enumerate(np.asarray(F).tolist())}
+    keep, used = [], np.zeros(len(F), dtype=bool)
+    for q in np.asarray(quads).tolist():
+        hit = [key[t] for t in (tuple(sorted(c)) for c in ((q[0], q[1], q[2]), (q[0], q[2], q[3]),
+                                                          (q[0], q[1], q[3]), (q[1], q[2], q[3]))) if t in key]
+        if len(hit) == 2:
+            keep.append(q)
+            used[hit] = True
+    return np.asarray(keep, dtype=np.int64).reshape(-1, 4), np.asarray(F, dtype=np.int64)[~used]
 
 
 def _winding(V, F, P):

@@ -233,7 +233,9 @@ def skeleton_cage(
     face_neighbours : float, optional
         Turn nearly round sections so that a face, not a corner, faces the closest other limb when that
         limb's skeleton is closer than ``face_neighbours`` x the section's inscribed radius (nodes
-        near the chain's own junction excluded); recorded in ``info["sections_faced"]``. None: the
+        near the chain's own junction excluded); ``info["sections_faced"]`` lists the sections with such a
+        limb (the quad turns only where the section is nearly round,
+        :func:`cagegen.skeleton.cage.best_quad`). None: the
         previous section's axis along the chain (default).
     refine_levels : int
         When vertices of M are still outside the pre-inflated cage after the polish: levels of

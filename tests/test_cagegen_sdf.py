@@ -535,3 +535,17 @@ def test_tightening_starts_no_round_after_its_deadline():
     C2, F2, info, rep = tighten_cage(C, F, V, F, None, c=0.02, target=0.0, deadline=time.perf_counter() - 1.0)
     assert C2 is not None and np.array_equal(C2, C) and np.array_equal(F2, F)
     assert info["rounds"] == [] and info["stopped"] == "time budget" and rep is None
+
+
+def test_envelope_grid_refined_when_the_target_is_near_its_resolution():
+    """A target close to (here above) the envelope's face count at ``h = c``: the default grid is made
+    finer so the envelope has >= ~4x the target's faces and the cage is a simplification of it; with the
+    grid forced to ``h = c`` the cage is the (upsampled) marching-cubes surface and much worse shaped."""
+    V, F = shapes.sphere(res=20)
+    U, G, info = sdf_cage_layer(V, F, 600, c=0.1, tighten=0)
+    assert info["envelope"].get("refined_for_target") and info["envelope"]["n_faces"] >= 3.5 * 600
+    assert len(G) == 600 and verify_nesting([(V, F), (U, G)]).ok
+    assert info["min_angle_deg"] > 20.0 and info["mips_max"] < 4.0, (info["min_angle_deg"], info["mips_max"])
+    U2, G2, info2 = sdf_cage_layer(V, F, 600, c=0.1, h=0.1, tighten=0)
+    assert not info2["envelope"].get("refined_for_target") and info2["envelope"]["n_faces"] < 600
+    assert info2["min_angle_deg"] < 0.5 * info["min_angle_deg"]

@@ -145,6 +145,9 @@ def _pick_envelope(tried: list[dict], g_fine: int | None) -> int | None:
     return min(clean, key=lambda i: (dist(tried[i]["genus"]), i))
 
 
+#: the envelope is built (``h`` not given) with at least this many times the target's faces
+ENVELOPE_OVER_TARGET = 4.0
+
 #: default wall-clock budget (seconds) of one sdf_backend / sdf_cage_layer call; None = no limit
 DEFAULT_TIME_BUDGET = 900.0
 
@@ -233,7 +236,9 @@ def sdf_cage_layer(
     c : float
         Iso-value of the envelope (paper: 0.01).
     h : float, optional
-        Grid spacing (default ``c``).
+        Grid spacing (default ``c``, made finer -- at most 4x -- when the envelope would have fewer than
+        ``ENVELOPE_OVER_TARGET = 4`` times ``n_faces`` faces, so the cage is a simplification of it and
+        not the marching-cubes surface itself; ``info["envelope"]["refined_for_target"]``).
     amplify : bool
         Local amplification near nearly-touching parts (paper eqs. 2-3).
     r, l, alpha, beta : float
@@ -363,6 +368,22 @@ def sdf_cage_layer(
             # the amplified iso-level c / alpha; its "Limitation": finite SDF resolution). Refine the
             # grid (same c, at most twice) before giving up; a genus still wrong is reported.
             hk = ck if h is None else h * 2.0 ** attempt
+            if h is None and len(env.F) < ENVELOPE_OVER_TARGET * n_faces:
+                # a target close to the envelope's own resolution leaves few collapses, and the marching
+                # cubes' slivers stay in the cage (85k-face input, 21k-face cage from a 30k-face envelope:
+                # 140 faces under 1 degree, min 0.006): a finer grid, ~ENVELOPE_OVER_TARGET x the target
+                # (faces ~ 1 / h^2), at most 4x finer
+                h2 = hk * max(0.25, float(np.sqrt(len(env.F) / (ENVELOPE_OVER_TARGET * n_faces))))
+                env2 = build_envelope(Vn, F, c=ck, h=h2, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta,
+                                      concave=concave)
+                # ... unless the finer grid resolves a merge of two parts the coarse one did not (a handle:
+                # gargo subdivided twice, genus 0 at h = c, 1 at 0.59 c): the genus comes first
+                g0 = genus(env.V, env.F)
+                if genus(env2.V, env2.F) == g0 or g0 != g_fine:
+                    env, hk = env2, h2
+                    env.info["refined_for_target"] = True
+                else:
+                    env.info["refined_for_target"] = False
             k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
             g_env = genus(env.V, env.F)
             tried_env = [{"h": hk, "crossings": k_cross, "genus": g_env}]

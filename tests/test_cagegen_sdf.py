@@ -78,10 +78,12 @@ def test_amplification_separates_nearly_touching_parts():
 @pytest.mark.slow
 def test_layer_refines_the_grid_when_the_envelope_glues_parts():
     """The slit ring at c = 0.02: the amplified field on a grid of spacing c still glues the slit (genus 1);
-    the backend sees the genus differ and halves the grid, which separates it: a genus-0 certified cage."""
+    the backend sees the genus differ and halves the grid, which separates it: a genus-0 certified cage.
+    (``h = c`` given: by default the grid is already made finer for this target, see
+    ``test_envelope_grid_refined_when_the_target_is_near_its_resolution``.)"""
     V, F = _c_ring(0.1, res=48)
     m = int(2 * round(len(F) / 8))
-    U, G, info = sdf_cage_layer(V, F, m, c=0.02, r=0.05)
+    U, G, info = sdf_cage_layer(V, F, m, c=0.02, r=0.05, h=0.02)
     tried = info["envelope"]["grids_tried"]
     assert [t["genus"] for t in tried] == [1, 0] and tried[1]["h"] == pytest.approx(0.5 * tried[0]["h"])
     assert info["genus"] == 0 == info["genus_fine"] and not info["genus_changed"]

@@ -166,6 +166,7 @@ def skeleton_cage(
     untangle: bool = True,
     face_neighbours: float | None = None,
     refine_levels: int = 0,
+    recentre: float = 0.0,
     **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
@@ -242,6 +243,11 @@ def skeleton_cage(
         :func:`cagegen.skeleton.inflate.refine_polish` (split the cage faces there 1-to-4, push again;
         the split faces leave ``quads`` for ``tris``); ``info["pre_inflation"]["refine"]``. 0: none
         (default).
+    recentre : float
+        Automatic skeletons only: after the cleaning, move the nodes whose inscribed radius is below
+        ``recentre`` x their chain's median radius (or below 2e-3 of the diagonal) towards the local
+        medial axis (:func:`cagegen.skeleton.extract.recentre_nodes`; ``info["extraction"]["recentred"]``).
+        0: off (default).
     **nested_opts
         Passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
@@ -277,7 +283,7 @@ def skeleton_cage(
         from .extract import extract_skeleton
 
         say("skeleton: automatic extraction (pygel3d)")
-        S, xinfo = extract_skeleton(Vn, F, cache=skeleton_cache)
+        S, xinfo = extract_skeleton(Vn, F, cache=skeleton_cache, recentre=recentre)
         say(f"skeleton: cache {xinfo['cache']}, digest {xinfo['skeleton_digest'][:12]}")
         info["extraction"] = xinfo
         S_in = S

@@ -291,6 +291,7 @@ def recentre_nodes(S: Skeleton, V: np.ndarray, F: np.ndarray, frac: float, floor
     todo = np.flatnonzero(r < thr)
     if len(todo) == 0:
         return P, []
+    nb = [np.array(n, dtype=np.int64) for n in S.neighbors()]
     FN = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
     s = np.linspace(0.0, 1.0, samples + 1)[1:]
     log = []
@@ -298,7 +299,7 @@ def recentre_nodes(S: Skeleton, V: np.ndarray, F: np.ndarray, frac: float, floor
         p0 = P[i].copy()
         r0 = float(r[i])
         p, rp = p0, r0
-        reach = 2.0 * max(med[i], floor)
+        reach = 2.0 * max(med[i], float(r[nb[i]].max(initial=0.0)), floor)
         for _ in range(rounds):
             dd, fi, c = igl.point_mesh_squared_distance(p[None], V, F)
             dist = float(np.sqrt(dd[0]))

@@ -66,6 +66,31 @@ def _exact_det3(a, b, c, d) -> int:
     return (det > 0) - (det < 0)
 
 
+def _exact_det3_rows(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Exact signs of ``det[a - d, b - d, c - d]`` for (k,3) rows of finite floats, vectorised.
+
+    Every float is ``M 2^E`` with an integer mantissa ``|M| < 2^53`` (``np.frexp``); each row's values are
+    put over its smallest exponent, ``M 2^(E - E_min)``, as Python integers in numpy object arrays, and the
+    determinant is evaluated exactly in them. Same result as :func:`_exact_det3` row by row (checked in
+    the tests), ~10x faster on the millions of rows an input with exactly coplanar faces produces.
+    """
+    P = np.stack([a, b, c, d], axis=1).reshape(len(a), 12)
+    m, e = np.frexp(P)
+    M = np.ldexp(m, 53).astype(np.int64)  # exact: |m| in [0.5, 1) has 53 significant bits
+    E = e.astype(np.int64) - 53
+    E = np.where(M == 0, np.iinfo(np.int64).max, E)
+    emin = E.min(axis=1, keepdims=True)
+    emin = np.where(emin == np.iinfo(np.int64).max, 0, emin)
+    sh = np.where(M == 0, 0, E - emin)
+    X = M.astype(object) * np.left_shift(np.ones_like(sh, dtype=object), sh.astype(object))
+    X = X.reshape(len(a), 4, 3)
+    ad, bd, cd = X[:, 0] - X[:, 3], X[:, 1] - X[:, 3], X[:, 2] - X[:, 3]
+    det = (ad[:, 0] * (bd[:, 1] * cd[:, 2] - bd[:, 2] * cd[:, 1])
+           + bd[:, 0] * (cd[:, 1] * ad[:, 2] - cd[:, 2] * ad[:, 1])
+           + cd[:, 0] * (ad[:, 1] * bd[:, 2] - ad[:, 2] * bd[:, 1]))
+    return np.array([(x > 0) - (x < 0) for x in det], dtype=np.int8)
+
+
 def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, exact: bool = False) -> np.ndarray:
     """Sign of ``det[a - d, b - d, c - d]`` row by row.
 
@@ -93,9 +118,8 @@ def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, exact: 
     s = np.sign(det).astype(np.int8)
     unsure = np.flatnonzero(np.abs(det) <= _O3D_BOUND * perm)
     s[unsure] = 0
-    if exact and np.all(np.isfinite(perm[unsure])):
-        for i in unsure:
-            s[i] = _exact_det3(a[i], b[i], c[i], d[i])
+    if exact and len(unsure) and np.all(np.isfinite(perm[unsure])):
+        s[unsure] = _exact_det3_rows(a[unsure], b[unsure], c[unsure], d[unsure])
     return s
 
 

@@ -29,6 +29,31 @@ def test_orient3d_signs_and_exact_zero():
     assert orient3d(big[None, 0], big[None, 1], big[None, 2], np.array([[1e8 + 0.3, 1e8 + 0.3, 1e8 + 1e-300]]))[0] == 0
 
 
+def test_vectorised_exact_orientation_matches_the_scalar_one():
+    """The exact fallback of ``orient3d(exact=True)`` (vectorised in numpy object arrays) gives the same
+    signs as the row-by-row integer evaluation on degenerate rows: exact midpoints (coplanar), points
+    1e-17 off, coordinates spanning 1e-200..1e200 and subnormals, repeated points, all-zero rows; and
+    orient3d certifies the midpoint rows as exactly 0 where the float filter cannot."""
+    from cagegen.intersect import _exact_det3, _exact_det3_rows
+
+    rng = np.random.default_rng(1)
+    k = 400
+    A, B, C = (rng.normal(size=(k, 3)) for _ in range(3))
+    Z = np.zeros((k, 3))
+    Z[:, 1] = rng.normal(size=k) * 1e-310  # subnormals
+    cases = [(A, B, C, 0.5 * (A + B)), (A, B, C, A + 1e-17 * rng.normal(size=(k, 3))),
+             (A * 1e200, B * 1e-200, C, Z), (Z, Z, Z, Z), (A, A, B, C), (A, B, C, rng.normal(size=(k, 3)))]
+    for a, b, c, d in cases:
+        ref = np.array([_exact_det3(a[i], b[i], c[i], d[i]) for i in range(k)], dtype=np.int8)
+        assert np.array_equal(_exact_det3_rows(a, b, c, d), ref)
+        assert np.array_equal(orient3d(a, b, c, d, exact=True), ref)
+    # dyadic coordinates: the midpoint of AB is exact, so (A, B, C, mid) is exactly coplanar: 0 in every row
+    Ai, Bi, Ci = (rng.integers(-10**6, 10**6, size=(k, 3)) / 1024.0 for _ in range(3))
+    s = orient3d(Ai, Bi, Ci, 0.5 * (Ai + Bi), exact=True)
+    assert np.all(s == 0)
+    assert np.all(orient3d(Ai, Bi, Ci, 0.5 * (Ai + Bi) + [0, 0, 2.0**-20], exact=True) != 0)
+
+
 @pytest.mark.parametrize(
     "offset, expected",
     [

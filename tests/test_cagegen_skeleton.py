@@ -452,13 +452,8 @@ def test_crease_push_keeps_its_input_when_no_round_beats_it(monkeypatch):
     assert info3["best_round"] >= 0 and not np.array_equal(V3, Vf)
 
 
-def test_polish_contains_a_dented_sphere_and_moves_cage_vertices_out_of_M():
-    """polish: a coarse cage around a unit sphere M with one vertex dented inside M (vertices of M
-    outside) ends with M inside, every cage vertex outside M, no fin and no self-intersection."""
-    import igl
-
-    from cagegen._geometry import self_intersection_pairs
-    from cagegen.skeleton.inflate import _fold_cosines, polish
+def _dented_sphere_cage():
+    """A unit sphere M and a coarse cage 1.08 x around it whose top vertex is dented 0.14 inside M."""
     from nestmg.shapes import sphere
 
     Vm, Fm = sphere(20)
@@ -467,6 +462,18 @@ def test_polish_contains_a_dented_sphere_and_moves_cage_vertices_out_of_M():
     Vc = 1.08 * Vc / np.linalg.norm(Vc, axis=1, keepdims=True)
     top = int(np.argmax(Vc[:, 2]))
     Vc[top] *= 0.8
+    return Vm, Fm, Vc, Fc, top
+
+
+def test_polish_contains_a_dented_sphere_and_moves_cage_vertices_out_of_M():
+    """polish: a coarse cage around a unit sphere M with one vertex dented inside M (vertices of M
+    outside) ends with M inside, every cage vertex outside M, no fin and no self-intersection."""
+    import igl
+
+    from cagegen._geometry import self_intersection_pairs
+    from cagegen.skeleton.inflate import _fold_cosines, polish
+
+    Vm, Fm, Vc, Fc, top = _dented_sphere_cage()
     s0, *_ = igl.signed_distance(Vm, Vc, Fc)
     sv0, *_ = igl.signed_distance(Vc, Vm, Fm)
     assert (s0 > 0).sum() > 5 and sv0[top] < -0.1
@@ -546,14 +553,8 @@ def test_refine_polish_contains_a_dented_sphere():
     M (vertices, edge midpoints, centroids) ends inside, no self-intersection, far faces untouched."""
     from cagegen._geometry import self_intersection_pairs
     from cagegen.skeleton.inflate import refine_polish
-    from nestmg.shapes import sphere
 
-    Vm, Fm = sphere(20)
-    Vm = Vm / np.linalg.norm(Vm, axis=1, keepdims=True)
-    Vc, Fc = sphere(6)
-    Vc = 1.08 * Vc / np.linalg.norm(Vc, axis=1, keepdims=True)
-    top = int(np.argmax(Vc[:, 2]))
-    Vc[top] *= 0.8
+    Vm, Fm, Vc, Fc, _ = _dented_sphere_cage()
     V2, F2, info = refine_polish(Vc, Fc, Vm, Fm, levels=1)
     lv = info["levels"][0]
     assert 0 < lv["marked"] < len(Fc) // 2 and lv["faces"] == len(F2) > len(Fc)

@@ -147,22 +147,32 @@ def polish(V, F, Vm, Fm, rounds: int = 12, clearance: float = 2e-3, backoff: flo
     V, c = _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff, fin_cos)
     passes, inside = [c["outside_per_round"]], []
     for _ in range(vertex_rounds):
-        s, _, C, _ = igl.signed_distance(V, Vm, Fm, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
-        near = np.flatnonzero(s < clearance)
-        inside.append(len(near))
-        if len(near) == 0:
+        V, n_near = _vertices_out_of(V, F, Vm, Fm, clearance, backoff, max_backoff, fin_cos)
+        inside.append(n_near)
+        if n_near == 0:
             break
-        L = np.abs(s[near])
-        u = (C[near] - V[near]) * np.where(s[near] < 0, 1.0, -1.0)[:, None] / np.maximum(L, 1e-300)[:, None]
-        dv = np.zeros_like(V)
-        dv[near] = C[near] + 2.0 * clearance * u - V[near]
-        V, _, _, _ = _move_without_intersection(V, F, dv, backoff, max_backoff, fin_cos)
         V, c = _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff, fin_cos)
         passes.append(c["outside_per_round"])
     s, _, _, _ = igl.signed_distance(Vm, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
     fins = int(_fin_mask(V, F, fin_cos).sum())
     return V, {"outside_per_round": passes, "cage_vertices_inside": inside, "outside": int((s > 0).sum()),
                "max_signed_distance": float(s.max()), "fins": fins}
+
+
+def _vertices_out_of(V, F, Vm, Fm, clearance, backoff, max_backoff, fin_cos):
+    """Move every cage vertex inside M or less than ``clearance`` outside it to its closest point on M
+    plus ``2 * clearance`` outward (:func:`_move_without_intersection`'s step-back and fin guard).
+    Returns ``(V, number of such vertices)`` (``V`` unchanged when there are none)."""
+    s, _, C, _ = igl.signed_distance(V, Vm, Fm, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
+    near = np.flatnonzero(s < clearance)
+    if len(near) == 0:
+        return V, 0
+    L = np.abs(s[near])
+    u = (C[near] - V[near]) * np.where(s[near] < 0, 1.0, -1.0)[:, None] / np.maximum(L, 1e-300)[:, None]
+    dv = np.zeros_like(V)
+    dv[near] = C[near] + 2.0 * clearance * u - V[near]
+    V, _, _, _ = _move_without_intersection(V, F, dv, backoff, max_backoff, fin_cos)
+    return V, len(near)
 
 
 def _contain(V, F, Vm, Fm, rounds, clearance, backoff, max_backoff, fin_cos=None):
@@ -404,15 +414,9 @@ def refine_polish(V, F, Vm, Fm, levels: int = 1, clearance: float = 2e-3, rounds
         ends.append(e)
         V, _ = _contain(V, F, P, None, rounds, clearance, backoff, max_backoff, fin_cos)
         for _ in range(vertex_rounds):
-            sc, _, C, _ = igl.signed_distance(V, Vm, Fm, sign_type=sd)
-            near = np.flatnonzero(sc < clearance)
-            if len(near) == 0:
+            V, n_near = _vertices_out_of(V, F, Vm, Fm, clearance, backoff, max_backoff, fin_cos)
+            if n_near == 0:
                 break
-            u = (C[near] - V[near]) * np.where(sc[near] < 0, 1.0, -1.0)[:, None]
-            u /= np.maximum(np.abs(sc[near]), 1e-300)[:, None]
-            dv = np.zeros_like(V)
-            dv[near] = C[near] + 2.0 * clearance * u - V[near]
-            V, _, _, _ = _move_without_intersection(V, F, dv, backoff, max_backoff, fin_cos)
             V, _ = _contain(V, F, P, None, rounds, clearance, backoff, max_backoff, fin_cos)
         s, _, _, _ = igl.signed_distance(P, V, F, sign_type=sd)
         sc, _, _, _ = igl.signed_distance(V, Vm, Fm, sign_type=sd)

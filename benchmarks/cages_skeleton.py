@@ -143,6 +143,10 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
     except Exception as exc:  # noqa: BLE001 -- a failure is a result: the message names the step
         out.update({"certified": False, "error": f"{type(exc).__name__}: {exc}", "progress": log,
                     "seconds_total": time.perf_counter() - t0})
+        cause = exc.__cause__  # nest_pair's failure (stage, flow summary) behind a skeleton CageError
+        if cause is not None and isinstance(getattr(cause, "info", None), dict):
+            out["failure"] = {"stage": getattr(cause, "stage", None), "flow": cause.info.get("flow"),
+                              "seconds": cause.info.get("seconds")}
         return out
     rep = verify_nesting([(V, F), (c.V, c.F)])
     out.update({

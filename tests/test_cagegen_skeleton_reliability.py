@@ -229,6 +229,35 @@ def test_flow_stall_window_stops_a_flow_that_cannot_finish_in_time():
     assert ok.success and ok.iterations > 2 * 20
 
 
+
+def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
+    """``nest_pair`` passes ``flow_stall_iter`` / ``flow_expand_after`` / ``flow_max_expansions`` to
+    the flow as ``stall_iter`` / ``expand_after`` / ``max_expansions`` (so the skeleton backend can
+    pass them through its options); its defaults are the flow's own, so the ``nested`` backend is
+    unchanged."""
+    import inspect
+
+    from cagegen.nested import backend as nb
+    from cagegen.nested.flow import FlowResult, flow_inside
+
+    seen: list = []
+
+    def fake_flow(Vf, Ff, Vc, Fc, **kw):
+        seen.append(kw)
+        return FlowResult([np.asarray(Vf, float)], False, 0, "stub", 1.0)
+
+    monkeypatch.setattr(nb, "flow_inside", fake_flow)
+    Vs, Fs = sphere(4)
+    with pytest.raises(nb._PairFailure, match="stub"):
+        nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs)
+    with pytest.raises(nb._PairFailure, match="stub"):
+        nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs, flow_stall_iter=600, flow_expand_after=None, flow_max_expansions=3)
+    defaults = {k: v.default for k, v in inspect.signature(flow_inside).parameters.items()}
+    for name in ("stall_iter", "expand_after", "max_expansions"):
+        assert seen[0][name] == defaults[name]
+    assert (seen[1]["stall_iter"], seen[1]["expand_after"], seen[1]["max_expansions"]) == (600, None, 3)
+
+
 # ----------------------------------------------------------------------------- recentring nodes on M
 def test_recentre_moves_nodes_on_the_surface_back_to_the_medial_axis(star):
     """A skeleton elbow and the junction deliberately put on M (inscribed radius 0) are moved back

@@ -215,6 +215,9 @@ def nest_pair(
     flow_max_iter: int = 1000,
     flow_active_depth: float | None = None,
     flow_stall_window: int | None = None,
+    flow_stall_iter: int = 150,
+    flow_expand_after: int | None = 50,
+    flow_max_expansions: int = 20,
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
@@ -247,6 +250,12 @@ def nest_pair(
     flow_stall_window : int, optional
         :func:`cagegen.nested.flow.flow_inside`'s ``stall_window`` (fail fast when the flow cannot
         finish within ``flow_max_iter`` at its current rate; None: run to the cap).
+    flow_stall_iter, flow_expand_after, flow_max_expansions
+        :func:`cagegen.nested.flow.flow_inside`'s ``stall_iter`` (give up after this many iterations
+        with every quadrature point inside Ĉ but intersections left; a quarter of it also times the
+        switch to the denser quadrature and the first expansion around crossing faces),
+        ``expand_after`` (expand Ĉ where points stay outside for this many iterations; None: never)
+        and ``max_expansions`` (cap on expansions of Ĉ). Defaults: the flow's own (150, 50, 20).
     dhat, kappa, dhat_final, kappa_final, max_move, final_iters
         Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
     gap : float
@@ -283,7 +292,9 @@ def nest_pair(
     if gap > 0 and clearance == "offset":
         # tight cage first (no clearance: the fast path), then the cage itself is pushed out by the gap
         C, info = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
-                            flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window, dhat=dhat,
+                            flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window,
+                            flow_stall_iter=flow_stall_iter, flow_expand_after=flow_expand_after,
+                            flow_max_expansions=flow_max_expansions, dhat=dhat,
                             kappa=kappa, dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
                             final_iters=final_iters, gap=0.0,
                             reporter=rep)
@@ -298,7 +309,9 @@ def nest_pair(
         # re-inflation instead, with the fine surface's offset as its rest pose
         rep.say(f"cage offset blocked ({oinfo['reason']}); building the clearance by re-inflation")
         C, info2 = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
-                             flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window, dhat=dhat,
+                             flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window,
+                             flow_stall_iter=flow_stall_iter, flow_expand_after=flow_expand_after,
+                             flow_max_expansions=flow_max_expansions, dhat=dhat,
                              kappa=kappa, dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
                              final_iters=final_iters, gap=gap,
                              clearance="reinflate", reporter=rep)
@@ -311,7 +324,8 @@ def nest_pair(
     upd = rep.phase("flow", flow_max_iter)
     fl = flow_inside(flowed, Ff, Vc, Fc, quad_order=quad_order, step=flow_step,
                      max_iter=flow_max_iter, active_depth=flow_active_depth, stall_window=flow_stall_window,
-                     callback=lambda it: upd(it))
+                     stall_iter=flow_stall_iter, expand_after=flow_expand_after,
+                     max_expansions=flow_max_expansions, callback=lambda it: upd(it))
     info["seconds"]["flow"] = time.perf_counter() - t
     info["flow"] = fl.to_dict()
     if not fl.success:

@@ -15,6 +15,7 @@ extrapolated and reported as ``n_outside`` per level.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -385,8 +386,14 @@ def build_cage_surfaces(
         info = dict(info, cached=True)
     else:
         t0 = time.perf_counter()
+        cage_progress = progress
+        if progress is None:
+            # a terminal: the backend's own bars; a log or a pipe: its per-layer messages as stage lines
+            # (silent unless the `nestmg` logger has a handler, which the CLI installs off a terminal)
+            cage_progress = True if sys.stderr.isatty() else (lambda msg: stage_line(f"cages ({method}): {msg}", t0))
         surfaces, info = cagegen.build_cages(
-            Vn, F, levels, method=method, face_counts=face_counts, return_info=True, progress=progress, **cage_opts
+            Vn, F, levels, method=method, face_counts=face_counts, return_info=True, progress=cage_progress,
+            **cage_opts
         )
         info = dict(info, seconds=time.perf_counter() - t0)
         if cache:

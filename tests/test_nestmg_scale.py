@@ -148,6 +148,21 @@ def test_non_terminal_run_prints_stage_lines(tmp_path):
     assert all(" s  " in ln for ln in lines)  # elapsed seconds on every line
 
 
+def test_non_terminal_cages_run_reports_each_layer(tmp_path):
+    """`nestmg cages` in a log says which cage layer it is on while it works, not only at the end."""
+    p = subprocess.run(
+        [sys.executable, "-m", "nestmg.cli", "cages", "shape:sphere", "--method", "nested", "--levels", "3",
+         "--face-counts", "400", "100", "--no-cache", "--out", str(tmp_path / "out")],
+        check=False, capture_output=True, text=True, timeout=600,
+    )
+    assert p.returncode == 0, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("[nestmg]") and "cages (nested): " in ln]
+    text = "\n".join(lines)
+    assert "layer 1: target 400 faces" in text and "layer 2: target 100 faces" in text, p.stderr
+    assert text.index("layer 1:") < text.index("layer 2:")
+    assert all(" s  " in ln for ln in lines)
+
+
 def test_input_much_finer_than_the_tets_is_decimated_first():
     """A fine input meshed coarsely is QEM-decimated within TetWild's envelope before meshing."""
     from nestmg import build_hierarchy

@@ -333,6 +333,7 @@ def build_cage_surfaces(
     cache: bool = True,
     progress: bool | None = None,
     cage_opts: dict | None = None,
+    t0: float | None = None,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """The cage layers of a hierarchy, exactly as :func:`build_hierarchy` builds them (same clearance).
 
@@ -358,6 +359,8 @@ def build_cage_surfaces(
         Progress bars (None: only on a terminal).
     cage_opts : dict, optional
         Extra options of the cage backend (``min_gap`` overrides the automatic clearance).
+    t0 : float, optional
+        ``time.perf_counter()`` the stage lines' elapsed seconds count from (default: this call's start).
 
     Returns
     -------
@@ -385,7 +388,8 @@ def build_cage_surfaces(
         surfaces = [(arrays[f"V{k}"], arrays[f"F{k}"]) for k in range(levels)]
         info = dict(info, cached=True)
     else:
-        t0 = time.perf_counter()
+        t_start = time.perf_counter()
+        t0 = t_start if t0 is None else t0
         cage_progress = progress
         if progress is None:
             # a terminal: the backend's own bars; a log or a pipe: its per-layer messages as stage lines
@@ -395,7 +399,7 @@ def build_cage_surfaces(
             Vn, F, levels, method=method, face_counts=face_counts, return_info=True, progress=cage_progress,
             **cage_opts
         )
-        info = dict(info, seconds=time.perf_counter() - t0)
+        info = dict(info, seconds=time.perf_counter() - t_start)
         if cache:
             arrays = {}
             for k, (Vk, Fk) in enumerate(surfaces):
@@ -660,7 +664,7 @@ def build_hierarchy(
     with timer("cages"):
         surfaces_u, info = build_cage_surfaces(
             S0, F0, n_surf, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
-            cache=cache, progress=progress, cage_opts=cage_opts,
+            cache=cache, progress=progress, cage_opts=cage_opts, t0=t0,
         )
     info["predecimation"] = pre
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "

@@ -146,6 +146,10 @@ def test_non_terminal_run_prints_stage_lines(tmp_path):
     for stage in ("sizing:", "cages (decimate)", "tets level 0:", "tets level 1:", "prolongation 0<-1", "hierarchy:"):
         assert stage in text, text
     assert all(" s  " in ln for ln in lines)  # elapsed seconds on every line
+    # one clock for the whole run, the cage backend's own lines included
+    seconds = [float(ln.split()[1]) for ln in lines]
+    assert seconds == sorted(seconds), text
+    assert sum("cages (decimate): " in ln for ln in lines) >= 2, text  # the backend's lines, not only the summary
 
 
 def test_non_terminal_cages_run_reports_each_layer(tmp_path):

@@ -179,7 +179,8 @@ def _run_backend(method: str):
                     "envelope_faces": li["envelope"]["n_faces"], "genus_envelope": li["genus_envelope"],
                     "prepass": li["prepass"], "simplify": li["simplify"],
                     "optimized_cage_kept": li["optimize"].get("certified", False),
-                    "optimize_steps": li["optimize"].get("steps")} for li in per]
+                    "optimize_steps": li["optimize"].get("steps"),
+                    "bridge_retry": li.get("bridge_retry")} for li in per]
             q.put(res)
         except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
             q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,

@@ -61,7 +61,8 @@ def _run(method: str):
                     "optimized_cage_kept": li["optimize"].get("certified", False),
                     "genus_envelope": li["genus_envelope"], "envelope_faces": li["envelope"]["n_faces"],
                     "n_active": li["envelope"]["n_active"],
-                    "tighten": li.get("tighten", {"ran": False})} for li in info["layers"]]
+                    "tighten": li.get("tighten", {"ran": False}),
+                    "bridge_retry": li.get("bridge_retry")} for li in info["layers"]]
             elif method == "nested":
                 res["recovery"] = info.get("recovery", [])
                 res["per_layer_seconds"] = [li["seconds"].get("total") for li in info["layers"]]

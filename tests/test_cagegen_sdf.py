@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -399,7 +400,7 @@ def test_tightening_lowers_the_cage_into_pits():
 
     V, F = _pitted_sphere()
     m = int(2 * round(len(F) / 8))
-    U, G, info = sdf_cage_layer(V, F, m, c=0.02)
+    U, G, info = sdf_cage_layer(V, F, m, c=0.02, bridge_retry=0)  # the pass alone (the retry: next test)
     ti = info["tighten"]
     assert len(G) == m and info["genus"] == 0
     assert verify_nesting([(V, F), (U, G)]).ok
@@ -408,6 +409,33 @@ def test_tightening_lowers_the_cage_into_pits():
     diag = float(np.linalg.norm(V.max(0) - V.min(0)))
     d_in = float(np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0].max())) / diag
     assert abs(d_in - ti["max_after"]) < 1e-6, (d_in, ti["max_after"])
+
+
+@pytest.mark.slow
+def test_bridge_retry_rebuilds_at_half_the_offset_where_the_envelope_bridged():
+    """Default ``bridge_retry=0.5``: the pits stay > 1.5 c from the tightened cage and the envelope bridged
+    them (> 1.5 c there too), so the layer is built again at c / 2 and kept: certified, exactly ``m``
+    faces, genus 0, tighter both ways (input-to-cage measured 0.0349 -> 0.0341 of the diagonal), the
+    figures in the info."""
+    import igl
+
+    V, F = _pitted_sphere()
+    m = int(2 * round(len(F) / 8))
+    U, G, info = sdf_cage_layer(V, F, m, c=0.02)
+    br = info["bridge_retry"]
+    assert br["ran"] and br["kept"] and br["c_retry"] == pytest.approx(0.01) and info["c_used"] == pytest.approx(0.01)
+    assert br["input_to_cage"] > br["target"] == pytest.approx(0.03) and br["input_to_envelope_where_far"] > 0.03
+    assert br["n_far_bridged"] >= 1
+    assert br["input_to_cage_retry"] < br["input_to_cage"] and br["hausdorff_retry"] < br["hausdorff"]
+    assert len(G) == m and info["genus"] == 0 and verify_nesting([(V, F), (U, G)]).ok
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    d_in = float(np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0].max())) / diag
+    assert abs(d_in - br["input_to_cage_retry"]) < 1e-6
+    # no retry when the budget left cannot hold three first builds: the first cage, and why
+    U2, G2, info2 = sdf_cage_layer(V, F, m, c=0.02, time_budget=None, deadline=time.perf_counter() + 1.0)
+    br2 = info2["bridge_retry"]
+    assert not br2["ran"] and br2["why_not"].startswith("time") and info2["c_used"] == pytest.approx(0.02)
+    assert len(G2) == m and verify_nesting([(V, F), (U2, G2)]).ok
 
 
 def _spiky_ball(spike: float = 2.5):

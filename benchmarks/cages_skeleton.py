@@ -147,6 +147,15 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
         if cause is not None and isinstance(getattr(cause, "info", None), dict):
             out["failure"] = {"stage": getattr(cause, "stage", None), "flow": cause.info.get("flow"),
                               "seconds": cause.info.get("seconds")}
+        part = getattr(exc, "partial", None)  # what was built before the failing step (not certified)
+        if part is not None:
+            out["seconds"] = part.info.get("seconds")
+            out["sections"] = len(part.sections)
+            if png is not None:
+                png.mkdir(parents=True, exist_ok=True)
+                step = str(exc).split(":")[0].removeprefix("skeleton cage, ")
+                picture(V, F, part, png / f"skeleton_{Path(case).stem}.png", title=f"{case} ({step} failed)")
+                out["png"] = str(png / f"skeleton_{Path(case).stem}.png")
         return out
     rep = verify_nesting([(V, F), (c.V, c.F)])
     out.update({
@@ -186,7 +195,10 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
 
 
 def picture(V, F, c, path: Path, title: str) -> None:
-    """Three panels: skeleton + sections, tight cage, certified cage (pyvista, off screen)."""
+    """Three panels: skeleton + sections, tight cage, certified cage (pyvista, off screen).
+
+    ``c`` may be a failed run's ``CageError.partial`` (``certified=False``): the third panel is then the
+    pre-inflated cage, labelled as not certified."""
     import pyvista as pv
 
     pv.OFF_SCREEN = True
@@ -200,7 +212,8 @@ def picture(V, F, c, path: Path, title: str) -> None:
         return pv.PolyData(VV, np.concatenate(faces))
 
     for k, (name, VV) in enumerate([("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
-                                    (f"certified cage ({len(c.F)} triangles)", c.V)]):
+                                    (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
+                                     else f"pre-inflated cage, NOT certified ({len(c.F)} triangles)", c.V)]):
         p.subplot(0, k)
         p.add_mesh(mesh, color="tan", opacity=0.35 if k else 0.25)
         p.add_mesh(bones, color="red", line_width=4)

@@ -287,3 +287,28 @@ def test_recentre_moves_nodes_on_the_surface_back_to_the_medial_axis(star):
     np.testing.assert_array_equal(S0.edges, S1.edges)
     r1 = np.sqrt(igl.point_mesh_squared_distance(S1.nodes, V, F)[0])
     assert r1.min() > 0.1
+
+
+# ----------------------------------------------------------------------------- failures keep what was built
+def test_late_failure_carries_the_uncertified_partial_cage(star, monkeypatch):
+    """A failure at the inflation step (here a stubbed flow failure) raises a CageError naming the step and
+    carries what was built before it as ``exc.partial``: the skeleton, one quad section per bending / leaf
+    node, the tight cage and the pre-inflated cage, flagged ``certified=False`` (for ``--png`` pictures of
+    the zoo characters that fail)."""
+    from cagegen.nested import backend as nb
+
+    def failing(*args, **kw):
+        raise nb._PairFailure("flow", "stub: stalled", {"seconds": {}})
+
+    monkeypatch.setattr(nb, "nest_pair", failing)
+    V, F, S = star
+    with pytest.raises(CageError, match="inflation .*flow failed: stub") as ei:
+        skeleton_cage(V, F, S, bending="given")
+    p = ei.value.partial
+    assert p.certified is False and np.array_equal(p.V, p.preinflated_V)
+    assert p.F.shape[1] == 3 and p.F.max() < len(p.V) and len(p.tight_V) == len(p.V)
+    assert len(p.sections) == len(S.bending) + len(S.leaves) == 8
+    assert all(s["quad"].shape == (4, 3) for s in p.sections)
+    # the pre-inflated cage is outside the tight one (vertices on M): it grew, in the caller's coordinates
+    assert np.linalg.norm(p.V - V.mean(0), axis=1).mean() > np.linalg.norm(p.tight_V - V.mean(0), axis=1).mean()
+    assert p.info["seconds"]["pre_inflation"] > 0 and p.info["seconds"]["total"] >= p.info["seconds"]["pre_inflation"]

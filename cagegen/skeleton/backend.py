@@ -59,6 +59,10 @@ class SkeletonCage:
         Per control node: ``node``, ``center``, ``quad`` (4,3), ``hits`` (integral-line ends).
     info : dict
         JSON-serialisable figures (seconds per step, counts, verification).
+    certified : bool
+        True for a returned cage. A :class:`CageError` of the pre-inflation, inflation or certification
+        step carries what was built as ``exc.partial``: ``certified=False`` and ``V`` the pre-inflated
+        cage (it does *not* contain the mesh), with the skeleton, sections and tight cage, for pictures.
     """
 
     def __init__(self, **kw):
@@ -265,7 +269,8 @@ def skeleton_cage(
     MeshInputError
         Bad skeleton (not a tree, nodes outside M, ...).
     CageError
-        A step failed; the message starts with the step's name.
+        A step failed; the message starts with the step's name. From the pre-inflation on, ``exc.partial``
+        holds what was built (:class:`SkeletonCage`, ``certified=False``).
     """
     from ..nested.backend import _PairFailure, nest_pair
 
@@ -594,9 +599,29 @@ def skeleton_cage(
         say(f"pre-inflation: faces split where M is outside: {pinfo['refine']['levels']}")
     sec["pre_inflation"] = time.perf_counter() - t
     info["pre_inflation"] = pinfo
+
+    def _result(Vc_, certified_):
+        sections_ = [{"node": int(n), "center": s_.center * diag + center, "quad": s_.quad * diag + center,
+                      "hits": s_.hits * diag + center} for n, s_ in sorted(sections.items())
+                     if n in tc["section_vertices"]]
+        return SkeletonCage(V=Vc_, F=np.ascontiguousarray(Ft, dtype=np.int64), quads=quads_out, tris=tris_out,
+                            tight_V=Vt * diag + center, preinflated_V=Vp * diag + center,
+                            skeleton=Skeleton(S.nodes * diag + center, S.edges,
+                                              [b for b in S.bending if b in tc["section_vertices"]]),
+                            input_skeleton=S_in, sections=sections_, info=info, certified=certified_)
+
+    def _fail(msg, **kw):
+        # what was built before the failing step (the pre-inflated cage, NOT certified), for pictures and
+        # diagnosis: ``exc.partial`` (a SkeletonCage with ``certified=False``, ``V`` = the pre-inflated cage)
+        sec["total"] = time.perf_counter() - t_all
+        info["seconds"] = sec
+        exc_ = CageError(msg, layer=1, **kw)
+        exc_.partial = _result(Vp * diag + center, False)
+        return exc_
+
     if pinfo["self_intersections"]:
-        raise CageError(f"skeleton cage, pre-inflation: the cage intersects itself ({pinfo['self_intersections']} "
-                        "face pairs); add bending nodes", layer=1)
+        raise _fail(f"skeleton cage, pre-inflation: the cage intersects itself ({pinfo['self_intersections']} "
+                    "face pairs); add bending nodes")
 
     # 7. final inflation (Nested Cages) and certification
     t = time.perf_counter()
@@ -625,8 +650,8 @@ def skeleton_cage(
             hint = (f"; {n_out} of {len(Vi)} vertices of the input were outside the pre-inflated cage: {where}, "
                     f"or raise flow_max_iter (now {nested_opts['flow_max_iter']}) / pass flow_stall_window=None "
                     "to run the flow to its cap")
-        raise CageError(f"skeleton cage, inflation (nested flow/re-inflation): {exc.stage} failed: {exc.reason}"
-                        + hint, layer=1, reason=exc.reason) from exc
+        raise _fail(f"skeleton cage, inflation (nested flow/re-inflation): {exc.stage} failed: {exc.reason}"
+                    + hint, reason=exc.reason) from exc
     sec["inflation"] = time.perf_counter() - t
     info["inflation"] = {k: v for k, v in ninfo.items() if k != "seconds"}
     info["inflation"]["seconds"] = ninfo["seconds"]
@@ -638,21 +663,13 @@ def skeleton_cage(
         rep = verify_nesting([ref, (Vc, Fc)], min_gap=min_gap * diag / _diag(ref[0]))
         info["verification"] = rep.to_dict()
         if not rep.ok:
-            raise CageError(f"skeleton cage, certification: {rep.pairs[0].reason}", layer=1,
-                            reason=str(rep.pairs[0].reason))
+            raise _fail(f"skeleton cage, certification: {rep.pairs[0].reason}", reason=str(rep.pairs[0].reason))
     sec["verify"] = time.perf_counter() - t
     sec["total"] = time.perf_counter() - t_all
     info["seconds"] = sec
     info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
     info["n_quads"], info["n_junction_triangles"] = len(quads_out), len(tris_out)
-    sections_out = [{"node": int(n), "center": s.center * diag + center, "quad": s.quad * diag + center,
-                     "hits": s.hits * diag + center} for n, s in sorted(sections.items())
-                    if n in tc["section_vertices"]]
-    return SkeletonCage(V=Vc, F=Fc, quads=quads_out, tris=tris_out, tight_V=Vt * diag + center,
-                        preinflated_V=Vp * diag + center,
-                        skeleton=Skeleton(S.nodes * diag + center, S.edges,
-                                          [b for b in S.bending if b in tc["section_vertices"]]),
-                        input_skeleton=S_in, sections=sections_out, info=info)
+    return _result(Vc, True)
 
 
 def _quads_kept(quads: np.ndarray, F: np.ndarray):

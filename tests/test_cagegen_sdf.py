@@ -436,6 +436,10 @@ def test_bridge_retry_rebuilds_at_half_the_offset_where_the_envelope_bridged():
     br2 = info2["bridge_retry"]
     assert not br2["ran"] and br2["why_not"].startswith("time") and info2["c_used"] == pytest.approx(0.02)
     assert len(G2) == m and verify_nesting([(V, F), (U2, G2)]).ok
+    # nor when the clearance leaves the smaller offset no room (c / 2 = 0.01 < 4 min_gap = 0.012)
+    _, G3, info3 = sdf_cage_layer(V, F, m, c=0.02, min_gap=0.003)
+    br3 = info3["bridge_retry"]
+    assert not br3["ran"] and br3["why_not"].startswith("clearance") and len(G3) == m
 
 
 def _spiky_ball(spike: float = 2.5):

@@ -426,6 +426,7 @@ def test_bridge_retry_rebuilds_at_half_the_offset_where_the_envelope_bridged():
     assert br["ran"] and br["kept"] and br["c_retry"] == pytest.approx(0.01) and info["c_used"] == pytest.approx(0.01)
     assert br["input_to_cage"] > br["target"] == pytest.approx(0.03) and br["input_to_envelope_where_far"] > 0.03
     assert br["n_far_bridged"] >= 1
+    assert info["seconds"]["total"] > br["seconds"] + info["seconds"]["bridge_retry_first_build"] - 1e-9
     assert br["input_to_cage_retry"] < br["input_to_cage"] and br["hausdorff_retry"] < br["hausdorff"]
     assert len(G) == m and info["genus"] == 0 and verify_nesting([(V, F), (U, G)]).ok
     diag = float(np.linalg.norm(V.max(0) - V.min(0)))

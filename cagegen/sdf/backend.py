@@ -570,6 +570,7 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
         U2o, G2, info2 = sdf_cage_layer(**args)
     except (CageError, RuntimeError) as exc:
         rec.update(reason=f"retry failed: {exc}", seconds=time.perf_counter() - t)
+        info["seconds"].update(bridge_retry=rec["seconds"], total=time.perf_counter() - t0)
         return Uo, G, info
     lo = np.asarray(call["V"], float).min(0)
     hi = np.asarray(call["V"], float).max(0)
@@ -588,6 +589,8 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
         return U2o, G2, info2
     rec["reason"] = (f"genus {info2['genus']} != {info['genus']}" if info2["genus"] != info["genus"]
                      else "not tighter")
+    # the layer's time includes the retry it did not keep
+    info["seconds"].update(bridge_retry=rec["seconds"], total=time.perf_counter() - t0)
     return Uo, G, info
 
 

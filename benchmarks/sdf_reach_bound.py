@@ -98,13 +98,14 @@ def reach_bound(
     # distance from each p to the outside of the box: a point of R_delta beyond the box is at least this far
     to_box = np.minimum((P - lo).min(1), (hi - P).min(1))
     bounds, outside_nodes = {}, {}
+    flat = np.arange(n).reshape(shape)  # flat node index, for one representative node per component
     for delta in deltas:
         # Nodes with udf >= delta - 2m: every cell a path in R_delta passes through has all 8 corners
         # there, so R_delta's connectivity survives as 6-connectivity of those nodes; and since
         # delta - 2m > h/2, the edge between two such neighbours cannot cross the surface, so each
         # component lies on one side (one winding number per component, |w| < 0.5: either orientation).
         labels, n_comp = ndimage.label(udf >= delta - 2 * m)
-        first = ndimage.minimum_position(np.arange(n).reshape(shape), labels, np.arange(1, n_comp + 1))
+        first = ndimage.minimum_position(flat, labels, np.arange(1, n_comp + 1))
         reps = np.array([[axes[a][c[a]] for a in range(3)] for c in first]).reshape(-1, 3)
         keep = np.concatenate([[False], np.abs(igl.fast_winding_number(Vn, F, reps)) < 0.5])
         # The cage is connected, keeps the clearance and reaches beyond the input's extremes, so it lies
@@ -126,15 +127,14 @@ def reach_bound(
 
 def envelopes(Vn: np.ndarray, F: np.ndarray, ids: np.ndarray, grids: list[tuple[float, float]], c: float = 0.01) -> list:
     """Input-to-envelope distances of ``build_envelope`` for ``(h / c, concave)`` pairs: where the offset bridges."""
-    import igl
-
     from cagegen.sdf.envelope import _genus, build_envelope
+    from cagegen.sdf.tighten import input_to_cage
 
     out = []
     for hc, concave in grids:
         t = time.perf_counter()
         env = build_envelope(Vn, F, c=c, h=hc * c, concave=concave)
-        d = np.sqrt(igl.point_mesh_squared_distance(Vn, env.V, env.F)[0])
+        d = input_to_cage(Vn, F, env.V, env.F)[0]
         rec = env.info.get("concave", {})
         out.append({"h_over_c": hc, "concave": concave, "faces": len(env.F), "genus": _genus(env.V, env.F),
                     "input_to_envelope_max": float(d.max()), "n_beyond_1.5pct": int((d > 0.015).sum()),

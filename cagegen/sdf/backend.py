@@ -572,10 +572,7 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
         rec.update(reason=f"retry failed: {exc}", seconds=time.perf_counter() - t)
         info["seconds"].update(bridge_retry=rec["seconds"], total=time.perf_counter() - t0)
         return Uo, G, info
-    lo = np.asarray(call["V"], float).min(0)
-    hi = np.asarray(call["V"], float).max(0)
-    U2 = (U2o - 0.5 * (lo + hi)) / unit
-    d2 = float(input_to_cage(Vn, F, U2, G2)[0].max())
+    d2 = float(input_to_cage(np.asarray(call["V"], float), F, U2o, G2)[0].max()) / unit  # both in user units
     h1, h2 = info["hausdorff_relative"], info2["hausdorff_relative"]
     rec.update(input_to_cage_retry=d2, genus_retry=info2["genus"], hausdorff=h1, hausdorff_retry=h2,
                seconds=time.perf_counter() - t)

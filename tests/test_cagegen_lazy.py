@@ -192,3 +192,71 @@ def test_nested_fallback_without_gpytoolbox_raises_the_original_error(neck, monk
     assert exc.value.layer == 1
     with pytest.raises(ValueError, match="fallback"):
         nb.nested_backend(V, F, [600], max_recovery_depth=0, fallback="bogus")
+
+
+def test_clearance_is_kept_by_pushing_out(neck, neck_lazy):
+    """With ``min_gap`` (what nestmg's pipeline passes under TetWild) every layer keeps it, certified by the
+    verifier; the offset alone does not (the decimation cuts back towards the fine layer), so the
+    tightest accepted candidates are pushed out (issue 27: 'gap 6.95e-05 < 0.0025')."""
+    V, F = neck
+    want = 0.03
+    pairs = neck_lazy[1]["verification"]["pairs"]
+    assert min(p["min_gap_rel"] for p in pairs) < want  # without the clearance
+    msgs: list[str] = []
+    layers, info = cagegen.build_cages(V, F, face_counts=[600, 150], method="lazy", return_info=True,
+                                       min_gap=want, progress=msgs.append, **FAST)
+    assert info["certified"] is True
+    ver = info["verification"]
+    assert ver["min_gap_required"] == want and all(p["min_gap_rel"] >= want for p in ver["pairs"])
+    rep = cagegen.verify_nesting(layers, min_gap=want)  # independent re-verification
+    assert rep.ok and all(p.min_gap_rel >= want for p in rep.pairs)
+    be = info["backend"]
+    assert be["min_gap_requested"]["relative"] == pytest.approx(want)
+    diag = cagegen._geometry.bbox_diagonal(V)
+    assert be["min_gap_requested"]["absolute"] == pytest.approx(want * diag)
+    assert sum(li["pushed"] for li in be["layers"]) >= 1  # the clearance came from the push-out
+    for li, p in zip(be["layers"], ver["pairs"]):
+        assert li["gap"] == pytest.approx(want * diag)
+        if li["distance"] is not None:  # the backend's exact figure: at least min_gap, and agrees with the
+            # verifier's (exact below its threshold, otherwise the vertex-face figure, an upper bound)
+            assert want <= li["distance"] / diag <= p["min_gap_rel"] * (1 + 1e-9)
+            if p["min_gap_exact"]:
+                assert li["distance"] / diag == pytest.approx(p["min_gap_rel"], rel=1e-6)
+    assert sum("gap" in m and "min_gap 0.03" in m for m in msgs) == 2
+    json.dumps(info)
+
+
+def test_blocked_push_out_rejects_the_candidate(neck, monkeypatch):
+    """A candidate that cannot be moved out to the clearance is not accepted (never returned too close)."""
+    import cagegen.copyleft.lazy as lazy_mod
+    import cagegen.nested.backend as nb
+
+    blocked = {"passes": 1, "distance_before": 0.0, "distance": 0.0, "reason": "blocked (test)"}
+    monkeypatch.setattr(nb, "push_out", lambda *a, **kw: (None, blocked))
+    monkeypatch.setattr(lazy_mod, "_distance_lower_bound", lambda *a: 0.0)  # every candidate needs the push
+    V, F = neck
+    with pytest.raises(CageError, match="push-out failed: blocked") as exc:
+        lazy_backend(V, F, [300], min_gap=0.01, grid_size=12, max_iter=2)
+    assert exc.value.layer == 1
+    with pytest.raises(ValueError, match="gap"):
+        lazy_cage_layer(V, F, 300, gap=-1.0)
+    with pytest.raises(ValueError, match="min_gap"):
+        lazy_backend(V, F, [300], min_gap=float("nan"))
+
+
+def test_distance_lower_bound_is_below_the_exact_distance(neck, neck_lazy):
+    from cagegen.copyleft.lazy import _distance_lower_bound
+    from cagegen.nested.collision import min_distance
+
+    V, F = neck
+    (L1, L2) = neck_lazy[0][1:]
+    for (Vf, Ff), (U, G) in (((V, F), L1), (L1, L2)):
+        exact = min_distance(U, G, Vf, Ff)
+        lb = _distance_lower_bound(U, G, Vf, Ff)
+        assert lb <= exact and exact > 0
+    # a sphere inside a concentric sphere of twice the radius: distance 1, the bound within an edge of it
+    s = trimesh.creation.icosphere(subdivisions=3)
+    V1, F1 = np.asarray(s.vertices), np.asarray(s.faces, dtype=np.int64)
+    edge = float(np.linalg.norm(V1[F1[:, 0]] - V1[F1[:, 1]], axis=1).max())
+    lb = _distance_lower_bound(2.0 * V1, F1, V1, F1)
+    assert 1.0 - 2 * edge - 1e-9 <= lb <= 1.0

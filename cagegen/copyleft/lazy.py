@@ -16,13 +16,23 @@ self-intersection, no crossing or touching, every fine vertex inside, no cage ve
 :func:`cagegen.verify_nesting`), so a returned layer is always certified; when no step of the search
 is accepted, ``d`` is doubled past ``d_max`` a few times before :class:`cagegen.CageError` is raised.
 
+Clearance (``gap`` / the backend's ``min_gap``): the offset is ``d`` *before* decimation, and the
+collapses cut back towards ``S`` (a ``d = 0.02`` offset of gargo decimated to 1.3k faces came within
+3e-4 of it), so ``d`` alone does not keep a clearance. With ``gap > 0`` a nested candidate closer than
+``gap`` is moved out by the missing clearance with :func:`cagegen.nested.backend.push_out` (offset of
+the cage along its normals where it is too close, a straight path cut by ipctk's CCD: it meets
+neither itself nor ``S`` on the way), then re-checked by the same rule and accepted only at distance
+``>= gap``; a candidate whose push is blocked is rejected, so the search moves to a larger ``d``.
+
 The cage may have a different genus from ``S`` (the offset closes handles thinner than ``2 d``):
 that is reported per layer (``genus_fine``, ``genus``, ``genus_changed``), never hidden.
 
 ``build_cages(V, F, levels=K, method="lazy")`` applies :func:`lazy_cage_layer` to the previous layer
 for each coarser layer, at the face counts of :func:`cagegen.default_face_counts` like the other
-backends. :func:`lazy_cage_layer` is also the recovery hook of the ``nested`` backend (one layer,
-``(V, F, info)`` out).
+backends, with the clearance ``min_gap`` that :func:`cagegen.build_cages` passes (relative to the
+input's bounding-box diagonal, the verifier's unit; nestmg's pipeline asks ``2.5 epsilon`` under
+TetWild). :func:`lazy_cage_layer` is also the recovery hook of the ``nested`` backend (one layer,
+``(V, F, info)`` out; its ``gap`` is absolute).
 
 License: gpytoolbox's ``copyleft`` module is GPL-3; this module imports it and is only loaded when
 ``method="lazy"`` is requested (the ``lazy`` extra). Importing it without gpytoolbox raises
@@ -149,11 +159,50 @@ def _accept(V, F, U, G) -> str:
     return f"cage self-intersects ({k} face pairs)" if k else ""
 
 
+def _distance_lower_bound(U, G, V, F) -> float:
+    """A lower bound on the distance between the surfaces ``(U, G)`` and ``(V, F)`` (disjoint, nested).
+
+    Every point of a triangle ``t`` of ``G`` is within ``t``'s longest edge ``L_t`` of a vertex of ``t``, so
+    the distance is at least ``min_t (min_{v in t} d(v, F) - L_t)``. Cheap (one AABB query per cage
+    vertex); lets a candidate far from ``(V, F)`` skip the exact distance, whose search costs seconds
+    when the surfaces are far apart.
+    """
+    import igl
+
+    d2, _, _ = igl.point_mesh_squared_distance(U, V, F)
+    E = U[G[:, [1, 2, 0]]] - U[G]
+    longest = np.linalg.norm(E, axis=2).max(axis=1)
+    return float((np.sqrt(d2)[G].min(axis=1) - longest).min())
+
+
+def _keep_clearance(V, F, U, G, gap: float) -> tuple[np.ndarray, str, dict]:
+    """A nested candidate moved out to distance ``>= gap`` from ``(V, F)`` (reason "" when it is).
+
+    A candidate whose :func:`_distance_lower_bound` is already ``>= gap`` is kept as it is; otherwise
+    :func:`cagegen.nested.backend.push_out` (exact distance, CCD-safe offset by the missing clearance;
+    a no-op when the candidate keeps ``gap``) moves it, and a moved cage is re-checked by :func:`_accept`.
+    """
+    lb = _distance_lower_bound(U, G, V, F)
+    if lb >= gap:
+        return U, "", {"distance_lower_bound": lb, "passes": 0}
+    from ..nested.backend import push_out  # MIT, ipctk; loaded only when a clearance is asked
+
+    U2, pinfo = push_out(U, G, V, F, float(gap))
+    clear = {"distance_before": float(pinfo["distance_before"]), "distance": float(pinfo["distance"]),
+             "passes": int(pinfo["passes"])}
+    if U2 is None:
+        return U, (f"closer than the clearance ({clear['distance_before']:.3g} < {gap:.3g}) and the push-out "
+                   f"failed: {pinfo['reason']}"), clear
+    reason = _accept(V, F, U2, G) if clear["passes"] else ""
+    return U2, reason, clear
+
+
 def lazy_cage_layer(
     V,
     F,
     n_faces: int,
     *,
+    gap: float = 0.0,
     grid_size: int = 50,
     max_iter: int = 10,
     decimation: str = "shortest_edge",
@@ -168,6 +217,9 @@ def lazy_cage_layer(
         Closed, outward-oriented, self-intersection-free surface (not modified).
     n_faces : int
         Target face count of the cage (>= 4). The self-union may change it by a few faces.
+    gap : float
+        Clearance (absolute, ``V``'s units) the cage must keep from ``(V, F)``: a candidate closer than
+        that is pushed out (:func:`_keep_clearance`) and accepted only at distance ``>= gap``. 0: none.
     grid_size : int
         Cells along the longest side of the signed-distance grid (>= 8); finer grids give tighter
         cages (the offset cannot be much thinner than one cell) at a cubic cost.
@@ -188,7 +240,11 @@ def lazy_cage_layer(
         JSON-serialisable: ``target``, ``n_faces``, ``n_vertices``, ``offset`` (absolute ``d``),
         ``offset_relative`` (``d`` / bounding-box diagonal of ``(V, F)``), ``genus_fine``, ``genus``,
         ``genus_changed``, ``components``, ``volume_ratio`` (cage / fine), ``iterations`` (per step:
-        ``d_relative``, ``accepted``, ``reason``, ``seconds``), ``seconds``.
+        ``d_relative``, ``accepted``, ``reason``, ``seconds``, and with ``gap > 0`` the candidate's
+        ``distance_before`` / ``distance`` or ``distance_lower_bound``, and push-out ``passes``),
+        ``seconds``; with ``gap > 0`` also ``gap`` (asked, absolute), ``distance`` (achieved, absolute;
+        None when the cage was far enough by ``distance_lower_bound`` not to need the exact figure) and
+        ``pushed`` (push-out passes).
 
     Raises
     ------
@@ -216,28 +272,33 @@ def lazy_cage_layer(
         raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
     if decimation not in ("shortest_edge", "qslim"):
         raise ValueError(f"decimation must be 'shortest_edge' or 'qslim', got {decimation!r}")
-    n_faces = int(n_faces)
+    if isinstance(gap, (bool, np.bool_)) or not (np.isfinite(gap) and gap >= 0):
+        raise ValueError(f"gap must be a finite number >= 0, got {gap!r}")
+    n_faces, gap = int(n_faces), float(gap)
     t0 = time.perf_counter()
     diag = bbox_diagonal(V)
     F32 = F.astype(np.int32)
     lo, hi = 0.0, 0.5 * float(np.max(V.max(axis=0) - V.min(axis=0)))
-    best: tuple[np.ndarray, np.ndarray, float] | None = None
+    best: tuple[np.ndarray, np.ndarray, float, dict] | None = None
     steps: list[dict] = []
 
     def attempt(d: float) -> bool:
         nonlocal best
         t = time.perf_counter()
+        clear: dict = {}
         try:
             U, G = _candidate(V, F32, d, n_faces, grid_size, decimation, self_union)
             reason = _accept(V, F, U, G)
+            if not reason and gap > 0:
+                U, reason, clear = _keep_clearance(V, F, U, G, gap)
         except (RuntimeError, ValueError) as exc:  # gpytoolbox / CGAL failures on a candidate
             U = G = None
             reason = f"candidate failed: {exc}"
         ok = not reason
         if ok:
-            best = (U, G, d)
+            best = (U, G, d, clear)
         steps.append({"d_relative": d / diag, "accepted": ok, "reason": reason,
-                      "seconds": time.perf_counter() - t})
+                      "seconds": time.perf_counter() - t, **clear})
         return ok
 
     for _ in range(int(max_iter)):
@@ -256,7 +317,7 @@ def lazy_cage_layer(
         last = "; ".join(f"d={s['d_relative']:.3g}: {s['reason']}" for s in steps[-3:])
         raise CageError(f"lazy cage with {n_faces} faces: no certified candidate in {len(steps)} attempts ({last})",
                         reason=steps[-1]["reason"])
-    U, G, d = best
+    U, G, d, clear = best
     g_fine, g_cage = genus(V, F), genus(U, G)
     info = {
         "target": n_faces,
@@ -276,6 +337,9 @@ def lazy_cage_layer(
         "iterations": steps,
         "seconds": time.perf_counter() - t0,
     }
+    if gap > 0:
+        info.update(gap=gap, distance=clear.get("distance"),
+                    distance_lower_bound=clear.get("distance_lower_bound"), pushed=clear["passes"])
     return U, G, info
 
 
@@ -288,6 +352,8 @@ def lazy_backend(
     max_iter: int = 10,
     decimation: str = "shortest_edge",
     self_union: bool = True,
+    min_gap: float = 0.0,
+    min_gap_abs: float | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"lazy"``: layer ``k+1`` is a lazy cage of layer ``k`` (nested, loose).
@@ -301,6 +367,12 @@ def lazy_backend(
         Target face counts of the cages, finest first.
     grid_size, max_iter, decimation, self_union
         See :func:`lazy_cage_layer`.
+    min_gap : float
+        Clearance between consecutive layers relative to the bounding-box diagonal of the input (the
+        unit of :func:`cagegen.verify_nesting`'s ``min_gap``, which :func:`cagegen.build_cages` passes
+        here): every layer keeps ``min_gap * diag(V)`` from the layer inside it.
+    min_gap_abs : float, optional
+        The same clearance in absolute units (overrides ``min_gap``).
     progress : callable, optional
         Called with a one-line message per layer (genus changes included).
 
@@ -310,7 +382,8 @@ def lazy_backend(
         The cages only, finest first; ``U_k`` (p_k,3) float64, ``G_k`` (q_k,3) int64.
     info : dict
         ``method``, ``nested_by_construction`` (True: each layer passed the verifier inside the
-        search), ``genus_changes`` (list of ``{"layer", "from", "to"}``), ``seconds``, and ``layers``:
+        search), ``genus_changes`` (list of ``{"layer", "from", "to"}``), ``seconds``,
+        ``min_gap_requested`` (``relative``, ``absolute``), and ``layers``:
         per layer the :func:`lazy_cage_layer` info plus ``layer``, ``hausdorff_relative`` (to the
         input, over the input's bounding-box diagonal) and ``volume_ratio_to_input``.
 
@@ -325,12 +398,16 @@ def lazy_backend(
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
     diag0 = bbox_diagonal(V)
+    gap = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag0
+    if not (np.isfinite(gap) and gap >= 0):
+        raise ValueError(f"min_gap must be a finite number >= 0, got {min_gap!r} "
+                         f"(min_gap_abs {min_gap_abs!r})")
     vol0 = _signed_volume(V, F)
     layers, per_layer, changes = [], [], []
     Vp, Fp = V, F
     for k, m in enumerate(face_counts, start=1):
         try:
-            U, G, li = lazy_cage_layer(Vp, Fp, int(m), grid_size=grid_size, max_iter=max_iter,
+            U, G, li = lazy_cage_layer(Vp, Fp, int(m), gap=gap, grid_size=grid_size, max_iter=max_iter,
                                        decimation=decimation, self_union=self_union)
         except CageError as exc:
             raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
@@ -343,13 +420,20 @@ def lazy_backend(
         layers.append((U, G))
         if progress is not None:
             g = f", genus {li['genus_fine']} -> {li['genus']}" if li["genus_changed"] else ""
+            c = ""
+            if gap > 0:
+                got = (f"{li['distance'] / diag0:.3g}" if li["distance"] is not None
+                       else f"> {li['distance_lower_bound'] / diag0:.3g}")
+                c = (f", gap {got} >= min_gap {gap / diag0:.3g}"
+                     + (f" (pushed out, {li['pushed']} passes)" if li["pushed"] else ""))
             progress(f"lazy: layer {k}: {len(G)} faces (target {m}), offset {li['offset_relative']:.3g} of the "
-                     f"diagonal, {li['seconds']:.2f} s{g}")
+                     f"diagonal{c}, {li['seconds']:.2f} s{g}")
         Vp, Fp = U, G
     info = {
         "method": "lazy",
         "nested_by_construction": True,
         "genus_changes": changes,
+        "min_gap_requested": {"relative": gap / diag0, "absolute": gap},
         "seconds": time.perf_counter() - t0,
         "layers": per_layer,
     }

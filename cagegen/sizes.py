@@ -13,14 +13,60 @@ import numpy as np
 
 from .errors import LevelsError
 
-__all__ = ["check_face_counts", "default_face_counts"]
+__all__ = ["MIN_FACES", "check_face_counts", "default_face_counts", "fitting_levels"]
 
+#: smallest cage of the default face counts: below ~100 faces a cage no longer follows the shape (and its
+#: tet mesh has a few dozen tets, too few to be a useful coarse level)
 MIN_FACES = 100
 
 
 def _even(x: float) -> int:
     # closed triangle meshes have an even number of faces (3F = 2E)
     return int(2 * max(2, round(x / 2)))
+
+
+def _check_levels_args(n_faces: int, levels: int, ratio: float) -> None:
+    if isinstance(levels, (bool, np.bool_)) or int(levels) != levels or levels < 1:
+        raise LevelsError(f"levels must be a positive integer (input included), got {levels!r}")
+    if not ratio > 1:
+        raise LevelsError(f"ratio must be > 1, got {ratio!r}")
+    if n_faces < 4:
+        raise LevelsError(f"the input has {n_faces} faces; a closed surface needs at least 4")
+
+
+def fitting_levels(n_faces: int, levels: int, ratio: float = 4.0, min_faces: int = MIN_FACES) -> int:
+    """How many of ``levels`` layers (input included) :func:`default_face_counts` can build from ``n_faces``.
+
+    Parameters
+    ----------
+    n_faces : int
+        Faces of the input surface (layer 0).
+    levels : int
+        Layers wanted, input included (a ceiling).
+    ratio, min_faces
+        As in :func:`default_face_counts`.
+
+    Returns
+    -------
+    int
+        The largest ``L <= levels`` whose coarsest cage keeps ``>= min_faces`` faces (1: not even one
+        cage fits).
+
+    Raises
+    ------
+    LevelsError
+        Bad ``levels``, ``ratio`` or ``n_faces`` (as :func:`default_face_counts`).
+
+    Examples
+    --------
+    >>> fitting_levels(670, 3), fitting_levels(20000, 3), fitting_levels(300, 3)
+    (2, 3, 1)
+    """
+    _check_levels_args(n_faces, levels, ratio)
+    fit = 1
+    while fit < int(levels) and _even(n_faces / ratio**fit) >= min_faces:
+        fit += 1
+    return fit
 
 
 def default_face_counts(n_faces: int, levels: int, ratio: float = 4.0, min_faces: int = MIN_FACES) -> list[int]:
@@ -54,15 +100,10 @@ def default_face_counts(n_faces: int, levels: int, ratio: float = 4.0, min_faces
     >>> default_face_counts(20000, 3)
     [5000, 1250]
     """
-    if int(levels) != levels or levels < 1:
-        raise LevelsError(f"levels must be a positive integer (input included), got {levels!r}")
-    if not ratio > 1:
-        raise LevelsError(f"ratio must be > 1, got {ratio!r}")
-    if n_faces < 4:
-        raise LevelsError(f"the input has {n_faces} faces; a closed surface needs at least 4")
+    _check_levels_args(n_faces, levels, ratio)
     counts = [_even(n_faces / ratio**k) for k in range(1, int(levels))]
     if counts and counts[-1] < min_faces:
-        fit = 1 + int(np.floor(np.log(n_faces / min_faces) / np.log(ratio))) if n_faces >= min_faces else 1
+        fit = fitting_levels(n_faces, levels, ratio, min_faces)
         raise LevelsError(
             f"cannot build {levels} levels from {n_faces} faces at ratio {ratio:g}: the coarsest cage "
             f"would have {counts[-1]} < min_faces={min_faces} faces; at most {fit} levels fit "

@@ -346,9 +346,10 @@ def build_cage_surfaces(
     F : (m,3) int array
         Closed input surface, in the user's coordinates.
     levels : int
-        Number of surfaces, input included.
+        Number of surfaces asked, input included: a ceiling (:func:`nestmg.sizing.plan_levels`); a small
+        input gets those that fit, with one stage line saying so and ``info["levels"]`` recording it.
     method, face_counts
-        See :func:`cagegen.build_cages`.
+        See :func:`cagegen.build_cages` (explicit face counts are checked before any work).
     mesher, epsilon
         The tet mesher the layers are meant for: with TetWild and a certified method the cages keep a
         clearance ``min_gap = 2.5 * epsilon`` (relative to the diagonal) so that TetWild's envelope
@@ -371,9 +372,17 @@ def build_cage_surfaces(
     """
     import cagegen
 
+    from .sizing import plan_levels
+
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     Vn, center, scale = _normalize(V)
+    # `levels` is a ceiling (the levels that fit F's faces, one line when fewer); explicit face counts are
+    # checked here, before the audit: both in microseconds
+    lp = plan_levels(len(F), levels, face_counts=face_counts)
+    if lp.note:
+        stage_line(lp.note, t0)
+    levels = lp.levels
     cage_opts = dict(cage_opts or {})
     if mesher == "tetwild" and method not in cagegen.UNCERTIFIED_METHODS:
         # TetWild's boundary is only within `epsilon` (relative to each layer's bbox diagonal) of its
@@ -409,7 +418,8 @@ def build_cage_surfaces(
     V0, F0 = surfaces[0]
     same = V0.shape == Vn.shape and F0.shape == F.shape and np.array_equal(F0, F)
     out = [(V, F) if same else (V0 * scale + center, F0)] + [(Vk * scale + center, Fk) for Vk, Fk in surfaces[1:]]
-    info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_opts=cage_opts)
+    info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_opts=cage_opts,
+                levels=lp.to_dict())
     return out, info
 
 
@@ -540,7 +550,9 @@ def build_hierarchy(
     F : (m,3) int array
         Closed, manifold, single-component surface (audited; a clear error otherwise).
     levels : int
-        Number of levels (input + ``levels - 1`` coarser layers: cages, after ``same_domain_levels``), >= 2.
+        Number of levels (input + ``levels - 1`` coarser layers: cages, after ``same_domain_levels``), >= 2:
+        a ceiling (:func:`nestmg.sizing.plan_levels`): a small input gets the levels whose smallest cage
+        keeps >= 100 faces, with one stage line saying so (``options["sizing"]["levels"]``).
     method : str
         Cage backend (``nested``, ``decimate``, ...; see ``cagegen.available_backends()``).
     face_counts : list of int, optional
@@ -619,7 +631,6 @@ def build_hierarchy(
             f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "
             f"level), got {same_domain_levels!r}"
         )
-    n_surf = levels - int(same_domain_levels) - int(refine)  # input + cages
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     Vn, center, scale = _normalize(V)
@@ -628,7 +639,12 @@ def build_hierarchy(
     # 1. sizes first: milliseconds, before any expensive stage
     plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
                           time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
-                          mesh_edge_factor=2.0 if refine else 1.0)
+                          mesh_edge_factor=2.0 if refine else 1.0, face_counts=face_counts,
+                          fixed_levels=int(same_domain_levels) + int(refine))
+    levels_asked, levels = levels, plan.n_levels  # --levels is a ceiling: the levels that fit the input
+    if plan.levels["note"]:
+        stage_line(plan.levels["note"], t0)
+    n_surf = levels - int(same_domain_levels) - int(refine)  # input + cages
     stage_line(f"sizing: fine edge {plan.edge_length:.3g} of the diagonal ({plan.rule}), expected tets "
                f"{[f'{n:,}' for n in plan.expected_tets]}, peak memory ~{plan.peak_bytes / 2**30:.1f} GB", t0)
     for note in plan.notes:
@@ -657,7 +673,8 @@ def build_hierarchy(
                        f"{max(epsilon, 0.25 * h_mesh):.3g}); keeping the {len(F):,} input faces", t0)
             plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
                                   time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
-                                  mesh_edge_factor=2.0 if refine else 1.0, surface_faces=len(F))
+                                  mesh_edge_factor=2.0 if refine else 1.0, surface_faces=len(F),
+                                  face_counts=face_counts, fixed_levels=int(same_domain_levels) + int(refine))
             stage_line(f"sizing (again): fine edge {plan.edge_length:.3g} ({plan.rule}), expected tets "
                        f"{[f'{n:,}' for n in plan.expected_tets]}", t0)
     # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
@@ -717,7 +734,8 @@ def build_hierarchy(
         cage_info=info,
         timings=timings,
         options={
-            "levels": levels, "face_counts": face_counts, "mesher": mesher, "edge_length_fac": edge_length_fac,
+            "levels": levels, "levels_requested": levels_asked, "face_counts": face_counts, "mesher": mesher,
+            "edge_length_fac": edge_length_fac,
             "max_tets": max_tets, "time_budget": time_budget, "coarsening": coarsening,
             "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": info.get("cage_opts", {}),
             "same_domain_levels": int(same_domain_levels), "tetwild_opts": dict(TETWILD_DEFAULTS, **(tetwild_opts or {})),

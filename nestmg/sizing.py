@@ -12,6 +12,9 @@ The rule (:func:`plan_hierarchy`)
   volume only slightly larger than the layer inside).
 * The estimated peak memory of the largest stage (mesher + FEM matrices, :mod:`nestmg.memory`) must
   fit in ``$NESTMG_MEMORY_LIMIT`` or the available memory.
+* ``levels`` is a ceiling (:func:`plan_levels`): the cages have 4x fewer faces per level and the
+  smallest keeps ``>= cagegen.sizes.MIN_FACES`` (100) faces, so a small input gets the levels that fit
+  (one note says so); explicit ``face_counts`` are the user's demand and fail at once if they cannot be met.
 
 Tet counts: a regular tet of edge ``h`` has volume ``h³/(6√2)``; measured ratios of actual tets to
 ``volume / regular`` are ~1.0 for TetWild (sphere, bunny, gargoyle at 0.03-0.005 of the diagonal) and
@@ -25,6 +28,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from cagegen.errors import LevelsError
+from cagegen.sizes import MIN_FACES, check_face_counts, fitting_levels
 from solvers.errors import InsufficientMemoryError
 from solvers.memory import check_memory
 
@@ -35,12 +40,14 @@ __all__ = [
     "COUNT_RATIO",
     "DEFAULT_MAX_TETS",
     "DEFAULT_TIME_BUDGET",
+    "LevelsPlan",
     "SizingError",
     "SizingPlan",
     "edge_length_for_tets",
     "enclosed_volume",
     "expected_tets",
     "plan_hierarchy",
+    "plan_levels",
 ]
 
 #: measured tets / (volume / regular-tet volume) at the target edge length
@@ -75,6 +82,116 @@ def edge_length_for_tets(V: np.ndarray, F: np.ndarray, n_tets: int, mesher: str 
 
 
 @dataclass
+class LevelsPlan:
+    """How many levels a hierarchy gets (:func:`plan_levels`): ``levels`` <= ``requested``.
+
+    Attributes
+    ----------
+    requested : int
+        Levels asked (a ceiling).
+    levels : int
+        Levels granted.
+    n_faces : int
+        Faces of the surface the cages are built around.
+    ratio : float
+        Face-count ratio between consecutive cages.
+    min_faces : int
+        Smallest cage of the default face counts.
+    face_counts : list of int or None
+        The explicit cage face counts, when given (then ``levels == requested``).
+    note : str
+        One line saying how many levels fit, when fewer than asked ("" otherwise).
+    """
+
+    requested: int
+    levels: int
+    n_faces: int
+    ratio: float = 4.0
+    min_faces: int = MIN_FACES
+    face_counts: list[int] | None = None
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable copy."""
+        return asdict(self)
+
+
+def plan_levels(
+    n_faces: int,
+    levels: int,
+    *,
+    face_counts=None,
+    fixed_levels: int = 0,
+    ratio: float = 4.0,
+    min_faces: int = MIN_FACES,
+) -> LevelsPlan:
+    """Levels that fit an input of ``n_faces`` faces: ``levels`` is a ceiling, ``face_counts`` a demand.
+
+    Microseconds; the pipeline calls it before any audit, cage or tet mesh.
+
+    Parameters
+    ----------
+    n_faces : int
+        Faces of the surface the cages are built around.
+    levels : int
+        Levels asked (>= 2), of which ``fixed_levels`` are not cage layers (the refined fine level,
+        same-domain levels): the input and ``levels - fixed_levels - 1`` cages.
+    face_counts : sequence of int, optional
+        Explicit cage face counts (finest first), exactly ``levels - fixed_levels - 1`` of them; they are
+        validated (:func:`cagegen.check_face_counts`), never reduced.
+    fixed_levels : int
+    ratio, min_faces
+        Default face counts: ``n_faces / ratio**k``, the smallest ``>= min_faces``.
+
+    Returns
+    -------
+    LevelsPlan
+        ``note`` is one line when fewer levels than asked fit, e.g. "levels: 2 of the 3 asked fit 670
+        faces at ratio 4 (smallest cage >= 100 faces)".
+
+        An input too small for even one cage of ``min_faces`` keeps one cage level (no note):
+        :func:`cagegen.build_cages` audits it, then refuses it with :class:`cagegen.LevelsError`.
+
+    Raises
+    ------
+    cagegen.LevelsError
+        One line naming the option: explicit ``face_counts`` that cannot be met (not decreasing, not
+        below the input's faces, not one per cage level), or ``levels`` leaving no cage level.
+
+    Examples
+    --------
+    >>> plan_levels(670, 3).note
+    'levels: 2 of the 3 asked fit 670 faces at ratio 4 (smallest cage >= 100 faces)'
+    >>> plan_levels(20000, 3).levels, plan_levels(670, 4, fixed_levels=1).levels
+    (3, 3)
+    """
+    levels, fixed = int(levels), int(fixed_levels)
+    n_surf = levels - fixed  # the input and its cages
+    if face_counts is not None:
+        counts = list(face_counts)
+        shown = " ".join(str(c) for c in counts)
+        try:
+            counts = check_face_counts(counts, int(n_faces))
+        except LevelsError as exc:
+            raise LevelsError(f"--face-counts {shown} cannot be met on an input of {n_faces:,} faces: "
+                              f"{exc}") from None
+        if len(counts) != n_surf - 1:
+            raise LevelsError(f"--face-counts {shown} gives {len(counts)} cage face counts, but --levels "
+                              f"{levels} has {n_surf - 1} cage levels; give {n_surf - 1} counts or change --levels")
+        return LevelsPlan(levels, levels, int(n_faces), float(ratio), int(min_faces), counts)
+    if n_surf < 2:
+        raise LevelsError(f"--levels {levels} leaves no cage level (levels >= {fixed + 2} needed here)")
+    fit = fitting_levels(int(n_faces), n_surf, ratio, min_faces) if n_faces >= 4 else 1
+    # not even one cage fits: keep one, and let cagegen.build_cages refuse it after its audit (a broken
+    # small input is then named as such, a valid one gets "at most 1 levels fit ... pass face_counts")
+    granted = levels - (n_surf - max(fit, 2))
+    note = "" if granted == levels or fit < 2 else (
+        f"levels: {granted} of the {levels} asked fit {n_faces:,} faces at ratio {ratio:g} "
+        f"(smallest cage >= {min_faces} faces)")
+    return LevelsPlan(levels, granted, int(n_faces), float(ratio), int(min_faces), None, note)
+
+
+@dataclass
 class SizingPlan:
     """Sizes of a hierarchy decided before any cage or tet mesh is built (lengths in the input's units).
 
@@ -94,6 +211,9 @@ class SizingPlan:
     rule : str
         Which constraint set ``h_0``: ``"user"``, ``"input resolution"``, ``"max_tets"``, ``"time_budget"``.
     notes : list of str
+    levels : dict or None
+        :meth:`LevelsPlan.to_dict` of the levels granted (``levels`` <= ``requested``; ``note``: the one
+        line saying how many fit, when fewer than asked).
     """
 
     edge_length: float
@@ -103,6 +223,12 @@ class SizingPlan:
     expected_seconds: float
     rule: str
     notes: list[str] = field(default_factory=list)
+    levels: dict | None = None
+
+    @property
+    def n_levels(self) -> int:
+        """Levels granted (``len(edge_lengths)``)."""
+        return len(self.edge_lengths)
 
     def to_dict(self) -> dict:
         """JSON-serialisable copy."""
@@ -151,8 +277,10 @@ def plan_hierarchy(
     meshed_fraction: float = 1.0,
     mesh_edge_factor: float = 1.0,
     surface_faces: int | None = None,
+    face_counts=None,
+    fixed_levels: int = 0,
 ) -> SizingPlan:
-    """Decide every level's target edge length from the budget, before any expensive stage.
+    """Decide the levels and every level's target edge length from the budget, before any expensive stage.
 
     Parameters
     ----------
@@ -160,7 +288,8 @@ def plan_hierarchy(
     F : (m,3) int array
         The input surface (closed; any units).
     levels : int
-        Number of levels.
+        Number of levels asked: a ceiling (:func:`plan_levels` on ``len(F)``); the plan has the levels
+        that fit (``plan.levels``, ``plan.n_levels``).
     mesher : {"tetwild", "tetgen"}
     edge_length : float, optional
         Fine target edge length in the input's units (the user's choice; then ``max_tets`` only
@@ -184,6 +313,10 @@ def plan_hierarchy(
     surface_faces : int, optional
         Faces the mesher will really get (when predecimation was refused); default: the input's faces
         or those of its predecimation to the meshed edge, whichever is fewer.
+    face_counts : sequence of int, optional
+        Explicit cage face counts (validated at once, see :func:`plan_levels`).
+    fixed_levels : int
+        Levels that are not cage layers (refined fine level, same-domain levels).
 
     Returns
     -------
@@ -191,6 +324,8 @@ def plan_hierarchy(
 
     Raises
     ------
+    cagegen.LevelsError
+        Explicit ``face_counts`` that cannot be met.
     SizingError
         The request cannot fit (names the option to change): an explicit ``edge_length`` whose tets
         exceed an explicit ``max_tets``, or a budget too small for even a coarse mesh.
@@ -201,6 +336,8 @@ def plan_hierarchy(
     F = np.asarray(F, dtype=np.int64)
     if mesher not in COUNT_RATIO:
         raise ValueError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
+    lp = plan_levels(len(F), levels, face_counts=face_counts, fixed_levels=fixed_levels)
+    levels = lp.levels
     from cagegen._geometry import bbox_diagonal
 
     diag = bbox_diagonal(V)  # overflow-safe
@@ -265,4 +402,4 @@ def plan_hierarchy(
                                  available=exc.available) from None
     return SizingPlan(edge_length=h, edge_lengths=hs, expected_tets=ns, peak_bytes=int(peak),
                       expected_seconds=_meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces),
-                      rule=rule, notes=notes)
+                      rule=rule, notes=notes, levels=lp.to_dict())

@@ -37,7 +37,7 @@ from cagegen.errors import MeshInputError, NestmgError
 
 from .cache import arrays_digest, atomic_write_bytes
 from .hierarchy import Hierarchy, tet_hierarchy
-from .progress import Timer
+from .progress import Timer, stage_line
 from .prolongation import ProlongationReport
 
 __all__ = [
@@ -176,7 +176,9 @@ def hierarchy_from_tets(
         The user's tet mesh (one solid piece; every node used by a tet; either tet orientation).
         ``H.tets[0]`` holds exactly these nodes and tets, in this order.
     levels : int
-        Number of levels, the user's mesh included (>= 2): ``levels - 1`` cages of its boundary.
+        Number of levels, the user's mesh included (>= 2): ``levels - 1`` cages of its boundary. A
+        ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps >= 100 faces
+        (:func:`nestmg.sizing.plan_levels`; one stage line, ``options["levels_plan"]``).
     method : str
         Cage backend (``cagegen.build_cages``); uncertified ``"decimate"`` is accepted as a baseline.
     face_counts : list of int, optional
@@ -217,10 +219,13 @@ def hierarchy_from_tets(
     cagegen.MeshInputError
         Bad tets, or a boundary that is not one closed, manifold, self-intersection-free surface
         (several solids, a cavity, touching pieces...); the message names the problem.
+    cagegen.LevelsError
+        Explicit ``face_counts`` that cannot be met (at once), or a boundary too small for one cage.
     cagegen.CageError
         A cage could not be built or certified.
     """
     from .hierarchy import _normalize, build_cage_surfaces
+    from .sizing import plan_levels
 
     if levels < 2:
         raise ValueError(f"levels must be >= 2, got {levels}")
@@ -230,11 +235,16 @@ def hierarchy_from_tets(
         V, T = check_user_tets(V, T)
         Vn, center, scale = _normalize(V)  # the work is done at unit diagonal, the result is in V's frame
         Vs, Fs, index = boundary_surface(Vn, T)
+    # `levels` is a ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps
+    # >= 100 faces (one line says so); explicit face counts that cannot be met fail here, before any work
+    lp = plan_levels(len(Fs), levels, face_counts=face_counts)
+    if lp.note:
+        stage_line(lp.note, t0)
     with timer("cages"):
         try:  # same clearance (min_gap = 2.5 epsilon under TetWild) and cache as build_hierarchy
             surfaces_n, info = build_cage_surfaces(
-                Vs, Fs, levels, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
-                cache=cache, progress=progress, cage_opts=cage_opts,
+                Vs, Fs, lp.levels, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
+                cache=cache, progress=progress, cage_opts=cage_opts, t0=t0,
             )
         except MeshInputError as exc:
             raise MeshInputError(f"the boundary of the tet mesh is not a usable surface: {exc}") from exc
@@ -254,7 +264,8 @@ def hierarchy_from_tets(
         surfaces=surfaces, tets=tets, P=Ps, prolongation_reports=reps, method=method, cage_info=info,
         timings={**timer.seconds, **tt, "total": time.perf_counter() - t0},
         options={
-            "fine_level": "user", "levels": levels, "face_counts": face_counts, "mesher": mesher,
+            "fine_level": "user", "levels": lp.levels, "levels_requested": levels, "levels_plan": lp.to_dict(),
+            "face_counts": face_counts, "mesher": mesher,
             "edge_length": h0 * scale, "coarsening": coarsening, "epsilon": epsilon, "extrapolation": extrapolation,
             "cage_opts": info.get("cage_opts", {}),
         },

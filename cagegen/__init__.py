@@ -11,7 +11,7 @@ Backends are looked up by name in :mod:`cagegen.registry` and imported lazily.
 
 from __future__ import annotations
 
-from . import errors
+from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's lines go there)
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
 from .components import build_cages_per_component, split_components

@@ -346,10 +346,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"nestmg: error: unknown --method {unknown[0]!r}; registered: {', '.join(registered_backends())}",
               file=sys.stderr)
         return 2
+    eps = getattr(args, "epsilon", None)
+    if eps is not None and not 0 < eps < float("inf"):  # TetWild segfaults on a negative envelope, hangs on 0
+        print(f"nestmg: error: --epsilon must be positive (a fraction of the bounding-box diagonal), got {eps:g}",
+              file=sys.stderr)
+        return 2
     try:
         return int(args.func(args) or 0)
     except NestmgError as exc:
         print(f"nestmg: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # an output that cannot be written, e.g. --out naming an existing file
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"nestmg: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # solver errors carry their own messages
         from solvers.errors import SolverError

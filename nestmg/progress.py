@@ -68,8 +68,36 @@ class Timer:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
 
 
-#: logger of the pipeline's stage lines (``nestmg``): the CLI prints them when stderr is not a terminal
+#: logger of the pipeline's stage lines (``nestmg``): the CLI prints them when stderr is not a terminal.
+#: Its children ``nestmg.vtk`` / ``nestmg.render`` receive third-party messages (:mod:`nestmg.render`);
+#: ipctk's go to ``cagegen.ipctk`` (cagegen does not import nestmg). The NullHandler keeps Python's
+#: "last resort" handler from printing their warnings on stderr when the application configured no logging.
 log = logging.getLogger("nestmg")
+log.addHandler(logging.NullHandler())
+
+
+def log_third_party(logger: logging.Logger, level: int, source: str, msg: str) -> None:
+    """Log a third-party library's message as ``"<source>: <msg>"``, marked ``record.third_party``.
+
+    Parameters
+    ----------
+    logger : logging.Logger
+        A child of ``nestmg`` (e.g. ``nestmg.vtk``).
+    level : int
+        Logging level (``logging.WARNING``, ...).
+    source : str
+        Library or warning category, e.g. ``"VTK"``.
+    msg : str
+        The message.
+    """
+    logger.log(level, "%s: %s", source, msg, extra={"third_party": source})
+
+
+class _NoThirdParty(logging.Filter):
+    """Stage lines only: drop third-party records (marked by :func:`log_third_party`)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not hasattr(record, "third_party")
 
 
 def stage_line(msg: str, t0: float | None = None) -> None:
@@ -83,13 +111,15 @@ def enable_stage_lines(stream=None) -> None:
     """Print the pipeline's stage lines (one per stage, flushed) on ``stream`` (default stderr).
 
     The CLI calls this when stderr is not a terminal, so a long run in a script or a CI log shows where
-    it is; in a terminal the rich progress bars do that instead. Idempotent.
+    it is; in a terminal the rich progress bars do that instead. Third-party messages routed to the
+    ``nestmg`` loggers are not printed. Idempotent.
     """
     for h in log.handlers:
         if getattr(h, "_nestmg_stage_lines", False):
             return
     h = logging.StreamHandler(stream if stream is not None else sys.stderr)
     h.setFormatter(logging.Formatter("[nestmg] %(message)s"))
+    h.addFilter(_NoThirdParty())
     h._nestmg_stage_lines = True  # type: ignore[attr-defined]
     log.addHandler(h)
     log.setLevel(logging.INFO)

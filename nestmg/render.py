@@ -1,13 +1,90 @@
-"""Pictures: cage layers (pyvista, off-screen PNG) and convergence plots (matplotlib PNG)."""
+"""Pictures: cage layers (pyvista, off-screen PNG) and convergence plots (matplotlib PNG).
+
+Third-party messages of the rendering go to loggers, not the terminal: VTK's (e.g. "bad X server
+connection" of an off-screen render window without a display) to ``nestmg.vtk``, Python warnings
+raised by pyvista / matplotlib while drawing to ``nestmg.render`` (see :func:`third_party_to_log`).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import re
+import tempfile
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_convergence", "render_layers"]
+from .progress import log_third_party
+
+__all__ = ["plot_convergence", "render_layers", "third_party_to_log"]
+
+vtk_log = logging.getLogger("nestmg.vtk")
+warn_log = logging.getLogger("nestmg.render")
+
+# one vtkLogger (loguru) line: "2026-12-02 18:51:26.491 (   0.463s) [    7F12...]  file.cxx:331    ERR| text"
+_VTK_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+ \([^)]*\) \[[^\]]*\]\s*\S+\s+(\w+)\| ?(.*)$")
+_VTK_LEVELS = {"FATAL": logging.CRITICAL, "ERR": logging.ERROR, "WARN": logging.WARNING, "INFO": logging.INFO}
+
+
+def _vtk_records(text: str) -> list[tuple[int, str]]:
+    """(level, message) of each vtkLogger record in a log file's text (continuation lines joined)."""
+    out: list[tuple[int, str]] = []
+    for line in text.splitlines():
+        m = _VTK_LINE.match(line)
+        if m:
+            out.append((_VTK_LEVELS.get(m.group(1), logging.DEBUG), m.group(2).rstrip()))
+        elif out and line.strip():
+            out[-1] = (out[-1][0], f"{out[-1][1]} / {line.strip()}")
+    return [(lvl, msg) for lvl, msg in out if not msg.startswith("Logging to ")]  # loguru's own header
+
+
+@contextlib.contextmanager
+def third_party_to_log() -> Iterator[None]:
+    """Route VTK's messages and Python warnings raised inside the block to loggers.
+
+    VTK prints its warnings and errors (``vtkWarningMacro``, ``vtkLogF``) through ``vtkLogger`` on
+    stderr. Inside the block vtkLogger's stderr output is off and its records go to a temporary log
+    file instead (``vtkLogger.LogToFile``); afterwards each record is logged on ``nestmg.vtk`` at its
+    level (WARN -> WARNING, ERR -> ERROR, INFO and verbosity levels -> INFO / DEBUG). The macros also
+    reach ``vtkOutputWindow``, which pyvista (at import) points at Python's *root* logger: inside the
+    block the output window is a silent ``vtkStringOutputWindow``, so each message is logged once, on
+    ``nestmg.vtk``. Python warnings are recorded and logged on ``nestmg.render`` (WARNING). Records
+    carry ``third_party`` so the CLI's stage lines leave them out. Everything is restored afterwards.
+    """
+    try:
+        from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
+    except ImportError:  # pragma: no cover - pyvista always brings vtk
+        vtkLogger = None
+    path = None
+    if vtkLogger is not None:
+        fd, path = tempfile.mkstemp(prefix="nestmg-vtk-", suffix=".log")
+        os.close(fd)
+        window = vtkOutputWindow.GetInstance()  # (the python reference keeps it alive)
+        vtkOutputWindow.SetInstance(vtkStringOutputWindow())
+        stderr_level = vtkLogger.GetCurrentVerbosityCutoff()
+        vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+        vtkLogger.LogToFile(path, vtkLogger.TRUNCATE, vtkLogger.VERBOSITY_INFO)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
+    finally:
+        if path is not None:
+            vtkLogger.EndLogToFile(path)
+            vtkLogger.SetStderrVerbosity(stderr_level)
+            vtkOutputWindow.SetInstance(window)
+            with open(path, encoding="utf-8", errors="replace") as f:
+                records = _vtk_records(f.read())
+            os.unlink(path)
+            for level, msg in records:
+                log_third_party(vtk_log, level, "VTK", msg)
+        for w in caught:
+            log_third_party(warn_log, logging.WARNING, w.category.__name__,
+                            f"{w.message} ({Path(w.filename).name}:{w.lineno})")
 
 _COLORS = ["#d9d9d9", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
 
@@ -44,6 +121,11 @@ def render_layers(
     Path
         The written file.
     """
+    with third_party_to_log():
+        return _render_layers(surfaces, Path(path), title, window_size)
+
+
+def _render_layers(surfaces, path: Path, title, window_size) -> Path:
     import pyvista as pv
 
     pv.OFF_SCREEN = True
@@ -65,7 +147,6 @@ def render_layers(
     if title and len(surfaces) > 1:
         pl.subplot(0, 0)
         pl.add_text(title, position="lower_left", font_size=9)
-    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
     pl.screenshot(str(tmp))
@@ -97,6 +178,11 @@ def plot_convergence(
     Path
         The written file.
     """
+    with third_party_to_log():
+        return _plot_convergence(histories, Path(path), title, xlabel)
+
+
+def _plot_convergence(histories, path: Path, title: str, xlabel: str) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -113,7 +199,6 @@ def plot_convergence(
         ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp)

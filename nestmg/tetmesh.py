@@ -9,9 +9,28 @@ TetWild's boundary is only within ``epsilon`` (relative to the layer's bounding-
 input surface, so a cage that touches the finer surface can leave a few fine nodes outside the coarse
 tet mesh: the prolongation extrapolates and counts them (``n_outside``). TetGen keeps the input
 boundary exactly.
+
+Time limit: both meshers run in a separate worker process (``nestmg/_mesh_worker.py``, started once
+and reused), killed when a call runs past its time limit -- TetGen's mesh improvement can loop
+forever on some inputs, and a mesher segfault then ends the worker, not the caller. The limit defaults
+to :data:`TIME_LIMIT_FACTOR` x the sizing estimate of the meshing time
+(:func:`nestmg.sizing.fine_mesh_seconds`), at least :data:`MIN_TIME_LIMIT` seconds; the environment
+variable ``NESTMG_MESH_TIME_LIMIT`` (seconds, or ``none``) or ``tetrahedralize(time_limit=...)``
+changes it, and ``time_limit=None`` meshes in-process without a limit.
 """
 
 from __future__ import annotations
+
+import atexit
+import importlib.util
+import logging
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -19,13 +38,41 @@ from cagegen._geometry import as_mesh_arrays, bbox_diagonal
 from cagegen._tempdir import in_temp_dir
 from cagegen.errors import MeshInputError, NestmgError
 
-__all__ = ["MESHERS", "TetMeshError", "orient_tets", "tet_quality", "tet_volumes", "tetrahedralize"]
+from ._mesh_worker import run_job
+
+__all__ = [
+    "MESHERS",
+    "MIN_TIME_LIMIT",
+    "TIME_LIMIT_ENV",
+    "TIME_LIMIT_FACTOR",
+    "TetMeshError",
+    "TetMeshTimeoutError",
+    "mesh_time_limit",
+    "orient_tets",
+    "tet_quality",
+    "tet_volumes",
+    "tetrahedralize",
+]
 
 MESHERS = ("tetwild", "tetgen")
+
+#: the automatic time limit of one :func:`tetrahedralize` call is this many times the sizing estimate of
+#: its meshing time (the estimate is within ~3x of the measured times on a shared 2-core machine) ...
+TIME_LIMIT_FACTOR = 10.0
+#: ... and never below this many seconds (a 2k-tet TetGen mesh takes 0.05 s; a hang takes forever)
+MIN_TIME_LIMIT = 60.0
+#: environment variable overriding the automatic limit: seconds, or "none" for no limit
+TIME_LIMIT_ENV = "NESTMG_MESH_TIME_LIMIT"
+
+_log = logging.getLogger("nestmg.tetmesh")
 
 
 class TetMeshError(NestmgError, RuntimeError):
     """The mesher failed or produced an unusable tet mesh."""
+
+
+class TetMeshTimeoutError(TetMeshError):
+    """The mesher ran past its time limit and was stopped (the message says how to raise the limit)."""
 
 
 def tet_volumes(V: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -119,6 +166,238 @@ def _compact(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return V[used], remap[T]
 
 
+# ----------------------------------------------------------------------------- time limit and worker
+def mesh_time_limit(V: np.ndarray, F: np.ndarray, edge_length: float, mesher: str = "tetwild") -> float | None:
+    """The automatic time limit (seconds) of meshing ``(V, F)`` at ``edge_length``; None = no limit.
+
+    ``$NESTMG_MESH_TIME_LIMIT`` if set (seconds, or ``none``), else :data:`TIME_LIMIT_FACTOR` x the
+    sizing estimate :func:`nestmg.sizing.fine_mesh_seconds` of the expected tets, at least
+    :data:`MIN_TIME_LIMIT`.
+    """
+    env = os.environ.get(TIME_LIMIT_ENV, "").strip()
+    if env:
+        if env.lower() in ("none", "off", "inf", "0"):
+            return None
+        try:
+            value = float(env)
+        except ValueError:
+            value = float("nan")
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{TIME_LIMIT_ENV}={env!r}: give seconds (> 0) or 'none'")
+        return value
+    from .memory import enclosed_volume  # nestmg.memory and nestmg.sizing import this module
+    from .sizing import expected_tets, fine_mesh_seconds
+
+    n_tets = expected_tets(enclosed_volume(V, F), float(edge_length), mesher)
+    return max(MIN_TIME_LIMIT, TIME_LIMIT_FACTOR * fine_mesh_seconds(len(F), n_tets, mesher))
+
+
+class _MeshTimeout(Exception):
+    """The worker did not answer within the time limit (it has been killed)."""
+
+
+class _MeshCrash(Exception):
+    """The worker died during a job (exit code in ``args[0]``)."""
+
+
+class _MesherWorker:
+    """One long-lived mesher process (``nestmg/_mesh_worker.py``), fed jobs over a socket."""
+
+    SCRIPT = Path(__file__).with_name("_mesh_worker.py")
+
+    def __init__(self) -> None:
+        import tempfile
+        from multiprocessing import Pipe
+
+        self.owner = os.getpid()
+        self.dir = tempfile.TemporaryDirectory(prefix="nestmg-mesher-")  # fTetWild's working files
+        self.out = tempfile.TemporaryFile(dir=self.dir.name)  # noqa: SIM115 - the meshers' printing, closed in close()
+        ours, theirs = Pipe(duplex=True)
+        args = [sys.executable, str(self.SCRIPT), str(theirs.fileno())]
+        if threading.current_thread() is threading.main_thread():
+            args.append("--die-with-parent")  # the kernel's parent-death signal follows the creating thread
+        try:
+            self.proc = subprocess.Popen(args, pass_fds=(theirs.fileno(),), cwd=self.dir.name,
+                                         stdin=subprocess.DEVNULL, stdout=self.out, stderr=subprocess.STDOUT)
+        finally:
+            theirs.close()
+        self.conn = ours
+        self.conn.send(("path", [os.path.abspath(p) for p in sys.path if isinstance(p, str)]))
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def run(self, job: tuple, limit: float | None) -> tuple:
+        """Send ``job`` and wait at most ``limit`` seconds (None: no limit) for the reply."""
+        self.conn.send(job)
+        if not self.conn.poll(limit):
+            raise _MeshTimeout
+        try:
+            reply = self.conn.recv()
+        except EOFError:
+            raise _MeshCrash(self.proc.wait()) from None
+        self._log_output()
+        return reply
+
+    def _log_output(self) -> None:
+        self.out.seek(0)
+        text = self.out.read().decode(errors="replace").strip()
+        self.out.seek(0)
+        self.out.truncate()
+        for line in text.splitlines():
+            _log.debug("mesher: %s", line)
+
+    def close(self, kill: bool = False) -> None:
+        """End the worker: at once (``kill``) or by closing its socket (it exits at EOF)."""
+        if kill:
+            self.proc.kill()
+        self.conn.close()
+        try:
+            self.proc.wait(timeout=None if kill else 5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.out.close()
+        self.dir.cleanup()
+
+
+_worker: _MesherWorker | None = None
+_worker_lock = threading.Lock()
+
+
+def _close_worker() -> None:
+    global _worker
+    if _worker is not None and _worker.owner == os.getpid():
+        _worker.close()
+    _worker = None
+
+
+atexit.register(_close_worker)
+
+
+def _run_in_worker(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict, deadline: float) -> tuple:
+    """One mesher call in the worker process, answered before ``deadline`` (time.monotonic) or killed."""
+    global _worker
+    with _worker_lock:
+        for fresh in (False, True):
+            if _worker is None or _worker.owner != os.getpid() or not _worker.alive():
+                if _worker is not None and _worker.owner == os.getpid():
+                    _worker.close(kill=True)
+                _worker = _MesherWorker()  # a forked child never touches its parent's worker
+            w = _worker
+            try:
+                return w.run((mesher, V, F, opts), max(0.0, deadline - time.monotonic()))
+            except (BrokenPipeError, ConnectionResetError) as exc:
+                # the worker had died between jobs (nothing was computed): start a new one, once
+                w.close(kill=True)
+                _worker = None
+                if fresh:
+                    raise _MeshCrash(w.proc.returncode) from exc
+            except BaseException:  # time-out, crash, Ctrl-C: the job is abandoned with its process
+                w.close(kill=True)
+                _worker = None
+                raise
+    raise AssertionError("unreachable")
+
+
+def _mesher_call(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict,
+                 deadline: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """``run_job`` in-process (no deadline) or in the worker, with the mesher's failures as TetMeshError."""
+    what = f"a surface with {len(V)} vertices / {len(F)} faces"
+    if deadline is None:
+        if mesher == "tetwild":
+            with in_temp_dir():
+                return run_job(mesher, V, F, opts)
+        return run_job(mesher, V, F, opts)
+    t = time.monotonic()
+    try:
+        reply = _run_in_worker(mesher, V, F, opts, deadline)
+    except _MeshTimeout:
+        raise TetMeshTimeoutError(f"{mesher} stopped after {time.monotonic() - t:.3g} s on {what}") from None
+    except _MeshCrash as exc:
+        rc = exc.args[0]
+        how = f"signal {-rc}" if isinstance(rc, int) and rc < 0 else f"exit code {rc}"
+        raise TetMeshError(f"{mesher} crashed ({how}) on {what}") from None
+    if reply[0] == "ok":
+        return reply[1]
+    _, kind, message = reply
+    raise TetMeshError(f"{mesher} failed on {what}: {message or kind}")
+
+
+def _limit_hint(limit: float | None) -> str:
+    return (f"time limit {limit:.3g} s: raise it with {TIME_LIMIT_ENV}=SECONDS or "
+            "tetrahedralize(time_limit=SECONDS) ('none': no limit)")
+
+
+#: TetGen's modes, tried in order while the previous one fails (a TetGen error, flat tets, or its share
+#: of the time limit). "exact": no merging of coplanar facets or close vertices, so the boundary is the
+#: input's triangles (a cage touching the finer surface keeps it inside; merging lost 3e-4 of a torus
+#: cage's volume, docs/experiments.md). Exact mode fails on some surfaces with many (nearly) coplanar
+#: neighbouring faces, e.g. the convex hull of a rotated torus (flat caps): an internal TetGen error,
+#: flat tets between coplanar facets, or a mesh-improvement loop on those flat tets that never ends (the
+#: hang of issue 27). "merged": TetGen's own treatment of coplanar facets (merged within 0.1 degrees),
+#: which meshes those; the boundary may then move by the height of a fold below 0.1 degrees.
+_TETGEN_MODES = {
+    "exact": {"nomergefacet": True, "nomergevertex": True},
+    "merged": {"nomergefacet": False, "nomergevertex": True},
+}
+#: TetGen's radius-edge bound does not remove slivers: when a mode leaves flat tets it is retried with
+#: these dihedral-angle bounds (TetGen's -q/d switch) before the next mode
+_TETGEN_MINDIHEDRAL = (0.0, 10.0, 18.0)
+#: seconds (plus 5x the time estimate) TetGen's exact mode may take before the merged mode is tried
+EXACT_MODE_SECONDS = 3.0
+
+
+def _tetgen(V, F, h, minratio, deadline, limit):
+    """TetGen through its modes (:data:`_TETGEN_MODES`): the first usable mesh, else one TetMeshError.
+
+    Usable: no flat tet, or only flat tets whose four nodes are on the boundary (dropped, see
+    :func:`_drop_boundary_slivers`) after the last dihedral bound.
+    """
+    failures, timed_out = [], False
+    modes = list(_TETGEN_MODES.items())
+    # a mode that is not the last may use EXACT_MODE_SECONDS + 5x the estimate (TetGen meshes ~1e5 tets/s,
+    # so the limit is reached only by the mesh-improvement loop, not by work): a loop costs seconds
+    from .memory import enclosed_volume  # nestmg.memory and nestmg.sizing import this module
+    from .sizing import expected_tets, fine_mesh_seconds
+
+    estimate = fine_mesh_seconds(len(F), expected_tets(enclosed_volume(V, F), h, "tetgen"), "tetgen")
+    for i, (mode, flags) in enumerate(modes):
+        mode_deadline = None
+        if deadline is not None:
+            remaining = max(0.0, deadline - time.monotonic())
+            share = min(remaining / 2, EXACT_MODE_SECONDS + 5 * estimate) if i < len(modes) - 1 else remaining
+            mode_deadline = time.monotonic() + share
+        mesh = None
+        for mindihedral in _TETGEN_MINDIHEDRAL:
+            opts = {"quality": True, "minratio": minratio, "mindihedral": mindihedral, "fixedvolume": True,
+                    "maxvolume": h**3 / (6 * np.sqrt(2)), "steinerleft": -1, **flags}
+            try:
+                Vt, T = _mesher_call("tetgen", V, F, opts, mode_deadline)
+            except TetMeshError as exc:
+                mesh = None
+                timed_out = timed_out or isinstance(exc, TetMeshTimeoutError)
+                failures.append(f"{mode} mode: {exc}")
+                break
+            Vt, T = _compact(Vt, T)
+            mesh = (Vt, orient_tets(Vt, T))
+            if not _has_flat_tets(*mesh):
+                break
+        if mesh is not None and _has_flat_tets(*mesh):
+            mesh = _drop_boundary_slivers(*mesh)
+            if _has_flat_tets(*mesh):
+                failures.append(f"{mode} mode: {int(_flat(*mesh).sum())} flat (near-zero volume) tets")
+                mesh = None
+        if mesh is not None:
+            if failures:
+                _log.info("tetgen: %s; meshed in %s mode", "; ".join(failures), mode)
+            return mesh
+    msg = f"tetgen failed on a surface with {len(V)} vertices / {len(F)} faces: {'; '.join(failures)}"
+    if timed_out:
+        raise TetMeshTimeoutError(f"{msg}; {_limit_hint(limit)}; or try mesher='tetwild'")
+    raise TetMeshError(f"{msg}; try mesher='tetwild'")
+
+
 def tetrahedralize(
     V: np.ndarray,
     F: np.ndarray,
@@ -132,6 +411,7 @@ def tetrahedralize(
     stop_energy: float = 10.0,
     max_opt_iter: int = 80,
     coarsen: bool = False,
+    time_limit: float | str | None = "auto",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tet-mesh the solid bounded by the closed surface ``(V, F)``.
 
@@ -160,6 +440,10 @@ def tetrahedralize(
         TetWild: coarsen the output as far as the quality allows. Without it the boundary triangles of a
         coarse cage keep ~2-8x more tets than the target edge length asks (measured on the demo torus's
         cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
+    time_limit : float, "auto" or None
+        Seconds the mesher may run (in a worker process, killed when over). ``"auto"``:
+        :func:`mesh_time_limit` (``$NESTMG_MESH_TIME_LIMIT``, else 10x the sizing estimate, at least
+        60 s). None: no limit, and the mesher runs in this process.
 
     Returns
     -------
@@ -174,7 +458,8 @@ def tetrahedralize(
         Wrong shapes or dtypes, no faces, indices out of range, NaN/inf coordinates (checked before
         the mesher runs).
     TetMeshError
-        If the mesher fails or returns an empty / degenerate mesh.
+        If the mesher fails, crashes, runs past ``time_limit`` (the message names the limit and how to
+        raise it) or returns an empty / degenerate mesh.
     """
     # structural checks before any C++ code sees the arrays: pytetwild segfaults on an empty face
     # array, and out-of-range indices would be read out of bounds
@@ -190,38 +475,25 @@ def tetrahedralize(
     h = float(edge_length) if edge_length is not None else edge_length_fac * diag
     if not np.isfinite(h) or h <= 0:
         raise ValueError(f"edge length must be positive, got {h}")
+    limit = mesh_time_limit(V, F, h, mesher) if time_limit == "auto" else time_limit
+    if limit is not None and not (isinstance(limit, (int, float)) and limit > 0):
+        raise ValueError(f"time_limit must be seconds > 0, 'auto' or None, got {time_limit!r}")
+    deadline = None if limit is None else time.monotonic() + float(limit)
     try:
         if mesher == "tetwild":
-            import pytetwild
-
-            # fTetWild writes __tracked_surface.stl into the working directory: keep it out of the user's
-            with in_temp_dir():
-                # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
-                c = (lo + hi) / 2
-                Vt, T = pytetwild.tetrahedralize(
-                    (V - c) / diag, F.astype(np.int32), edge_length_abs=h / diag, epsilon=epsilon,
-                    num_threads=threads, quiet=True, stop_energy=float(stop_energy),
-                    num_opt_iter=int(max_opt_iter), coarsen=bool(coarsen),
-                )
-                Vt = np.asarray(Vt, dtype=np.float64) * diag + c
-        else:
+            # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
+            c = (lo + hi) / 2
+            opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
+                    "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
             try:
-                import tetgen
-            except ImportError as exc:  # optional extra
-                raise TetMeshError("mesher='tetgen' needs the optional 'tetgen' package (pip install tetgen)") from exc
-            # TetGen's maxvolume is only honoured with fixedvolume=True (ENVIRONMENT.md); the volume of a
-            # regular tet of edge h is h^3 / (6 sqrt 2). Its radius-edge bound does not remove slivers;
-            # when one is left, retry with a dihedral-angle bound (TetGen's -q/d switch).
-            for mindihedral in (0.0, 10.0, 18.0):
-                Vt, T, _, _ = tetgen.TetGen(V, F.astype(np.int32)).tetrahedralize(
-                    quality=True, minratio=minratio, mindihedral=mindihedral, fixedvolume=True,
-                    maxvolume=h**3 / (6 * np.sqrt(2)), steinerleft=-1,
-                    # TetGen merges nearly coplanar facets / nearby vertices by default, which moves the
-                    # boundary of a cage that touches the finer surface (lost volume, fine nodes outside)
-                    nomergefacet=True, nomergevertex=True,
-                )
-                if not _has_flat_tets(np.asarray(Vt, float), np.asarray(T, np.int64)):
-                    break
+                Vt, T = _mesher_call("tetwild", (V - c) / diag, F, opts, deadline)
+            except TetMeshTimeoutError as exc:
+                raise TetMeshTimeoutError(f"{exc}; {_limit_hint(limit)}; or give a larger edge length") from None
+            Vt = Vt * diag + c
+        else:
+            if importlib.util.find_spec("tetgen") is None:  # optional extra (AGPL: imported only when asked)
+                raise TetMeshError("mesher='tetgen' needs the optional 'tetgen' package (pip install tetgen)")
+            Vt, T = _tetgen(V, F, h, minratio, deadline, limit)
     except TetMeshError:
         raise
     except Exception as exc:  # the meshers raise RuntimeError / their own types on bad input
@@ -232,9 +504,7 @@ def tetrahedralize(
         raise TetMeshError(f"{mesher} returned no tets (surface {len(V)} vertices / {len(F)} faces)")
     Vt, T = _compact(Vt, T)
     T = orient_tets(Vt, T)
-    if mesher == "tetgen" and _has_flat_tets(Vt, T):
-        Vt, T = _drop_boundary_slivers(Vt, T)
-    if _has_flat_tets(Vt, T):
+    if _has_flat_tets(Vt, T):  # TetGen's flat tets were handled by its modes
         n_flat = int(_flat(Vt, T).sum())
         raise TetMeshError(f"{mesher} returned {n_flat} flat (near-zero volume) tets; try mesher='tetwild'")
     return Vt, T

@@ -51,7 +51,9 @@ build="$(mktemp -d)"
 trap 'rm -rf "$build"' EXIT
 echo "install-petsc: building petsc4py==$PETSC4PY_VERSION against $PETSC_DIR (about 2 minutes on 2 cores)"
 if "$PYTHON" -m venv --system-site-packages "$build/venv" >/dev/null 2>&1; then
-    "$build/venv/bin/python" -m pip install --quiet cython "setuptools<70" wheel
+    # the build venv sees the base interpreter's site-packages, not a venv's: give it the target's numpy
+    numpy_version="$("$PYTHON" -c 'import numpy; print(numpy.__version__)')"
+    "$build/venv/bin/python" -m pip install --quiet cython "setuptools<70" wheel "numpy==$numpy_version"
     "$build/venv/bin/python" -m pip wheel --no-build-isolation --no-deps --quiet \
         -w "$build/wheels" "petsc4py==$PETSC4PY_VERSION"
     "$PYTHON" -m pip install --no-deps --force-reinstall "$build"/wheels/petsc4py-*.whl

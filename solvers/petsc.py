@@ -24,10 +24,19 @@ user can inspect or override anything from the command line or ``PETSC_OPTIONS``
 ``-nestmg_ksp_view -nestmg_ksp_monitor -nestmg_mg_levels_pc_sor_omega 1.2``. Options that the
 user set win over the constructor's choices. To read command-line options, initialise petsc4py with
 ``import petsc4py, sys; petsc4py.init(sys.argv)`` *before* importing this module's users.
+
+Lifetime: the PETSc objects of a :class:`PetscMultigrid` are destroyed by ``destroy()`` (or leaving a
+``with`` block), when the solver is garbage-collected, and at the latest at interpreter exit, by a
+:func:`weakref.finalize` that runs before petsc4py's ``PetscFinalize``. That order matters: petsc4py
+finalises PETSc from a C-level exit hook, *after* the Python interpreter is gone, and PETSc then destroys
+the objects still alive; the coarsest solve's python PC (``_PyCoarse``) calls back into Python from
+``PCReset`` -- a segfault (PETSc's SEGV banner, exit code 59) after a correct solve, for every script
+that kept a solver in a global variable.
 """
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import numpy as np
@@ -85,7 +94,7 @@ class _PyCoarse:
     def __init__(self, nullspace, method, pinv_max, level):
         self.nullspace, self.method, self.pinv_max, self.level = nullspace, method, pinv_max, level
         self.cs = None
-        self._scatter = None
+        self._scatter = self._xall = None
 
     def setUp(self, pc) -> None:
         from .coarse import _CoarseSolver
@@ -100,7 +109,14 @@ class _PyCoarse:
         As = sp.csr_matrix((np.array(av), np.array(aj), np.array(ai)), shape=(n, n))
         As.sum_duplicates()
         self.cs = _CoarseSolver(As, self.nullspace, self.level, self.method, self.pinv_max)
-        self._scatter = None
+        self.reset(pc)
+
+    def reset(self, pc) -> None:
+        """Free the scatter-to-all of :meth:`apply` (PCReset/PCDestroy call this while Python runs)."""
+        for obj in (getattr(self, "_scatter", None), getattr(self, "_xall", None)):
+            if obj is not None:
+                obj.destroy()
+        self._scatter = self._xall = None
 
     def apply(self, pc, x, y) -> None:
         PETSc = _petsc()
@@ -113,6 +129,18 @@ class _PyCoarse:
             y.setArray(sol[lo:hi])
         else:
             y.setArray(self.cs(np.array(x.getArray(readonly=True))))
+
+
+def _destroy_petsc(PETSc, objs: list) -> None:
+    """Destroy ``objs`` last-created first (the KSP before the matrices it holds), while Python runs.
+
+    After ``PetscFinalize`` (a user's own ``PETSc._finalize()``) there is nothing left to free.
+    """
+    if PETSc.Sys.isFinalized():
+        objs.clear()
+        return
+    while objs:
+        objs.pop().destroy()
 
 
 # ------------------------------------------------------------------------------------ PCMG solver
@@ -263,6 +291,10 @@ class PetscMultigrid:
                 f"coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', got {coarse_solver!r}")
         self._coarse_method, self._pinv_max = coarse_solver, int(pinv_max)
 
+        # every PETSc object this solver owns, destroyed last-created first by destroy(), by the garbage
+        # collector or at exit (before PetscFinalize: see the module docstring), also if __init__ fails
+        self._owned: list = []
+        self._finalizer = weakref.finalize(self, _destroy_petsc, PETSc, self._owned)
         t0 = _barrier_time(self.comm)
         size = self.comm_size
         nat = _Layout(None, self.n, size)
@@ -283,9 +315,11 @@ class PetscMultigrid:
                         break
         if not (isinstance(partition, str) and partition in ("natural", "rcm")) and partition is not None:
             A_nat = _to_petsc(PETSc, A, nat, nat, self.comm) if isinstance(partition, str) else None
-            owner = _fine_owner(PETSc, A, A_nat, partition, self.n, size, self.comm)
-            if A_nat is not None:
-                A_nat.destroy()
+            try:
+                owner = _fine_owner(PETSc, A, A_nat, partition, self.n, size, self.comm)
+            finally:
+                if A_nat is not None:
+                    A_nat.destroy()
         elif partition == "rcm" and size > 1:
             owner = _fine_owner(PETSc, A, None, partition, self.n, size, self.comm)
         self.partition = "natural" if owner is None else (partition if isinstance(partition, str) else "given")
@@ -304,17 +338,18 @@ class PetscMultigrid:
         given = [] if coarse_ops is None else [
             _to_petsc(PETSc, Ac, layouts[k + 1], layouts[k + 1], self.comm) for k, Ac in enumerate(coarse_ops)
         ]
-        self._ns = None
+        self._owned.extend(mats + given + interp)
         if self.nullspace == "constant":
-            self._ns = PETSc.NullSpace().create(constant=True, comm=self.comm)
+            ns = PETSc.NullSpace().create(constant=True, comm=self.comm)
+            self._owned.append(ns)
             for M in mats + given:
-                M.setNullSpace(self._ns)
+                M.setNullSpace(ns)
         self._A = mats[0]
-        self._mats = mats + given + interp
 
         nlev = len(Ps) + 1
         self._nlev = nlev
         ksp = PETSc.KSP().create(comm=self.comm)
+        self._owned.append(ksp)  # destroyed first: it holds the operators and the python coarse PC
         ksp.setOptionsPrefix(options_prefix)
         ksp.setOperators(self._A)
         ksp.setType("cg" if krylov == "cg" else "richardson")
@@ -454,7 +489,12 @@ class PetscMultigrid:
 
     def view(self) -> None:
         """Print PETSc's own description of the solver (``KSPView``)."""
+        self._check_alive()
         self.ksp.view()
+
+    def _check_alive(self) -> None:
+        if not self._finalizer.alive:
+            raise SolverError("this PetscMultigrid was destroyed (destroy() or the end of its with block)")
 
     def local_rows(self) -> np.ndarray:
         """Global (caller's numbering) fine rows owned by this rank."""
@@ -498,6 +538,7 @@ class PetscMultigrid:
             PETSc reported a breakdown or divergence (the reason is named).
         """
         PETSc = self._PETSc
+        self._check_alive()
         maxiter = int(maxiter)
         if maxiter < 0:
             raise SolverInputError(f"maxiter must be >= 0, got {maxiter}")
@@ -545,10 +586,11 @@ class PetscMultigrid:
         }
 
     def destroy(self) -> None:
-        """Free the PETSc objects (also done by the garbage collector)."""
-        for obj in [self.ksp, *self._mats] + ([self._ns] if self._ns is not None else []):
-            obj.destroy()
-        self._mats = []
+        """Free the PETSc objects now (collective; idempotent).
+
+        Also done when the solver is garbage-collected, and at interpreter exit before PETSc is finalised.
+        """
+        self._finalizer()
 
     def __enter__(self):
         return self

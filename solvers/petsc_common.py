@@ -334,7 +334,8 @@ def _ksp_solve(PETSc, ksp, A, bv, xv, normb: float, comm, what: str = "") -> dic
 
     Returns ``history`` (relative residuals), ``iterations``, ``reason``, ``solve_seconds`` and
     ``final`` (``||b - A x|| / ||b||``); a PETSc error becomes :class:`SolverError`
-    ("PETSc KSPSolve<what> failed").
+    ("PETSc KSPSolve<what> failed"). After a failure inside the solve the KSP is never destroyed
+    (see the comment below): the process then still exits cleanly.
     """
     t0 = _barrier_time(comm)
     if normb == 0.0:
@@ -343,8 +344,15 @@ def _ksp_solve(PETSc, ksp, A, bv, xv, normb: float, comm, what: str = "") -> dic
     else:
         try:
             ksp.solve(bv, xv)
-        except PETSc.Error as e:
-            raise SolverError(f"PETSc KSPSolve{what} failed: {_petsc_message(e)}") from None
+        except BaseException as e:
+            # Debian's PETSc 3.18 segfaults in KSPDestroy (VecDestroy in KSPReset) of a KSP whose solve
+            # failed inside (a PETSc error, or a Python exception in a python PC or monitor), even after
+            # a later solve succeeded: one extra reference keeps this KSP from ever being destroyed (it
+            # is leaked, on purpose, until the process ends; destroy() then only drops a reference).
+            ksp.incRef()
+            if isinstance(e, PETSc.Error):
+                raise SolverError(f"PETSc KSPSolve{what} failed: {_petsc_message(e)}") from None
+            raise
         hist = _history(ksp, normb)
         its = ksp.getIterationNumber()
         reason = _reason_name(PETSc, ksp.getConvergedReason())

@@ -391,6 +391,156 @@ def test_mpirun_two_ranks(tmp_path):
         assert _rel(xs[f"x_{kind}"], xd) < 1e-6
 
 
+# ----------------------------------------------------------- clean exits (issue 27, item 6): subprocesses
+# A solver kept in a global until interpreter exit used to segfault there (PETSc SEGV banner, exit code
+# 59): petsc4py finalises PETSc from a C-level exit hook after the interpreter is gone, and PETSc's
+# destruction of the still-alive KSP called the python coarse PC back into Python.
+_EXIT_SCRIPT = """
+import sys
+sys.path.insert(0, {tests!r})
+from mpi_petsc_check import dirichlet_problem, neumann_problem
+from solvers.petsc import PetscMultigrid, petsc_amg_solve
+
+D, N = dirichlet_problem(8, 3), neumann_problem(8, 3)
+mg = PetscMultigrid(D["A"], D["Ps"])  # the docs' pattern: kept in a global until exit
+x, info = mg.solve(D["b"])
+mg_n = PetscMultigrid(N["A"], N["Ps"], nullspace="constant", krylov="richardson")  # + a python monitor
+_, info_n = mg_n.solve(N["b"])
+with PetscMultigrid(D["A"], D["Ps"], coarse_solver="petsc") as mg_p:
+    mg_p.solve(D["b"])
+try:
+    mg_p.solve(D["b"])
+except Exception as e:
+    print("after destroy:", type(e).__name__, e)
+_, info_g = petsc_amg_solve(D["A"], D["b"], "gamg")
+print("OK", info["iterations"], info_n["iterations"], info_g["iterations"], flush=True)
+if "--raise" in sys.argv:
+    raise RuntimeError("a user error after the solve")
+"""
+
+_FAIL_INSIDE_SCRIPT = """
+import sys
+sys.path.insert(0, {tests!r})
+from mpi_petsc_check import dirichlet_problem
+import solvers.petsc as sp_petsc
+
+D = dirichlet_problem(8, 3)
+mg = sp_petsc.PetscMultigrid(D["A"], D["Ps"])
+apply = sp_petsc._PyCoarse.apply
+
+def failing(self, pc, x, y):
+    raise RuntimeError("the coarse solve failed")
+
+sp_petsc._PyCoarse.apply = failing  # an exception inside KSPSolve (PETSc unwinds through PCMG)
+try:
+    mg.solve(D["b"])
+except RuntimeError as e:
+    print("caught:", e)
+sp_petsc._PyCoarse.apply = apply
+x, info = mg.solve(D["b"])  # the solver still works
+print("OK", info["iterations"], flush=True)
+"""
+
+_TORUS_SCRIPT = """
+from nestmg import shapes
+from nestmg.hierarchy import build_hierarchy
+from nestmg.problems import setup_problem
+from solvers.petsc import PetscMultigrid
+
+V, F = shapes.torus(16)
+h = build_hierarchy(V, F, 3, method="nested", mesher="tetgen", edge_length_fac=0.05, cache=False,
+                    progress=False, fine_level="refine")
+p = setup_problem(h.tets, h.P, "poisson-neumann")
+mg = PetscMultigrid(p.A, p.P, nullspace=p.nullspace)
+x, info = mg.solve(p.b)
+print("OK", info["iterations"], info["converged"], flush=True)
+"""
+
+
+def _run_script(tmp_path, text: str, *args: str, ranks: int = 1) -> subprocess.CompletedProcess:
+    script = tmp_path / "user_script.py"
+    script.write_text(text.format(tests=str(HERE)))
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1", OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
+    cmd = [sys.executable, str(script), *args]
+    if ranks > 1:
+        cmd = [_mpirun(), "-n", str(ranks), *cmd]
+    return subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=300,
+                          cwd=tmp_path)
+
+
+def _assert_no_crash(proc) -> None:
+    for banner in ("SEGV", "Segmentation", "PETSC ERROR", "signal"):
+        assert banner not in proc.stderr, proc.stderr[-3000:]
+
+
+def test_script_exits_cleanly_one_rank(tmp_path):
+    proc = _run_script(tmp_path, _EXIT_SCRIPT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_no_crash(proc)
+    ok = [ln.split() for ln in proc.stdout.splitlines() if ln.startswith("OK")]
+    assert len(ok) == 1 and 1 <= int(ok[0][1]) <= 10 and 1 <= int(ok[0][2]) <= 30, proc.stdout
+    assert "after destroy: SolverError this PetscMultigrid was destroyed" in proc.stdout
+    assert proc.stderr.strip() == ""
+
+
+def test_script_error_after_solve_is_a_python_traceback(tmp_path):
+    """An exception after the solve ends the script with Python's exit code 1, not PETSc's SEGV."""
+    proc = _run_script(tmp_path, _EXIT_SCRIPT, "--raise")
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "RuntimeError: a user error after the solve" in proc.stderr
+    _assert_no_crash(proc)
+
+
+def test_script_exits_cleanly_after_a_failure_inside_kspsolve(tmp_path):
+    """PETSc 3.18 segfaults destroying a KSP whose solve failed inside: such a KSP is kept, not destroyed."""
+    proc = _run_script(tmp_path, _FAIL_INSIDE_SCRIPT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_no_crash(proc)
+    assert "caught: the coarse solve failed" in proc.stdout
+    ok = [ln.split() for ln in proc.stdout.splitlines() if ln.startswith("OK")]
+    assert len(ok) == 1 and 1 <= int(ok[0][1]) <= 10, proc.stdout
+
+
+def test_docs_example_on_a_torus_exits_cleanly(tmp_path):
+    """The issue's case: PetscMultigrid(p.A, p.P).solve(p.b) on a procedural torus's cage hierarchy."""
+    pytest.importorskip("tetgen")
+    proc = _run_script(tmp_path, _TORUS_SCRIPT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_no_crash(proc)
+    ok = [ln.split() for ln in proc.stdout.splitlines() if ln.startswith("OK")]
+    assert len(ok) == 1 and int(ok[0][1]) <= 20 and ok[0][2] == "True", proc.stdout
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(_mpirun() is None, reason="no mpirun/mpiexec on PATH (apt-get install openmpi-bin)")
+def test_script_exits_cleanly_two_ranks(tmp_path):
+    proc = _run_script(tmp_path, _EXIT_SCRIPT, ranks=2)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_no_crash(proc)
+    assert proc.stdout.count("OK") == 2, proc.stdout  # one per rank (their lines may interleave)
+
+
+def test_destroy_is_idempotent_and_frees_on_collection(dirichlet):
+    import gc
+    import weakref
+
+    mg = PetscMultigrid(dirichlet["A"], dirichlet["Ps"])
+    ksp = mg.ksp
+    fin = mg._finalizer
+    mg.destroy()
+    mg.destroy()
+    assert not fin.alive and ksp.handle == 0
+    with pytest.raises(SolverError, match="destroyed"):
+        mg.solve(dirichlet["b"])
+    mg2 = PetscMultigrid(dirichlet["A"], dirichlet["Ps"])
+    ksp2, ref = mg2.ksp, weakref.ref(mg2)
+    del mg2
+    gc.collect()
+    assert ref() is None and ksp2.handle == 0  # the garbage collector destroyed its PETSc objects
+
+
 # ------------------------------------------------------------------- cage hierarchies (issue 15, item 4)
 @pytest.fixture(scope="module")
 def sphere_cages():

@@ -25,10 +25,12 @@ import time
 from collections.abc import Callable
 
 import igl
+import ipctk
 import numpy as np
 
 from ..decimate import decimate_surface
 from ..errors import CageError
+from ..split_edges import split_long_edges
 from ..verify import verify_nesting
 from .collision import PairMesh, min_distance
 from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signed_volume
@@ -317,6 +319,8 @@ def nest_pair(
                              clearance="reinflate", reporter=rep)
         info2["clearance"] = dict(oinfo, fallback="reinflate")
         return C, info2
+    Vf, Ff, info["split"] = _split_for_flow(Vf, Ff, Vc, Fc)
+    Vc, info["dilation"] = _dilate_target(Vc, Fc, 2.0 * gap if gap > 0 else flow_step)
     target = offset_surface(Vf, Ff, gap) if gap > 0 else np.array(Vf, dtype=float)
     flowed = target if clearance == "flow" else np.array(Vf, dtype=float)
 
@@ -351,6 +355,40 @@ def nest_pair(
     # the re-inflation ends with the fine surface exactly at its rest pose
     info["reinflate"]["fine_at_rest"] = bool(np.array_equal(rr.fine, target))
     return rr.cage, info
+
+
+def _split_for_flow(Vf, Ff, Vc, Fc):
+    """The fine surface with no edge longer than Ĉ's median edge (same surface, :func:`split_long_edges`).
+
+    The flow samples F at its triangles' quadrature points (paper Eq. 5); a triangle longer than
+    Ĉ's edges (CAD exports: long slivers across flat faces) is sampled too sparsely, its points end
+    inside Ĉ while its edges still cross Ĉ, and the flow stalls (angle_block.stl: 1000 iterations,
+    30 s, failed; split: 14 iterations, 0.8 s). The flow and re-inflation run on the split copy; the
+    cage is certified against the caller's surface.
+    """
+    E = igl.edges(np.asarray(Fc, dtype=np.int64))
+    L = float(np.median(np.linalg.norm(Vc[E[:, 0]] - Vc[E[:, 1]], axis=1)))
+    Vs, Fs, sinfo = split_long_edges(Vf, Ff, L, max_faces=max(8 * len(Ff), 20 * len(Fc)))
+    sinfo["max_length"] = L
+    return Vs, Fs, sinfo
+
+
+def _dilate_target(Vc, Fc, delta):
+    """Ĉ moved out by ``delta`` along its normals (:func:`offset_surface`), the motion cut by CCD.
+
+    A decimation keeps the input's flat faces in place (QEM's error is zero there), so on CAD parts
+    Ĉ and F coincide over whole faces: signed distances are 0, the intersection tests degenerate
+    (ipctk's CCD warns of gaps of 1e-17) and the flow cannot finish (featuretype.stl: 1000
+    iterations, 179 s, failed; with Ĉ dilated by twice the clearance: 5 iterations, 2.3 s). The
+    cage has to keep ``gap`` from F anyway, so starting Ĉ about 2 ``gap`` out costs no tightness
+    the clearance had not already taken.
+    """
+    target = offset_surface(Vc, Fc, delta)
+    faces = np.asarray(Fc, dtype=np.int32)
+    cm = ipctk.CollisionMesh(np.asarray(Vc, dtype=float), ipctk.edges(faces), faces)
+    alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, target, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
+    alpha = min(1.0, 0.9 * alpha) if alpha < 1.0 else 1.0  # stop short of a contact the CCD found
+    return Vc + alpha * (target - Vc), {"delta": float(delta), "fraction": alpha}
 
 
 def _decimate(V, F, n_faces, algorithm):
@@ -543,7 +581,7 @@ def nested_backend(
                     C, G, linfo = _build_layer(src_V, src_F, m, params, gap_target, rep, 0,
                                                int(max_recovery_depth), log, k)
             except CageError as exc:
-                C, G, linfo = _fallback(prev_n, prev_F, m, exc, fallback, rep, log, k)
+                C, G, linfo = _fallback(prev_n, prev_F, m, exc, fallback, rep, log, k, gap_target)
             Vk = C * diag + center
             Gk = np.ascontiguousarray(G, dtype=np.int64)
             t = time.perf_counter()
@@ -591,14 +629,18 @@ def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):
     return C, G, pinfo
 
 
-def _fallback(Vf, Ff, m, exc, fallback, rep, log, k):
-    """Last resort for layer ``k`` once the flow and the intermediate layers failed (None: raise)."""
+def _fallback(Vf, Ff, m, exc, fallback, rep, log, k, gap):
+    """Last resort for layer ``k`` once the flow and the intermediate layers failed (None: raise).
+
+    The fallback keeps the layer's clearance ``gap`` (absolute, unit-diagonal frame) like the flow
+    does: a cage closer than that would only be refused by the certification after it.
+    """
     if fallback is None:
         raise exc
-    return FALLBACKS[fallback](Vf, Ff, m, exc, rep, log, k)
+    return FALLBACKS[fallback](Vf, Ff, m, exc, rep, log, k, gap)
 
 
-def _lazy_fallback(Vf, Ff, m, exc, rep, log, k):
+def _lazy_fallback(Vf, Ff, m, exc, rep, log, k, gap=0.0):
     """Fallback ``"lazy"``: a lazy cage (GPL ``gpytoolbox.copyleft``, loaded only here)."""
     try:
         from ..copyleft.lazy import lazy_cage_layer
@@ -609,19 +651,26 @@ def _lazy_fallback(Vf, Ff, m, exc, rep, log, k):
         C, G, info = lazy_cage_layer(Vf, Ff, m)
     except CageError as exc2:
         raise CageError(f"{exc}; the lazy fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
+    pinfo = None
+    if gap > 0:  # a lazy cage is loose, but may come closer than the clearance somewhere
+        C2, pinfo = push_out(C, G, Vf, Ff, gap)
+        if C2 is None:
+            raise CageError(f"{exc}; the lazy fallback's cage could not keep the clearance {gap:.3g}: "
+                            f"{pinfo['reason']}", layer=k, reason=exc.reason)
+        C = C2
     log.append({"layer": k, "action": f"fall back to a lazy cage of {len(G)} faces (cagegen.copyleft.lazy)",
                 "stage": "fallback", "reason": str(exc)})
-    return C, G, {"fallback": "lazy", "lazy": info, "seconds": {"lazy": info["seconds"]}}
+    return C, G, {"fallback": "lazy", "lazy": info, "clearance": pinfo, "seconds": {"lazy": info["seconds"]}}
 
 
-def _sdf_fallback(Vf, Ff, m, exc, rep, log, k):
-    """Fallback ``"sdf"``: an sdf cage (:func:`cagegen.sdf.backend.nested_fallback`; MIT)."""
+def _sdf_fallback(Vf, Ff, m, exc, rep, log, k, gap=0.0):
+    """Fallback ``"sdf"``: an sdf cage keeping ``gap`` (:func:`cagegen.sdf.backend.nested_fallback`; MIT)."""
     from ..sdf.backend import nested_fallback
 
-    return nested_fallback(Vf, Ff, m, exc, rep, log, k)
+    return nested_fallback(Vf, Ff, m, exc, rep, log, k, gap=gap)
 
 
-#: Fallback name -> ``f(Vf, Ff, m, exc, rep, log, k) -> (C, G, layer_info)`` (unit-diagonal coordinates;
+#: Fallback name -> ``f(Vf, Ff, m, exc, rep, log, k, gap) -> (C, G, layer_info)`` (unit-diagonal coordinates;
 #: ``layer_info["fallback"]`` names it). ``nested_backend``'s default is ``"sdf"`` (MIT); ``"lazy"`` (GPL) only by name.
 FALLBACKS = {"lazy": _lazy_fallback, "sdf": _sdf_fallback}
 

@@ -4,6 +4,10 @@ The coarse cage C comes first (vertices ``0..nc-1``), the fine surface F after i
 may self-intersect while it is flowed (paper Sec. 3.1: "we do not care ... whether it self-
 intersects"), so fine-fine pairs are filtered out; cage-cage pairs are kept (the cage must stay free
 of self-intersections) and so are cage-fine pairs.
+
+ipctk's log lines (spdlog, printed on stdout by the C++ side) go to the ``cagegen.ipctk`` logger:
+the calls below run inside :func:`cagegen._log.ipctk_to_log`, and ipctk stays at level ``error``
+outside them (set at import of this module).
 """
 
 from __future__ import annotations
@@ -11,7 +15,11 @@ from __future__ import annotations
 import ipctk
 import numpy as np
 
-__all__ = ["PairMesh", "min_distance"]
+from .._log import ipctk_to_log, setup_ipctk
+
+__all__ = ["PairMesh", "ipctk_to_log", "min_distance"]
+
+setup_ipctk()
 
 
 def _i32(F: np.ndarray) -> np.ndarray:
@@ -54,7 +62,8 @@ class PairMesh:
 
     def intersects(self, X: np.ndarray) -> bool:
         """True if the cage intersects itself or the fine surface at positions ``X``."""
-        return bool(ipctk.has_intersections(self.mesh, X))
+        with ipctk_to_log():
+            return bool(ipctk.has_intersections(self.mesh, X))
 
     def stepsize(self, X0: np.ndarray, X1: np.ndarray, min_distance: float = 0.0,
                  candidates: ipctk.Candidates | None = None) -> float:
@@ -64,11 +73,12 @@ class PairMesh:
         with an LBVH broad phase: ~10-25x faster here than the default Tight-Inclusion CCD.
         ``candidates`` (from :meth:`candidates` of a motion containing this one) skips the broad phase.
         """
-        if candidates is not None:
-            return float(candidates.compute_collision_free_stepsize(self.mesh, X0, X1, min_distance,
-                                                                    ipctk.AdditiveCCD()))
-        return float(ipctk.compute_collision_free_stepsize(
-            self.mesh, X0, X1, min_distance, ipctk.LBVH(), ipctk.AdditiveCCD()))
+        with ipctk_to_log():
+            if candidates is not None:
+                return float(candidates.compute_collision_free_stepsize(self.mesh, X0, X1, min_distance,
+                                                                        ipctk.AdditiveCCD()))
+            return float(ipctk.compute_collision_free_stepsize(
+                self.mesh, X0, X1, min_distance, ipctk.LBVH(), ipctk.AdditiveCCD()))
 
     def candidates(self, X0: np.ndarray, X1: np.ndarray, inflation: float) -> ipctk.Candidates:
         """Broad-phase candidates of the linear motion ``X0 -> X1``, boxes inflated by ``inflation``.
@@ -79,7 +89,8 @@ class PairMesh:
         (IPC's line search, Li et al. 2020, Alg. 1), one broad phase per step instead of one per call.
         """
         cand = ipctk.Candidates()
-        cand.build(self.mesh, X0, X1, float(inflation), ipctk.LBVH())
+        with ipctk_to_log():
+            cand.build(self.mesh, X0, X1, float(inflation), ipctk.LBVH())
         return cand
 
     def collisions(self, X: np.ndarray, dhat: float,
@@ -87,10 +98,11 @@ class PairMesh:
         """Barrier collision set (pairs closer than ``dhat``) at positions ``X`` (``candidates``: see
         :meth:`candidates`)."""
         col = ipctk.NormalCollisions()
-        if candidates is not None:
-            col.build(candidates, self.mesh, X, dhat, 0.0)
-        else:
-            col.build(self.mesh, X, dhat, 0.0, ipctk.LBVH())
+        with ipctk_to_log():
+            if candidates is not None:
+                col.build(candidates, self.mesh, X, dhat, 0.0)
+            else:
+                col.build(self.mesh, X, dhat, 0.0, ipctk.LBVH())
         return col
 
 
@@ -122,7 +134,8 @@ def min_distance(Vc: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,
     r = 0.01 * diag if upper is None else float(upper)
     col = ipctk.NormalCollisions()
     while True:
-        col.build(pm.mesh, X, r)
+        with ipctk_to_log():
+            col.build(pm.mesh, X, r)
         if len(col) > 0 or r > 4 * diag:
             break
         r *= 2.0

@@ -23,7 +23,7 @@ import ipctk
 import numpy as np
 
 from .._geometry import cross_intersection_pairs
-from .collision import PairMesh
+from .collision import PairMesh, ipctk_to_log
 from .quadrature import quadrature_matrix, triangle_areas
 
 __all__ = ["FlowResult", "flow_inside"]
@@ -95,7 +95,8 @@ def _expand_target(Vc: np.ndarray, Fc: np.ndarray, faces: np.ndarray, amount: np
     D = a[:, None] * Nv
     faces = np.asarray(Fc, dtype=np.int32)
     cm = ipctk.CollisionMesh(Vc, ipctk.edges(faces), faces)
-    alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, Vc + D, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
+    with ipctk_to_log():  # ipctk's warnings to the cagegen.ipctk logger
+        alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, Vc + D, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
     return Vc + min(1.0, alpha) * D, alpha
 
 

@@ -1,0 +1,348 @@
+"""The defaults on a whole folder of meshes: one JSON and one table (issue 27, item 7).
+
+    OMP_NUM_THREADS=1 python benchmarks/corpus.py ZOO_DIR --out benchmarks/results/corpus/NAME.json \
+        --md docs/corpus.md
+
+For every closed surface file of ``ZOO_DIR`` (OBJ/OFF/PLY/STL; files with boundary or non-manifold edges
+are listed as skipped, with the reason):
+
+* ``solve``: the hierarchy ``nestmg solve FILE --levels 3 --no-cache`` builds by default (nested cages,
+  TetWild), then the three model problems (Dirichlet / Neumann Poisson, Neumann diffusion) with the
+  default cycle, as V-cycles and as MG-PCG: certified (surfaces and n_outside = 0 per level), seconds per
+  stage, tets per level, V-cycle factor, cycles, MG-PCG iterations, operator complexity;
+* ``cages:M`` for each backend ``M`` (``--backends``): ``nestmg cages FILE --levels 3 --method M
+  --no-cache``: certified, faces per layer, seconds, fallbacks;
+* ``wheel``: the reference ``nested_cages`` wheel (extra ``bench``) at the face counts of our nested
+  cages, on the same (normalised) surface, for the speed ratio.
+
+Every case runs in its own process (``--timeout`` seconds, then killed), so a crash or a hang is a row of
+the table, not the end of the run; its peak resident memory (the process and its mesher worker) is
+recorded. ``--table JSON`` rewrites the markdown table from a JSON without running anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+MESH_EXT = (".off", ".obj", ".ply", ".stl")
+PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+#: goals of issue 27 item 3: V-cycle factor per problem, MG-PCG iterations, operator complexity
+GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3, "pcg": 10, "complexity": 1.5}
+
+
+# ------------------------------------------------------------------------------------------ inputs
+def read_surface(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and faces of a surface file, as ``nestmg`` reads it."""
+    from nestmg.io import load_mesh
+
+    V, F = load_mesh(path)
+    return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
+
+
+def closed_reason(F: np.ndarray) -> str:
+    """'' when every edge has exactly two faces, else what is wrong."""
+    E = np.sort(np.vstack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(E, axis=0, return_counts=True)
+    nb, nn = int(np.sum(counts == 1)), int(np.sum(counts > 2))
+    return f"{nb} boundary edges, {nn} non-manifold edges" if nb or nn else ""
+
+
+def _peak_mb() -> float:
+    """Peak resident memory (MB) of this process or of its largest finished child (the mesher worker)."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, kids) / 1024.0
+
+
+# ------------------------------------------------------------------------------------ cases (child)
+def _cli_args(command: str, mesh: Path, extra: list[str]):
+    from nestmg.cli import build_parser
+
+    out = ["--out", tempfile.mkdtemp(prefix="corpus-")] if command == "cages" else []
+    return build_parser().parse_args([command, str(mesh), "--levels", "3", "--no-cache", "--quiet", *out, *extra])
+
+
+def case_solve(mesh: Path) -> dict:
+    """The default hierarchy of ``nestmg solve`` and the three model problems on it."""
+    from nestmg.cli import _hierarchy, _load, _solve
+
+    args = _cli_args("solve", mesh, [])
+    V, F, _ = _load(str(mesh))
+    t = time.perf_counter()
+    h = _hierarchy(V, F, args)
+    rec: dict = {"hierarchy_seconds": time.perf_counter() - t, "certified": h.certified,
+                 "surfaces_nested": h.surfaces_nested, "n_outside": h.n_outside, "fallbacks": h.fallbacks,
+                 "faces": [len(Fk) for _, Fk in h.surfaces], "tets": [len(T) for _, T in h.tets],
+                 "nodes": [len(Vt) for Vt, _ in h.tets], "levels": h.levels,
+                 "levels_note": (h.options.get("sizing", {}).get("levels") or {}).get("note"),
+                 "stages": {k: v for k, v in h.timings.items() if isinstance(v, (int, float))},
+                 "cage_layer_seconds": h.cage_info.get("layer_seconds"),
+                 "predecimation": {k: h.cage_info.get("predecimation", {}).get(k)
+                                   for k in ("faces_in", "faces_out", "hausdorff")},
+                 "sizing_rule": h.options.get("sizing", {}).get("rule"), "problems": {}}
+    for problem in PROBLEMS:
+        args.problem = problem
+        args.accel = None
+        r = _solve(h, args)
+        args.accel = "cg"
+        c = _solve(h, args)
+        rec["problems"][problem] = {
+            "factor": r["factor"], "cycles": r["iterations"], "converged": r["converged"],
+            "pcg_iterations": c["iterations"], "pcg_converged": c["converged"],
+            "operator_complexity": r.get("operator_complexity"), "solve_seconds": r["seconds"],
+            "pcg_seconds": c["seconds"],
+        }
+    return rec
+
+
+def case_cages(mesh: Path, method: str) -> dict:
+    """``nestmg cages FILE --levels 3 --method M`` (the same function and clearance as ``solve``)."""
+    from cagegen.build import fallback_layers
+    from nestmg.cli import _cage_opts, _load
+    from nestmg.hierarchy import build_cage_surfaces
+
+    args = _cli_args("cages", mesh, ["--method", method])
+    V, F, _ = _load(str(mesh))
+    t = time.perf_counter()
+    layers, info = build_cage_surfaces(V, F, args.levels, method=method, mesher=args.mesher, epsilon=args.epsilon,
+                                       cache=False, progress=False, cage_opts=_cage_opts(args, method))
+    ver = info.get("verification") or {}
+    return {"seconds": time.perf_counter() - t, "certified": bool(ver.get("ok")) if ver else None,
+            "faces": [len(Fk) for _, Fk in layers], "fallbacks": fallback_layers(info),
+            "layer_seconds": info.get("layer_seconds"), "min_gap": (info.get("cage_opts") or {}).get("min_gap")}
+
+
+def case_wheel(mesh: Path, counts: list[int]) -> dict:
+    """The reference wheel at our face counts, on the normalised surface (unit diagonal, centred)."""
+    import nested_cages
+
+    V, F = read_surface(mesh)
+    V = (V - 0.5 * (V.min(0) + V.max(0))) / float(np.linalg.norm(V.max(0) - V.min(0)))
+    t = time.perf_counter()
+    out = nested_cages.nested_cages(np.asfortranarray(V), np.asfortranarray(F, dtype=np.int32),
+                                    num_faces=list(counts), quad_order=2, energy_expansion="None",
+                                    energy_final="Volume", regular=[True] * len(counts))
+    return {"seconds": time.perf_counter() - t, "faces": [len(Fk) for _, Fk in out]}
+
+
+def _child(kind: str, mesh: Path, arg: str, result: Path) -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    t = time.perf_counter()
+    try:
+        if kind == "solve":
+            rec = case_solve(mesh)
+        elif kind == "cages":
+            rec = case_cages(mesh, arg)
+        else:
+            rec = case_wheel(mesh, [int(c) for c in arg.split(",")])
+        rec["ok"] = True
+    except Exception as exc:  # noqa: BLE001 -- every failure is a row of the table
+        rec = {"ok": False, "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:400],
+               "traceback": traceback.format_exc()[-1500:]}
+    rec["wall_seconds"] = time.perf_counter() - t
+    rec["peak_mb"] = _peak_mb()
+    result.write_text(json.dumps(rec, default=float))
+
+
+# ----------------------------------------------------------------------------------- runner (parent)
+def run_case(kind: str, mesh: Path, arg: str, timeout: float) -> dict:
+    """One case in a fresh process group, killed after ``timeout`` seconds."""
+    with tempfile.TemporaryDirectory(prefix="corpus-case-") as tmp:
+        result = Path(tmp) / "r.json"
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--case", kind, str(mesh), arg, str(result)]
+        t = time.perf_counter()
+        proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            _, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+            return {"ok": False, "error": f"timeout after {timeout:.0f} s", "wall_seconds": time.perf_counter() - t}
+        if result.exists():
+            return json.loads(result.read_text())
+        tail = err.decode(errors="replace").strip().splitlines()[-3:]
+        return {"ok": False, "error": f"process ended with code {proc.returncode}: {' / '.join(tail)}"[:400],
+                "wall_seconds": time.perf_counter() - t}
+
+
+# ------------------------------------------------------------------------------------------- table
+def _f(x, fmt="{:.3f}") -> str:
+    return "–" if x is None else fmt.format(x)
+
+
+def _mark(ok: bool) -> str:
+    return "" if ok else " ✗"
+
+
+def solve_row(entry: dict) -> str:
+    """One markdown row of the solve table."""
+    s = entry.get("solve") or {}
+    if not s.get("ok"):
+        return f"| {entry['mesh']} | {entry['faces']:,} | **failed** ({_f(s.get('wall_seconds'), '{:.0f}')} s): " \
+               f"{s.get('error', 'not run')} | | | | | | |"
+    st = s["stages"]
+    probs = s["problems"]
+    cells = []
+    for p in PROBLEMS:
+        r = probs[p]
+        cells.append(f"{r['factor']:.3f}{_mark(r['factor'] <= GOALS[p])} / {r['pcg_iterations']}"
+                     f"{_mark(r['pcg_iterations'] <= GOALS['pcg'])}")
+    oc = max(r["operator_complexity"] or 0 for r in probs.values())
+    tets = " / ".join(f"{n / 1000:.0f}k" if n >= 1000 else str(n) for n in s["tets"])
+    cert = "yes" if s["certified"] else "**no**"
+    fb = f" (fallback {[d['fallback'] for d in s['fallbacks']]})" if s.get("fallbacks") else ""
+    return (f"| {entry['mesh']} | {entry['faces']:,} | {cert}{fb} | {tets} | {_f(st.get('cages'), '{:.0f}')} / "
+            f"{_f(st.get('tets'), '{:.0f}')} / {s['wall_seconds']:.0f} | " + " | ".join(cells)
+            + f" | {oc:.2f}{_mark(oc <= GOALS['complexity'])} | {s['peak_mb'] / 1024:.1f} |")
+
+
+def cages_row(entry: dict, backends: list[str]) -> str:
+    """One markdown row of the cages table: certified and seconds per backend, wheel ratio."""
+    cells = []
+    for b in backends:
+        r = entry.get(f"cages:{b}") or {}
+        if r.get("ok"):
+            fb = "*" if r.get("fallbacks") else ""
+            cells.append(f"{'yes' if r['certified'] else 'no'}{fb} {r['seconds']:.0f} s")
+        else:
+            err = r.get("error", "not run")
+            cells.append(f"**fails** {_f(r.get('wall_seconds'), '{:.0f}')} s: {err[:90]}")
+    w, n = entry.get("wheel") or {}, entry.get("cages:nested") or {}
+    if w.get("ok") and n.get("ok"):
+        ratio = f"{w['seconds'] / n['seconds']:.1f}x ({w['seconds']:.0f} s)"
+    elif w:
+        ratio = f"wheel fails: {w.get('error', '')[:60]}"
+    else:
+        ratio = "–"
+    faces = (entry.get("cages:nested") or {}).get("faces")
+    return f"| {entry['mesh']} | {entry['faces']:,} | {faces or '–'} | " + " | ".join(cells) + f" | {ratio} |"
+
+
+def write_markdown(doc: dict, path: Path, source: Path) -> None:
+    """The corpus tables (solve; cages per backend) as a markdown file, generated from the JSON."""
+    b = doc["backends"]
+    lines = [f"<!-- generated by `python benchmarks/corpus.py --table {source} --md {path}`; do not edit -->",
+             "", f"Run: `{doc['command']}` at commit {doc['commit']}, {doc['date']}; {doc['timeout']:.0f} s per case.",
+             "", "### `nestmg solve FILE --levels 3` (defaults: nested cages, TetWild)", "",
+             "Cells: V-cycle factor / MG-PCG iterations to 1e-8 (✗: above the goal "
+             f"{GOALS['poisson-dirichlet']} Dirichlet, {GOALS['poisson-neumann']} Neumann and diffusion, "
+             f"{GOALS['pcg']} iterations, operator complexity {GOALS['complexity']}). Seconds: cages / tets / "
+             "whole case (hierarchy + 6 solves).", "",
+             "| mesh | faces | certified | tets per level | seconds | Dirichlet | Neumann | diffusion | op. cx | "
+             "peak GB |", "|---|---|---|---|---|---|---|---|---|---|"]
+    skipped = []
+    for e in doc["meshes"]:
+        if not e["closed"]:
+            skipped.append(f"{e['mesh']} ({e['skipped']})")
+        elif "solve" in e:
+            lines.append(solve_row(e))
+    if b:
+        lines += ["", "### `nestmg cages FILE --levels 3 --method M`", "",
+                  "Cells: certified, seconds (* a layer by a fallback). Wheel: the reference `nested_cages` "
+                  "at the nested face counts, its seconds over ours.", "",
+                  "| mesh | faces | nested faces | " + " | ".join(b) + " | wheel |",
+                  "|---|---|---|" + "---|" * len(b) + "---|"]
+        lines += [cages_row(e, b) for e in doc["meshes"] if e["closed"]]
+    if skipped:
+        lines += ["", "Not closed (skipped): " + "; ".join(skipped) + "."]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _git_head() -> str | None:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent,
+                              capture_output=True, text=True, timeout=10).stdout.strip() or None
+    except Exception:  # noqa: BLE001 -- not a git checkout
+        return None
+
+
+def survey(folder: Path, names: list[str] | None) -> list[dict]:
+    """One entry per surface file: name, faces, closed or the reason it is skipped."""
+    out = []
+    for path in sorted(folder.iterdir()):
+        if path.suffix.lower() not in MESH_EXT or (names and path.name not in names):
+            continue
+        try:
+            V, F = read_surface(path)
+            reason = closed_reason(F)
+        except Exception as exc:  # noqa: BLE001 -- an unreadable file is a row too
+            V, F, reason = np.zeros((0, 3)), np.zeros((0, 3), int), f"unreadable: {exc}"
+        out.append({"mesh": path.name, "path": str(path), "faces": len(F), "closed": not reason,
+                    "skipped": reason or None})
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", type=Path, nargs="?")
+    ap.add_argument("--out", type=Path, help="JSON written (and rewritten after every case)")
+    ap.add_argument("--md", type=Path, default=None, help="markdown table written from the JSON")
+    ap.add_argument("--meshes", nargs="+", default=None, help="only these file names")
+    ap.add_argument("--backends", default="nested,decimate,sdf,lazy", help="comma-separated; '' for none")
+    ap.add_argument("--no-solve", action="store_true")
+    ap.add_argument("--wheel", action="store_true", help="run the reference wheel at our nested face counts")
+    ap.add_argument("--timeout", type=float, default=900.0, help="seconds per case")
+    ap.add_argument("--table", type=Path, default=None, help="only rewrite --md from this JSON")
+    ap.add_argument("--case", nargs=4, metavar=("KIND", "MESH", "ARG", "RESULT"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.case:
+        _child(args.case[0], Path(args.case[1]), args.case[2], Path(args.case[3]))
+        return 0
+    if args.table:
+        doc = json.loads(args.table.read_text())
+        if args.md:
+            write_markdown(doc, args.md, args.table)
+        return 0
+    if args.folder is None or args.out is None:
+        ap.error("give FOLDER and --out (or --table JSON --md FILE)")
+    backends = [b for b in args.backends.split(",") if b]
+    doc = {"command": " ".join(["python", "benchmarks/corpus.py", *(argv or sys.argv[1:])]),
+           "commit": _git_head(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+           "timeout": args.timeout, "backends": backends, "goals": GOALS, "meshes": survey(args.folder, args.meshes)}
+
+    def save() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(doc, indent=1, default=float))
+        if args.md:
+            write_markdown(doc, args.md, args.out)
+
+    for entry in doc["meshes"]:
+        if not entry["closed"]:
+            continue
+        path = Path(entry.pop("path"))
+        cases = [] if args.no_solve else [("solve", "")]
+        cases += [("cages", b) for b in backends]
+        for kind, arg in cases:
+            key = kind if kind == "solve" else f"cages:{arg}"
+            print(f"[corpus] {entry['mesh']} {key} ...", file=sys.stderr, flush=True)
+            entry[key] = run_case(kind, path, arg, args.timeout)
+            r = entry[key]
+            print(f"[corpus] {entry['mesh']} {key}: ok={r.get('ok')} certified={r.get('certified')} "
+                  f"{r.get('wall_seconds', 0):.1f} s {r.get('error', '')}", file=sys.stderr, flush=True)
+            save()
+        nested = entry.get("cages:nested") or {}
+        if args.wheel and nested.get("ok"):
+            counts = ",".join(str(n) for n in nested["faces"][1:])
+            entry["wheel"] = run_case("wheel", path, counts, args.timeout)
+            save()
+    for entry in doc["meshes"]:
+        entry.pop("path", None)
+    save()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

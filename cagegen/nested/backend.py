@@ -32,7 +32,7 @@ from ..decimate import decimate_surface
 from ..errors import CageError
 from ..split_edges import split_long_edges
 from ..verify import verify_nesting
-from .collision import PairMesh, min_distance
+from .collision import PairMesh, ipctk_to_log, min_distance
 from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signed_volume
 from .flow import flow_inside
 from .reinflate import reinflate
@@ -216,7 +216,7 @@ def nest_pair(
     flow_step: float = 1e-3,
     flow_max_iter: int = 1000,
     flow_active_depth: float | None = None,
-    flow_stall_window: int | None = None,
+    flow_stall_window: int | None = 100,
     flow_stall_iter: int = 150,
     flow_expand_after: int | None = 50,
     flow_max_expansions: int = 20,
@@ -357,8 +357,12 @@ def nest_pair(
     return rr.cage, info
 
 
+#: the flow's copy of F has no edge longer than this many times Ĉ's median edge (:func:`_split_for_flow`)
+SPLIT_FACTOR = 2.0
+
+
 def _split_for_flow(Vf, Ff, Vc, Fc):
-    """The fine surface with no edge longer than Ĉ's median edge (same surface, :func:`split_long_edges`).
+    """The fine surface with no edge longer than :data:`SPLIT_FACTOR` x Ĉ's median edge (same surface).
 
     The flow samples F at its triangles' quadrature points (paper Eq. 5); a triangle longer than
     Ĉ's edges (CAD exports: long slivers across flat faces) is sampled too sparsely, its points end
@@ -367,7 +371,7 @@ def _split_for_flow(Vf, Ff, Vc, Fc):
     cage is certified against the caller's surface.
     """
     E = igl.edges(np.asarray(Fc, dtype=np.int64))
-    L = float(np.median(np.linalg.norm(Vc[E[:, 0]] - Vc[E[:, 1]], axis=1)))
+    L = SPLIT_FACTOR * float(np.median(np.linalg.norm(Vc[E[:, 0]] - Vc[E[:, 1]], axis=1)))
     Vs, Fs, sinfo = split_long_edges(Vf, Ff, L, max_faces=max(8 * len(Ff), 20 * len(Fc)))
     sinfo["max_length"] = L
     return Vs, Fs, sinfo
@@ -386,8 +390,21 @@ def _dilate_target(Vc, Fc, delta):
     target = offset_surface(Vc, Fc, delta)
     faces = np.asarray(Fc, dtype=np.int32)
     cm = ipctk.CollisionMesh(np.asarray(Vc, dtype=float), ipctk.edges(faces), faces)
-    alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, target, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
+    with ipctk_to_log():
+        alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, target, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
     alpha = min(1.0, 0.9 * alpha) if alpha < 1.0 else 1.0  # stop short of a contact the CCD found
+    # the CCD does not see a triangle turning over between its neighbours (sharp, coarse corners of Ĉ
+    # moved along averaged normals): the signed distance to a folded Ĉ keeps points "outside" forever
+    # (decimated-knight: flow failed after 1000 iterations). Shorten the step until no face turns by
+    # more than 30 degrees.
+    N0 = igl.per_face_normals(Vc, faces, np.array([0.0, 0.0, 1.0]))
+    for _ in range(6):
+        N1 = igl.per_face_normals(Vc + alpha * (target - Vc), faces, np.array([0.0, 0.0, 1.0]))
+        if np.einsum("ij,ij->i", N0, N1).min() >= np.cos(np.radians(30.0)):
+            break
+        alpha *= 0.5
+    else:
+        alpha = 0.0
     return Vc + alpha * (target - Vc), {"delta": float(delta), "fraction": alpha}
 
 

@@ -279,12 +279,74 @@ def stick_figure(res: int = 56):
     return V, F, S
 
 
+# ----------------------------------------------------------------------------- a CAD-like part
+def plate_with_holes(holes: int = 3, segments: int = 16, thickness: float = 0.08, radius: float = 0.3,
+                     res: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A flat plate with a row of round through-holes, triangulated as a CAD exporter would (STL).
+
+    The plate is ``holes`` unit squares side by side, each with a hole of ``radius`` (a ``segments``-gon),
+    ``thickness`` thick: genus ``holes``. As in an STL export, every flat face is fanned from the square's
+    corners (long, thin triangles whose size follows the CAD topology, not the geometry), the side walls
+    are one quad (two triangles, aspect ``1 / thickness``) per square side, and the holes' walls one quad
+    per segment. Sharp edges everywhere, no vertex inside a flat face. ``res`` is ignored (the CLI's
+    ``shape:NAME`` passes one to every shape).
+
+    Returns ``(V, F)``: closed, manifold, outward-oriented, ``2 (holes + 1) + 2 holes segments`` vertices.
+    """
+    if segments % 4:
+        raise ValueError(f"segments must be a multiple of 4, got {segments}")
+    q = segments // 4
+    corners = [(i, j) for i in range(holes + 1) for j in (0, 1)]  # square corners, shared by neighbours
+    cid = {c: k for k, c in enumerate(corners)}
+    ang = 2 * np.pi * np.arange(segments) / segments + np.pi / 4  # the first point faces corner (1,1)
+    top: list[list[float]] = [[x, y] for x, y in corners]
+    circ = []  # per hole: indices of its circle points in `top`
+    for h in range(holes):
+        c0 = len(top)
+        top += [[h + 0.5 + radius * np.cos(a), 0.5 + radius * np.sin(a)] for a in ang]
+        circ.append(np.arange(c0, c0 + segments))
+    n = len(top)
+    T = []  # triangles of the top face (2D indices)
+    for h in range(holes):
+        # the square's corners counter-clockwise from (1,1), i.e. at 45, 135, 225, 315 degrees
+        sq = [cid[(h + 1, 1)], cid[(h, 1)], cid[(h, 0)], cid[(h + 1, 0)]]
+        c = circ[h]
+        for side in range(4):
+            a, b = sq[side], sq[(side + 1) % 4]
+            arc = [c[(side * q + k) % segments] for k in range(q + 1)]
+            mid = q // 2
+            T += [[a, arc[k], arc[k + 1]] for k in range(mid)]  # fan from the side's first corner
+            T += [[b, arc[k], arc[k + 1]] for k in range(mid, q)]  # and from its second
+            T.append([a, arc[mid], b])
+    T = np.array(T)
+    P = np.array(top)
+    # orient every top triangle counter-clockwise seen from above (+z)
+    e1, e2 = P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]]
+    flip = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] < 0
+    T[flip] = T[flip][:, [0, 2, 1]]
+    V = np.vstack([np.c_[P, np.full(n, thickness)], np.c_[P, np.zeros(n)]])
+    F = [T, T[:, [0, 2, 1]] + n]  # top (up), bottom (down)
+
+    def wall(i, j):  # the quad over the top edge i -> j (outward when i -> j runs counter-clockwise)
+        return [[i, i + n, j], [j, i + n, j + n]]
+
+    outline = ([cid[(i, 0)] for i in range(holes + 1)] + [cid[(holes, 1)]]
+               + [cid[(i, 1)] for i in range(holes - 1, -1, -1)])
+    for k in range(len(outline)):  # the plate's outline, counter-clockwise seen from above
+        F.append(np.array(wall(outline[k], outline[(k + 1) % len(outline)])))
+    for c in circ:  # the holes' walls face the hole's axis: clockwise seen from above
+        for k in range(segments):
+            F.append(np.array(wall(c[(k + 1) % segments], c[k])))
+    return V.astype(np.float64), np.vstack(F).astype(np.int64)
+
+
 SHAPES: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {
     "sphere": sphere,
     "torus": torus,
     "genus2": genus2,
     "neck_blobs": neck_blobs,
     "thin_plate": thin_plate,
+    "plate_holes": plate_with_holes,
 }
 
 

@@ -149,7 +149,7 @@ def _child(kind: str, mesh: Path, arg: str, result: Path) -> None:
             rec = case_wheel(mesh, [int(c) for c in arg.split(",")])
         rec["ok"] = True
     except Exception as exc:  # noqa: BLE001 -- every failure is a row of the table
-        rec = {"ok": False, "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:400],
+        rec = {"ok": False, "error": " ".join(f"{type(exc).__name__}: {exc}".split())[:400],
                "traceback": traceback.format_exc()[-1500:]}
     rec["wall_seconds"] = time.perf_counter() - t
     rec["peak_mb"] = _peak_mb()

@@ -38,7 +38,7 @@ from ._geometry import (
 )
 from .errors import MeshInputError
 
-__all__ = ["MeshAudit", "audit_mesh", "check_mesh", "repair_mesh"]
+__all__ = ["MeshAudit", "audit_mesh", "check_mesh", "flip_cap_faces", "repair_mesh"]
 
 # Defaults, all relative to the bounding-box diagonal ``d`` of the mesh.
 MERGE_TOL = 1e-10  # vertices closer than MERGE_TOL * d are "coincident"
@@ -252,7 +252,8 @@ def audit_mesh(
         a.n_degenerate_faces = int(np.count_nonzero(repeated))
     if a.n_degenerate_faces:
         first = np.flatnonzero(degenerate)[:5].tolist()
-        P.append(f"degenerate (zero-area) faces: {a.n_degenerate_faces} (first: {first})")
+        P.append(f"degenerate (zero-area) faces: {a.n_degenerate_faces} (first: {first}; repair=True / --repair "
+                 "flips the caps of STL exports)")
 
     # --- vertices
     referenced = np.zeros(n, dtype=bool)
@@ -341,6 +342,7 @@ def repair_mesh(
     drop_unreferenced: bool = True,
     orient_outward: bool = True,
     merge_tol: float = MERGE_TOL,
+    flip_caps: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply the safe repairs and return new arrays (the inputs are never modified).
 
@@ -357,6 +359,10 @@ def repair_mesh(
         Make each connected component consistently oriented (breadth-first, ``igl.bfs_orient``), then
         flip the components whose signed volume is negative.
     merge_tol : float
+    flip_caps : bool
+        Flip the longest edge of each *cap* (a face whose third corner lies on its longest edge, zero
+        area: STL exports of CAD parts have them) with the neighbouring face across it
+        (:func:`flip_cap_faces`): the surface is the same point set, without the zero-area face.
 
     Returns
     -------
@@ -378,6 +384,8 @@ def repair_mesh(
         remap[used] = np.arange(used.size)
         V = V[used]
         F = remap[F]
+    if flip_caps and np.isfinite(V).all():
+        F = flip_cap_faces(V, F)
     if orient_outward:
         import igl
 
@@ -444,3 +452,57 @@ def check_mesh(
     audit = audit_mesh(V, F, name=name, self_intersections=self_intersections, **tols)
     audit.raise_if_failed()
     return (V, F, audit) if return_audit else (V, F)
+
+
+def flip_cap_faces(V: np.ndarray, F: np.ndarray, area_tol: float = AREA_TOL, max_rounds: int = 10) -> np.ndarray:
+    """Remove zero-area *caps* by edge flips, leaving the surface the same point set.
+
+    A cap ``(a, b, c)`` has ``c`` on its longest edge ``ab``. With the face ``(b, a, d)`` across ``ab``,
+    the pair becomes ``(b, c, d)``, ``(c, a, d)``: the neighbour split at ``c``, so the union of the two
+    faces is unchanged and the cap is gone. Faces with a repeated vertex, caps on a boundary or a
+    non-manifold edge, and flips that would create an existing edge are left for the audit to report.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+    area_tol : float
+        A face is a cap when ``2 area < area_tol * longest_edge**2`` (:data:`AREA_TOL`, as the audit).
+    max_rounds : int
+        Rounds of flips (a flip may leave a neighbouring cap for the next round).
+
+    Returns
+    -------
+    (m,3) int64 array
+        The new faces (a copy; same count, same orientation).
+    """
+    F = np.array(F, dtype=np.int64)
+    for _ in range(max_rounds):
+        E = V[F[:, [1, 2, 0]]] - V[F]  # edge k runs from corner k to corner k+1
+        L2 = np.einsum("ijk,ijk->ij", E, E)
+        caps = np.flatnonzero((double_areas(V, F) < area_tol * L2.max(axis=1))
+                              & (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0]))
+        if caps.size == 0:
+            break
+        # directed half-edge (u, v) -> face
+        half = {(int(F[f, k]), int(F[f, (k + 1) % 3])): f for f in range(len(F)) for k in range(3)}
+        edges = {tuple(sorted(h)) for h in half}
+        touched, n_flipped = set(), 0
+        for f in caps:
+            if f in touched:
+                continue
+            k = int(np.argmax(L2[f]))
+            a, b, c = int(F[f, k]), int(F[f, (k + 1) % 3]), int(F[f, (k + 2) % 3])
+            g = half.get((b, a))
+            if g is None or g in touched or g == f:
+                continue
+            d = int(next(x for x in F[g] if x not in (a, b)))
+            if tuple(sorted((c, d))) in edges or c == d:
+                continue
+            F[f], F[g] = (b, c, d), (c, a, d)
+            edges.add(tuple(sorted((c, d))))
+            touched.update((f, g))
+            n_flipped += 1
+        if n_flipped == 0:
+            break
+    return F

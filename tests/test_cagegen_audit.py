@@ -229,3 +229,34 @@ def test_edge_counts_match_trimesh_on_random_holes():
         assert es.n_inconsistent_edges == 0 and es.n_nonmanifold_edges == 0
 
     check()
+
+
+def _with_a_cap(V, F):
+    """Insert the midpoint c of an edge ab on one side only and close the T-junction with the cap (a, b, c)."""
+    a, b, x = (int(i) for i in F[0])
+    c = len(V)
+    V2 = np.vstack([V, 0.5 * (V[a] + V[b])])
+    F2 = np.vstack([F[1:], [[a, c, x], [c, b, x], [a, b, c]]])
+    return V2, F2
+
+
+def test_repair_flips_zero_area_caps_of_stl_exports():
+    """CAD STL exports carry caps (a corner on the opposite edge, area 0): refused by the audit with a hint,
+    repaired exactly by an edge flip (same surface area and volume, audit clean)."""
+    import igl
+
+    from cagegen.audit import flip_cap_faces
+    from nestmg.shapes import sphere
+
+    V, F = sphere(8)
+    V2, F2 = _with_a_cap(V, F)
+    a = audit_mesh(V2, F2)
+    assert not a.ok and a.n_degenerate_faces == 1 and "--repair" in str(a)
+    F3 = flip_cap_faces(V2, F2)
+    assert len(F3) == len(F2)
+    b = audit_mesh(V2, F3)
+    assert b.ok, str(b)
+    np.testing.assert_allclose(igl.doublearea(V2, F3).sum(), igl.doublearea(V, F).sum(), rtol=1e-12)
+    assert b.volume == pytest.approx(audit_mesh(V, F).volume, rel=1e-12)
+    V4, F4 = repair_mesh(V2, F2)  # the default repair does it too
+    assert audit_mesh(V4, F4).ok

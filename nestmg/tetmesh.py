@@ -59,8 +59,10 @@ MESHERS = ("tetwild", "tetgen")
 #: the automatic time limit of one :func:`tetrahedralize` call is this many times the sizing estimate of
 #: its meshing time (the estimate is within ~3x of the measured times on a shared 2-core machine) ...
 TIME_LIMIT_FACTOR = 10.0
-#: ... and never below this many seconds (a 2k-tet TetGen mesh takes 0.05 s; a hang takes forever)
-MIN_TIME_LIMIT = 60.0
+#: ... and never below this many seconds, per mesher. TetGen: a 2k-tet mesh takes 0.05 s, a hang forever.
+#: TetWild has not been seen to hang, but its time on CAD parts is far from the estimate (angle_block.stl,
+#: 704 faces: 60 s on a loaded 2-core machine, where 60 s killed it): its floor only stops a runaway.
+MIN_TIME_LIMIT = {"tetgen": 60.0, "tetwild": 900.0}
 #: environment variable overriding the automatic limit: seconds, or "none" for no limit
 TIME_LIMIT_ENV = "NESTMG_MESH_TIME_LIMIT"
 
@@ -189,7 +191,7 @@ def mesh_time_limit(V: np.ndarray, F: np.ndarray, edge_length: float, mesher: st
     from .sizing import expected_tets, fine_mesh_seconds
 
     n_tets = expected_tets(enclosed_volume(V, F), float(edge_length), mesher)
-    return max(MIN_TIME_LIMIT, TIME_LIMIT_FACTOR * fine_mesh_seconds(len(F), n_tets, mesher))
+    return max(MIN_TIME_LIMIT[mesher], TIME_LIMIT_FACTOR * fine_mesh_seconds(len(F), n_tets, mesher))
 
 
 class _MeshTimeout(Exception):
@@ -443,7 +445,7 @@ def tetrahedralize(
     time_limit : float, "auto" or None
         Seconds the mesher may run (in a worker process, killed when over). ``"auto"``:
         :func:`mesh_time_limit` (``$NESTMG_MESH_TIME_LIMIT``, else 10x the sizing estimate, at least
-        60 s). None: no limit, and the mesher runs in this process.
+        60 s for TetGen, 900 s for TetWild). None: no limit, and the mesher runs in this process.
 
     Returns
     -------

@@ -55,4 +55,5 @@ def test_time_limit_from_the_environment(monkeypatch):
     with pytest.raises(ValueError, match=TIME_LIMIT_ENV):
         mesh_time_limit(V, F, 0.05)
     monkeypatch.delenv(TIME_LIMIT_ENV)
-    assert mesh_time_limit(V, F, 0.05) >= 60.0  # the floor of the automatic limit
+    assert mesh_time_limit(V, F, 0.05, "tetgen") >= 60.0  # the floors of the automatic limit
+    assert mesh_time_limit(V, F, 0.05, "tetwild") >= 900.0

@@ -5,22 +5,19 @@ exact fallback runs.
 
 Usage::
 
-    OMP_NUM_THREADS=1 taskset -c 0 python benchmarks/audit_exact.py /work/shared/data/meshes \\
-        --cases fandisk.obj:0 fandisk.obj:1 gargo.off:2 --out benchmarks/results/audit_exact.json
+    OMP_NUM_THREADS=1 taskset -c 0 python benchmarks/audit_exact.py ZOO_DIR \\
+        --cases fandisk.obj:0 fandisk.obj:1 gargo.off:2 --out benchmarks/results/audit/audit_exact.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _read
+from exp_common import read_mesh
 
 
 def main(argv=None) -> dict:
@@ -38,7 +35,7 @@ def main(argv=None) -> dict:
     rows = []
     for case in args.cases:
         name, up = case.rsplit(":", 1)
-        V, F = _read(args.zoo / name)
+        V, F = read_mesh(args.zoo / name)
         V, F = np.asarray(V, float), np.asarray(F, np.int64)
         for _ in range(int(up)):
             V, F = igl.upsample(V, F)

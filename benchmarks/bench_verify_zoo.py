@@ -6,7 +6,8 @@ Each hierarchy goes through :func:`cagegen.verify_nesting` with exact and with f
 Prints one JSON object; saves ``bench_verify_zoo.png`` (fine vertices outside the next layer, per
 pair) unless ``--no-plot``.
 
-Usage: ``PYTHONPATH=. python benchmarks/bench_verify_zoo.py [--meshes gargo] [--faces 1000 500]``
+Usage: ``PYTHONPATH=. python benchmarks/bench_verify_zoo.py ZOO_DIR [--meshes gargo] [--faces 1000 500]``
+(``ZOO_DIR``: the folder of the dev-zoo meshes; default ``$NESTMG_ZOO``)
 """
 
 from __future__ import annotations
@@ -18,8 +19,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-ZOO = Path(os.environ.get("NESTMG_ZOO", "/work/shared/data/meshes"))
 
 
 def pair_rows(rep) -> list[dict]:
@@ -40,10 +39,14 @@ def pair_rows(rep) -> list[dict]:
 
 def main() -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("zoo", type=Path, nargs="?", default=os.environ.get("NESTMG_ZOO"),
+                    help="folder of the dev-zoo meshes (default: $NESTMG_ZOO)")
     ap.add_argument("--meshes", nargs="+", default=["gargo"])
     ap.add_argument("--faces", nargs="+", type=int, default=[1000, 500])
     ap.add_argument("--no-plot", action="store_true")
     args = ap.parse_args()
+    if args.zoo is None:
+        ap.error("give the mesh folder ZOO_DIR (or set NESTMG_ZOO)")
 
     import igl
 
@@ -56,7 +59,7 @@ def main() -> dict:
 
     out: dict = {"face_counts": args.faces, "meshes": {}}
     for name in args.meshes:
-        path = next(ZOO.glob(f"{name}.*"))
+        path = next(Path(args.zoo).glob(f"{name}.*"))
         V, F = igl.read_triangle_mesh(str(path))
         F = F.astype(np.int64)
         res: dict = {"faces": len(F)}

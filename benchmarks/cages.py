@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import sys
 import time
@@ -38,26 +37,9 @@ import traceback
 from pathlib import Path
 
 import numpy as np
+from exp_common import in_subprocess, is_closed, layer_figures, read_mesh, run_wheel, verify_layers
 
 MESH_EXT = (".off", ".obj", ".ply", ".stl")
-
-
-def _read(path: Path):
-    import igl
-
-    V, F = igl.read_triangle_mesh(str(path))[:2]
-    return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
-
-
-def _is_closed(F: np.ndarray) -> tuple[bool, str]:
-    """Closed = every edge has exactly two faces (no boundary, no non-manifold edge)."""
-    E = np.sort(np.vstack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(E, axis=0, return_counts=True)
-    n_boundary = int(np.sum(counts == 1))
-    n_nonmanifold = int(np.sum(counts > 2))
-    if n_boundary or n_nonmanifold:
-        return False, f"{n_boundary} boundary edges, {n_nonmanifold} non-manifold edges"
-    return True, ""
 
 
 def _tightness(V, F, layers) -> list[dict]:
@@ -77,59 +59,12 @@ def _tightness(V, F, layers) -> list[dict]:
     return out
 
 
-def _layer_figures(V, F, layers) -> list[dict]:
-    """Per cage layer: max / mean distance to the input over its diagonal, volume ratio, genus, quality."""
-    import igl
-
-    from cagegen._geometry import signed_volume
-    from cagegen.sdf.backend import _min_angle_deg, genus
-    from cagegen.sdf.optimize import mips
-
-    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
-    vol0 = signed_volume(V, F)
-    out = []
-    for Vk, Fk in layers:
-        X = Vk[Fk]
-        A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
-        Q = np.vstack([X.mean(1), 0.5 * (X[:, 0] + X[:, 1]), 0.5 * (X[:, 1] + X[:, 2]), 0.5 * (X[:, 2] + X[:, 0])])
-        w = np.tile(A / 4, 4)
-        d2 = igl.point_mesh_squared_distance(Q, V, F)[0]
-        m = mips(Vk, Fk)
-        out.append({
-            "n_faces": len(Fk),
-            "max_distance_relative": float(igl.hausdorff(Vk, Fk, V, F)) / diag,
-            "mean_distance_relative": float(np.sum(w * np.sqrt(d2)) / np.sum(w)) / diag,
-            "volume_ratio": float(signed_volume(Vk, Fk) / vol0),
-            "genus": genus(Vk, Fk),
-            "min_angle_deg": _min_angle_deg(Vk, Fk),
-            "mips_mean": float(m.mean()),
-            "mips_max": float(m.max()),
-        })
-    return out
-
-
-def _verify(V, F, layers) -> dict:
-    from cagegen import verify_nesting
-
-    rep = verify_nesting([(V, F)] + list(layers))
-    d = rep.to_dict()
-    return {
-        "ok": bool(rep.ok),
-        "pairs": [
-            {k: p.get(k) for k in ("fine", "ok", "reason", "min_gap", "min_gap_rel", "min_winding",
-                                   "n_outside_vertices", "n_coarse_inside_vertices", "n_intersecting_pairs",
-                                   "self_intersections_coarse", "seconds") if k in p}
-            for p in d.get("pairs", [])
-        ],
-    }
-
-
 def _run_ours(path: str, counts: list[int], q) -> None:
     t = time.perf_counter()
     try:
         from cagegen.nested import nested_backend
 
-        V, F = _read(Path(path))
+        V, F = read_mesh(Path(path))
         t = time.perf_counter()
         c0 = time.process_time()
         layers, info = nested_backend(V, F, counts, progress=False)
@@ -155,14 +90,14 @@ def _run_ours(path: str, counts: list[int], q) -> None:
 
 
 def _run_backend(method: str):
-    """Runner of a registered cage backend (``sdf``, ``lazy``, ...) for :func:`_in_subprocess`."""
+    """Runner of a registered cage backend (``sdf``, ``lazy``, ...) for :func:`in_subprocess`."""
     def run(path: str, counts: list[int], q) -> None:
         t = time.perf_counter()
         c0 = time.process_time()
         try:
             from cagegen import get_backend
 
-            V, F = _read(Path(path))
+            V, F = read_mesh(Path(path))
             t = time.perf_counter()
             c0 = time.process_time()
             layers, info = get_backend(method)(V, F, counts, progress=None)
@@ -186,42 +121,6 @@ def _run_backend(method: str):
             q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
                    "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
     return run
-
-
-def _run_wheel(path: str, counts: list[int], q) -> None:
-    t = time.perf_counter()
-    c0 = time.process_time()
-    try:
-        import nested_cages
-
-        V, F = _read(Path(path))
-        t = time.perf_counter()
-        c0 = time.process_time()
-        out = nested_cages.nested_cages(
-            np.asfortranarray(V), np.asfortranarray(F, dtype=np.int32), num_faces=list(counts), quad_order=2,
-            energy_expansion="None", energy_final="Volume", regular=[True] * len(counts))
-        sec = time.perf_counter() - t
-        q.put({"ok": True, "seconds": sec, "cpu_seconds": time.process_time() - c0,
-               "layers": [(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.int64))
-                          for a, b in out]})
-    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
-        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t})
-
-
-def _in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
-    ctx = mp.get_context("fork")
-    q = ctx.Queue()
-    p = ctx.Process(target=fn, args=(str(path), counts, q))
-    t = time.perf_counter()
-    p.start()
-    try:
-        res = q.get(timeout=timeout)
-    except Exception:  # noqa: BLE001 -- queue timeout
-        p.kill()
-        p.join()
-        return {"ok": False, "error": f"timeout after {timeout:.0f} s", "seconds": time.perf_counter() - t}
-    p.join()
-    return res
 
 
 def _git_head() -> str | None:
@@ -248,9 +147,9 @@ def _summarise(V, F, res: dict, counts=()) -> dict:
         layers = res["layers"]
         out["face_counts"] = [len(b) for _, b in layers]
         out["exact_face_counts"] = out["face_counts"] == list(counts)
-        out["verification"] = _verify(V, F, layers)
+        out["verification"] = verify_layers(V, F, layers)
         out["tightness"] = _tightness(V, F, layers)
-        out["layers"] = _layer_figures(V, F, layers)
+        out["layers"] = layer_figures(V, F, layers)
     return out
 
 
@@ -330,8 +229,8 @@ def main(argv=None) -> int:
     for p in files:
         if args.no_default or (args.only and p.name not in args.only):
             continue
-        V, F = _read(p)
-        closed, why = _is_closed(F)
+        V, F = read_mesh(p)
+        closed, why = is_closed(F)
         if not closed:
             skipped.append({"mesh": p.name, "reason": why})
             continue
@@ -355,7 +254,7 @@ def main(argv=None) -> int:
                     skipped.append({"mesh": p.name, "reason": "too small for a cage"})
                     break
     if args.audit:  # smallest first: a run cut short still covers the most meshes
-        cases.sort(key=lambda c: len(_read(c[0])[1]))
+        cases.sort(key=lambda c: len(read_mesh(c[0])[1]))
     for spec in extra:
         name, counts = spec.split("=")
         p = Path(args.mesh_dir) / name
@@ -382,7 +281,7 @@ def main(argv=None) -> int:
                 "results": results}
 
     for p, counts in cases:
-        V, F = _read(p)
+        V, F = read_mesh(p)
         rec = {"mesh": p.name, "n_faces": len(F), "face_counts": counts}
         try:
             from cagegen.sdf.backend import genus
@@ -396,11 +295,11 @@ def main(argv=None) -> int:
         for m in methods + (["wheel"] if have_wheel else []):
             if ref is not None and m != "sdf":
                 continue
-            fn = _run_ours if m == "nested" else _run_wheel if m == "wheel" else _run_backend(m)
+            fn = _run_ours if m == "nested" else run_wheel if m == "wheel" else _run_backend(m)
             print(f"[cages] {p.name} {counts}: {m} ...", file=sys.stderr, flush=True)
             load0 = os.getloadavg()[0]
             tmo = (args.wheel_timeout or args.timeout) if m == "wheel" else args.timeout
-            rec[m] = _summarise(V, F, _in_subprocess(fn, p, counts, tmo), counts)
+            rec[m] = _summarise(V, F, in_subprocess(fn, p, counts, tmo), counts)
             rec[m]["loadavg_1min"] = [load0, os.getloadavg()[0]]
             print(f"[cages]   {m}: ok={rec[m].get('ok')} {rec[m].get('seconds', 0):.1f} s "
                   f"(cpu {rec[m].get('cpu_seconds', float('nan')):.1f}) "

@@ -30,9 +30,7 @@ import traceback
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _in_subprocess, _is_closed, _layer_figures, _read, _verify
+from exp_common import in_subprocess, is_closed, layer_figures, read_mesh, run_wheel, verify_layers
 
 MESH_EXT = (".off", ".obj", ".ply", ".stl")
 SDF_OPTS: dict = {}
@@ -45,7 +43,7 @@ def _run(method: str):
         try:
             from cagegen import get_backend
 
-            V, F = _read(Path(path))
+            V, F = read_mesh(Path(path))
             backend = get_backend(method)
             t = time.perf_counter()
             c0 = time.process_time()
@@ -73,12 +71,6 @@ def _run(method: str):
             q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
                    "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
     return run
-
-
-def _run_wheel(path: str, counts: list[int], q) -> None:
-    from cages import _run_wheel as rw
-
-    rw(path, counts, q)
 
 
 def _write(args, methods, skipped, results) -> dict:
@@ -160,11 +152,11 @@ def main(argv=None) -> int:
     paths = sorted(p for p in Path(args.mesh_dir).iterdir() if p.suffix.lower() in MESH_EXT)
     if args.only:
         paths = [p for p in paths if p.name in args.only]
-    paths.sort(key=lambda p: len(_read(p)[1]))  # smallest first: a cut-short run still covers many meshes
+    paths.sort(key=lambda p: len(read_mesh(p)[1]))  # smallest first: a cut-short run still covers many meshes
     results, skipped = [], []
     for p in paths:
-        V, F = _read(p)
-        ok, why = _is_closed(F)
+        V, F = read_mesh(p)
+        ok, why = is_closed(F)
         if not ok:
             skipped.append({"mesh": p.name, "reason": why})
             continue
@@ -176,15 +168,15 @@ def main(argv=None) -> int:
         row = {"mesh": p.name, "n_faces": len(F), "face_counts": counts}
         for m in methods:
             load0 = os.getloadavg()[0]
-            fn = _run_wheel if m == "wheel" else _run(m)
-            res = _in_subprocess(fn, p, counts, args.timeout)
+            fn = run_wheel if m == "wheel" else _run(m)
+            res = in_subprocess(fn, p, counts, args.timeout)
             out = {k: v for k, v in res.items() if k not in ("layers", "traceback")}
             if res.get("ok"):
                 layers = res["layers"]
                 out["face_counts"] = [len(b) for _, b in layers]
                 out["exact_face_counts"] = out["face_counts"] == counts
-                out["verification"] = _verify(V, F, layers)
-                out["layers"] = _layer_figures(V, F, layers)
+                out["verification"] = verify_layers(V, F, layers)
+                out["layers"] = layer_figures(V, F, layers)
             elif "traceback" in res:
                 out["traceback"] = res["traceback"]
             out["loadavg_1min"] = [load0, os.getloadavg()[0]]

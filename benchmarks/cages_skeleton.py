@@ -17,7 +17,7 @@ cage, and the certified cage.
 
 Usage::
 
-    nice -n 10 python benchmarks/cages_skeleton.py --zoo /work/shared/data/meshes \\
+    nice -n 10 python benchmarks/cages_skeleton.py --zoo ZOO_DIR \\
         --out benchmarks/results/skeleton/cages_skeleton.json --png docs/images/skeleton
 
 ``--opt KEY=VALUE`` (repeatable): extra :func:`cagegen.skeleton.skeleton_cage` keywords for every case,
@@ -38,8 +38,6 @@ import traceback
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 ZOO = ("homer.obj", "cheburashka.obj", "elephant.obj", "spot.obj")
 _OPTS: dict = {}  # extra skeleton_cage keywords (--opt KEY=VALUE), inherited by the forked children
@@ -70,7 +68,7 @@ def smallest_nested(V, F, k: int, d_skel: float, max_tries: int = 6, bisect: int
     until it is, then ``bisect`` bisection steps between the last failing and the first passing
     count (targets rounded to even numbers). Returns every try (target, faces, max / mean distance, seconds or error) and the answer
     (``None`` if no try reached ``d_skel``)."""
-    from cages_lazy import tightness
+    from exp_common import tightness
 
     from cagegen import build_cages
 
@@ -127,7 +125,7 @@ def smallest_nested(V, F, k: int, d_skel: float, max_tries: int = 6, bisect: int
 
 def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool,
              min_nested: bool = False) -> dict:
-    from cages_lazy import tightness
+    from exp_common import tightness
 
     from cagegen import build_cages, verify_nesting
     from cagegen.skeleton import skeleton_cage

@@ -2,7 +2,7 @@
 sparsified Galerkin (``solvers.reroute_to_pattern`` onto the coarse meshes' sparsity), each with and without the energy-optimal scaling of the coarse correction, on nested and naive
 (``method="decimate"``) hierarchies of dev-zoo meshes.
 
-    nice -n 10 python benchmarks/coarse_operators.py /work/shared/data/meshes \
+    nice -n 10 python benchmarks/coarse_operators.py ZOO_DIR \
         --meshes gargo.off bunny.off 3holes.off --methods nested decimate --mesher tetgen \
         --fine-tets 200000 --out benchmarks/results/coarse_operators
 

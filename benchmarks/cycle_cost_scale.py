@@ -1,6 +1,6 @@
 """Cycle cost, MG-PCG cost and ``setup_problem`` cost at >= 1M tets (issue 15, items 2 and 3).
 
-    nice -n 10 python benchmarks/cycle_cost_scale.py /work/shared/data/meshes/bunny.off \
+    nice -n 10 python benchmarks/cycle_cost_scale.py ZOO_DIR/bunny.off \
         --fine-tets 1150000 --out benchmarks/results/cycle_cost_scale
 
 Builds (or loads from the cache) a 4-level hierarchy: TetGen (opt-in, for the measurement only) of the

@@ -1,4 +1,9 @@
-"""Shared helpers of the paper-reproduction experiments (``benchmarks/exp_*.py``, docs/experiments.md).
+"""Shared helpers of the benchmark scripts (benchmarks/README.md): imported as ``from exp_common import ...``
+(Python puts the running script's folder, ``benchmarks/``, first on ``sys.path``).
+
+Sections: the paper-reproduction experiments (``benchmarks/exp_*.py``, docs/experiments.md), the cage
+benchmarks (reading a surface, closedness, per-layer figures, verification, running a backend or the
+reference wheel in a child process with a time limit, tightness) and the reuse benchmarks.
 
 Hierarchies compared on the *same* fine tet mesh (TetGen keeps the input boundary, so every hierarchy
 of one mesh shares level 0 exactly):
@@ -24,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-ZOO = Path("/work/shared/data/meshes")
+#: folder of the dev-zoo meshes: set by the experiments from their required ``--zoo`` argument
+ZOO: Path | None = None
 NAIVE_RULES = ("clamped", "linear", "closest_point", "nearest_vertex")
 
 
@@ -44,7 +50,10 @@ def load_zoo(name: str, zoo: Path | None = None) -> tuple[np.ndarray, np.ndarray
     """A dev-zoo mesh normalised to a unit bounding-box diagonal, centred at the origin."""
     from nestmg.io import load_mesh, normalize
 
-    V, F = load_mesh(Path(zoo if zoo is not None else ZOO) / name)
+    folder = zoo if zoo is not None else ZOO
+    if folder is None:
+        raise ValueError(f"no mesh folder for {name!r}: pass zoo= or set exp_common.ZOO (the --zoo argument)")
+    V, F = load_mesh(Path(folder) / name)
     V, _, _ = normalize(V)
     return V, F
 
@@ -214,6 +223,142 @@ def best_cpu_time(f, repeat: int) -> float:
         f()
         ts.append(time.process_time() - t0)
     return min(ts)
+
+
+# ------------------------------------------------------------------ cage benchmarks (cages.py, cages_sdf.py, ...)
+def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A surface file as read by libigl (not normalised): float64 ``V``, int64 ``F``, C-contiguous."""
+    import igl
+
+    V, F = igl.read_triangle_mesh(str(path))[:2]
+    return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
+
+
+def is_closed(F: np.ndarray) -> tuple[bool, str]:
+    """Closed = every edge has exactly two faces (no boundary, no non-manifold edge)."""
+    E = np.sort(np.vstack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(E, axis=0, return_counts=True)
+    n_boundary = int(np.sum(counts == 1))
+    n_nonmanifold = int(np.sum(counts > 2))
+    if n_boundary or n_nonmanifold:
+        return False, f"{n_boundary} boundary edges, {n_nonmanifold} non-manifold edges"
+    return True, ""
+
+
+def layer_figures(V, F, layers) -> list[dict]:
+    """Per cage layer: max / mean distance to the input over its diagonal, volume ratio, genus, quality."""
+    import igl
+
+    from cagegen._geometry import signed_volume
+    from cagegen.sdf.backend import _min_angle_deg, genus
+    from cagegen.sdf.optimize import mips
+
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    vol0 = signed_volume(V, F)
+    out = []
+    for Vk, Fk in layers:
+        X = Vk[Fk]
+        A = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
+        Q = np.vstack([X.mean(1), 0.5 * (X[:, 0] + X[:, 1]), 0.5 * (X[:, 1] + X[:, 2]), 0.5 * (X[:, 2] + X[:, 0])])
+        w = np.tile(A / 4, 4)
+        d2 = igl.point_mesh_squared_distance(Q, V, F)[0]
+        m = mips(Vk, Fk)
+        out.append({
+            "n_faces": len(Fk),
+            "max_distance_relative": float(igl.hausdorff(Vk, Fk, V, F)) / diag,
+            "mean_distance_relative": float(np.sum(w * np.sqrt(d2)) / np.sum(w)) / diag,
+            "volume_ratio": float(signed_volume(Vk, Fk) / vol0),
+            "genus": genus(Vk, Fk),
+            "min_angle_deg": _min_angle_deg(Vk, Fk),
+            "mips_mean": float(m.mean()),
+            "mips_max": float(m.max()),
+        })
+    return out
+
+
+def verify_layers(V, F, layers) -> dict:
+    """:func:`cagegen.verify_nesting` of the input and its cage layers, as a JSON-ready summary."""
+    from cagegen import verify_nesting
+
+    rep = verify_nesting([(V, F)] + list(layers))
+    d = rep.to_dict()
+    return {
+        "ok": bool(rep.ok),
+        "pairs": [
+            {k: p.get(k) for k in ("fine", "ok", "reason", "min_gap", "min_gap_rel", "min_winding",
+                                   "n_outside_vertices", "n_coarse_inside_vertices", "n_intersecting_pairs",
+                                   "self_intersections_coarse", "seconds") if k in p}
+            for p in d.get("pairs", [])
+        ],
+    }
+
+
+def run_wheel(path: str, counts: list[int], q) -> None:
+    """Runner of the reference ``nested_cages`` wheel for :func:`in_subprocess` (puts its result on ``q``)."""
+    t = time.perf_counter()
+    c0 = time.process_time()
+    try:
+        import nested_cages
+
+        V, F = read_mesh(Path(path))
+        t = time.perf_counter()
+        c0 = time.process_time()
+        out = nested_cages.nested_cages(
+            np.asfortranarray(V), np.asfortranarray(F, dtype=np.int32), num_faces=list(counts), quad_order=2,
+            energy_expansion="None", energy_final="Volume", regular=[True] * len(counts))
+        sec = time.perf_counter() - t
+        q.put({"ok": True, "seconds": sec, "cpu_seconds": time.process_time() - c0,
+               "layers": [(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.int64))
+                          for a, b in out]})
+    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
+        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t})
+
+
+def in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
+    """``fn(str(path), counts, queue)`` in a forked child; its result, or an error after ``timeout`` seconds."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=fn, args=(str(path), counts, q))
+    t = time.perf_counter()
+    p.start()
+    try:
+        res = q.get(timeout=timeout)
+    except Exception:  # noqa: BLE001 -- queue timeout
+        p.kill()
+        p.join()
+        return {"ok": False, "error": f"timeout after {timeout:.0f} s", "seconds": time.perf_counter() - t}
+    p.join()
+    return res
+
+
+def surface_samples(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Vertices of ``(V, F)`` plus ``n`` area-uniform random points on it, (n_v + n, 3)."""
+    rng = np.random.default_rng(seed)
+    a = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    f = rng.choice(len(F), size=n, p=a / a.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    P = np.einsum("ij,ijk->ik", w, V[F[f]])
+    return np.vstack([V, P])
+
+
+def tightness(Vc: np.ndarray, Fc: np.ndarray, V0: np.ndarray, F0: np.ndarray, n_samples: int) -> dict:
+    """Distance of the cage ``(Vc, Fc)`` to the input ``(V0, F0)`` over the input's diagonal, volume ratio."""
+    import igl
+
+    from cagegen._geometry import bbox_diagonal, signed_volume
+
+    diag = bbox_diagonal(V0)
+    Q = surface_samples(Vc, Fc, n_samples)
+    d = np.sqrt(np.maximum(igl.point_mesh_squared_distance(Q, V0, F0)[0], 0.0)) / diag
+    return {
+        "max_dist_rel": float(d.max()),
+        "mean_dist_rel": float(d.mean()),
+        "volume_ratio": signed_volume(Vc, Fc) / signed_volume(V0, F0),
+    }
 
 
 # ------------------------------------------------------------------ reuse benchmarks (issue 15 item 5)
@@ -443,7 +588,7 @@ class Cholmod:
 
 def add_hierarchy_arguments(ap) -> None:
     """Mesh files and their fine edge lengths (argparse) for :func:`hierarchies_from_args`."""
-    ap.add_argument("meshes", type=Path, nargs="*", help="closed surface files (e.g. /work/shared/data/meshes/*.off)")
+    ap.add_argument("meshes", type=Path, nargs="*", help="closed surface files (e.g. ZOO_DIR/*.off)")
     ap.add_argument("--edge-length", type=float, nargs="+", default=None,
                     help="fine edge / bounding-box diagonal, one per mesh (default: build_hierarchy's)")
 

@@ -5,8 +5,8 @@ nearest vertex), the same fine TetGen mesh, the same V(1,1) symmetric Gauss–Se
 iteration (no CG), both Galerkin and re-discretised coarse operators. Also pure Neumann Poisson
 (λ → ∞). Meshes are normalised to a unit bounding-box diagonal.
 
-    python benchmarks/exp_diffusion.py --out bench_out/exp_diffusion          # ~10 min
-    python benchmarks/exp_diffusion.py --quick --out /tmp/exp_diffusion       # ~1 min
+    python benchmarks/exp_diffusion.py --zoo ZOO_DIR --out bench_out/exp_diffusion          # ~10 min
+    python benchmarks/exp_diffusion.py --zoo ZOO_DIR --quick --out OUT                      # ~1 min
 
 Prints a summary, writes ``exp_diffusion.json`` and ``exp_diffusion.png`` into ``--out``.
 """
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import STYLES, ZOO, build_pair, environment, load_zoo, save_figure, write_json
+from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
 
 
 def run(meshes, fine_tets, lams, levels, maxiter, nu):
@@ -99,7 +99,7 @@ def plot(results, path: Path):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--zoo", type=Path, default=ZOO)
+    ap.add_argument("--zoo", type=Path, required=True, help="folder of the dev-zoo meshes")
     ap.add_argument("--meshes", nargs="+", default=["gargo.off", "bunny.off"])
     ap.add_argument("--fine-tets", type=int, default=130_000)
     ap.add_argument("--levels", type=int, default=3)

@@ -6,8 +6,8 @@ V(ν,ν) cycles (symmetric Gauss–Seidel, ν = 1..5) to a relative residual of 
 naive hierarchies (every extrapolation rule), Galerkin and re-discretised coarse operators. The
 distance is compared with the one from direct solves (same discretisation).
 
-    python benchmarks/exp_geodesics.py --out bench_out/exp_geodesics          # ~10 min
-    python benchmarks/exp_geodesics.py --quick --out /tmp/exp_geodesics       # ~1 min
+    python benchmarks/exp_geodesics.py --zoo ZOO_DIR --out bench_out/exp_geodesics          # ~10 min
+    python benchmarks/exp_geodesics.py --zoo ZOO_DIR --quick --out OUT                      # ~1 min
 
 Writes ``exp_geodesics.json`` and ``exp_geodesics.png`` into ``--out``.
 """
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import STYLES, ZOO, build_pair, environment, load_zoo, save_figure, write_json
+from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
 
 
 def run(meshes, fine_tets, levels, nus, maxiter, tol, hierarchies):
@@ -115,7 +115,7 @@ def plot(results, path: Path):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--zoo", type=Path, default=ZOO)
+    ap.add_argument("--zoo", type=Path, required=True, help="folder of the dev-zoo meshes")
     ap.add_argument("--meshes", nargs="+", default=["gargo.off", "bunny.off"])
     ap.add_argument("--fine-tets", type=int, default=80_000)
     ap.add_argument("--hierarchies", nargs="+",

@@ -13,8 +13,8 @@ re-discretised coarse operators, V(1,1) symmetric Gauss–Seidel: the stationary
 (geometric mean of the last 5 residual ratios, ``maxiter`` cycles) and the number of CG iterations
 preconditioned by one V-cycle to 1e-8.
 
-    python benchmarks/exp_scaling.py --out bench_out/exp_scaling          # 15-40 min (1M-tet TetGen run)
-    python benchmarks/exp_scaling.py --quick --out /tmp/exp_scaling       # ~2 min
+    python benchmarks/exp_scaling.py --zoo ZOO_DIR --out bench_out/exp_scaling          # 15-40 min (1M-tet TetGen run)
+    python benchmarks/exp_scaling.py --zoo ZOO_DIR --quick --out OUT                    # ~2 min
 
 Writes ``exp_scaling.json`` and ``exp_scaling.png`` into ``--out``.
 """
@@ -27,7 +27,7 @@ import time
 import warnings
 from pathlib import Path
 
-from exp_common import STYLES, ZOO, build_pair, environment, load_zoo, save_figure, write_json
+from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
 
 HIERARCHIES = ("nested", "naive-linear", "naive-closest_point")
 #: default: closest-point extrapolation gave the same figures as linear in every row of the first run
@@ -143,7 +143,7 @@ def plot(results, path: Path):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--zoo", type=Path, default=ZOO)
+    ap.add_argument("--zoo", type=Path, required=True, help="folder of the dev-zoo meshes")
     ap.add_argument("--meshes", nargs="+", default=["gargo.off", "bunny.off"])
     ap.add_argument("--levels-tets", type=int, default=400_000, help="fine size of the levels sweep")
     ap.add_argument("--max-levels", type=int, default=5,

@@ -12,8 +12,8 @@ Every solver runs in a spawned child process, so that its peak memory can be mea
 (``/proc/self/clear_refs`` resets the high-water mark; reported: ``VmHWM`` minus the resident size
 at the start, MiB) and a runaway direct solver cannot take the benchmark down (``--timeout``).
 
-    python benchmarks/exp_timing.py --out bench_out/exp_timing           # ~10 min
-    python benchmarks/exp_timing.py --quick --out /tmp/exp_timing        # ~1 min
+    python benchmarks/exp_timing.py --zoo ZOO_DIR --out bench_out/exp_timing           # ~10 min
+    python benchmarks/exp_timing.py --zoo ZOO_DIR --quick --out OUT                    # ~1 min
 
 Writes ``exp_timing.json`` and ``exp_timing.png`` into ``--out``.
 """
@@ -29,7 +29,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import ZOO, cages, edge_for_tets, environment, load_zoo, save_figure, write_json
+from exp_common import cages, edge_for_tets, environment, load_zoo, save_figure, write_json
 
 
 def _status_kb(field: str) -> int:
@@ -203,7 +203,7 @@ def plot(results, path: Path):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--zoo", type=Path, default=ZOO)
+    ap.add_argument("--zoo", type=Path, required=True, help="folder of the dev-zoo meshes")
     ap.add_argument("--meshes", nargs="+", default=["gargo.off"])
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 500_000, 1_100_000])
     ap.add_argument("--tol", type=float, default=1e-8)

@@ -10,9 +10,9 @@ a PNG bar chart of setup and solve times. Run from the repository root:
     PYTHONPATH=. python benchmarks/petsc.py [--n 56] [--levels 4] [--ranks 1 2] [--repeat 3] \\
         [--out benchmarks/petsc.png]
     # or a hierarchy from the nestmg pipeline (cages -> tets -> prolongations) of a surface mesh:
-    PYTHONPATH=. python benchmarks/petsc.py --mesh ../shared/data/meshes/gargo.off --levels 3 \\
-        [--method nested] [--mesher tetgen] [--edge-fac 0.006] [--save /tmp/gargo]
-    # later runs can reuse it: --load /tmp/gargo
+    PYTHONPATH=. python benchmarks/petsc.py --mesh ZOO_DIR/gargo.off --levels 3 \\
+        [--method nested] [--mesher tetgen] [--edge-fac 0.006] [--save STEM]
+    # later runs can reuse it: --load STEM
 
 The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_hierarchy`;
 every MPI rank reads it with ``load_hierarchy`` (the pattern docs/petsc.md recommends on a cluster).

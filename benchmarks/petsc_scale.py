@@ -1,6 +1,6 @@
 """``PetscMultigrid(A, P)`` against ``MultigridSolver(A, P)`` on a 1M-tet pipeline hierarchy (issue 15, item 4).
 
-    OPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/petsc_scale.py /work/shared/data/meshes/gargo.off \
+    OPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/petsc_scale.py ZOO_DIR/gargo.off \
         --edge-length 0.0065 --out benchmarks/results/petsc
 
 The hierarchy is the reuse benchmarks' one (``exp_common.load_hierarchy``: TetWild, refined fine level,

@@ -1,7 +1,7 @@
 """Pipeline benchmark (issue 3): per-stage times, V-cycle cost in fine SpMVs, convergence factors and
 n_outside per level, for every cage method, on dev-zoo meshes at a fine level of >= 300k tets.
 
-    python benchmarks/pipeline.py ../shared/data/meshes --meshes bunny.off gargo.off \
+    python benchmarks/pipeline.py ZOO_DIR --meshes bunny.off gargo.off \
         --methods decimate nested --fine-tets 300000 --out bench_out/pipeline
 
 Prints one JSON document and writes ``pipeline.json`` and ``pipeline.png`` into ``--out``.

@@ -20,8 +20,8 @@ stop at ``||b - A u|| <= 1e-8 ||b||``:
 The goal compares nestmg with the best method that re-factors or re-sets up per step (all but
 ``gamg_reuse``, which is reported beside it).
 
-    nice -n 10 python benchmarks/reuse_diffusion.py /work/shared/data/meshes/bunny.off \
-        /work/shared/data/meshes/gargo.off --edge-length 0.0079 0.0067 --out benchmarks/results/reuse
+    nice -n 10 python benchmarks/reuse_diffusion.py ZOO_DIR/bunny.off \
+        ZOO_DIR/gargo.off --edge-length 0.0079 0.0067 --out benchmarks/results/reuse
 
 Prints JSON, writes ``reuse_diffusion.json`` and ``reuse_diffusion.png`` into ``--out``.
 """

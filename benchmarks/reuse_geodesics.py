@@ -17,7 +17,7 @@ triangular solves). Iterative methods start from zero and stop at ``||b - A x|| 
 
 Sources: ``--sources`` fine nodes drawn with a fixed seed; methods run in lock step per source.
 
-    nice -n 10 python benchmarks/reuse_geodesics.py /work/shared/data/meshes/bunny.off \
+    nice -n 10 python benchmarks/reuse_geodesics.py ZOO_DIR/bunny.off \
         --edge-length 0.0079 --out benchmarks/results/reuse
 
 Prints JSON, writes ``reuse_geodesics.json`` and ``reuse_geodesics.png`` into ``--out``.

@@ -1,6 +1,6 @@
 """Build (or load from the cache) the hierarchies of the reuse benchmarks and print their sizes and stage times.
 
-    nice -n 10 python benchmarks/reuse_hierarchy.py /work/shared/data/meshes/bunny.off --edge-length 0.0075
+    nice -n 10 python benchmarks/reuse_hierarchy.py ZOO_DIR/bunny.off --edge-length 0.0075
 
 On a cache hit the stage times are those of the cached entries, not a build: clear ``$NESTMG_CACHE`` to
 measure a build (docs/reuse.md quotes the uncached builds).

@@ -18,7 +18,7 @@ Iterative methods start from zero and stop at ``||b - A x|| <= 1e-8 ||b||``. Eve
 wall and process CPU time; each method is run ``--repeat`` times and the run with the smallest CPU total
 kept (the machine is shared). All kernels are single-threaded (run with ``OPENBLAS_NUM_THREADS=1``).
 
-    OPENBLAS_NUM_THREADS=1 nice -n 10 python benchmarks/reuse_scratch.py /work/shared/data/meshes/bunny.off \
+    OPENBLAS_NUM_THREADS=1 nice -n 10 python benchmarks/reuse_scratch.py ZOO_DIR/bunny.off \
         --edge-length 0.0075 --out benchmarks/results/reuse
 
 Prints JSON, writes ``reuse_scratch.json`` and ``reuse_scratch.png`` into ``--out``.

@@ -12,7 +12,7 @@ face's longest edge beside the cage's median edge (a coarse cage's face spanning
 
 Usage::
 
-    python benchmarks/sdf_far_points.py /work/shared/data/meshes --meshes homer.obj --k 12 \\
+    python benchmarks/sdf_far_points.py ZOO_DIR --meshes homer.obj --k 12 \\
         --out benchmarks/results/sdf/far_points_homer.json
 """
 
@@ -20,14 +20,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _read
+from exp_common import read_mesh
 
 
 def far_points(V: np.ndarray, F: np.ndarray, n_faces: int, k: int, samples: int, tighten: float) -> dict:
@@ -78,7 +75,7 @@ def main() -> None:
 
     res = {"tighten": a.tighten, "results": {}}
     for name in a.meshes:
-        V, F = _read(Path(a.mesh_dir) / name)
+        V, F = read_mesh(Path(a.mesh_dir) / name)
         V, F = np.asarray(V, float), np.asarray(F, np.int64)
         res["results"][name] = far_points(V, F, default_face_counts(len(F), 2)[0], a.k, a.samples, a.tighten)
         print(json.dumps({name: res["results"][name]}, indent=1), flush=True)

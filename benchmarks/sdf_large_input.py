@@ -8,7 +8,7 @@ defaults, recording the seconds per phase, the estimate the time budget uses
 
 Usage::
 
-    OMP_NUM_THREADS=1 taskset -c 0 python benchmarks/sdf_large_input.py /work/shared/data/meshes/gargo.off \\
+    OMP_NUM_THREADS=1 taskset -c 0 python benchmarks/sdf_large_input.py ZOO_DIR/gargo.off \\
         --subdiv 2 --out benchmarks/results/sdf/large_gargo_x2.json
 """
 
@@ -17,14 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _read
+from exp_common import read_mesh
 
 
 def main(argv=None) -> dict:
@@ -38,7 +35,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--subdiv", type=int, default=2, help="igl.upsample rounds (x4 faces each)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    V, F = _read(args.mesh)
+    V, F = read_mesh(args.mesh)
     V, F = np.asarray(V, float), np.asarray(F, np.int64)
     for _ in range(args.subdiv):
         V, F = igl.upsample(V, F)

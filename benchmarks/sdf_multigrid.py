@@ -18,7 +18,7 @@ once). Writes ``--out/<tag>.json`` after every hierarchy (partial results surviv
 
 Usage::
 
-    nice -n 10 python benchmarks/sdf_multigrid.py /work/shared/data/meshes --meshes bunny.off gargo.off \\
+    nice -n 10 python benchmarks/sdf_multigrid.py ZOO_DIR --meshes bunny.off gargo.off \\
         --methods sdf nested decimate --levels 3 --max-tets 300000 --out benchmarks/results/sdf --tag sdf_multigrid
 
 ``--levels 4`` (fine level = red refinement of the input meshed at 2h, then two cage levels) makes the

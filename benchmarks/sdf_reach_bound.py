@@ -26,7 +26,7 @@ few grids and the optional concave pass.
 
 Usage::
 
-    python benchmarks/sdf_reach_bound.py /work/shared/data/meshes/homer.obj \\
+    python benchmarks/sdf_reach_bound.py ZOO_DIR/homer.obj \\
         benchmarks/results/sdf/far_points_homer.json --out benchmarks/results/sdf/reach_bound_homer.json
 """
 
@@ -39,9 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _read
+from exp_common import read_mesh
 
 
 def reach_bound(
@@ -158,7 +156,7 @@ def main() -> None:
     ap.add_argument("--envelopes", default="", help="also build sdf envelopes (c = 0.01) for these "
                     "'h_over_c:concave' pairs, e.g. '1:0,1:1.5,0.5:1.5', and record where they bridge")
     a = ap.parse_args()
-    V, F = _read(Path(a.mesh))
+    V, F = read_mesh(Path(a.mesh))
     lo, hi = V.min(0), V.max(0)
     center, unit = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))  # as sdf_far_points.py
     Vn = (V - center) / unit

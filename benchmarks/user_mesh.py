@@ -1,19 +1,21 @@
 """Bring-your-own-mesh pipeline (issue 16): a user tet mesh file -> hierarchy -> scikit-fem matrix -> MG-PCG.
 
-    nice -n 10 python benchmarks/user_mesh.py ../shared/data/meshes/gargo.off --fine-tets 150000 \
-        --tmp /tmp/user_mesh.msh --json benchmarks/results/user_mesh/gargo.json
+    nice -n 10 python benchmarks/user_mesh.py ZOO_DIR/gargo.off --fine-tets 150000 \
+        --json benchmarks/results/user_mesh/gargo.json
 
 Stands in for the user's own mesher: TetGen (opt-in here, AGPL; the ``tetgen`` extra) meshes the surface to
-about ``--fine-tets`` tets, written with meshio to ``--tmp`` (gmsh 2.2; never committed). Then, timed stage
-by stage: :func:`nestmg.load_tet_mesh`, :func:`nestmg.hierarchy_from_tets` (default: nested cages, TetWild
-coarse layers), scikit-fem P1 assembly (``laplace``, ``mass``), multigrid setup (Galerkin) and MG-PCG to
-``--tol`` for Dirichlet and Neumann Poisson. Prints one JSON document (and writes it to ``--json``).
+about ``--fine-tets`` tets, written with meshio to a gmsh 2.2 file (a temporary file, removed once read;
+``--tmp FILE`` writes and keeps it there; never committed). Then, timed stage by stage:
+:func:`nestmg.load_tet_mesh`, :func:`nestmg.hierarchy_from_tets` (default: nested cages, TetWild coarse layers),
+scikit-fem P1 assembly (``laplace``, ``mass``), multigrid setup (Galerkin) and MG-PCG to ``--tol`` for Dirichlet
+and Neumann Poisson. Prints one JSON document (and writes it to ``--json``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 from pathlib import Path
 
@@ -25,7 +27,8 @@ def main(argv=None) -> dict:
     ap.add_argument("surface", type=Path)
     ap.add_argument("--fine-tets", type=int, default=150_000)
     ap.add_argument("--levels", type=int, default=3)
-    ap.add_argument("--tmp", type=Path, default=Path("/tmp/user_mesh.msh"))
+    ap.add_argument("--tmp", type=Path, default=None,
+                    help="write the user mesh file here and keep it (default: a temporary file, removed)")
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--no-cache", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
@@ -49,12 +52,18 @@ def main(argv=None) -> dict:
     t = time.perf_counter()
     Vu, Tu = tetrahedralize(V, F, mesher="tetgen", edge_length=h)
     sec["make_user_mesh_tetgen"] = time.perf_counter() - t
+    tmp_dir = None
+    if args.tmp is None:
+        tmp_dir = tempfile.TemporaryDirectory(prefix="nestmg_user_mesh_")
+        args.tmp = Path(tmp_dir.name) / "user_mesh.msh"
     meshio.write(str(args.tmp), meshio.Mesh(Vu, [("tetra", Tu)]), file_format="gmsh22", binary=True)
 
     # --- the pipeline, from the file
     t = time.perf_counter()
     V0, T0 = load_tet_mesh(args.tmp)
     sec["read_file"] = time.perf_counter() - t
+    if tmp_dir is not None:
+        tmp_dir.cleanup()
     out.update(user_nodes=len(V0), user_tets=len(T0), same_as_written=bool(np.array_equal(T0, Tu)))
     t = time.perf_counter()
     H = hierarchy_from_tets(V0, T0, levels=args.levels, cache=not args.no_cache, progress=False)

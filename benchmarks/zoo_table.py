@@ -22,7 +22,7 @@ Results are written (atomically, after every cell) to ``--json`` and printed as 
 
 Usage::
 
-    python benchmarks/zoo_table.py /work/shared/data/meshes --methods audit decimate nested lazy \
+    python benchmarks/zoo_table.py ZOO_DIR --methods audit decimate nested lazy \
         --timeout 300 --json zoo_table.json --markdown zoo_table.md
 """
 
@@ -204,7 +204,8 @@ def markdown(results: list[dict], methods: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("zoo", nargs="?", default=os.environ.get("NESTMG_ZOO", "/work/shared/data/meshes"))
+    ap.add_argument("zoo", nargs="?", default=os.environ.get("NESTMG_ZOO"),
+                    help="folder of meshes (default: $NESTMG_ZOO; not needed with --merge)")
     ap.add_argument("--methods", nargs="+", default=["audit", "decimate", "nested", "lazy"],
                     help="cage methods, 'audit', or 'hierarchy:METHOD:MESHER' (whole pipeline)")
     ap.add_argument("--meshes", nargs="+", default=None, help="mesh stems (default: every mesh file)")
@@ -231,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run_cell(args.cell[0], args.cell[1], args.levels)), flush=True)
         return 0
 
+    if args.zoo is None:
+        ap.error("give the mesh folder ZOO_DIR (or set NESTMG_ZOO)")
     from nestmg.cache import atomic_write_bytes
 
     zoo = Path(args.zoo)

@@ -12,7 +12,7 @@ On the default hierarchy of each input (``build_hierarchy(V, F, levels=3, method
 * where the error is: after 20 plain two-grid cycles on ``A x = 0`` from a random start, the share of
   the 50 largest error components that sit on boundary nodes, beside the boundary nodes' share.
 
-    python benchmarks/smoothing.py MESH [MESH ...] --max-tets 500000 \\
+    python benchmarks/archive/smoothing.py MESH [MESH ...] --max-tets 500000 \\
         --json benchmarks/results/scale/smoothing.json
 """
 
@@ -25,7 +25,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, write_json
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import environment, write_json  # noqa: E402
 
 VARIANTS = {"plain": {"local": False, "coarse_nu": 1}, "local": {"coarse_nu": 1},
             "coarse2": {"local": False}, "default": {}}
@@ -87,7 +89,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-tets", type=int, default=None, help="fine tets (default: the pipeline's budget)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
-    out = {"command": " ".join(["python", "benchmarks/smoothing.py", *sys.argv[1:]]),
+    out = {"command": " ".join(["python", "benchmarks/archive/smoothing.py", *sys.argv[1:]]),
            "environment": environment(), "runs": [run(m, a.max_tets) for m in a.meshes]}
     print(json.dumps(out, indent=1, default=float))
     if a.json:

@@ -1,6 +1,6 @@
 """``setup_problem`` against libigl's cotmatrix on one large fine tet mesh (issue 15, item 3).
 
-    nice -n 10 python benchmarks/setup_cost.py /work/shared/data/meshes/bunny.off --fine-tets 1150000 \
+    nice -n 10 python benchmarks/archive/setup_cost.py ZOO_DIR/bunny.off --fine-tets 1150000 \
         --out benchmarks/results/setup_cost
 
 Meshes the input with TetGen (opt-in extra, for the measurement only; minratio 1.5, volume bound from
@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
 
 
 def main(argv=None):

@@ -10,7 +10,7 @@ the mesher's mesh and of the refined one, and the factors.
 
 TetGen is AGPL: it is imported here only because the benchmark names it (``pip install tetgen``).
 
-    python benchmarks/mesher_quality.py MESH [MESH ...] --tets 60000 \\
+    python benchmarks/archive/mesher_quality.py MESH [MESH ...] --tets 60000 \\
         --json benchmarks/results/scale/mesher_quality.json --png benchmarks/results/scale/mesher_quality.png
 """
 
@@ -24,7 +24,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import edge_for_tets, environment, save_figure, write_json
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import edge_for_tets, environment, save_figure, write_json  # noqa: E402
 
 # (mesher, options): TetGen's radius-edge bound ``minratio`` (-q) and dihedral bound ``mindihedral``
 CONFIGS = {
@@ -129,7 +131,7 @@ def main(argv=None) -> int:
     ap.add_argument("--png", default=None)
     a = ap.parse_args(argv)
     rows = [r for m in a.meshes for r in run(m, a.tets, a.configs)]
-    out = {"command": " ".join(["python", "benchmarks/mesher_quality.py", *sys.argv[1:]]),
+    out = {"command": " ".join(["python", "benchmarks/archive/mesher_quality.py", *sys.argv[1:]]),
            "environment": environment(), "runs": rows}
     print(json.dumps(out, indent=1, default=float))
     if a.json:

@@ -19,7 +19,7 @@ crossing envelope or a stuck simplification is recorded as such.
 
 Usage::
 
-    nice -n 10 python benchmarks/sdf_tightness.py /work/shared/data/meshes --meshes bunny.off gargo.off homer.obj \\
+    nice -n 10 python benchmarks/archive/sdf_tightness.py ZOO_DIR --meshes bunny.off gargo.off homer.obj \\
         --norm diagonal --out benchmarks/results/sdf/tightness_diagonal.json
 """
 
@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cages import _read
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import read_mesh  # noqa: E402
 
 
 def _default(name):
@@ -137,7 +137,7 @@ def run_mesh(path: Path, div: int, norm: str, pulls=(0.0,), iters: int = 15, con
     from cagegen.sdf.optimize import optimize_cage
     from cagegen.sdf.simplify import SimplifyStuck, constrained_simplify
 
-    V, F = _read(path)
+    V, F = read_mesh(path)
     Vn = (V - 0.5 * (V.min(0) + V.max(0))) / bbox_diagonal(V)  # unit diagonal, as the backend
     s = float(np.linalg.norm(Vn, axis=1).max()) if norm == "radius" else 1.0
     c, r, l, beta = DEFAULTS["c"] * s, DEFAULTS["r"] * s, DEFAULTS["l"] * s, DEFAULTS["beta"] / s
@@ -211,7 +211,7 @@ def main(argv=None) -> dict:
                     "points) are, on the input and on each optimised cage (the next layer's input)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    doc = {"benchmark": "benchmarks/sdf_tightness.py", "command": " ".join(sys.argv), "results": []}
+    doc = {"benchmark": "benchmarks/archive/sdf_tightness.py", "command": " ".join(sys.argv), "results": []}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name in args.meshes:
         doc["results"].append(run_mesh(args.zoo / name, args.div, args.norm, args.pull, args.iters,

@@ -10,7 +10,7 @@ diagonal (2.5 x TetWild's default envelope) except ``none``:
 * ``offset``: tight cage, then the cage pushed out along its normals (CCD-bounded), ``reinflate``
   when blocked.
 
-    python benchmarks/clearance.py MESH [MESH ...] --modes none reinflate flow offset \\
+    python benchmarks/archive/clearance.py MESH [MESH ...] --modes none reinflate flow offset \\
         --json benchmarks/results/scale/clearance.json [--timeout 1500]
 """
 
@@ -21,7 +21,8 @@ import json
 import sys
 from pathlib import Path
 
-from exp_common import run_child
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import run_child  # noqa: E402
 
 _CHILD = r"""
 import json, sys, time

@@ -18,8 +18,8 @@ Prints one JSON object (also ``--out/lazy_solvers.json``) and saves ``--png`` (f
 
 Usage::
 
-    python benchmarks/lazy_solvers.py /work/shared/data/meshes --meshes gargo 3holes \\
-        --out /tmp/lazy_solvers --png docs/images/lazy_solvers.png
+    python benchmarks/archive/lazy_solvers.py ZOO_DIR --meshes gargo 3holes \\
+        --out OUT --png docs/images/lazy_solvers.png
 """
 
 from __future__ import annotations

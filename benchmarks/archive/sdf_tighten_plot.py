@@ -6,7 +6,7 @@ issue's 1.5% line. Read from each layer's ``tighten`` record (``max_before`` / `
 
 Usage::
 
-    python benchmarks/sdf_tighten_plot.py benchmarks/results/sdf/zoo_sdf_tighten_hug01_d89697c.json \\
+    python benchmarks/archive/sdf_tighten_plot.py benchmarks/results/sdf/zoo_sdf_tighten_hug01_d89697c.json \\
         --out benchmarks/results/sdf/zoo_sdf_tighten_hug01_d89697c.png
 """
 
@@ -21,7 +21,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", type=Path)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--goal", type=float, default=1.5, help="line at this distance (% of the diagonal)")
+    ap.add_argument("--goal", type=float, default=1.5, help="line at this distance (%% of the diagonal)")
     a = ap.parse_args()
     import matplotlib
 

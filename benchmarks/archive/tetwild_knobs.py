@@ -6,7 +6,7 @@ count by :func:`nestmg.sizing.edge_length_for_tets`. Reported per run: seconds, 
 1st-percentile dihedral angle, slivers (min dihedral < 5 degrees), boundary deviation from the input
 (max over boundary nodes, relative to the diagonal) and peak RSS.
 
-    python benchmarks/tetwild_knobs.py MESH --tets 250000 1000000 \\
+    python benchmarks/archive/tetwild_knobs.py MESH --tets 250000 1000000 \\
         --configs default stop30 stop30_it20 --json benchmarks/results/scale/tetwild_knobs.json
 """
 
@@ -17,7 +17,8 @@ import json
 import sys
 from pathlib import Path
 
-from exp_common import run_child
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import run_child  # noqa: E402
 
 CONFIGS = {
     "default": {"epsilon": 1e-3, "stop_energy": 10.0, "max_opt_iter": 80},

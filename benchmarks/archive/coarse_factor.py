@@ -1,6 +1,6 @@
 """SuperLU settings for the coarse levels of a Galerkin hierarchy (issue 15: per-step set-up cost).
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/coarse_factor.py /work/shared/data/meshes/gargo.off \
+    OPENBLAS_NUM_THREADS=1 python benchmarks/archive/coarse_factor.py ZOO_DIR/gargo.off \
         --edge-length 0.0067 --out benchmarks/results/reuse
 
 Loads (or builds, through the cache) the reuse benchmarks' 3-level TetWild hierarchy, forms the Galerkin
@@ -28,7 +28,9 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from exp_common import environment, load_hierarchy
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import environment, load_hierarchy  # noqa: E402
 
 SETTINGS = ("scipy_default", "mmd_pivot", "symmetric")
 
@@ -60,7 +62,7 @@ def main(argv=None) -> int:
     ops = st.family.operators(1.0, 1e-3 * diag**2)
     doc: dict = {"benchmark": "coarse_factor", "mesh": a.mesh.name, "edge_length_fac": a.edge_length,
                  "tets": [len(T) for _, T in h.tets], "environment": environment(),
-                 "command": " ".join(["benchmarks/coarse_factor.py"] + (argv if argv is not None else sys.argv[1:])),
+                 "command": " ".join(["benchmarks/archive/coarse_factor.py"] + (argv if argv is not None else sys.argv[1:])),
                  "levels": []}
     for k, Ak in enumerate(ops[1:], start=1):
         A = sp.csc_matrix(Ak)

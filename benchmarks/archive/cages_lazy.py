@@ -17,11 +17,11 @@ input volume ratio, genus, and the verifier's figures of the pair (ok, min gap, 
 outside, crossing pairs).
 
 Prints one JSON object (also written to ``--out/cages_lazy.json`` with the layers as ``.npz`` for
-``benchmarks/lazy_solvers.py``) and saves ``--png`` (tightness per mesh and method).
+``benchmarks/archive/lazy_solvers.py``) and saves ``--png`` (tightness per mesh and method).
 
 Usage::
 
-    python benchmarks/cages_lazy.py /work/shared/data/meshes --out /tmp/cages_lazy \\
+    python benchmarks/archive/cages_lazy.py ZOO_DIR --out OUT \\
         --png docs/images/cages_lazy.png [--meshes gargo bunny] [--methods lazy nested wheel]
 """
 
@@ -37,36 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
+from exp_common import tightness  # noqa: E402
+
 METHODS = ("lazy", "nested", "wheel")
 MESH_SUFFIXES = (".off", ".obj", ".ply", ".stl")
-
-
-def surface_samples(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """Vertices of ``(V, F)`` plus ``n`` area-uniform random points on it, (n_v + n, 3)."""
-    rng = np.random.default_rng(seed)
-    a = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-    f = rng.choice(len(F), size=n, p=a / a.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-    P = np.einsum("ij,ijk->ik", w, V[F[f]])
-    return np.vstack([V, P])
-
-
-def tightness(Vc: np.ndarray, Fc: np.ndarray, V0: np.ndarray, F0: np.ndarray, n_samples: int) -> dict:
-    """Distance of the cage ``(Vc, Fc)`` to the input ``(V0, F0)`` over the input's diagonal, volume ratio."""
-    import igl
-
-    from cagegen._geometry import bbox_diagonal, signed_volume
-
-    diag = bbox_diagonal(V0)
-    Q = surface_samples(Vc, Fc, n_samples)
-    d = np.sqrt(np.maximum(igl.point_mesh_squared_distance(Q, V0, F0)[0], 0.0)) / diag
-    return {
-        "max_dist_rel": float(d.max()),
-        "mean_dist_rel": float(d.mean()),
-        "volume_ratio": signed_volume(Vc, Fc) / signed_volume(V0, F0),
-    }
 
 
 def _run_method(method: str, V: np.ndarray, F: np.ndarray, counts: list[int], queue) -> None:
@@ -222,7 +197,7 @@ def markdown_table(res: dict) -> str:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("zoo", nargs="?", help="folder of closed meshes (e.g. /work/shared/data/meshes)")
+    ap.add_argument("zoo", nargs="?", help="folder of closed meshes (e.g. the dev zoo)")
     ap.add_argument("--table", nargs="+", metavar="JSON",
                     help="print a markdown table from result files (later files fill methods missing or "
                          "failed in earlier ones) and exit")

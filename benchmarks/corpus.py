@@ -335,8 +335,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.merge:
         docs = [json.loads(p.read_text()) for p in args.merge]
+        rows: dict = {}
+        for d in docs:  # a mesh run again in a later file (e.g. after a fix) replaces the earlier row
+            for e in d["meshes"]:
+                rows[e["mesh"]] = dict(e, commit=d.get("commit"))
         doc = dict(docs[0], command=" ; ".join(d["command"] for d in docs),
-                   meshes=sorted((e for d in docs for e in d["meshes"]), key=lambda e: e["mesh"]))
+                   commit=" / ".join(dict.fromkeys(str(d.get("commit")) for d in docs)),
+                   meshes=[rows[k] for k in sorted(rows)])
         args.out.write_text(json.dumps(doc, indent=1, default=float))
         args.table = args.out
     if args.table:

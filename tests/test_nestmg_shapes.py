@@ -5,7 +5,7 @@ import trimesh
 from nestmg import shapes
 
 # (name, genus) of every built-in shape
-GENUS = {"sphere": 0, "torus": 1, "genus2": 2, "neck_blobs": 0, "thin_plate": 0}
+GENUS = {"sphere": 0, "torus": 1, "genus2": 2, "neck_blobs": 0, "thin_plate": 0, "plate_holes": 3}
 
 
 @pytest.mark.parametrize("name", sorted(shapes.SHAPES))

@@ -267,7 +267,10 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
              "| mesh | faces | certified | tets per level | seconds | Dirichlet | Neumann | diffusion | op. cx | "
              "peak GB |", "|---|---|---|---|---|---|---|---|---|---|"]
     skipped = []
-    for e in doc["meshes"]:
+    main = str(doc.get("commit")).split(" / ")[0]
+    for e in doc["meshes"]:  # rows re-run at another commit say so
+        if e.get("commit") and str(e["commit"]) != main and "(at " not in e["mesh"]:
+            e = dict(e, mesh=f"{e['mesh']} (at {e['commit']})")
         if not e["closed"]:
             skipped.append(f"{e['mesh']} ({e['skipped']})")
         elif "solve" in e:
@@ -278,7 +281,8 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
                   "at the nested face counts, its seconds over ours.", "",
                   "| mesh | faces | nested faces | " + " | ".join(b) + " | wheel |",
                   "|---|---|---|" + "---|" * len(b) + "---|"]
-        lines += [cages_row(e, b) for e in doc["meshes"] if e["closed"]]
+        lines += [cages_row(dict(e, mesh=f"{e['mesh']} (at {e['commit']})") if e.get("commit") and
+                            str(e["commit"]) != main else e, b) for e in doc["meshes"] if e["closed"]]
     if skipped:
         lines += ["", "Not closed (skipped): " + "; ".join(skipped) + "."]
     failures = [f"- {e['mesh']} `{k}`: {_err(r)}" + (f" (last stage: {r['last_stage_lines'][-1]})"

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._log import ipctk_to_log, setup_ipctk
 
-__all__ = ["PairMesh", "ipctk_to_log", "min_distance"]
+__all__ = ["PairMesh", "ipctk_to_log", "min_distance", "self_collision_free_step"]
 
 setup_ipctk()
 
@@ -104,6 +104,18 @@ class PairMesh:
             else:
                 col.build(self.mesh, X, dhat, 0.0, ipctk.LBVH())
         return col
+
+
+def self_collision_free_step(V0: np.ndarray, F: np.ndarray, V1: np.ndarray) -> float:
+    """Largest fraction of the linear motion ``V0 -> V1`` of the surface ``(V0, F)`` free of self-contact.
+
+    ipctk's additive CCD with an LBVH broad phase (as :meth:`PairMesh.stepsize`), on this one surface;
+    1.0 when the whole motion is free. Its log lines go to ``cagegen.ipctk``.
+    """
+    faces = _i32(F)
+    cm = ipctk.CollisionMesh(np.asarray(V0, dtype=float), ipctk.edges(faces), faces)
+    with ipctk_to_log():
+        return float(ipctk.compute_collision_free_stepsize(cm, V0, V1, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
 
 
 def min_distance(Vc: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,

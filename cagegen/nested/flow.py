@@ -19,11 +19,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import igl
-import ipctk
 import numpy as np
 
 from .._geometry import cross_intersection_pairs
-from .collision import PairMesh, ipctk_to_log
+from .collision import PairMesh, self_collision_free_step
 from .quadrature import quadrature_matrix, triangle_areas
 
 __all__ = ["FlowResult", "flow_inside"]
@@ -93,10 +92,7 @@ def _expand_target(Vc: np.ndarray, Fc: np.ndarray, faces: np.ndarray, amount: np
         np.maximum.at(a, Fc[faces, k], amount)
     Nv = igl.per_vertex_normals(Vc, Fc, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
     D = a[:, None] * Nv
-    faces = np.asarray(Fc, dtype=np.int32)
-    cm = ipctk.CollisionMesh(Vc, ipctk.edges(faces), faces)
-    with ipctk_to_log():  # ipctk's warnings to the cagegen.ipctk logger
-        alpha = float(ipctk.compute_collision_free_stepsize(cm, Vc, Vc + D, 0.0, ipctk.LBVH(), ipctk.AdditiveCCD()))
+    alpha = self_collision_free_step(Vc, Fc, Vc + D)
     return Vc + min(1.0, alpha) * D, alpha
 
 

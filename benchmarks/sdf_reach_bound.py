@@ -125,7 +125,7 @@ def reach_bound(
 
 def envelopes(Vn: np.ndarray, F: np.ndarray, ids: np.ndarray, grids: list[tuple[float, float]], c: float = 0.01) -> list:
     """Input-to-envelope distances of ``build_envelope`` for ``(h / c, concave)`` pairs: where the offset bridges."""
-    from cagegen.sdf.envelope import _genus, build_envelope
+    from cagegen.envelope import _genus, build_envelope
     from cagegen.sdf.tighten import input_to_cage
 
     out = []

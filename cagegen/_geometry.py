@@ -305,3 +305,32 @@ def min_edge_edge_distance(
             best = min(best, float(d2.min()))
         start = stop
     return float(np.sqrt(best))
+
+
+def point_triangle_sqdist(P, A, B, C):
+    """Squared distances of points ``P`` to triangles ``ABC``, row by row (Ericson's closest-point
+    regions, vectorised)."""
+    ab, ac, ap = B - A, C - A, P - A
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = P - B
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = P - C
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    tiny = 1e-300
+    v = vb / np.where(np.abs(denom) > tiny, denom, tiny)
+    w = vc / np.where(np.abs(denom) > tiny, denom, tiny)
+    Q = A + v[:, None] * ab + w[:, None] * ac  # interior projection
+    # edge regions
+    def seg(X, Y):
+        t = np.clip(np.einsum("ij,ij->i", P - X, Y - X) / np.maximum(np.einsum("ij,ij->i", Y - X, Y - X), tiny), 0, 1)
+        return X + t[:, None] * (Y - X)
+    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > tiny)
+    cands = [seg(A, B), seg(B, C), seg(C, A)]
+    dist = [np.einsum("ij,ij->i", P - q, P - q) for q in cands]
+    best = np.minimum(np.minimum(dist[0], dist[1]), dist[2])
+    dq = np.einsum("ij,ij->i", P - Q, P - Q)
+    return np.where(inside, np.minimum(dq, best), best)

@@ -75,6 +75,7 @@ def decimate_surface(
     block_intersections: bool = False,
     check_self: bool = True,
     keep_genus: bool = True,
+    other_algorithm: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Decimate a closed surface to about ``n_faces`` faces, checking the result is still a solid.
 
@@ -94,6 +95,10 @@ def decimate_surface(
         Reject (and retry) results with self-intersections (exact test, :mod:`cagegen.intersect`).
     keep_genus : bool
         Reject (and retry) results whose genus differs from the input's.
+    other_algorithm : bool
+        Retry with the other decimator (True, default) or only with the intersection-blocking variant
+        of ``algorithm`` (False: shortest-edge collapses with midpoint placement cut deep into sharp
+        CAD features, where QEM with blocking keeps them).
 
     Returns
     -------
@@ -116,9 +121,12 @@ def decimate_surface(
     F = np.ascontiguousarray(F, dtype=np.int64)
     genus = _genus(V, F) if keep_genus else None
     other = _ALGORITHMS[1 - _ALGORITHMS.index(algorithm)]
-    plan = [(algorithm, block_intersections), (other, block_intersections)]
-    if not block_intersections:
-        plan += [(algorithm, True), (other, True)]
+    if other_algorithm:
+        plan = [(algorithm, block_intersections), (other, block_intersections)]
+        if not block_intersections:
+            plan += [(algorithm, True), (other, True)]
+    else:
+        plan = [(algorithm, block_intersections)] + ([] if block_intersections else [(algorithm, True)])
     attempts = []
     t0 = time.perf_counter()
     for alg, block in plan:

@@ -28,3 +28,16 @@ def torus_iso_tets():
     S = shapes.nested_isosurfaces("torus", [0.0, 0.06, 0.15, 0.35], [32, 20, 12, 8])
     tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
     return S, tets, P, reps
+
+
+@pytest.fixture
+def failing_flow():
+    """A stand-in for ``cagegen.nested.flow.flow_inside`` that always fails: forces the recovery and
+    fallback paths (a flow capped at 0 iterations succeeds when Ĉ, decimated from the envelope,
+    already contains the fine surface)."""
+    from cagegen.nested.flow import FlowResult
+
+    def fail(Vf, *args, **kwargs):
+        return FlowResult([np.array(Vf, dtype=float)], False, 0, "forced failure (test)", 1.0)
+
+    return fail

@@ -159,12 +159,11 @@ def test_mixed_nested_and_lazy_hierarchy_certified(neck):
     assert info["n_faces"] == len(G)
 
 
-def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
+def test_nested_backend_falls_back_to_lazy(neck, monkeypatch, failing_flow):
     """Flow always failing and no intermediate layer allowed: the layer comes from the lazy cage, reported."""
     import cagegen.nested.backend as nb
 
-    real = nb.flow_inside
-    monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    monkeypatch.setattr(nb, "flow_inside", failing_flow)
     V, F = neck
     msgs: list[str] = []
     layers, info = nb.nested_backend(V, F, [600], max_recovery_depth=0, progress=msgs.append, fallback="lazy")
@@ -180,11 +179,10 @@ def test_nested_backend_falls_back_to_lazy(neck, monkeypatch):
     assert exc.value.layer == 1
 
 
-def test_nested_fallback_without_gpytoolbox_raises_the_original_error(neck, monkeypatch):
+def test_nested_fallback_without_gpytoolbox_raises_the_original_error(neck, monkeypatch, failing_flow):
     import cagegen.nested.backend as nb
 
-    real = nb.flow_inside
-    monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    monkeypatch.setattr(nb, "flow_inside", failing_flow)
     monkeypatch.setitem(sys.modules, "cagegen.copyleft.lazy", None)  # import of the hook fails
     V, F = neck
     with pytest.raises(CageError, match="lazy fallback unavailable") as exc:

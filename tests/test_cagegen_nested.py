@@ -255,7 +255,7 @@ def test_offset_surface_clears_face_planes(neck):
         assert h.min() >= 0.01 - 1e-12
 
 
-def test_recovery_after_flow_failure(neck, monkeypatch):
+def test_recovery_after_flow_failure(neck, monkeypatch, failing_flow):
     """A failing flow (the paper's 'Ĉ too far from F') is recovered and recorded in info."""
     V, F = neck
     real = nested_backend_module.flow_inside
@@ -264,7 +264,7 @@ def test_recovery_after_flow_failure(neck, monkeypatch):
     def flaky(*args, **kw):
         calls["n"] += 1
         if calls["n"] == 1:
-            return real(*args, **{**kw, "max_iter": 0})
+            return failing_flow(*args, **kw)
         return real(*args, **kw)
 
     monkeypatch.setattr(nested_backend_module, "flow_inside", flaky)
@@ -274,11 +274,10 @@ def test_recovery_after_flow_failure(neck, monkeypatch):
     assert verify_nesting([(V, F)] + layers).ok
 
 
-def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch):
+def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch, failing_flow):
     V, F = neck
-    real = nested_backend_module.flow_inside
     monkeypatch.setattr(nested_backend_module, "flow_inside",
-                        lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+                        failing_flow)
     from cagegen.errors import CageError
 
     with pytest.raises(CageError) as exc:
@@ -287,13 +286,12 @@ def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch):
 
 
 
-def test_default_fallback_is_a_certified_sdf_layer(neck, monkeypatch):
+def test_default_fallback_is_a_certified_sdf_layer(neck, monkeypatch, failing_flow):
     """A layer whose flow fails (forced) and whose intermediate layers are not allowed falls back by
     default to an sdf cage (MIT) of exactly the requested size, certified."""
     V, F = neck
-    real = nested_backend_module.flow_inside
     monkeypatch.setattr(nested_backend_module, "flow_inside",
-                        lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+                        failing_flow)
     layers, info = nested_backend(V, F, [600], max_recovery_depth=0)
     li = info["layers"][0]
     assert li["fallback"] == "sdf" and len(layers[0][1]) == 600

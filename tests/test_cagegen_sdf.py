@@ -12,7 +12,7 @@ import cagegen
 from cagegen import build_cages, verify_nesting
 from cagegen.errors import CageError, LevelsError
 from cagegen.sdf.backend import genus, sdf_cage_layer
-from cagegen.sdf.envelope import SDFGrid, active_points, build_envelope
+from cagegen.envelope import SDFGrid, active_points, build_envelope
 from cagegen.sdf.optimize import mips
 from cagegen.sdf.simplify import constrained_simplify
 from nestmg import shapes
@@ -230,12 +230,11 @@ def test_stuck_simplification_raises_cage_error():
         sdf_cage_layer(V, F, 4, max_retries=0, c=0.01)
 
 
-def test_nested_backend_falls_back_to_sdf(blobs, monkeypatch):
+def test_nested_backend_falls_back_to_sdf(blobs, monkeypatch, failing_flow):
     """Flow always failing, no intermediate layer: the layer comes from the sdf fallback (MIT), certified."""
     import cagegen.nested.backend as nb
 
-    real = nb.flow_inside
-    monkeypatch.setattr(nb, "flow_inside", lambda *a, **kw: real(*a, **{**kw, "max_iter": 0}))
+    monkeypatch.setattr(nb, "flow_inside", failing_flow)
     monkeypatch.setitem(sys.modules, "cagegen.copyleft.lazy", None)  # no copyleft module can be used
     V, F = blobs
     msgs: list[str] = []

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cagegen.sdf.backend import genus
-from cagegen.sdf.envelope import build_envelope
+from cagegen.envelope import build_envelope
 from nestmg import shapes
 
 
@@ -45,7 +45,7 @@ def test_concave_pass_tightens_a_bridged_groove():
 def test_concave_pass_refused_when_it_changes_the_genus(monkeypatch):
     """The guard: a second envelope with another genus than the first (a narrow pocket partly opened: gargo's
     genus 0 -> 4, cheburashka's 0 -> 3) is not kept; the first envelope is returned unchanged."""
-    import cagegen.sdf.envelope as envmod
+    import cagegen.envelope as envmod
 
     V, F = _grooved_sphere(res=28)
     lo, hi = V.min(0), V.max(0)

@@ -179,8 +179,8 @@ h = build_hierarchy(V, F, levels=2, edge_length_fac=0.15, cache=False, progress=
 assert h.certified and h.fallbacks == [], h
 # the default nested backend, forced to fail: its default fallback is the MIT sdf cage, never the GPL
 # lazy one; without a fallback it raises
-real = nb.flow_inside
-nb.flow_inside = lambda *a, **kw: real(*a, **{**kw, "max_iter": 0})
+from cagegen.nested.flow import FlowResult
+nb.flow_inside = lambda Vf, *a, **kw: FlowResult([Vf], False, 0, "forced failure (test)", 1.0)
 layers, info = nb.nested_backend(V, F, [300], max_recovery_depth=0)
 assert info["layers"][0]["fallback"] == "sdf", info["layers"][0].get("fallback")
 try:

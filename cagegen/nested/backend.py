@@ -28,6 +28,7 @@ import igl
 import numpy as np
 
 from ..decimate import decimate_surface
+from ..envelope import build_envelope
 from ..errors import CageError
 from ..split_edges import split_long_edges
 from ..verify import verify_nesting
@@ -253,8 +254,9 @@ def nest_pair(
         finish within ``flow_max_iter`` at its current rate; None: run to the cap).
     flow_stall_iter, flow_expand_after, flow_max_expansions
         :func:`cagegen.nested.flow.flow_inside`'s ``stall_iter`` (give up after this many iterations
-        with every quadrature point inside Ĉ but intersections left; a quarter of it also times the
-        switch to the denser quadrature and the first expansion around crossing faces),
+        with every quadrature point inside Ĉ but intersections left; the switch to the denser
+        quadrature and the expansions around crossing faces come after
+        :data:`cagegen.nested.flow.INSIDE_PATIENCE` such iterations),
         ``expand_after`` (expand Ĉ where points stay outside for this many iterations; None: never)
         and ``max_expansions`` (cap on expansions of Ĉ). Defaults: the flow's own (150, 50, 20).
     dhat, kappa, dhat_final, kappa_final, max_move, final_iters
@@ -356,6 +358,10 @@ def nest_pair(
     return rr.cage, info
 
 
+#: the re-inflation aims at this many times the requested clearance (:func:`offset_surface` keeps it
+#: on face planes, not at the tips of spikes, where its factor is clamped)
+GAP_AIM = 1.1
+
 #: the flow's copy of F has no edge longer than this many times Ĉ's median edge (:func:`_split_for_flow`)
 SPLIT_FACTOR = 2.0
 
@@ -411,20 +417,63 @@ def _decimate(V, F, n_faces, algorithm):
                   "n_faces": int(G.shape[0]), "seconds": dinfo["seconds"]}
 
 
+#: Ĉ is decimated from the fine layer's envelope at this many times the clearance, and at least
+#: :data:`MIN_TARGET_OFFSET` of the diagonal (:func:`_envelope_target`; ``target_offset=None``). The
+#: envelope's marching cubes run on a grid of that spacing (the sdf paper's c = h = 0.01): at half the
+#: offset and twice the spacing the grid lost featuretype.stl's sharp edges (0.017 of the diagonal
+#: outside after decimation, flow stalled); at half both, 4x the faces and time for no better flow.
+TARGET_OFFSET_GAPS = 4.0
+MIN_TARGET_OFFSET = 0.01
+
+
+def _envelope_target(Vf, Ff, n_faces, offset):
+    """Ĉ decimated from the envelope ``{d = offset}`` of the fine layer, not from the layer itself.
+
+    QEM keeps a CAD part's flat faces in place and cuts into its sharp edges and holes, so the
+    decimated layer leaves much of F outside (featuretype.stl, 1,722 vertices, decimated to 868
+    faces: 678 outside) and the flow has to pull F in through Ĉ's narrowed tunnels, where it
+    stalls whatever Ĉ's expansion does. Decimated from the offset envelope
+    (:func:`cagegen.envelope.build_envelope`: marching cubes of the distance field at ``offset`` on a
+    grid of that spacing, which may cut a sharp edge of F), Ĉ contains F except where the grid or
+    QEM's error exceeds ``offset`` (featuretype.stl: 33 vertices, at most 0.0016 of the diagonal
+    outside): a short flow. Only QEM, with
+    intersection blocking when needed: shortest-edge collapses cut ~5% of the diagonal into such
+    envelopes.
+    """
+    t = time.perf_counter()
+    env = build_envelope(Vf, Ff, c=float(offset), h=float(offset))
+    if len(env.F) <= n_faces:
+        raise CageError(f"envelope at {offset:.3g} has {len(env.F)} faces, not more than the target")
+    U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), algorithm="qslim", other_algorithm=False)
+    return U, G, {"algorithm": dinfo["algorithm"], "block_intersections": dinfo["block_intersections"],
+                  "n_faces": int(G.shape[0]), "offset": float(offset), "envelope_faces": len(env.F),
+                  "seconds": time.perf_counter() - t}
+
+
 def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_no):
-    """Cage with ~n_faces faces nesting (Vf, Ff), with recovery. Returns (C, G, info)."""
+    """Cage with ~n_faces faces nesting (Vf, Ff), with recovery. Returns (C, G, info).
+
+    Targets Ĉ tried in turn: the decimated offset envelope (:func:`_envelope_target`, unless
+    ``target_offset`` is 0), then decimations of the layer itself (the paper's Ĉ) by both decimators.
+    """
     first_alg = opts.get("decimator", "qslim")
     algs = [first_alg, "decimate" if first_alg == "qslim" else "qslim"]
+    sources = [("envelope", first_alg)] if opts.get("target_offset") else []
+    sources += [("layer", alg) for alg in algs]
     failures = []
     tried = set()
-    for alg in algs:
+    for src, alg in sources:
         t = time.perf_counter()
         try:
-            U, G, dinfo = _decimate(Vf, Ff, n_faces, alg)
+            if src == "envelope":
+                U, G, dinfo = _envelope_target(Vf, Ff, n_faces, opts["target_offset"])
+            else:
+                U, G, dinfo = _decimate(Vf, Ff, n_faces, alg)
         except CageError as exc:
-            failures.append({"action": f"decimate with {alg}", "stage": "decimate", "reason": str(exc)})
+            failures.append({"action": f"decimate the {src} with {alg}", "stage": "decimate", "reason": str(exc)})
+            log.append({"layer": layer_no, **failures[-1]})
             continue
-        key = (dinfo["algorithm"], dinfo["block_intersections"])
+        key = (src, dinfo["algorithm"], dinfo["block_intersections"])
         if key in tried:  # the decimator fell back to a result already tried: same flow, skip it
             continue
         tried.add(key)
@@ -432,11 +481,19 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{k: opts[k] for k in _DEFAULTS})
         except _PairFailure as exc:
-            failures.append({"action": f"decimate with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+            failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
                              "stage": exc.stage, "reason": exc.reason})
             log.append({"layer": layer_no, **failures[-1]})
+            rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue
-        pinfo["decimation"] = dinfo
+        d = min_distance(C, G, Vf, Ff)
+        if d < gap / GAP_AIM:  # the offset surface is clamped at spikes (:func:`offset_surface`)
+            failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+                             "stage": "clearance", "reason": f"gap {d:.3g} < {gap / GAP_AIM:.3g}"})
+            log.append({"layer": layer_no, **failures[-1]})
+            rep.say(f"layer {layer_no}: {failures[-1]['action']}: clearance {d:.3g} too small")
+            continue
+        pinfo["decimation"] = dict(dinfo, source=src)
         pinfo["seconds"]["decimate"] = t_dec
         pinfo["failed_attempts"] = failures
         return C, G, pinfo
@@ -475,6 +532,7 @@ def nested_backend(
     progress=False,
     certify: bool = True,
     fallback: str | None = "sdf",
+    target_offset: float | None = None,
     **opts,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"nested"``: strictly nested cages by flow and re-inflation (Sacht et al. 2015).
@@ -521,6 +579,11 @@ def nested_backend(
         at 7k faces). ``"lazy"``: :func:`cagegen.copyleft.lazy.lazy_cage_layer` (loose but fast; loads
         GPL code, opt-in by name only, needs the ``lazy`` extra). None: raise :class:`CageError`.
         Nothing copyleft is loaded unless ``"lazy"`` is named.
+    target_offset : float, optional
+        Offset, relative to the input's bounding-box diagonal, of the envelope each target Ĉ is
+        decimated from (:func:`_envelope_target`); the decimated layer itself (the paper's Ĉ) is the
+        next attempt. None (default): :data:`TARGET_OFFSET_GAPS` times ``min_gap``, at least
+        :data:`MIN_TARGET_OFFSET`. 0: only the paper's Ĉ.
     **opts
         Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
         ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
@@ -565,7 +628,12 @@ def nested_backend(
     gap_abs = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag
     gap_n = gap_abs / diag
     # aim a little beyond the requested clearance (the offset is measured on face planes)
-    gap_target = 1.1 * gap_n if gap_n > 0 else 0.0
+    gap_target = GAP_AIM * gap_n if gap_n > 0 else 0.0
+    if target_offset is None:
+        target_offset = max(TARGET_OFFSET_GAPS * gap_n, MIN_TARGET_OFFSET)
+    if not target_offset >= 0:
+        raise ValueError(f"target_offset must be >= 0, got {target_offset!r}")
+    params["target_offset"] = float(target_offset)
 
     info: dict = {
         "method": "nested",

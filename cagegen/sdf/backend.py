@@ -3,7 +3,7 @@
 One layer (:func:`sdf_cage_layer`), in coordinates normalised to a unit bounding-box diagonal of the
 *input* (so ``c`` means the same on every layer):
 
-1. **Envelope** (:mod:`cagegen.sdf.envelope`): iso-surface ``{phi * xi = c}`` of the locally
+1. **Envelope** (:mod:`cagegen.envelope`): iso-surface ``{phi * xi = c}`` of the locally
    amplified signed distance by marching cubes; it strictly contains the fine layer.
 2. **Constrained simplification** (:mod:`cagegen.sdf.simplify`) to exactly ``n_faces`` faces: QEM
    collapses, infeasible (skipped) when the new triangles would cross the fine layer or the cage.
@@ -34,7 +34,7 @@ from ..audit import check_mesh
 from ..decimate import decimate_surface
 from ..errors import CageError
 from ..verify import verify_nesting
-from .envelope import active_points, build_envelope
+from ..envelope import active_points, build_envelope
 from .optimize import _min_angles, mips, optimize_cage
 from .simplify import SimplifyStuck, constrained_simplify
 from .tighten import tighten_cage
@@ -263,7 +263,7 @@ def sdf_cage_layer(
         toward them, under the same barrier and CCD (:func:`cagegen.sdf.optimize.optimize_cage`, ``w_p``).
     concave : float
         Not in the paper (0 = off): input vertices farther than ``concave * c`` from a first envelope
-        (concavities it bridges) also amplify the field, locally (:func:`cagegen.sdf.envelope.build_envelope`).
+        (concavities it bridges) also amplify the field, locally (:func:`cagegen.envelope.build_envelope`).
     prepass : bool
         Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
     max_retries : int

@@ -127,7 +127,7 @@ def tighten_cage(
     ----------
     C, Fc : arrays
         A certified cage of ``(Vin, Fin)`` (unit-diagonal coordinates of the backend).
-    sdf : cagegen.sdf.envelope.SDFGrid
+    sdf : cagegen.envelope.SDFGrid
         Signed distance of the input (the envelope's grid: guides the simplification's placements).
     c : float
         The layer's offset ``c``.

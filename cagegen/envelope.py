@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
-from .._geometry import signed_volume
+from ._geometry import signed_volume
 
 __all__ = ["Envelope", "SDFGrid", "active_points", "build_envelope"]
 
@@ -137,7 +137,7 @@ def _active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int 
     """
     import igl
 
-    from .simplify import _point_triangle_sqdist
+    from ._geometry import point_triangle_sqdist
 
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
@@ -175,7 +175,7 @@ def _active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int 
     if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
     X = V[F[pf]]
-    d2 = _point_triangle_sqdist(V[pv], X[:, 0], X[:, 1], X[:, 2])
+    d2 = point_triangle_sqdist(V[pv], X[:, 0], X[:, 1], X[:, 2])
     pv, pf = pv[d2 < r * r], pf[d2 < r * r]
     if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
@@ -356,7 +356,7 @@ def _concave_pass(V, F, S, I, C, field_, n, h, lo, c, band, alpha, concave, Vm, 
     """Second marching cubes with the field also amplified at the concave points (see ``build_envelope``)."""
     import igl
 
-    from .._geometry import cross_intersection_pairs
+    from ._geometry import cross_intersection_pairs
 
     t = time.perf_counter()
     d = np.sqrt(igl.point_mesh_squared_distance(V, Vm, Fm)[0])
@@ -395,7 +395,7 @@ def _concave_pass(V, F, S, I, C, field_, n, h, lo, c, band, alpha, concave, Vm, 
 
 
 def _genus(V, F):
-    from .._geometry import edge_stats, n_components
+    from ._geometry import edge_stats, n_components
 
     es = edge_stats(F, len(V))
     if es.n_boundary_edges or es.n_nonmanifold_edges:

@@ -242,6 +242,8 @@ def cages_row(entry: dict, backends: list[str]) -> str:
         ratio = f"wheel fails ({_f(w.get('wall_seconds'), '{:.0f}')} s): {w.get('error', '')[:80]}"
     else:
         ratio = "–"
+    if w.get("reused_from"):
+        ratio += f" (wheel run at {str(w['reused_from'])[:7]})"
     faces = (entry.get("cages:nested") or {}).get("faces")
     return f"| {entry['mesh']} | {entry['faces']:,} | {faces or '–'} | " + " | ".join(cells) + f" | {ratio} |"
 
@@ -319,6 +321,20 @@ def survey(folder: Path, names: list[str] | None) -> list[dict]:
     return out
 
 
+def _earlier_wheel_rows(paths: list[Path]) -> dict:
+    """``{(mesh, face counts): wheel row}`` from earlier corpus JSONs, each row marked ``reused_from``."""
+    rows: dict = {}
+    for p in paths:
+        doc = json.loads(p.read_text())
+        for e in doc["meshes"]:
+            w, n = e.get("wheel"), e.get("cages:nested") or {}
+            counts = (w or {}).get("counts") or (n.get("faces") or [None])[1:]
+            if w and counts and None not in counts:
+                rows[(e["mesh"], tuple(int(c) for c in counts))] = dict(
+                    w, counts=[int(c) for c in counts], reused_from=w.get("reused_from") or doc.get("commit"))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", type=Path, nargs="?")
@@ -328,6 +344,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backends", default="nested,decimate,sdf,lazy", help="comma-separated; '' for none")
     ap.add_argument("--no-solve", action="store_true")
     ap.add_argument("--wheel", action="store_true", help="run the reference wheel at our nested face counts")
+    ap.add_argument("--wheel-from", type=Path, nargs="+", default=None,
+                    help="reuse the wheel rows of these JSONs when they were run at the same face counts "
+                         "(the wheel does not change between our commits; its runs take minutes)")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per case")
     ap.add_argument("--table", type=Path, default=None, help="only rewrite --md from this JSON")
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
@@ -364,6 +383,8 @@ def main(argv: list[str] | None = None) -> int:
            "commit": _git_head(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "timeout": args.timeout, "backends": backends, "goals": GOALS, "meshes": survey(args.folder, args.meshes)}
 
+    earlier = _earlier_wheel_rows(args.wheel_from or [])
+
     def save() -> None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(doc, indent=1, default=float))
@@ -386,8 +407,9 @@ def main(argv: list[str] | None = None) -> int:
             save()
         nested = entry.get("cages:nested") or {}
         if args.wheel and nested.get("ok"):
-            counts = ",".join(str(n) for n in nested["faces"][1:])
-            entry["wheel"] = run_case("wheel", path, counts, args.timeout)
+            counts = [int(n) for n in nested["faces"][1:]]
+            entry["wheel"] = earlier.get((entry["mesh"], tuple(counts))) or dict(
+                run_case("wheel", path, ",".join(map(str, counts)), args.timeout), counts=counts)
             save()
     for entry in doc["meshes"]:
         entry.pop("path", None)

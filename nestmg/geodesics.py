@@ -246,7 +246,7 @@ def multigrid_solve(
         prob = setup_problem(tets, P, name, coarse=coarse, lam=t, prune=0.0 if kind == "heat" else 0.5)
         if prob.A.shape != A.shape or prob.free[0].size != n0:
             raise GeodesicInputError("the hierarchy's finest tet mesh is not the mesh of the problem")
-        ml = MultigridSolver(A, prob.P, coarse="galerkin" if prob.coarse_ops is None else prob.coarse_ops,
+        ml = MultigridSolver(A, prob.P, coarse=prob.coarse,
                              presmoother=cycle_smoothers(nu=nu),
                              local_nodes=prob.local_nodes,
                              nullspace="constant" if kind == "poisson" else None)

@@ -20,7 +20,6 @@ the hierarchy is nested).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,8 +80,10 @@ class Problem:
         Right-hand side (compatible for Neumann problems).
     P : list of csr_matrix
         Prolongations restricted to the free nodes of consecutive levels.
-    coarse_ops : list of csr_matrix or None
-        Re-discretised coarse operators (None: Galerkin).
+    coarse : "galerkin" or list of csr_matrix
+        The coarse operators as :class:`solvers.MultigridSolver` takes them: ``"galerkin"`` (the solver
+        forms ``Pᵀ A P``) or the built ones ``[A_1, ..., A_L]`` (re-discretised, weighted, sparsified);
+        the name asked of :func:`setup_problem` is ``params["coarse"]``.
     free : list of int arrays
         Free node indices on every level.
     n_fine : int
@@ -100,7 +101,7 @@ class Problem:
     A: sp.csr_matrix
     b: np.ndarray
     P: list
-    coarse_ops: list | None
+    coarse: str | list
     free: list
     n_fine: int
     nullspace: str | None
@@ -137,8 +138,7 @@ class Problem:
         from solvers import MultigridSolver
 
         if coarse_scaling == "auto":
-            coarse_scaling = None if self.coarse_ops is None else "energy"
-        coarse = "galerkin" if self.coarse_ops is None else self.coarse_ops
+            coarse_scaling = None if isinstance(self.coarse, str) else "energy"
         if smoothing not in SMOOTHING:
             raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
         fast = smoothing == "fast"
@@ -149,7 +149,7 @@ class Problem:
             kwargs.setdefault("local_levels", 1)
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else DEFAULT_SMOOTHERS)
         kwargs.setdefault("local_nodes", self.local_nodes if local and not fast else None)
-        return MultigridSolver(self.A, self.P, coarse=coarse, nullspace=self.nullspace,
+        return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 
     def expand(self, x_free: np.ndarray) -> np.ndarray:
@@ -278,8 +278,7 @@ def setup_problem(
         constants. ``"sparsified"``: the Galerkin product of each level moved onto the coarse tet
         mesh's own sparsity by :func:`solvers.reroute_to_pattern` (dropped couplings rerouted along
         two-edge paths; row sums kept; spectrally equivalent), level by level: Galerkin's
-        consistency at the re-discretised operator complexity. ``"rediscretised"`` is a deprecated
-        alias of ``"rediscretized"``.
+        consistency at the re-discretised operator complexity.
     lam : float
         Diffusion coefficient λ of ``diffusion-neumann`` (time step x conductivity).
     f : (n_fine,) float array, optional
@@ -299,10 +298,6 @@ def setup_problem(
     """
     if name not in PROBLEMS:
         raise ValueError(f"unknown problem {name!r}; choose from {PROBLEMS}")
-    if coarse == "rediscretised":
-        warnings.warn("coarse='rediscretised' is deprecated; spell it 'rediscretized'", DeprecationWarning,
-                      stacklevel=2)
-        coarse = "rediscretized"
     if coarse not in COARSE:
         raise ValueError(f"coarse must be one of {COARSE}, got {coarse!r}")
     if len(P) != len(tets) - 1:
@@ -352,7 +347,7 @@ def setup_problem(
         A=A,
         b=np.asarray(b_full[free0]),
         P=Pr,
-        coarse_ops=ops,
+        coarse="galerkin" if ops is None else ops,
         free=free,
         n_fine=n0,
         nullspace="constant" if name == "poisson-neumann" else None,

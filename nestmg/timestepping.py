@@ -89,7 +89,7 @@ class DiffusionStepper:
         A, *coarse = self.family.operators(1.0, dt)
         b = self.M @ u_prev
         t1, c1 = time.perf_counter(), time.process_time()
-        prob = dataclasses.replace(self.problem, A=A, b=b, coarse_ops=coarse,
+        prob = dataclasses.replace(self.problem, A=A, b=b, coarse=coarse,
                                    params=dict(self.problem.params, lam=dt, coarse="galerkin (sparse sum)"))
         # the sparse sums are Galerkin operators: no energy scaling; symmetric by construction (M, K
         # symmetric, products symmetrised), so the solver need not test it at every step
@@ -155,7 +155,7 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
     # natural boundary: every fine node is free; the prolongations are pruned as in setup_problem
     Pr, free = restrict_prolongations(P, np.arange(n0), min_column_sum=prune)
     local = boundary_layer_nodes(T0, rings=1, n=n0) if smoothing == "robust" else None
-    prob = Problem(name="diffusion-neumann", A=M + K, b=np.zeros(n0), P=Pr, coarse_ops=None, free=free,
+    prob = Problem(name="diffusion-neumann", A=M + K, b=np.zeros(n0), P=Pr, coarse="galerkin", free=free,
                    n_fine=n0, nullspace=None, params={"lam": 1.0, "coarse": "galerkin", "prune": prune,
                                                       "smoothing": smoothing}, local_nodes=local)
     t2, c2 = time.perf_counter(), time.process_time()

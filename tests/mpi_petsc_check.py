@@ -31,7 +31,7 @@ def dirichlet_problem(n: int, levels: int, seed: int = 0) -> dict:
 
     Returns
     -------
-    dict with ``A`` (m_0, m_0), ``Ps`` (support-restricted, for Galerkin), ``Ps_int`` and ``coarse_ops``
+    dict with ``A`` (m_0, m_0), ``Ps`` (support-restricted, for Galerkin), ``Ps_int`` and ``coarse``
     (coarse interior nodes only, re-discretised stiffness), ``b`` (m_0,), ``z`` (m_0,) fine z coordinates.
     """
     meshes, Ps = kuhn_cube_hierarchy(n, levels)
@@ -43,7 +43,7 @@ def dirichlet_problem(n: int, levels: int, seed: int = 0) -> dict:
     Pi, frees = restrict_prolongations(Ps, free, coarse_free=interiors)
     coarse = [sp.csr_matrix(stiffness_matrix(Vk, Tk)[f][:, f]) for (Vk, Tk), f in zip(meshes[1:], frees[1:])]
     b = np.random.default_rng(seed).standard_normal(A.shape[0])
-    return {"A": sp.csr_matrix(A), "Ps": Pg, "Ps_int": Pi, "coarse_ops": coarse, "b": b, "xyz": V[free]}
+    return {"A": sp.csr_matrix(A), "Ps": Pg, "Ps_int": Pi, "coarse": coarse, "b": b, "xyz": V[free]}
 
 
 def neumann_problem(n: int, levels: int, seed: int = 1) -> dict:
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
         elif not kw.pop("given", False):
             Ps, extra = prob["Ps"], {}
         else:
-            Ps, extra = prob["Ps_int"], {"coarse": prob["coarse_ops"]}
+            Ps, extra = prob["Ps_int"], {"coarse": prob["coarse"]}
         with PetscMultigrid(prob["A"], Ps, **extra, **kw) as mg:
             x, info = mg.solve(prob["b"], tol=args.tol, maxiter=100)
         xs[f"x_{name}"] = x

@@ -19,6 +19,7 @@ import numpy as np
 
 from cagegen._geometry import bbox_diagonal
 from cagegen.errors import NestmgError
+from solvers.multilevel import DEFAULT_MAXITER
 
 from .cache import atomic_write_bytes
 from .io import json_default
@@ -279,7 +280,8 @@ def _solver_opts(p: argparse.ArgumentParser) -> None:
     g.add_argument("--cycle", choices=["V", "W", "F"], default="V")
     g.add_argument("--accel", choices=["cg"], default=None, help="use MG-preconditioned CG")
     g.add_argument("--tol", type=float, default=1e-8)
-    g.add_argument("--maxiter", type=int, default=60)
+    g.add_argument("--maxiter", type=int, default=DEFAULT_MAXITER,
+                   help="cap on cycles (or CG iterations) (default %(default)s)")
     g.add_argument("--lam", type=float, default=1e-2, help="λ of diffusion-neumann")
 
 

@@ -29,6 +29,7 @@ import scipy.sparse as sp
 
 from cagegen.errors import NestmgError
 from solvers.fem import check_tet_mesh, mass_matrix, stiffness_matrix
+from solvers.multilevel import DEFAULT_MAXITER
 
 __all__ = [
     "GeodesicInputError",
@@ -200,7 +201,7 @@ def multigrid_solve(
     cycle: str = "V",
     accel: str | None = "cg",
     tol: float = 1e-10,
-    maxiter: int = 200,
+    maxiter: int = DEFAULT_MAXITER,
 ) -> SolveFn:
     """A ``solve(A, b, kind)`` for :func:`heat_geodesic` by geometric multigrid on a hierarchy.
 

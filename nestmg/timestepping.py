@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from solvers.fem import boundary_layer_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
-from solvers.multilevel import restrict_prolongations
+from solvers.multilevel import DEFAULT_MAXITER, restrict_prolongations
 from solvers.shifted import ShiftedGalerkin
 
 from .problems import Problem
@@ -56,7 +56,7 @@ class DiffusionStepper:
     setup_seconds: dict
     smoothing: str = "fast"
 
-    def step(self, u_prev: np.ndarray, dt: float, *, tol: float = 1e-8, maxiter: int = 200,
+    def step(self, u_prev: np.ndarray, dt: float, *, tol: float = 1e-8, maxiter: int = DEFAULT_MAXITER,
              **multigrid_kwargs) -> tuple[np.ndarray, dict]:
         """One backward-Euler step ``(M + dt K) u = M u_prev`` by MG-PCG warm-started from ``u_prev``.
 
@@ -168,7 +168,7 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
 
 
 def implicit_diffusion(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_matrix], u0: np.ndarray, dts,
-                       *, tol: float = 1e-8, maxiter: int = 200) -> tuple[np.ndarray, list[dict]]:
+                       *, tol: float = 1e-8, maxiter: int = DEFAULT_MAXITER) -> tuple[np.ndarray, list[dict]]:
     """Backward-Euler diffusion ``(M + Δt_k K) u_k = M u_{k-1}`` for the time steps ``dts``.
 
     Parameters

@@ -24,9 +24,10 @@ from .fem import (
     remove_mean,
     stiffness_matrix,
 )
-from .krylov import KrylovResult, mg_pcg, pcg
+from .krylov import KrylovResult, pcg
 from .memory import available_memory, check_memory, galerkin_nnz_estimate
 from .multilevel import (
+    DEFAULT_MAXITER,
     ConvergenceWarning,
     Level,
     MultigridSolver,
@@ -40,6 +41,7 @@ from .multilevel import (
 from .smoothing import SMOOTHERS, Smoother, make_smoother
 
 __all__ = [
+    "DEFAULT_MAXITER",
     "SMOOTHERS",
     "ConvergenceWarning",
     "DirichletSystem",
@@ -64,7 +66,6 @@ __all__ = [
     "load_vector",
     "make_smoother",
     "mass_matrix",
-    "mg_pcg",
     "pcg",
     "project_rhs",
     "prune_prolongations",

@@ -40,6 +40,7 @@ from .transfer import (
 )
 
 __all__ = [
+    "DEFAULT_MAXITER",
     "Level",
     "MultigridSolver",
     "convergence_factor",
@@ -51,6 +52,11 @@ __all__ = [
 ]
 
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
+
+#: Default cap on cycles (stationary) or CG iterations (``accel="cg"``) of every multigrid solve:
+#: :meth:`MultigridSolver.solve`, :meth:`solvers.petsc.PetscMultigrid.solve`,
+#: :func:`nestmg.solve_on_hierarchy`, the time stepper, the geodesics and ``nestmg solve --maxiter``.
+DEFAULT_MAXITER = 100
 
 
 class ConvergenceWarning(UserWarning):
@@ -492,7 +498,7 @@ class MultigridSolver:
         b,
         x0=None,
         tol: float = 1e-8,
-        maxiter: int = 100,
+        maxiter: int = DEFAULT_MAXITER,
         cycle: str = "V",
         accel: str | None = None,
         residuals: list | None = None,
@@ -510,10 +516,11 @@ class MultigridSolver:
         tol : float
             Stop when ``||b - A x|| <= tol ||b||`` (2-norms).
         maxiter : int
-            Maximum number of cycles (or CG iterations).
+            Maximum number of cycles (or CG iterations); default :data:`DEFAULT_MAXITER`.
         cycle : {"V", "W", "F"}
         accel : None or "cg"
-            ``"cg"``: conjugate gradients (pyamg.krylov.cg) preconditioned by one cycle from zero.
+            ``"cg"``: conjugate gradients (pyamg.krylov.cg) preconditioned by one cycle from zero: the one
+            MG-PCG entry point of the package (``nestmg.solve_on_hierarchy`` and the CLI call it).
         residuals : list, optional
             Cleared and filled with the relative residuals ``||b - A x_i|| / ||b||``, ``i = 0..iters``
             (``residuals[0]`` is that of ``x0``).

@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .errors import SolverError, SolverInputError
-from .multilevel import convergence_factor
+from .multilevel import DEFAULT_MAXITER, convergence_factor
 from .petsc_amg import petsc_amg_solve
 from .petsc_common import (
     SMOOTHER_NAMES,
@@ -495,7 +495,7 @@ class PetscMultigrid:
         return self._layouts[0].local_rows(self.comm.getRank())
 
     # ------------------------------------------------------------------ solve
-    def solve(self, b, tol: float = 1e-8, maxiter: int = 100, *, x0=None, project: bool = False,
+    def solve(self, b, tol: float = 1e-8, maxiter: int = DEFAULT_MAXITER, *, x0=None, project: bool = False,
               divtol: float = 1e5) -> tuple[np.ndarray, dict]:
         """Solve ``A x = b``; collective (every rank calls it with the same global ``b``).
 

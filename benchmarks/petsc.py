@@ -14,8 +14,8 @@ a PNG bar chart of setup and solve times. Run from the repository root:
         [--method nested] [--mesher tetgen] [--edge-fac 0.006] [--save STEM]
     # later runs can reuse it: --load STEM
 
-The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_hierarchy`;
-every MPI rank reads it with ``load_hierarchy`` (the pattern docs/petsc.md recommends on a cluster).
+The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_operators`;
+every MPI rank reads it with ``load_operators`` (the pattern docs/petsc.md recommends on a cluster).
 
 Timings are wall-clock: setup = copying the scipy matrices into PETSc + KSPSetUp (Galerkin products,
 AMG coarsening, coarse factorisation); solve = best of ``--repeat`` KSPSolve calls (max over ranks).
@@ -83,11 +83,11 @@ def worker(args) -> None:
     petsc4py.init([sys.argv[0]])
     from petsc4py import PETSc
 
-    from solvers.petsc import PetscMultigrid, load_hierarchy, petsc_amg_solve
+    from solvers.petsc import PetscMultigrid, load_operators, petsc_amg_solve
 
     comm = PETSc.COMM_WORLD
     t0 = time.perf_counter()
-    gal, red = load_hierarchy(args.worker + "_galerkin.npz"), load_hierarchy(args.worker + "_rediscretized.npz")
+    gal, red = load_operators(args.worker + "_galerkin.npz"), load_operators(args.worker + "_rediscretized.npz")
     prob = {"A": gal["A"], "b": gal["b"], "Ps": gal["Ps"], "Ps_int": red["Ps"], "coarse": red["coarse"]}
     load = time.perf_counter() - t0
     A, b = prob["A"], prob["b"]
@@ -170,12 +170,12 @@ def main() -> None:
 
     import tempfile
 
-    from solvers.petsc import load_hierarchy, save_hierarchy
+    from solvers.petsc import load_operators, save_operators
 
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     if args.load:
-        gal, red = load_hierarchy(args.load + "_galerkin.npz"), load_hierarchy(args.load + "_rediscretized.npz")
+        gal, red = load_operators(args.load + "_galerkin.npz"), load_operators(args.load + "_rediscretized.npz")
         prob = {"A": gal["A"], "Ps": gal["Ps"], "b": gal["b"], "Ps_int": red["Ps"], "coarse": red["coarse"],
                 "tets": int(gal["tets"]), "label": str(gal["label"])}
         prob["n_outside"] = gal["n_outside"].tolist() if "n_outside" in gal else None
@@ -194,8 +194,8 @@ def main() -> None:
     extra = {"tets": np.array(prob["tets"]), "label": np.array(prob["label"])}
     if prob.get("n_outside") is not None:
         extra["n_outside"] = np.array(prob["n_outside"])
-    save_hierarchy(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"], **extra)
-    save_hierarchy(stem + "_rediscretized.npz", prob["A"], prob["Ps_int"], coarse=prob["coarse"], b=prob["b"])
+    save_operators(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"], **extra)
+    save_operators(stem + "_rediscretized.npz", prob["A"], prob["Ps_int"], coarse=prob["coarse"], b=prob["b"])
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1",
                OPENBLAS_NUM_THREADS="1")
     env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),

@@ -120,19 +120,6 @@ class Hierarchy:
 
         return fallback_layers(self.cage_info)
 
-    def save(self, directory) -> Any:
-        """Write the hierarchy to ``directory`` (:func:`nestmg.usermesh.save_hierarchy`)."""
-        from .usermesh import save_hierarchy
-
-        return save_hierarchy(self, directory)
-
-    @classmethod
-    def load(cls, directory) -> Hierarchy:
-        """Read a hierarchy written by :meth:`save` (:func:`nestmg.usermesh.load_hierarchy`)."""
-        from .usermesh import load_hierarchy
-
-        return load_hierarchy(directory)
-
     @property
     def certified(self) -> bool:
         """True when the surfaces are certified nested *and* no fine node lies outside a coarse tet mesh."""

@@ -2,7 +2,7 @@
 
 Install with ``scripts/install-petsc.sh`` (Debian's PETSc 3.18 + petsc4py built against it; extra
 ``petsc``). Every rank calls the same functions with the same *global* scipy matrices (built
-deterministically on every rank, or read from a ``.npz`` written by :func:`save_hierarchy`); each rank
+deterministically on every rank, or read from a ``.npz`` written by :func:`save_operators`); each rank
 copies only its own rows into PETSc::
 
     mpirun -n 4 python my_solve.py            # inside: PetscMultigrid(A, Ps).solve(b)
@@ -71,16 +71,16 @@ from .petsc_common import (
     petsc_available,
     row_partition,
 )
-from .petsc_io import load_hierarchy, save_hierarchy
+from .petsc_io import load_operators, save_operators
 
 __all__ = [
     "PetscMultigrid",
     "PetscUnavailableError",
-    "load_hierarchy",
+    "load_operators",
     "petsc_amg_solve",
     "petsc_available",
     "row_partition",
-    "save_hierarchy",
+    "save_operators",
 ]
 
 

@@ -15,8 +15,12 @@ from .petsc_common import (
 
 
 # ---------------------------------------------------------------------------------- .npz exchange
-def save_hierarchy(path, A, Ps, *, coarse=None, b=None, **arrays) -> None:
-    """Write a hierarchy to one ``.npz`` file (call on one rank only, e.g. ``if rank == 0``).
+def save_operators(path, A, Ps, *, coarse=None, b=None, **arrays) -> None:
+    """Write a multigrid system (``A``, ``Ps``, given coarse operators, ``b``) to one ``.npz`` file.
+
+    Call it on one rank only (e.g. ``if rank == 0``); every rank reads the file with
+    :func:`load_operators`. (Not to be confused with :func:`nestmg.save_hierarchy`, which saves the
+    geometry: surfaces, tet layers and prolongations.)
 
     Parameters
     ----------
@@ -45,13 +49,13 @@ def save_hierarchy(path, A, Ps, *, coarse=None, b=None, **arrays) -> None:
         out["b"] = _check_vector(b, A.shape[0])
     for name, arr in arrays.items():
         if name in ("A", "Ps", "coarse", "b", "n_levels") or re.fullmatch(r"(A|P\d+|C\d+)_\w+", name):
-            raise SolverInputError(f"extra array name {name!r} clashes with the hierarchy's own keys")
+            raise SolverInputError(f"extra array name {name!r} clashes with the system's own keys")
         out[name] = np.asarray(arr)
     np.savez(path, **out)
 
 
-def load_hierarchy(path) -> dict:
-    """Read a file written by :func:`save_hierarchy` (every rank may call it).
+def load_operators(path) -> dict:
+    """Read a file written by :func:`save_operators` (every rank may call it).
 
     Returns
     -------

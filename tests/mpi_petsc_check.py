@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--out", required=True, help=".npz file for the solutions (written by rank 0)")
     ap.add_argument("--cage", nargs="*", default=[],
-                    help="only solve these .npz hierarchies (solvers.petsc.save_hierarchy, with a 'neumann' flag "
+                    help="only solve these .npz hierarchies (solvers.petsc.save_operators, with a 'neumann' flag "
                          "array), e.g. the cage hierarchies of the tests, by MG-PCG with the default options")
     args, petsc_args = ap.parse_known_args(argv)
 
@@ -143,12 +143,12 @@ def main(argv=None) -> int:
 
 def _cage_runs(args, PETSc, comm) -> int:
     """MG-PCG on saved hierarchies (every rank loads the same file), default partition and coarse solve."""
-    from solvers.petsc import PetscMultigrid, load_hierarchy
+    from solvers.petsc import PetscMultigrid, load_operators
 
     out = {"ranks": comm.getSize(), "runs": {}}
     xs = {}
     for k, path in enumerate(args.cage):
-        h = load_hierarchy(path)
+        h = load_operators(path)
         ns = "constant" if bool(h.get("neumann", np.zeros(1))[0]) else None
         with PetscMultigrid(h["A"], h["Ps"], nullspace=ns, coarse_solver="auto") as mg:
             x, info = mg.solve(h["b"], tol=args.tol, maxiter=100)

@@ -27,10 +27,10 @@ from solvers.errors import IncompatibleRHSError, SolverError, SolverInputError
 from solvers.multilevel import ConvergenceWarning, MultigridSolver
 from solvers.petsc import (
     PetscMultigrid,
-    load_hierarchy,
+    load_operators,
     petsc_amg_solve,
     row_partition,
-    save_hierarchy,
+    save_operators,
 )
 
 HERE = Path(__file__).resolve().parent
@@ -317,15 +317,15 @@ def test_row_partition_and_npz_roundtrip(tmp_path, dirichlet):
     off = row_partition(10, 3)
     assert off.tolist() == [0, 4, 7, 10]
     path = tmp_path / "h.npz"
-    save_hierarchy(path, dirichlet["A"], dirichlet["Ps_int"], coarse=dirichlet["coarse"],
+    save_operators(path, dirichlet["A"], dirichlet["Ps_int"], coarse=dirichlet["coarse"],
                    b=dirichlet["b"], xyz=dirichlet["xyz"])
-    h = load_hierarchy(path)
+    h = load_operators(path)
     assert (h["A"] != dirichlet["A"]).nnz == 0 and len(h["Ps"]) == LEVELS - 1
     assert all((P != Q).nnz == 0 for P, Q in zip(h["Ps"], dirichlet["Ps_int"]))
     assert all((P != Q).nnz == 0 for P, Q in zip(h["coarse"], dirichlet["coarse"]))
     assert np.array_equal(h["b"], dirichlet["b"]) and np.array_equal(h["xyz"], dirichlet["xyz"])
     with pytest.raises(SolverInputError, match="clashes"):
-        save_hierarchy(path, dirichlet["A"], dirichlet["Ps"], P0_data=np.zeros(2))
+        save_operators(path, dirichlet["A"], dirichlet["Ps"], P0_data=np.zeros(2))
 
 
 # --------------------------------------------------------------------------------------- mpirun -n 2
@@ -585,7 +585,7 @@ def test_cage_hierarchy_two_ranks(tmp_path, sphere_cages):
     for k, name in enumerate(("poisson-dirichlet", "poisson-neumann")):
         pr = _cage_problem(sphere_cages, name)
         path = tmp_path / f"cage{k}.npz"
-        save_hierarchy(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
+        save_operators(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
         paths.append(str(path))
         refs.append(pr.multigrid(local=False, presmoother="symmetric_gauss_seidel").solve(
             pr.b, tol=1e-8, accel="cg", return_info=True))

@@ -27,9 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from cagegen.errors import NestmgError
 from solvers.fem import check_tet_mesh, mass_matrix, stiffness_matrix
 from solvers.multilevel import DEFAULT_MAXITER
+
+from .errors import NestmgInputError
 
 __all__ = [
     "GeodesicInputError",
@@ -47,7 +48,7 @@ __all__ = [
 SolveFn = Callable[[sp.csr_matrix, np.ndarray, str], tuple[np.ndarray, dict]]
 
 
-class GeodesicInputError(NestmgError, ValueError):
+class GeodesicInputError(NestmgInputError):
     """Bad input to the heat method (mesh, sources or time step)."""
 
 

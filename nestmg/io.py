@@ -140,10 +140,18 @@ def read_cells(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, 
     path = Path(path)
     if not path.is_file():
         raise MeshInputError(f"mesh file not found: {path}")
-    try:
-        import meshio
+    import contextlib
+    import io
 
-        m = meshio.read(str(path))
+    import meshio
+
+    said = io.StringIO()
+    try:  # meshio prints its complaints and, for a file no reader takes, calls sys.exit(1)
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(str(path))
+    except SystemExit:
+        why = " ".join(said.getvalue().split()).removeprefix("Error: ") or "no meshio reader takes it"
+        raise MeshInputError(f"could not read {path.name}: {why}") from None
     except Exception as exc:
         raise MeshInputError(f"could not read {path.name}: {exc}") from exc
     V = np.ascontiguousarray(m.points, dtype=np.float64)

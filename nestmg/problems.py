@@ -28,6 +28,8 @@ import scipy.sparse as sp
 from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
 from solvers.multilevel import restrict_prolongations, sparsified_galerkin_operators
 
+from .errors import NestmgInputError
+
 __all__ = ["COARSE", "FAST_NEUMANN_SMOOTHERS", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
            "volume_fractions"]
 
@@ -140,7 +142,7 @@ class Problem:
         if coarse_scaling == "auto":
             coarse_scaling = None if isinstance(self.coarse, str) else "energy"
         if smoothing not in SMOOTHING:
-            raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+            raise NestmgInputError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
         fast = smoothing == "fast"
         if fast and local and self.nullspace == "constant" and self.local_nodes is not None:
             kwargs.setdefault("presmoother", FAST_NEUMANN_SMOOTHERS)
@@ -200,7 +202,7 @@ def volume_fractions(tets: list[tuple[np.ndarray, np.ndarray]], samples: int = 6
     import igl
 
     if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
+        raise NestmgInputError(f"samples must be >= 1, got {samples}")
     V0 = np.ascontiguousarray(tets[0][0], dtype=np.float64)
     T0 = np.ascontiguousarray(tets[0][1], dtype=np.int64)
     tree = igl.AABB()
@@ -297,17 +299,17 @@ def setup_problem(
     Problem
     """
     if name not in PROBLEMS:
-        raise ValueError(f"unknown problem {name!r}; choose from {PROBLEMS}")
+        raise NestmgInputError(f"unknown problem {name!r}; choose from {PROBLEMS}")
     if coarse not in COARSE:
-        raise ValueError(f"coarse must be one of {COARSE}, got {coarse!r}")
+        raise NestmgInputError(f"coarse must be one of {COARSE}, got {coarse!r}")
     if len(P) != len(tets) - 1:
-        raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
+        raise NestmgInputError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
     V0, T0, vol0 = check_tet_mesh(*tets[0], return_volumes=True)  # validated once; assembly skips its check
     n0 = len(V0)
     M0 = mass_matrix(V0, T0, check=False, volumes=vol0)
     f = default_rhs(V0) if f is None else np.asarray(f, dtype=np.float64)
     if f.shape != (n0,):
-        raise ValueError(f"f must have shape ({n0},), got {f.shape}")
+        raise NestmgInputError(f"f must have shape ({n0},), got {f.shape}")
     m = M0.diagonal()
     if name == "poisson-neumann":
         f = f - (m @ f) / m.sum()  # zero mass-weighted mean -> sum(M f) = 0
@@ -337,7 +339,7 @@ def setup_problem(
         if coarse == "weighted":
             w = volume_fractions(tets) if fractions is None else fractions
             if len(w) != len(tets):
-                raise ValueError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
+                raise NestmgInputError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
             ops = _weighted_operators(name, tets, w, free, lam, K0, bnd)
     local = None
     if not dirichlet:  # natural boundary: the boundary layer gets extra local sweeps (free0 = all nodes)

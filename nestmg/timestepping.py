@@ -24,6 +24,7 @@ from solvers.fem import boundary_layer_nodes, check_tet_mesh, mass_matrix, stiff
 from solvers.multilevel import DEFAULT_MAXITER, restrict_prolongations
 from solvers.shifted import ShiftedGalerkin
 
+from .errors import NestmgInputError
 from .problems import Problem
 
 __all__ = ["DiffusionStepper", "diffusion_stepper", "implicit_diffusion"]
@@ -81,10 +82,10 @@ class DiffusionStepper:
         """
         dt = float(dt)
         if not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"time step must be positive and finite, got {dt}")
+            raise NestmgInputError(f"time step must be positive and finite, got {dt}")
         u_prev = np.asarray(u_prev, dtype=np.float64)
         if u_prev.shape != (self.M.shape[0],):
-            raise ValueError(f"u_prev must have shape ({self.M.shape[0]},), got {u_prev.shape}")
+            raise NestmgInputError(f"u_prev must have shape ({self.M.shape[0]},), got {u_prev.shape}")
         t0, c0 = time.perf_counter(), time.process_time()
         A, *coarse = self.family.operators(1.0, dt)
         b = self.M @ u_prev
@@ -135,9 +136,9 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
     from .problems import SMOOTHING
 
     if smoothing not in SMOOTHING:
-        raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+        raise NestmgInputError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
     if len(P) != len(tets) - 1:
-        raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
+        raise NestmgInputError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
     t0, c0 = time.perf_counter(), time.process_time()
     V0, T0 = tets[0]
     n0 = len(V0)
@@ -148,9 +149,9 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
     K, M = sp.csr_matrix(K, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64)
     for name, X in (("K", K), ("M", M)):
         if X.shape != (n0, n0):
-            raise ValueError(f"{name} must have shape ({n0}, {n0}) (the fine nodes), got {X.shape}")
+            raise NestmgInputError(f"{name} must have shape ({n0}, {n0}) (the fine nodes), got {X.shape}")
         if not np.all(np.isfinite(X.data)):
-            raise ValueError(f"{name} contains NaN/inf entries")
+            raise NestmgInputError(f"{name} contains NaN/inf entries")
     t1, c1 = time.perf_counter(), time.process_time()
     # natural boundary: every fine node is free; the prolongations are pruned as in setup_problem
     Pr, free = restrict_prolongations(P, np.arange(n0), min_column_sum=prune)

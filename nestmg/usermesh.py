@@ -231,7 +231,7 @@ def hierarchy_from_tets(
     from .sizing import plan_levels
 
     if levels < 2:
-        raise ValueError(f"levels must be >= 2, got {levels}")
+        raise NestmgInputError(f"levels must be >= 2, got {levels}")
     t0 = time.perf_counter()
     timer = Timer()
     with timer("boundary"):

@@ -9,6 +9,7 @@ from .errors import (
     DivergenceError,
     IncompatibleRHSError,
     InsufficientMemoryError,
+    NestmgError,
     SolverError,
     SolverInputError,
 )
@@ -51,6 +52,7 @@ __all__ = [
     "KrylovResult",
     "Level",
     "MultigridSolver",
+    "NestmgError",
     "Smoother",
     "SolverError",
     "SolverInputError",

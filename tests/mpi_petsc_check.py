@@ -2,7 +2,7 @@
 
 Usage (from the repository root; ``solvers`` must be importable, e.g. ``PYTHONPATH=.``)::
 
-    PYTHONPATH=. mpirun -n 2 python tests/mpi_petsc_check.py --n 16 --levels 3 --out /tmp/petsc_check.npz
+    PYTHONPATH=. mpirun -n 2 python tests/mpi_petsc_check.py --n 16 --levels 3 --out OUT/petsc_check.npz
 
 Every rank builds the same Kuhn cube hierarchy (deterministic), the Dirichlet and Neumann P1 Poisson
 problems and a seeded right-hand side, and takes its rows. Rank 0 prints

@@ -32,7 +32,7 @@ SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 CORPUS = "corpus/zoo_40b8d74.json"
 
-BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->\n)(?P<body>.*?)(\n<!-- /table -->)", re.S)
+BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
 
 GENERATORS: dict[str, tuple[Callable[[], str], tuple[str, ...]]] = {}
@@ -307,8 +307,10 @@ def sdf_zoo() -> str:
             elif not res.get("ok"):
                 cells.append(f"fails ({res.get('seconds', 0):.1f} s)")
             else:
-                ch = res.get("genus_changes") or []
-                cells.append(f"{_haus(res)} / {res['seconds']:.1f}" + (" (genus changed)" if ch else ""))
+                genus = [L.get("genus") for L in res.get("layers", [])]
+                ch = any(g is not None and g != r["input_genus"] for g in genus)
+                cells.append(f"{_haus(res)} / {res['seconds']:.1f}"
+                             + (f" (genus {r['input_genus']} -> {' / '.join(map(str, genus))})" if ch else ""))
         rows.append([f"{r['mesh'].split('.')[0]} ({r['n_faces']:,})", *cells])
     for a in d["refused_by_audit"]:
         rows.append([f"{a['mesh'].split('.')[0]} ({a['n_faces']:,})",
@@ -322,7 +324,7 @@ def sdf_summary() -> str:
     ok = [r for r in d["results"] if r.get("sdf", {}).get("ok")]
     multi = [r for r in ok if len(r["face_counts"]) > 1]
     tight = [r for r in multi if r["sdf"]["tightness"][0]["hausdorff_relative"] <= 0.015]
-    kept = all(not r["sdf"].get("genus_changes") for r in ok)
+    kept = all(L.get("genus") == r["input_genus"] for r in ok for L in r["sdf"]["layers"])
     return (f"certified {len(ok)} / {len(d['results']) - len(d['refused_by_audit'])}"
             + (", genus kept" if kept else "") + f", <= 1.5% of the diagonal at the 4x level on {len(tight)} of "
             f"{len(multi)}")
@@ -445,6 +447,8 @@ def render(text: str, only: set[str] | None = None) -> tuple[str, list[str]]:
         if only is not None and name not in only:
             return m.group(0)
         body = GENERATORS[name][0]().strip()
+        if rx is BLOCK:  # a block: the generated text on its own lines
+            body = "\n" + body + "\n"
         return m.group(1) + body + m.group(4)
 
     text = BLOCK.sub(lambda m: sub(BLOCK, m), text)

@@ -19,6 +19,7 @@ not touched here; ``docs/history/`` is the record of earlier sessions and not to
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import re
 import sys
@@ -46,6 +47,14 @@ def generator(name: str, *sources: str):
         return f
 
     return wrap
+
+
+def sibling(name: str):
+    """The benchmark script ``benchmarks/<name>.py`` as a module (its table functions), without ``sys.path``."""
+    spec = importlib.util.spec_from_file_location(f"_bench_{name}", Path(__file__).with_name(f"{name}.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def load(rel: str) -> dict:
@@ -153,9 +162,7 @@ def _coarse_rows(doc: dict):
 
 
 def _coarse_table(rel: str) -> str:
-    from coarse_operators_table import table as coarse_table
-
-    return "\n".join(coarse_table(load(rel)))
+    return "\n".join(sibling("coarse_operators_table").table(load(rel)))
 
 
 @generator("coarse.tetgen", "coarse_operators/coarse_operators_tetgen.json")
@@ -186,9 +193,7 @@ def coarse_readme() -> str:
 
 # ----------------------------------------------------------------------------------------- reuse
 def _reuse(fn: str, rel: str) -> str:
-    import reuse_tables
-
-    return "\n".join(getattr(reuse_tables, fn)(load(rel))).strip()
+    return "\n".join(getattr(sibling("reuse_tables"), fn)(load(rel))).strip()
 
 
 @generator("reuse.a", "reuse/reuse_diffusion.json")

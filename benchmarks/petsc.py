@@ -14,8 +14,8 @@ a PNG bar chart of setup and solve times. Run from the repository root:
         [--method nested] [--mesher tetgen] [--edge-fac 0.006] [--save STEM]
     # later runs can reuse it: --load STEM
 
-The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_hierarchy`;
-every MPI rank reads it with ``load_hierarchy`` (the pattern docs/petsc.md recommends on a cluster).
+The parent process builds the hierarchy once and writes it with :func:`solvers.petsc.save_operators`;
+every MPI rank reads it with ``load_operators`` (the pattern docs/petsc.md recommends on a cluster).
 
 Timings are wall-clock: setup = copying the scipy matrices into PETSc + KSPSetUp (Galerkin products,
 AMG coarsening, coarse factorisation); solve = best of ``--repeat`` KSPSolve calls (max over ranks).
@@ -51,7 +51,7 @@ def kuhn_dirichlet(n: int, levels: int, seed: int = 0) -> dict:
     Pi, frees = restrict_prolongations(Ps, free, coarse_free=interiors)
     coarse = [sp.csr_matrix(stiffness_matrix(Vk, Tk)[f][:, f]) for (Vk, Tk), f in zip(meshes[1:], frees[1:])]
     b = np.random.default_rng(seed).standard_normal(A.shape[0])
-    return {"A": A, "Ps": Pg, "Ps_int": Pi, "coarse_ops": coarse, "b": b, "tets": int(T.shape[0]),
+    return {"A": A, "Ps": Pg, "Ps_int": Pi, "coarse": coarse, "b": b, "tets": int(T.shape[0]),
             "label": f"Kuhn cube n={n}"}
 
 
@@ -65,7 +65,7 @@ def pipeline_dirichlet(path: str, levels: int, method: str, mesher: str, edge_fa
     h = build_hierarchy(V, F, levels, method=method, mesher=mesher, edge_length_fac=edge_fac, progress=False)
     gal = setup_problem(h.tets, h.P, "poisson-dirichlet", coarse="galerkin")
     red = setup_problem(h.tets, h.P, "poisson-dirichlet", coarse="rediscretized")
-    return {"A": gal.A, "Ps": gal.P, "Ps_int": red.P, "coarse_ops": red.coarse_ops, "b": gal.b,
+    return {"A": gal.A, "Ps": gal.P, "Ps_int": red.P, "coarse": red.coarse, "b": gal.b,
             "tets": int(h.tets[0][1].shape[0]), "label": f"{os.path.basename(path)} ({method} cages, {mesher})",
             "n_outside": [int(r.n_outside) for r in h.prolongation_reports]}
 
@@ -83,12 +83,12 @@ def worker(args) -> None:
     petsc4py.init([sys.argv[0]])
     from petsc4py import PETSc
 
-    from solvers.petsc import PetscMultigrid, load_hierarchy, petsc_amg_solve
+    from solvers.petsc import PetscMultigrid, load_operators, petsc_amg_solve
 
     comm = PETSc.COMM_WORLD
     t0 = time.perf_counter()
-    gal, red = load_hierarchy(args.worker + "_galerkin.npz"), load_hierarchy(args.worker + "_rediscretised.npz")
-    prob = {"A": gal["A"], "b": gal["b"], "Ps": gal["Ps"], "Ps_int": red["Ps"], "coarse_ops": red["coarse_ops"]}
+    gal, red = load_operators(args.worker + "_galerkin.npz"), load_operators(args.worker + "_rediscretized.npz")
+    prob = {"A": gal["A"], "b": gal["b"], "Ps": gal["Ps"], "Ps_int": red["Ps"], "coarse": red["coarse"]}
     load = time.perf_counter() - t0
     A, b = prob["A"], prob["b"]
     res: dict = {"ranks": comm.getSize(), "load_seconds": load, "solvers": {}}
@@ -104,7 +104,7 @@ def worker(args) -> None:
             res["solvers"][name] = _keep(best) | {"nnz": best["nnz"], "partition": mg.partition}
 
     pcmg("pcmg_galerkin", prob["Ps"], args.repeat)
-    pcmg("pcmg_rediscretised", prob["Ps_int"], args.repeat, galerkin=False, coarse_ops=prob["coarse_ops"])
+    pcmg("pcmg_rediscretized", prob["Ps_int"], args.repeat, coarse=prob["coarse"])
     pcmg("pcmg_stationary", prob["Ps"], 1, krylov="richardson")
     if comm.getSize() > 1:  # the default partition is PT-Scotch on several ranks; compare with rows in order
         pcmg("pcmg_natural_partition", prob["Ps"], args.repeat, partition="natural")
@@ -127,7 +127,7 @@ def inprocess(prob: dict, repeat: int) -> dict:
 
     out = {}
     for name, kw, Ps in (("inprocess_galerkin", {}, prob["Ps"]),
-                         ("inprocess_rediscretised", {"coarse_operators": prob["coarse_ops"]}, prob["Ps_int"])):
+                         ("inprocess_rediscretized", {"coarse": prob["coarse"]}, prob["Ps_int"])):
         t0 = time.perf_counter()
         ml = MultigridSolver(prob["A"], Ps, **kw)
         setup = time.perf_counter() - t0
@@ -160,7 +160,7 @@ def main() -> None:
     ap.add_argument("--method", default="nested", help="cage backend for --mesh")
     ap.add_argument("--mesher", default="tetgen", help="tet mesher for --mesh (tetgen or tetwild)")
     ap.add_argument("--edge-fac", type=float, default=None, help="fine edge length / bbox diagonal for --mesh")
-    ap.add_argument("--save", metavar="STEM", help="keep the hierarchy in STEM_galerkin.npz / STEM_rediscretised.npz")
+    ap.add_argument("--save", metavar="STEM", help="keep the hierarchy in STEM_galerkin.npz / STEM_rediscretized.npz")
     ap.add_argument("--load", metavar="STEM", help="reuse a hierarchy kept with --save (skips building it)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -170,13 +170,13 @@ def main() -> None:
 
     import tempfile
 
-    from solvers.petsc import load_hierarchy, save_hierarchy
+    from solvers.petsc import load_operators, save_operators
 
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     if args.load:
-        gal, red = load_hierarchy(args.load + "_galerkin.npz"), load_hierarchy(args.load + "_rediscretised.npz")
-        prob = {"A": gal["A"], "Ps": gal["Ps"], "b": gal["b"], "Ps_int": red["Ps"], "coarse_ops": red["coarse_ops"],
+        gal, red = load_operators(args.load + "_galerkin.npz"), load_operators(args.load + "_rediscretized.npz")
+        prob = {"A": gal["A"], "Ps": gal["Ps"], "b": gal["b"], "Ps_int": red["Ps"], "coarse": red["coarse"],
                 "tets": int(gal["tets"]), "label": str(gal["label"])}
         prob["n_outside"] = gal["n_outside"].tolist() if "n_outside" in gal else None
     elif args.mesh:
@@ -194,8 +194,8 @@ def main() -> None:
     extra = {"tets": np.array(prob["tets"]), "label": np.array(prob["label"])}
     if prob.get("n_outside") is not None:
         extra["n_outside"] = np.array(prob["n_outside"])
-    save_hierarchy(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"], **extra)
-    save_hierarchy(stem + "_rediscretised.npz", prob["A"], prob["Ps_int"], coarse_ops=prob["coarse_ops"], b=prob["b"])
+    save_operators(stem + "_galerkin.npz", prob["A"], prob["Ps"], b=prob["b"], **extra)
+    save_operators(stem + "_rediscretized.npz", prob["A"], prob["Ps_int"], coarse=prob["coarse"], b=prob["b"])
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1",
                OPENBLAS_NUM_THREADS="1")
     env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
@@ -240,7 +240,7 @@ def plot(out: dict, path: str) -> None:
         solve.append(s["solve_seconds"])
         its.append(s["iterations"])
     for r, res in out["petsc"].items():
-        for name in ("pcmg_galerkin", "pcmg_rediscretised", "pcmg_natural_partition", "gamg", "hypre"):
+        for name in ("pcmg_galerkin", "pcmg_rediscretized", "pcmg_natural_partition", "gamg", "hypre"):
             if name in res["solvers"]:
                 s = res["solvers"][name]
                 labels.append(f"{name}\n({r} rank{'s' if r != '1' else ''})")

@@ -119,7 +119,7 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
                            "operators": w["operators"], "operators_cpu": c["operators"]}
                 elif m == "nestmg_rap":
                     t0, c0 = time.perf_counter(), time.process_time()
-                    prob = dataclasses.replace(st.problem, A=A, b=b, coarse_ops=None)
+                    prob = dataclasses.replace(st.problem, A=A, b=b, coarse="galerkin")
                     ml = prob.multigrid(smoothing=st.smoothing)
                     t1, c1 = time.perf_counter(), time.process_time()
                     x, i = ml.solve(b, x0=u, tol=tol, maxiter=200, accel="cg", return_info=True)

@@ -9,8 +9,9 @@ Pipeline (one function call per arrow, plain arrays in between)::
 problem and the level data, :func:`solve_on_hierarchy` does both plus a measured solve.
 """
 
+from .errors import NestmgError, NestmgInputError
 from .hierarchy import Hierarchy, build_hierarchy, tet_hierarchy
-from .io import load_mesh, load_tet_mesh, normalize, save_mesh
+from .io import load_mesh, load_tet_mesh, normalize, save_mesh, save_tet_mesh
 from .problems import PROBLEMS, Problem, setup_problem
 from .prolongation import ProlongationReport, prolongation
 from .run import solve_on_hierarchy
@@ -22,6 +23,8 @@ __version__ = "0.1.0"
 __all__ = [
     "PROBLEMS",
     "Hierarchy",
+    "NestmgError",
+    "NestmgInputError",
     "Problem",
     "ProlongationReport",
     "TetMeshError",
@@ -34,6 +37,7 @@ __all__ = [
     "prolongation",
     "save_hierarchy",
     "save_mesh",
+    "save_tet_mesh",
     "setup_problem",
     "solve_on_hierarchy",
     "tet_hierarchy",

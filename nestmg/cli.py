@@ -19,6 +19,8 @@ import numpy as np
 
 from cagegen._geometry import bbox_diagonal
 from cagegen.errors import NestmgError
+from solvers.errors import SolverError
+from solvers.multilevel import DEFAULT_MAXITER
 
 from .cache import atomic_write_bytes
 from .io import json_default
@@ -242,9 +244,33 @@ def cmd_compare(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (the usage of ``solve`` alone is 14 lines)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(kind, low, *, strict: bool = False, what: str = ""):
+    """An argparse ``type``: ``kind`` (int or float) that is ``> low`` (``strict``) or ``>= low``, finite."""
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if not np.isfinite(v) or (v <= low if strict else v < low):
+            raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {low:g}{what}, got {text}")
+        return v
+
+    return parse
+
+
 def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     g = p.add_argument_group("hierarchy")
-    g.add_argument("--levels", type=int, default=levels, help="levels incl. the input (default %(default)s)")
+    g.add_argument("--levels", type=_number(int, 2), default=levels,
+                   help="levels incl. the input, >= 2 (default %(default)s)")
     g.add_argument("--face-counts", type=int, nargs="+", default=None, help="cage face counts, finest first")
     g.add_argument("--mesher", choices=["tetwild", "tetgen"], default="tetwild")
     g.add_argument("--edge-length", type=float, default=None,
@@ -252,10 +278,10 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     g.add_argument("--epsilon", type=float, default=1e-3, help="TetWild envelope / bbox diagonal")
     g.add_argument("--max-tets", type=int, default=None,
                    help="cap on the fine level's tets when --edge-length is not given (default 1.5M)")
-    g.add_argument("--time-budget", type=float, default=150.0,
+    g.add_argument("--time-budget", type=_number(float, 0), default=150.0,
                    help="seconds (2 cores) allowed for meshing the fine level; the fine edge grows to fit "
                         "(default %(default)s; 0: no time limit)")
-    g.add_argument("--cage-time-budget", type=float, default=None,
+    g.add_argument("--cage-time-budget", type=_number(float, 0), default=None,
                    help="seconds the sdf cage backend may take, estimated before any work (15 s + 5 ms per "
                         "input face per layer); refused at once above it (default 900; 0: no limit)")
     g.add_argument("--fine-level", choices=["refine", "mesh"], default=None,
@@ -275,17 +301,19 @@ def _solver_opts(p: argparse.ArgumentParser) -> None:
     g.add_argument("--coarse", choices=["galerkin", "rediscretized", "weighted", "sparsified"], default="galerkin")
     g.add_argument("--smoother", default="symmetric_gauss_seidel",
                    help="symmetric_gauss_seidel | gauss_seidel | jacobi | chebyshev")
-    g.add_argument("--nu", type=int, default=1, help="pre/post smoothing sweeps")
+    g.add_argument("--nu", type=_number(int, 1), default=1, help="pre/post smoothing sweeps (>= 1)")
     g.add_argument("--cycle", choices=["V", "W", "F"], default="V")
     g.add_argument("--accel", choices=["cg"], default=None, help="use MG-preconditioned CG")
-    g.add_argument("--tol", type=float, default=1e-8)
-    g.add_argument("--maxiter", type=int, default=60)
-    g.add_argument("--lam", type=float, default=1e-2, help="λ of diffusion-neumann")
+    g.add_argument("--tol", type=_number(float, 0, strict=True), default=1e-8,
+                   help="relative residual to reach (> 0)")
+    g.add_argument("--maxiter", type=_number(int, 1), default=DEFAULT_MAXITER,
+                   help="cap on cycles (or CG iterations) (default %(default)s)")
+    g.add_argument("--lam", type=_number(float, 0, strict=True), default=1e-2, help="λ of diffusion-neumann (> 0)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``nestmg`` argument parser."""
-    p = argparse.ArgumentParser(prog="nestmg", description="Geometric multigrid on nested cages.")
+    p = _Parser(prog="nestmg", description="Geometric multigrid on nested cages.")
     sub = p.add_subparsers(dest="command", required=True)
 
     d = sub.add_parser("demo", help="hierarchy + three solves on a built-in shape, with pictures")
@@ -353,20 +381,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
+    except SolverError as exc:  # first: under the common root NestmgError, with its own exit code
+        print(f"nestmg: solver error: {_one_line(exc)}", file=sys.stderr)
+        return 3
     except NestmgError as exc:
-        print(f"nestmg: error: {exc}", file=sys.stderr)
+        print(f"nestmg: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:  # an output that cannot be written, e.g. --out naming an existing file
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"nestmg: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    except Exception as exc:  # solver errors carry their own messages
-        from solvers.errors import SolverError
 
-        if isinstance(exc, SolverError):
-            print(f"nestmg: solver error: {exc}", file=sys.stderr)
-            return 3
-        raise
+
+def _one_line(exc: BaseException) -> str:
+    """The exception's message on one line (a multi-line message is joined with "; ")."""
+    return "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
 
 
 if __name__ == "__main__":  # pragma: no cover

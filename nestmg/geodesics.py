@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from cagegen.errors import NestmgError
 from solvers.fem import check_tet_mesh, mass_matrix, stiffness_matrix
+from solvers.multilevel import DEFAULT_MAXITER
+
+from .errors import NestmgInputError
 
 __all__ = [
     "GeodesicInputError",
@@ -46,7 +48,7 @@ __all__ = [
 SolveFn = Callable[[sp.csr_matrix, np.ndarray, str], tuple[np.ndarray, dict]]
 
 
-class GeodesicInputError(NestmgError, ValueError):
+class GeodesicInputError(NestmgInputError):
     """Bad input to the heat method (mesh, sources or time step)."""
 
 
@@ -200,7 +202,7 @@ def multigrid_solve(
     cycle: str = "V",
     accel: str | None = "cg",
     tol: float = 1e-10,
-    maxiter: int = 200,
+    maxiter: int = DEFAULT_MAXITER,
 ) -> SolveFn:
     """A ``solve(A, b, kind)`` for :func:`heat_geodesic` by geometric multigrid on a hierarchy.
 
@@ -246,7 +248,7 @@ def multigrid_solve(
         prob = setup_problem(tets, P, name, coarse=coarse, lam=t, prune=0.0 if kind == "heat" else 0.5)
         if prob.A.shape != A.shape or prob.free[0].size != n0:
             raise GeodesicInputError("the hierarchy's finest tet mesh is not the mesh of the problem")
-        ml = MultigridSolver(A, prob.P, coarse="galerkin" if prob.coarse_ops is None else prob.coarse_ops,
+        ml = MultigridSolver(A, prob.P, coarse=prob.coarse,
                              presmoother=cycle_smoothers(nu=nu),
                              local_nodes=prob.local_nodes,
                              nullspace="constant" if kind == "poisson" else None)

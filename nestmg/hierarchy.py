@@ -24,6 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .cache import cache_key, load_entry, save_entry
+from .errors import NestmgInputError
 from .memory import check_tet_memory
 from .progress import Timer, stage_line, stages
 from .prolongation import ProlongationReport, prolongation
@@ -87,7 +88,7 @@ class Hierarchy:
             return list(self.tets)
         if frame == "normalized":
             return [(self.to_normalized(V), T) for V, T in self.tets]
-        raise ValueError(f"frame must be 'user' or 'normalized', got {frame!r}")
+        raise NestmgInputError(f"frame must be 'user' or 'normalized', got {frame!r}")
 
     def surfaces_in(self, frame: str = "user") -> list[tuple[np.ndarray, np.ndarray]]:
         """Surface layers in the ``"user"`` or ``"normalized"`` frame."""
@@ -95,7 +96,7 @@ class Hierarchy:
             return list(self.surfaces)
         if frame == "normalized":
             return [(self.to_normalized(V), F) for V, F in self.surfaces]
-        raise ValueError(f"frame must be 'user' or 'normalized', got {frame!r}")
+        raise NestmgInputError(f"frame must be 'user' or 'normalized', got {frame!r}")
 
     @property
     def levels(self) -> int:
@@ -119,19 +120,6 @@ class Hierarchy:
         from cagegen.build import fallback_layers
 
         return fallback_layers(self.cage_info)
-
-    def save(self, directory) -> Any:
-        """Write the hierarchy to ``directory`` (:func:`nestmg.usermesh.save_hierarchy`)."""
-        from .usermesh import save_hierarchy
-
-        return save_hierarchy(self, directory)
-
-    @classmethod
-    def load(cls, directory) -> Hierarchy:
-        """Read a hierarchy written by :meth:`save` (:func:`nestmg.usermesh.load_hierarchy`)."""
-        from .usermesh import load_hierarchy
-
-        return load_hierarchy(directory)
 
     @property
     def certified(self) -> bool:
@@ -616,18 +604,18 @@ def build_hierarchy(
 
     t0 = time.perf_counter()
     if levels < 2:
-        raise ValueError(f"levels must be >= 2, got {levels}")
+        raise NestmgInputError(f"levels must be >= 2, got {levels}")
     if fine_level is None:
         # TetGen's radius-edge meshes keep slivers, and refining them keeps them too (torus: two-grid
         # factor 0.73 refined vs 0.53 meshed directly, docs/scale.md); TetGen is fast at any size anyway
         fine_level = "refine" if mesher == "tetwild" else "mesh"
     if fine_level not in ("refine", "mesh"):
-        raise ValueError(f"fine_level must be 'refine' or 'mesh', got {fine_level!r}")
+        raise NestmgInputError(f"fine_level must be 'refine' or 'mesh', got {fine_level!r}")
     # keep at least one cage level; face counts given for every coarse level mean "all cages"
     refine = (fine_level == "refine" and levels - int(same_domain_levels) >= 3
               and (face_counts is None or len(face_counts) != levels - int(same_domain_levels) - 1))
     if not isinstance(same_domain_levels, (int, np.integer)) or not 0 <= same_domain_levels <= levels - 2:
-        raise ValueError(
+        raise NestmgInputError(
             f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "
             f"level), got {same_domain_levels!r}"
         )

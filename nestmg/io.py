@@ -8,7 +8,6 @@ coincident corners are merged (documented repair). Other formats go through trim
 
 from __future__ import annotations
 
-import io as _io
 import os
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from .cache import atomic_write_bytes
 
 __all__ = [
     "TET_FORMATS", "denormalize", "json_default", "load_mesh", "load_tet_mesh", "normalize", "read_cells",
-    "save_mesh", "save_tets", "save_vtu",
+    "save_mesh", "save_tet_mesh",
 ]
 
 _IGL_FORMATS = {".obj", ".off", ".ply"}
@@ -116,13 +115,6 @@ def save_mesh(path: str | os.PathLike, V: np.ndarray, F: np.ndarray) -> None:
     atomic_write_bytes(path, data.encode() if isinstance(data, str) else data)
 
 
-def save_tets(path: str | os.PathLike, V: np.ndarray, T: np.ndarray) -> None:
-    """Write a tet mesh as ``.npz`` (arrays ``V``, ``T``) atomically."""
-    buf = _io.BytesIO()
-    np.savez_compressed(buf, V=np.asarray(V), T=np.asarray(T))
-    atomic_write_bytes(path, buf.getvalue())
-
-
 def read_cells(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Read a volume-mesh file through meshio: nodes, linear tets and triangles, as stored.
 
@@ -148,10 +140,18 @@ def read_cells(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, 
     path = Path(path)
     if not path.is_file():
         raise MeshInputError(f"mesh file not found: {path}")
-    try:
-        import meshio
+    import contextlib
+    import io
 
-        m = meshio.read(str(path))
+    import meshio
+
+    said = io.StringIO()
+    try:  # meshio prints its complaints and, for a file no reader takes, calls sys.exit(1)
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(str(path))
+    except SystemExit:
+        why = " ".join(said.getvalue().split()).removeprefix("Error: ") or "no meshio reader takes it"
+        raise MeshInputError(f"could not read {path.name}: {why}") from None
     except Exception as exc:
         raise MeshInputError(f"could not read {path.name}: {exc}") from exc
     V = np.ascontiguousarray(m.points, dtype=np.float64)
@@ -191,13 +191,16 @@ def load_tet_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return V, T
 
 
-def save_vtu(path: str | os.PathLike, V: np.ndarray, T: np.ndarray, point_data: dict | None = None,
-             cell_data: dict | None = None) -> None:
-    """Write a tet mesh (and point / cell fields) as a VTU file, atomically (temp file + rename).
+def save_tet_mesh(path: str | os.PathLike, V: np.ndarray, T: np.ndarray, point_data: dict | None = None,
+                  cell_data: dict | None = None) -> None:
+    """Write a tet mesh (and point / cell fields) through meshio, atomically (temp file + rename).
+
+    The pair of :func:`load_tet_mesh`: the format comes from the extension (``.vtu``, ``.msh``,
+    ``.mesh``, ``.vtk``).
 
     Parameters
     ----------
-    path : path ending in ``.vtu`` (or any meshio tet format)
+    path : path ending in ``.vtu`` (or another meshio tet format)
     V : (n,3) float array
     T : (t,4) int array
     point_data : dict of name -> (n,) or (n,c) array, optional

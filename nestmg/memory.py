@@ -19,6 +19,7 @@ import numpy as np
 from solvers.errors import InsufficientMemoryError
 from solvers.memory import check_memory
 
+from .errors import NestmgInputError
 from .tetmesh import TetMeshError
 
 __all__ = ["TetMeshMemoryError", "check_tet_memory", "enclosed_volume", "estimate_tet_bytes", "estimate_tets"]
@@ -87,7 +88,7 @@ def estimate_tets(V: np.ndarray, F: np.ndarray, edge_length: float) -> int:
 def estimate_tet_bytes(n_tets: int, mesher: str) -> int:
     """Peak bytes of meshing ``n_tets`` tets with ``mesher`` plus the layer's FEM matrices."""
     if mesher not in BYTES_PER_TET:
-        raise ValueError(f"unknown mesher {mesher!r}; choose from {sorted(BYTES_PER_TET)}")
+        raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {sorted(BYTES_PER_TET)}")
     return int(n_tets * BYTES_PER_TET[mesher] + (n_tets / 5.5) * FEM_BYTES_PER_NODE)
 
 

@@ -20,7 +20,6 @@ the hierarchy is nested).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +27,8 @@ import scipy.sparse as sp
 
 from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
 from solvers.multilevel import restrict_prolongations, sparsified_galerkin_operators
+
+from .errors import NestmgInputError
 
 __all__ = ["COARSE", "FAST_NEUMANN_SMOOTHERS", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
            "volume_fractions"]
@@ -81,8 +82,10 @@ class Problem:
         Right-hand side (compatible for Neumann problems).
     P : list of csr_matrix
         Prolongations restricted to the free nodes of consecutive levels.
-    coarse_ops : list of csr_matrix or None
-        Re-discretised coarse operators (None: Galerkin).
+    coarse : "galerkin" or list of csr_matrix
+        The coarse operators as :class:`solvers.MultigridSolver` takes them: ``"galerkin"`` (the solver
+        forms ``Pᵀ A P``) or the built ones ``[A_1, ..., A_L]`` (re-discretised, weighted, sparsified);
+        the name asked of :func:`setup_problem` is ``params["coarse"]``.
     free : list of int arrays
         Free node indices on every level.
     n_fine : int
@@ -100,7 +103,7 @@ class Problem:
     A: sp.csr_matrix
     b: np.ndarray
     P: list
-    coarse_ops: list | None
+    coarse: str | list
     free: list
     n_fine: int
     nullspace: str | None
@@ -137,10 +140,9 @@ class Problem:
         from solvers import MultigridSolver
 
         if coarse_scaling == "auto":
-            coarse_scaling = None if self.coarse_ops is None else "energy"
-        coarse = "galerkin" if self.coarse_ops is None else self.coarse_ops
+            coarse_scaling = None if isinstance(self.coarse, str) else "energy"
         if smoothing not in SMOOTHING:
-            raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+            raise NestmgInputError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
         fast = smoothing == "fast"
         if fast and local and self.nullspace == "constant" and self.local_nodes is not None:
             kwargs.setdefault("presmoother", FAST_NEUMANN_SMOOTHERS)
@@ -149,7 +151,7 @@ class Problem:
             kwargs.setdefault("local_levels", 1)
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else DEFAULT_SMOOTHERS)
         kwargs.setdefault("local_nodes", self.local_nodes if local and not fast else None)
-        return MultigridSolver(self.A, self.P, coarse=coarse, nullspace=self.nullspace,
+        return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 
     def expand(self, x_free: np.ndarray) -> np.ndarray:
@@ -200,7 +202,7 @@ def volume_fractions(tets: list[tuple[np.ndarray, np.ndarray]], samples: int = 6
     import igl
 
     if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
+        raise NestmgInputError(f"samples must be >= 1, got {samples}")
     V0 = np.ascontiguousarray(tets[0][0], dtype=np.float64)
     T0 = np.ascontiguousarray(tets[0][1], dtype=np.int64)
     tree = igl.AABB()
@@ -278,8 +280,7 @@ def setup_problem(
         constants. ``"sparsified"``: the Galerkin product of each level moved onto the coarse tet
         mesh's own sparsity by :func:`solvers.reroute_to_pattern` (dropped couplings rerouted along
         two-edge paths; row sums kept; spectrally equivalent), level by level: Galerkin's
-        consistency at the re-discretised operator complexity. ``"rediscretised"`` is a deprecated
-        alias of ``"rediscretized"``.
+        consistency at the re-discretised operator complexity.
     lam : float
         Diffusion coefficient λ of ``diffusion-neumann`` (time step x conductivity).
     f : (n_fine,) float array, optional
@@ -298,21 +299,17 @@ def setup_problem(
     Problem
     """
     if name not in PROBLEMS:
-        raise ValueError(f"unknown problem {name!r}; choose from {PROBLEMS}")
-    if coarse == "rediscretised":
-        warnings.warn("coarse='rediscretised' is deprecated; spell it 'rediscretized'", DeprecationWarning,
-                      stacklevel=2)
-        coarse = "rediscretized"
+        raise NestmgInputError(f"unknown problem {name!r}; choose from {PROBLEMS}")
     if coarse not in COARSE:
-        raise ValueError(f"coarse must be one of {COARSE}, got {coarse!r}")
+        raise NestmgInputError(f"coarse must be one of {COARSE}, got {coarse!r}")
     if len(P) != len(tets) - 1:
-        raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
+        raise NestmgInputError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
     V0, T0, vol0 = check_tet_mesh(*tets[0], return_volumes=True)  # validated once; assembly skips its check
     n0 = len(V0)
     M0 = mass_matrix(V0, T0, check=False, volumes=vol0)
     f = default_rhs(V0) if f is None else np.asarray(f, dtype=np.float64)
     if f.shape != (n0,):
-        raise ValueError(f"f must have shape ({n0},), got {f.shape}")
+        raise NestmgInputError(f"f must have shape ({n0},), got {f.shape}")
     m = M0.diagonal()
     if name == "poisson-neumann":
         f = f - (m @ f) / m.sum()  # zero mass-weighted mean -> sum(M f) = 0
@@ -342,7 +339,7 @@ def setup_problem(
         if coarse == "weighted":
             w = volume_fractions(tets) if fractions is None else fractions
             if len(w) != len(tets):
-                raise ValueError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
+                raise NestmgInputError(f"fractions needs {len(tets)} arrays (level 0 first), got {len(w)}")
             ops = _weighted_operators(name, tets, w, free, lam, K0, bnd)
     local = None
     if not dirichlet:  # natural boundary: the boundary layer gets extra local sweeps (free0 = all nodes)
@@ -352,7 +349,7 @@ def setup_problem(
         A=A,
         b=np.asarray(b_full[free0]),
         P=Pr,
-        coarse_ops=ops,
+        coarse="galerkin" if ops is None else ops,
         free=free,
         n_fine=n0,
         nullspace="constant" if name == "poisson-neumann" else None,

@@ -33,6 +33,8 @@ import scipy.sparse as sp
 
 from solvers.fem import boundary_faces
 
+from .errors import NestmgInputError
+
 __all__ = ["EXTRAPOLATIONS", "ProlongationReport", "prolongation"]
 
 EXTRAPOLATIONS = ("clamped", "linear", "closest_point", "nearest_vertex")
@@ -131,18 +133,18 @@ def prolongation(
 
     t0 = time.perf_counter()
     if extrapolation not in EXTRAPOLATIONS:
-        raise ValueError(f"unknown extrapolation {extrapolation!r}; choose from {EXTRAPOLATIONS}")
+        raise NestmgInputError(f"unknown extrapolation {extrapolation!r}; choose from {EXTRAPOLATIONS}")
     Vf = np.ascontiguousarray(Vf, dtype=np.float64)
     Vc = np.ascontiguousarray(Vc, dtype=np.float64)
     Tc = np.ascontiguousarray(Tc, dtype=np.int64)
     if Vf.ndim != 2 or Vf.shape[1] != 3 or Vc.ndim != 2 or Vc.shape[1] != 3:
-        raise ValueError("Vf and Vc must be (n,3) arrays")
+        raise NestmgInputError("Vf and Vc must be (n,3) arrays")
     if Tc.ndim != 2 or Tc.shape[1] != 4 or len(Tc) == 0:
-        raise ValueError("Tc must be a non-empty (t,4) array of tets")
+        raise NestmgInputError("Tc must be a non-empty (t,4) array of tets")
     if not (np.isfinite(Vf).all() and np.isfinite(Vc).all()):
-        raise ValueError("node coordinates contain NaN or inf")
+        raise NestmgInputError("node coordinates contain NaN or inf")
     if Tc.min() < 0 or Tc.max() >= len(Vc):
-        raise ValueError("Tc indexes nodes outside Vc")
+        raise NestmgInputError("Tc indexes nodes outside Vc")
     nf, nc = len(Vf), len(Vc)
 
     tree = igl.AABB()

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from solvers import DivergenceError, MultigridSolver, convergence_factor
+from solvers import DEFAULT_MAXITER, DivergenceError, MultigridSolver, convergence_factor
 
 from .problems import cycle_smoothers, setup_problem
 
@@ -56,7 +56,7 @@ def solve_on_hierarchy(
     cycle: str = "V",
     accel: str | None = None,
     tol: float = 1e-8,
-    maxiter: int = 60,
+    maxiter: int = DEFAULT_MAXITER,
     lam: float = 1e-2,
     cost: bool = True,
     return_solution: bool = False,

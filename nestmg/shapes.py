@@ -16,6 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .errors import NestmgInputError
+
 SDF = Callable[[np.ndarray], np.ndarray]
 
 __all__ = [
@@ -94,7 +96,7 @@ def shape_sdf(name: str) -> tuple[SDF, np.ndarray]:
         return f, np.array([[-1.5, -0.6, -0.6], [1.5, 0.6, 0.6]])
     if name == "thin_plate":
         return _rounded_box_sdf, np.array([[-1.0, -0.7, -0.08], [1.0, 0.7, 0.08]])
-    raise ValueError(f"unknown shape {name!r}; choose from {sorted(SHAPES)}")
+    raise NestmgInputError(f"unknown shape {name!r}; choose from {sorted(SHAPES)}")
 
 
 # ----------------------------------------------------------------------------- meshing
@@ -127,7 +129,7 @@ def mesh_implicit(
 
     bounds = np.asarray(bounds, dtype=float)
     if res < 4:
-        raise ValueError(f"res must be >= 4, got {res}")
+        raise NestmgInputError(f"res must be >= 4, got {res}")
     h = float((bounds[1] - bounds[0]).max()) / res
     lo = bounds[0] - abs(level) - 2 * h
     hi = bounds[1] + abs(level) + 2 * h
@@ -294,7 +296,7 @@ def plate_with_holes(holes: int = 3, segments: int = 16, thickness: float = 0.08
     Returns ``(V, F)``: closed, manifold, outward-oriented, ``2 (holes + 1) + 2 holes segments`` vertices.
     """
     if segments % 4:
-        raise ValueError(f"segments must be a multiple of 4, got {segments}")
+        raise NestmgInputError(f"segments must be a multiple of 4, got {segments}")
     q = segments // 4
     corners = [(i, j) for i in range(holes + 1) for j in (0, 1)]  # square corners, shared by neighbours
     cid = {c: k for k, c in enumerate(corners)}
@@ -372,8 +374,8 @@ def nested_isosurfaces(
         :func:`cagegen.verify_nesting`.
     """
     if len(offsets) != len(resolutions):
-        raise ValueError("offsets and resolutions must have the same length")
+        raise NestmgInputError("offsets and resolutions must have the same length")
     if np.any(np.diff(offsets) <= 0):
-        raise ValueError("offsets must be strictly increasing (coarser layers outside)")
+        raise NestmgInputError("offsets must be strictly increasing (coarser layers outside)")
     f, b = shape_sdf(name)
     return [mesh_implicit(f, b, res=r, level=d) for d, r in zip(offsets, resolutions)]

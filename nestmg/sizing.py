@@ -33,6 +33,7 @@ from cagegen.sizes import MIN_FACES, check_face_counts, fitting_levels
 from solvers.errors import InsufficientMemoryError
 from solvers.memory import check_memory
 
+from .errors import NestmgInputError
 from .memory import FEM_BYTES_PER_NODE, TetMeshMemoryError, enclosed_volume, estimate_tet_bytes
 from .tetmesh import TetMeshError
 
@@ -76,7 +77,7 @@ def expected_tets(volume: float, edge_length: float, mesher: str = "tetwild") ->
 def edge_length_for_tets(V: np.ndarray, F: np.ndarray, n_tets: int, mesher: str = "tetwild") -> float:
     """Target edge length at which ``mesher`` is expected to make ``n_tets`` tets of ``(V, F)``'s solid."""
     if n_tets <= 0:
-        raise ValueError(f"n_tets must be positive, got {n_tets}")
+        raise NestmgInputError(f"n_tets must be positive, got {n_tets}")
     vol = enclosed_volume(V, F)
     return float((COUNT_RATIO[mesher] * vol * 6.0 * np.sqrt(2.0) / n_tets) ** (1.0 / 3.0))
 
@@ -335,7 +336,7 @@ def plan_hierarchy(
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     if mesher not in COUNT_RATIO:
-        raise ValueError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
+        raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
     lp = plan_levels(len(F), levels, face_counts=face_counts, fixed_levels=fixed_levels)
     levels = lp.levels
     from cagegen._geometry import bbox_diagonal

@@ -39,6 +39,7 @@ from cagegen._tempdir import in_temp_dir
 from cagegen.errors import MeshInputError, NestmgError
 
 from ._mesh_worker import run_job
+from .errors import NestmgInputError
 
 __all__ = [
     "MESHERS",
@@ -185,7 +186,7 @@ def mesh_time_limit(V: np.ndarray, F: np.ndarray, edge_length: float, mesher: st
         except ValueError:
             value = float("nan")
         if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{TIME_LIMIT_ENV}={env!r}: give seconds (> 0) or 'none'")
+            raise NestmgInputError(f"{TIME_LIMIT_ENV}={env!r}: give seconds (> 0) or 'none'")
         return value
     from .memory import enclosed_volume  # nestmg.memory and nestmg.sizing import this module
     from .sizing import expected_tets, fine_mesh_seconds
@@ -469,17 +470,17 @@ def tetrahedralize(
     if not np.isfinite(V).all():
         raise MeshInputError(f"surface: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     if mesher not in MESHERS:
-        raise ValueError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
+        raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
     lo, hi = V.min(axis=0), V.max(axis=0)
     diag = bbox_diagonal(V)  # overflow-safe
     if not (np.isfinite(diag) and diag > 0):
         raise MeshInputError(f"surface: bounding-box diagonal {diag} (all vertices coincide, or overflow)")
     h = float(edge_length) if edge_length is not None else edge_length_fac * diag
     if not np.isfinite(h) or h <= 0:
-        raise ValueError(f"edge length must be positive, got {h}")
+        raise NestmgInputError(f"edge length must be positive, got {h}")
     limit = mesh_time_limit(V, F, h, mesher) if time_limit == "auto" else time_limit
     if limit is not None and not (isinstance(limit, (int, float)) and limit > 0):
-        raise ValueError(f"time_limit must be seconds > 0, 'auto' or None, got {time_limit!r}")
+        raise NestmgInputError(f"time_limit must be seconds > 0, 'auto' or None, got {time_limit!r}")
     deadline = None if limit is None else time.monotonic() + float(limit)
     try:
         if mesher == "tetwild":

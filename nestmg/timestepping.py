@@ -21,9 +21,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from solvers.fem import boundary_layer_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
-from solvers.multilevel import restrict_prolongations
+from solvers.multilevel import DEFAULT_MAXITER, restrict_prolongations
 from solvers.shifted import ShiftedGalerkin
 
+from .errors import NestmgInputError
 from .problems import Problem
 
 __all__ = ["DiffusionStepper", "diffusion_stepper", "implicit_diffusion"]
@@ -56,7 +57,7 @@ class DiffusionStepper:
     setup_seconds: dict
     smoothing: str = "fast"
 
-    def step(self, u_prev: np.ndarray, dt: float, *, tol: float = 1e-8, maxiter: int = 200,
+    def step(self, u_prev: np.ndarray, dt: float, *, tol: float = 1e-8, maxiter: int = DEFAULT_MAXITER,
              **multigrid_kwargs) -> tuple[np.ndarray, dict]:
         """One backward-Euler step ``(M + dt K) u = M u_prev`` by MG-PCG warm-started from ``u_prev``.
 
@@ -81,15 +82,15 @@ class DiffusionStepper:
         """
         dt = float(dt)
         if not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"time step must be positive and finite, got {dt}")
+            raise NestmgInputError(f"time step must be positive and finite, got {dt}")
         u_prev = np.asarray(u_prev, dtype=np.float64)
         if u_prev.shape != (self.M.shape[0],):
-            raise ValueError(f"u_prev must have shape ({self.M.shape[0]},), got {u_prev.shape}")
+            raise NestmgInputError(f"u_prev must have shape ({self.M.shape[0]},), got {u_prev.shape}")
         t0, c0 = time.perf_counter(), time.process_time()
         A, *coarse = self.family.operators(1.0, dt)
         b = self.M @ u_prev
         t1, c1 = time.perf_counter(), time.process_time()
-        prob = dataclasses.replace(self.problem, A=A, b=b, coarse_ops=coarse,
+        prob = dataclasses.replace(self.problem, A=A, b=b, coarse=coarse,
                                    params=dict(self.problem.params, lam=dt, coarse="galerkin (sparse sum)"))
         # the sparse sums are Galerkin operators: no energy scaling; symmetric by construction (M, K
         # symmetric, products symmetrised), so the solver need not test it at every step
@@ -135,9 +136,9 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
     from .problems import SMOOTHING
 
     if smoothing not in SMOOTHING:
-        raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+        raise NestmgInputError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
     if len(P) != len(tets) - 1:
-        raise ValueError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
+        raise NestmgInputError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
     t0, c0 = time.perf_counter(), time.process_time()
     V0, T0 = tets[0]
     n0 = len(V0)
@@ -148,14 +149,14 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
     K, M = sp.csr_matrix(K, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64)
     for name, X in (("K", K), ("M", M)):
         if X.shape != (n0, n0):
-            raise ValueError(f"{name} must have shape ({n0}, {n0}) (the fine nodes), got {X.shape}")
+            raise NestmgInputError(f"{name} must have shape ({n0}, {n0}) (the fine nodes), got {X.shape}")
         if not np.all(np.isfinite(X.data)):
-            raise ValueError(f"{name} contains NaN/inf entries")
+            raise NestmgInputError(f"{name} contains NaN/inf entries")
     t1, c1 = time.perf_counter(), time.process_time()
     # natural boundary: every fine node is free; the prolongations are pruned as in setup_problem
     Pr, free = restrict_prolongations(P, np.arange(n0), min_column_sum=prune)
     local = boundary_layer_nodes(T0, rings=1, n=n0) if smoothing == "robust" else None
-    prob = Problem(name="diffusion-neumann", A=M + K, b=np.zeros(n0), P=Pr, coarse_ops=None, free=free,
+    prob = Problem(name="diffusion-neumann", A=M + K, b=np.zeros(n0), P=Pr, coarse="galerkin", free=free,
                    n_fine=n0, nullspace=None, params={"lam": 1.0, "coarse": "galerkin", "prune": prune,
                                                       "smoothing": smoothing}, local_nodes=local)
     t2, c2 = time.perf_counter(), time.process_time()
@@ -168,7 +169,7 @@ def diffusion_stepper(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_
 
 
 def implicit_diffusion(tets: list[tuple[np.ndarray, np.ndarray]], P: list[sp.csr_matrix], u0: np.ndarray, dts,
-                       *, tol: float = 1e-8, maxiter: int = 200) -> tuple[np.ndarray, list[dict]]:
+                       *, tol: float = 1e-8, maxiter: int = DEFAULT_MAXITER) -> tuple[np.ndarray, list[dict]]:
     """Backward-Euler diffusion ``(M + Δt_k K) u_k = M u_{k-1}`` for the time steps ``dts``.
 
     Parameters

@@ -15,9 +15,11 @@ user's nodes (:func:`nestmg.hierarchy.tet_hierarchy` with ``fine=(V, T)``, which
 with a smaller envelope while fine nodes remain outside it). ``Hierarchy.certified`` is true when the
 surfaces are certified nested and ``n_outside == 0`` on every level.
 
-Also here: :func:`save_hierarchy` / :func:`load_hierarchy` (``Hierarchy.save(dir)`` / ``Hierarchy.load(dir)``:
-exact arrays, reusable without the cache), :func:`write_vtu_levels` (every level's tet mesh, and fields, as
-VTU files ParaView opens) and :func:`p1_to_p2_prolongation` (a P2 fine level on top of the P1 hierarchy).
+Also here: the save/load pair of a hierarchy, :func:`save_hierarchy` ``(directory, H)`` /
+:func:`load_hierarchy` ``(directory)`` (exact arrays, reusable without the cache; the path comes first, as
+in :func:`nestmg.save_mesh`), :func:`write_vtu_levels` ``(directory, H, fields)`` (every level's tet mesh,
+and fields, as VTU files ParaView opens) and :func:`p1_to_p2_prolongation` (a P2 fine level on top of the
+P1 hierarchy).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import scipy.sparse as sp
 from cagegen.errors import MeshInputError, NestmgError
 
 from .cache import arrays_digest, atomic_write_bytes
+from .errors import NestmgInputError
 from .hierarchy import Hierarchy, tet_hierarchy
 from .progress import Timer, stage_line
 from .prolongation import ProlongationReport
@@ -228,7 +231,7 @@ def hierarchy_from_tets(
     from .sizing import plan_levels
 
     if levels < 2:
-        raise ValueError(f"levels must be >= 2, got {levels}")
+        raise NestmgInputError(f"levels must be >= 2, got {levels}")
     t0 = time.perf_counter()
     timer = Timer()
     with timer("boundary"):
@@ -286,28 +289,35 @@ def _split_fields(H: Hierarchy) -> dict[str, Any]:
     return {f.name: getattr(H, f.name) for f in dataclasses.fields(H) if f.name not in skip}
 
 
-def save_hierarchy(H: Hierarchy, directory: str | os.PathLike, *, vtu: bool = False) -> Path:
+def save_hierarchy(directory: str | os.PathLike, H: Hierarchy, *, vtu: bool = False) -> Path:
     """Write ``H`` to ``directory`` (``hierarchy.npz`` + ``hierarchy.json``) for :func:`load_hierarchy`.
 
     Arrays are stored exactly (surfaces, tets, prolongations as CSR parts); the JSON holds the summary
     (:meth:`Hierarchy.to_dict`), the remaining fields and the arrays' SHA-256. Both files are written
-    atomically. ``Hierarchy.save(dir)`` calls this.
+    atomically.
 
     Parameters
     ----------
-    H : Hierarchy
     directory : path
         Created if needed; only ``hierarchy.npz``, ``hierarchy.json`` (and ``level_k.vtu`` with
         ``vtu=True``) are written in it.
+    H : Hierarchy
     vtu : bool
         Also write every level's tet mesh as ``level_k.vtu`` (:func:`write_vtu_levels`).
 
     Returns
     -------
     Path of the directory.
+
+    Raises
+    ------
+    NestmgInputError
+        ``H`` is not a :class:`Hierarchy` (e.g. the arguments in the other order).
     """
     from .io import json_default
 
+    if not isinstance(H, Hierarchy):
+        raise NestmgInputError(f"save_hierarchy(directory, H): H must be a Hierarchy, got {type(H).__name__}")
     d = Path(directory)
     arrays: dict[str, np.ndarray] = {}
     for k, (Vk, Fk) in enumerate(H.surfaces):
@@ -335,7 +345,16 @@ def save_hierarchy(H: Hierarchy, directory: str | os.PathLike, *, vtu: bool = Fa
 
 
 def load_hierarchy(directory: str | os.PathLike) -> Hierarchy:
-    """Read a hierarchy written by :func:`save_hierarchy` (``Hierarchy.load(dir)``).
+    """Read a hierarchy written by :func:`save_hierarchy`.
+
+    Parameters
+    ----------
+    directory : path
+        Holding ``hierarchy.npz`` and ``hierarchy.json``.
+
+    Returns
+    -------
+    Hierarchy
 
     Raises
     ------
@@ -391,20 +410,27 @@ def write_vtu_levels(
     Returns
     -------
     list of Path
-    """
-    from .io import save_vtu
 
+    Raises
+    ------
+    NestmgInputError
+        ``H`` is not a :class:`Hierarchy`, or a field does not have one value per fine node.
+    """
+    from .io import save_tet_mesh
+
+    if not isinstance(H, Hierarchy):
+        raise NestmgInputError(f"write_vtu_levels(directory, H): H must be a Hierarchy, got {type(H).__name__}")
     d = Path(directory)
     out = []
     n0 = len(H.tets[0][0])
     for name, f in (fields or {}).items():
         if np.asarray(f).shape[0] != n0:
-            raise ValueError(f"field {name!r} has {np.asarray(f).shape[0]} values, the fine level {n0} nodes")
+            raise NestmgInputError(f"field {name!r} has {np.asarray(f).shape[0]} values, the fine level {n0} nodes")
     for k, (Vk, Tk) in enumerate(H.tets):
         Vw = np.asarray(Vk) if frame is None else np.asarray(Vk) * frame[1] + np.asarray(frame[0])
         pdata = {n: np.asarray(f) for n, f in (fields or {}).items()} if k == 0 else {}
         p = d / f"level_{k}.vtu"
-        save_vtu(p, Vw, Tk, point_data=pdata, cell_data={"level": np.full(len(Tk), k, dtype=np.int32)})
+        save_tet_mesh(p, Vw, Tk, point_data=pdata, cell_data={"level": np.full(len(Tk), k, dtype=np.int32)})
         out.append(p)
     return out
 

@@ -9,6 +9,7 @@ from .errors import (
     DivergenceError,
     IncompatibleRHSError,
     InsufficientMemoryError,
+    NestmgError,
     SolverError,
     SolverInputError,
 )
@@ -24,9 +25,10 @@ from .fem import (
     remove_mean,
     stiffness_matrix,
 )
-from .krylov import KrylovResult, mg_pcg, pcg
+from .krylov import KrylovResult, pcg
 from .memory import available_memory, check_memory, galerkin_nnz_estimate
 from .multilevel import (
+    DEFAULT_MAXITER,
     ConvergenceWarning,
     Level,
     MultigridSolver,
@@ -40,6 +42,7 @@ from .multilevel import (
 from .smoothing import SMOOTHERS, Smoother, make_smoother
 
 __all__ = [
+    "DEFAULT_MAXITER",
     "SMOOTHERS",
     "ConvergenceWarning",
     "DirichletSystem",
@@ -49,6 +52,7 @@ __all__ = [
     "KrylovResult",
     "Level",
     "MultigridSolver",
+    "NestmgError",
     "Smoother",
     "SolverError",
     "SolverInputError",
@@ -64,7 +68,6 @@ __all__ = [
     "load_vector",
     "make_smoother",
     "mass_matrix",
-    "mg_pcg",
     "pcg",
     "project_rhs",
     "prune_prolongations",

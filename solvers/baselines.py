@@ -31,7 +31,6 @@ __all__ = [
     "BaselineUnavailableError",
     "cholmod",
     "cholmod_available",
-    "geometric_mg",
     "pyamg_rs",
     "pyamg_sa",
     "run_baselines",
@@ -220,24 +219,6 @@ def cholmod(A, b, *, nullspace: str | None = None) -> BaselineResult:
     final = _rel(A, b, x)
     return BaselineResult("cholmod", x, 0, t1 - t0, t2 - t1, [final], bool(np.isfinite(final)),
                           {"final_true_residual": final})
-
-
-def geometric_mg(A, b, Ps, *, tol: float = 1e-8, maxiter: int = 200, accel: str | None = "cg", cycle: str = "V",
-                 nullspace: str | None = None, **kwargs) -> BaselineResult:
-    """nestmg's own :class:`MultigridSolver` timed the same way (``kwargs`` go to its constructor)."""
-    from .multilevel import MultigridSolver
-
-    A, b = _prep(A, b, nullspace)
-    t0 = time.perf_counter()
-    ml = MultigridSolver(A, Ps, nullspace=nullspace, **kwargs)
-    t1 = time.perf_counter()
-    x, info = ml.solve(b, tol=tol, maxiter=maxiter, accel=accel, cycle=cycle, return_info=True)
-    t2 = time.perf_counter()
-    return BaselineResult(
-        "geometric_mg", x, info["iterations"], t1 - t0, t2 - t1, info["residuals"], info["converged"],
-        {"levels": len(ml.levels), "operator_complexity": ml.operator_complexity(),
-         "cycle_complexity": ml.cycle_complexity(cycle), "factor": info["factor"], "accel": accel},
-    )
 
 
 BASELINES = {

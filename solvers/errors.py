@@ -1,13 +1,21 @@
-"""Exception classes raised on purpose by :mod:`solvers`.
+"""Exception classes raised on purpose by :mod:`solvers`, and the root of every package's errors.
 
-`solvers` is pure sparse linear algebra and must not import `cagegen`, so it has its own small
-hierarchy. Every class derives from :class:`SolverError`; input problems are also ``ValueError``.
+:class:`NestmgError` is the one root of the distribution: ``cagegen``, ``nestmg`` and ``solvers`` errors
+all derive from it, so ``except NestmgError`` catches any error raised on purpose. It is defined here
+because ``solvers`` is the bottom of the import graph (pure sparse linear algebra: it imports neither
+``cagegen`` nor ``nestmg``, which both import it), so the root costs no upward import and no fourth
+package; :mod:`cagegen.errors` re-exports it. Every ``solvers`` class derives from
+:class:`SolverError`; input problems are also ``ValueError``.
 """
 
 from __future__ import annotations
 
 
-class SolverError(RuntimeError):
+class NestmgError(Exception):
+    """Base class of every error nestmg raises on purpose (bad input, failed certification, divergence...)."""
+
+
+class SolverError(NestmgError, RuntimeError):
     """Base class of every error the :mod:`solvers` package raises on purpose."""
 
 

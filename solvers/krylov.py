@@ -1,4 +1,7 @@
-"""Preconditioned conjugate gradients with a residual history (wrapping ``pyamg.krylov.cg``)."""
+"""Preconditioned conjugate gradients with a residual history (wrapping ``pyamg.krylov.cg``).
+
+MG-PCG is ``MultigridSolver.solve(b, accel="cg")``, which calls :func:`pcg` with one cycle as ``M``.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ from pyamg.krylov import cg as _pyamg_cg
 
 from .errors import DivergenceError, SolverInputError
 
-__all__ = ["KrylovResult", "mg_pcg", "pcg"]
+__all__ = ["KrylovResult", "pcg"]
 
 
 class _NonFiniteStop(Exception):
@@ -168,27 +171,3 @@ def _flexible_cg(A, b, x, M, tol, maxiter, res, zero_mean):
         if not np.isfinite(res[-1]):
             break
     return x
-
-
-def mg_pcg(ml, b, *, x0=None, tol: float = 1e-8, maxiter: int = 200, cycle: str = "V") -> KrylovResult:
-    """CG preconditioned by one multigrid cycle of ``ml`` (a :class:`solvers.MultigridSolver`).
-
-    Parameters
-    ----------
-    ml : MultigridSolver
-    b : (n,) array_like
-    x0, tol, maxiter : see :func:`pcg`
-    cycle : {"V", "W", "F"}
-
-    Returns
-    -------
-    KrylovResult
-        Iteration count, relative residual history, converged flag and solve time.
-
-    Raises
-    ------
-    DivergenceError
-        NaN/inf during the iteration (naming the level, via ``ml.solve``).
-    """
-    x, info = ml.solve(b, x0=x0, tol=tol, maxiter=maxiter, cycle=cycle, accel="cg", return_info=True)
-    return KrylovResult(x, info["iterations"], info["residuals"], info["converged"], info["seconds"])

@@ -40,6 +40,7 @@ from .transfer import (
 )
 
 __all__ = [
+    "DEFAULT_MAXITER",
     "Level",
     "MultigridSolver",
     "convergence_factor",
@@ -51,6 +52,11 @@ __all__ = [
 ]
 
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
+
+#: Default cap on cycles (stationary) or CG iterations (``accel="cg"``) of every multigrid solve:
+#: :meth:`MultigridSolver.solve`, :meth:`solvers.petsc.PetscMultigrid.solve`,
+#: :func:`nestmg.solve_on_hierarchy`, the time stepper, the geodesics and ``nestmg solve --maxiter``.
+DEFAULT_MAXITER = 100
 
 
 class ConvergenceWarning(UserWarning):
@@ -119,8 +125,7 @@ class MultigridSolver:
     coarse : "galerkin" or list of sparse
         ``"galerkin"`` (default): ``A_{k+1} = P_kᵀ A_k P_k``. A list ``[A_1, ..., A_L]`` (shapes
         ``(n_k, n_k)``): the caller's coarse operators, e.g. re-discretised or volume-fraction weighted
-        ones (``nestmg.problems.setup_problem(coarse=...)`` makes them). ``coarse_operators=`` is the
-        deprecated spelling of the list form.
+        ones (``nestmg.problems.setup_problem(coarse=...)`` makes them).
     coarse_scaling : None or "energy"
         ``"energy"``: scale every coarse-grid correction ``e = P x_c`` by the energy-optimal
         ``α = (rᵀ e) / (eᵀ A e)`` (minimises the energy norm of the error along ``e``; one extra
@@ -201,7 +206,6 @@ class MultigridSolver:
         *,
         coarse="galerkin",
         coarse_scaling: str | None = None,
-        coarse_operators=None,
         presmoother=DEFAULT_SMOOTHER,
         postsmoother=None,
         nullspace: str | None = None,
@@ -235,12 +239,6 @@ class MultigridSolver:
                         f"sum to values in [{rs.min():.3g}, {rs.max():.3g}]"
                     )
             n = P.shape[1]
-        if coarse_operators is not None:
-            warnings.warn("MultigridSolver(coarse_operators=...) is deprecated; use coarse=[A_1, ...]",
-                          DeprecationWarning, stacklevel=2)
-            if not (isinstance(coarse, str) and coarse == "galerkin"):
-                raise SolverInputError("give the coarse operators once: coarse=[...] (coarse_operators is deprecated)")
-            coarse = coarse_operators
         if local_sweep not in ("symmetric", "one-way"):
             raise SolverInputError(f"local_sweep must be 'symmetric' or 'one-way', got {local_sweep!r}")
         if coarse_scaling not in (None, "energy"):
@@ -261,14 +259,14 @@ class MultigridSolver:
             ops = galerkin_operators(A, Ps, symmetric=sym0, Rs=Rs)
             self.coarse = "galerkin"
         else:
-            coarse_operators = list(coarse)
-            if len(coarse_operators) != len(Ps):
-                raise SolverInputError(f"coarse_operators needs {len(Ps)} matrices, got {len(coarse_operators)}")
-            ops = [A] + [_as_csr(Ac, f"coarse_operators[{k}]") for k, Ac in enumerate(coarse_operators)]
+            given = list(coarse)
+            if len(given) != len(Ps):
+                raise SolverInputError(f"coarse needs {len(Ps)} matrices [A_1, ..., A_L], got {len(given)}")
+            ops = [A] + [_as_csr(Ac, f"coarse[{k}]") for k, Ac in enumerate(given)]
             for k, (P, Ac) in enumerate(zip(Ps, ops[1:])):
                 if Ac.shape != (P.shape[1], P.shape[1]):
                     raise SolverInputError(
-                        f"coarse_operators[{k}] has shape {Ac.shape}, expected {(P.shape[1], P.shape[1])}"
+                        f"coarse[{k}] has shape {Ac.shape}, expected {(P.shape[1], P.shape[1])}"
                     )
             self.coarse = "given"
             Rs = [sp.csr_matrix(P.T) for P in Ps]
@@ -500,7 +498,7 @@ class MultigridSolver:
         b,
         x0=None,
         tol: float = 1e-8,
-        maxiter: int = 100,
+        maxiter: int = DEFAULT_MAXITER,
         cycle: str = "V",
         accel: str | None = None,
         residuals: list | None = None,
@@ -518,10 +516,11 @@ class MultigridSolver:
         tol : float
             Stop when ``||b - A x|| <= tol ||b||`` (2-norms).
         maxiter : int
-            Maximum number of cycles (or CG iterations).
+            Maximum number of cycles (or CG iterations); default :data:`DEFAULT_MAXITER`.
         cycle : {"V", "W", "F"}
         accel : None or "cg"
-            ``"cg"``: conjugate gradients (pyamg.krylov.cg) preconditioned by one cycle from zero.
+            ``"cg"``: conjugate gradients (pyamg.krylov.cg) preconditioned by one cycle from zero: the one
+            MG-PCG entry point of the package (``nestmg.solve_on_hierarchy`` and the CLI call it).
         residuals : list, optional
             Cleared and filled with the relative residuals ``||b - A x_i|| / ||b||``, ``i = 0..iters``
             (``residuals[0]`` is that of ``x0``).

@@ -2,7 +2,7 @@
 
 Install with ``scripts/install-petsc.sh`` (Debian's PETSc 3.18 + petsc4py built against it; extra
 ``petsc``). Every rank calls the same functions with the same *global* scipy matrices (built
-deterministically on every rank, or read from a ``.npz`` written by :func:`save_hierarchy`); each rank
+deterministically on every rank, or read from a ``.npz`` written by :func:`save_operators`); each rank
 copies only its own rows into PETSc::
 
     mpirun -n 4 python my_solve.py            # inside: PetscMultigrid(A, Ps).solve(b)
@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .errors import SolverError, SolverInputError
-from .multilevel import convergence_factor
+from .multilevel import DEFAULT_MAXITER, convergence_factor
 from .petsc_amg import petsc_amg_solve
 from .petsc_common import (
     SMOOTHER_NAMES,
@@ -71,16 +71,16 @@ from .petsc_common import (
     petsc_available,
     row_partition,
 )
-from .petsc_io import load_hierarchy, save_hierarchy
+from .petsc_io import load_operators, save_operators
 
 __all__ = [
     "PetscMultigrid",
     "PetscUnavailableError",
-    "load_hierarchy",
+    "load_operators",
     "petsc_amg_solve",
     "petsc_available",
     "row_partition",
-    "save_hierarchy",
+    "save_operators",
 ]
 
 
@@ -162,8 +162,6 @@ class PetscMultigrid:
         ``"galerkin"`` (default): PETSc computes ``A_{k+1} = P_kᵀ A_k P_k`` (``-pc_mg_galerkin both``).
         A list ``[A_1, ..., A_L]``: coarse operators built by nestmg (re-discretised or weighted,
         ``nestmg.problems.setup_problem(coarse=...)``), as ``MultigridSolver(coarse=...)``.
-    galerkin, coarse_ops
-        Deprecated spelling (``galerkin=False, coarse_ops=[...]``) of ``coarse=[...]``.
     cycle : {"V", "W"}
     smoother : {"sor", "jacobi", "chebyshev"}
         ``"sor"``: Richardson + PCSOR, symmetric sweeps, ω = ``omega`` (default 1: symmetric
@@ -238,8 +236,6 @@ class PetscMultigrid:
         *,
         comm=None,
         coarse="galerkin",
-        galerkin: bool | None = None,
-        coarse_ops=None,
         cycle: str = "V",
         smoother: str = "sor",
         presmooth: int = 1,
@@ -268,19 +264,17 @@ class PetscMultigrid:
             raise SolverInputError(f"omega must lie in (0, 2), got {omega!r}")
         if not isinstance(options_prefix, str) or not options_prefix or options_prefix.startswith("-"):
             raise SolverInputError(f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
-        galerkin, coarse_ops = _coarse_choice(coarse, galerkin, coarse_ops)
+        galerkin, given_ops = _coarse_choice(coarse)
         self.nullspace = _check_nullspace(nullspace)
-        A, Ps, coarse_ops = _check_hierarchy(A, Ps, coarse_ops)
-        if not galerkin and Ps and coarse_ops is None:
-            raise SolverInputError("galerkin=False needs coarse_ops=[A_1, ..., A_L]")
+        A, Ps, given_ops = _check_hierarchy(A, Ps, given_ops)
         _check_diagonal(A, "A")
-        for k, Ac in enumerate(coarse_ops or []):
-            _check_diagonal(Ac, f"coarse_ops[{k}]")
+        for k, Ac in enumerate(given_ops or []):
+            _check_diagonal(Ac, f"coarse[{k}]")
         self.comm = PETSc.COMM_WORLD if comm is None else comm
         self.comm_size = self.comm.getSize()
         self.cycle, self.smoother, self.krylov = cycle, smoother, krylov
         self.presmooth, self.postsmooth = int(presmooth), int(postsmooth)
-        self.galerkin = bool(galerkin)
+        self.coarse = "galerkin" if galerkin else "given"  # as MultigridSolver.coarse
         self.prefix = options_prefix
         self.n = A.shape[0]
         if omega is None:
@@ -335,8 +329,8 @@ class PetscMultigrid:
 
         mats = [_to_petsc(PETSc, A, layouts[0], layouts[0], self.comm)]
         interp = [_to_petsc(PETSc, P, layouts[k], layouts[k + 1], self.comm) for k, P in enumerate(Ps)]
-        given = [] if coarse_ops is None else [
-            _to_petsc(PETSc, Ac, layouts[k + 1], layouts[k + 1], self.comm) for k, Ac in enumerate(coarse_ops)
+        given = [] if given_ops is None else [
+            _to_petsc(PETSc, Ac, layouts[k + 1], layouts[k + 1], self.comm) for k, Ac in enumerate(given_ops)
         ]
         self._owned.extend(mats + given + interp)
         if self.nullspace == "constant":
@@ -365,7 +359,7 @@ class PetscMultigrid:
         pc.setMGCycleType(PETSc.PC.MGCycleType.V if cycle == "V" else PETSc.PC.MGCycleType.W)
         for k, P in enumerate(interp):
             pc.setMGInterpolation(nlev - 1 - k, P)  # PETSc level nlev-1-k is nestmg level k
-        if not self.galerkin:
+        if not galerkin:
             for k, Ac in enumerate(given):
                 lev = nlev - 2 - k
                 if lev == 0:
@@ -374,7 +368,7 @@ class PetscMultigrid:
                     pc.getMGSmootherDown(lev).setOperators(Ac)
                     pc.getMGSmootherUp(lev).setOperators(Ac)
 
-        top = {"pc_mg_galerkin": "both" if self.galerkin else "none"}
+        top = {"pc_mg_galerkin": "both" if galerkin else "none"}
         top.update(options or {})
         with _options(PETSc, options_prefix, top):
             ksp.setFromOptions()
@@ -476,7 +470,7 @@ class PetscMultigrid:
             f"PetscMultigrid (PETSc PCMG, {self.comm_size} rank{'s' if self.comm_size > 1 else ''})",
             f"Krylov / cycle:     {self.krylov} / {self.cycle}({self.presmooth},{self.postsmooth})",
             f"Smoother:           {self.smoother} (omega={self.omega})",
-            f"Coarse operators:   {'Galerkin (PETSc MatPtAP)' if self.galerkin else 'given'}",
+            f"Coarse operators:   {'Galerkin (PETSc MatPtAP)' if self.coarse == 'galerkin' else 'given'}",
             (f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}, "
              f"off-rank couplings {self.ghosts_per_rank})"),
             f"Null space:         {self.nullspace}",
@@ -501,7 +495,7 @@ class PetscMultigrid:
         return self._layouts[0].local_rows(self.comm.getRank())
 
     # ------------------------------------------------------------------ solve
-    def solve(self, b, tol: float = 1e-8, maxiter: int = 100, *, x0=None, project: bool = False,
+    def solve(self, b, tol: float = 1e-8, maxiter: int = DEFAULT_MAXITER, *, x0=None, project: bool = False,
               divtol: float = 1e5) -> tuple[np.ndarray, dict]:
         """Solve ``A x = b``; collective (every rank calls it with the same global ``b``).
 

@@ -60,7 +60,8 @@ def _as_csr(M, name: str, shape: tuple[int, int] | None = None) -> sp.csr_matrix
     return M
 
 
-def _check_hierarchy(A, Ps, coarse_ops) -> tuple[sp.csr_matrix, list[sp.csr_matrix], list[sp.csr_matrix] | None]:
+def _check_hierarchy(A, Ps, coarse) -> tuple[sp.csr_matrix, list[sp.csr_matrix], list[sp.csr_matrix] | None]:
+    """Validated ``A``, ``Ps`` and given coarse operators ``coarse`` (a list, or None for Galerkin)."""
     A = _as_csr(A, "A")
     if A.shape[0] != A.shape[1] or A.shape[0] == 0:
         raise SolverInputError(f"A must be square and non-empty, got {A.shape}")
@@ -83,10 +84,10 @@ def _check_hierarchy(A, Ps, coarse_ops) -> tuple[sp.csr_matrix, list[sp.csr_matr
         sizes.append(P.shape[1])
         out.append(P)
     ops = None
-    if coarse_ops is not None:
-        if len(coarse_ops) != len(out):
-            raise SolverInputError(f"coarse_ops needs {len(out)} matrices (levels 1..), got {len(coarse_ops)}")
-        ops = [_as_csr(Ac, f"coarse_ops[{k}]", (sizes[k + 1], sizes[k + 1])) for k, Ac in enumerate(coarse_ops)]
+    if coarse is not None:
+        if len(coarse) != len(out):
+            raise SolverInputError(f"coarse needs {len(out)} matrices [A_1, ..., A_L], got {len(coarse)}")
+        ops = [_as_csr(Ac, f"coarse[{k}]", (sizes[k + 1], sizes[k + 1])) for k, Ac in enumerate(coarse)]
     return A, out, ops
 
 
@@ -365,18 +366,8 @@ def _ksp_solve(PETSc, ksp, A, bv, xv, normb: float, comm, what: str = "") -> dic
     return {"history": hist, "iterations": its, "reason": reason, "solve_seconds": solve_seconds, "final": final}
 
 
-def _coarse_choice(coarse, galerkin, coarse_ops):
-    """``coarse=`` ("galerkin" or a list), with the deprecated ``galerkin=`` / ``coarse_ops=`` spelling."""
-    if galerkin is not None or coarse_ops is not None:
-        warnings.warn("PetscMultigrid(galerkin=..., coarse_ops=...) is deprecated; use coarse='galerkin' or "
-                      "coarse=[A_1, ..., A_L]", DeprecationWarning, stacklevel=3)
-        if not (isinstance(coarse, str) and coarse == "galerkin"):
-            raise SolverInputError("give the coarse operators once: coarse=[...] (galerkin=/coarse_ops= are deprecated)")
-        if galerkin is None:
-            galerkin = coarse_ops is None
-        if galerkin and coarse_ops is not None:
-            raise SolverInputError("coarse_ops given with galerkin=True: pass coarse=[A_1, ...] to use them")
-        return bool(galerkin), coarse_ops
+def _coarse_choice(coarse) -> tuple[bool, list | None]:
+    """``coarse=`` ("galerkin" or a list ``[A_1, ..., A_L]``) as ``(galerkin, given operators or None)``."""
     if isinstance(coarse, str):
         if coarse != "galerkin":
             raise SolverInputError(

@@ -2,7 +2,7 @@
 
 Usage (from the repository root; ``solvers`` must be importable, e.g. ``PYTHONPATH=.``)::
 
-    PYTHONPATH=. mpirun -n 2 python tests/mpi_petsc_check.py --n 16 --levels 3 --out /tmp/petsc_check.npz
+    PYTHONPATH=. mpirun -n 2 python tests/mpi_petsc_check.py --n 16 --levels 3 --out OUT/petsc_check.npz
 
 Every rank builds the same Kuhn cube hierarchy (deterministic), the Dirichlet and Neumann P1 Poisson
 problems and a seeded right-hand side, and takes its rows. Rank 0 prints
@@ -31,7 +31,7 @@ def dirichlet_problem(n: int, levels: int, seed: int = 0) -> dict:
 
     Returns
     -------
-    dict with ``A`` (m_0, m_0), ``Ps`` (support-restricted, for Galerkin), ``Ps_int`` and ``coarse_ops``
+    dict with ``A`` (m_0, m_0), ``Ps`` (support-restricted, for Galerkin), ``Ps_int`` and ``coarse``
     (coarse interior nodes only, re-discretised stiffness), ``b`` (m_0,), ``z`` (m_0,) fine z coordinates.
     """
     meshes, Ps = kuhn_cube_hierarchy(n, levels)
@@ -43,7 +43,7 @@ def dirichlet_problem(n: int, levels: int, seed: int = 0) -> dict:
     Pi, frees = restrict_prolongations(Ps, free, coarse_free=interiors)
     coarse = [sp.csr_matrix(stiffness_matrix(Vk, Tk)[f][:, f]) for (Vk, Tk), f in zip(meshes[1:], frees[1:])]
     b = np.random.default_rng(seed).standard_normal(A.shape[0])
-    return {"A": sp.csr_matrix(A), "Ps": Pg, "Ps_int": Pi, "coarse_ops": coarse, "b": b, "xyz": V[free]}
+    return {"A": sp.csr_matrix(A), "Ps": Pg, "Ps_int": Pi, "coarse": coarse, "b": b, "xyz": V[free]}
 
 
 def neumann_problem(n: int, levels: int, seed: int = 1) -> dict:
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--out", required=True, help=".npz file for the solutions (written by rank 0)")
     ap.add_argument("--cage", nargs="*", default=[],
-                    help="only solve these .npz hierarchies (solvers.petsc.save_hierarchy, with a 'neumann' flag "
+                    help="only solve these .npz hierarchies (solvers.petsc.save_operators, with a 'neumann' flag "
                          "array), e.g. the cage hierarchies of the tests, by MG-PCG with the default options")
     args, petsc_args = ap.parse_known_args(argv)
 
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
         elif not kw.pop("given", False):
             Ps, extra = prob["Ps"], {}
         else:
-            Ps, extra = prob["Ps_int"], {"coarse": prob["coarse_ops"]}
+            Ps, extra = prob["Ps_int"], {"coarse": prob["coarse"]}
         with PetscMultigrid(prob["A"], Ps, **extra, **kw) as mg:
             x, info = mg.solve(prob["b"], tol=args.tol, maxiter=100)
         xs[f"x_{name}"] = x
@@ -143,12 +143,12 @@ def main(argv=None) -> int:
 
 def _cage_runs(args, PETSc, comm) -> int:
     """MG-PCG on saved hierarchies (every rank loads the same file), default partition and coarse solve."""
-    from solvers.petsc import PetscMultigrid, load_hierarchy
+    from solvers.petsc import PetscMultigrid, load_operators
 
     out = {"ranks": comm.getSize(), "runs": {}}
     xs = {}
     for k, path in enumerate(args.cage):
-        h = load_hierarchy(path)
+        h = load_operators(path)
         ns = "constant" if bool(h.get("neumann", np.zeros(1))[0]) else None
         with PetscMultigrid(h["A"], h["Ps"], nullspace=ns, coarse_solver="auto") as mg:
             x, info = mg.solve(h["b"], tol=args.tol, maxiter=100)

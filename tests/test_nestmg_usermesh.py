@@ -13,7 +13,17 @@ import pytest
 
 import cagegen
 from cagegen.errors import BackendUnavailableError, MeshInputError, NestmgError
-from nestmg import Hierarchy, hierarchy_from_tets, load_tet_mesh, shapes, tetrahedralize, write_vtu_levels
+from nestmg import (
+    NestmgInputError,
+    hierarchy_from_tets,
+    load_hierarchy,
+    load_tet_mesh,
+    save_hierarchy,
+    save_tet_mesh,
+    shapes,
+    tetrahedralize,
+    write_vtu_levels,
+)
 from nestmg.usermesh import boundary_surface, p1_to_p2_prolongation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,8 +103,8 @@ def test_save_load_round_trip_and_vtu(user_mesh, tmp_path):
     import meshio
 
     _, _, H = user_mesh
-    H.save(tmp_path / "h")
-    H2 = Hierarchy.load(tmp_path / "h")
+    save_hierarchy(tmp_path / "h", H)
+    H2 = load_hierarchy(tmp_path / "h")
     assert H2.levels == H.levels and H2.to_dict() == H.to_dict()
     for (a, b), (c, d) in zip(H.tets + H.surfaces, H2.tets + H2.surfaces):
         assert np.array_equal(a, c) and np.array_equal(b, d)
@@ -107,9 +117,14 @@ def test_save_load_round_trip_and_vtu(user_mesh, tmp_path):
     arrays["tets0_V"] = arrays["tets0_V"] + 1e-9
     np.savez_compressed(npz, **arrays)
     with pytest.raises(NestmgError, match="SHA-256"):
-        Hierarchy.load(tmp_path / "h")
+        load_hierarchy(tmp_path / "h")
     with pytest.raises(NestmgError, match="no saved hierarchy"):
-        Hierarchy.load(tmp_path / "nothing")
+        load_hierarchy(tmp_path / "nothing")
+    # one pair, the path first (as save_mesh): the 0.1 order (H, directory) is refused before any write
+    with pytest.raises(NestmgInputError, match=r"save_hierarchy\(directory, H\)"):
+        save_hierarchy(H, tmp_path / "swapped")
+    assert not (tmp_path / "swapped").exists()
+    assert not hasattr(H, "save") and not hasattr(type(H), "load")
     # VTU per level, fields on level 0, in the given frame
     u = np.arange(len(H.tets[0][0]), dtype=float)
     files = write_vtu_levels(tmp_path / "vtu", H, {"u": u}, frame=(np.array([1.0, 2.0, 3.0]), 2.0))
@@ -118,13 +133,21 @@ def test_save_load_round_trip_and_vtu(user_mesh, tmp_path):
     assert np.allclose(m0.points, H.tets[0][0] * 2.0 + [1.0, 2.0, 3.0], rtol=0, atol=1e-14)
     assert np.array_equal(m0.point_data["u"], u) and np.array_equal(m0.cells_dict["tetra"], H.tets[0][1])
     assert len(meshio.read(files[2]).cells_dict["tetra"]) == len(H.tets[2][1])
+    with pytest.raises(NestmgInputError, match="values"):
+        write_vtu_levels(tmp_path / "vtu", H, {"u": u[:-1]})
+    # the tet-mesh pair: save_tet_mesh writes what load_tet_mesh reads, node for node
+    V0, T0 = H.tets[0]
+    for ext in (".vtu", ".msh"):
+        save_tet_mesh(tmp_path / f"fine{ext}", V0, T0)
+        V1, T1 = load_tet_mesh(tmp_path / f"fine{ext}")
+        assert np.array_equal(V1, V0) and np.array_equal(T1, T0)
 
 
 def test_skfem_example_matches_nestmg_assembly(user_mesh):
     """scikit-fem's matrices on the user's mesh converge like nestmg's own assembly (iterations +-1)."""
     pytest.importorskip("skfem")
     from nestmg import setup_problem
-    from solvers import MultigridSolver, mg_pcg
+    from solvers import MultigridSolver
 
     spec = importlib.util.spec_from_file_location("skfem_poisson", ROOT / "docs" / "examples" / "skfem_poisson.py")
     ex = importlib.util.module_from_spec(spec)
@@ -135,7 +158,8 @@ def test_skfem_example_matches_nestmg_assembly(user_mesh):
     own = {}
     for name in ("poisson-dirichlet", "poisson-neumann"):
         prob = setup_problem(H.tets, H.P, name)
-        own[name] = mg_pcg(MultigridSolver(prob.A, prob.P, nullspace=prob.nullspace), prob.b, tol=1e-8).iterations
+        ml = MultigridSolver(prob.A, prob.P, nullspace=prob.nullspace)
+        own[name] = ml.solve(prob.b, tol=1e-8, accel="cg", return_info=True)[1]["iterations"]
     assert abs(out["dirichlet_mgpcg"] - own["poisson-dirichlet"]) <= 1, (out, own)
     assert abs(out["neumann_mgpcg"] - own["poisson-neumann"]) <= 1, (out, own)
     assert out["dirichlet_mgpcg"] <= 12 and out["dirichlet_residual"] < 1e-8 and out["neumann_residual"] < 1e-8

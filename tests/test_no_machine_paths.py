@@ -1,11 +1,16 @@
 """No path of one machine in the project's files: scripts take their inputs as arguments.
 
 Benchmarks, docs and tests must run on any checkout (benchmarks/README.md): a mesh folder, an output
-folder or a temporary file is a command-line argument, a placeholder in a docstring (``ZOO_DIR``,
-``OUT``) or the ``tempfile`` module / pytest's ``tmp_path`` -- never a literal such as a quoted
-``/work/...``, ``/root/...``, ``/home/...``, ``/tmp/...`` or a ``../shared/...`` folder next to the
-checkout. Every tracked text file is read (``git ls-files``; without git, the tree minus ``.git``);
-``benchmarks/results/`` is recorded data (a JSON may keep the command that produced it) and is skipped.
+folder or a temporary file is a command-line argument, a placeholder (``ZOO_DIR``, ``OUT``, see below) or
+the ``tempfile`` module / pytest's ``tmp_path`` -- never ``/work/...``, ``/root/...``, ``/home/...``,
+``/tmp/...`` or a ``../shared/...`` folder next to the checkout, quoted or not. Every tracked text file is
+read (``git ls-files``; without git, the tree minus ``.git``): code, docs, README, TOML, shell scripts and
+the recorded JSON of ``benchmarks/results/`` alike.
+
+Placeholders used in recorded commands and results: ``ZOO_DIR`` (the folder of input meshes), ``OUT``
+(an output or scratch folder), ``CACHE_DIR`` (``$NESTMG_CACHE``), ``CHECKOUT`` (a checkout of this
+repository, or a copy of it at another commit), ``SCRATCH`` (a folder of derived inputs),
+``PYTHON_PREFIX`` (the Python installation).
 """
 
 from __future__ import annotations
@@ -17,11 +22,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 THIS = Path(__file__).resolve().relative_to(ROOT).as_posix()
-SKIPPED = ("benchmarks/results/",)  # recorded data: kept as produced
-#: an absolute machine path used as a literal (quoted) in code, docs and configuration
-QUOTED_ABSOLUTE = re.compile(r"""['"]/(work|root|home|tmp)/""")
-QUOTED_SUFFIXES = (".py", ".md", ".toml", ".sh", ".cfg", ".ini", ".yml", ".yaml", ".rst", ".txt")
-#: a folder beside the checkout, in any text file
+#: an absolute machine path, quoted or not: ``/work``, ``/root``, ``/home``, ``/tmp`` (alone or followed
+#: by more path) where a path starts -- not inside a longer word or path (``docs/tmp``, ``a.tmp``)
+ABSOLUTE = re.compile(r"(?<![\w.-])/(work|root|home|tmp|Users)\b")
+#: a folder beside the checkout
 SIBLING_FOLDER = re.compile(r"\.\./shared/")
 #: folders never walked without git (not the project's files)
 UNTRACKED_DIRS = {".git", "__pycache__", ".pytest_cache", ".hypothesis", ".ruff_cache", "build", "dist",
@@ -44,7 +48,7 @@ def project_files() -> list[str]:
 
 
 def _checked(rel: str) -> bool:
-    return rel != THIS and not rel.startswith(SKIPPED)
+    return rel != THIS
 
 
 def _text(path: Path) -> str | None:
@@ -58,10 +62,6 @@ def _text(path: Path) -> str | None:
     return data.decode("utf-8", "replace")
 
 
-def _is_script(rel: str, text: str) -> bool:
-    return rel.endswith(QUOTED_SUFFIXES) or text.startswith("#!")
-
-
 def machine_paths() -> list[str]:
     hits = []
     for rel in sorted(project_files()):
@@ -70,20 +70,28 @@ def machine_paths() -> list[str]:
         text = _text(ROOT / rel)
         if text is None:
             continue
-        quoted = _is_script(rel, text)
         for k, line in enumerate(text.splitlines(), start=1):
-            if SIBLING_FOLDER.search(line) or (quoted and QUOTED_ABSOLUTE.search(line)):
+            if SIBLING_FOLDER.search(line) or ABSOLUTE.search(line):
                 hits.append(f"{rel}:{k}: {line.strip()[:160]}")
     return hits
 
 
 def test_patterns():
-    assert QUOTED_ABSOLUTE.search('ap.add_argument("--tmp", default=Path("/tmp/user_mesh.msh"))')
-    assert QUOTED_ABSOLUTE.search("ZOO = Path('/work/shared/data/meshes')")
-    assert QUOTED_ABSOLUTE.search('cache = "/home/me/.cache"') and QUOTED_ABSOLUTE.search('"/root/x"')
+    # quoted, in code
+    assert ABSOLUTE.search('ap.add_argument("--tmp", default=Path("/tmp/user_mesh.msh"))')
+    assert ABSOLUTE.search("ZOO = Path('/work/shared/data/meshes')")
+    assert ABSOLUTE.search('cache = "/home/me/.cache"') and ABSOLUTE.search('"/root/x"')
+    # unquoted: recorded commands in docs and JSON, prose
+    assert ABSOLUTE.search("python benchmarks/cages.py /work/shared/data/meshes --out /tmp/run1")
+    assert ABSOLUTE.search('"command": "NESTMG_CACHE=/tmp/cache python x.py"')
+    assert ABSOLUTE.search("PYTHONPATH=/tmp/base nice python run.py") and ABSOLUTE.search("copies in `/tmp`")
+    assert ABSOLUTE.search("the scripts stayed in /tmp, not committed") and ABSOLUTE.search("file:///tmp/x")
     assert SIBLING_FOLDER.search("python benchmarks/pipeline.py ../shared/data/meshes --meshes bunny.off")
-    assert not QUOTED_ABSOLUTE.search("out = tmp_path / 'run'; p = Path('benchmarks/results/x.json')")
-    assert not QUOTED_ABSOLUTE.search('open("/proc/self/status")')
+    # not machine paths
+    assert not ABSOLUTE.search("out = tmp_path / 'run'; p = Path('benchmarks/results/x.json')")
+    assert not ABSOLUTE.search('open("/proc/self/status")') and not ABSOLUTE.search("#!/usr/bin/env bash")
+    assert not ABSOLUTE.search("docs/tmp/x, a.tmp/y, nestmg-demo/work/z, input/output and/or https://x.org/home/")
+    assert not ABSOLUTE.search("python benchmarks/cages.py ZOO_DIR --out OUT/run1 (NESTMG_CACHE=CACHE_DIR)")
 
 
 def test_files_are_listed():

@@ -27,10 +27,10 @@ from solvers.errors import IncompatibleRHSError, SolverError, SolverInputError
 from solvers.multilevel import ConvergenceWarning, MultigridSolver
 from solvers.petsc import (
     PetscMultigrid,
-    load_hierarchy,
+    load_operators,
     petsc_amg_solve,
     row_partition,
-    save_hierarchy,
+    save_operators,
 )
 
 HERE = Path(__file__).resolve().parent
@@ -72,7 +72,7 @@ def _sgs(k: int):
 
 def _inprocess(prob, *, cycle="V", pre=1, post=1, accel=None, given=False, nullspace=None):
     Ps = prob["Ps_int"] if given else prob["Ps"]
-    ml = MultigridSolver(prob["A"], Ps, coarse=prob["coarse_ops"] if given else "galerkin",
+    ml = MultigridSolver(prob["A"], Ps, coarse=prob["coarse"] if given else "galerkin",
                          presmoother=_sgs(pre), postsmoother=_sgs(post), nullspace=nullspace)
     return ml.solve(prob["b"], tol=1e-8, maxiter=100, cycle=cycle, accel=accel, return_info=True)
 
@@ -121,13 +121,13 @@ def test_cg_matches_inprocess_pcg(dirichlet):
 def test_given_coarse_operators(dirichlet):
     """coarse=[...] uses nestmg's re-discretised coarse operators (interior coarse nodes), like in-process."""
     xr, ref = _inprocess(dirichlet, given=True)
-    with PetscMultigrid(dirichlet["A"], dirichlet["Ps_int"], coarse=dirichlet["coarse_ops"],
+    with PetscMultigrid(dirichlet["A"], dirichlet["Ps_int"], coarse=dirichlet["coarse"],
                         krylov="richardson") as mg:
         x, info = mg.solve(dirichlet["b"])
         sizes = [L["n"] for L in mg.levels]
         nnz = [L["nnz"] for L in mg.levels]
-    assert sizes == [dirichlet["A"].shape[0]] + [C.shape[0] for C in dirichlet["coarse_ops"]]
-    assert nnz[1:] == [C.nnz for C in dirichlet["coarse_ops"]]  # PETSc really holds the given operators
+    assert sizes == [dirichlet["A"].shape[0]] + [C.shape[0] for C in dirichlet["coarse"]]
+    assert nnz[1:] == [C.nnz for C in dirichlet["coarse"]]  # PETSc really holds the given operators
     assert info["iterations"] == ref["iterations"]
     assert abs(info["factor"] - ref["factor"]) < 1e-6
     assert _rel(x, xr) < 1e-10
@@ -221,10 +221,10 @@ def test_bad_input(dirichlet):
         PetscMultigrid(A, Ps[1:])
     with pytest.raises(SolverInputError, match="square"):
         PetscMultigrid(A[:, :-1], [])
-    with pytest.warns(DeprecationWarning), pytest.raises(SolverInputError, match="coarse_ops"):
-        PetscMultigrid(A, Ps, galerkin=False)  # deprecated spelling, still checked
-    with pytest.warns(DeprecationWarning), pytest.raises(SolverInputError, match="coarse="):
-        PetscMultigrid(A, Ps, galerkin=True, coarse_ops=[A, A])
+    with pytest.raises(TypeError, match="galerkin"):
+        PetscMultigrid(A, Ps, galerkin=False)  # the 0.1 spelling is gone: coarse= alone
+    with pytest.raises(SolverInputError, match=r"coarse needs 2 matrices"):
+        PetscMultigrid(A, Ps, coarse=[A])
     with pytest.raises(SolverInputError, match="galerkin"):
         PetscMultigrid(A, Ps, coarse="weighted")
     with pytest.raises(SolverInputError, match="cycle"):
@@ -317,15 +317,15 @@ def test_row_partition_and_npz_roundtrip(tmp_path, dirichlet):
     off = row_partition(10, 3)
     assert off.tolist() == [0, 4, 7, 10]
     path = tmp_path / "h.npz"
-    save_hierarchy(path, dirichlet["A"], dirichlet["Ps_int"], coarse_ops=dirichlet["coarse_ops"],
+    save_operators(path, dirichlet["A"], dirichlet["Ps_int"], coarse=dirichlet["coarse"],
                    b=dirichlet["b"], xyz=dirichlet["xyz"])
-    h = load_hierarchy(path)
+    h = load_operators(path)
     assert (h["A"] != dirichlet["A"]).nnz == 0 and len(h["Ps"]) == LEVELS - 1
     assert all((P != Q).nnz == 0 for P, Q in zip(h["Ps"], dirichlet["Ps_int"]))
-    assert all((P != Q).nnz == 0 for P, Q in zip(h["coarse_ops"], dirichlet["coarse_ops"]))
+    assert all((P != Q).nnz == 0 for P, Q in zip(h["coarse"], dirichlet["coarse"]))
     assert np.array_equal(h["b"], dirichlet["b"]) and np.array_equal(h["xyz"], dirichlet["xyz"])
     with pytest.raises(SolverInputError, match="clashes"):
-        save_hierarchy(path, dirichlet["A"], dirichlet["Ps"], P0_data=np.zeros(2))
+        save_operators(path, dirichlet["A"], dirichlet["Ps"], P0_data=np.zeros(2))
 
 
 # --------------------------------------------------------------------------------------- mpirun -n 2
@@ -585,7 +585,7 @@ def test_cage_hierarchy_two_ranks(tmp_path, sphere_cages):
     for k, name in enumerate(("poisson-dirichlet", "poisson-neumann")):
         pr = _cage_problem(sphere_cages, name)
         path = tmp_path / f"cage{k}.npz"
-        save_hierarchy(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
+        save_operators(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
         paths.append(str(path))
         refs.append(pr.multigrid(local=False, presmoother="symmetric_gauss_seidel").solve(
             pr.b, tol=1e-8, accel="cg", return_info=True))

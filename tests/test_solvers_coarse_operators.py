@@ -87,17 +87,20 @@ def test_weighted_operators_match_galerkin_factor_at_low_complexity(torus_iso_te
     assert it_w <= it_g + 2
     assert f_r >= f_g + 0.15  # what the weighting fixes
     # the weighted operators are symmetric; the Neumann ones keep the constants in their kernel
-    for A in wp.coarse_ops:
+    for A in wp.coarse:
         assert abs(A - A.T).max() <= 1e-12 * abs(A).max()
         if problem == "poisson-neumann":
             assert np.abs(A @ np.ones(A.shape[0])).max() <= 1e-10 * abs(A).max()
 
 
 def test_coarse_spellings(torus_iso_tets):
+    """One spelling per coarse operator: ``"rediscretized"``; the 0.1 alias ``"rediscretised"`` is refused."""
     _, tets, P, _ = torus_iso_tets
-    with pytest.warns(DeprecationWarning, match="rediscretized"):
-        pr = setup_problem(tets[:2], P[:1], "poisson-neumann", coarse="rediscretised")
-    assert pr.params["coarse"] == "rediscretized"
+    pr = setup_problem(tets[:2], P[:1], "poisson-neumann", coarse="rediscretized")
+    assert pr.params["coarse"] == "rediscretized" and len(pr.coarse) == 1
+    assert setup_problem(tets[:2], P[:1], "poisson-neumann").coarse == "galerkin"
+    with pytest.raises(ValueError, match="rediscretized"):
+        setup_problem(tets[:2], P[:1], "poisson-neumann", coarse="rediscretised")
     with pytest.raises(ValueError, match="weighted"):
         setup_problem(tets[:2], P[:1], "poisson-neumann", coarse="fraction")
 
@@ -165,7 +168,7 @@ def test_sparsified_coarse_operators_track_galerkin(torus_iso_tets, problem, gal
     fg, _, cg = _run(g, None)
     assert fg == pytest.approx(galerkin_factor, abs=0.03) and cg > 1.7
     s = setup_problem(tets, P, problem, coarse="sparsified")
-    assert s.coarse_ops is not None and len(s.coarse_ops) == len(P)
+    assert not isinstance(s.coarse, str) and len(s.coarse) == len(P)
     fs, its, cs = _run(s, "energy")
     assert cs <= 1.3, cs
     assert fs <= fg + 0.05, (fs, fg)

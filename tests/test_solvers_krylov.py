@@ -1,10 +1,11 @@
-"""Tests of solvers.krylov: PCG with residual history and the MG-PCG wrapper."""
+"""Tests of solvers.krylov: PCG with residual history, and MG-PCG (``MultigridSolver.solve(accel="cg")``)."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from solvers import MultigridSolver, fem, mg_pcg, pcg, restrict_prolongations
+import solvers
+from solvers import DEFAULT_MAXITER, MultigridSolver, fem, pcg, restrict_prolongations
 from solvers.errors import SolverInputError
 from solvers.gallery import kuhn_cube_hierarchy
 
@@ -31,15 +32,37 @@ def test_pcg_plain_and_preconditioned(system):
     assert pre.iterations <= 10 and plain.iterations > 4 * pre.iterations
 
 
-def test_mg_pcg_wrapper(system):
+def test_mg_pcg_is_solve_with_accel_cg(system):
+    """MG-PCG has one entry point, ``MultigridSolver.solve(accel="cg")``: every cycle type converges,
+    and it takes the same steps as :func:`pcg` with the cycle as preconditioner."""
     ds, Pf, *_ = system
     ml = MultigridSolver(ds.A, Pf)
     for cycle in ("V", "W", "F"):
-        r = mg_pcg(ml, ds.b, tol=1e-10, cycle=cycle)
-        assert r.converged and r.iterations <= 12 and r.seconds > 0
+        x, info = ml.solve(ds.b, tol=1e-10, cycle=cycle, accel="cg", return_info=True)
+        assert info["converged"] and info["iterations"] <= 12 and info["seconds"] > 0
         # residual history decreases overall by >= 10x every 3 iterations on average
-        h = np.array(r.residuals)
-        assert (h[-1] / h[0]) ** (1 / r.iterations) < 0.3
+        h = np.array(info["residuals"])
+        assert (h[-1] / h[0]) ** (1 / info["iterations"]) < 0.3
+        ref = pcg(ds.A, ds.b, M=ml.aspreconditioner(cycle), tol=1e-10)
+        assert ref.iterations == info["iterations"] and np.allclose(ref.x, x, rtol=0, atol=1e-12)
+    assert not hasattr(solvers, "mg_pcg")  # the 0.1 wrapper (another default maxiter) is gone
+
+
+def test_one_default_maxiter():
+    """Every multigrid entry point caps iterations at the same DEFAULT_MAXITER."""
+    import inspect
+
+    from nestmg.cli import build_parser
+    from nestmg.geodesics import multigrid_solve
+    from nestmg.run import solve_on_hierarchy
+    from nestmg.timestepping import DiffusionStepper, implicit_diffusion
+    from solvers.petsc import PetscMultigrid
+
+    for f in (MultigridSolver.solve, PetscMultigrid.solve, solve_on_hierarchy, multigrid_solve,
+              DiffusionStepper.step, implicit_diffusion):
+        assert inspect.signature(f).parameters["maxiter"].default == DEFAULT_MAXITER, f.__qualname__
+    args = build_parser().parse_args(["solve", "shape:torus"])
+    assert args.maxiter == DEFAULT_MAXITER
 
 
 def test_pcg_neumann_nullspace(system):

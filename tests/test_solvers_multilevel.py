@@ -201,21 +201,21 @@ def test_aspreconditioner_with_scipy_cg(cube):
 
 
 @pytest.mark.parametrize("lam", [1e-3, 1e-2, 1e-1, 1.0, 10.0])
-def test_diffusion_converges_galerkin_and_rediscretised(cube, lam):
+def test_diffusion_converges_galerkin_and_rediscretized(cube, lam):
     meshes, Ps, K, M = cube
     A = fem.diffusion_matrix(K, M, lam)
     coarse = [fem.diffusion_matrix(fem.stiffness_matrix(V, T), fem.mass_matrix(V, T), lam) for V, T in meshes[1:]]
     b = M @ _random_rhs(K.shape[0], 2)
-    for ml in (MultigridSolver(A, Ps), MultigridSolver(A, Ps, coarse_operators=coarse)):
+    for ml in (MultigridSolver(A, Ps), MultigridSolver(A, Ps, coarse=coarse)):
         f, res = _factor(ml, b)
         assert res[-1] < 1e-11 and f < 0.3, (lam, ml.coarse, f)
 
 
-def test_rediscretised_coarse_operators_converge(cube):
+def test_rediscretized_coarse_operators_converge(cube):
     meshes, Ps, K, _M = cube
     Ks = [fem.stiffness_matrix(V, T) for V, T in meshes]
     # Neumann: coarse stiffness matrices on the coarse Kuhn meshes
-    ml = MultigridSolver(K, Ps, coarse_operators=Ks[1:], nullspace="constant")
+    ml = MultigridSolver(K, Ps, coarse=Ks[1:], nullspace="constant")
     assert ml.coarse == "given"
     f, res = _factor(ml, fem.project_rhs(_random_rhs(K.shape[0], 4)), tol=1e-10)
     assert f < 0.7 and res[-1] < 1e-10
@@ -224,7 +224,7 @@ def test_rediscretised_coarse_operators_converge(cube):
     Pf, frees = restrict_prolongations(Ps, free[0], coarse_free=free[1:])
     for fr, f_expected in zip(frees, free):
         np.testing.assert_array_equal(fr, f_expected)
-    ml = MultigridSolver(Ks[0][free[0]][:, free[0]], Pf, coarse_operators=[k[f][:, f] for k, f in zip(Ks[1:], free[1:])])
+    ml = MultigridSolver(Ks[0][free[0]][:, free[0]], Pf, coarse=[k[f][:, f] for k, f in zip(Ks[1:], free[1:])])
     f, res = _factor(ml, _random_rhs(free[0].size, 5))
     assert f < 0.3 and res[-1] < 1e-11
 
@@ -243,7 +243,7 @@ def test_growing_residual_raises_divergence_error(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     g = MultigridSolver(ds.A, Pf)
     # coarse operators 0.3x too weak: the coarse correction overshoots ~3x, the cycle diverges
-    bad = MultigridSolver(ds.A, Pf, coarse_operators=[0.3 * L.A for L in g.levels[1:]])
+    bad = MultigridSolver(ds.A, Pf, coarse=[0.3 * L.A for L in g.levels[1:]])
     with pytest.raises(DivergenceError, match="diverges") as ei:
         bad.solve(ds.b, maxiter=200)
     assert 2 <= ei.value.cycle < 200 and ei.value.residuals[-1] > 1e5
@@ -254,12 +254,12 @@ def test_bad_inputs(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     with pytest.raises(SolverInputError, match="rows"):
         MultigridSolver(ds.A, Ps[:1])  # unrestricted P: wrong number of rows
-    with pytest.raises(SolverInputError, match="coarse_operators"):
-        MultigridSolver(ds.A, Pf, coarse_operators=[ds.A])
+    with pytest.raises(SolverInputError, match=r"coarse needs 2 matrices"):
+        MultigridSolver(ds.A, Pf, coarse=[ds.A])
     with pytest.raises(SolverInputError, match="sum"):
         MultigridSolver(K, [0.9 * Ps[0]], nullspace="constant")
     with pytest.raises(SolverError, match="constants"):
-        MultigridSolver(K, Ps[:1], coarse_operators=[fem.mass_matrix(*meshes[1])], nullspace="constant")
+        MultigridSolver(K, Ps[:1], coarse=[fem.mass_matrix(*meshes[1])], nullspace="constant")
     with pytest.raises(SolverInputError, match="NaN"):
         MultigridSolver(ds.A, Pf).solve(np.full(ds.A.shape[0], np.nan))
     with pytest.raises(SolverInputError, match="shape"):
@@ -371,7 +371,7 @@ def jittered():
 
 
 @pytest.mark.parametrize("bc", ["dirichlet", "neumann", "mixed"])
-@pytest.mark.parametrize("coarse", ["galerkin", "rediscretised"])
+@pytest.mark.parametrize("coarse", ["galerkin", "rediscretized"])
 def test_unstructured_fine_level_converges(jittered, bc, coarse):
     """Measured: Galerkin 0.22 (all three BCs), re-discretised 0.27; MG-PCG 8 iterations."""
     V, T, bnd, meshes, Ps = jittered
@@ -381,14 +381,14 @@ def test_unstructured_fine_level_converges(jittered, bc, coarse):
     if bc == "neumann":
         A, b, Pl = K, fem.project_rhs(b_full), Ps
         ops = Kc
-        ml = MultigridSolver(A, Pl, nullspace="constant", coarse_operators=ops if coarse != "galerkin" else None)
+        ml = MultigridSolver(A, Pl, nullspace="constant", coarse=ops if coarse != "galerkin" else "galerkin")
     else:
         fixed = bnd if bc == "dirichlet" else np.flatnonzero(V[:, 0] < 1e-12)
         ds = fem.eliminate_dirichlet(K, b_full, fixed)
         A, b = ds.A, ds.b
         if coarse == "galerkin":
             Pl, _ = restrict_prolongations(Ps, ds.free)
-            ops = None
+            ops = "galerkin"
         else:
             # coarse Dirichlet nodes: the coarse nodes on the same part of the boundary
             frees = []
@@ -397,7 +397,7 @@ def test_unstructured_fine_level_converges(jittered, bc, coarse):
                 frees.append(np.setdiff1d(np.arange(len(Vc)), cb))
             Pl, _ = restrict_prolongations(Ps, ds.free, coarse_free=frees)
             ops = [k[f][:, f] for k, f in zip(Kc, frees)]
-        ml = MultigridSolver(A, Pl, coarse_operators=ops)
+        ml = MultigridSolver(A, Pl, coarse=ops)
     f, res = _factor(ml, b)
     assert res[-1] < 1e-11 and f < (0.3 if coarse == "galerkin" else 0.35), f
     _x, info = ml.solve(b, accel="cg", tol=1e-8, return_info=True)
@@ -527,14 +527,15 @@ def test_energy_scaling_recovers_galerkin_from_scaled_operators(cube):
     assert abs(its[0] - its[1]) <= 1 and its[1] <= 10
 
 
-def test_coarse_keyword_and_deprecated_alias(cube):
+def test_coarse_keyword_is_the_only_spelling(cube):
+    """Given coarse operators go through ``coarse=`` alone: the 0.1 alias ``coarse_operators=`` is gone."""
     ds, Pf, _ = _dirichlet(cube, 3)
     g = MultigridSolver(ds.A, Pf)
     ops = [L.A for L in g.levels[1:]]
-    with pytest.warns(DeprecationWarning, match="coarse="):
-        old = MultigridSolver(ds.A, Pf, coarse_operators=ops)
-    new = MultigridSolver(ds.A, Pf, coarse=ops)
-    assert [L.A.nnz for L in old.levels] == [L.A.nnz for L in new.levels]
+    given = MultigridSolver(ds.A, Pf, coarse=ops)
+    assert given.coarse == "given" and [L.A.nnz for L in given.levels] == [L.A.nnz for L in g.levels]
+    with pytest.raises(TypeError, match="coarse_operators"):
+        MultigridSolver(ds.A, Pf, coarse_operators=ops)
     with pytest.raises(SolverInputError, match="galerkin"):
         MultigridSolver(ds.A, Pf, coarse="weighted")  # named operators are built by nestmg
     with pytest.raises(SolverInputError, match="coarse_scaling"):

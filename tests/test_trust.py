@@ -101,9 +101,9 @@ def test_nan_is_located_by_level_and_cycle_through_nestmg(ball_hierarchy):
 
     tets, P = ball_hierarchy
     prob = setup_problem(tets, P, "poisson-neumann", coarse="rediscretized")
-    ops = list(prob.coarse_ops)
+    ops = list(prob.coarse)
     ops[-1] = ops[-1] * 1e-160  # a coarsest operator 1e160x too weak: with data ~1e150 its solve overflows
-    ml = MultigridSolver(prob.A, prob.P, coarse_operators=ops, nullspace=prob.nullspace)
+    ml = MultigridSolver(prob.A, prob.P, coarse=ops, nullspace=prob.nullspace)
     with pytest.raises(DivergenceError) as ei, np.errstate(all="ignore"):
         ml.solve(prob.b * 1e150, divtol=np.inf)
     e = ei.value
@@ -119,7 +119,7 @@ def test_overflowing_residual_is_divergence_not_an_unlocated_nan(ball_hierarchy)
     tets, P = ball_hierarchy
     bad = [tets[0], tets[1], (tets[2][0] * 1e-30, tets[2][1])]
     prob = setup_problem(bad, P, "poisson-neumann", coarse="rediscretized")
-    ml = MultigridSolver(prob.A, prob.P, coarse_operators=prob.coarse_ops, nullspace=prob.nullspace)
+    ml = MultigridSolver(prob.A, prob.P, coarse=prob.coarse, nullspace=prob.nullspace)
     with pytest.raises(DivergenceError, match=r"V-cycle \d+ diverges: the residual norm overflowed") as ei, \
             np.errstate(all="ignore"):
         ml.solve(prob.b, divtol=np.inf, maxiter=60)

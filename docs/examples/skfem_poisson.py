@@ -22,7 +22,7 @@ from skfem.models.poisson import laplace, mass
 
 from nestmg import hierarchy_from_tets, shapes, tetrahedralize
 from nestmg.usermesh import p1_to_p2_prolongation
-from solvers import MultigridSolver, mg_pcg, restrict_prolongations
+from solvers import MultigridSolver, restrict_prolongations
 
 
 def source(x):
@@ -71,18 +71,18 @@ def main(V=None, T=None, levels: int = 3, tol: float = 1e-8, p2: bool = True, ve
     interior = basis.complement_dofs(mesh.boundary_nodes())
     Pf, _ = restrict_prolongations(H.P, interior)
     ml = MultigridSolver(K[interior][:, interior], Pf)
-    r = mg_pcg(ml, b[interior], tol=tol)
+    x, r = ml.solve(b[interior], tol=tol, accel="cg", return_info=True)   # MG-PCG
     x_sp, it_sp = scipy_cg_iterations(ml.levels[0].A, b[interior], ml.aspreconditioner(), tol)
     u = np.zeros(mesh.nvertices)
-    u[interior] = r.x
-    out.update(dirichlet_mgpcg=r.iterations, dirichlet_residual=r.residuals[-1], dirichlet_scipy_cg=it_sp,
-               u_dirichlet=u, scipy_vs_mg=float(np.linalg.norm(x_sp - r.x) / np.linalg.norm(r.x)))
+    u[interior] = x
+    out.update(dirichlet_mgpcg=r["iterations"], dirichlet_residual=r["residuals"][-1], dirichlet_scipy_cg=it_sp,
+               u_dirichlet=u, scipy_vs_mg=float(np.linalg.norm(x_sp - x) / np.linalg.norm(x)))
 
     # Neumann: the singular matrix on every node, H.P as it is (rows sum to 1: constants reproduced)
     bn = b - M @ np.full(mesh.nvertices, b.sum() / M.sum())       # compatible: sum(bn) = 0
     mln = MultigridSolver(K, H.P, nullspace="constant")
-    rn = mg_pcg(mln, bn, tol=tol)
-    out.update(neumann_mgpcg=rn.iterations, neumann_residual=rn.residuals[-1], u_neumann=rn.x)
+    xn, rn = mln.solve(bn, tol=tol, accel="cg", return_info=True)
+    out.update(neumann_mgpcg=rn["iterations"], neumann_residual=rn["residuals"][-1], u_neumann=xn)
 
     if p2:  # P2 on the same tets: the exact P1 -> P2 interpolation is one more (finest) level
         basis2 = Basis(mesh, ElementTetP2())
@@ -92,8 +92,8 @@ def main(V=None, T=None, levels: int = 3, tol: float = 1e-8, p2: bool = True, ve
         interior2 = basis2.complement_dofs(basis2.get_dofs())
         Pf2, _ = restrict_prolongations([P21, *H.P], interior2)
         ml2 = MultigridSolver(K2[interior2][:, interior2], Pf2)
-        r2 = mg_pcg(ml2, b2[interior2], tol=tol)
-        out.update(p2_mgpcg=r2.iterations, p2_residual=r2.residuals[-1], p2_unknowns=len(interior2))
+        _, r2 = ml2.solve(b2[interior2], tol=tol, accel="cg", return_info=True)
+        out.update(p2_mgpcg=r2["iterations"], p2_residual=r2["residuals"][-1], p2_unknowns=len(interior2))
 
     if verbose:
         print(H)

@@ -1,0 +1,109 @@
+"""One error root: every exception the three packages raise on purpose derives from ``NestmgError``.
+
+The root lives in :mod:`solvers.errors` (``solvers`` imports neither ``cagegen`` nor ``nestmg``, so it is the
+one place all three can import it from); ``cagegen.errors`` and ``nestmg`` re-export it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import os
+import pkgutil
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cagegen
+import cagegen.errors
+import nestmg
+from nestmg import shapes
+import solvers
+import solvers.errors
+
+ROOT = Path(__file__).resolve().parents[1]
+#: cagegen/errors.py must import the root instead of defining its own class (one line, owned by cagegen)
+CAGEGEN_SHARES_ROOT = cagegen.errors.NestmgError is solvers.errors.NestmgError
+
+
+def _public_exceptions(package) -> list[type]:
+    """Public exception classes defined in ``package``'s modules (those that import without extras)."""
+    found = []
+    for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+        try:
+            mod = importlib.import_module(info.name)
+        except ImportError:  # an optional dependency (petsc4py, pygel3d, tetgen...) is missing
+            continue
+        for name, obj in vars(mod).items():
+            if (inspect.isclass(obj) and issubclass(obj, Exception) and not issubclass(obj, Warning)
+                    and obj.__module__ == mod.__name__ and not name.startswith("_")):
+                found.append(obj)
+    return found
+
+
+def test_solvers_imports_no_cage_or_pipeline_code():
+    """``solvers`` stays pure linear algebra: no module imports cagegen or nestmg, statically or at run time."""
+    pattern = re.compile(r"^\s*(from|import)\s+(cagegen|nestmg)\b", re.M)
+    offenders = [p.name for p in (ROOT / "solvers").rglob("*.py") if pattern.search(p.read_text())]
+    assert not offenders, offenders
+    code = ("import pkgutil, importlib, sys, solvers\n"
+            "for m in pkgutil.walk_packages(solvers.__path__, 'solvers.'):\n"
+            "    try: importlib.import_module(m.name)\n"
+            "    except ImportError: pass\n"
+            "print(sorted(k for k in sys.modules if k.split('.')[0] in ('cagegen', 'nestmg')))\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300,
+                         cwd=ROOT, check=True).stdout
+    assert out.strip() == "[]", out
+
+
+def test_solver_errors_derive_from_the_root():
+    classes = _public_exceptions(solvers)
+    assert solvers.SolverError in classes and solvers.errors.DivergenceError in classes
+    for cls in classes:
+        assert issubclass(cls, solvers.errors.NestmgError), cls
+    assert issubclass(solvers.SolverError, RuntimeError)  # kept: an except RuntimeError still catches it
+    assert issubclass(solvers.SolverInputError, ValueError)
+
+
+def test_nestmg_errors_derive_from_the_root():
+    classes = _public_exceptions(nestmg)
+    assert nestmg.NestmgInputError in classes and nestmg.TetMeshError in classes
+    for cls in classes:
+        assert issubclass(cls, nestmg.NestmgError), cls
+    assert issubclass(nestmg.NestmgInputError, ValueError)
+
+
+def test_build_hierarchy_input_errors_are_nestmg_errors():
+    """Bad arguments raise NestmgInputError (a NestmgError and a ValueError) before any work."""
+    V, F = shapes.sphere(res=6)
+    for kwargs, match in (({"levels": 1}, "levels must be >= 2"), ({"fine_level": "coarse"}, "fine_level"),
+                          ({"same_domain_levels": 5}, "same_domain_levels")):
+        with pytest.raises(nestmg.NestmgInputError, match=match) as ei:
+            nestmg.build_hierarchy(V, F, **{"levels": 3, **kwargs})
+        assert isinstance(ei.value, ValueError) and isinstance(ei.value, nestmg.NestmgError)
+    with pytest.raises(nestmg.NestmgInputError, match="unknown problem"):
+        nestmg.setup_problem([(V, np.zeros((0, 4), dtype=np.int64))], [], "heat")
+    with pytest.raises(nestmg.NestmgInputError, match="unknown shape"):
+        shapes.shape_sdf("teapot")
+
+
+@pytest.mark.xfail(not CAGEGEN_SHARES_ROOT, strict=True,
+                   reason="pending in cagegen/ (owned by the cagegen work): cagegen/errors.py must replace "
+                          "`class NestmgError(Exception): ...` by `from solvers.errors import NestmgError`, and "
+                          "cagegen.sdf.simplify.SimplifyStuck(RuntimeError) must derive from it too")
+def test_one_root_across_the_three_packages():
+    assert cagegen.NestmgError is solvers.NestmgError is nestmg.NestmgError
+    assert issubclass(solvers.SolverError, cagegen.NestmgError)
+    outside = [f"{c.__module__}.{c.__name__}" for c in (*_public_exceptions(cagegen), *_public_exceptions(nestmg),
+                                                       *_public_exceptions(solvers))
+               if not issubclass(c, solvers.errors.NestmgError)]
+    assert not outside, f"exceptions outside the root NestmgError: {outside}"
+    try:
+        solvers.MultigridSolver(np.eye(3), [], nullspace="affine")
+    except cagegen.NestmgError as exc:  # one except clause for every package
+        assert isinstance(exc, solvers.SolverInputError)

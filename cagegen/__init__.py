@@ -18,6 +18,7 @@ from .components import build_cages_per_component, split_components
 from .errors import (
     BackendUnavailableError,
     CageError,
+    CageOptionError,
     LevelsError,
     MeshInputError,
     NestmgError,
@@ -31,6 +32,7 @@ __all__ = [
     "UNCERTIFIED_METHODS",
     "BackendUnavailableError",
     "CageError",
+    "CageOptionError",
     "LevelsError",
     "MeshAudit",
     "MeshInputError",

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import MeshInputError
+from .errors import CageOptionError, MeshInputError
 
 
 def as_mesh_arrays(V, F, name: str = "input") -> tuple[np.ndarray, np.ndarray]:
@@ -181,7 +181,7 @@ DEFAULT_INTERSECTION_ENGINE = "filtered"
 def _engine(engine: str | None) -> str:
     engine = DEFAULT_INTERSECTION_ENGINE if engine is None else engine
     if engine not in INTERSECTION_ENGINES:
-        raise ValueError(f"intersection engine must be one of {INTERSECTION_ENGINES}, got {engine!r}")
+        raise CageOptionError(f"intersection engine must be one of {INTERSECTION_ENGINES}, got {engine!r}")
     return engine
 
 

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 from ._geometry import as_mesh_arrays
 from .audit import check_mesh
-from .errors import CageError, LevelsError, MeshInputError
+from .errors import CageError, CageOptionError, LevelsError, MeshInputError
 from .registry import get_backend
 from .sizes import check_face_counts, default_face_counts
 from .verify import verify_nesting
@@ -136,7 +136,7 @@ def build_cages(
             progress=progress, repair=repair, min_gap=min_gap, **opts,
         )
     if components != "single":
-        raise ValueError(f"components must be 'single' or 'separate', got {components!r}")
+        raise CageOptionError(f"components must be 'single' or 'separate', got {components!r}")
     t0 = time.perf_counter()
     if progress is None or progress is False:
         report_to = None

@@ -23,7 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ._geometry import edge_stats, self_intersection_pairs, signed_volume
-from .errors import CageError
+from .errors import CageError, CageOptionError
 
 __all__ = ["decimate_backend", "decimate_surface"]
 
@@ -116,7 +116,7 @@ def decimate_surface(
     import igl
 
     if algorithm not in _ALGORITHMS:
-        raise ValueError(f"algorithm must be one of {_ALGORITHMS}, got {algorithm!r}")
+        raise CageOptionError(f"algorithm must be one of {_ALGORITHMS}, got {algorithm!r}")
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     genus = _genus(V, F) if keep_genus else None

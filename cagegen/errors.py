@@ -1,10 +1,16 @@
-"""Exception classes shared by every cage backend and the verifier."""
+"""Exception classes shared by every cage backend and the verifier.
+
+:class:`NestmgError`, the root of every error the distribution raises on purpose, lives in
+:mod:`solvers.errors` (the bottom of the import graph: it imports nothing of ours) and is re-exported
+here; this is cagegen's only import from ``solvers``.
+"""
 
 from __future__ import annotations
 
+from solvers.errors import NestmgError
 
-class NestmgError(Exception):
-    """Base class of every error nestmg raises on purpose (bad input, failed certification...)."""
+__all__ = ["BackendUnavailableError", "CageError", "CageOptionError", "LevelsError", "MeshInputError", "NestmgError",
+           "UnknownMethodError"]
 
 
 class MeshInputError(NestmgError, ValueError):
@@ -38,3 +44,7 @@ class UnknownMethodError(NestmgError, ValueError):
 
 class LevelsError(NestmgError, ValueError):
     """The requested hierarchy (number of levels, face counts) cannot be built from this input."""
+
+
+class CageOptionError(NestmgError, ValueError):
+    """An option of a cage backend, the verifier or a geometry helper has an invalid value (raised before any work)."""

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import CageOptionError
+
 __all__ = ["split_long_edges"]
 
 
@@ -108,7 +110,7 @@ def split_long_edges(V: np.ndarray, F: np.ndarray, max_length: float, *,
     (True, 2, 40)
     """
     if not max_length > 0:
-        raise ValueError(f"max_length must be positive, got {max_length!r}")
+        raise CageOptionError(f"max_length must be positive, got {max_length!r}")
     V2 = np.array(V, dtype=np.float64)
     F2 = np.array(F, dtype=np.int64)
     info = {"faces_in": len(F2), "rounds": 0, "n_split": 0, "complete": True}

@@ -62,7 +62,7 @@ from ._geometry import (
     self_intersection_pairs,
     signed_volume,
 )
-from .errors import CageError, MeshInputError
+from .errors import CageError, CageOptionError, MeshInputError
 
 __all__ = ["NestingReport", "PairReport", "verify_nesting"]
 
@@ -375,7 +375,7 @@ def verify_nesting(
     """
     layers = list(layers)
     if len(layers) < 2:
-        raise ValueError(f"verify_nesting needs at least two layers, got {len(layers)}")
+        raise CageOptionError(f"verify_nesting needs at least two layers, got {len(layers)}")
     t0 = time.perf_counter()
     engine = _engine(intersection_engine)
     prepared = [_prepare(i, V, F, check_self, engine) for i, (V, F) in enumerate(layers)]

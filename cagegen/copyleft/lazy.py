@@ -55,7 +55,7 @@ from .._geometry import (
     self_intersection_pairs,
 )
 from .._geometry import signed_volume as _signed_volume
-from ..errors import BackendUnavailableError, CageError
+from ..errors import BackendUnavailableError, CageError, CageOptionError
 from ..verify import WINDING_THRESHOLD
 
 try:  # optional GPL dependency: fail at import time with an actionable message
@@ -265,15 +265,15 @@ def lazy_cage_layer(
     """
     V, F = as_mesh_arrays(V, F, "fine layer")
     if isinstance(n_faces, (bool, np.bool_)) or int(n_faces) != n_faces or int(n_faces) < 4:
-        raise ValueError(f"n_faces must be an integer >= 4, got {n_faces!r}")
+        raise CageOptionError(f"n_faces must be an integer >= 4, got {n_faces!r}")
     if isinstance(grid_size, (bool, np.bool_)) or int(grid_size) != grid_size or int(grid_size) < 8:
-        raise ValueError(f"grid_size must be an integer >= 8, got {grid_size!r}")
+        raise CageOptionError(f"grid_size must be an integer >= 8, got {grid_size!r}")
     if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter or int(max_iter) < 1:
-        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        raise CageOptionError(f"max_iter must be an integer >= 1, got {max_iter!r}")
     if decimation not in ("shortest_edge", "qslim"):
-        raise ValueError(f"decimation must be 'shortest_edge' or 'qslim', got {decimation!r}")
+        raise CageOptionError(f"decimation must be 'shortest_edge' or 'qslim', got {decimation!r}")
     if isinstance(gap, (bool, np.bool_)) or not (np.isfinite(gap) and gap >= 0):
-        raise ValueError(f"gap must be a finite number >= 0, got {gap!r}")
+        raise CageOptionError(f"gap must be a finite number >= 0, got {gap!r}")
     n_faces, gap = int(n_faces), float(gap)
     t0 = time.perf_counter()
     diag = bbox_diagonal(V)
@@ -400,7 +400,7 @@ def lazy_backend(
     diag0 = bbox_diagonal(V)
     gap = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag0
     if not (np.isfinite(gap) and gap >= 0):
-        raise ValueError(f"min_gap must be a finite number >= 0, got {min_gap!r} "
+        raise CageOptionError(f"min_gap must be a finite number >= 0, got {min_gap!r} "
                          f"(min_gap_abs {min_gap_abs!r})")
     vol0 = _signed_volume(V, F)
     layers, per_layer, changes = [], [], []

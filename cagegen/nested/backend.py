@@ -29,7 +29,7 @@ import numpy as np
 
 from ..decimate import decimate_surface
 from ..envelope import build_envelope
-from ..errors import CageError
+from ..errors import CageError, CageOptionError
 from ..split_edges import split_long_edges
 from ..verify import verify_nesting
 from .collision import PairMesh, min_distance, self_collision_free_step
@@ -291,7 +291,7 @@ def nest_pair(
     rep = reporter or _Reporter(False)
     info: dict = {"seconds": {}}
     if clearance not in ("offset", "reinflate", "flow"):
-        raise ValueError(f"clearance must be 'offset', 'reinflate' or 'flow', got {clearance!r}")
+        raise CageOptionError(f"clearance must be 'offset', 'reinflate' or 'flow', got {clearance!r}")
     if gap > 0 and clearance == "offset":
         # tight cage first (no clearance: the fast path), then the cage itself is pushed out by the gap
         C, info = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
@@ -623,14 +623,14 @@ def nested_backend(
     """
     t_all = time.perf_counter()
     if energy not in ENERGIES:
-        raise ValueError(f"unknown energy {energy!r}; choose one of {sorted(ENERGIES)}")
+        raise CageOptionError(f"unknown energy {energy!r}; choose one of {sorted(ENERGIES)}")
     if decimate_from not in ("previous", "input"):
-        raise ValueError(f"decimate_from must be 'previous' or 'input', got {decimate_from!r}")
+        raise CageOptionError(f"decimate_from must be 'previous' or 'input', got {decimate_from!r}")
     unknown = set(opts) - set(_DEFAULTS)
     if unknown:
-        raise ValueError(f"unknown option(s) for the nested backend: {sorted(unknown)}")
+        raise CageOptionError(f"unknown option(s) for the nested backend: {sorted(unknown)}")
     if fallback is not None and fallback not in FALLBACKS:
-        raise ValueError(f"unknown fallback {fallback!r}; choose one of {sorted(FALLBACKS)} or None")
+        raise CageOptionError(f"unknown fallback {fallback!r}; choose one of {sorted(FALLBACKS)} or None")
     check_energy_available(energy)  # a copyleft energy's package, before the flow runs
     V = np.array(V, dtype=np.float64)  # private copies
     F = np.array(F, dtype=np.int64)
@@ -649,7 +649,7 @@ def nested_backend(
     if target_offset is None:
         target_offset = max(TARGET_OFFSET_GAPS * gap_n, MIN_TARGET_OFFSET)
     if not target_offset >= 0:
-        raise ValueError(f"target_offset must be >= 0, got {target_offset!r}")
+        raise CageOptionError(f"target_offset must be >= 0, got {target_offset!r}")
     params["target_offset"] = float(target_offset)
 
     info: dict = {

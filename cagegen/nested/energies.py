@@ -25,6 +25,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg  # noqa: F401  (sp.linalg.splu)
 
+from ..errors import CageOptionError
+
 __all__ = [
     "COPYLEFT_ENERGIES",
     "ENERGIES",
@@ -286,5 +288,5 @@ def make_energy(name: str, Vc_rest: np.ndarray, Fc: np.ndarray, **kw):
     energy object (see the module docstring)
     """
     if name not in ENERGIES:
-        raise ValueError(f"unknown re-inflation energy {name!r}; choose one of {sorted(ENERGIES)}")
+        raise CageOptionError(f"unknown re-inflation energy {name!r}; choose one of {sorted(ENERGIES)}")
     return ENERGIES[name](Vc_rest, Fc, **kw)

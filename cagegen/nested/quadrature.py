@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import CageOptionError
+
 __all__ = ["quadrature_matrix", "quadrature_points", "triangle_rule"]
 
 # Symmetric rules on the reference triangle, barycentric coordinates (q,3) and weights summing to 1
@@ -64,7 +66,7 @@ def triangle_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     """
     order = int(order)
     if order < 1 or order > 5:
-        raise ValueError(f"quadrature order must be in 1..5, got {order}")
+        raise CageOptionError(f"quadrature order must be in 1..5, got {order}")
     key = {1: 1, 2: 2, 3: 4, 4: 4, 5: 5}[order]
     bary, w = _RULES[key]
     return bary.copy(), w.copy()

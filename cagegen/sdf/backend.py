@@ -32,7 +32,7 @@ from .._geometry import as_mesh_arrays, bbox_diagonal, cross_intersection_pairs,
 from .._geometry import signed_volume as _signed_volume
 from ..audit import check_mesh
 from ..decimate import decimate_surface
-from ..errors import CageError
+from ..errors import CageError, CageOptionError
 from ..verify import verify_nesting
 from ..envelope import active_points, build_envelope
 from .optimize import _min_angles, mips, optimize_cage
@@ -181,9 +181,9 @@ def _budget_check(n_input: list[int], time_budget: float | None, what: str) -> f
 
 def _check_target(n_faces) -> int:
     if isinstance(n_faces, (bool, np.bool_)) or int(n_faces) != n_faces or int(n_faces) < 4:
-        raise ValueError(f"n_faces must be an integer >= 4, got {n_faces!r}")
+        raise CageOptionError(f"n_faces must be an integer >= 4, got {n_faces!r}")
     if int(n_faces) % 2:
-        raise ValueError(f"n_faces must be even (a closed triangle mesh has an even face count), got {n_faces}")
+        raise CageOptionError(f"n_faces must be even (a closed triangle mesh has an even face count), got {n_faces}")
     return int(n_faces)
 
 
@@ -353,7 +353,7 @@ def sdf_cage_layer(
     if time_budget is not None:
         tight_deadline = min(t0 + float(time_budget), np.inf if deadline is None else deadline)
     if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0 or not pull >= 0:
-        raise ValueError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
+        raise CageOptionError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
     t_check = None
     if check_input:
         t = time.perf_counter()
@@ -643,7 +643,7 @@ def sdf_backend(
     allowed = set(list(inspect.signature(sdf_cage_layer).parameters)[3:]) - {"unit", "deadline"}
     unknown = set(opts) - allowed
     if unknown:
-        raise ValueError(f"unknown option(s) for the sdf backend: {sorted(unknown)}")
+        raise CageOptionError(f"unknown option(s) for the sdf backend: {sorted(unknown)}")
     t0 = time.perf_counter()
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)

@@ -28,6 +28,7 @@ import ipctk
 import numpy as np
 
 from .._geometry import segment_segment_sqdist
+from ..errors import CageOptionError
 from ..intersect import cross_pairs, self_pairs
 from ..nested.collision import PairMesh
 from .simplify import too_close
@@ -388,7 +389,7 @@ def optimize_cage(
     if free is not None:
         free = np.asarray(free, dtype=bool)
         if free.shape != (nc,):
-            raise ValueError(f"free must be a boolean mask of the {nc} cage vertices")
+            raise CageOptionError(f"free must be a boolean mask of the {nc} cage vertices")
 
     active = np.zeros(nc, dtype=bool)  # cage vertices in barrier pairs at the last gradient
 

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 
 from .._geometry import edge_stats, point_triangle_sqdist, segment_segment_sqdist
 from ..envelope import SDFGrid
+from ..errors import CageOptionError, NestmgError
 from ..intersect import cross_pairs, self_pairs
 
 __all__ = ["SimplifyStuck", "constrained_simplify", "face_quadrics"]
@@ -33,7 +34,7 @@ _SAMPLES = np.array([[1.0, 0.0], [0.5, 0.0], [0.5, 1.0], [1 / 3, 0.5], [0.75, 0.
                      [0.75, 0.0], [0.75, 1.0]])
 
 
-class SimplifyStuck(RuntimeError):
+class SimplifyStuck(NestmgError, RuntimeError):
     """No feasible collapse is left before the target face count."""
 
 
@@ -218,12 +219,12 @@ def constrained_simplify(
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
     if (len(F) - target) % 2:
-        raise ValueError(f"cannot reach {target} faces from {len(F)} by edge collapses (parity)")
+        raise CageOptionError(f"cannot reach {target} faces from {len(F)} by edge collapses (parity)")
     Q = face_quadrics(V, F) if Q is None else np.array(Q)
     n = len(V)
     frozen = np.zeros(n, dtype=bool) if frozen is None else np.asarray(frozen, dtype=bool)
     if frozen.shape != (n,):
-        raise ValueError(f"frozen must be a boolean mask of the {n} vertices")
+        raise CageOptionError(f"frozen must be a boolean mask of the {n} vertices")
     # edge key -> (failed placements, batch of the last failure); reset when a neighbourhood changes
     attempts: dict[int, tuple[int, int]] = {}
     changed_at = np.zeros(n, dtype=np.int64)

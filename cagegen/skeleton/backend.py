@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from ..errors import CageError, MeshInputError
+from ..errors import CageError, CageOptionError, MeshInputError
 from ..verify import verify_nesting
 from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage,
                    untangle_sections)
@@ -301,7 +301,7 @@ def skeleton_cage(
     if not isinstance(bending, str):
         S = S.with_bending(list(bending))
     elif bending not in ("auto", "given"):
-        raise ValueError(f"bending must be 'auto', 'given' or a list of node indices, got {bending!r}")
+        raise CageOptionError(f"bending must be 'auto', 'given' or a list of node indices, got {bending!r}")
     w = np.asarray(_winding(Vn, F, S.nodes))
     if np.any(w < 0.5):
         bad = np.flatnonzero(w < 0.5)
@@ -405,7 +405,7 @@ def skeleton_cage(
 
         if isinstance(symmetry, str):
             if symmetry != "auto":
-                raise ValueError(f"symmetry must be None, 'auto' or (point, normal), got {symmetry!r}")
+                raise CageOptionError(f"symmetry must be None, 'auto' or (point, normal), got {symmetry!r}")
             plane = detect_mirror_plane(Vn, F)
         else:
             pt, nr = (np.asarray(x, float) for x in symmetry)

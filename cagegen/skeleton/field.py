@@ -27,7 +27,7 @@ import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
 from .._tempdir import in_temp_dir
-from ..errors import CageError
+from ..errors import CageError, CageOptionError
 
 __all__ = ["GuidingField", "guiding_field"]
 
@@ -90,7 +90,7 @@ class GuidingField:
             TV, TT = _delaunay_tets(V, F, skel_points, float(edge_length))
             n_skel = len(skel_points)
         else:
-            raise ValueError(f"mesher must be 'delaunay' or 'tetwild', got {mesher!r}")
+            raise CageOptionError(f"mesher must be 'delaunay' or 'tetwild', got {mesher!r}")
         TV = np.asarray(TV, dtype=np.float64)
         TT = np.asarray(TT, dtype=np.int64)
         if len(TT) == 0:

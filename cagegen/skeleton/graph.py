@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import MeshInputError
+from ..errors import CageOptionError, MeshInputError
 
 __all__ = ["Chain", "Skeleton", "read_skeleton", "write_skeleton"]
 
@@ -204,7 +204,7 @@ def read_skeleton(path: str | os.PathLike) -> Skeleton:
                 elif tok[0] == "b" and len(tok) == 2:
                     bending.append(int(tok[1]))
                 else:
-                    raise ValueError("expected 'v x y z', 'e i j' or 'b i'")
+                    raise CageOptionError("expected 'v x y z', 'e i j' or 'b i'")
             except ValueError as exc:
                 raise MeshInputError(f"{path}:{no}: cannot parse {raw.strip()!r} ({exc})") from exc
     if not nodes:

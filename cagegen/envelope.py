@@ -28,6 +28,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from ._geometry import signed_volume
+from .errors import CageOptionError
 
 __all__ = ["Envelope", "SDFGrid", "active_points", "build_envelope"]
 
@@ -223,6 +224,7 @@ def build_envelope(
     alpha: float = 3.0,
     beta: float = 8.0,
     concave: float = 0.0,
+    band: float | None = None,
 ) -> Envelope:
     """Enveloping iso-surface ``{phi * xi = c}`` of the closed surface ``(V, F)`` (unit diagonal).
 
@@ -251,6 +253,11 @@ def build_envelope(
         (no crossing) and has the first one's genus; ``info["concave"]`` records the points, the
         distances and genera before/after and whether it was ``used``. Off by default: on the dev zoo it
         was refused by the genus guard where it mattered (``docs/sdf.md``).
+    band : float, optional
+        Half-width of the narrow band where the signed distance is computed exactly (clamped beyond).
+        Default ``alpha * c + 3 h``: the sdf backend's simplification and optimisation read the grid
+        that far. The iso-surface alone needs ``c + 3 h`` (the amplified field reaches ``c`` where
+        ``|xi| <= c``), a third fewer samples at ``h = c`` (:mod:`cagegen.nested` passes that).
 
     Returns
     -------
@@ -263,7 +270,9 @@ def build_envelope(
 
     t0 = time.perf_counter()
     h = float(c if h is None else h)
-    band = alpha * c + 3 * h
+    band = alpha * c + 3 * h if band is None else float(band)
+    if not band >= c + 2 * h:
+        raise CageOptionError(f"band must be at least c + 2 h = {c + 2 * h:.3g}, got {band:.3g}")
     pad = c + 3 * h
     lo = V.min(0) - pad
     hi = V.max(0) + pad

@@ -441,7 +441,7 @@ def _envelope_target(Vf, Ff, n_faces, offset):
     envelopes.
     """
     t = time.perf_counter()
-    env = build_envelope(Vf, Ff, c=float(offset), h=float(offset))
+    env = build_envelope(Vf, Ff, c=float(offset), h=float(offset), band=4.0 * float(offset))
     if len(env.F) <= n_faces:
         raise CageError(f"envelope at {offset:.3g} has {len(env.F)} faces, not more than the target")
     U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), algorithm="qslim", other_algorithm=False)

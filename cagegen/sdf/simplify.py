@@ -26,12 +26,17 @@ from .._geometry import edge_stats, point_triangle_sqdist, segment_segment_sqdis
 from ..envelope import SDFGrid
 from ..errors import CageOptionError, NestmgError
 from ..intersect import cross_pairs, self_pairs
+from ..split_edges import split_long_edges
 
 __all__ = ["SimplifyStuck", "constrained_simplify", "face_quadrics"]
 
 # barycentric samples on a new triangle (p, q1, q2): (weight of p, split between q1 and q2)
 _SAMPLES = np.array([[1.0, 0.0], [0.5, 0.0], [0.5, 1.0], [1 / 3, 0.5], [0.75, 0.5], [0.25, 0.5],
                      [0.75, 0.0], [0.75, 1.0]])
+
+
+#: :func:`constrained_simplify` checks against the input with no edge longer than this many grid cells
+SPLIT_INPUT_CELLS = 4.0
 
 
 class SimplifyStuck(NestmgError, RuntimeError):
@@ -230,6 +235,11 @@ def constrained_simplify(
     changed_at = np.zeros(n, dtype=np.int64)
     from scipy.spatial import cKDTree
 
+    # the proximity queries below reach as far as the input's longest edge and widest triangle: with
+    # the STL slivers of a CAD part (edges of 0.1-0.5 of the diagonal) every query returned most of the
+    # input and featuretype.stl's layer exhausted 24 GB. The same surface, with no edge longer than
+    # SPLIT_INPUT_CELLS grid cells, answers the same questions (inputs without such edges: unchanged).
+    Vin, Fin, _ = split_long_edges(Vin, Fin, SPLIT_INPUT_CELLS * sdf.h, max_faces=max(20 * len(Fin), 200_000))
     vin_tree = cKDTree(Vin)
     cin = Vin[Fin].mean(axis=1)
     in_ext = float(np.linalg.norm(Vin[Fin] - cin[:, None, :], axis=2).max()) + 1e-9

@@ -27,13 +27,6 @@ from .quadrature import quadrature_matrix, triangle_areas
 
 __all__ = ["FlowResult", "flow_inside"]
 
-#: iterations with every quadrature point inside Ĉ but triangles still crossing it, after which the
-#: flow samples F more densely, and then the period of Ĉ's expansions around the crossing faces.
-#: Was stall_iter // 4 = 37 and 25: on featuretype.stl (envelope target, 868 faces) 189 iterations
-#: and 262 signed-distance evaluations (93% of the flow's time); 5 and 5: 107 and 151, the same cage
-#: certified.
-INSIDE_PATIENCE = 5
-
 
 @dataclass
 class FlowResult:
@@ -233,14 +226,14 @@ def flow_inside(
                 success, reason = True, "inside"
                 break
             inside_iters += 1
-            if inside_iters == INSIDE_PATIENCE and q < 7:
+            if inside_iters == stall_iter // 4 and q < 7:
                 # every quadrature point is inside but triangles still cut Ĉ (they stretch around
                 # Ĉ's corners, the paper's "invalid F̄"): sample each triangle more densely
                 B, w = quadrature_matrix(Ff, len(Vf0), 5)
                 q = len(w)
                 P, S, Q, N, W = evaluate(V)
                 continue
-            if (expand_after is not None and inside_iters > INSIDE_PATIENCE and inside_iters % INSIDE_PATIENCE == 0
+            if (expand_after is not None and inside_iters > stall_iter // 4 and inside_iters % 25 == 0
                     and n_expand < max_expansions):
                 # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface
                 pairs = cross_intersection_pairs(Vc, Fc, V, Ff)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -343,8 +344,7 @@ def sdf_cage_layer(
         the estimated time exceeds ``time_budget`` (raised before any work).
     """
     call = dict(locals())  # this call's arguments (first statement: nothing else is local yet), for the retry
-    import igl
-
+    opts = SimpleNamespace(**call)
     t0 = time.perf_counter()
     V, F = as_mesh_arrays(V, F, "fine layer")
     n_faces = _check_target(n_faces)
@@ -366,125 +366,13 @@ def sdf_cage_layer(
     g_fine = genus(Vn, F)
     gap_rel = float(min_gap) / bbox_diagonal(Vn)  # verify_nesting's min_gap is relative to layer 0
     attempts = []
-    hug_pts = None
+    hug_cache: dict = {}  # the input's active points, found once
     for attempt in range(int(max_retries) + 1):
         ck = c * 2.0 ** attempt
         sec: dict = {}
         try:
-            t = time.perf_counter()
-            env = build_envelope(Vn, F, c=ck, h=ck if h is None else h * 2.0 ** attempt, amplify=amplify,
-                                 r=r, l=l, alpha=alpha, beta=beta, concave=concave)
-            # the envelope must contain the fine layer: marching cubes on a grid of spacing ~c can cut
-            # through sharp features of a coarse input; and it should have the fine layer's genus (paper
-            # Sec. 3.1: the amplified field separates nearly-touching parts only where the grid resolves
-            # the amplified iso-level c / alpha; its "Limitation": finite SDF resolution). Refine the
-            # grid (same c, at most twice) before giving up; a genus still wrong is reported.
-            hk = ck if h is None else h * 2.0 ** attempt
-            if h is None and len(env.F) < ENVELOPE_OVER_TARGET * n_faces:
-                # a target close to the envelope's own resolution leaves few collapses, and the marching
-                # cubes' slivers stay in the cage (85k-face input, 21k-face cage from a 30k-face envelope:
-                # 140 faces under 1 degree, min 0.006): a finer grid, ~ENVELOPE_OVER_TARGET x the target
-                # (faces ~ 1 / h^2), at most 4x finer
-                h2 = hk * max(0.25, float(np.sqrt(len(env.F) / (ENVELOPE_OVER_TARGET * n_faces))))
-                env2 = build_envelope(Vn, F, c=ck, h=h2, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta,
-                                      concave=concave)
-                # ... unless the finer grid resolves a merge of two parts the coarse one did not (a handle:
-                # gargo subdivided twice, genus 0 at h = c, 1 at 0.59 c): the genus comes first
-                g0 = genus(env.V, env.F)
-                if genus(env2.V, env2.F) == g0 or g0 != g_fine:
-                    env, hk = env2, h2
-                    env.info["refined_for_target"] = True
-                else:
-                    env.info["refined_for_target"] = False
-            k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
-            g_env = genus(env.V, env.F)
-            tried_env = [{"h": hk, "crossings": k_cross, "genus": g_env}]
-            envs = [env]
-            refine = 0
-            while (k_cross or g_env != g_fine) and refine < 2:
-                hk *= 0.5
-                refine += 1
-                env = build_envelope(Vn, F, c=ck, h=hk, amplify=amplify, r=r, l=l, alpha=alpha, beta=beta,
-                                     concave=concave)
-                k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
-                g_env = genus(env.V, env.F)
-                tried_env.append({"h": hk, "crossings": k_cross, "genus": g_env})
-                envs.append(env)
-            pick = _pick_envelope(tried_env, g_fine)
-            if pick is not None:
-                # genus not repaired by the finer grids: the clean envelope whose genus is closest to the
-                # fine layer's (the coarsest of those: fewer faces to simplify)
-                env, k_cross = envs[pick], 0
-                tried_env[pick]["kept"] = True
-            env.info["grid_refinements"] = refine
-            env.info["grids_tried"] = tried_env
-            if k_cross:
-                raise SimplifyStuck(f"envelope crosses the fine layer ({k_cross} pairs) even at h={hk:.3g}")
-            sec["envelope"] = time.perf_counter() - t
-            U, G = env.V, env.F
-            while len(G) < n_faces:  # the envelope is coarser than the target: subdivide (same surface)
-                U, G = igl.upsample(U, G)
-                U, G = np.asarray(U, float), np.asarray(G, np.int64)
-            t = time.perf_counter()
-            pre = []
-            if prepass:
-                U, G, pre = _prepass(U, G, Vn, F, n_faces, clear=float(min_gap))
-            sec["prepass"] = time.perf_counter() - t
-            t = time.perf_counter()
-            if len(G) > n_faces:
-                U, G, sinfo = constrained_simplify(U, G, Vn, F, n_faces, env.sdf,
-                                                   margin=max(margin * ck, 2 * float(min_gap)),
-                                                   edge_clear=float(min_gap))
-            else:
-                sinfo = {"batches": 0, "collapses": 0}
-            sec["simplify"] = time.perf_counter() - t
-            t = time.perf_counter()
-            rep = verify_nesting([(Vn, F), (U, G)], min_gap=gap_rel)
-            sec["verify"] = time.perf_counter() - t
-            if not rep.ok:
-                raise SimplifyStuck(f"simplified cage not certified: {rep.pairs[0].reason}")
-            oinfo: dict = {"ran": False}
-            h_local = None
-            if optimize and hug > 0 and amplify:
-                if hug_pts is None:
-                    hug_pts = Vn[active_points(Vn, F, r, l)]
-                if len(hug_pts):
-                    h_local = (hug_pts, hug * ck, hug_radius * r)
-            dh = min(dhat, hug_dhat) if h_local is not None else dhat
-            if optimize:
-                t = time.perf_counter()
-                try:
-                    # the CCD keeps min_gap (+5%) and the barrier acts beyond it, so the optimised cage
-                    # can pass the same certificate as the simplified one
-                    U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=spacing * ck, dhat=max(dh * ck, 2 * min_gap),
-                                                  iters=opt_iters, flip_rounds=flip_rounds,
-                                                  time_limit=opt_time_limit, w_p=pull, pull_target=ck,
-                                                  min_distance=1.05 * float(min_gap), h_local=h_local)
-                    oinfo["ran"] = True
-                    if h_local is not None:
-                        oinfo["hug_points"] = len(h_local[0])
-                    rep2 = verify_nesting([(Vn, F), (U2, G2)], min_gap=gap_rel)
-                    oinfo["certified"] = bool(rep2.ok)
-                    if rep2.ok:
-                        U, G, rep = U2, G2, rep2
-                    else:  # keep the certified simplified cage
-                        oinfo["rejected_reason"] = rep2.pairs[0].reason
-                except RuntimeError as exc:
-                    oinfo = {"ran": True, "certified": False, "rejected_reason": str(exc)}
-                sec["optimize"] = time.perf_counter() - t
-            tinfo: dict = {"ran": False}
-            if tighten > 0 and tighten_rounds > 0:
-                t = time.perf_counter()
-                U, G, tinfo, trep = tighten_cage(U, G, Vn, F, env.sdf, c=ck, target=tighten * ck,
-                                                 rounds=tighten_rounds, pull=pull if pull > 0 else 50.0,
-                                                 spacing=spacing * ck, margin=max(margin * ck, 2 * float(min_gap)),
-                                                 min_gap=float(min_gap), gap_rel=gap_rel, iters=opt_iters,
-                                                 time_limit=opt_time_limit,
-                                                 deadline=tight_deadline)
-                tinfo["ran"] = True
-                if trep is not None:  # a kept round: its verify_nesting report certifies the returned cage
-                    rep = trep
-                sec["tighten"] = time.perf_counter() - t
+            env, U, G, rep, steps = _layer_attempt(opts, Vn, F, n_faces, ck, attempt, g_fine, gap_rel,
+                                                   hug_cache, tight_deadline, sec)
             break
         except SimplifyStuck as exc:
             attempts.append({"c": ck, "reason": str(exc)})
@@ -496,18 +384,187 @@ def sdf_cage_layer(
     if len(G) != n_faces:  # every collapse removes two faces; flips keep the count
         raise CageError(f"sdf cage has {len(G)} faces, {n_faces} requested", reason="face count")
     Uo = U * unit + center
+    info = _layer_info(U, G, Vn, F, n_faces, ck, attempts, env, steps, g_fine, rep, sec, t0)
+    if t_check is not None:
+        info["seconds"]["check_input"] = t_check
+    info["genus_changed"] = bool(info["genus"] != g_fine)
+    G = np.ascontiguousarray(G, dtype=np.int64)
+    if bridge_retry > 0 and tighten > 0:
+        Uo, G, info = _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, tighten * ck, t0, tight_deadline)
+    return Uo, G, info
+
+
+def _layer_attempt(opts, Vn, F, n_faces, ck, attempt, g_fine, gap_rel, hug_cache, deadline, sec):
+    """One attempt at offset ``ck``: envelope, simplification, certificate, optimisation, tightening."""
+    t = time.perf_counter()
+    env = _envelope_step(opts, Vn, F, n_faces, ck, attempt, g_fine)
+    sec["envelope"] = time.perf_counter() - t
+    U, G, pre, sinfo = _simplify_step(opts, env, Vn, F, n_faces, ck, sec)
+    t = time.perf_counter()
+    rep = verify_nesting([(Vn, F), (U, G)], min_gap=gap_rel)
+    sec["verify"] = time.perf_counter() - t
+    if not rep.ok:
+        raise SimplifyStuck(f"simplified cage not certified: {rep.pairs[0].reason}")
+    U, G, rep, oinfo = _optimize_step(opts, U, G, Vn, F, ck, gap_rel, rep, hug_cache, sec)
+    U, G, rep, tinfo = _tighten_step(opts, U, G, Vn, F, env, ck, gap_rel, rep, deadline, sec)
+    return env, U, G, rep, {"prepass": pre, "simplify": sinfo, "optimize": oinfo, "tighten": tinfo}
+
+
+def _first_envelope(opts, Vn, F, n_faces, ck, attempt, g_fine):
+    """Step 1a: the envelope at offset ``ck``, on a finer grid when it has too few faces to simplify."""
+    h = opts.h
+    env = build_envelope(Vn, F, c=ck, h=ck if h is None else h * 2.0 ** attempt, amplify=opts.amplify,
+                         r=opts.r, l=opts.l, alpha=opts.alpha, beta=opts.beta, concave=opts.concave)
+    # the envelope must contain the fine layer: marching cubes on a grid of spacing ~c can cut
+    # through sharp features of a coarse input; and it should have the fine layer's genus (paper
+    # Sec. 3.1: the amplified field separates nearly-touching parts only where the grid resolves
+    # the amplified iso-level c / alpha; its "Limitation": finite SDF resolution). Refine the
+    # grid (same c, at most twice) before giving up; a genus still wrong is reported.
+    hk = ck if h is None else h * 2.0 ** attempt
+    if h is None and len(env.F) < ENVELOPE_OVER_TARGET * n_faces:
+        # a target close to the envelope's own resolution leaves few collapses, and the marching
+        # cubes' slivers stay in the cage (85k-face input, 21k-face cage from a 30k-face envelope:
+        # 140 faces under 1 degree, min 0.006): a finer grid, ~ENVELOPE_OVER_TARGET x the target
+        # (faces ~ 1 / h^2), at most 4x finer
+        h2 = hk * max(0.25, float(np.sqrt(len(env.F) / (ENVELOPE_OVER_TARGET * n_faces))))
+        env2 = build_envelope(Vn, F, c=ck, h=h2, amplify=opts.amplify, r=opts.r, l=opts.l, alpha=opts.alpha,
+                              beta=opts.beta, concave=opts.concave)
+        # ... unless the finer grid resolves a merge of two parts the coarse one did not (a handle:
+        # gargo subdivided twice, genus 0 at h = c, 1 at 0.59 c): the genus comes first
+        g0 = genus(env.V, env.F)
+        if genus(env2.V, env2.F) == g0 or g0 != g_fine:
+            env, hk = env2, h2
+            env.info["refined_for_target"] = True
+        else:
+            env.info["refined_for_target"] = False
+    return env, hk
+
+
+def _envelope_step(opts, Vn, F, n_faces, ck, attempt, g_fine):
+    """Step 1: an envelope that contains the fine layer, grids refined for its genus (SimplifyStuck: none)."""
+    env, hk = _first_envelope(opts, Vn, F, n_faces, ck, attempt, g_fine)
+    k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
+    g_env = genus(env.V, env.F)
+    tried_env = [{"h": hk, "crossings": k_cross, "genus": g_env}]
+    envs = [env]
+    refine = 0
+    while (k_cross or g_env != g_fine) and refine < 2:
+        hk *= 0.5
+        refine += 1
+        env = build_envelope(Vn, F, c=ck, h=hk, amplify=opts.amplify, r=opts.r, l=opts.l, alpha=opts.alpha,
+                             beta=opts.beta, concave=opts.concave)
+        k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
+        g_env = genus(env.V, env.F)
+        tried_env.append({"h": hk, "crossings": k_cross, "genus": g_env})
+        envs.append(env)
+    pick = _pick_envelope(tried_env, g_fine)
+    if pick is not None:
+        # genus not repaired by the finer grids: the clean envelope whose genus is closest to the
+        # fine layer's (the coarsest of those: fewer faces to simplify)
+        env, k_cross = envs[pick], 0
+        tried_env[pick]["kept"] = True
+    env.info["grid_refinements"] = refine
+    env.info["grids_tried"] = tried_env
+    if k_cross:
+        raise SimplifyStuck(f"envelope crosses the fine layer ({k_cross} pairs) even at h={hk:.3g}")
+    return env
+
+
+def _simplify_step(opts, env, Vn, F, n_faces, ck, sec):
+    """Step 2: the envelope down to exactly ``n_faces`` faces (plain-QEM pre-pass, constrained collapses)."""
+    import igl
+
+    U, G = env.V, env.F
+    while len(G) < n_faces:  # the envelope is coarser than the target: subdivide (same surface)
+        U, G = igl.upsample(U, G)
+        U, G = np.asarray(U, float), np.asarray(G, np.int64)
+    t = time.perf_counter()
+    pre = []
+    if opts.prepass:
+        U, G, pre = _prepass(U, G, Vn, F, n_faces, clear=float(opts.min_gap))
+    sec["prepass"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if len(G) > n_faces:
+        U, G, sinfo = constrained_simplify(U, G, Vn, F, n_faces, env.sdf,
+                                           margin=max(opts.margin * ck, 2 * float(opts.min_gap)),
+                                           edge_clear=float(opts.min_gap))
+    else:
+        sinfo = {"batches": 0, "collapses": 0}
+    sec["simplify"] = time.perf_counter() - t
+    return U, G, pre, sinfo
+
+
+def _optimize_step(opts, U, G, Vn, F, ck, gap_rel, rep, hug_cache, sec):
+    """Step 3: barrier-protected optimisation (spacing, MIPS, pull, flips), kept only if certified."""
+    min_gap = opts.min_gap
+    oinfo: dict = {"ran": False}
+    h_local = None
+    if opts.optimize and opts.hug > 0 and opts.amplify:
+        if "points" not in hug_cache:
+            hug_cache["points"] = Vn[active_points(Vn, F, opts.r, opts.l)]
+        hug_pts = hug_cache["points"]
+        if len(hug_pts):
+            h_local = (hug_pts, opts.hug * ck, opts.hug_radius * opts.r)
+    dh = min(opts.dhat, opts.hug_dhat) if h_local is not None else opts.dhat
+    if opts.optimize:
+        t = time.perf_counter()
+        try:
+            # the CCD keeps min_gap (+5%) and the barrier acts beyond it, so the optimised cage
+            # can pass the same certificate as the simplified one
+            U2, G2, oinfo = optimize_cage(U, G, Vn, F, h=opts.spacing * ck, dhat=max(dh * ck, 2 * min_gap),
+                                          iters=opts.opt_iters, flip_rounds=opts.flip_rounds,
+                                          time_limit=opts.opt_time_limit, w_p=opts.pull, pull_target=ck,
+                                          min_distance=1.05 * float(min_gap), h_local=h_local)
+            oinfo["ran"] = True
+            if h_local is not None:
+                oinfo["hug_points"] = len(h_local[0])
+            rep2 = verify_nesting([(Vn, F), (U2, G2)], min_gap=gap_rel)
+            oinfo["certified"] = bool(rep2.ok)
+            if rep2.ok:
+                U, G, rep = U2, G2, rep2
+            else:  # keep the certified simplified cage
+                oinfo["rejected_reason"] = rep2.pairs[0].reason
+        except RuntimeError as exc:
+            oinfo = {"ran": True, "certified": False, "rejected_reason": str(exc)}
+        sec["optimize"] = time.perf_counter() - t
+    return U, G, rep, oinfo
+
+
+def _tighten_step(opts, U, G, Vn, F, env, ck, gap_rel, rep, deadline, sec):
+    """Step 4: the tightening pass into the concavities the envelope bridged (not in the paper)."""
+    tinfo: dict = {"ran": False}
+    if opts.tighten > 0 and opts.tighten_rounds > 0:
+        t = time.perf_counter()
+        pull, min_gap = opts.pull, opts.min_gap
+        U, G, tinfo, trep = tighten_cage(U, G, Vn, F, env.sdf, c=ck, target=opts.tighten * ck,
+                                         rounds=opts.tighten_rounds, pull=pull if pull > 0 else 50.0,
+                                         spacing=opts.spacing * ck,
+                                         margin=max(opts.margin * ck, 2 * float(min_gap)),
+                                         min_gap=float(min_gap), gap_rel=gap_rel, iters=opts.opt_iters,
+                                         time_limit=opts.opt_time_limit, deadline=deadline)
+        tinfo["ran"] = True
+        if trep is not None:  # a kept round: its verify_nesting report certifies the returned cage
+            rep = trep
+        sec["tighten"] = time.perf_counter() - t
+    return U, G, rep, tinfo
+
+
+def _layer_info(U, G, Vn, F, n_faces, ck, attempts, env, steps, g_fine, rep, sec, t0) -> dict:
+    """The layer's JSON-serialisable figures (``info`` of :func:`sdf_cage_layer`)."""
+    import igl
+
     m = mips(U, G)
-    info = {
+    return {
         "target": n_faces,
         "n_faces": len(G),
         "n_vertices": len(U),
         "c_used": ck,
         "attempts": attempts,
         "envelope": env.info,
-        "prepass": pre,
-        "simplify": sinfo,
-        "optimize": {k: v for k, v in oinfo.items()},
-        "tighten": tinfo,
+        "prepass": steps["prepass"],
+        "simplify": steps["simplify"],
+        "optimize": {k: v for k, v in steps["optimize"].items()},
+        "tighten": steps["tighten"],
         "genus_fine": g_fine,
         "genus_envelope": genus(env.V, env.F),
         "genus": genus(U, G),
@@ -519,13 +576,6 @@ def sdf_cage_layer(
         "verification": rep.to_dict(),
         "seconds": {**sec, "total": time.perf_counter() - t0},
     }
-    if t_check is not None:
-        info["seconds"]["check_input"] = t_check
-    info["genus_changed"] = bool(info["genus"] != g_fine)
-    G = np.ascontiguousarray(G, dtype=np.int64)
-    if bridge_retry > 0 and tighten > 0:
-        Uo, G, info = _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, tighten * ck, t0, tight_deadline)
-    return Uo, G, info
 
 
 def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):

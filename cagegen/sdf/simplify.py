@@ -19,6 +19,8 @@ Implementation choices (see ``docs/sdf.md``):
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -233,22 +235,14 @@ def constrained_simplify(
     # edge key -> (failed placements, batch of the last failure); reset when a neighbourhood changes
     attempts: dict[int, tuple[int, int]] = {}
     changed_at = np.zeros(n, dtype=np.int64)
-    from scipy.spatial import cKDTree
-
-    # the proximity queries below reach as far as the input's longest edge and widest triangle: with
-    # the STL slivers of a CAD part (edges of 0.1-0.5 of the diagonal) every query returned most of the
-    # input and featuretype.stl's layer exhausted 24 GB. The same surface, with no edge longer than
+    # the proximity queries reach as far as the input's longest edge and widest triangle: with the STL
+    # slivers of a CAD part (edges of 0.1-0.5 of the diagonal) every query returned most of the input
+    # and featuretype.stl's layer exhausted 24 GB. The same surface, with no edge longer than
     # SPLIT_INPUT_CELLS grid cells, answers the same questions (inputs without such edges: unchanged).
     Vin, Fin, _ = split_long_edges(Vin, Fin, SPLIT_INPUT_CELLS * sdf.h, max_faces=max(20 * len(Fin), 200_000))
-    vin_tree = cKDTree(Vin)
-    cin = Vin[Fin].mean(axis=1)
-    in_ext = float(np.linalg.norm(Vin[Fin] - cin[:, None, :], axis=2).max()) + 1e-9
-    in_tree = cKDTree(cin)
+    inp = _input_index(Vin, Fin, edge_clear)
     rejected = {"input": 0, "self": 0, "normal": 0, "margin": 0}
     if edge_clear > 0:
-        EI = np.unique(np.sort(np.concatenate([Fin[:, [0, 1]], Fin[:, [1, 2]], Fin[:, [2, 0]]]), axis=1), axis=0)
-        e_tree = cKDTree(0.5 * (Vin[EI[:, 0]] + Vin[EI[:, 1]]))
-        e_half = 0.5 * float(np.linalg.norm(Vin[EI[:, 0]] - Vin[EI[:, 1]], axis=1).max())
         rejected["edge_clear"] = 0
     n_coll = 0
     batch = 0
@@ -257,193 +251,20 @@ def constrained_simplify(
         if batch > max_batches:
             raise SimplifyStuck(f"no progress after {max_batches} batches at {len(F)} faces")
         need = (len(F) - target) // 2
-        E = _edges(F)
-        a, b = E[:, 0], E[:, 1]
-        A = sp.coo_matrix((np.ones(2 * len(E)), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
-        common = np.asarray((A @ A)[a, b]).ravel()
-        ok = common == 2  # link condition: the collapse keeps a closed 2-manifold
-        ok &= ~(frozen[a] | frozen[b])
-        key = a * n + b
-        att = np.zeros(len(E), dtype=np.int64)
-        if attempts:
-            for i, k in enumerate(key.tolist()):
-                rec = attempts.get(k)
-                if rec is not None and rec[1] >= max(changed_at[a[i]], changed_at[b[i]]):
-                    att[i] = rec[0]
-        ok &= att < 4
-        Qe = Q[a] + Q[b]
-        P, cost = _qem_place(Qe, V[a], V[b])
-        # alternative placements for edges whose earlier attempts failed
-        alt = att > 0
-        if alt.any():
-            choice = np.stack([P, V[a], V[b], 0.5 * (V[a] + V[b])], 1)
-            P[alt] = choice[np.flatnonzero(alt), np.minimum(att[alt], 3)]
-            x = np.c_[P[alt], np.ones(int(alt.sum()))]
-            cost[alt] = np.einsum("ij,ijk,ik->i", x, Qe[alt], x)
-        cand = np.flatnonzero(ok)
-        if len(cand) == 0:
-            raise SimplifyStuck(f"no feasible collapse left at {len(F)} faces (target {target})")
-        cand = cand[np.argsort(cost[cand], kind="stable")]
+        a, b, A, key, att, P, cand = _candidates(V, F, Q, frozen, attempts, changed_at, target)
         quota = max(1, min(need, int(batch_fraction * len(np.unique(F)))))
-        # greedy choice of edges whose incident faces are disjoint: an edge is taken when neither end
-        # point is in the closed neighbourhood of an edge taken before (then no face is shared and
-        # the link conditions stay valid)
-        locked = [False] * n
-        ptr, ind = A.indptr.tolist(), A.indices.tolist()
-        al, bl = a.tolist(), b.tolist()
-        sel = []
-        for e in cand.tolist():
-            x, y = al[e], bl[e]
-            if locked[x] or locked[y]:
-                continue
-            for v in ind[ptr[x]:ptr[x + 1]]:
-                locked[v] = True
-            for v in ind[ptr[y]:ptr[y + 1]]:
-                locked[v] = True
-            locked[x] = locked[y] = True
-            sel.append(e)
-            if len(sel) >= quota:
-                break
-        sel = np.asarray(sel, dtype=np.int64)
-        # new triangles of each collapse: faces around a or b except the two on edge (a, b); b -> a
-        VFm = sp.coo_matrix((np.ones(3 * len(F)), (F.ravel(), np.repeat(np.arange(len(F)), 3))),
-                            shape=(n, len(F))).tocsr()
-        S = sp.coo_matrix((np.ones(2 * len(sel)), (np.r_[np.arange(len(sel)), np.arange(len(sel))],
-                                                   np.r_[a[sel], b[sel]])), shape=(len(sel), n)).tocsr()
-        inc = (S @ VFm).tocoo()
-        kept = inc.data == 1
-        own, fid = inc.row[kept], inc.col[kept]
-        dead_f = inc.col[inc.data == 2]
-        Pnew = P[sel]
-        # triangle corners other than the collapsing vertex, in order (p first keeps orientation)
-        tri = F[fid]
-        is_ab = (tri == a[sel][own][:, None]) | (tri == b[sel][own][:, None])
-        rot = np.argmax(is_ab, axis=1)
-        tri_r = np.stack([tri[np.arange(len(tri)), (rot + k) % 3] for k in range(3)], 1)
-        Pnew = _project(Pnew, own, V[tri_r[:, 1]], V[tri_r[:, 2]], sdf, margin)
-        alive = np.ones(len(sel), dtype=bool)
-        clean = False
-        for _round in range(6):
-            idx = np.flatnonzero(alive)
-            if len(idx) == 0:
-                break
-            Vc = V.copy()
-            Vc[a[sel[idx]]] = Pnew[idx]
-            Fc = F.copy()
-            rmap = np.arange(n)
-            rmap[b[sel[idx]]] = a[sel[idx]]
-            Fc = rmap[Fc]
-            dmask = np.zeros(len(F), dtype=bool)
-            inc_alive = np.isin(own, idx)
-            dmask[dead_f[np.isin(inc.row[inc.data == 2], idx)]] = True
-            nf = fid[inc_alive]
-            nown = own[inc_alive]
-            bad = np.zeros(len(sel), dtype=bool)
-            # 1. no fold-over: the new normal keeps the old one's side, no degenerate triangle
-            n_old = _tri_normals(V, F[nf])
-            n_new = _tri_normals(Vc, Fc[nf])
-            dots = np.einsum("ij,ij->i", n_old, n_new)
-            a_new = np.linalg.norm(n_new, axis=1)
-            e2 = sum(np.einsum("ij,ij->i", d, d) for d in (
-                Vc[Fc[nf, 1]] - Vc[Fc[nf, 0]], Vc[Fc[nf, 2]] - Vc[Fc[nf, 1]], Vc[Fc[nf, 0]] - Vc[Fc[nf, 2]]))
-            # quality floor: a new triangle below min_quality must not be worse than the worst old
-            # triangle around the same collapse (never degrade an already poor neighbourhood further)
-            q_new = a_new / np.maximum(e2, 1e-300)
-            Xo = V[F[nf]]
-            q_old = np.linalg.norm(n_old, axis=1) / np.maximum(sum(np.einsum("ij,ij->i", d, d) for d in (
-                Xo[:, 1] - Xo[:, 0], Xo[:, 2] - Xo[:, 1], Xo[:, 0] - Xo[:, 2])), 1e-300)
-            qo_min = np.full(len(sel), np.inf)
-            np.minimum.at(qo_min, nown, q_old)
-            qn_min = np.full(len(sel), np.inf)
-            np.minimum.at(qn_min, nown, q_new)
-            poor = (qn_min < min_quality) & (qn_min < qo_min)
-            fold = (dots <= 0.0) | (a_new <= 1e-6 * e2) | poor[nown]
-            bad[nown[fold]] = True
-            rejected["normal"] += int(np.unique(nown[fold]).size)
-            # 2. clearance (exact distances): samples on the new triangles to the input, and input
-            #    vertices near the new triangles to them, must stay beyond half the margin
-            own_v = Vc[rmap[tri_r[inc_alive]]]  # corners with p first
-            clear = 0.5 * margin
-            low = too_close(own_v, Vin, Fin, vin_tree, clear) & ~bad[nown]
-            newb = np.unique(nown[low])
-            rejected["margin"] += int(newb.size)
-            bad[newb] = True
-            if edge_clear > 0:  # the two new edges (p, q1), (p, q2) of each new triangle vs the input's edges
-                live = ~bad[nown]
-                P0 = np.r_[own_v[live, 0], own_v[live, 0]]
-                P1 = np.r_[own_v[live, 1], own_v[live, 2]]
-                ow = np.r_[nown[live], nown[live]]
-                if len(P0):
-                    lists = e_tree.query_ball_point(0.5 * (P0 + P1),
-                                                    0.5 * np.linalg.norm(P1 - P0, axis=1) + e_half + edge_clear)
-                    cnt = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-                    if cnt.sum():
-                        ie = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
-                        iseg = np.repeat(np.arange(len(P0)), cnt)
-                        d2 = segment_segment_sqdist(P0[iseg], P1[iseg], Vin[EI[ie, 0]], Vin[EI[ie, 1]])
-                        hit = np.unique(ow[iseg[d2 < edge_clear * edge_clear]])
-                        rejected["edge_clear"] += int(hit.size)
-                        bad[hit] = True
-            # 3. exact: new triangles must not cross or touch the input
-            live_f = ~dmask
-            chk = ~bad[nown]
-            if chk.any():
-                Fq = Fc[nf[chk]]
-                cq = Vc[Fq].mean(axis=1)
-                rq = np.linalg.norm(Vc[Fq] - cq[:, None, :], axis=2).max(axis=1)
-                near_in = in_tree.query_ball_point(cq, rq + in_ext)
-                fin_sel = np.unique(np.concatenate([np.asarray(x, dtype=np.int64) for x in near_in]))
-                pr = cross_pairs(Vc, Fq, Vin, Fin[fin_sel]) if len(fin_sel) else np.zeros((0, 2), int)
-                if len(pr):
-                    hit = np.unique(nown[chk][pr[:, 0]])
-                    rejected["input"] += int(hit.size)
-                    bad[hit] = True
-            # 4. exact: new triangles must not intersect other cage triangles (local submesh)
-            chk = ~bad[nown]
-            if chk.any():
-                newf = nf[chk]
-                cen = Vc[Fc].mean(axis=1)
-                ext = np.linalg.norm(Vc[Fc] - cen[:, None, :], axis=2).max(axis=1)
-                live_idx = np.flatnonzero(live_f)
-                tree = cKDTree(cen[live_idx])
-                R = ext[live_idx].max() + ext[newf]
-                near = tree.query_ball_point(cen[newf], R)
-                sub = np.unique(np.concatenate([live_idx[np.asarray(x, dtype=np.int64)] for x in near] + [newf]))
-                # only pairs with a new face: the rest of the cage is clean (checked when it was made)
-                pr = self_pairs(Vc, Fc[sub], only=np.searchsorted(sub, newf))
-                if len(pr):
-                    pos = -np.ones(len(F), dtype=np.int64)
-                    pos[nf] = nown  # owner of each new face
-                    fa, fb = sub[pr[:, 0]], sub[pr[:, 1]]
-                    hit = np.unique(np.r_[pos[fa], pos[fb]])
-                    hit = hit[hit >= 0]
-                    rejected["self"] += int(hit.size)
-                    bad[hit] = True
-            if not bad[idx].any():
-                clean = True
-                break
-            for k in np.flatnonzero(bad & alive):
-                attempts[int(key[sel[k]])] = (int(att[sel[k]]) + 1, batch)
-            alive &= ~bad
-        idx = np.flatnonzero(alive)
+        sel = _independent_edges(cand, a, b, A, quota)
+        bt = _new_triangles(V, F, a, b, sel, P, sdf, margin)
+        idx, clean, failed = _test_rounds(V, F, bt, inp, margin, min_quality, edge_clear, rejected)
         if not clean or len(idx) == 0:
             # nothing applied unless the last set of collapses passed every test together; the
             # untested survivors count as a failed attempt too (no endless retry of the same batch)
-            for k in idx:
-                attempts[int(key[sel[k]])] = (int(att[sel[k]]) + 1, batch)
+            failed = failed + list(idx)
+        for k in failed:
+            attempts[int(key[sel[k]])] = (int(att[sel[k]]) + 1, batch)
+        if not clean or len(idx) == 0:
             continue
-        # apply the accepted collapses
-        ai, bi = a[sel[idx]], b[sel[idx]]
-        V[ai] = Pnew[idx]
-        Q[ai] += Q[bi]
-        rmap = np.arange(n)
-        rmap[bi] = ai
-        dead = np.zeros(len(F), dtype=bool)
-        dead[dead_f[np.isin(inc.row[inc.data == 2], idx)]] = True
-        F = rmap[F[~dead]]
-        # neighbourhoods changed: their blocked edges may be retried
-        touched = np.unique(F[np.isin(F, ai).any(axis=1)])
-        changed_at[touched] = batch
+        F = _apply_collapses(V, F, Q, bt, idx, changed_at, batch)
         n_coll += len(idx)
     used = np.unique(F)
     remap = np.full(n, -1, dtype=np.int64)
@@ -453,3 +274,282 @@ def constrained_simplify(
         raise SimplifyStuck("the collapses produced a mesh that is not a closed oriented manifold")
     info = {"batches": batch, "collapses": n_coll, "rejected": rejected, "n_faces": len(F)}
     return V[used], remap[F], info
+
+
+class _InputIndex(NamedTuple):
+    """Search structures of the input surface ``(Vin, Fin)`` for the collapse tests."""
+
+    Vin: np.ndarray
+    Fin: np.ndarray
+    vin_tree: object  # k-d tree of the vertices
+    in_tree: object  # k-d tree of the face centres
+    in_ext: float  # largest face-centre-to-corner distance (+1e-9)
+    EI: np.ndarray | None  # (k,2) edges (with edge_clear > 0)
+    e_tree: object  # k-d tree of the edge midpoints (with edge_clear > 0)
+    e_half: float | None  # half the longest edge (with edge_clear > 0)
+
+
+def _input_index(Vin, Fin, edge_clear: float) -> _InputIndex:
+    """k-d trees of the input's vertices, face centres and (``edge_clear > 0``) edge midpoints."""
+    from scipy.spatial import cKDTree
+
+    vin_tree = cKDTree(Vin)
+    cin = Vin[Fin].mean(axis=1)
+    in_ext = float(np.linalg.norm(Vin[Fin] - cin[:, None, :], axis=2).max()) + 1e-9
+    in_tree = cKDTree(cin)
+    EI = e_tree = e_half = None
+    if edge_clear > 0:
+        EI = np.unique(np.sort(np.concatenate([Fin[:, [0, 1]], Fin[:, [1, 2]], Fin[:, [2, 0]]]), axis=1),
+                       axis=0)
+        e_tree = cKDTree(0.5 * (Vin[EI[:, 0]] + Vin[EI[:, 1]]))
+        e_half = 0.5 * float(np.linalg.norm(Vin[EI[:, 0]] - Vin[EI[:, 1]], axis=1).max())
+    return _InputIndex(Vin, Fin, vin_tree, in_tree, in_ext, EI, e_tree, e_half)
+
+
+def _candidates(V, F, Q, frozen, attempts, changed_at, target):
+    """Step 1: the collapsible edges (link condition, not frozen or blocked), placed, cheapest first."""
+    n = len(V)
+    E = _edges(F)
+    a, b = E[:, 0], E[:, 1]
+    A = sp.coo_matrix((np.ones(2 * len(E)), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
+    common = np.asarray((A @ A)[a, b]).ravel()
+    ok = common == 2  # link condition: the collapse keeps a closed 2-manifold
+    ok &= ~(frozen[a] | frozen[b])
+    key = a * n + b
+    att = np.zeros(len(E), dtype=np.int64)
+    if attempts:
+        for i, k in enumerate(key.tolist()):
+            rec = attempts.get(k)
+            if rec is not None and rec[1] >= max(changed_at[a[i]], changed_at[b[i]]):
+                att[i] = rec[0]
+    ok &= att < 4
+    Qe = Q[a] + Q[b]
+    P, cost = _qem_place(Qe, V[a], V[b])
+    # alternative placements for edges whose earlier attempts failed
+    alt = att > 0
+    if alt.any():
+        choice = np.stack([P, V[a], V[b], 0.5 * (V[a] + V[b])], 1)
+        P[alt] = choice[np.flatnonzero(alt), np.minimum(att[alt], 3)]
+        x = np.c_[P[alt], np.ones(int(alt.sum()))]
+        cost[alt] = np.einsum("ij,ijk,ik->i", x, Qe[alt], x)
+    cand = np.flatnonzero(ok)
+    if len(cand) == 0:
+        raise SimplifyStuck(f"no feasible collapse left at {len(F)} faces (target {target})")
+    cand = cand[np.argsort(cost[cand], kind="stable")]
+    return a, b, A, key, att, P, cand
+
+
+def _independent_edges(cand, a, b, A, quota: int) -> np.ndarray:
+    """Step 2: up to ``quota`` candidates, in order, whose closed neighbourhoods are disjoint."""
+    # greedy choice of edges whose incident faces are disjoint: an edge is taken when neither end
+    # point is in the closed neighbourhood of an edge taken before (then no face is shared and
+    # the link conditions stay valid)
+    locked = [False] * A.shape[0]
+    ptr, ind = A.indptr.tolist(), A.indices.tolist()
+    al, bl = a.tolist(), b.tolist()
+    sel = []
+    for e in cand.tolist():
+        x, y = al[e], bl[e]
+        if locked[x] or locked[y]:
+            continue
+        for v in ind[ptr[x]:ptr[x + 1]]:
+            locked[v] = True
+        for v in ind[ptr[y]:ptr[y + 1]]:
+            locked[v] = True
+        locked[x] = locked[y] = True
+        sel.append(e)
+        if len(sel) >= quota:
+            break
+    return np.asarray(sel, dtype=np.int64)
+
+
+class _Batch(NamedTuple):
+    """One batch's collapses (edge ``sel[k]``: ``b[sel[k]]`` onto ``a[sel[k]]``) and their new triangles."""
+
+    a: np.ndarray
+    b: np.ndarray
+    sel: np.ndarray
+    inc: sp.coo_matrix  # collapse x face: 1 on a new triangle's face, 2 on a removed face
+    own: np.ndarray  # collapse of each new triangle
+    fid: np.ndarray  # face of each new triangle
+    dead_f: np.ndarray  # removed faces
+    tri_r: np.ndarray  # (t,3) corners of each new triangle, the collapsing vertex first
+    P: np.ndarray  # (s,3) the new vertices, projected
+
+
+def _new_triangles(V, F, a, b, sel, P, sdf, margin) -> _Batch:
+    """Step 3: the new triangles of each chosen collapse, and its new vertex pushed clear of the input."""
+    n = len(V)
+    # new triangles of each collapse: faces around a or b except the two on edge (a, b); b -> a
+    VFm = sp.coo_matrix((np.ones(3 * len(F)), (F.ravel(), np.repeat(np.arange(len(F)), 3))),
+                        shape=(n, len(F))).tocsr()
+    S = sp.coo_matrix((np.ones(2 * len(sel)), (np.r_[np.arange(len(sel)), np.arange(len(sel))],
+                                               np.r_[a[sel], b[sel]])), shape=(len(sel), n)).tocsr()
+    inc = (S @ VFm).tocoo()
+    kept = inc.data == 1
+    own, fid = inc.row[kept], inc.col[kept]
+    dead_f = inc.col[inc.data == 2]
+    Pnew = P[sel]
+    # triangle corners other than the collapsing vertex, in order (p first keeps orientation)
+    tri = F[fid]
+    is_ab = (tri == a[sel][own][:, None]) | (tri == b[sel][own][:, None])
+    rot = np.argmax(is_ab, axis=1)
+    tri_r = np.stack([tri[np.arange(len(tri)), (rot + k) % 3] for k in range(3)], 1)
+    Pnew = _project(Pnew, own, V[tri_r[:, 1]], V[tri_r[:, 2]], sdf, margin)
+    return _Batch(a, b, sel, inc, own, fid, dead_f, tri_r, Pnew)
+
+
+def _test_rounds(V, F, bt: _Batch, inp: _InputIndex, margin, min_quality, edge_clear, rejected):
+    """Step 4: test the collapses together, withdrawing the failing ones, until clean (6 rounds at most)."""
+    alive = np.ones(len(bt.sel), dtype=bool)
+    clean = False
+    failed: list = []  # collapses that failed a test, in order
+    for _round in range(6):
+        idx = np.flatnonzero(alive)
+        if len(idx) == 0:
+            break
+        bad = _failing_collapses(V, F, bt, idx, inp, margin, min_quality, edge_clear, rejected)
+        if not bad[idx].any():
+            clean = True
+            break
+        failed.extend(np.flatnonzero(bad & alive))
+        alive &= ~bad
+    return np.flatnonzero(alive), clean, failed
+
+
+def _failing_collapses(V, F, bt: _Batch, idx, inp: _InputIndex, margin, min_quality, edge_clear, rejected):
+    """Step 4, one round: which of the collapses ``idx``, applied together, fail a test (counted by test)."""
+    n = len(V)
+    a, b, sel = bt.a, bt.b, bt.sel
+    Vc = V.copy()
+    Vc[a[sel[idx]]] = bt.P[idx]
+    Fc = F.copy()
+    rmap = np.arange(n)
+    rmap[b[sel[idx]]] = a[sel[idx]]
+    Fc = rmap[Fc]
+    dmask = np.zeros(len(F), dtype=bool)
+    inc_alive = np.isin(bt.own, idx)
+    dmask[bt.dead_f[np.isin(bt.inc.row[bt.inc.data == 2], idx)]] = True
+    nf = bt.fid[inc_alive]
+    nown = bt.own[inc_alive]
+    bad = np.zeros(len(sel), dtype=bool)
+    # 1. no fold-over: the new normal keeps the old one's side, no degenerate triangle
+    fold = _folds(V, F, Vc, Fc, nf, nown, len(sel), min_quality)
+    bad[nown[fold]] = True
+    rejected["normal"] += int(np.unique(nown[fold]).size)
+    # 2. clearance (exact distances): samples on the new triangles to the input, and input
+    #    vertices near the new triangles to them, must stay beyond half the margin
+    own_v = Vc[rmap[bt.tri_r[inc_alive]]]  # corners with p first
+    _clearance_test(own_v, nown, bad, inp, margin, edge_clear, rejected)
+    # 3. exact: new triangles must not cross or touch the input
+    _input_crossing_test(Vc, Fc, nf, nown, bad, inp, rejected)
+    # 4. exact: new triangles must not intersect other cage triangles (local submesh)
+    _self_crossing_test(Vc, Fc, nf, nown, ~dmask, bad, rejected)
+    return bad
+
+
+def _folds(V, F, Vc, Fc, nf, nown, n_sel: int, min_quality: float) -> np.ndarray:
+    """Test 1: new triangles that flip or degenerate, or fall below ``min_quality`` and the old worst."""
+    n_old = _tri_normals(V, F[nf])
+    n_new = _tri_normals(Vc, Fc[nf])
+    dots = np.einsum("ij,ij->i", n_old, n_new)
+    a_new = np.linalg.norm(n_new, axis=1)
+    e2 = sum(np.einsum("ij,ij->i", d, d) for d in (
+        Vc[Fc[nf, 1]] - Vc[Fc[nf, 0]], Vc[Fc[nf, 2]] - Vc[Fc[nf, 1]], Vc[Fc[nf, 0]] - Vc[Fc[nf, 2]]))
+    # quality floor: a new triangle below min_quality must not be worse than the worst old
+    # triangle around the same collapse (never degrade an already poor neighbourhood further)
+    q_new = a_new / np.maximum(e2, 1e-300)
+    Xo = V[F[nf]]
+    q_old = np.linalg.norm(n_old, axis=1) / np.maximum(sum(np.einsum("ij,ij->i", d, d) for d in (
+        Xo[:, 1] - Xo[:, 0], Xo[:, 2] - Xo[:, 1], Xo[:, 0] - Xo[:, 2])), 1e-300)
+    qo_min = np.full(n_sel, np.inf)
+    np.minimum.at(qo_min, nown, q_old)
+    qn_min = np.full(n_sel, np.inf)
+    np.minimum.at(qn_min, nown, q_new)
+    poor = (qn_min < min_quality) & (qn_min < qo_min)
+    return (dots <= 0.0) | (a_new <= 1e-6 * e2) | poor[nown]
+
+
+def _clearance_test(own_v, nown, bad, inp: _InputIndex, margin, edge_clear, rejected) -> None:
+    """Test 2: new triangles closer than ``margin / 2`` to the input, or new edges than ``edge_clear``."""
+    clear = 0.5 * margin
+    low = too_close(own_v, inp.Vin, inp.Fin, inp.vin_tree, clear) & ~bad[nown]
+    newb = np.unique(nown[low])
+    rejected["margin"] += int(newb.size)
+    bad[newb] = True
+    if edge_clear > 0:  # the two new edges (p, q1), (p, q2) of each new triangle vs the input's edges
+        live = ~bad[nown]
+        P0 = np.r_[own_v[live, 0], own_v[live, 0]]
+        P1 = np.r_[own_v[live, 1], own_v[live, 2]]
+        ow = np.r_[nown[live], nown[live]]
+        if len(P0):
+            lists = inp.e_tree.query_ball_point(
+                0.5 * (P0 + P1), 0.5 * np.linalg.norm(P1 - P0, axis=1) + inp.e_half + edge_clear)
+            cnt = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+            if cnt.sum():
+                ie = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
+                iseg = np.repeat(np.arange(len(P0)), cnt)
+                Vin, EI = inp.Vin, inp.EI
+                d2 = segment_segment_sqdist(P0[iseg], P1[iseg], Vin[EI[ie, 0]], Vin[EI[ie, 1]])
+                hit = np.unique(ow[iseg[d2 < edge_clear * edge_clear]])
+                rejected["edge_clear"] += int(hit.size)
+                bad[hit] = True
+
+
+def _input_crossing_test(Vc, Fc, nf, nown, bad, inp: _InputIndex, rejected) -> None:
+    """Test 3 (exact): new triangles that cross or touch the input."""
+    chk = ~bad[nown]
+    if chk.any():
+        Fq = Fc[nf[chk]]
+        cq = Vc[Fq].mean(axis=1)
+        rq = np.linalg.norm(Vc[Fq] - cq[:, None, :], axis=2).max(axis=1)
+        near_in = inp.in_tree.query_ball_point(cq, rq + inp.in_ext)
+        fin_sel = np.unique(np.concatenate([np.asarray(x, dtype=np.int64) for x in near_in]))
+        pr = cross_pairs(Vc, Fq, inp.Vin, inp.Fin[fin_sel]) if len(fin_sel) else np.zeros((0, 2), int)
+        if len(pr):
+            hit = np.unique(nown[chk][pr[:, 0]])
+            rejected["input"] += int(hit.size)
+            bad[hit] = True
+
+
+def _self_crossing_test(Vc, Fc, nf, nown, live_f, bad, rejected) -> None:
+    """Test 4 (exact): new triangles that intersect other live cage triangles (local submesh)."""
+    from scipy.spatial import cKDTree
+
+    chk = ~bad[nown]
+    if chk.any():
+        newf = nf[chk]
+        cen = Vc[Fc].mean(axis=1)
+        ext = np.linalg.norm(Vc[Fc] - cen[:, None, :], axis=2).max(axis=1)
+        live_idx = np.flatnonzero(live_f)
+        tree = cKDTree(cen[live_idx])
+        R = ext[live_idx].max() + ext[newf]
+        near = tree.query_ball_point(cen[newf], R)
+        sub = np.unique(np.concatenate([live_idx[np.asarray(x, dtype=np.int64)] for x in near] + [newf]))
+        # only pairs with a new face: the rest of the cage is clean (checked when it was made)
+        pr = self_pairs(Vc, Fc[sub], only=np.searchsorted(sub, newf))
+        if len(pr):
+            pos = -np.ones(len(Fc), dtype=np.int64)
+            pos[nf] = nown  # owner of each new face
+            fa, fb = sub[pr[:, 0]], sub[pr[:, 1]]
+            hit = np.unique(np.r_[pos[fa], pos[fb]])
+            hit = hit[hit >= 0]
+            rejected["self"] += int(hit.size)
+            bad[hit] = True
+
+
+def _apply_collapses(V, F, Q, bt: _Batch, idx, changed_at, batch: int) -> np.ndarray:
+    """Step 5: apply the accepted collapses ``idx`` (``V``, ``Q``, ``changed_at`` in place); the new faces."""
+    n = len(V)
+    ai, bi = bt.a[bt.sel[idx]], bt.b[bt.sel[idx]]
+    V[ai] = bt.P[idx]
+    Q[ai] += Q[bi]
+    rmap = np.arange(n)
+    rmap[bi] = ai
+    dead = np.zeros(len(F), dtype=bool)
+    dead[bt.dead_f[np.isin(bt.inc.row[bt.inc.data == 2], idx)]] = True
+    F = rmap[F[~dead]]
+    # neighbourhoods changed: their blocked edges may be retried
+    touched = np.unique(F[np.isin(F, ai).any(axis=1)])
+    changed_at[touched] = batch
+    return F

@@ -24,6 +24,7 @@ One round of :func:`tighten_cage`:
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -198,59 +199,12 @@ def tighten_cage(
     # (measured: 52 on a 124-face cage, 120 on 334 faces)
     max_insert = max(1, n_faces // 32) if max_insert is None else int(max_insert)
     step = 2.0 * dhat if step is None else float(step)
-    reach = 4.0 * c
+    ps = _PatchSettings(Vin, Fin, c, radius, 4.0 * c, spacing, dhat, step, pull, iters, time_limit, min_gap)
     best = float(input_to_cage(Vin, Fin, C, Fc)[0].max())
     angle_floor = min(float(min_angle), float(_min_angles(C, Fc).min()))
     info: dict = {"max_before": best, "rounds": [], "min_angle_floor": angle_floor}
     report = None
     frozen_pts = np.zeros((0, 3))
-    from scipy.spatial import cKDTree
-
-    def opt(X, T, centers, full=True):
-        """Descent on the patch, energy-lowering edge flips on the whole cage (exactly checked), descent
-        on the patch again (the backend's 15 + flips + 15 steps; the 1-to-3 splits need the flips to
-        get neighbours along the concavity)."""
-        X = patch_descent(X, T, centers)
-        if not full:
-            return X, T
-        T, _ = _flip_pass(X, T, Vin, Fin, max_flips=len(T), clear=1.05 * float(min_gap),
-                          tri_energy=_Energy(T, Vin, Fin, spacing, 1.0, 0.05,
-                                             max(spacing, dhat)).triangles(X))
-        return patch_descent(X, T, centers), T
-
-    def patch_descent(X, T, centers):
-        """The descent on the patch of the cage within ``radius`` of ``centers`` (the rest held, and kept
-        as an obstacle within ``radius + reach``), without flips (they would change the patch's border)."""
-        X = np.array(X, dtype=float)
-        tree = cKDTree(X)
-        near = np.zeros(len(X), dtype=bool)
-        for lst in tree.query_ball_point(centers, radius + reach):
-            near[lst] = True
-        movable = np.zeros(len(X), dtype=bool)
-        for lst in tree.query_ball_point(centers, radius):
-            movable[lst] = True
-        fsub = np.flatnonzero(near[T].any(axis=1))
-        vsub = np.unique(T[fsub])
-        loc = np.full(len(X), -1, dtype=np.int64)
-        loc[vsub] = np.arange(len(vsub))
-        # a patch vertex moves if it is within radius and none of its faces leaves the patch
-        border = np.zeros(len(X), dtype=bool)
-        border[T[~near[T].any(axis=1)].ravel()] = True  # vertices of faces outside the patch
-        free = movable[vsub] & ~border[vsub]
-        lo_, hi_ = X[vsub].min(0) - reach, X[vsub].max(0) + reach
-        fin = np.flatnonzero(((Vin[Fin].min(axis=1) <= hi_) & (Vin[Fin].max(axis=1) >= lo_)).all(axis=1))
-        vin_sub = np.unique(Fin[fin])
-        lin = np.full(len(Vin), -1, dtype=np.int64)
-        lin[vin_sub] = np.arange(len(vin_sub))
-        pm = np.zeros(len(vin_sub), dtype=bool)  # pulling input vertices: within radius of a centre
-        for lst in cKDTree(Vin[vin_sub]).query_ball_point(centers, radius):
-            pm[lst] = True
-        Xs, _, _ = optimize_cage(X[vsub], loc[T[fsub]], Vin[vin_sub], lin[Fin[fin]], h=spacing, dhat=dhat,
-                                 iters=iters, flip_rounds=0, time_limit=time_limit, w_p=pull, pull_target=c,
-                                 step=step, min_distance=1.05 * float(min_gap), free=free, pull_mask=pm)
-        X[vsub] = Xs
-        return X
-
     last = 0.0
     for _ in range(int(rounds)):
         if best <= target:
@@ -266,38 +220,120 @@ def tighten_cage(
         if len(picked) == 0:
             info["rounds"].append(rec)
             break
-        try:
-            C3, F3 = opt(C2, F2, C2[len(C):])
-            # freeze this round's new vertices and the earlier rounds' (found by position: the
-            # simplification compacts the vertex array; frozen vertices never move in it)
-            pts = np.vstack([frozen_pts, C3[len(C):]])
-            fr = np.zeros(len(C3), dtype=bool)
-            fr[cKDTree(C3).query(pts)[1]] = True
-            C4, F4, sinfo = constrained_simplify(C3, F3, Vin, Fin, n_faces, sdf, margin=margin,
-                                                 edge_clear=float(min_gap), frozen=fr)
-            idx4 = cKDTree(C4).query(pts)[1]  # same vertex order in C5 (the optimiser keeps it)
-            # second pass around the inserted vertices and where the collapses moved vertices
-            moved = cKDTree(C3).query(C4)[0] > 1e-12
-            C5, F5 = opt(C4, F4, np.vstack([C4[idx4], C4[moved]]), full=second_full)
-            rep = verify_nesting([(Vin, Fin), (C5, F5)], min_gap=gap_rel)
-            rec["certified"] = bool(rep.ok)
-            d5 = float(input_to_cage(Vin, Fin, C5, F5)[0].max())
-            rec["max_after"] = d5
-            rec["collapses"] = int(sinfo["collapses"])
-        except (SimplifyStuck, RuntimeError) as exc:  # stuck collapses, or a start cage the optimiser refuses
-            rec["certified"] = False
-            rec["error"] = str(exc)
-            d5 = np.inf
-        if rec.get("certified"):
-            rec["min_angle"] = float(_min_angles(C5, F5).min())
-        rec["kept"] = bool(rec.get("certified") and d5 < best and len(F5) == n_faces
+        d5, out = _tighten_round(C, C2, F2, frozen_pts, ps, sdf, n_faces, margin, gap_rel, second_full, rec)
+        rec["kept"] = bool(rec.get("certified") and d5 < best and len(out[1]) == n_faces
                            and rec["min_angle"] >= angle_floor)
         rec["cpu_seconds"] = time.process_time() - t
         last = time.perf_counter() - tw
         info["rounds"].append(rec)
         if not rec["kept"]:
             break
+        C5, F5, rep, idx4 = out
         C, Fc, best, report = C5, F5, d5, rep
         frozen_pts = C5[idx4]
     info["max_after"] = best
     return C, Fc, info, report
+
+
+class _PatchSettings(NamedTuple):
+    """The input and the resolved options of :func:`tighten_cage`'s local optimisations."""
+
+    Vin: np.ndarray
+    Fin: np.ndarray
+    c: float
+    radius: float
+    reach: float  # obstacles within radius + reach of the centres
+    spacing: float
+    dhat: float
+    step: float
+    pull: float
+    iters: int
+    time_limit: float
+    min_gap: float
+
+
+def _tighten_round(C, C2, F2, frozen_pts, ps: _PatchSettings, sdf, n_faces, margin, gap_rel, second_full,
+                   rec):
+    """One round after the splits: lower the new vertices, collapse as many faces elsewhere, certify."""
+    from scipy.spatial import cKDTree
+
+    Vin, Fin, min_gap = ps.Vin, ps.Fin, ps.min_gap
+    out = None
+    try:
+        C3, F3 = _optimize_patch(C2, F2, C2[len(C):], ps)
+        # freeze this round's new vertices and the earlier rounds' (found by position: the
+        # simplification compacts the vertex array; frozen vertices never move in it)
+        pts = np.vstack([frozen_pts, C3[len(C):]])
+        fr = np.zeros(len(C3), dtype=bool)
+        fr[cKDTree(C3).query(pts)[1]] = True
+        C4, F4, sinfo = constrained_simplify(C3, F3, Vin, Fin, n_faces, sdf, margin=margin,
+                                             edge_clear=float(min_gap), frozen=fr)
+        idx4 = cKDTree(C4).query(pts)[1]  # same vertex order in C5 (the optimiser keeps it)
+        # second pass around the inserted vertices and where the collapses moved vertices
+        moved = cKDTree(C3).query(C4)[0] > 1e-12
+        C5, F5 = _optimize_patch(C4, F4, np.vstack([C4[idx4], C4[moved]]), ps, full=second_full)
+        rep = verify_nesting([(Vin, Fin), (C5, F5)], min_gap=gap_rel)
+        rec["certified"] = bool(rep.ok)
+        d5 = float(input_to_cage(Vin, Fin, C5, F5)[0].max())
+        rec["max_after"] = d5
+        rec["collapses"] = int(sinfo["collapses"])
+        out = (C5, F5, rep, idx4)
+    except (SimplifyStuck, RuntimeError) as exc:  # stuck collapses, or a start cage the optimiser refuses
+        rec["certified"] = False
+        rec["error"] = str(exc)
+        d5 = np.inf
+    if rec.get("certified"):
+        rec["min_angle"] = float(_min_angles(C5, F5).min())
+    return d5, out
+
+
+def _optimize_patch(X, T, centers, ps: _PatchSettings, full=True):
+    """Descent on the patch, edge flips on the whole cage, descent on the patch again (``full``)."""
+    # energy-lowering edge flips, exactly checked: the backend's 15 + flips + 15 steps; the 1-to-3
+    # splits need the flips to get neighbours along the concavity
+    X = _patch_descent(X, T, centers, ps)
+    if not full:
+        return X, T
+    T, _ = _flip_pass(X, T, ps.Vin, ps.Fin, max_flips=len(T), clear=1.05 * float(ps.min_gap),
+                      tri_energy=_Energy(T, ps.Vin, ps.Fin, ps.spacing, 1.0, 0.05,
+                                         max(ps.spacing, ps.dhat)).triangles(X))
+    return _patch_descent(X, T, centers, ps), T
+
+
+def _patch_descent(X, T, centers, ps: _PatchSettings):
+    """The descent on the cage within ``radius`` of ``centers`` (the rest held, an obstacle nearby)."""
+    # the rest of the cage is held, and kept as an obstacle within radius + reach; no flips (they
+    # would change the patch's border)
+    from scipy.spatial import cKDTree
+
+    Vin, Fin, radius, reach = ps.Vin, ps.Fin, ps.radius, ps.reach
+    X = np.array(X, dtype=float)
+    tree = cKDTree(X)
+    near = np.zeros(len(X), dtype=bool)
+    for lst in tree.query_ball_point(centers, radius + reach):
+        near[lst] = True
+    movable = np.zeros(len(X), dtype=bool)
+    for lst in tree.query_ball_point(centers, radius):
+        movable[lst] = True
+    fsub = np.flatnonzero(near[T].any(axis=1))
+    vsub = np.unique(T[fsub])
+    loc = np.full(len(X), -1, dtype=np.int64)
+    loc[vsub] = np.arange(len(vsub))
+    # a patch vertex moves if it is within radius and none of its faces leaves the patch
+    border = np.zeros(len(X), dtype=bool)
+    border[T[~near[T].any(axis=1)].ravel()] = True  # vertices of faces outside the patch
+    free = movable[vsub] & ~border[vsub]
+    lo_, hi_ = X[vsub].min(0) - reach, X[vsub].max(0) + reach
+    fin = np.flatnonzero(((Vin[Fin].min(axis=1) <= hi_) & (Vin[Fin].max(axis=1) >= lo_)).all(axis=1))
+    vin_sub = np.unique(Fin[fin])
+    lin = np.full(len(Vin), -1, dtype=np.int64)
+    lin[vin_sub] = np.arange(len(vin_sub))
+    pm = np.zeros(len(vin_sub), dtype=bool)  # pulling input vertices: within radius of a centre
+    for lst in cKDTree(Vin[vin_sub]).query_ball_point(centers, radius):
+        pm[lst] = True
+    Xs, _, _ = optimize_cage(X[vsub], loc[T[fsub]], Vin[vin_sub], lin[Fin[fin]], h=ps.spacing, dhat=ps.dhat,
+                             iters=ps.iters, flip_rounds=0, time_limit=ps.time_limit, w_p=ps.pull,
+                             pull_target=ps.c, step=ps.step, min_distance=1.05 * float(ps.min_gap), free=free,
+                             pull_mask=pm)
+    X[vsub] = Xs
+    return X

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -272,8 +274,6 @@ def skeleton_cage(
         A step failed; the message starts with the step's name. From the pre-inflation on, ``exc.partial``
         holds what was built (:class:`SkeletonCage`, ``certified=False``).
     """
-    from ..nested.backend import _PairFailure, nest_pair
-
     say = progress if callable(progress) else (lambda msg: None)
     t_all = time.perf_counter()
     sec: dict = {}
@@ -285,13 +285,79 @@ def skeleton_cage(
     Vn = (V - center) / diag
     info: dict = {"method": "skeleton"}
 
-    # 1. skeleton
     t = time.perf_counter()
+    S, S_in = _skeleton_step(Vn, F, skeleton, bending, diag, center, skeleton_cache, recentre, info, say)
+    sec["skeleton"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    S, chain_controls, spacing = _bending_step(S, Vn, F, bending, info, say)
+    sec["bending"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    field, rad_of = _field_step(S, chain_controls, Vn, F, tet_edge_length, tet_epsilon, mesher, info, say)
+    sec["field"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    kit = _SectionKit(S, S.degree, Vn, F, field, rad_of, spacing, n_seeds, seed_radius, say)
+    sections, chain_controls = _sections_step(kit, chain_controls, relocate_sections, face_neighbours,
+                                              symmetry, center, diag, info)
+    sec["sections"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    tc = _assembly_step(kit, sections, chain_controls, drop_bad_sections, untangle, info)
+    sec["assembly"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds, refine_levels,
+                                                          info, say)
+    sec["pre_inflation"] = time.perf_counter() - t
+    # what was built, for the result and for the ``exc.partial`` of a later failure
+    parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
+             "tris": tris_out, "Vt": Vt, "Vp": Vp, "diag": diag, "center": center, "info": info, "sec": sec,
+             "t_all": t_all}
+    if info["pre_inflation"]["self_intersections"]:
+        n_pairs = info["pre_inflation"]["self_intersections"]
+        raise _failure(f"skeleton cage, pre-inflation: the cage intersects itself ({n_pairs} face pairs); "
+                       "add bending nodes", parts)
+
+    t = time.perf_counter()
+    C = _inflation_step(parts, inner, Vn, F, min_gap, nested_opts)
+    sec["inflation"] = time.perf_counter() - t
+    Vc = C * diag + center
+    Fc = np.ascontiguousarray(Ft, dtype=np.int64)
+    t = time.perf_counter()
+    if certify:
+        _certification_step(parts, V, F, inner, Vc, Fc, min_gap)
+    sec["verify"] = time.perf_counter() - t
+    sec["total"] = time.perf_counter() - t_all
+    info["seconds"] = sec
+    info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
+    info["n_quads"], info["n_junction_triangles"] = len(quads_out), len(tris_out)
+    return _cage_result(Vc, True, parts)
+
+
+class _SectionKit(NamedTuple):
+    """What building a cross-section needs (steps 4 and 5 of :func:`skeleton_cage`), unit-diagonal frame."""
+
+    S: Skeleton
+    deg: np.ndarray
+    Vn: np.ndarray
+    F: np.ndarray
+    field: GuidingField
+    rad_of: dict
+    spacing: float
+    n_seeds: int
+    seed_radius: float
+    say: Callable
+
+
+def _skeleton_step(Vn, F, skeleton, bending, diag, center, cache, recentre, info, say):
+    """Step 1: the given skeleton (normalised) or an extracted one; its nodes must lie inside M."""
     if skeleton is None:
         from .extract import extract_skeleton
 
         say("skeleton: automatic extraction (pygel3d)")
-        S, xinfo = extract_skeleton(Vn, F, cache=skeleton_cache, recentre=recentre)
+        S, xinfo = extract_skeleton(Vn, F, cache=cache, recentre=recentre)
         say(f"skeleton: cache {xinfo['cache']}, digest {xinfo['skeleton_digest'][:12]}")
         info["extraction"] = xinfo
         S_in = S
@@ -307,10 +373,11 @@ def skeleton_cage(
         bad = np.flatnonzero(w < 0.5)
         raise MeshInputError(f"skeleton: {len(bad)} node(s) outside the surface (first: node {int(bad[0])}); "
                              "the skeleton must lie inside the mesh")
-    sec["skeleton"] = time.perf_counter() - t
+    return S, S_in
 
-    # 2. bending nodes
-    t = time.perf_counter()
+
+def _bending_step(S, Vn, F, bending, info, say):
+    """Step 2: bending nodes (automatic or given) on the resampled skeleton; each chain's control nodes."""
     L_edges = np.linalg.norm(S.nodes[S.edges[:, 0]] - S.nodes[S.edges[:, 1]], axis=1)
     spacing = float(min(0.01, max(L_edges.mean() / 4, 0.002)))
     if bending == "auto":
@@ -334,13 +401,14 @@ def skeleton_cage(
         chain_controls.append((ch, ctrl))
     if added:
         S = S.with_bending(sorted(bset | set(added)))
-    sec["bending"] = time.perf_counter() - t
     info["skeleton"] = {"n_nodes": len(S.nodes), "n_leaves": len(S.leaves), "n_branching": len(S.branching),
                         "n_bending": len(S.bending), "bending_added_mid_chain": added}
     say(f"skeleton: {len(S.leaves)} leaves, {len(S.branching)} branching, {len(S.bending)} bending nodes")
+    return S, chain_controls, spacing
 
-    # 3. guiding field
-    t = time.perf_counter()
+
+def _field_step(S, chain_controls, Vn, F, tet_edge_length, tet_epsilon, mesher, info, say):
+    """Step 3: inscribed radii at the control nodes, the tet mesh and the harmonic guiding field."""
     ctrl_nodes = sorted({n for _, c in chain_controls for n in c})
     radii = inscribed_radius(S.nodes[ctrl_nodes], Vn, F)
     rad_of = dict(zip(ctrl_nodes, radii))
@@ -348,16 +416,16 @@ def skeleton_cage(
     samples = S.resampled(h / 2).nodes
     say(f"field: {mesher} tets (edge {h:.3g}) + harmonic solve")
     field = GuidingField(Vn, F, samples, edge_length=h, epsilon=tet_epsilon, mesher=mesher)
-    sec["field"] = time.perf_counter() - t
     info["field"] = {"mesher": mesher, "edge_length": h, "n_tets": field.n_tets, "n_nodes": field.n_nodes,
                      "skeleton_offset": field.skeleton_offset, "seconds": field.seconds}
+    return field, rad_of
 
-    # 4. cross-sections
-    t = time.perf_counter()
+
+def _sections_step(kit, chain_controls, relocate_sections, face_neighbours, symmetry, center, diag, info):
+    """Step 4: one quad section per control node, moved or dropped where its integral lines fail."""
     sections = {}
     moved: list = []
     sec_dropped: list = []
-    first_error = None
     faced: list = []
     for ch, ctrl in chain_controls:
         ref = None  # first axis of the previous section along the chain (untwisted round sections)
@@ -365,35 +433,12 @@ def skeleton_cage(
             if n in sections:
                 ref = sections[n].axis
                 continue
-            i = ch.nodes.index(n)
-            cs = None
-            for j in _section_positions(S, ch, i, rad_of[n], deg[n] == 1 if relocate_sections else None):
-                m = ch.nodes[j]
-                tan = _tangent(S, ch, j, reach=max(rad_of[n], 2 * spacing))
-                rm = rad_of[n] if j == i else float(inscribed_radius(S.nodes[m], Vn, F)[0])
-                ref_m = ref
-                if face_neighbours:
-                    d_nb = _neighbour_direction(S, ch, m, Vn, F)
-                    if d_nb is not None and np.linalg.norm(d_nb) < face_neighbours * rm:
-                        ref_m = d_nb
-                try:
-                    cs = cross_section(field, n, S.nodes[m], tan, rm, n_seeds=n_seeds, seed_radius=seed_radius,
-                                       ref=ref_m)
-                    if ref_m is not ref:
-                        faced.append(int(n))
-                except CageError as exc:
-                    first_error = exc if j == i else first_error
-                    continue
-                if j != i:
-                    moved.append({"node": int(n), "moved_to": int(m),
-                                  "distance": float(np.linalg.norm(S.nodes[m] - S.nodes[n]))})
-                    say(f"section at node {n}: integral lines failed, moved to node {m}")
-                break
+            cs, first_error = _section_at(kit, ch, n, ref, relocate_sections, face_neighbours, moved, faced)
             if cs is None:
                 others = [c for c in ctrl if c != n]
-                if relocate_sections and deg[n] == 2 and others:
+                if relocate_sections and kit.deg[n] == 2 and others:
                     sec_dropped.append(int(n))
-                    say(f"section at node {n}: integral lines failed, bending node dropped")
+                    kit.say(f"section at node {n}: integral lines failed, bending node dropped")
                     continue
                 raise first_error
             sections[n] = cs
@@ -401,194 +446,249 @@ def skeleton_cage(
     if sec_dropped:
         chain_controls = [(ch, [c for c in ctrl if c not in sec_dropped]) for ch, ctrl in chain_controls]
     if symmetry is not None:  # paper Sec. 3.4: mirror-symmetric sections
-        from .symmetry import detect_mirror_plane, symmetrize_sections
-
-        if isinstance(symmetry, str):
-            if symmetry != "auto":
-                raise CageOptionError(f"symmetry must be None, 'auto' or (point, normal), got {symmetry!r}")
-            plane = detect_mirror_plane(Vn, F)
-        else:
-            pt, nr = (np.asarray(x, float) for x in symmetry)
-            plane = {"point": (pt - center) / diag, "normal": nr / np.linalg.norm(nr), "symmetric": True}
-        sinfo = {"detected": plane["symmetric"], "score": plane.get("score"),
-                 "normal": plane["normal"].tolist(), "point": (plane["point"] * diag + center).tolist()}
-        if plane["symmetric"]:
-            new_q, si = symmetrize_sections({n: cs.quad for n, cs in sections.items()}, plane["point"],
-                                            plane["normal"])
-            for n, q in new_q.items():
-                sections[n].quad = q
-            sinfo.update(si)
-            say(f"symmetry: plane normal {np.round(plane['normal'], 3).tolist()}, {len(si['pairs'])} section "
-                f"pairs mirrored, {len(si['self'])} sections crossed by the plane")
-        info["symmetry"] = sinfo
+        info["symmetry"] = _symmetry_step(sections, symmetry, kit.Vn, kit.F, center, diag, kit.say)
     info["sections_moved"], info["sections_dropped"] = moved, sec_dropped
     info["sections_faced"] = faced
     if faced:
-        say(f"sections: {len(faced)} turned to face a neighbouring limb (nodes {faced})")
-    sec["sections"] = time.perf_counter() - t
+        kit.say(f"sections: {len(faced)} turned to face a neighbouring limb (nodes {faced})")
+    return sections, chain_controls
 
-    # 5. tight cage
-    t = time.perf_counter()
-    from .._geometry import self_intersection_pairs
 
-    dropped: list = []
-    asm_dropped: list = []
-    shrunk: dict = {}
-    moved_away: dict = {}
-    away_log: list = []
-
-    def _move_away(ch, ctrl, nd, junction):
-        """New control list of chain ``ch`` after moving the section ``nd`` away from ``junction`` (or
-        adding a middle section for a lone leaf section); None when impossible."""
-        nodes = ch.nodes
-        X = S.nodes[np.asarray(nodes)]
-        s_arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
-        if ch.start != junction and ch.end != junction:
-            return None
-        step = 1 if ch.start == junction else -1
-        i = nodes.index(nd)
-        if deg[nd] == 1:  # a lone leaf section at the junction: add one at the middle of the chain
-            if len(ctrl) != 1 or len(nodes) < 3:
-                return None
-            j = int(np.clip(np.argmin(np.abs(s_arc - s_arc[-1] / 2)), 1, len(nodes) - 2))
-            key, target = int(nodes[j]), j
-        else:
-            key = nd
-            r0 = rad_of.get(nd, 0.0)
-            nxt = [nodes.index(c) for c in ctrl if (nodes.index(c) - i) * step > 0]
-            lim = s_arc[nxt[0] if step > 0 else nxt[-1]] if nxt else s_arc[-1 if step > 0 else 0]
-            want = s_arc[i] + step * 0.5 * r0
-            target = int(np.argmin(np.abs(s_arc - want)))
-            if target == i:
-                target = i + step
-            if not (0 < target < len(nodes) - 1) or abs(lim - s_arc[target]) < 0.5 * r0:
-                return None
-        m = nodes[target]
-        rm = float(inscribed_radius(S.nodes[m], Vn, F)[0])
+def _section_at(kit, ch, n, ref, relocate_sections, face_neighbours, moved, faced):
+    """The section of control node ``n`` at the first position along its chain where it can be built."""
+    S, rad_of = kit.S, kit.rad_of
+    i = ch.nodes.index(n)
+    first_error = None
+    for j in _section_positions(S, ch, i, rad_of[n], kit.deg[n] == 1 if relocate_sections else None):
+        m = ch.nodes[j]
+        tan = _tangent(S, ch, j, reach=max(rad_of[n], 2 * kit.spacing))
+        rm = rad_of[n] if j == i else float(inscribed_radius(S.nodes[m], kit.Vn, kit.F)[0])
+        ref_m = ref
+        if face_neighbours:
+            d_nb = _neighbour_direction(S, ch, m, kit.Vn, kit.F)
+            if d_nb is not None and np.linalg.norm(d_nb) < face_neighbours * rm:
+                ref_m = d_nb
         try:
-            cs = cross_section(field, key, S.nodes[m], _tangent(S, ch, target, reach=max(rm, 2 * spacing)), rm,
-                               n_seeds=n_seeds, seed_radius=seed_radius,
-                               ref=sections[nd].axis if nd in sections else None)
-        except CageError:
-            return None
-        moved_away[nd] = moved_away.get(nd, 0) + 1
-        away_log.append({"junction": int(junction), "section": int(nd), "to_node": int(m),
-                         "added": key != nd})
-        if key != nd:  # new middle section
-            rad_of[key] = rm
-            sections[key] = cs
-            S.bending = sorted(set(S.bending) | {key})
-            say(f"junction at node {junction}: new section at node {key} (middle of the leaf chain of {nd})")
-            return sorted([key] + list(ctrl), key=nodes.index)
-        # the moved section keeps its key; its skeleton node is now m (for the shrink steps)
-        sections[nd] = cs
-        rad_of[nd] = rm
-        ctrl_new = list(ctrl)
-        # the moved section replaces nd at its new place along the chain: re-key it to m
-        sections[int(m)] = sections.pop(nd)
-        rad_of[int(m)] = rm
-        moved_away[int(m)] = moved_away.pop(nd)
-        ctrl_new[ctrl_new.index(nd)] = int(m)
-        S.bending = sorted((set(S.bending) - {nd}) | {int(m)})
-        say(f"junction at node {junction}: section at node {nd} moved away to node {m}")
-        return ctrl_new
-    flattened: list = []
+            cs = cross_section(kit.field, n, S.nodes[m], tan, rm, n_seeds=kit.n_seeds,
+                               seed_radius=kit.seed_radius, ref=ref_m)
+            if ref_m is not ref:
+                faced.append(int(n))
+        except CageError as exc:
+            first_error = exc if j == i else first_error
+            continue
+        if j != i:
+            moved.append({"node": int(n), "moved_to": int(m),
+                          "distance": float(np.linalg.norm(S.nodes[m] - S.nodes[n]))})
+            kit.say(f"section at node {n}: integral lines failed, moved to node {m}")
+        return cs, None
+    return None, first_error
+
+
+def _symmetry_step(sections, symmetry, Vn, F, center, diag, say) -> dict:
+    """Step 4b: mirror-symmetrise the sections about a detected or given plane (paper Sec. 3.4)."""
+    from .symmetry import detect_mirror_plane, symmetrize_sections
+
+    if isinstance(symmetry, str):
+        if symmetry != "auto":
+            raise CageOptionError(f"symmetry must be None, 'auto' or (point, normal), got {symmetry!r}")
+        plane = detect_mirror_plane(Vn, F)
+    else:
+        pt, nr = (np.asarray(x, float) for x in symmetry)
+        plane = {"point": (pt - center) / diag, "normal": nr / np.linalg.norm(nr), "symmetric": True}
+    sinfo = {"detected": plane["symmetric"], "score": plane.get("score"),
+             "normal": plane["normal"].tolist(), "point": (plane["point"] * diag + center).tolist()}
+    if plane["symmetric"]:
+        new_q, si = symmetrize_sections({n: cs.quad for n, cs in sections.items()}, plane["point"],
+                                        plane["normal"])
+        for n, q in new_q.items():
+            sections[n].quad = q
+        sinfo.update(si)
+        say(f"symmetry: plane normal {np.round(plane['normal'], 3).tolist()}, {len(si['pairs'])} section "
+            f"pairs mirrored, {len(si['self'])} sections crossed by the plane")
+    return sinfo
+
+
+def _assembly_step(kit, sections, chain_controls, drop_bad_sections, untangle, info) -> dict:
+    """Step 5: the tight cage from the sections, with the recoveries when it cannot be built cleanly."""
+    rec = {"dropped": [], "asm_dropped": [], "shrunk": {}, "moved_away": {}, "away_log": [], "flattened": []}
     while True:
         # degenerate sections, and sections that cross their neighbour along the chain (the tube between
         # them folds): flatten them onto the plane orthogonal to the skeleton (ours; idempotent, so every
         # rebuild re-checks the sections the recoveries below moved or added)
         if untangle:
-            for nd in untangle_sections(sections, chain_controls, V=Vn, F=F):
-                flattened.append(nd)
-                say(f"sections: the section at node {nd} is degenerate or crosses its neighbour along the chain, "
-                    "flattened")
+            for nd in untangle_sections(sections, chain_controls, V=kit.Vn, F=kit.F):
+                rec["flattened"].append(nd)
+                kit.say(f"sections: the section at node {nd} is degenerate or crosses its neighbour along "
+                        "the chain, flattened")
         try:
-            tc = tight_cage(S, sections, chain_controls)
+            tc = tight_cage(kit.S, sections, chain_controls)
         except JunctionError as exc:
-            nd = exc.section
-            k = next((j for j, (_, c) in enumerate(chain_controls) if nd in c), None)
-            # recovery 1 (ours): move the junction's section away from it along its chain (its projection
-            # on the junction's sphere shrinks), half an inscribed radius at a time, 4 times at most,
-            # never past the chain's next section; a leaf section alone on its chain gets a new section
-            # at the chain's middle instead
-            if drop_bad_sections and k is not None and moved_away.get(nd, 0) < 4:
-                ch, ctrl = chain_controls[k]
-                res = _move_away(ch, ctrl, nd, exc.junction)
-                if res is not None:
-                    chain_controls[k] = (ch, res)
-                    continue
-            # recovery 2 (ours): use the next section along that chain instead (drop the bending node),
-            # when the chain keeps a section
-            if (not drop_bad_sections or k is None or deg[nd] != 2 or len(chain_controls[k][1]) < 2
-                    or len(dropped) >= 20):
-                # no bending node to drop (a leaf section, or the chain's only one): shrink the section
-                # towards its skeleton node, 20% at a time, so that its projection on the junction's
-                # sphere no longer overlaps its neighbours'
-                if not drop_bad_sections or shrunk.get(nd, 0) >= 4:
-                    raise
-                cs = sections[nd]
-                cs.quad = cs.center + 0.8 * (cs.quad - cs.center)
-                shrunk[nd] = shrunk.get(nd, 0) + 1
-                say(f"junction at node {exc.junction}: shrinking the section at node {nd}")
-                continue
-            chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
-            dropped.append({"junction": exc.junction, "bending_node_dropped": nd})
-            say(f"junction at node {exc.junction}: dropping the bending node {nd} next to it")
+            if not _junction_recovery(kit, exc, sections, chain_controls, drop_bad_sections, rec):
+                raise
             continue
         # a tight cage that intersects itself (sections of neighbouring limbs crossing, or consecutive
         # sections of a bent limb crossing): shrink the offending sections towards their skeleton node,
         # 20% per step; if that fails, drop the bending node owning most intersecting faces and rebuild
         # (ours; the paper has no such case)
-        owner = np.full(len(tc["V"]), -1)
-        owner_center = np.zeros((len(tc["V"]), 3))
-        for nd, vids in tc["section_rings"].items():
-            owner[vids] = nd
-            owner_center[vids] = S.nodes[nd]
-        pairs = self_intersection_pairs(tc["V"], tc["F"])
-        pairs0 = pairs
-        shrink_steps = 0
-        while len(pairs) and shrink_steps < 10:
-            bad = np.unique(tc["F"][np.unique(pairs.ravel())].ravel())
-            tc["V"][bad] += 0.2 * (owner_center[bad] - tc["V"][bad])
-            shrink_steps += 1
-            pairs = self_intersection_pairs(tc["V"], tc["F"])
+        owner, pairs0, pairs, shrink_steps = _shrink_crossing_sections(kit.S, tc)
         if not len(pairs):
             break
-        votes: dict = {}
-        for f in np.unique(np.asarray(pairs0).ravel()):
-            for v in tc["F"][f]:
-                nd = int(owner[v])
-                if deg[nd] == 2:
-                    votes[nd] = votes.get(nd, 0) + 1
-        cand = [nd for nd in sorted(votes, key=lambda n: -votes[n])
-                if len(next(c for _, c in chain_controls if nd in c)) >= 2]
-        if not drop_bad_sections or not cand or len(asm_dropped) >= 30:
-            culprits = sorted({int(owner[v]) for f in np.unique(np.asarray(pairs0).ravel()) for v in tc["F"][f]})
-            raise CageError(f"skeleton cage, assembly: the tight cage intersects itself ({len(pairs)} face pairs) "
-                            f"after 10 shrink steps and {len(asm_dropped)} dropped bending nodes; sections "
-                            f"involved at skeleton nodes {culprits}; add or move bending nodes", layer=1)
-        nd = cand[0]
-        k = next(j for j, (_, c) in enumerate(chain_controls) if nd in c)
-        chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
-        asm_dropped.append({"bending_node_dropped": nd, "face_pairs": int(len(pairs0))})
-        say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
-    info["junction_recovery"] = dropped
-    info["sections_flattened"] = flattened
-    info["assembly_dropped"] = asm_dropped
-    info["junction_sections_shrunk"] = {int(k): v for k, v in shrunk.items()}
-    info["junction_sections_moved_away"] = away_log
+        _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_bad_sections, rec)
+    info["junction_recovery"] = rec["dropped"]
+    info["sections_flattened"] = rec["flattened"]
+    info["assembly_dropped"] = rec["asm_dropped"]
+    info["junction_sections_shrunk"] = {int(k): v for k, v in rec["shrunk"].items()}
+    info["junction_sections_moved_away"] = rec["away_log"]
     info["steiner_vertices"] = tc["n_steiner"]
     info["steiner_per_junction"] = tc["n_steiner_per_junction"]
     info["tight_cage_shrink_steps"] = shrink_steps
-    sec["assembly"] = time.perf_counter() - t
-    Vt, Ft = tc["V"], tc["F"]
-    info["tight_cage"] = {"n_vertices": len(Vt), "n_faces": len(Ft), "n_quads": len(tc["quads"]),
+    info["tight_cage"] = {"n_vertices": len(tc["V"]), "n_faces": len(tc["F"]), "n_quads": len(tc["quads"]),
                           "n_junction_triangles": len(tc["tris"])}
-    say(f"tight cage: {len(Vt)} vertices, {len(tc['quads'])} quads + {len(tc['tris'])} triangles")
+    kit.say(f"tight cage: {len(tc['V'])} vertices, {len(tc['quads'])} quads + {len(tc['tris'])} triangles")
+    return tc
 
-    # 6. pre-inflation
-    t = time.perf_counter()
-    Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=preinflate_rounds)
+
+def _junction_recovery(kit, exc, sections, chain_controls, drop_bad_sections, rec) -> bool:
+    """Step 5, a junction hull misses a section's edge: move, drop or shrink the section (False: give up)."""
+    nd = exc.section
+    k = next((j for j, (_, c) in enumerate(chain_controls) if nd in c), None)
+    # recovery 1 (ours): move the junction's section away from it along its chain (its projection
+    # on the junction's sphere shrinks), half an inscribed radius at a time, 4 times at most,
+    # never past the chain's next section; a leaf section alone on its chain gets a new section
+    # at the chain's middle instead
+    if drop_bad_sections and k is not None and rec["moved_away"].get(nd, 0) < 4:
+        ch, ctrl = chain_controls[k]
+        res = _move_away(kit, sections, rec, ch, ctrl, nd, exc.junction)
+        if res is not None:
+            chain_controls[k] = (ch, res)
+            return True
+    # recovery 2 (ours): use the next section along that chain instead (drop the bending node),
+    # when the chain keeps a section
+    if (not drop_bad_sections or k is None or kit.deg[nd] != 2 or len(chain_controls[k][1]) < 2
+            or len(rec["dropped"]) >= 20):
+        # no bending node to drop (a leaf section, or the chain's only one): shrink the section
+        # towards its skeleton node, 20% at a time, so that its projection on the junction's
+        # sphere no longer overlaps its neighbours'
+        if not drop_bad_sections or rec["shrunk"].get(nd, 0) >= 4:
+            return False
+        cs = sections[nd]
+        cs.quad = cs.center + 0.8 * (cs.quad - cs.center)
+        rec["shrunk"][nd] = rec["shrunk"].get(nd, 0) + 1
+        kit.say(f"junction at node {exc.junction}: shrinking the section at node {nd}")
+        return True
+    chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
+    rec["dropped"].append({"junction": exc.junction, "bending_node_dropped": nd})
+    kit.say(f"junction at node {exc.junction}: dropping the bending node {nd} next to it")
+    return True
+
+
+def _move_away(kit, sections, rec, ch, ctrl, nd, junction):
+    """New control list of chain ``ch`` after moving the section ``nd`` away from ``junction`` (or adding a
+    middle section for a lone leaf section); None when impossible."""
+    S, rad_of, moved_away = kit.S, kit.rad_of, rec["moved_away"]
+    nodes = ch.nodes
+    X = S.nodes[np.asarray(nodes)]
+    s_arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
+    if ch.start != junction and ch.end != junction:
+        return None
+    step = 1 if ch.start == junction else -1
+    i = nodes.index(nd)
+    if kit.deg[nd] == 1:  # a lone leaf section at the junction: add one at the middle of the chain
+        if len(ctrl) != 1 or len(nodes) < 3:
+            return None
+        j = int(np.clip(np.argmin(np.abs(s_arc - s_arc[-1] / 2)), 1, len(nodes) - 2))
+        key, target = int(nodes[j]), j
+    else:
+        key = nd
+        r0 = rad_of.get(nd, 0.0)
+        nxt = [nodes.index(c) for c in ctrl if (nodes.index(c) - i) * step > 0]
+        lim = s_arc[nxt[0] if step > 0 else nxt[-1]] if nxt else s_arc[-1 if step > 0 else 0]
+        want = s_arc[i] + step * 0.5 * r0
+        target = int(np.argmin(np.abs(s_arc - want)))
+        if target == i:
+            target = i + step
+        if not (0 < target < len(nodes) - 1) or abs(lim - s_arc[target]) < 0.5 * r0:
+            return None
+    m = nodes[target]
+    rm = float(inscribed_radius(S.nodes[m], kit.Vn, kit.F)[0])
+    try:
+        tan = _tangent(S, ch, target, reach=max(rm, 2 * kit.spacing))
+        cs = cross_section(kit.field, key, S.nodes[m], tan, rm, n_seeds=kit.n_seeds,
+                           seed_radius=kit.seed_radius, ref=sections[nd].axis if nd in sections else None)
+    except CageError:
+        return None
+    moved_away[nd] = moved_away.get(nd, 0) + 1
+    rec["away_log"].append({"junction": int(junction), "section": int(nd), "to_node": int(m),
+                            "added": key != nd})
+    if key != nd:  # new middle section
+        rad_of[key] = rm
+        sections[key] = cs
+        S.bending = sorted(set(S.bending) | {key})
+        kit.say(f"junction at node {junction}: new section at node {key} (middle of the leaf chain of {nd})")
+        return sorted([key] + list(ctrl), key=nodes.index)
+    # the moved section keeps its key; its skeleton node is now m (for the shrink steps)
+    sections[nd] = cs
+    rad_of[nd] = rm
+    ctrl_new = list(ctrl)
+    # the moved section replaces nd at its new place along the chain: re-key it to m
+    sections[int(m)] = sections.pop(nd)
+    rad_of[int(m)] = rm
+    moved_away[int(m)] = moved_away.pop(nd)
+    ctrl_new[ctrl_new.index(nd)] = int(m)
+    S.bending = sorted((set(S.bending) - {nd}) | {int(m)})
+    kit.say(f"junction at node {junction}: section at node {nd} moved away to node {m}")
+    return ctrl_new
+
+
+def _shrink_crossing_sections(S, tc):
+    """Step 5, a self-intersecting tight cage: shrink the faces involved towards their sections' nodes."""
+    from .._geometry import self_intersection_pairs
+
+    owner = np.full(len(tc["V"]), -1)
+    owner_center = np.zeros((len(tc["V"]), 3))
+    for nd, vids in tc["section_rings"].items():
+        owner[vids] = nd
+        owner_center[vids] = S.nodes[nd]
+    pairs = self_intersection_pairs(tc["V"], tc["F"])
+    pairs0 = pairs
+    shrink_steps = 0
+    while len(pairs) and shrink_steps < 10:
+        bad = np.unique(tc["F"][np.unique(pairs.ravel())].ravel())
+        tc["V"][bad] += 0.2 * (owner_center[bad] - tc["V"][bad])
+        shrink_steps += 1
+        pairs = self_intersection_pairs(tc["V"], tc["F"])
+    return owner, pairs0, pairs, shrink_steps
+
+
+def _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_bad_sections, rec) -> None:
+    """Step 5, shrinking did not help: drop the bending node owning most crossing faces, or raise."""
+    votes: dict = {}
+    for f in np.unique(np.asarray(pairs0).ravel()):
+        for v in tc["F"][f]:
+            nd = int(owner[v])
+            if kit.deg[nd] == 2:
+                votes[nd] = votes.get(nd, 0) + 1
+    cand = [nd for nd in sorted(votes, key=lambda n: -votes[n])
+            if len(next(c for _, c in chain_controls if nd in c)) >= 2]
+    if not drop_bad_sections or not cand or len(rec["asm_dropped"]) >= 30:
+        culprits = sorted({int(owner[v]) for f in np.unique(np.asarray(pairs0).ravel()) for v in tc["F"][f]})
+        n_dropped = len(rec["asm_dropped"])
+        raise CageError(f"skeleton cage, assembly: the tight cage intersects itself ({len(pairs)} face "
+                        f"pairs) after 10 shrink steps and {n_dropped} dropped bending nodes; sections "
+                        f"involved at skeleton nodes {culprits}; add or move bending nodes", layer=1)
+    nd = cand[0]
+    k = next(j for j, (_, c) in enumerate(chain_controls) if nd in c)
+    chain_controls[k] = (chain_controls[k][0], [n for n in chain_controls[k][1] if n != nd])
+    rec["asm_dropped"].append({"bending_node_dropped": nd, "face_pairs": int(len(pairs0))})
+    kit.say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
+
+
+def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say):
+    """Step 6: pull the tight cage out to M along the integral lines (optionally splitting faces there)."""
+    from .._geometry import self_intersection_pairs
+
+    Vt, Ft = tc["V"], tc["F"]
+    Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=rounds)
     quads_out, tris_out = tc["quads"], tc["tris"]
     if refine_levels and pinfo.get("polish", {}).get("outside", 0) > 0:
         Vp, Ft, pinfo["refine"] = refine_polish(Vp, Ft, Vn, F, levels=refine_levels)
@@ -597,34 +697,15 @@ def skeleton_cage(
             Vt = np.vstack([Vt, 0.5 * (Vt[a] + Vt[b])])
         pinfo["self_intersections"] = len(self_intersection_pairs(Vp, Ft))
         say(f"pre-inflation: faces split where M is outside: {pinfo['refine']['levels']}")
-    sec["pre_inflation"] = time.perf_counter() - t
     info["pre_inflation"] = pinfo
+    return Vp, Ft, Vt, quads_out, tris_out
 
-    def _result(Vc_, certified_):
-        sections_ = [{"node": int(n), "center": s_.center * diag + center, "quad": s_.quad * diag + center,
-                      "hits": s_.hits * diag + center} for n, s_ in sorted(sections.items())
-                     if n in tc["section_vertices"]]
-        return SkeletonCage(V=Vc_, F=np.ascontiguousarray(Ft, dtype=np.int64), quads=quads_out, tris=tris_out,
-                            tight_V=Vt * diag + center, preinflated_V=Vp * diag + center,
-                            skeleton=Skeleton(S.nodes * diag + center, S.edges,
-                                              [b for b in S.bending if b in tc["section_vertices"]]),
-                            input_skeleton=S_in, sections=sections_, info=info, certified=certified_)
 
-    def _fail(msg, **kw):
-        # what was built before the failing step (the pre-inflated cage, NOT certified), for pictures and
-        # diagnosis: ``exc.partial`` (a SkeletonCage with ``certified=False``, ``V`` = the pre-inflated cage)
-        sec["total"] = time.perf_counter() - t_all
-        info["seconds"] = sec
-        exc_ = CageError(msg, layer=1, **kw)
-        exc_.partial = _result(Vp * diag + center, False)
-        return exc_
+def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
+    """Step 7: the Nested Cages flow + re-inflation of the pre-inflated cage around M (or ``inner``)."""
+    from ..nested.backend import _PairFailure, nest_pair
 
-    if pinfo["self_intersections"]:
-        raise _fail(f"skeleton cage, pre-inflation: the cage intersects itself ({pinfo['self_intersections']} "
-                    "face pairs); add bending nodes")
-
-    # 7. final inflation (Nested Cages) and certification
-    t = time.perf_counter()
+    diag, center, Vp, Ft = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
     if inner is not None:
         Vi = (np.asarray(inner[0], dtype=float) - center) / diag
         Fi = np.asarray(inner[1], dtype=np.int64)
@@ -647,29 +728,52 @@ def skeleton_cage(
             n_out = int(np.sum(_winding(Vp, Ft, Vi) < 0.5))
             where = ("give a skeleton or bending nodes closer to those parts" if n_out else
                      "the cage's faces still cut its triangles; give bending nodes there")
-            hint = (f"; {n_out} of {len(Vi)} vertices of the input were outside the pre-inflated cage: {where}, "
-                    f"or raise flow_max_iter (now {nested_opts['flow_max_iter']}) / pass flow_stall_window=None "
-                    "to run the flow to its cap")
-        raise _fail(f"skeleton cage, inflation (nested flow/re-inflation): {exc.stage} failed: {exc.reason}"
-                    + hint, reason=exc.reason) from exc
-    sec["inflation"] = time.perf_counter() - t
+            hint = (f"; {n_out} of {len(Vi)} vertices of the input were outside the pre-inflated cage: "
+                    f"{where}, or raise flow_max_iter (now {nested_opts['flow_max_iter']}) / pass "
+                    "flow_stall_window=None to run the flow to its cap")
+        raise _failure(f"skeleton cage, inflation (nested flow/re-inflation): {exc.stage} failed: "
+                       f"{exc.reason}" + hint, parts, reason=exc.reason) from exc
+    info = parts["info"]
     info["inflation"] = {k: v for k, v in ninfo.items() if k != "seconds"}
     info["inflation"]["seconds"] = ninfo["seconds"]
-    Vc = C * diag + center
-    Fc = np.ascontiguousarray(Ft, dtype=np.int64)
-    t = time.perf_counter()
-    if certify:
-        ref = (np.asarray(inner[0], float), np.asarray(inner[1], np.int64)) if inner is not None else (V, F)
-        rep = verify_nesting([ref, (Vc, Fc)], min_gap=min_gap * diag / _diag(ref[0]))
-        info["verification"] = rep.to_dict()
-        if not rep.ok:
-            raise _fail(f"skeleton cage, certification: {rep.pairs[0].reason}", reason=str(rep.pairs[0].reason))
-    sec["verify"] = time.perf_counter() - t
-    sec["total"] = time.perf_counter() - t_all
-    info["seconds"] = sec
-    info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
-    info["n_quads"], info["n_junction_triangles"] = len(quads_out), len(tris_out)
-    return _result(Vc, True)
+    return C
+
+
+def _certification_step(parts, V, F, inner, Vc, Fc, min_gap) -> None:
+    """Step 7, certification: :func:`cagegen.verify_nesting` around M (or ``inner``); a failure raises."""
+    ref = (np.asarray(inner[0], float), np.asarray(inner[1], np.int64)) if inner is not None else (V, F)
+    rep = verify_nesting([ref, (Vc, Fc)], min_gap=min_gap * parts["diag"] / _diag(ref[0]))
+    parts["info"]["verification"] = rep.to_dict()
+    if not rep.ok:
+        raise _failure(f"skeleton cage, certification: {rep.pairs[0].reason}", parts,
+                       reason=str(rep.pairs[0].reason))
+
+
+def _cage_result(Vc, certified, parts) -> SkeletonCage:
+    """The :class:`SkeletonCage` of the cage ``Vc`` (caller's coordinates) and what was built on the way."""
+    diag, center, tc, S = parts["diag"], parts["center"], parts["tc"], parts["S"]
+    sections = [{"node": int(n), "center": s_.center * diag + center, "quad": s_.quad * diag + center,
+                 "hits": s_.hits * diag + center} for n, s_ in sorted(parts["sections"].items())
+                if n in tc["section_vertices"]]
+    return SkeletonCage(V=Vc, F=np.ascontiguousarray(parts["Ft"], dtype=np.int64), quads=parts["quads"],
+                        tris=parts["tris"], tight_V=parts["Vt"] * diag + center,
+                        preinflated_V=parts["Vp"] * diag + center,
+                        skeleton=Skeleton(S.nodes * diag + center, S.edges,
+                                          [b for b in S.bending if b in tc["section_vertices"]]),
+                        input_skeleton=parts["S_in"], sections=sections, info=parts["info"],
+                        certified=certified)
+
+
+def _failure(msg, parts, **kw) -> CageError:
+    """The :class:`CageError` of a step from the pre-inflation on; the uncertified cage as ``partial``."""
+    # what was built before the failing step (the pre-inflated cage, NOT certified), for pictures and
+    # diagnosis: ``exc.partial`` (a SkeletonCage with ``certified=False``, ``V`` = the pre-inflated cage)
+    sec = parts["sec"]
+    sec["total"] = time.perf_counter() - parts["t_all"]
+    parts["info"]["seconds"] = sec
+    exc = CageError(msg, layer=1, **kw)
+    exc.partial = _cage_result(parts["Vp"] * parts["diag"] + parts["center"], False, parts)
+    return exc
 
 
 def _quads_kept(quads: np.ndarray, F: np.ndarray):

@@ -37,19 +37,20 @@ from solvers.elasticity import (
 from solvers.fem import boundary_nodes, check_tet_mesh, mass_matrix
 from solvers.multilevel import restrict_prolongations
 
-from .problems import SMOOTHING, Problem
+from .problems import DEFAULT_SMOOTHERS, SMOOTHING, Problem
+from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
 __all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "clamped_nodes", "default_body_force", "setup_elasticity"]
 
 ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 
-#: Smoothers of the ``"robust"`` preset: one symmetric nodal block Gauss–Seidel sweep on the fine level,
-#: two on the coarser ones (the variable V-cycle of :data:`nestmg.problems.DEFAULT_SMOOTHERS`, by blocks).
-ROBUST_SMOOTHERS = [("block_gauss_seidel", {"sweep": "symmetric", "iterations": 1}),
-                    ("block_gauss_seidel", {"sweep": "symmetric", "iterations": 2})]
+#: Smoothers of the ``"robust"`` preset (point-wise spelling; :meth:`ElasticityProblem.multigrid` turns
+#: them into nodal block sweeps): the pipeline's variable V-cycle, one symmetric sweep on the fine level
+#: and two on the coarser ones (:data:`nestmg.problems.DEFAULT_SMOOTHERS`).
+ROBUST_SMOOTHERS = DEFAULT_SMOOTHERS
 
-#: The ``"fast"`` preset: a forward block sweep before the coarse correction and the backward one after it.
-FAST_SMOOTHERS = [("block_gauss_seidel", {"sweep": "forward", "iterations": 1})]
+#: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.
+FAST_SMOOTHERS = _FAST_SMOOTHERS
 
 
 def default_body_force(V: np.ndarray) -> np.ndarray:
@@ -128,9 +129,9 @@ class ElasticityProblem(Problem):
             Preset where ``kwargs`` give no ``presmoother``: :data:`ROBUST_SMOOTHERS` or
             :data:`FAST_SMOOTHERS`.
         block : bool
-            Point Gauss–Seidel specs in ``presmoother`` (``"gauss_seidel"``, ``"symmetric_gauss_seidel"``,
-            e.g. from the command line) act on nodal 3x3 blocks (``"block_gauss_seidel"``, same sweeps);
-            ``block=False`` keeps them point-wise.
+            Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"`` in
+            ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks (``"block_gauss_seidel"``,
+            same sweeps); ``block=False`` keeps them point-wise.
         **kwargs
             Passed to :class:`solvers.MultigridSolver` (or :class:`solvers.elasticity.NullspaceMultigridSolver`
             for ``elasticity-free``).

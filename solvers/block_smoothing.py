@@ -4,8 +4,8 @@ Unknown ``i`` belongs to block (node) ``i // blocksize``. One sweep visits the b
 sets ``x_B <- x_B + D_B⁻¹ (b - A x)_B`` with ``D_B`` the diagonal block. Two orderings:
 
 ``"multicolor"`` (default)
-    The blocks are coloured so that no two blocks of one colour are coupled (pyamg's compiled vertex
-    colouring of the block graph). Blocks of one colour then update independently, so a sweep is one
+    The blocks are coloured so that no two blocks of one colour are coupled (pyamg's compiled
+    largest-degree-first colouring of the block graph, deterministic). Blocks of one colour then update independently, so a sweep is one
     sparse product per colour on that colour's rows plus a batched 3x3 product: numpy-vectorised, about
     one SpMV per sweep. The system is permuted once at set-up so that every colour is a contiguous
     slice. A symmetric sweep runs the colours forward then backward (the adjoint pair).
@@ -56,10 +56,15 @@ class _MulticolorSweeps:
     """
 
     def __init__(self, A: sp.csr_matrix, Ab: sp.bsr_matrix, bs: int, Dinv: np.ndarray):
-        import pyamg.graph
+        from pyamg import amg_core
 
-        pattern = sp.csr_matrix((np.ones(len(Ab.indices)), Ab.indices, Ab.indptr), shape=(len(Dinv),) * 2)
-        color = np.asarray(pyamg.graph.vertex_coloring(pattern, method="LDF"), dtype=np.int64)
+        # largest-degree-first colouring (pyamg's compiled kernel) with seeded tie-break weights: the same
+        # colours for every smoother built on this operator, so a forward pre-smoother and the backward
+        # post-smoother built separately are an adjoint pair (the cycle stays symmetric for CG)
+        m = len(Dinv)
+        color = np.empty(m, dtype=Ab.indptr.dtype)
+        amg_core.vertex_coloring_LDF(m, Ab.indptr, Ab.indices, color, np.random.default_rng(0).random(m))
+        color = color.astype(np.int64)
         self.Dinv = _block_diagonal(Dinv)
         DA = sp.csr_matrix(self.Dinv @ A)
         DA.sort_indices()

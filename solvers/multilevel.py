@@ -709,6 +709,8 @@ def _adjoint_spec(spec):
     name, opts = _spec_parts(spec)
     if name in ("gauss_seidel", "block_gauss_seidel"):
         sweep = opts.get("sweep", "forward")
+        if name == "block_gauss_seidel" and sweep == "symmetric":
+            return spec  # self-adjoint: shared with the pre-smoother (one colouring and block set-up)
         opts["sweep"] = {"forward": "backward", "backward": "forward"}.get(sweep, sweep)
         return (name, opts)
     return spec

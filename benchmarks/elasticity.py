@@ -33,7 +33,8 @@ time is recorded but not counted (AMG needs none). Run with ``OMP_NUM_THREADS=1`
     OMP_NUM_THREADS=1 python benchmarks/elasticity.py shape:torus ZOO_DIR/bunny.off ZOO_DIR/spot.obj \\
         --max-tets 300000 --nu 0.3 0.45 --out benchmarks/results/elasticity/elasticity_300k.json
 
-Prints one line per run and a table; writes the JSON (``--out``).
+Prints one line per run and a table; writes the JSON (``--out``). ``--table JSON`` only prints the
+Markdown table of a result file (docs/elasticity.md).
 """
 
 from __future__ import annotations
@@ -276,7 +277,8 @@ def _commit() -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("meshes", nargs="+", help="closed surface files or shape:NAME")
+    ap.add_argument("meshes", nargs="*", help="closed surface files or shape:NAME")
+    ap.add_argument("--table", type=Path, default=None, help="only print the Markdown table of this JSON")
     ap.add_argument("--max-tets", type=int, nargs="+", default=[300_000],
                     help="fine tets of the hierarchy, one value or one per mesh (default 300000)")
     ap.add_argument("--levels", type=int, default=3)
@@ -287,8 +289,15 @@ def main(argv=None) -> int:
                     help="fine edge / bounding-box diagonal, one per mesh (overrides --max-tets' sizing)")
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--out", type=Path, required=True, help="JSON file")
+    ap.add_argument("--out", type=Path, default=None, help="JSON file (required unless --table)")
     a = ap.parse_args(argv)
+    if a.table is not None:
+        import json
+
+        print(table(json.loads(a.table.read_text())))
+        return 0
+    if not a.meshes or a.out is None:
+        ap.error("give at least one mesh and --out (or --table JSON)")
     if len(a.max_tets) not in (1, len(a.meshes)):
         raise SystemExit(f"--max-tets needs one value or one per mesh ({len(a.meshes)})")
     if a.edge_length is not None and len(a.edge_length) != len(a.meshes):

@@ -206,3 +206,18 @@ def test_cli_elasticity_writes_displacement(tmp_path):
     assert u.shape == (len(m.points), 3) and np.isfinite(u).all() and u[:, 2].min() < 0
     assert np.count_nonzero(np.all(u == 0, axis=1)) >= 3  # the clamped nodes
     assert "f" not in m.point_data  # the scalar source of the Poisson problems is not written
+
+
+def test_docs_example_runs():
+    pytest.importorskip("tetgen")
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "examples" / "elasticity.py"
+    spec = importlib.util.spec_from_file_location("elasticity_example", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    h, out = mod.main(max_tets=20_000, mesher="tetgen")
+    for name, (prob, u, info) in out.items():
+        assert info["converged"] and info["iterations"] <= 20, (name, info["iterations"])
+        assert u.shape == (len(h.tets[0][0]), 3)

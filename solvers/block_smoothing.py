@@ -38,24 +38,19 @@ def _diagonal_blocks(Ab: sp.bsr_matrix, bs: int) -> np.ndarray:
     return np.linalg.inv(D)
 
 
-def _block_diagonal(blocks: np.ndarray) -> sp.csr_matrix:
-    """The block-diagonal csr matrix of ``blocks`` (m, bs, bs)."""
-    m, bs, _ = blocks.shape
-    return sp.bsr_matrix((blocks, np.arange(m), np.arange(m + 1)), shape=(m * bs, m * bs)).tocsr()
-
-
 class _MulticolorSweeps:
     """Set-up data of the multicolour sweeps.
 
     The update of all blocks of colour ``c`` at once is ``x_c <- x_c + D_c⁻¹ (b_c - A_c x) =
-    x_c + (D⁻¹b)_c - (D_c⁻¹ A_c) x`` (exact: blocks of one colour are not coupled). ``D_c⁻¹ A_c`` (the
-    colour's rows left-multiplied by their inverted diagonal blocks: same sparsity) is formed once, so a
-    sweep costs one SpMV, the block-diagonal product ``D⁻¹ b`` and a gather/scatter of ``x`` per colour.
-    The columns keep the caller's numbering: reads of ``x`` keep the mesh ordering's locality (measured:
-    permuting the system so that colours are contiguous made the sweep slower).
+    x_c + (D⁻¹b)_c - (D_c⁻¹ A_c) x`` (exact: blocks of one colour are not coupled). The rows
+    ``D_c⁻¹ A_c`` are formed once, block by block (``D_a⁻¹ A_ab``, same sparsity), and kept as one BSR
+    matrix per colour: a sweep costs one SpMV, the block-diagonal product ``D⁻¹ b`` and a gather/scatter
+    of ``x`` per colour. The columns keep the caller's numbering, so reads of ``x`` keep the mesh
+    ordering's locality (measured: permuting the system so that colours are contiguous made the sweep
+    slower).
     """
 
-    def __init__(self, A: sp.csr_matrix, Ab: sp.bsr_matrix, bs: int, Dinv: np.ndarray):
+    def __init__(self, Ab: sp.bsr_matrix, bs: int, Dinv: np.ndarray):
         from pyamg import amg_core
 
         # largest-degree-first colouring (pyamg's compiled kernel) with seeded tie-break weights: the same
@@ -65,11 +60,23 @@ class _MulticolorSweeps:
         color = np.empty(m, dtype=Ab.indptr.dtype)
         amg_core.vertex_coloring_LDF(m, Ab.indptr, Ab.indices, color, np.random.default_rng(0).random(m))
         color = color.astype(np.int64)
-        self.Dinv = _block_diagonal(Dinv)
-        DA = sp.csr_matrix(self.Dinv @ A)
-        DA.sort_indices()
-        self.dofs = [(bs * np.flatnonzero(color == c)[:, None] + np.arange(bs)).ravel() for c in range(color.max() + 1)]
-        self.rows = [sp.csr_matrix(DA[d]) for d in self.dofs]
+        Db = sp.bsr_matrix((Dinv, np.arange(m), np.arange(m + 1)), shape=Ab.shape)
+        DA = sp.bsr_matrix(Db @ Ab)  # D_a⁻¹ A_ab for every stored block (a, b): scipy's compiled BSR product
+        counts = np.diff(DA.indptr)
+        rows = np.repeat(np.arange(m), counts)
+        by_color = np.argsort(color[rows], kind="stable")  # block rows of each colour, in their order
+        ends = np.cumsum(np.bincount(color[rows], minlength=color.max() + 1))
+        self.Dinv = Db.tocsr()
+        self.dofs, self.rows = [], []
+        start = 0
+        for c, end in enumerate(ends):
+            R = np.flatnonzero(color == c)
+            sel = by_color[start:end]
+            indptr = np.zeros(len(R) + 1, dtype=np.int64)
+            np.cumsum(counts[R], out=indptr[1:])
+            self.rows.append(sp.bsr_matrix((DA.data[sel], DA.indices[sel], indptr), shape=(bs * len(R), Ab.shape[1])))
+            self.dofs.append((bs * R[:, None] + np.arange(bs)).ravel())
+            start = end
         self.colors = len(self.dofs)
 
     def sweep(self, x: np.ndarray, b: np.ndarray, backward: bool) -> None:
@@ -114,7 +121,7 @@ def setup_block_gauss_seidel(A: sp.csr_matrix, blocksize: int = 3, sweep: str = 
     Dinv = _diagonal_blocks(Ab, bs)
     params = {"sweep": sweep, "iterations": it, "omega": 1.0, "blocksize": bs, "ordering": ordering}
     if ordering == "multicolor":
-        mc = _MulticolorSweeps(A, Ab, bs, Dinv)
+        mc = _MulticolorSweeps(Ab, bs, Dinv)
         params["colors"] = mc.colors
         dirs = {"forward": (False,), "backward": (True,), "symmetric": (False, True)}[sweep]
 

@@ -1,8 +1,8 @@
 """Linear elasticity on nested cages: a torus clamped at its lowest x under gravity, and the same torus free.
 
 P1 vector elements (``solvers.elasticity_matrix``), prolongations ``P ⊗ I₃``, Galerkin coarse operators,
-nodal block Gauss–Seidel; the free (pure traction) problem keeps the six rigid-body modes out of every
-level. Run: ``python docs/examples/elasticity.py`` (docs/elasticity.md).
+symmetric Gauss–Seidel (``multigrid(block=True)``: nodal 3x3 blocks); the free (pure traction) problem
+keeps the six rigid-body modes out of every level. Run: ``python docs/examples/elasticity.py`` (docs/elasticity.md).
 """
 
 import numpy as np

@@ -196,7 +196,7 @@ def test_cli_elasticity_writes_displacement(tmp_path):
     meshio = pytest.importorskip("meshio")
     out, rep = tmp_path / "vtu", tmp_path / "r.json"
     p = subprocess.run([sys.executable, "-m", "nestmg.cli", "solve", "shape:sphere", "--problem", "elasticity-clamped",
-                        "--method", "decimate", "--mesher", "tetgen", "--levels", "2", "--max-tets", "20000",
+                        "--method", "decimate", "--mesher", "tetgen", "--levels", "2", "--max-tets", "8000",
                         "--accel", "cg", "--out", str(out), "--json", str(rep), "--quiet"],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode == 0, p.stderr[-2000:]
@@ -219,7 +219,7 @@ def test_docs_example_runs():
     spec = importlib.util.spec_from_file_location("elasticity_example", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    h, out = mod.main(max_tets=20_000, mesher="tetgen")
+    h, out = mod.main(max_tets=10_000, mesher="tetgen")
     for name, (prob, u, info) in out.items():
         assert info["converged"] and info["iterations"] <= 20, (name, info["iterations"])
         assert u.shape == (len(h.tets[0][0]), 3)

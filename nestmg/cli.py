@@ -108,6 +108,7 @@ def _solve(h, args, solution: bool = False) -> dict:
     return solve_on_hierarchy(
         h.tets_in("normalized"), h.P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
         accel=args.accel, tol=args.tol, maxiter=args.maxiter, lam=args.lam, return_solution=solution,
+        poisson_ratio=args.poisson_ratio,
     )
 
 
@@ -204,7 +205,9 @@ def cmd_solve(args) -> int:
         from .problems import default_rhs
         from .usermesh import write_vtu_levels
 
-        fields = {"f": default_rhs(h.tets[0][0])} | ({"u": u} if u is not None else {})
+        # elasticity: u is the (n, 3) displacement; the scalar source f is not its load
+        fields = ({} if args.problem.startswith("elasticity") else {"f": default_rhs(h.tets[0][0])}) | (
+            {"u": u} if u is not None else {})
         files = write_vtu_levels(args.out, h, fields)  # h.tets are in the input's coordinates
         print(f"wrote {', '.join(str(f) for f in files)}")
     report = {"mesh": args.mesh, "hierarchy": h.to_dict(), "solve": r}
@@ -309,6 +312,7 @@ def _solver_opts(p: argparse.ArgumentParser) -> None:
     g.add_argument("--maxiter", type=_number(int, 1), default=DEFAULT_MAXITER,
                    help="cap on cycles (or CG iterations) (default %(default)s)")
     g.add_argument("--lam", type=_number(float, 0, strict=True), default=1e-2, help="λ of diffusion-neumann (> 0)")
+    g.add_argument("--poisson-ratio", type=float, default=0.3, help="ν of the elasticity problems, in (-1, 0.5)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -336,7 +340,10 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="solve a model problem by multigrid on a hierarchy")
     s.add_argument("mesh")
     s.add_argument("--problem", default="poisson-dirichlet",
-                   choices=["poisson-dirichlet", "poisson-neumann", "diffusion-neumann"])
+                   choices=["poisson-dirichlet", "poisson-neumann", "diffusion-neumann", "elasticity-clamped",
+                            "elasticity-free"],
+                   help="elasticity-*: linear elasticity (E = 1, --poisson-ratio), clamped at the lowest x "
+                        "under gravity -z, or free under a balanced body force; u is the displacement")
     s.add_argument("--method", default="nested")
     s.add_argument("--json", default=None, help="write the report here")
     s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")

@@ -260,6 +260,7 @@ def setup_problem(
     f: np.ndarray | None = None,
     prune: float = 0.2,
     fractions: list[np.ndarray] | None = None,
+    poisson_ratio: float = 0.3,
 ) -> Problem:
     """Assemble a model problem on ``tets[0]`` and the level data for multigrid.
 
@@ -269,7 +270,7 @@ def setup_problem(
         Tet meshes, finest first (``Hierarchy.tets``).
     P : list of (n_k, n_{k+1}) csr_matrix
         Prolongations (``Hierarchy.P``).
-    name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann"}
+    name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann", "elasticity-clamped", "elasticity-free"}
     coarse : {"galerkin", "rediscretized", "weighted", "sparsified"}
         ``"galerkin"``: the solver forms ``Pᵀ A P``. ``"rediscretized"``: the same FEM problem on every
         coarse tet mesh (Dirichlet on the coarse boundary). ``"weighted"``: re-discretised with every
@@ -293,13 +294,21 @@ def setup_problem(
         node.
     fractions : list of arrays, optional
         Precomputed :func:`volume_fractions` (``coarse="weighted"``; reuse across problems).
+    poisson_ratio : float
+        ν of the elasticity problems (``"elasticity-clamped"``, ``"elasticity-free"``: assembled by
+        :func:`nestmg.elasticity.setup_elasticity` with ``E = 1``, its default loads and pruning; ``f`` is
+        then an (n, 3) body force and ``lam``, ``prune``, ``fractions`` do not apply).
 
     Returns
     -------
     Problem
     """
+    if name in ("elasticity-clamped", "elasticity-free"):
+        from .elasticity import setup_elasticity
+
+        return setup_elasticity(tets, P, name, nu=poisson_ratio, coarse=coarse, f=f)
     if name not in PROBLEMS:
-        raise NestmgInputError(f"unknown problem {name!r}; choose from {PROBLEMS}")
+        raise NestmgInputError(f"unknown problem {name!r}; choose from {PROBLEMS} or elasticity-clamped, elasticity-free")
     if coarse not in COARSE:
         raise NestmgInputError(f"coarse must be one of {COARSE}, got {coarse!r}")
     if len(P) != len(tets) - 1:

@@ -64,6 +64,7 @@ def solve_on_hierarchy(
     fractions: list | None = None,
     coarse_nu: int | None = None,
     local: bool = True,
+    poisson_ratio: float = 0.3,
 ) -> dict[str, Any]:
     """Assemble ``problem`` on ``tets[0]``, build the multigrid solver from ``P`` and solve.
 
@@ -87,11 +88,13 @@ def solve_on_hierarchy(
         (:meth:`nestmg.problems.Problem.multigrid`).
     cycle, accel, tol, maxiter
         See :meth:`solvers.MultigridSolver.solve`.
+    poisson_ratio : float
+        ν of the elasticity problems (:func:`nestmg.elasticity.setup_elasticity`).
     cost : bool
         Also measure the cost of one cycle in fine SpMVs.
     return_solution : bool
         Also return the solution on every fine node as ``solution`` ((n_0,) array, 0 on Dirichlet nodes;
-        not JSON: pop it before writing the dict).
+        (n_0, 3) displacements for elasticity; not JSON: pop it before writing the dict).
     coarse_scaling : None, "energy" or "auto"
         See :class:`solvers.MultigridSolver`; ``"auto"``: ``"energy"`` for re-discretised and weighted
         coarse operators, None for Galerkin (:meth:`nestmg.problems.Problem.multigrid`).
@@ -105,7 +108,7 @@ def solve_on_hierarchy(
         ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
     """
     t0 = time.perf_counter()
-    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions)
+    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions, poisson_ratio=poisson_ratio)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
     pre = cycle_smoothers(smoother, nu, coarse_nu)
@@ -113,9 +116,12 @@ def solve_on_hierarchy(
     ml = prob.multigrid(presmoother=pre, coarse_scaling=coarse_scaling, local=local)
     t_setup = time.perf_counter() - t0
     out: dict[str, Any] = {
-        "problem": problem, "coarse": coarse, "smoother": smoother, "nu": nu, "coarse_nu": cnu,
+        "problem": problem, "coarse": coarse, "nu": nu,
+        # the smoother built (elasticity turns Gauss-Seidel into nodal block Gauss-Seidel)
+        "smoother": ml.levels[0].presmoother.name if len(ml.levels) > 1 else smoother, "coarse_nu": cnu,
         "local_nodes": 0 if not local or prob.local_nodes is None else int(prob.local_nodes.size), "cycle": cycle,
-        "accel": accel, "lam": prob.params["lam"], "tol": tol, "coarse_scaling": ml.coarse_scaling,
+        "accel": accel, "lam": prob.params["lam"],
+        **({"poisson_ratio": prob.params["nu"]} if "nu" in prob.params else {}), "tol": tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),
     }

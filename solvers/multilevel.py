@@ -706,8 +706,10 @@ def _spec_parts(spec):
 def _adjoint_spec(spec):
     """Spec of the adjoint smoother: forward <-> backward Gauss-Seidel, everything else unchanged."""
     name, opts = _spec_parts(spec)
-    if name == "gauss_seidel":
+    if name in ("gauss_seidel", "block_gauss_seidel"):
         sweep = opts.get("sweep", "forward")
+        if name == "block_gauss_seidel" and sweep == "symmetric":
+            return spec  # self-adjoint: shared with the pre-smoother (one colouring and block set-up)
         opts["sweep"] = {"forward": "backward", "backward": "forward"}.get(sweep, sweep)
         return (name, opts)
     return spec
@@ -716,7 +718,7 @@ def _adjoint_spec(spec):
 def _smoothers_adjoint(pre: Smoother, post: Smoother) -> bool:
     if pre.name != post.name:
         return False
-    if pre.name in ("gauss_seidel", "symmetric_gauss_seidel"):
+    if pre.name in ("gauss_seidel", "symmetric_gauss_seidel", "block_gauss_seidel"):
         flip = {"forward": "backward", "backward": "forward", "symmetric": "symmetric"}
         a, b = pre.params, post.params
         return (flip[a["sweep"]] == b["sweep"] and a["iterations"] == b["iterations"] and a["omega"] == b["omega"]

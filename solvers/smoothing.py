@@ -6,8 +6,8 @@ A smoother is set up once per level from its operator and applied in place::
     sm(A, x, b)          # x <- smoothed x, modified in place
 
 Names (see :data:`SMOOTHERS`): ``"gauss_seidel"`` (``sweep="forward"|"backward"|"symmetric"``),
-``"symmetric_gauss_seidel"``, ``"jacobi"`` (weighted), ``"chebyshev"`` (Jacobi-preconditioned) and
-``"none"``. Every setup function accepts ``iterations`` (the number of sweeps: ν in V(ν, ν)).
+``"block_gauss_seidel"`` (nodal 3x3 blocks, :mod:`solvers.block_smoothing`), ``"symmetric_gauss_seidel"``,
+``"jacobi"`` (weighted), ``"chebyshev"`` (Jacobi-preconditioned) and ``"none"``. Every setup function accepts ``iterations`` (the number of sweeps: ν in V(ν, ν)).
 """
 
 from __future__ import annotations
@@ -126,6 +126,14 @@ def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int
 
     work = it * (2.0 if sweep == "symmetric" else 1.0)
     return Smoother("gauss_seidel", apply, work, {"sweep": sweep, "iterations": it, "omega": omega})
+
+
+def setup_block_gauss_seidel(A: sp.csr_matrix, **options) -> Smoother:
+    """Nodal block Gauss–Seidel for interleaved vector unknowns (``blocksize=3``, ``sweep``,
+    ``iterations``, ``ordering="multicolor"|"natural"``): :func:`solvers.block_smoothing.setup_block_gauss_seidel`."""
+    from .block_smoothing import setup_block_gauss_seidel as setup
+
+    return setup(A, **options)
 
 
 def setup_symmetric_gauss_seidel(A: sp.csr_matrix, iterations: int = 1, omega: float = 1.0):
@@ -283,6 +291,7 @@ def with_local_sweeps(base: Smoother, A: sp.csr_matrix, nodes, sweeps: int = 1, 
 
 SMOOTHERS: dict[str, Callable[..., Smoother]] = {
     "gauss_seidel": setup_gauss_seidel,
+    "block_gauss_seidel": setup_block_gauss_seidel,
     "symmetric_gauss_seidel": setup_symmetric_gauss_seidel,
     "jacobi": setup_jacobi,
     "chebyshev": setup_chebyshev,

@@ -1,0 +1,330 @@
+"""Linear elasticity (issue 32): nestmg MG-PCG against the AMG setups elasticity users tune.
+
+For every mesh, Poisson ratio and problem (``elasticity-clamped``: lowest-x band fixed, gravity;
+``elasticity-free``: pure traction, balanced body force, six rigid-body modes in the kernel) the fine
+system is assembled once (:func:`nestmg.elasticity.setup_elasticity`, E = 1, normalised shape, P1 vector,
+interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG with:
+
+``nestmg``        the project's default: the hierarchy's prolongations restricted to the free nodes,
+                  ``P ⊗ I₃``, Galerkin coarse operators, symmetric Gauss–Seidel in the pipeline's variable
+                  V-cycle (one sweep on the fine level, two below); the free problem projects the rigid
+                  modes (``NullspaceMultigridSolver``). Setup = restriction + ``P ⊗ I₃`` + ``multigrid()``.
+``nestmg_block``  the same with nodal 3x3 block Gauss–Seidel (multicolour; ``multigrid(block=True)``).
+``nestmg_point``  results recorded before the default became point-wise (first JSON): ``nestmg`` was the
+                  block variant and ``nestmg_point`` the point one (each method records its smoother).
+``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
+                  free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
+                  Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
+``pyamg_sa``      pyamg SA on the CSR matrix without ``B`` (constants per dof), for reference.
+``gamg_rbm``      PETSc CG + GAMG (smoothed aggregation, PETSc's defaults), block size 3 and the near
+                  null space ``MatNullSpaceCreateRigidBody`` of the free nodes' coordinates; the free
+                  problem also attaches it as the null space. 1 rank; matrix copy counted as setup.
+``gamg_rbm_thr``  the same with ``-pc_gamg_threshold 0.01`` (drop weak graph edges: the usual tuning;
+                  fewer iterations and a cheaper setup than the default on a 77k-tet torus).
+``hypre_nodal``   (not run by default) PETSc CG + hypre BoomerAMG with nodal coarsening (``nodal_coarsen
+                  6``) and the rigid modes as interpolation vectors (``vec_interp_variant 2``), block size
+                  3. Measured on a 77k-tet torus (45k unknowns): 10 s setup and 60 s solve (43 iterations);
+                  with ``strong_threshold 0.6`` and ``agg_nl 1``, 2 + 18 s (64): far behind the others.
+
+For the singular free problem, pyamg's cycle preconditions the project's CG (``solvers.krylov.pcg``) with
+its input and output projected off the rigid modes, as nestmg's; solutions are compared after the same
+projection. Each method is run ``--repeat`` times (interleaved); wall seconds of every run are kept and
+the median reported. The hierarchy (cages, tet meshing) is geometry reused from the cache: its build
+time is recorded but not counted (AMG needs none). Run with ``OMP_NUM_THREADS=1``::
+
+    OMP_NUM_THREADS=1 python benchmarks/elasticity.py shape:torus ZOO_DIR/bunny.off ZOO_DIR/spot.obj \\
+        --max-tets 300000 --nu 0.3 0.45 --out benchmarks/results/elasticity/elasticity_300k.json
+
+Prints one line per run and a table; writes the JSON (``--out``). ``--table JSON`` only prints the
+Markdown table of a result file (docs/elasticity.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from exp_common import environment, relres, write_json
+
+METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
+DEFAULT_METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
+#: references run once (first repeat only): they are far from the others and slow
+ONCE = ("pyamg_sa",)
+#: PETSc options of the variants beyond block size and near null space
+PETSC_VARIANTS = {"gamg_rbm": ("gamg", {}), "gamg_rbm_thr": ("gamg", {"pc_gamg_threshold": 0.01}),
+                  "hypre_nodal": ("hypre", {})}
+PROBLEMS = ("elasticity-clamped", "elasticity-free")
+
+
+def load_surface(spec: str) -> tuple[np.ndarray, np.ndarray]:
+    """A closed surface: ``shape:NAME`` (:data:`nestmg.shapes.SHAPES`, as the CLI) or a mesh file."""
+    from nestmg.io import load_mesh
+    from nestmg.shapes import SHAPES
+
+    if spec.startswith("shape:"):
+        return SHAPES[spec.split(":", 1)[1]](res=24)
+    return load_mesh(Path(spec))
+
+
+def _projector(Z: np.ndarray | None):
+    """``v -> v - Q Qᵀ v`` for an orthonormal basis ``Q`` of ``span Z`` (identity for ``Z`` None)."""
+    if Z is None:
+        return lambda v: v
+    Q = np.linalg.qr(Z)[0]
+    return lambda v: v - Q @ (Q.T @ v)
+
+
+def run_nestmg(pr, h_P, block: bool, tol: float) -> dict:
+    """Setup (restriction + ``P ⊗ I₃`` + ``multigrid()``) and MG-PCG of the assembled problem ``pr``."""
+    from solvers import block_prolongation, restrict_prolongations
+
+    t0 = time.perf_counter()
+    Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
+    pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
+    ml = pr.multigrid(block=block)
+    t1 = time.perf_counter()
+    x, info = ml.solve(pr.b, tol=tol, maxiter=500, accel="cg", return_info=True)
+    t2 = time.perf_counter()
+    return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
+            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
+            "smoother": ml.levels[0].presmoother.params}
+
+
+def run_pyamg(A, b, B: np.ndarray | None, Z: np.ndarray | None, tol: float) -> dict:
+    """pyamg SA + CG: with ``B`` (the rigid modes) on the BSR matrix, or plain on the CSR one (``B`` None).
+    ``Z``: the kernel of a singular ``A`` (projected off the preconditioner's input and output), or None."""
+    import pyamg
+
+    from solvers.krylov import pcg
+
+    proj = _projector(Z)
+    t0 = time.perf_counter()
+    ml = (pyamg.smoothed_aggregation_solver(A.tobsr(blocksize=(3, 3)), B=B) if B is not None
+          else pyamg.smoothed_aggregation_solver(A))
+    M = ml.aspreconditioner(cycle="V")
+    t1 = time.perf_counter()
+    Mp = M if Z is None else _projected_operator(M, proj)
+    r = pcg(A, b, M=Mp, tol=tol, maxiter=500)
+    t2 = time.perf_counter()
+    return {"x": proj(r.x), "setup": t1 - t0, "solve": t2 - t1, "iterations": r.iterations,
+            "operator_complexity": float(ml.operator_complexity()), "levels": [L.A.shape[0] for L in ml.levels]}
+
+
+def _projected_operator(M, proj):
+    import scipy.sparse.linalg as spla
+
+    return spla.LinearOperator(M.shape, matvec=lambda v: proj(M.matvec(proj(np.asarray(v).ravel()))),
+                               dtype=np.float64)
+
+
+def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: float, extra: dict | None = None) -> dict:
+    """PETSc CG + GAMG or hypre BoomerAMG with block size 3 and the rigid-body near null space
+    (``extra``: more PETSc options, without the prefix)."""
+    from solvers.petsc_common import _petsc
+
+    PETSc = _petsc()
+    it = PETSc.IntType
+    t0 = time.perf_counter()
+    mat = PETSc.Mat().createAIJ(size=A.shape, bsize=3, csr=(A.indptr.astype(it), A.indices.astype(it), A.data),
+                                comm=PETSc.COMM_SELF)
+    mat.assemble()
+    xyz = PETSc.Vec().createWithArray(np.ascontiguousarray(coords).ravel(), bsize=3, comm=PETSc.COMM_SELF)
+    ns = PETSc.NullSpace().createRigidBody(xyz)
+    mat.setNearNullSpace(ns)
+    if free_problem:
+        mat.setNullSpace(ns)
+    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    ksp.setOptionsPrefix(f"el_{kind}_")
+    ksp.setOperators(mat)
+    ksp.setType("cg")
+    ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+    ksp.setTolerances(rtol=tol, atol=1e-300, max_it=500)
+    pc = ksp.getPC()
+    opts = PETSc.Options()
+    if kind == "gamg":
+        pc.setType("gamg")
+        pc.setGAMGType(PETSc.PC.GAMGType.AGG)
+        if free_problem:  # the coarsest operator is singular too: shift zero pivots of its LU
+            opts[f"el_{kind}_mg_coarse_sub_pc_factor_shift_type"] = "nonzero"
+    else:
+        pc.setType("hypre")
+        pc.setHYPREType("boomeramg")
+        opts[f"el_{kind}_pc_hypre_boomeramg_nodal_coarsen"] = 6
+        opts[f"el_{kind}_pc_hypre_boomeramg_vec_interp_variant"] = 2
+    for k, v in (extra or {}).items():
+        opts[f"el_{kind}_{k}"] = v
+    ksp.setFromOptions()
+    ksp.setUp()
+    t1 = time.perf_counter()
+    xv, bv = mat.createVecs()
+    bv.setArray(b)
+    xv.set(0.0)
+    ksp.solve(bv, xv)
+    x = xv.getArray().copy()
+    t2 = time.perf_counter()
+    its, reason = ksp.getIterationNumber(), int(ksp.getConvergedReason())
+    for k in list(opts.getAll()):
+        if k.startswith(f"el_{kind}_"):
+            del opts[k]
+    for obj in (xv, bv, ksp, mat, ns, xyz):
+        obj.destroy()
+    return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": int(its), "reason": reason}
+
+
+def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
+    """All methods on one assembled problem, ``repeat`` interleaved runs each."""
+    from solvers import rigid_body_modes
+
+    free_problem = pr.modes is not None
+    Z = pr.modes[0] if free_problem else None
+    B = rigid_body_modes(coords)
+    proj = _projector(Z)
+    runs: dict = {m: [] for m in methods}
+    sols: dict = {}
+    for r in range(repeat):
+        for m in methods:
+            if r and m in ONCE:
+                continue
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                if m.startswith("nestmg"):
+                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol)
+                elif m in ("pyamg_sa_rbm", "pyamg_sa"):
+                    out = run_pyamg(pr.A, pr.b, B if m == "pyamg_sa_rbm" else None, Z, tol)
+                else:
+                    kind, extra = PETSC_VARIANTS[m]
+                    out = run_petsc(pr.A, pr.b, coords, free_problem, kind, tol, extra)
+            x = proj(out.pop("x"))
+            out["final_residual"] = relres(pr.A, pr.b, x)
+            out["converged"] = out["final_residual"] <= tol * 1.01
+            runs[m].append(out)
+            sols[m] = x
+            print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s, solve {out['solve']:.2f} s, "
+                  f"{out['iterations']} it, residual {out['final_residual']:.1e}", file=sys.stderr, flush=True)
+    ref = sols[methods[0]]
+    res = {}
+    for m in methods:
+        setup = [o["setup"] for o in runs[m]]
+        solve = [o["solve"] for o in runs[m]]
+        last = runs[m][-1]
+        res[m] = {"setup_seconds": setup, "solve_seconds": solve,
+                  "median_setup": float(np.median(setup)), "median_solve": float(np.median(solve)),
+                  "median_total": float(np.median(np.add(setup, solve))),
+                  "iterations": last["iterations"], "final_residual": last["final_residual"],
+                  "converged": all(o["converged"] for o in runs[m]),
+                  "max_diff_vs_first_rel": float(np.abs(sols[m] - ref).max() / np.abs(ref).max()),
+                  **{k: v for k, v in last.items() if k not in ("setup", "solve", "iterations", "final_residual",
+                                                                 "converged")}}
+    return res
+
+
+def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, problems, methods, tol: float,
+             repeat: int) -> dict:
+    import nestmg
+    from nestmg.elasticity import setup_elasticity
+
+    V, F = load_surface(spec)
+    t0 = time.perf_counter()
+    h = nestmg.build_hierarchy(V, F, levels=levels, method="nested", max_tets=max_tets, edge_length_fac=edge,
+                               cache=True, progress=False)
+    load_s = time.perf_counter() - t0
+    tets = h.tets_in("normalized")
+    rec = {"mesh": Path(spec).name if not spec.startswith("shape:") else spec, "max_tets": max_tets,
+           "edge_length_fac": edge,
+           "tets": [len(T) for _, T in tets], "nodes": [len(Vk) for Vk, _ in tets], "certified": h.certified,
+           "n_outside": h.n_outside, "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s, "cases": []}
+    print(f"{rec['mesh']}: tets {rec['tets']}", file=sys.stderr, flush=True)
+    for nu in nus:
+        for name in problems:
+            t0 = time.perf_counter()
+            pr = setup_elasticity(tets, h.P, name, nu=nu)
+            t_asm = time.perf_counter() - t0
+            coords = np.asarray(tets[0][0])[pr.free[0]]
+            print(f"  {name} nu={nu}: {pr.A.shape[0]} unknowns, nnz {pr.A.nnz}", file=sys.stderr, flush=True)
+            rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]), "nnz": int(pr.A.nnz),
+                                 "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
+                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat)})
+    return rec
+
+
+def table(res: dict) -> str:
+    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg
+    (the point Gauss–Seidel run: ``nestmg``, or ``nestmg_point`` in files where ``nestmg`` was block)."""
+    methods = res["params"]["methods"]
+    ref = "nestmg_point" if "nestmg_point" in methods else "nestmg"
+    head = "| mesh | fine tets | unknowns | problem | ν | " + " | ".join(methods) + f" | best AMG / {ref} |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for rec in res["meshes"]:
+        for c in rec["cases"]:
+            ms = c["methods"]
+            cells = [f"{ms[m]['median_setup']:.2f} + {ms[m]['median_solve']:.2f} ({ms[m]['iterations']})"
+                     + ("" if ms[m]["converged"] else " ✗") for m in methods]
+            amg = [ms[m]["median_total"] for m in methods if not m.startswith("nestmg") and ms[m]["converged"]]
+            ratio = f"{min(amg) / ms[ref]['median_total']:.2f}" if amg and ref in ms else "–"
+            lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | {c['nu']} | "
+                         + " | ".join(cells) + f" | {ratio} |")
+    return "\n".join(lines)
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parent, check=False).stdout.strip()
+    except OSError:
+        return ""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("meshes", nargs="*", help="closed surface files or shape:NAME")
+    ap.add_argument("--table", type=Path, default=None, help="only print the Markdown table of this JSON")
+    ap.add_argument("--max-tets", type=int, nargs="+", default=[300_000],
+                    help="fine tets of the hierarchy, one value or one per mesh (default 300000)")
+    ap.add_argument("--levels", type=int, default=3)
+    ap.add_argument("--nu", type=float, nargs="+", default=[0.3, 0.45], help="Poisson ratios")
+    ap.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=PROBLEMS)
+    ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=METHODS)
+    ap.add_argument("--edge-length", type=float, nargs="+", default=None,
+                    help="fine edge / bounding-box diagonal, one per mesh (overrides --max-tets' sizing)")
+    ap.add_argument("--tol", type=float, default=1e-8)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=None, help="JSON file (required unless --table)")
+    a = ap.parse_args(argv)
+    if a.table is not None:
+        import json
+
+        print(table(json.loads(a.table.read_text())))
+        return 0
+    if not a.meshes or a.out is None:
+        ap.error("give at least one mesh and --out (or --table JSON)")
+    if len(a.max_tets) not in (1, len(a.meshes)):
+        raise SystemExit(f"--max-tets needs one value or one per mesh ({len(a.meshes)})")
+    if a.edge_length is not None and len(a.edge_length) != len(a.meshes):
+        raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)})")
+    from solvers.petsc_common import petsc_available
+
+    methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]
+    res = {"params": {"tol": a.tol, "repeat": a.repeat, "levels": a.levels, "methods": methods,
+                      "command": " ".join(["benchmarks/elasticity.py"] + [Path(x).name if Path(x).exists() else x
+                                                                           for x in sys.argv[1:]]),
+                      "commit": _commit(), "seconds": "wall; median of the repeats"},
+           "environment": environment(), "meshes": []}
+    mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets
+    edges = a.edge_length or [None] * len(a.meshes)
+    for spec, n, edge in zip(a.meshes, mt, edges):
+        res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat))
+        write_json(res, a.out)  # after every mesh: a cut-off run keeps what it measured
+    res["environment_end"] = environment()
+    res["table"] = table(res)
+    write_json(res, a.out)
+    print(res["table"])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,225 @@
+"""Linear elasticity (issue 32): assembly, rigid-body kernel, block prolongation, MG-PCG, command line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from solvers import (
+    IncompatibleRHSError,
+    MultigridSolver,
+    NullspaceMultigridSolver,
+    SolverInputError,
+    block_dofs,
+    block_prolongation,
+    elasticity_matrix,
+    make_smoother,
+    restrict_prolongations,
+    rigid_body_modes,
+)
+from solvers.gallery import kuhn_cube_hierarchy, kuhn_cube_mesh
+
+
+def _perturbed_box(rng):
+    """A small unstructured-looking tet mesh: a Kuhn box with jittered interior nodes, scaled to 1 x 2 x 1.5."""
+    V, T = kuhn_cube_mesh(4)
+    inner = np.all((V > 1e-9) & (V < 1 - 1e-9), axis=1)
+    V = V.copy()
+    V[inner] += 0.04 * rng.standard_normal((inner.sum(), 3))
+    return V * [1.0, 2.0, 1.5], T
+
+
+@pytest.fixture(scope="module")
+def iso_hierarchy():
+    """A 3-level nested torus hierarchy (iso-surfaces at growing offsets, TetGen): 18k / 3.7k / 1.3k tets."""
+    pytest.importorskip("tetgen")
+    from nestmg import shapes
+    from nestmg.hierarchy import tet_hierarchy
+
+    S = shapes.nested_isosurfaces("torus", [0.0, 0.1, 0.3], [20, 12, 8])
+    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
+    assert [r.n_outside for r in reps] == [0, 0]  # every fine node inside a coarse tet: exact interpolation
+    return tets, P
+
+
+def test_matrix_matches_scikit_fem(rng):
+    skfem = pytest.importorskip("skfem")
+    from skfem.models.elasticity import lame_parameters, linear_elasticity
+
+    V, T = _perturbed_box(rng)
+    basis = skfem.Basis(skfem.MeshTet(V.T, T.T), skfem.ElementVector(skfem.ElementTetP1()))
+    assert np.array_equal(basis.nodal_dofs.T.ravel(), np.arange(3 * len(V)))  # skfem interleaves too
+    for E, nu in ((1.0, 0.3), (210.0, 0.45), (3.0, -0.2)):
+        K_ref = skfem.asm(linear_elasticity(*lame_parameters(E, nu)), basis)
+        K = elasticity_matrix(V, T, E, nu)
+        assert abs(K - K_ref).max() <= 1e-12 * abs(K_ref).max()
+
+
+def test_per_tet_material_is_the_sum_over_materials(rng):
+    V, T = _perturbed_box(rng)
+    stiff = rng.random(len(T)) < 0.3
+    E = np.where(stiff, 50.0, 1.0)
+    nu = np.where(stiff, 0.4, 0.25)
+    K = elasticity_matrix(V, T, E, nu)
+    K_parts = elasticity_matrix(V, T[stiff], 50.0, 0.4) + elasticity_matrix(V, T[~stiff], 1.0, 0.25)
+    assert abs(K - K_parts).max() <= 1e-12 * abs(K).max()
+    assert abs(K - elasticity_matrix(V, T, 1.0, 0.25)).max() > 1.0  # the material did matter
+
+
+def test_bad_material_is_refused():
+    V, T = kuhn_cube_mesh(2)
+    for E, nu, what in ((1.0, 0.5, "Poisson"), (0.0, 0.3, "Young"), (1.0, np.full(3, 0.3), "per tet")):
+        with pytest.raises(SolverInputError, match=what):
+            elasticity_matrix(V, T, E, nu)
+
+
+def test_rigid_modes_span_the_kernel(rng):
+    V, T = _perturbed_box(rng)
+    K = elasticity_matrix(V, T, 1.0, 0.3)
+    Z = rigid_body_modes(V)
+    assert np.linalg.matrix_rank(Z) == 6
+    assert np.abs(K @ Z).max() <= 1e-12 * abs(K).max() * np.abs(Z).max()
+    # exactly six zero eigenvalues: the seventh is far from round-off
+    w = np.linalg.eigvalsh(K.toarray())
+    assert w[5] <= 1e-12 * w[-1] < 1e-4 * w[6]
+
+
+def test_block_prolongation_reproduces_rigid_motions(iso_hierarchy):
+    tets, P = iso_hierarchy
+    c = tets[0][0].mean(axis=0)
+    meshes, Pk = kuhn_cube_hierarchy(8, 3)  # exactly nested by construction
+    for levels, Ps in (([V for V, _ in tets], P), ([V for V, _ in meshes], Pk)):
+        for k, Pn in enumerate(Ps):
+            Pb = block_prolongation(Pn)
+            assert Pb.shape == (3 * Pn.shape[0], 3 * Pn.shape[1])
+            Zf, Zc = rigid_body_modes(levels[k], center=c), rigid_body_modes(levels[k + 1], center=c)
+            assert np.abs(Pb @ Zc - Zf).max() <= 1e-12
+    # interleaved ordering: component i of node a is dof 3a + i, interpolated like a scalar
+    u = np.random.default_rng(1).random((P[0].shape[1], 3))
+    assert np.allclose((block_prolongation(P[0]) @ u.ravel()).reshape(-1, 3), P[0] @ u, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("block", [False, True])
+@pytest.mark.parametrize("name", ["elasticity-clamped", "elasticity-free"])
+def test_mg_pcg_converges_in_few_iterations(iso_hierarchy, name, block):
+    from nestmg.elasticity import setup_elasticity
+
+    tets, P = iso_hierarchy
+    pr = setup_elasticity(tets, P, name, nu=0.3)
+    ml = pr.multigrid(block=block)
+    assert ml.levels[0].presmoother.name == ("block_gauss_seidel" if block else "symmetric_gauss_seidel")
+    if name == "elasticity-free":  # the Galerkin operators keep the six rigid modes in their kernel
+        assert isinstance(ml, NullspaceMultigridSolver)
+        for L, Q in zip(ml.levels, ml.nullspace_bases):
+            assert np.abs(L.A @ Q).max() <= 1e-10 * abs(L.A).sum(axis=1).max()
+    else:
+        assert len(pr.fixed) >= 3 and not np.any(np.isin(pr.free[0], pr.fixed))
+    assert ml.symmetric_cycle
+    x, info = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
+    assert info["converged"] and info["iterations"] <= 20, info["iterations"]
+    assert np.linalg.norm(pr.b - pr.A @ x) <= 1e-8 * np.linalg.norm(pr.b)
+    u = pr.expand(x)
+    assert u.shape == (pr.n_fine, 3) and np.all(u[pr.fixed] == 0)
+    if name == "elasticity-clamped":  # gravity -z: the solid sags
+        assert u[:, 2].mean() < 0 and abs(u[:, 2].mean()) > 10 * abs(u[:, 0].mean())
+    else:  # returned orthogonal to the rigid modes
+        Q = np.linalg.qr(pr.modes[0])[0]
+        assert np.linalg.norm(Q.T @ x) <= 1e-12 * np.linalg.norm(x)
+
+
+def test_iterations_flat_under_refinement():
+    """MG-PCG on Kuhn cubes clamped at x = 0: the same iteration count (±2) at 8x the unknowns."""
+    its = []
+    for n in (8, 16):
+        meshes, Ps = kuhn_cube_hierarchy(n, 3)
+        V, T = meshes[0]
+        free = np.flatnonzero(V[:, 0] > 1e-9)
+        d = block_dofs(free)
+        K = elasticity_matrix(V, T, 1.0, 0.3)[d][:, d]
+        Pf, _ = restrict_prolongations(Ps, free)
+        ml = MultigridSolver(K, [block_prolongation(P) for P in Pf], presmoother=("block_gauss_seidel", {"sweep": "symmetric"}))
+        b = np.tile([0.0, 0.0, -1.0], len(free)) / n**3
+        its.append(ml.solve(b, tol=1e-8, accel="cg", return_info=True)[1]["iterations"])
+    assert its[1] <= its[0] + 2 and its[1] <= 15, its
+
+
+def test_free_problem_refuses_an_unbalanced_load(iso_hierarchy):
+    from nestmg.elasticity import setup_elasticity
+
+    tets, P = iso_hierarchy
+    pr = setup_elasticity(tets, P, "elasticity-free", nu=0.3)
+    ml = pr.multigrid()
+    b = pr.b + np.tile([0.0, 0.0, 1e-3], len(pr.b) // 3)  # a net force along z
+    with pytest.raises(IncompatibleRHSError, match="null space"):
+        ml.solve(b, accel="cg")
+    x = ml.solve(b, accel="cg", project=True)
+    assert np.linalg.norm(pr.b - pr.A @ x) <= 1e-7 * np.linalg.norm(pr.b)  # solved the balanced part
+
+
+def test_block_gauss_seidel_sweeps_are_exact_block_updates(rng):
+    V, T = _perturbed_box(rng)
+    K = elasticity_matrix(V, T, 1.0, 0.3) + sp.identity(3 * len(V))  # SPD
+    b = rng.standard_normal(K.shape[0])
+    natural = make_smoother(K, ("block_gauss_seidel", {"sweep": "forward", "ordering": "natural"}))
+    x = np.zeros_like(b)
+    natural(K, x, b)
+    # reference: one lexicographic block sweep written out
+    Kd, xr = K.toarray(), np.zeros_like(b)
+    for a in range(len(V)):
+        i = slice(3 * a, 3 * a + 3)
+        xr[i] += np.linalg.solve(Kd[i, i], b[i] - Kd[i] @ xr)
+    assert np.allclose(x, xr, rtol=0, atol=1e-12 * np.abs(xr).max())
+    # multicolour: a proper colouring, each colour a simultaneous block update; forward + backward = symmetric
+    mc = make_smoother(K, ("block_gauss_seidel", {"sweep": "symmetric"}))
+    assert 4 <= mc.params["colors"] <= 40
+    M = np.column_stack([_apply(mc, K, e) for e in np.eye(K.shape[0])[:60]])
+    assert np.abs(M[:60] - M[:60].T).max() <= 1e-12 * np.abs(M).max()
+    y = np.zeros_like(b)
+    for _ in range(200):
+        mc(K, y, b)
+    assert np.linalg.norm(K @ y - b) <= 1e-8 * np.linalg.norm(b)  # converges as a solver of an SPD system
+
+
+def _apply(sm, A, b):
+    x = np.zeros_like(b)
+    sm(A, x, b)
+    return x
+
+
+def test_cli_elasticity_writes_displacement(tmp_path):
+    pytest.importorskip("tetgen")
+    meshio = pytest.importorskip("meshio")
+    out, rep = tmp_path / "vtu", tmp_path / "r.json"
+    p = subprocess.run([sys.executable, "-m", "nestmg.cli", "solve", "shape:sphere", "--problem", "elasticity-clamped",
+                        "--method", "decimate", "--mesher", "tetgen", "--levels", "2", "--max-tets", "8000",
+                        "--accel", "cg", "--out", str(out), "--json", str(rep), "--quiet"],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode == 0, p.stderr[-2000:]
+    r = json.loads(rep.read_text())["solve"]
+    assert r["problem"] == "elasticity-clamped" and r["converged"] and r["iterations"] <= 20
+    assert r["smoother"] == "symmetric_gauss_seidel" and r["poisson_ratio"] == 0.3
+    m = meshio.read(out / "level_0.vtu")
+    u = np.asarray(m.point_data["u"])
+    assert u.shape == (len(m.points), 3) and np.isfinite(u).all() and u[:, 2].min() < 0
+    assert np.count_nonzero(np.all(u == 0, axis=1)) >= 3  # the clamped nodes
+    assert "f" not in m.point_data  # the scalar source of the Poisson problems is not written
+
+
+def test_docs_example_runs():
+    pytest.importorskip("tetgen")
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "examples" / "elasticity.py"
+    spec = importlib.util.spec_from_file_location("elasticity_example", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    h, out = mod.main(max_tets=10_000, mesher="tetgen")
+    for name, (prob, u, info) in out.items():
+        assert info["converged"] and info["iterations"] <= 20, (name, info["iterations"])
+        assert u.shape == (len(h.tets[0][0]), 3)

@@ -49,7 +49,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, relres, write_json
+from exp_common import environment, peak_rss_mb, relres, write_json
 
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
@@ -171,7 +171,7 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
     for k in list(opts.getAll()):
         if k.startswith(f"el_{kind}_"):
             del opts[k]
-    for obj in (xv, bv, ksp, mat, ns, xyz):
+    for obj in (xv, bv, pc, ksp, mat, ns, xyz):  # the PC too: without it GAMG's hierarchy outlived every run
         obj.destroy()
     return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": int(its), "reason": reason}
 
@@ -248,7 +248,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             print(f"  {name} nu={nu}: {pr.A.shape[0]} unknowns, nnz {pr.A.nnz}", file=sys.stderr, flush=True)
             rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]), "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
-                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat)})
+                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat),
+                                 "peak_rss_mb_so_far": peak_rss_mb()})
     return rec
 
 

@@ -284,7 +284,8 @@ def _solver_opts(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tol", type=float, default=1e-8)
     g.add_argument("--maxiter", type=int, default=60)
     g.add_argument("--lam", type=float, default=1e-2, help="λ of diffusion-neumann")
-    g.add_argument("--poisson-ratio", type=float, default=0.3, help="ν of the elasticity problems, in (-1, 0.5)")
+    g.add_argument("--poisson-ratio", type=float, default=0.3,
+                   help="ν of the elasticity problems, in (-1, 0.5)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -268,7 +268,8 @@ def setup_problem(
         Tet meshes, finest first (``Hierarchy.tets``).
     P : list of (n_k, n_{k+1}) csr_matrix
         Prolongations (``Hierarchy.P``).
-    name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann", "elasticity-clamped", "elasticity-free"}
+    name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann", "elasticity-clamped",
+            "elasticity-free"}
     coarse : {"galerkin", "rediscretized", "weighted", "sparsified"}
         ``"galerkin"``: the solver forms ``Pᵀ A P``. ``"rediscretized"``: the same FEM problem on every
         coarse tet mesh (Dirichlet on the coarse boundary). ``"weighted"``: re-discretised with every
@@ -307,7 +308,8 @@ def setup_problem(
 
         return setup_elasticity(tets, P, name, nu=poisson_ratio, coarse=coarse, f=f)
     if name not in PROBLEMS:
-        raise ValueError(f"unknown problem {name!r}; choose from {PROBLEMS} or elasticity-clamped, elasticity-free")
+        raise ValueError(
+            f"unknown problem {name!r}; choose from {PROBLEMS} or elasticity-clamped, elasticity-free")
     if coarse == "rediscretised":
         warnings.warn("coarse='rediscretised' is deprecated; spell it 'rediscretized'", DeprecationWarning,
                       stacklevel=2)

@@ -52,7 +52,8 @@ from pathlib import Path
 import numpy as np
 from exp_common import environment, peak_rss_mb, relres, write_json
 
-METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
+METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr",
+           "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
 #: references run once (first repeat only): they are far from the others and slow
 ONCE = ("pyamg_sa",)
@@ -113,7 +114,8 @@ def run_pyamg(A, b, B: np.ndarray | None, Z: np.ndarray | None, tol: float) -> d
     r = pcg(A, b, M=Mp, tol=tol, maxiter=500)
     t2 = time.perf_counter()
     return {"x": proj(r.x), "setup": t1 - t0, "solve": t2 - t1, "iterations": r.iterations,
-            "operator_complexity": float(ml.operator_complexity()), "levels": [L.A.shape[0] for L in ml.levels]}
+            "operator_complexity": float(ml.operator_complexity()),
+            "levels": [L.A.shape[0] for L in ml.levels]}
 
 
 def _projected_operator(M, proj):
@@ -123,7 +125,8 @@ def _projected_operator(M, proj):
                                dtype=np.float64)
 
 
-def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: float, extra: dict | None = None) -> dict:
+def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: float,
+              extra: dict | None = None) -> dict:
     """PETSc CG + GAMG or hypre BoomerAMG with block size 3 and the rigid-body near null space
     (``extra``: more PETSc options, without the prefix)."""
     from solvers.petsc_common import _petsc
@@ -131,8 +134,8 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
     PETSc = _petsc()
     it = PETSc.IntType
     t0 = time.perf_counter()
-    mat = PETSc.Mat().createAIJ(size=A.shape, bsize=3, csr=(A.indptr.astype(it), A.indices.astype(it), A.data),
-                                comm=PETSc.COMM_SELF)
+    csr = (A.indptr.astype(it), A.indices.astype(it), A.data)
+    mat = PETSc.Mat().createAIJ(size=A.shape, bsize=3, csr=csr, comm=PETSc.COMM_SELF)
     mat.assemble()
     xyz = PETSc.Vec().createWithArray(np.ascontiguousarray(coords).ravel(), bsize=3, comm=PETSc.COMM_SELF)
     ns = PETSc.NullSpace().createRigidBody(xyz)
@@ -177,6 +180,9 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
     return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": int(its), "reason": reason}
 
 
+_RUN_KEYS = ("setup", "solve", "iterations", "final_residual", "converged")
+
+
 def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
     """All methods on one assembled problem, ``repeat`` interleaved runs each."""
     from solvers import rigid_body_modes
@@ -206,7 +212,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
             runs[m].append(out)
             sols[m] = x
             print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s, solve {out['solve']:.2f} s, "
-                  f"{out['iterations']} it, residual {out['final_residual']:.1e}", file=sys.stderr, flush=True)
+                  f"{out['iterations']} it, residual {out['final_residual']:.1e}",
+                  file=sys.stderr, flush=True)
     ref = sols[methods[0]]
     res = {}
     for m in methods:
@@ -219,8 +226,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
                   "iterations": last["iterations"], "final_residual": last["final_residual"],
                   "converged": all(o["converged"] for o in runs[m]),
                   "max_diff_vs_first_rel": float(np.abs(sols[m] - ref).max() / np.abs(ref).max()),
-                  **{k: v for k, v in last.items() if k not in ("setup", "solve", "iterations", "final_residual",
-                                                                 "converged")}}
+                  **{k: v for k, v in last.items() if k not in _RUN_KEYS}}
     return res
 
 
@@ -238,7 +244,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
     rec = {"mesh": Path(spec).name if not spec.startswith("shape:") else spec, "max_tets": max_tets,
            "edge_length_fac": edge,
            "tets": [len(T) for _, T in tets], "nodes": [len(Vk) for Vk, _ in tets], "certified": h.certified,
-           "n_outside": h.n_outside, "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s, "cases": []}
+           "n_outside": h.n_outside, "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s,
+           "cases": []}
     print(f"{rec['mesh']}: tets {rec['tets']}", file=sys.stderr, flush=True)
     for nu in nus:
         for name in problems:
@@ -247,7 +254,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             t_asm = time.perf_counter() - t0
             coords = np.asarray(tets[0][0])[pr.free[0]]
             print(f"  {name} nu={nu}: {pr.A.shape[0]} unknowns, nnz {pr.A.nnz}", file=sys.stderr, flush=True)
-            rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]), "nnz": int(pr.A.nnz),
+            rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]),
+                                 "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
                                  "methods": run_case(pr, h.P, coords, methods, tol, repeat),
                                  "peak_rss_mb_so_far": peak_rss_mb()})
@@ -265,7 +273,8 @@ def table(res: dict) -> str:
     methods = res["params"]["methods"]
     tol = res["params"]["tol"]
     first = res["meshes"][0]["cases"][0]["methods"]
-    ref = "nestmg_point" if "nestmg_point" in first and "blocksize" in first["nestmg"].get("smoother", {}) else "nestmg"
+    block_ref = "nestmg_point" in first and "blocksize" in first["nestmg"].get("smoother", {})
+    ref = "nestmg_point" if block_ref else "nestmg"
     if ref == "nestmg":  # a "nestmg_point" run beside a point-wise "nestmg" repeats the same configuration
         methods = [m for m in methods if m != "nestmg_point"]
     head = "| mesh | fine tets | unknowns | problem | ν | " + " | ".join(methods) + f" | best AMG / {ref} |"
@@ -278,8 +287,8 @@ def table(res: dict) -> str:
             amg = [ms[m]["median_total"] for m in methods
                    if not m.startswith("nestmg") and ms[m]["final_residual"] <= 10 * tol]
             ratio = f"{min(amg) / ms[ref]['median_total']:.2f}" if amg and ref in ms else "–"
-            lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | {c['nu']} | "
-                         + " | ".join(cells) + f" | {ratio} |")
+            lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | "
+                         f"{c['nu']} | " + " | ".join(cells) + f" | {ratio} |")
     return "\n".join(lines)
 
 
@@ -326,8 +335,8 @@ def main(argv=None) -> int:
 
     methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]
     res = {"params": {"tol": a.tol, "repeat": a.repeat, "levels": a.levels, "methods": methods,
-                      "command": " ".join(["benchmarks/elasticity.py"] + [Path(x).name if Path(x).exists() else x
-                                                                           for x in sys.argv[1:]]),
+                      "command": " ".join(["benchmarks/elasticity.py"]
+                                          + [Path(x).name if Path(x).exists() else x for x in sys.argv[1:]]),
                       "commit": _commit(), "seconds": "wall; median of the repeats"},
            "environment": environment(), "meshes": []}
     mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets

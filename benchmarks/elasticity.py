@@ -10,8 +10,9 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   V-cycle (one sweep on the fine level, two below); the free problem projects the rigid
                   modes (``NullspaceMultigridSolver``). Setup = restriction + ``P ⊗ I₃`` + ``multigrid()``.
 ``nestmg_block``  the same with nodal 3x3 block Gauss–Seidel (multicolour; ``multigrid(block=True)``).
-``nestmg_point``  results recorded before the default became point-wise (first JSON): ``nestmg`` was the
-                  block variant and ``nestmg_point`` the point one (each method records its smoother).
+``nestmg_point``  (not run by default) the same configuration as ``nestmg``; in
+                  ``elasticity_300k.json`` it ran beside it (a measure of run-to-run spread) and ``--table``
+                  leaves it out.
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -51,8 +52,9 @@ from pathlib import Path
 import numpy as np
 from exp_common import environment, peak_rss_mb, relres, write_json
 
-METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
-DEFAULT_METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
+METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr",
+           "hypre_nodal")
+DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
 #: references run once (first repeat only): they are far from the others and slow
 ONCE = ("pyamg_sa",)
 #: PETSc options of the variants beyond block size and near null space
@@ -112,7 +114,8 @@ def run_pyamg(A, b, B: np.ndarray | None, Z: np.ndarray | None, tol: float) -> d
     r = pcg(A, b, M=Mp, tol=tol, maxiter=500)
     t2 = time.perf_counter()
     return {"x": proj(r.x), "setup": t1 - t0, "solve": t2 - t1, "iterations": r.iterations,
-            "operator_complexity": float(ml.operator_complexity()), "levels": [L.A.shape[0] for L in ml.levels]}
+            "operator_complexity": float(ml.operator_complexity()),
+            "levels": [L.A.shape[0] for L in ml.levels]}
 
 
 def _projected_operator(M, proj):
@@ -122,7 +125,8 @@ def _projected_operator(M, proj):
                                dtype=np.float64)
 
 
-def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: float, extra: dict | None = None) -> dict:
+def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: float,
+              extra: dict | None = None) -> dict:
     """PETSc CG + GAMG or hypre BoomerAMG with block size 3 and the rigid-body near null space
     (``extra``: more PETSc options, without the prefix)."""
     from solvers.petsc_common import _petsc
@@ -130,8 +134,8 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
     PETSc = _petsc()
     it = PETSc.IntType
     t0 = time.perf_counter()
-    mat = PETSc.Mat().createAIJ(size=A.shape, bsize=3, csr=(A.indptr.astype(it), A.indices.astype(it), A.data),
-                                comm=PETSc.COMM_SELF)
+    csr = (A.indptr.astype(it), A.indices.astype(it), A.data)
+    mat = PETSc.Mat().createAIJ(size=A.shape, bsize=3, csr=csr, comm=PETSc.COMM_SELF)
     mat.assemble()
     xyz = PETSc.Vec().createWithArray(np.ascontiguousarray(coords).ravel(), bsize=3, comm=PETSc.COMM_SELF)
     ns = PETSc.NullSpace().createRigidBody(xyz)
@@ -176,6 +180,9 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
     return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": int(its), "reason": reason}
 
 
+_RUN_KEYS = ("setup", "solve", "iterations", "final_residual", "converged")
+
+
 def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
     """All methods on one assembled problem, ``repeat`` interleaved runs each."""
     from solvers import rigid_body_modes
@@ -205,7 +212,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
             runs[m].append(out)
             sols[m] = x
             print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s, solve {out['solve']:.2f} s, "
-                  f"{out['iterations']} it, residual {out['final_residual']:.1e}", file=sys.stderr, flush=True)
+                  f"{out['iterations']} it, residual {out['final_residual']:.1e}",
+                  file=sys.stderr, flush=True)
     ref = sols[methods[0]]
     res = {}
     for m in methods:
@@ -218,8 +226,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
                   "iterations": last["iterations"], "final_residual": last["final_residual"],
                   "converged": all(o["converged"] for o in runs[m]),
                   "max_diff_vs_first_rel": float(np.abs(sols[m] - ref).max() / np.abs(ref).max()),
-                  **{k: v for k, v in last.items() if k not in ("setup", "solve", "iterations", "final_residual",
-                                                                 "converged")}}
+                  **{k: v for k, v in last.items() if k not in _RUN_KEYS}}
     return res
 
 
@@ -237,7 +244,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
     rec = {"mesh": Path(spec).name if not spec.startswith("shape:") else spec, "max_tets": max_tets,
            "edge_length_fac": edge,
            "tets": [len(T) for _, T in tets], "nodes": [len(Vk) for Vk, _ in tets], "certified": h.certified,
-           "n_outside": h.n_outside, "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s, "cases": []}
+           "n_outside": h.n_outside, "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s,
+           "cases": []}
     print(f"{rec['mesh']}: tets {rec['tets']}", file=sys.stderr, flush=True)
     for nu in nus:
         for name in problems:
@@ -246,7 +254,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             t_asm = time.perf_counter() - t0
             coords = np.asarray(tets[0][0])[pr.free[0]]
             print(f"  {name} nu={nu}: {pr.A.shape[0]} unknowns, nnz {pr.A.nnz}", file=sys.stderr, flush=True)
-            rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]), "nnz": int(pr.A.nnz),
+            rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]),
+                                 "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
                                  "methods": run_case(pr, h.P, coords, methods, tol, repeat),
                                  "peak_rss_mb_so_far": peak_rss_mb()})
@@ -254,22 +263,37 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
 
 
 def table(res: dict) -> str:
-    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg
-    (the point Gauss–Seidel run: ``nestmg``, or ``nestmg_point`` in files where ``nestmg`` was block)."""
+    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg.
+
+    A run whose true residual is above ``tol`` (CG's recursive residual reached it: round-off on an
+    ill-conditioned system) is marked ``*``, one above ``10 tol`` (not converged) ``✗``; the ratio takes
+    the AMG runs below ``10 tol``. The reference is ``nestmg`` (in files where ``nestmg`` was the block
+    variant, ``nestmg_point``); a ``nestmg_point`` column that repeats a point-wise ``nestmg`` is left out.
+    """
     methods = res["params"]["methods"]
-    ref = "nestmg_point" if "nestmg_point" in methods else "nestmg"
+    tol = res["params"]["tol"]
+    first = res["meshes"][0]["cases"][0]["methods"]
+    block_ref = "nestmg_point" in first and "blocksize" in first["nestmg"].get("smoother", {})
+    ref = "nestmg_point" if block_ref else "nestmg"
+    if ref == "nestmg":  # a "nestmg_point" run beside a point-wise "nestmg" repeats the same configuration
+        methods = [m for m in methods if m != "nestmg_point"]
     head = "| mesh | fine tets | unknowns | problem | ν | " + " | ".join(methods) + f" | best AMG / {ref} |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for rec in res["meshes"]:
         for c in rec["cases"]:
             ms = c["methods"]
             cells = [f"{ms[m]['median_setup']:.2f} + {ms[m]['median_solve']:.2f} ({ms[m]['iterations']})"
-                     + ("" if ms[m]["converged"] else " ✗") for m in methods]
-            amg = [ms[m]["median_total"] for m in methods if not m.startswith("nestmg") and ms[m]["converged"]]
+                     + _mark(ms[m]["final_residual"], tol) for m in methods]
+            amg = [ms[m]["median_total"] for m in methods
+                   if not m.startswith("nestmg") and ms[m]["final_residual"] <= 10 * tol]
             ratio = f"{min(amg) / ms[ref]['median_total']:.2f}" if amg and ref in ms else "–"
-            lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | {c['nu']} | "
-                         + " | ".join(cells) + f" | {ratio} |")
+            lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | "
+                         f"{c['nu']} | " + " | ".join(cells) + f" | {ratio} |")
     return "\n".join(lines)
+
+
+def _mark(residual: float, tol: float) -> str:
+    return "" if residual <= 1.01 * tol else (" *" if residual <= 10 * tol else " ✗")
 
 
 def _commit() -> str:
@@ -311,8 +335,8 @@ def main(argv=None) -> int:
 
     methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]
     res = {"params": {"tol": a.tol, "repeat": a.repeat, "levels": a.levels, "methods": methods,
-                      "command": " ".join(["benchmarks/elasticity.py"] + [Path(x).name if Path(x).exists() else x
-                                                                           for x in sys.argv[1:]]),
+                      "command": " ".join(["benchmarks/elasticity.py"]
+                                          + [Path(x).name if Path(x).exists() else x for x in sys.argv[1:]]),
                       "commit": _commit(), "seconds": "wall; median of the repeats"},
            "environment": environment(), "meshes": []}
     mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets

@@ -41,7 +41,8 @@ from .errors import NestmgInputError
 from .problems import DEFAULT_SMOOTHERS, SMOOTHING, Problem
 from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
-__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "clamped_nodes", "default_body_force", "setup_elasticity"]
+__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "clamped_nodes", "default_body_force",
+           "setup_elasticity"]
 
 ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 
@@ -55,7 +56,7 @@ FAST_SMOOTHERS = _FAST_SMOOTHERS
 
 
 def default_body_force(V: np.ndarray) -> np.ndarray:
-    """A smooth, non-symmetric vector field ``f(x)`` (n, 3) on the nodes ``V`` (load of ``elasticity-free``)."""
+    """A smooth, non-symmetric vector field ``f(x)`` (n, 3) at the nodes ``V`` (the free problem's load)."""
     x, y, z = np.asarray(V, dtype=np.float64).T
     return np.column_stack([np.sin(3 * y) + z, np.cos(2 * z) - x, x * y + 0.5 * np.sin(2 * x)])
 
@@ -118,7 +119,7 @@ class ElasticityProblem(Problem):
 
     def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, smoothing: str = "robust",
                   block: bool = False, **kwargs):
-        """The multigrid solver: Galerkin operators, Gauss–Seidel (point or nodal block), the rigid-body kernel.
+        """The multigrid solver: Galerkin operators, Gauss–Seidel (point or block), the rigid-body kernel.
 
         Parameters
         ----------
@@ -137,8 +138,8 @@ class ElasticityProblem(Problem):
             MG-PCG iterations (±1) at about twice the cost per sweep and a longer set-up
             (docs/elasticity.md).
         **kwargs
-            Passed to :class:`solvers.MultigridSolver` (or :class:`solvers.elasticity.NullspaceMultigridSolver`
-            for ``elasticity-free``).
+            Passed to :class:`solvers.MultigridSolver` (or
+            :class:`solvers.elasticity.NullspaceMultigridSolver` for ``elasticity-free``).
 
         Returns
         -------
@@ -252,7 +253,8 @@ def setup_elasticity(
     modes = None
     if free_problem:
         c = V0.mean(axis=0)  # one centre for every level: P_k ⊗ I₃ maps coarse modes onto fine ones
-        modes = [rigid_body_modes(np.asarray(Vk, dtype=np.float64)[fk], center=c) for (Vk, _), fk in zip(tets, free)]
+        modes = [rigid_body_modes(np.asarray(Vk, dtype=np.float64)[fk], center=c)
+                 for (Vk, _), fk in zip(tets, free)]
     return ElasticityProblem(
         name=name, A=A, b=b[d0], P=[block_prolongation(Pk) for Pk in Pr], coarse="galerkin", free=free, n_fine=n0,
         nullspace="rigid" if free_problem else None, params={"lam": None, "coarse": coarse, "prune": prune, "E": E if np.ndim(E) == 0 else "per-tet",

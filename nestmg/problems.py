@@ -270,7 +270,8 @@ def setup_problem(
         Tet meshes, finest first (``Hierarchy.tets``).
     P : list of (n_k, n_{k+1}) csr_matrix
         Prolongations (``Hierarchy.P``).
-    name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann", "elasticity-clamped", "elasticity-free"}
+    name : {"poisson-dirichlet", "poisson-neumann", "diffusion-neumann", "elasticity-clamped",
+            "elasticity-free"}
     coarse : {"galerkin", "rediscretized", "weighted", "sparsified"}
         ``"galerkin"``: the solver forms ``Pᵀ A P``. ``"rediscretized"``: the same FEM problem on every
         coarse tet mesh (Dirichlet on the coarse boundary). ``"weighted"``: re-discretised with every

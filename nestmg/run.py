@@ -108,7 +108,8 @@ def solve_on_hierarchy(
         ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
     """
     t0 = time.perf_counter()
-    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions, poisson_ratio=poisson_ratio)
+    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions,
+                         poisson_ratio=poisson_ratio)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
     pre = cycle_smoothers(smoother, nu, coarse_nu)
@@ -121,7 +122,8 @@ def solve_on_hierarchy(
         "smoother": ml.levels[0].presmoother.name if len(ml.levels) > 1 else smoother, "coarse_nu": cnu,
         "local_nodes": 0 if not local or prob.local_nodes is None else int(prob.local_nodes.size), "cycle": cycle,
         "accel": accel, "lam": prob.params["lam"],
-        **({"poisson_ratio": prob.params["nu"]} if "nu" in prob.params else {}), "tol": tol, "coarse_scaling": ml.coarse_scaling,
+        **({"poisson_ratio": prob.params["nu"]} if "nu" in prob.params else {}),
+        "tol": tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),
     }

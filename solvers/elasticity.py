@@ -43,6 +43,7 @@ __all__ = [
     "rigid_body_modes",
 ]
 
+
 def lame_parameters(E, nu) -> tuple[np.ndarray, np.ndarray]:
     """Lamé parameters ``(λ, μ)`` of an isotropic material.
 
@@ -63,7 +64,8 @@ def lame_parameters(E, nu) -> tuple[np.ndarray, np.ndarray]:
     if not np.all(np.isfinite(E)) or np.any(E <= 0):
         raise SolverInputError("Young's modulus E must be finite and > 0")
     if not np.all(np.isfinite(nu)) or np.any(nu <= -1.0) or np.any(nu >= 0.5):
-        raise SolverInputError(f"Poisson's ratio must lie in (-1, 0.5), got range [{nu.min():g}, {nu.max():g}]")
+        raise SolverInputError(
+            f"Poisson's ratio must lie in (-1, 0.5), got range [{nu.min():g}, {nu.max():g}]")
     return E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), E / (2.0 * (1.0 + nu))
 
 
@@ -314,10 +316,12 @@ class NullspaceMultigridSolver(MultigridSolver):
 
     def __init__(self, A, Ps, nullspaces, *, coarse_solver: str = "regularized", **kwargs):
         if "nullspace" in kwargs:
-            raise SolverInputError("NullspaceMultigridSolver takes its null space from nullspaces=, not nullspace=")
+            raise SolverInputError(
+                "NullspaceMultigridSolver takes its null space from nullspaces=, not nullspace=")
         Ps = list(Ps)
         if len(nullspaces) != len(Ps) + 1:
-            raise SolverInputError(f"nullspaces needs {len(Ps) + 1} bases (one per level), got {len(nullspaces)}")
+            raise SolverInputError(
+                f"nullspaces needs {len(Ps) + 1} bases (one per level), got {len(nullspaces)}")
         super().__init__(A, Ps, coarse_solver=coarse_solver, **kwargs)
         if len(self.levels) != len(nullspaces):
             raise SolverInputError("the hierarchy was changed at set-up (unreached coarse unknowns dropped): "

@@ -7,7 +7,8 @@ A smoother is set up once per level from its operator and applied in place::
 
 Names (see :data:`SMOOTHERS`): ``"gauss_seidel"`` (``sweep="forward"|"backward"|"symmetric"``),
 ``"block_gauss_seidel"`` (nodal 3x3 blocks, :mod:`solvers.block_smoothing`), ``"symmetric_gauss_seidel"``,
-``"jacobi"`` (weighted), ``"chebyshev"`` (Jacobi-preconditioned) and ``"none"``. Every setup function accepts ``iterations`` (the number of sweeps: ν in V(ν, ν)).
+``"jacobi"`` (weighted), ``"chebyshev"`` (Jacobi-preconditioned) and ``"none"``. Every setup function
+accepts ``iterations`` (the number of sweeps: ν in V(ν, ν)).
 """
 
 from __future__ import annotations
@@ -129,8 +130,8 @@ def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int
 
 
 def setup_block_gauss_seidel(A: sp.csr_matrix, **options) -> Smoother:
-    """Nodal block Gauss–Seidel for interleaved vector unknowns (``blocksize=3``, ``sweep``,
-    ``iterations``, ``ordering="multicolor"|"natural"``): :func:`solvers.block_smoothing.setup_block_gauss_seidel`."""
+    """Nodal block Gauss–Seidel for interleaved vector unknowns (``blocksize=3``, ``sweep``, ``iterations``,
+    ``ordering="multicolor"|"natural"``): :func:`solvers.block_smoothing.setup_block_gauss_seidel`."""
     from .block_smoothing import setup_block_gauss_seidel as setup
 
     return setup(A, **options)

@@ -26,7 +26,7 @@ from solvers.gallery import kuhn_cube_hierarchy, kuhn_cube_mesh
 
 
 def _perturbed_box(rng):
-    """A small unstructured-looking tet mesh: a Kuhn box with jittered interior nodes, scaled to 1 x 2 x 1.5."""
+    """A small tet mesh of irregular tets: a Kuhn box with jittered interior nodes, scaled to 1 x 2 x 1.5."""
     V, T = kuhn_cube_mesh(4)
     inner = np.all((V > 1e-9) & (V < 1 - 1e-9), axis=1)
     V = V.copy()
@@ -142,7 +142,8 @@ def test_iterations_flat_under_refinement():
         d = block_dofs(free)
         K = elasticity_matrix(V, T, 1.0, 0.3)[d][:, d]
         Pf, _ = restrict_prolongations(Ps, free)
-        ml = MultigridSolver(K, [block_prolongation(P) for P in Pf], presmoother=("block_gauss_seidel", {"sweep": "symmetric"}))
+        ml = MultigridSolver(K, [block_prolongation(P) for P in Pf],
+                             presmoother=("block_gauss_seidel", {"sweep": "symmetric"}))
         b = np.tile([0.0, 0.0, -1.0], len(free)) / n**3
         its.append(ml.solve(b, tol=1e-8, accel="cg", return_info=True)[1]["iterations"])
     assert its[1] <= its[0] + 2 and its[1] <= 15, its
@@ -195,8 +196,9 @@ def test_cli_elasticity_writes_displacement(tmp_path):
     pytest.importorskip("tetgen")
     meshio = pytest.importorskip("meshio")
     out, rep = tmp_path / "vtu", tmp_path / "r.json"
-    p = subprocess.run([sys.executable, "-m", "nestmg.cli", "solve", "shape:sphere", "--problem", "elasticity-clamped",
-                        "--method", "decimate", "--mesher", "tetgen", "--levels", "2", "--max-tets", "8000",
+    p = subprocess.run([sys.executable, "-m", "nestmg.cli", "solve", "shape:sphere",
+                        "--problem", "elasticity-clamped", "--method", "decimate", "--mesher", "tetgen",
+                        "--levels", "2", "--max-tets", "8000",
                         "--accel", "cg", "--out", str(out), "--json", str(rep), "--quiet"],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode == 0, p.stderr[-2000:]

@@ -2,7 +2,8 @@
 
 P1 vector elements (``solvers.elasticity_matrix``), prolongations ``P ⊗ I₃``, Galerkin coarse operators,
 symmetric Gauss–Seidel (``multigrid(block=True)``: nodal 3x3 blocks); the free (pure traction) problem
-keeps the six rigid-body modes out of every level. Run: ``python docs/examples/elasticity.py`` (docs/elasticity.md).
+keeps the six rigid-body modes out of every level. Run: ``python docs/examples/elasticity.py``
+(docs/elasticity.md).
 """
 
 import numpy as np

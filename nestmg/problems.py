@@ -97,6 +97,11 @@ class Problem:
         Free-node indices (level-0 numbering of ``A``) that get extra local Gauss–Seidel sweeps: the
         boundary layer (boundary nodes and one tet ring) of Neumann and diffusion problems, where
         natural boundary conditions make the global smoother weakest (docs/scale.md).
+    fixed_values : (n_fine,) float array or None
+        Dirichlet values on the fine nodes (P2 problems with ``boundary_values``); :meth:`expand`
+        puts them back (None: zero).
+    mesh : nestmg.curved.CurvedMesh or None
+        The quadratic mesh of ``element="P2"`` problems (nodes ``mesh.X``, ``tetra10`` cells ``mesh.T10``).
     """
 
     name: str
@@ -109,6 +114,8 @@ class Problem:
     nullspace: str | None
     params: dict = field(default_factory=dict)
     local_nodes: np.ndarray | None = None
+    fixed_values: np.ndarray | None = None
+    mesh: object | None = None
 
     def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, smoothing: str = "robust",
                   **kwargs):
@@ -155,8 +162,8 @@ class Problem:
                                coarse_scaling=coarse_scaling, **kwargs)
 
     def expand(self, x_free: np.ndarray) -> np.ndarray:
-        """Full fine-level vector: ``x_free`` on free nodes, 0 on Dirichlet nodes."""
-        x = np.zeros(self.n_fine)
+        """Full fine-level vector: ``x_free`` on free nodes, the Dirichlet values (default 0) on the others."""
+        x = np.zeros(self.n_fine) if self.fixed_values is None else np.array(self.fixed_values, dtype=np.float64)
         x[self.free[0]] = x_free
         return x
 
@@ -261,6 +268,10 @@ def setup_problem(
     prune: float = 0.2,
     fractions: list[np.ndarray] | None = None,
     poisson_ratio: float = 0.3,
+    element: str = "P1",
+    curved=None,
+    boundary_values=None,
+    flux=None,
 ) -> Problem:
     """Assemble a model problem on ``tets[0]`` and the level data for multigrid.
 
@@ -299,11 +310,28 @@ def setup_problem(
         ν of the elasticity problems (``"elasticity-clamped"``, ``"elasticity-free"``: assembled by
         :func:`nestmg.elasticity.setup_elasticity` with ``E = 1``, its default loads and pruning; ``f`` is
         then an (n, 3) body force and ``lam``, ``prune``, ``fractions`` do not apply).
+    element : {"P1", "P2"}
+        ``"P2"``: quadratic elements on ``tets[0]`` (:func:`nestmg.p2problem.setup_p2_problem`), straight
+        or ``curved`` (a :class:`nestmg.curved.CurvedMesh` of ``tets[0]``), with the exact P1 → P2
+        interpolation as the first prolongation; ``f`` may then be a function of points, and
+        ``boundary_values`` (Dirichlet) / ``flux`` (Neumann) give boundary data on the curved boundary.
+        Galerkin coarse operators only.
+    curved, boundary_values, flux
+        ``element="P2"`` only (see above).
 
     Returns
     -------
     Problem
     """
+    if element not in ("P1", "P2"):
+        raise NestmgInputError(f"element must be 'P1' or 'P2', got {element!r}")
+    if element == "P2":
+        from .p2problem import setup_p2_problem
+
+        return setup_p2_problem(tets, P, name, curved=curved, coarse=coarse, lam=lam, f=f,
+                                boundary_values=boundary_values, flux=flux, prune=prune)
+    if curved is not None or boundary_values is not None or flux is not None:
+        raise NestmgInputError("curved, boundary_values and flux need element='P2'")
     if name in ("elasticity-clamped", "elasticity-free"):
         from .elasticity import setup_elasticity
 

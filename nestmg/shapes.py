@@ -22,6 +22,7 @@ SDF = Callable[[np.ndarray], np.ndarray]
 
 __all__ = [
     "SHAPES",
+    "ball_tets",
     "genus2",
     "mesh_implicit",
     "neck_blobs",
@@ -32,6 +33,7 @@ __all__ = [
     "stick_figure",
     "thin_plate",
     "torus",
+    "torus_tets",
 ]
 
 
@@ -379,3 +381,75 @@ def nested_isosurfaces(
         raise NestmgInputError("offsets must be strictly increasing (coarser layers outside)")
     f, b = shape_sdf(name)
     return [mesh_implicit(f, b, res=r, level=d) for d, r in zip(offsets, resolutions)]
+
+
+# ----------------------------------------------------------------------------- tet meshes with exact boundary
+def _refine_onto(V: np.ndarray, T: np.ndarray, refinements: int, project) -> tuple[list, list]:
+    """Red-refine ``refinements`` times, boundary vertices projected after each; every mesh and each P."""
+    from solvers.fem import boundary_faces
+
+    from .refine import refine_tets
+
+    meshes, Ps = [(V, T)], []
+    for _ in range(refinements):
+        V, T, P = refine_tets(V, T)
+        bv = np.unique(boundary_faces(T)[0])
+        V[bv] = project(V[bv])[0]
+        meshes.append((V, T))
+        Ps.append(P)
+    return meshes[::-1], Ps[::-1]
+
+
+def ball_tets(refinements: int = 2) -> tuple[list, list]:
+    """Tet meshes of the unit ball, every boundary vertex on the sphere: finest first, with prolongations.
+
+    An icosahedron coned to the centre (20 tets), red-refined ``refinements`` times (:mod:`nestmg.refine`),
+    new boundary vertices projected radially after each step. The exact linear prolongations between
+    consecutive meshes make a ready multigrid hierarchy (``tets, P`` as :class:`nestmg.Hierarchy` has them).
+
+    Returns
+    -------
+    tets : list of (V (n,3), T (t,4))
+        Finest first; the finest has ``20 * 8**refinements`` tets.
+    P : list of csr_matrix
+    """
+    from .curved import sphere_projector
+    from .tetmesh import orient_tets
+
+    g = (1 + 5**0.5) / 2
+    ico = np.array([[-1, g, 0], [1, g, 0], [-1, -g, 0], [1, -g, 0], [0, -1, g], [0, 1, g], [0, -1, -g],
+                    [0, 1, -g], [g, 0, -1], [g, 0, 1], [-g, 0, -1], [-g, 0, 1]], dtype=np.float64)
+    ico /= np.linalg.norm(ico, axis=1, keepdims=True)
+    from scipy.spatial import ConvexHull
+
+    F = ConvexHull(ico).simplices
+    V = np.vstack([[0.0, 0.0, 0.0], ico])
+    T = orient_tets(V, np.c_[np.zeros(len(F), dtype=np.int64), F + 1])
+    return _refine_onto(V, T, refinements, sphere_projector())
+
+
+def torus_tets(refinements: int = 1, R: float = 1.0, r: float = 0.35, segments: int = 16) -> tuple[list, list]:
+    """Tet meshes of the solid torus (axis z, radii ``R``, ``r``), boundary vertices on the torus; finest first.
+
+    A hexagonal cross-section (6 triangles) swept through ``segments`` prisms, each split into 3 tets
+    by the vertex-order rule (conforming), then red-refined with the boundary projected as in
+    :func:`ball_tets`.
+    """
+    from .curved import torus_projector
+    from .tetmesh import orient_tets
+
+    ang = np.arange(6) * np.pi / 3
+    sec = np.vstack([[0.0, 0.0], np.c_[r * np.cos(ang), r * np.sin(ang)]])  # (7, 2): centre + ring
+    tri = np.array([[0, 1 + i, 1 + (i + 1) % 6] for i in range(6)])
+    tri = np.sort(tri, axis=1)
+    phi = 2 * np.pi * np.arange(segments) / segments
+    rho = R + sec[:, 0]
+    V = np.stack([np.c_[rho * np.cos(p), rho * np.sin(p), sec[:, 1]] for p in phi]).reshape(-1, 3)
+    T = []
+    for s in range(segments):
+        lo, hi = 7 * s, 7 * ((s + 1) % segments)
+        for a, b, c in tri:  # diagonal from the lower bottom vertex to the higher top one: conforming
+            T += [[lo + a, lo + b, lo + c, hi + c], [lo + a, lo + b, hi + b, hi + c],
+                  [lo + a, hi + a, hi + b, hi + c]]
+    T = orient_tets(V, np.array(T, dtype=np.int64))
+    return _refine_onto(V, T, refinements, torus_projector(R, r))

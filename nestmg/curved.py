@@ -1,0 +1,498 @@
+"""Curved quadratic tets fitted to the input surface, with validity certified by Bernstein bounds.
+
+A straight tet mesh ``(V, T)`` gets one node per edge (the P2 / ``tetra10`` nodes); the nodes of the
+boundary edges are projected onto the true surface (a triangle mesh through libigl, or an analytic
+projector), so every boundary facet becomes a quadratic patch and P2 finite elements on the mesh are
+isoparametric (:mod:`solvers.fem_p2`). Where the projection would invert an element, the mid-nodes
+around it are moved by the energy of *Mapping Polynomial Volumes* (Hencky distortion, eq. 2–3, plus the
+point-to-plane boundary fit, eq. 9; :mod:`nestmg.curved_fit`).
+
+**Certified validity.** ``det J`` of a quadratic tet is a cubic polynomial on the reference tet. Its 20
+Bernstein–Bézier coefficients follow exactly from its values on the degree-3 lattice (a fixed 20x20
+change of basis); all coefficients positive ⇒ ``det J > 0`` everywhere (convex hull property). Where
+the bound is inconclusive the tet is split (red refinement of the reference tet) and the coefficients
+of the pieces are checked, up to ``depth`` times; a negative ``det J`` at any lattice point proves the
+tet invalid. The paper only checks quadrature points (its §4.1 names this as open).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+from math import factorial
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from solvers.fem_p2 import P2_EDGES, p2_basis, p2_boundary_facets
+
+from .errors import NestmgInputError
+
+__all__ = [
+    "CurvedMesh",
+    "Projector",
+    "certify_tets",
+    "curve_mesh",
+    "jacobian_bernstein",
+    "p2_nodes",
+    "p2_prolongation",
+    "scaled_jacobians",
+    "sphere_projector",
+    "surface_projector",
+    "torus_projector",
+]
+
+#: A projector maps points (m,3) to their closest surface points (m,3) and unit normals there (m,3).
+Projector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+VALID, UNCERTAIN, INVALID = 1, 0, -1
+
+
+# ----------------------------------------------------------------------------- P2 nodes
+
+
+def p2_nodes(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Straight P2 nodes of a tet mesh: the vertices, then the edge midpoints.
+
+    Edges are numbered as in :func:`nestmg.refine.refine_tets` (sorted ``(a, b)`` pairs in increasing
+    ``a * n + b``), so the P2 nodes are exactly the nodes of the red refinement of ``(V, T)``.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    T : (t,4) int array
+
+    Returns
+    -------
+    X : (n + e, 3) float array
+    T10 : (t, 10) int64 array
+        ``tetra10`` connectivity (meshio / VTK order).
+    E : (e, 2) int64 array
+        Vertex pairs of the edge nodes ``n .. n + e - 1``.
+
+    Examples
+    --------
+    >>> X, T10, E = p2_nodes(np.eye(4, 3), np.array([[0, 1, 2, 3]]))
+    >>> X.shape, T10.tolist(), E.tolist()[:2]
+    ((10, 3), [[0, 1, 2, 3, 4, 7, 5, 6, 8, 9]], [[0, 1], [0, 2]])
+    """
+    V = np.asarray(V, dtype=np.float64)
+    T = np.asarray(T, dtype=np.int64)
+    n = len(V)
+    pairs = np.stack([np.sort(T[:, [a, b]], axis=1) for a, b in P2_EDGES], axis=1).reshape(-1, 2)
+    uniq, inv = np.unique(pairs[:, 0] * n + pairs[:, 1], return_inverse=True)
+    E = np.c_[uniq // n, uniq % n]
+    X = np.vstack([V, 0.5 * (V[E[:, 0]] + V[E[:, 1]])])
+    T10 = np.c_[T, n + inv.reshape(len(T), 6)]
+    return X, T10, E
+
+
+def p2_prolongation(n_vertices: int, E: np.ndarray) -> sp.csr_matrix:
+    """Exact P1 → P2 interpolation on the same (curved) tets, ``(n + e, n)`` csr.
+
+    Curved P1 functions lie in the isoparametric P2 space, so the p-multigrid level is exact on curved
+    tets too: vertex values copied, an edge node gets the mean of its two vertices.
+    """
+    from .usermesh import p1_to_p2_prolongation
+
+    return p1_to_p2_prolongation(n_vertices, E)
+
+
+# ----------------------------------------------------------------------------- projectors
+
+
+def sphere_projector(center=(0.0, 0.0, 0.0), radius: float = 1.0) -> Projector:
+    """Closest points and outer normals on a sphere."""
+    c = np.asarray(center, dtype=np.float64)
+
+    def project(P):
+        d = np.asarray(P, dtype=np.float64) - c
+        n = d / np.linalg.norm(d, axis=1, keepdims=True)
+        return c + radius * n, n
+
+    return project
+
+
+def torus_projector(R: float = 1.0, r: float = 0.35) -> Projector:
+    """Closest points and outer normals on the torus of axis z, core radius ``R`` and tube radius ``r``."""
+
+    def project(P):
+        P = np.asarray(P, dtype=np.float64)
+        rho = np.linalg.norm(P[:, :2], axis=1, keepdims=True)
+        core = np.c_[R * P[:, :2] / rho, np.zeros(len(P))]
+        n = (P - core) / np.linalg.norm(P - core, axis=1, keepdims=True)
+        return core + r * n, n
+
+    return project
+
+
+def surface_projector(V: np.ndarray, F: np.ndarray) -> Projector:
+    """Closest points on a triangle mesh (libigl ``point_mesh_squared_distance``) and its face normals there."""
+    import igl
+
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
+
+    def project(P):
+        _, idx, C = igl.point_mesh_squared_distance(np.ascontiguousarray(P, dtype=np.float64), V, F)
+        return np.asarray(C), N[np.asarray(idx).ravel()]
+
+    return project
+
+
+# ----------------------------------------------------------------------------- Jacobian bounds
+
+
+def _lattice(order: int) -> np.ndarray:
+    """Barycentric multi-indices ``α`` with ``|α| = order`` (m, 4)."""
+    return np.array([(order - i - j - k, i, j, k) for i in range(order + 1) for j in range(order + 1 - i)
+                     for k in range(order + 1 - i - j)], dtype=np.int64)
+
+
+@lru_cache(maxsize=None)
+def _bernstein_change() -> tuple[np.ndarray, np.ndarray]:
+    """Degree-3 lattice (20,4) and the matrix taking det J's lattice values to its Bernstein coefficients."""
+    A = _lattice(3)
+    lam = A / 3.0
+    mult = np.array([factorial(3) / np.prod([factorial(a) for a in al]) for al in A])
+    B = mult[None, :] * np.prod(lam[:, None, :] ** A[None, :, :], axis=2)  # B[p, α] = B_α(λ_p)
+    return A, np.linalg.inv(B)
+
+
+def _det_at(X: np.ndarray, T10: np.ndarray, tet: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """det J of tets ``tet`` (m,) at reference points ``xi``: shared (p,3) or per tet (m,p,3) -> (m,p)."""
+    from solvers.fem_p2 import det3
+
+    if xi.ndim == 2:  # the same points in every tet: one basis evaluation
+        _, dN = p2_basis(xi)
+        return det3(np.einsum("mad,pak->mpdk", X[T10[tet]], dN, optimize=True))
+    m, p, _ = xi.shape
+    _, dN = p2_basis(xi.reshape(-1, 3))
+    return det3(np.einsum("mad,mpak->mpdk", X[T10[tet]], dN.reshape(m, p, 10, 3), optimize=True))
+
+
+def _red_children() -> np.ndarray:
+    """The 8 children of the reference tet (8, 4, 3) in ξ coordinates."""
+    v = np.eye(4, 3, k=-1)  # (0,0,0), e1, e2, e3
+    m = {(i, j): 0.5 * (v[i] + v[j]) for i in range(4) for j in range(i + 1, 4)}
+    corners = [[v[0], m[0, 1], m[0, 2], m[0, 3]], [m[0, 1], v[1], m[1, 2], m[1, 3]],
+               [m[0, 2], m[1, 2], v[2], m[2, 3]], [m[0, 3], m[1, 3], m[2, 3], v[3]]]
+    ring = [m[0, 2], m[0, 3], m[1, 3], m[1, 2]]  # around the diagonal m01 - m23
+    inner = [[m[0, 1], m[2, 3], ring[i], ring[(i + 1) % 4]] for i in range(4)]
+    return np.array(corners + inner)
+
+
+def jacobian_bernstein(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None = None,
+                       corners: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Bernstein coefficients of the cubic ``det J`` of P2 tets (on sub-tets ``corners`` if given).
+
+    Parameters
+    ----------
+    X : (N,3) float array
+    T10 : (t,10) int array
+    tets : (m,) int array, optional
+        Which tets (default all).
+    corners : (m,4,3) float array, optional
+        A sub-tet of the reference tet per entry (default the reference tet itself).
+
+    Returns
+    -------
+    coef : (m, 20) float array
+        ``det J = Σ_α coef_α B_α(λ)`` on the (sub-)tet; ``min coef <= min det J``.
+    values : (m, 20) float array
+        ``det J`` at the degree-3 lattice points.
+    """
+    A, Binv = _bernstein_change()
+    tets = np.arange(len(T10)) if tets is None else np.asarray(tets, dtype=np.int64)
+    if corners is None:
+        xi = (A / 3.0)[:, 1:]  # the reference tet's lattice, shared
+    else:
+        xi = np.einsum("pj,mjd->mpd", A / 3.0, corners)
+    vals = _det_at(X, T10, tets, xi)
+    return vals @ Binv.T, vals
+
+
+def certify_tets(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None = None, *, depth: int = 2) -> np.ndarray:
+    """Certify ``det J > 0`` on whole P2 tets: 1 valid (proved), -1 invalid (proved), 0 undecided.
+
+    All Bernstein coefficients positive proves validity; a lattice value ``<= 0`` proves invalidity;
+    otherwise the tet's undecided pieces are split in 8 and checked again, ``depth`` times.
+
+    Examples
+    --------
+    >>> X, T10, _ = p2_nodes(np.eye(4, 3, k=-1), np.array([[0, 1, 2, 3]]))
+    >>> certify_tets(X, T10).tolist()
+    [1]
+    >>> X[T10[0, 4]] = [0.5, 0.6, 0.6]   # node of edge v0-v1 pushed through the face v1 v2 v3
+    >>> certify_tets(X, T10).tolist()
+    [-1]
+    """
+    tets = np.arange(len(T10)) if tets is None else np.asarray(tets, dtype=np.int64)
+    status = np.full(len(tets), VALID, dtype=np.int8)
+    owner = np.arange(len(tets))
+    corners = None  # the whole reference tet
+    for level in range(depth + 1):
+        if owner.size == 0:
+            break
+        coef, vals = jacobian_bernstein(X, T10, tets[owner], corners)
+        bad = (vals <= 0).any(axis=1)
+        status[owner[bad]] = INVALID
+        open_ = ~bad & ~(coef > 0).all(axis=1) & (status[owner] != INVALID)
+        status[owner[open_]] = UNCERTAIN  # until every piece is proved
+        if level == depth or not open_.any():
+            break
+        # split the undecided pieces; a tet is valid again only if all its pieces are proved
+        o = owner[open_]
+        c = np.broadcast_to(np.eye(4, 3, k=-1), (len(o), 4, 3)) if corners is None else corners[open_]
+        status[o] = VALID
+        owner = np.repeat(o, 8)
+        corners = np.einsum("kij,mjd->mkid", _child_barycentric(), c).reshape(-1, 4, 3)
+    return status
+
+
+@lru_cache(maxsize=None)
+def _child_barycentric() -> np.ndarray:
+    """Barycentric coordinates (8, 4, 4) of the 8 children's corners w.r.t. their parent's corners."""
+    kids = _red_children()
+    return np.concatenate([1.0 - kids.sum(axis=2, keepdims=True), kids], axis=2)
+
+
+def scaled_jacobians(X: np.ndarray, T10: np.ndarray, order: int = 6) -> np.ndarray:
+    """Per tet ``min det J / max det J`` over the degree-``order`` lattice (1 for straight tets).
+
+    The usual distortion measure of curved elements (<= 0 for an invalid tet).
+    """
+    lam = _lattice(order) / float(order)
+    xi = lam[:, 1:]
+    out = np.empty(len(T10))
+    for s in range(0, len(T10), 20000):
+        idx = np.arange(s, min(len(T10), s + 20000))
+        d = _det_at(X, T10, idx, xi)
+        out[idx] = d.min(axis=1) / d.max(axis=1)
+    return out
+
+
+def surface_distance(X: np.ndarray, F6: np.ndarray, project: Projector, order: int = 4) -> np.ndarray:
+    """Largest distance to the surface of each curved 6-node facet, sampled on its degree-``order`` lattice."""
+    from solvers.fem_p2 import _p2_tri_basis
+
+    st = np.array([(i / order, j / order) for i in range(order + 1) for j in range(order + 1 - i)])
+    N, _ = _p2_tri_basis(st)
+    P = np.einsum("qa,fad->fqd", N, np.asarray(X)[np.asarray(F6)]).reshape(-1, 3)
+    d = np.linalg.norm(project(P)[0] - P, axis=1)
+    return d.reshape(len(F6), len(st)).max(axis=1)
+
+
+# ----------------------------------------------------------------------------- curving
+
+
+@dataclass
+class CurvedMesh:
+    """A tet mesh with quadratic (``tetra10``) elements, straight inside, fitted to the surface at the boundary.
+
+    Attributes
+    ----------
+    X : (n + e, 3) float array
+        Nodes: the ``n`` vertices first (boundary ones projected onto the surface when asked), then one
+        per edge (:func:`p2_nodes` numbering: the nodes of the red refinement of ``T``).
+    T : (t, 4) int64 array
+        The straight tets (positively oriented).
+    T10 : (t, 10) int64 array
+        ``tetra10`` connectivity (meshio / VTK order).
+    E : (e, 2) int64 array
+        Vertex pairs of the edge nodes.
+    report : dict
+        Counts (curved, invalid after projection, fitted, straightened), certification, scaled
+        Jacobians, fit distances, seconds per stage.
+    """
+
+    X: np.ndarray
+    T: np.ndarray
+    T10: np.ndarray
+    E: np.ndarray
+    report: dict = field(default_factory=dict)
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of tet vertices (the P1 nodes)."""
+        return len(self.X) - len(self.E)
+
+    @property
+    def V(self) -> np.ndarray:
+        """Vertex positions (n,3) of the straight P1 mesh under the curved one."""
+        return self.X[: self.n_vertices]
+
+    def straight(self) -> CurvedMesh:
+        """The same mesh with every edge node at its edge's midpoint (straight P2)."""
+        n = self.n_vertices
+        X = np.vstack([self.V, 0.5 * (self.X[self.E[:, 0]] + self.X[self.E[:, 1]])])
+        return CurvedMesh(X, self.T, self.T10, self.E, {"straight": True})
+
+    def boundary_facets(self) -> np.ndarray:
+        """Outward 6-node boundary facets (f,6) (:func:`solvers.fem_p2.p2_boundary_facets`)."""
+        return p2_boundary_facets(self.T10)[0]
+
+    def prolongation(self) -> sp.csr_matrix:
+        """The exact P1 → P2 interpolation on this mesh (:func:`p2_prolongation`)."""
+        return p2_prolongation(self.n_vertices, self.E)
+
+
+def _project_vertices(V, T, bv, project, max_rounds: int = 20):
+    """Boundary vertices onto the surface, except those whose move would invert a straight tet."""
+    from .tetmesh import tet_volumes
+
+    Vp = V.copy()
+    Vp[bv] = project(V[bv])[0]
+    kept = np.zeros(len(V), dtype=bool)
+    for _ in range(max_rounds):
+        neg = tet_volumes(Vp, T) <= 0
+        if not neg.any():
+            break
+        undo = np.intersect1d(T[neg].ravel(), bv)
+        Vp[undo] = V[undo]
+        kept[undo] = True
+    return Vp, int(kept.sum())
+
+
+def _tets_with_nodes(T10: np.ndarray, nodes: np.ndarray, N: int) -> np.ndarray:
+    mark = np.zeros(N, dtype=bool)
+    mark[nodes] = True
+    return np.flatnonzero(mark[T10].any(axis=1))
+
+
+def _fit_patch(X, Xs, T, T10, bad, project, *, lam, reference, rounds, depth) -> tuple[np.ndarray, dict]:
+    """Move the edge nodes around the ``bad`` tets by the paper's energy, from a valid (straightened) start."""
+    from .curved_fit import fit_mid_nodes, reference_inverse
+
+    N = len(X)
+    vmark = np.zeros(N, dtype=bool)
+    vmark[T[bad].ravel()] = True
+    patch = np.flatnonzero(vmark[T].any(axis=1))  # the bad tets and their vertex neighbours
+    for _ in range(10):  # straighten the patch's edge nodes; grow it until every touched tet is certified
+        free = np.unique(T10[patch, 4:])
+        X1 = X.copy()
+        X1[free] = Xs[free]
+        etets = _tets_with_nodes(T10, free, N)
+        ok = certify_tets(X1, T10, etets, depth=depth) == VALID
+        if ok.all():
+            break
+        patch = np.union1d(patch, etets[~ok])
+    Ainv = reference_inverse(X1, T[etets], reference)
+    bmark = np.zeros(N, dtype=bool)
+    bmark[p2_boundary_facets(T10)[0][:, 3:].ravel()] = True
+    h = _edge_length_of_nodes(Xs, T10, free)
+    Xf, info = fit_mid_nodes(X1, T10[etets], Ainv, free, bmark[free], h, project, lam=lam, rounds=rounds)
+    info.update(patch_tets=int(len(patch)), free_nodes=int(len(free)), energy_tets=int(len(etets)))
+    return Xf, info
+
+
+def _edge_length_of_nodes(Xs: np.ndarray, T10: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Length of the edge of each edge node in ``nodes`` (from the straight tets' corners)."""
+    from solvers.fem_p2 import P2_EDGES
+
+    length = np.zeros(len(Xs))
+    for k, (a, b) in enumerate(P2_EDGES):
+        length[T10[:, 4 + k]] = np.linalg.norm(Xs[T10[:, a]] - Xs[T10[:, b]], axis=1)
+    return length[nodes]
+
+
+def _straighten(X, Xs, T10, bad, depth) -> tuple[np.ndarray, int]:
+    """Put the edge nodes of uncertified tets back on their edges until every tet is certified."""
+    N = len(X)
+    straight = np.zeros(len(T10), dtype=bool)
+    todo = np.asarray(bad, dtype=np.int64)
+    while todo.size:
+        straight[todo] = True
+        nodes = np.unique(T10[todo, 4:])
+        X[nodes] = Xs[nodes]
+        touched = _tets_with_nodes(T10, nodes, N)
+        touched = touched[~straight[touched]]
+        todo = touched[certify_tets(X, T10, touched, depth=depth) != VALID]
+    return X, int(straight.sum())
+
+
+def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bool = True, fit: bool = True,
+               lam: float = 0.05, reference: str = "straight", rounds: int = 4, depth: int = 2) -> CurvedMesh:
+    """Curve a tet mesh's boundary onto a surface at order 2, with every element certified valid.
+
+    1. P2 nodes (:func:`p2_nodes`); the boundary vertices (``vertices=True``; a vertex whose move would
+       invert a straight tet stays) and the boundary edge nodes are projected onto the surface.
+    2. Every tet is certified (:func:`certify_tets`). Where the projection leaves tets not certified and
+       ``fit`` is on, the edge nodes of those tets and of their vertex neighbours are restarted straight
+       and moved by the paper's energy ``E_S + λ E_Ω`` (:func:`nestmg.curved_fit.fit_mid_nodes`).
+    3. Tets still not certified get their edge nodes straightened (counted in ``report["straightened"]``).
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    T : (t,4) int array
+    project : callable
+        ``points (m,3) -> (closest points (m,3), unit normals (m,3))``: :func:`surface_projector` for a
+        triangle mesh, :func:`sphere_projector` / :func:`torus_projector` for analytic shapes.
+    vertices : bool
+        Also project the boundary vertices (TetWild's lie only within its envelope of the surface).
+    fit : bool
+        Run the energy where the projection is not certified (else straighten at once).
+    lam : float
+        λ of the volume energy (paper eq. 1; 0.05 is its close-fitting value).
+    reference : {"straight", "regular"}
+        The ideal element of the Hencky energy (:func:`nestmg.curved_fit.reference_inverse`).
+    rounds : int
+        L-BFGS rounds (point-to-plane targets refreshed between them).
+    depth : int
+        Subdivision depth of the Bernstein certification.
+
+    Returns
+    -------
+    CurvedMesh
+    """
+    from .tetmesh import orient_tets, tet_volumes
+
+    V = np.asarray(V, dtype=np.float64)
+    T = np.asarray(T, dtype=np.int64)
+    if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
+        raise NestmgInputError(f"curve_mesh needs V (n,3) and T (t,4) with t > 0, got {V.shape} and {T.shape}")
+    if np.any(np.abs(tet_volumes(V, T)) <= 0):
+        raise NestmgInputError("curve_mesh needs a tet mesh without degenerate (zero-volume) tets")
+    sec: dict[str, float] = {}
+    t0 = time.perf_counter()
+    T = orient_tets(V, T)
+    _, T10, E = p2_nodes(V, T)
+    F6 = p2_boundary_facets(T10)[0]
+    bv, bm = np.unique(F6[:, :3]), np.unique(F6[:, 3:])
+    Vp, n_kept = _project_vertices(V, T, bv, project) if vertices else (V, 0)
+    Xs, _, _ = p2_nodes(Vp, T)  # straight nodes of the (projected) vertices
+    X = Xs.copy()
+    X[bm] = project(Xs[bm])[0]
+    sec["project"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    curved = _tets_with_nodes(T10, bm, len(X))
+    status = certify_tets(X, T10, curved, depth=depth)
+    bad = curved[status != VALID]
+    sec["certify"] = time.perf_counter() - t0
+    rep: dict = {"tets": int(len(T)), "boundary_edge_nodes": int(len(bm)), "curved_tets": int(len(curved)),
+                 "vertices_not_projected": n_kept, "invalid_after_projection": int((status == INVALID).sum()),
+                 "undecided_after_projection": int((status == UNCERTAIN).sum()), "fit": None}
+    t0 = time.perf_counter()
+    if bad.size and fit:
+        X, rep["fit"] = _fit_patch(X, Xs, T, T10, bad, project, lam=lam, reference=reference, rounds=rounds,
+                                   depth=depth)
+        recheck = _tets_with_nodes(T10, np.unique(T10[bad, 4:]), len(X))
+        recheck = _tets_with_nodes(T10, np.unique(T10[recheck, 4:]), len(X))
+        bad = recheck[certify_tets(X, T10, recheck, depth=depth) != VALID]
+    sec["fit"] = time.perf_counter() - t0
+    X, rep["straightened"] = _straighten(X, Xs, T10, bad, depth)
+    rep["certified"] = bool((certify_tets(X, T10, curved, depth=depth) == VALID).all())
+    t0 = time.perf_counter()
+    sj = scaled_jacobians(X, T10[curved])  # straight tets have a scaled Jacobian of exactly 1
+    rep["scaled_jacobian"] = {"min": float(sj.min()), "mean_curved": float(sj.mean()),
+                              "mean_all": float((sj.sum() + len(T) - len(curved)) / len(T))}
+    rep["surface_distance"] = {"curved_max": float(surface_distance(X, F6, project).max()),
+                               "straight_max": float(surface_distance(Xs, F6, project).max())}
+    sec["measure"] = time.perf_counter() - t0
+    rep["seconds"] = sec
+    return CurvedMesh(X, T, T10, E, rep)

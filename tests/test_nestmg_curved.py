@@ -1,0 +1,260 @@
+"""Curved P2 tets: nodes, certified Jacobians, the fitting energy, P2 FEM and its convergence on curved domains."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+from nestmg import NestmgInputError, setup_problem, shapes
+from nestmg.curved import (
+    certify_tets,
+    curve_mesh,
+    jacobian_bernstein,
+    p2_nodes,
+    scaled_jacobians,
+    sphere_projector,
+    torus_projector,
+)
+from nestmg.refine import refine_tets
+from solvers.fem_p2 import p2_basis, p2_l2_error, p2_load, p2_stiffness_matrix
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return shapes.ball_tets(4)  # 82k, 10k, 1.3k, 160, 20 tets
+
+
+@pytest.fixture(scope="module")
+def torus():
+    return shapes.torus_tets(3, segments=12)  # 111k, 14k, 1.7k, 216 tets
+
+
+def test_p2_nodes_are_the_red_refinement_nodes(ball):
+    V, T = ball[0][2]
+    X, T10, E = p2_nodes(V, T)
+    V2, _, _ = refine_tets(V, T)
+    np.testing.assert_array_equal(X, V2)
+    np.testing.assert_allclose(X[T10[:, 4]], 0.5 * (V[T[:, 0]] + V[T[:, 1]]))  # m01
+    np.testing.assert_allclose(X[T10[:, 5]], 0.5 * (V[T[:, 1]] + V[T[:, 2]]))  # m12 (tetra10 order)
+
+
+def test_bernstein_coefficients_reproduce_det_j():
+    rng = np.random.default_rng(3)
+    X, T10, _ = p2_nodes(np.eye(4, 3, k=-1), np.array([[0, 1, 2, 3]]))
+    X[4:] += 0.15 * rng.standard_normal((6, 3))
+    coef, _ = jacobian_bernstein(X, T10)
+    lam = rng.dirichlet(np.ones(4), 50)
+    from math import factorial
+
+    from nestmg.curved import _lattice
+
+    A = _lattice(3)
+    mult = np.array([factorial(3) / np.prod([factorial(a) for a in al]) for al in A])
+    bern = mult * np.prod(lam[:, None, :] ** A[None], axis=2)  # (50, 20)
+    _, dN = p2_basis(lam[:, 1:])
+    direct = np.linalg.det(np.einsum("ad,qak->qdk", X[T10[0]], dN))
+    np.testing.assert_allclose(bern @ coef[0], direct, rtol=1e-12, atol=1e-12)
+    assert coef.min() <= direct.min() + 1e-14 and coef.max() >= direct.max() - 1e-14
+
+
+def test_certification_subdivides_undecided_tets():
+    # a valid curved tet whose degree-3 Bernstein coefficients are not all positive: proved by splitting
+    rng = np.random.default_rng(1)
+    X0, T10, _ = p2_nodes(np.eye(4, 3, k=-1), np.array([[0, 1, 2, 3]]))
+    rng.standard_normal((6, 3))  # the second draw of this seed is the case
+    X = X0.copy()
+    X[4:] += 0.25 * rng.standard_normal((6, 3))
+    assert jacobian_bernstein(X, T10)[0].min() < 0 < scaled_jacobians(X, T10, order=12)[0]
+    assert certify_tets(X, T10, depth=0).tolist() == [0]
+    assert certify_tets(X, T10, depth=2).tolist() == [1]
+
+
+def _dent_projector(center, target, normal, radius):
+    """The unit sphere, except near ``center`` where the surface is the plane through ``target``."""
+    sphere = sphere_projector()
+
+    def project(P):
+        C, N = sphere(P)
+        near = np.linalg.norm(P - center, axis=1) < radius
+        d = (P[near] - target) @ normal
+        C[near] = P[near] - d[:, None] * normal
+        N[near] = normal
+        return C, N
+
+    return project
+
+
+def test_negative_control_mid_node_through_opposite_face_is_invalid_then_repaired(ball):
+    V, T = ball[0][3]  # 160 tets, boundary vertices on the sphere
+    cm0 = curve_mesh(V, T, sphere_projector())
+    F6 = cm0.boundary_facets()
+    node = F6[0, 3]  # a boundary edge node
+    t = np.flatnonzero((cm0.T10 == node).any(axis=1))[0]
+    a, b = cm0.E[node - cm0.n_vertices]
+    opp = [v for v in cm0.T[t] if v not in (a, b)]
+    far = V[opp].mean(axis=0)  # beyond the face opposite the edge: pushed through the tet
+    mid = 0.5 * (V[a] + V[b])
+    target = mid + 1.6 * (far - mid)
+    normal = (mid - far) / np.linalg.norm(mid - far)
+    proj = _dent_projector(mid, target, normal, 0.4 * np.linalg.norm(V[a] - V[b]))
+    bad = curve_mesh(V, T, proj, fit=False)
+    assert bad.report["invalid_after_projection"] >= 1
+    assert bad.report["straightened"] >= 1 and bad.report["certified"]  # fallback: straight, counted
+    fitted = curve_mesh(V, T, proj, fit=True)
+    assert fitted.report["invalid_after_projection"] >= 1
+    assert fitted.report["fit"]["iterations"] > 0
+    assert fitted.report["straightened"] == 0 and fitted.report["certified"]
+    assert (certify_tets(fitted.X, fitted.T10) == 1).all()
+    # the energy moved the node towards the dent (as far as validity allows), not back to straight
+    moved = (fitted.X[node] - mid) @ (-normal)
+    assert moved > 0.1 * np.linalg.norm(far - mid)
+
+
+def test_p2_stiffness_matches_scikit_fem_on_curved_tets(ball):
+    skfem = pytest.importorskip("skfem")
+    from skfem.models.poisson import laplace, mass
+
+    from solvers.fem_p2 import p2_mass_matrix
+
+    V, T = ball[0][2]
+    cm = curve_mesh(V, T, sphere_projector())
+    m = skfem.MeshTet(np.ascontiguousarray(cm.V.T), np.ascontiguousarray(cm.T.T))
+    n = cm.n_vertices
+    key = {tuple(e): i for i, e in enumerate(np.sort(m.edges.T, axis=1))}
+    perm = np.r_[np.arange(n), n + np.array([key[tuple(e)] for e in cm.E])]
+    doflocs = np.zeros((3, len(cm.X)))
+    doflocs[:, perm] = cm.X.T
+    basis = skfem.Basis(skfem.MeshTet2(doflocs, np.ascontiguousarray(cm.T.T)), skfem.ElementTetP2(), intorder=7)
+    K = skfem.asm(laplace, basis)[perm][:, perm]
+    M = skfem.asm(mass, basis)[perm][:, perm]
+    assert abs(K - p2_stiffness_matrix(cm.X, cm.T10)).max() < 1e-5 * abs(K).max()
+    assert abs(M - p2_mass_matrix(cm.X, cm.T10)).max() < 1e-7 * abs(M).max()
+
+
+# ----------------------------------------------------------------------------- convergence
+
+def _grad_un(x):
+    return np.c_[np.exp(x[:, 0]) * np.cos(x[:, 1]), -np.exp(x[:, 0]) * np.sin(x[:, 1]), np.zeros(len(x))]
+
+
+def _un(x):  # harmonic
+    return np.exp(x[:, 0]) * np.cos(x[:, 1])
+
+
+def _solve_p2(tets, P, name, proj, curved, f, u):
+    """L2 error, unknowns and MG-PCG iterations of a P2 problem with data given on the true surface."""
+    if name == "poisson-dirichlet":
+        kw = {"boundary_values": lambda x: u(proj(x)[0])}
+    else:
+        kw = {"flux": lambda x, n: np.einsum("ij,ij->i", _grad_un(proj(x)[0]), proj(x)[1])}
+    cm = curve_mesh(*tets[0], proj) if curved else None
+    pr = setup_problem(tets, P, name, element="P2", curved=cm, f=f, **kw)
+    x, info = pr.multigrid().solve(pr.b, tol=1e-10, accel="cg", return_info=True)
+    err = p2_l2_error(pr.mesh.X, pr.mesh.T10, pr.expand(x), u, remove_mean=name == "poisson-neumann")
+    return err, pr.n_fine, info["iterations"]
+
+
+def _p1_error(tets, P, proj, f, u, dirichlet):
+    """L2 error of P1 on a mesh whose boundary vertices lie on the surface (loads by P2 quadrature: exact)."""
+    from nestmg.tetmesh import orient_tets
+    from solvers import stiffness_matrix
+    from solvers.fem_p2 import p2_boundary_facets, p2_neumann_load
+
+    from nestmg.curved import p2_prolongation
+    from solvers import MultigridSolver, restrict_prolongations
+
+    V, T = tets[0]
+    T = orient_tets(V, T)
+    X, T10, E = p2_nodes(V, T)
+    Pp = p2_prolongation(len(V), E)
+    K = stiffness_matrix(V, T)
+    b = Pp.T @ p2_load(X, T10, f)
+    n = len(V)
+    F6 = p2_boundary_facets(T10)[0]
+    bnd = np.unique(F6[:, :3])
+    uh = np.zeros(n)
+    if dirichlet:
+        free = np.setdiff1d(np.arange(n), bnd)
+        uh[bnd] = u(V[bnd])
+        A, rhs = K[free][:, free], b[free] - K[free][:, bnd] @ uh[bnd]
+    else:
+        b = b + Pp.T @ p2_neumann_load(X, F6, lambda x, nn: np.einsum("ij,ij->i", _grad_un(proj(x)[0]), proj(x)[1]))
+        free = np.arange(1, n)
+        A, rhs = K[1:, 1:], (b - b.mean())[1:]
+    ml = MultigridSolver(A.tocsr(), restrict_prolongations(P, free)[0])  # the refinement hierarchy
+    uh[free] = ml.solve(rhs, tol=1e-11, accel="cg")
+    return p2_l2_error(X, T10, Pp @ uh, u, remove_mean=not dirichlet)
+
+
+def _ball_dirichlet(x):
+    return (1 - (x**2).sum(1)) * np.exp(x[:, 0])
+
+
+def _ball_source(x):
+    return np.exp(x[:, 0]) * (6 + 4 * x[:, 0] - (1 - (x**2).sum(1)))
+
+
+def _zero(x):
+    return np.zeros(len(x))
+
+
+def _convergence(tets, P, name, proj, f, u, coarse_end):
+    """Errors of curved and straight P2 on tets[2] and tets[1] (hierarchy down to ``coarse_end``), P1 on tets[0]."""
+    e_c, e_s, its = [], [], []
+    for j in (2, 1):
+        ec, n, it = _solve_p2(tets[j:coarse_end], P[j:coarse_end - 1], name, proj, True, f, u)
+        es, _, _ = _solve_p2(tets[j:coarse_end], P[j:coarse_end - 1], name, proj, False, f, u)
+        e_c.append(ec), e_s.append(es), its.append(it)
+    # equal unknowns: curved P2 on tets[1] vs P1 on its red refinement tets[0] (the same node count)
+    e_p1 = _p1_error(tets[:coarse_end], P[:coarse_end - 1], proj, f, u, name == "poisson-dirichlet")
+    return e_c, e_s, its, e_p1
+
+
+def _check_rates(e_c, e_s, its, e_p1):
+    rate_c, rate_s = np.log2(e_c[0] / e_c[1]), np.log2(e_s[0] / e_s[1])
+    assert rate_c >= 2.7, (e_c, rate_c)
+    assert rate_s <= 2.2, (e_s, rate_s)
+    assert e_c[1] < 0.1 * e_s[1]
+    assert max(its) <= 12 and its[1] <= its[0] + 2  # p-multigrid on the P1 levels: flat iteration counts
+    assert e_c[1] * 10 <= e_p1, (e_c[1], e_p1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["poisson-dirichlet", "poisson-neumann"])
+def test_ball_curved_p2_converges_at_third_order(ball, name):
+    tets, P = ball
+    f, u = (_ball_source, _ball_dirichlet) if name == "poisson-dirichlet" else (_zero, _un)
+    # curved P2 on 1280 and 10240 tets (the 160-tet mesh is the coarse level), P1 on 82k tets
+    _check_rates(*_convergence(tets, P, name, sphere_projector(), f, u, coarse_end=4))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["poisson-dirichlet", "poisson-neumann"])
+def test_torus_curved_p2_converges_at_third_order(torus, name):
+    tets, P = torus
+    _check_rates(*_convergence(tets, P, name, torus_projector(), _zero, _un, coarse_end=len(tets)))
+
+
+@pytest.mark.parametrize("shape", ["ball", "torus"])
+def test_surface_fit_converges_at_third_order(ball, torus, shape):
+    (tets, _), proj = (ball, sphere_projector()) if shape == "ball" else (torus, torus_projector())
+    reps = [curve_mesh(*tets[j], proj).report for j in (2, 1)]
+    d = [r["surface_distance"] for r in reps]
+    assert np.log2(d[0]["curved_max"] / d[1]["curved_max"]) >= 2.7, d
+    assert np.log2(d[0]["straight_max"] / d[1]["straight_max"]) <= 2.2, d
+    rep = reps[1]
+    assert rep["certified"] and rep["straightened"] == 0
+    assert 0.5 < rep["scaled_jacobian"]["min"] <= 1.0
+
+
+def test_bad_input_is_one_clear_error(ball):
+    V, T = ball[0][3]
+    with pytest.raises(NestmgInputError, match="element"):
+        setup_problem(ball[0][3:], ball[1][3:], element="P3")
+    with pytest.raises(NestmgInputError, match="need element='P2'"):
+        setup_problem(ball[0][3:], ball[1][3:], flux=lambda x, n: x[:, 0])
+    with pytest.raises(NestmgInputError, match="curve tets"):
+        setup_problem(ball[0][2:], ball[1][2:], element="P2", curved=curve_mesh(V, T, sphere_projector()))
+    with pytest.raises(NestmgInputError, match="curve_mesh needs"):
+        curve_mesh(V[:, :2], T, sphere_projector())

@@ -100,16 +100,41 @@ def _hierarchy(V, F, args, method=None):
     )
 
 
+def _p2_level(h) -> int:
+    """The level that carries P2: 1 when level 0 is the red refinement of level 1 (same unknowns), else 0."""
+    rep = h.prolongation_reports[0] if h.prolongation_reports else None
+    return 1 if rep is not None and str(rep.extrapolation).startswith("none (refinement)") else 0
+
+
+def _curve(h, base: int):
+    """Level ``base`` of ``h`` curved onto the input surface (normalised frame), certified."""
+    from .curved import curve_mesh, surface_projector
+
+    Vs, Fs = h.surfaces_in("normalized")[0]
+    return curve_mesh(*h.tets_in("normalized")[base], surface_projector(Vs, Fs))
+
+
 def _solve(h, args, solution: bool = False) -> dict:
     from .run import solve_on_hierarchy
 
     # the model problems are posed on the normalised shape (unit bounding-box diagonal), so --lam and
     # the right-hand side mean the same for every input scale
-    return solve_on_hierarchy(
-        h.tets_in("normalized"), h.P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
+    tets, P, extra = h.tets_in("normalized"), h.P, {}
+    if getattr(args, "element", "P1") == "P2":
+        if args.problem.startswith("elasticity"):
+            raise NestmgError("--element P2 supports the scalar problems only (not elasticity)")
+        base = _p2_level(h)
+        cm = _curve(h, base)
+        tets, P, extra = tets[base:], P[base:], {"element": "P2", "curved": cm}
+    r = solve_on_hierarchy(
+        tets, P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
         accel=args.accel, tol=args.tol, maxiter=args.maxiter, lam=args.lam, return_solution=solution,
-        poisson_ratio=args.poisson_ratio,
+        poisson_ratio=args.poisson_ratio, **extra,
     )
+    if extra:
+        r["curved"] = cm.report | {"level": base}
+        r["p2_mesh"] = cm  # popped before the report is written
+    return r
 
 
 def _print_solve(label: str, h, r: dict) -> None:
@@ -200,8 +225,22 @@ def cmd_solve(args) -> int:
     h = _hierarchy(V, F, args)
     r = _solve(h, args, solution=bool(args.out))
     u = r.pop("solution", None)
+    cm = r.pop("p2_mesh", None)
     _print_solve(args.method, h, r)
-    if args.out:  # every level's tet mesh; the solution on level 0; in the input's coordinates
+    if cm is not None:
+        c = r["curved"]
+        print(f"{'':<10} P2 on level {c['level']} ({len(cm.X):,} nodes): {c['curved_tets']:,} curved tets, "
+              f"{c['invalid_after_projection']} invalid after projection, {c['straightened']} straightened, "
+              f"certified={c['certified']}, scaled Jacobian min {c['scaled_jacobian']['min']:.3f}")
+    if args.out and cm is not None:  # the curved P2 mesh with u (tetra10), then every level without u
+        from .io import save_tet_mesh
+        from .usermesh import write_vtu_levels
+
+        p2 = Path(args.out) / "p2.vtu"
+        save_tet_mesh(p2, h.to_user(cm.X), cm.T10, point_data={"u": u})
+        files = [p2, *write_vtu_levels(args.out, h, {})]
+        print(f"wrote {', '.join(str(f) for f in files)}")
+    elif args.out:  # every level's tet mesh; the solution on level 0; in the input's coordinates
         from .problems import default_rhs
         from .usermesh import write_vtu_levels
 
@@ -345,6 +384,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="elasticity-*: linear elasticity (E = 1, --poisson-ratio), clamped at the lowest x "
                         "under gravity -z, or free under a balanced body force; u is the displacement")
     s.add_argument("--method", default="nested")
+    s.add_argument("--element", choices=["P1", "P2"], default="P1",
+                   help="P2: quadratic tets curved onto the input surface (certified valid), on the level "
+                        "refined into level 0 (the same unknowns) or on level 0; p-multigrid to the P1 levels; "
+                        "--out writes p2.vtu (tetra10)")
     s.add_argument("--json", default=None, help="write the report here")
     s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")
     s.add_argument("--out", default=None,

@@ -202,7 +202,8 @@ def save_tet_mesh(path: str | os.PathLike, V: np.ndarray, T: np.ndarray, point_d
     ----------
     path : path ending in ``.vtu`` (or another meshio tet format)
     V : (n,3) float array
-    T : (t,4) int array
+    T : (t,4) int array, or (t,10) for quadratic tets (meshio ``tetra10``: vertices, then the edge nodes
+        ``01, 12, 02, 03, 13, 23``; :attr:`nestmg.curved.CurvedMesh.T10`), which ParaView draws curved
     point_data : dict of name -> (n,) or (n,c) array, optional
     cell_data : dict of name -> (t,) array, optional
     """
@@ -212,7 +213,8 @@ def save_tet_mesh(path: str | os.PathLike, V: np.ndarray, T: np.ndarray, point_d
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    mesh = meshio.Mesh(np.asarray(V, dtype=np.float64), [("tetra", np.asarray(T, dtype=np.int64))],
+    T = np.asarray(T, dtype=np.int64)
+    mesh = meshio.Mesh(np.asarray(V, dtype=np.float64), [("tetra10" if T.shape[1] == 10 else "tetra", T)],
                        point_data={k: np.asarray(v) for k, v in (point_data or {}).items()},
                        cell_data={k: [np.asarray(v)] for k, v in (cell_data or {}).items()})
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)

@@ -65,6 +65,8 @@ def solve_on_hierarchy(
     coarse_nu: int | None = None,
     local: bool = True,
     poisson_ratio: float = 0.3,
+    element: str = "P1",
+    curved=None,
 ) -> dict[str, Any]:
     """Assemble ``problem`` on ``tets[0]``, build the multigrid solver from ``P`` and solve.
 
@@ -90,6 +92,10 @@ def solve_on_hierarchy(
         See :meth:`solvers.MultigridSolver.solve`.
     poisson_ratio : float
         ν of the elasticity problems (:func:`nestmg.elasticity.setup_elasticity`).
+    element, curved
+        ``"P2"``: quadratic elements on ``tets[0]``, curved when ``curved`` is its
+        :class:`nestmg.curved.CurvedMesh` (see :func:`nestmg.setup_problem`); the solution is then on
+        the P2 nodes ``curved.X``.
     cost : bool
         Also measure the cost of one cycle in fine SpMVs.
     return_solution : bool
@@ -108,8 +114,9 @@ def solve_on_hierarchy(
         ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
     """
     t0 = time.perf_counter()
+    extra = {"element": element, "curved": curved} if element != "P1" else {}
     prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions,
-                         poisson_ratio=poisson_ratio)
+                         poisson_ratio=poisson_ratio, **extra)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
     pre = cycle_smoothers(smoother, nu, coarse_nu)
@@ -121,7 +128,7 @@ def solve_on_hierarchy(
         # the smoother built (elasticity turns Gauss-Seidel into nodal block Gauss-Seidel)
         "smoother": ml.levels[0].presmoother.name if len(ml.levels) > 1 else smoother, "coarse_nu": cnu,
         "local_nodes": 0 if not local or prob.local_nodes is None else int(prob.local_nodes.size), "cycle": cycle,
-        "accel": accel, "lam": prob.params["lam"],
+        "accel": accel, "lam": prob.params["lam"], "element": element,
         **({"poisson_ratio": prob.params["nu"]} if "nu" in prob.params else {}),
         "tol": tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],

@@ -258,3 +258,25 @@ def test_bad_input_is_one_clear_error(ball):
         setup_problem(ball[0][2:], ball[1][2:], element="P2", curved=curve_mesh(V, T, sphere_projector()))
     with pytest.raises(NestmgInputError, match="curve_mesh needs"):
         curve_mesh(V[:, :2], T, sphere_projector())
+
+
+def test_cli_solve_element_p2_writes_tetra10(tmp_path):
+    import json
+
+    import meshio
+
+    from nestmg.cli import main
+
+    out = tmp_path / "r.json"
+    rc = main(["solve", "shape:sphere", "--method", "decimate", "--levels", "2", "--mesher", "tetgen",
+               "--max-tets", "8000", "--element", "P2", "--accel", "cg", "--json", str(out), "--out",
+               str(tmp_path / "vtu"), "--quiet"])
+    assert rc == 0
+    r = json.loads(out.read_text())["solve"]
+    assert r["element"] == "P2" and r["converged"] and r["iterations"] <= 20
+    assert r["curved"]["certified"] and r["curved"]["level"] == 0
+    m = meshio.read(tmp_path / "vtu" / "p2.vtu")
+    assert m.cells[0].type == "tetra10" and len(m.cells[0].data) == r["curved"]["tets"]
+    assert np.isfinite(m.point_data["u"]).all() and np.abs(m.point_data["u"]).max() > 0
+    assert main(["solve", "shape:sphere", "--element", "P2", "--problem", "elasticity-free", "--levels", "2",
+                 "--mesher", "tetgen", "--max-tets", "8000", "--quiet"]) == 2

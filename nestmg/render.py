@@ -205,3 +205,59 @@ def _plot_convergence(histories, path: Path, title: str, xlabel: str) -> Path:
     plt.close(fig)
     os.replace(tmp, path)
     return path
+
+
+def _curved_surface(X: np.ndarray, F6: np.ndarray, order: int = 4):
+    """Flat triangles (4^k per facet) and facet-edge polylines of 6-node facets, for drawing."""
+    from solvers.fem_p2 import _p2_tri_basis
+
+    st = np.array([(i / order, j / order) for j in range(order + 1) for i in range(order + 1 - j)])
+    idx = {(i, j): k for k, (i, j) in enumerate((round(a * order), round(b * order)) for a, b in st)}
+    tris = []
+    for j in range(order):
+        for i in range(order - j):
+            tris.append([idx[i, j], idx[i + 1, j], idx[i, j + 1]])
+            if i + j < order - 1:
+                tris.append([idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]])
+    N, _ = _p2_tri_basis(st)
+    P = np.einsum("qa,fad->fqd", N, X[F6])  # (f, q, 3)
+    q = len(st)
+    F = (np.asarray(tris)[None] + q * np.arange(len(F6))[:, None, None]).reshape(-1, 3)
+    s = np.linspace(0, 1, order + 1)
+    edges = [np.c_[s, 0 * s], np.c_[1 - s, s], np.c_[0 * s, 1 - s]]
+    lines = [np.einsum("qa,fad->fqd", _p2_tri_basis(e)[0], X[F6]) for e in edges]
+    return P.reshape(-1, 3), F, np.concatenate(lines, axis=0)
+
+
+def render_curved(X: np.ndarray, F6: np.ndarray, Xs: np.ndarray, path: str | os.PathLike, *,
+                  titles: tuple[str, str] = ("straight", "curved P2"), window_size=(1600, 800)) -> Path:
+    """Straight and curved boundaries of a quadratic tet mesh side by side (off-screen PNG).
+
+    Parameters
+    ----------
+    X, Xs : (N,3) float arrays
+        Curved and straight P2 nodes (:class:`nestmg.curved.CurvedMesh` ``X`` and ``straight().X``).
+    F6 : (f,6) int array
+        Boundary facets (:meth:`nestmg.curved.CurvedMesh.boundary_facets`).
+    """
+    with third_party_to_log():
+        import pyvista as pv
+
+        pv.OFF_SCREEN = True
+        pl = pv.Plotter(off_screen=True, shape=(1, 2), window_size=window_size, border=False)
+        for j, (Y, title) in enumerate(((Xs, titles[0]), (X, titles[1]))):
+            pl.subplot(0, j)
+            P, F, L = _curved_surface(np.asarray(Y), np.asarray(F6))
+            pl.add_mesh(_polydata(P, F), color="#d9d9d9", smooth_shading=True)
+            seg = np.stack([L[:, :-1], L[:, 1:]], axis=2).reshape(-1, 3)
+            pl.add_mesh(pv.line_segments_from_points(seg), color="#1f4e79", line_width=1.2)
+            pl.add_text(title, font_size=12)
+            pl.view_xy()
+        pl.link_views()
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.tmp.png")
+        pl.screenshot(str(tmp))
+        pl.close()
+        os.replace(tmp, path)
+    return path

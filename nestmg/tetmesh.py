@@ -340,6 +340,57 @@ def _limit_hint(limit: float | None) -> str:
 #: flat tets between coplanar facets, or a mesh-improvement loop on those flat tets that never ends (the
 #: hang of issue 27). "merged": TetGen's own treatment of coplanar facets (merged within 0.1 degrees),
 #: which meshes those; the boundary may then move by the height of a fold below 0.1 degrees.
+#: edge of fTetWild's working mesh outside the solid, relative to the target edge (:func:`outer_sizing_field`)
+OUTER_EDGE_FACTOR = 3.0
+#: most background-grid nodes of :func:`outer_sizing_field` (the spacing grows past it)
+SIZING_GRID_NODES = 1_000_000
+
+
+def outer_sizing_field(V: np.ndarray, F: np.ndarray, h: float, factor: float) -> dict:
+    """fTetWild keywords for a mesh at edge ``h`` inside the solid and ``factor * h`` away from it.
+
+    fTetWild meshes the whole (enlarged) bounding box at the target edge, optimises all of it and
+    discards the outside at the end: on homer.obj at 124k tets the working mesh had ~700k tets. Here its
+    global edge is ``factor * h`` and a background grid (spacing ``s >= h``, Kuhn tets) asks for ``h``
+    at every grid node inside the solid (winding number) or within ``1.8 s`` of the surface (so every
+    grid cell that meets the solid has ``h`` at all its corners), growing by half the distance beyond.
+    fTetWild's main passes then run on the coarse mesh and its sizing-field passes refine the solid
+    (``apply_sizingfield``). Measured on homer (h = 0.0121 of the diagonal, one thread): 50.7 against
+    178.5 CPU s, 124,194 against 123,318 tets, minimum dihedral angle 12.9 against 11.5 degrees.
+    """
+    import igl
+
+    lo, hi = V.min(axis=0) - 0.15, V.max(axis=0) + 0.15  # fTetWild's box is the bbox plus ~1/15
+    s = max(h, float(np.prod(hi - lo) / SIZING_GRID_NODES) ** (1 / 3))
+    n = np.ceil((hi - lo) / s).astype(int) + 1
+    axes = [lo[i] + s * np.arange(n[i]) for i in range(3)]
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    Fi = np.asarray(F, dtype=np.int64)
+    wn = igl.fast_winding_number(np.asarray(V, dtype=np.float64), Fi, G)
+    d = np.sqrt(igl.point_mesh_squared_distance(G, np.asarray(V, dtype=np.float64), Fi)[0])
+    band = 1.8 * s
+    values = np.where((wn > 0.5) | (d < band), h, np.minimum(factor * h, h + 0.5 * (d - band)))
+    return {"edge_length_abs": factor * h, "bg_vertices": G, "bg_tets": _kuhn_tets(n),
+            "bg_values": values.astype(np.float64)}
+
+
+def _kuhn_tets(n: np.ndarray) -> np.ndarray:
+    """The six Kuhn tets of every cell of an ``n[0] x n[1] x n[2]`` node grid (C order), int32."""
+    import itertools
+
+    idx = np.arange(int(np.prod(n))).reshape(tuple(n))
+    c = [a.ravel() for a in np.meshgrid(*[np.arange(k - 1) for k in n], indexing="ij")]
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        o = [0, 0, 0]
+        path = [idx[c[0], c[1], c[2]]]
+        for ax in perm:
+            o[ax] += 1
+            path.append(idx[c[0] + o[0], c[1] + o[1], c[2] + o[2]])
+        tets.append(np.stack(path, axis=1))
+    return np.concatenate(tets).astype(np.int32)
+
+
 _TETGEN_MODES = {
     "exact": {"nomergefacet": True, "nomergevertex": True},
     "merged": {"nomergefacet": False, "nomergevertex": True},
@@ -414,6 +465,7 @@ def tetrahedralize(
     stop_energy: float = 10.0,
     max_opt_iter: int = 80,
     coarsen: bool = False,
+    outer_edge_factor: float = OUTER_EDGE_FACTOR,
     time_limit: float | str | None = "auto",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tet-mesh the solid bounded by the closed surface ``(V, F)``.
@@ -443,6 +495,10 @@ def tetrahedralize(
         TetWild: coarsen the output as far as the quality allows. Without it the boundary triangles of a
         coarse cage keep ~2-8x more tets than the target edge length asks (measured on the demo torus's
         cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
+    outer_edge_factor : float
+        TetWild: target edge of its working mesh *outside* the solid, relative to the edge length
+        (:func:`outer_sizing_field`; 1: fTetWild's uniform sizing). fTetWild optimises a mesh of the
+        whole bounding box and discards the outside at the end; a coarse outside cuts its work.
     time_limit : float, "auto" or None
         Seconds the mesher may run (in a worker process, killed when over). ``"auto"``:
         :func:`mesh_time_limit` (``$NESTMG_MESH_TIME_LIMIT``, else 10x the sizing estimate, at least
@@ -488,6 +544,8 @@ def tetrahedralize(
             c = (lo + hi) / 2
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
+            if outer_edge_factor > 1.0:
+                opts.update(outer_sizing_field((V - c) / diag, F, h / diag, float(outer_edge_factor)))
             try:
                 Vt, T = _mesher_call("tetwild", (V - c) / diag, F, opts, deadline)
             except TetMeshTimeoutError as exc:

@@ -71,10 +71,12 @@ from .petsc_common import (
     petsc_available,
     row_partition,
 )
+from .petsc_distributed import broadcast_arrays
 from .petsc_io import load_operators, save_operators
 
 __all__ = [
     "PetscMultigrid",
+    "broadcast_arrays",
     "PetscUnavailableError",
     "load_operators",
     "petsc_amg_solve",

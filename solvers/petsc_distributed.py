@@ -155,3 +155,54 @@ def distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, on_bound
     location["coarse_sizes"] = [len(o) for o in owners]
     location["seconds"] = time.perf_counter() - t0
     return interp, location
+
+
+def _bcast_floats(PETSc, comm, values, n: int, root: int) -> np.ndarray:
+    """``values`` (n floats, given on ``root``) on every rank."""
+    vec = PETSc.Vec().createMPI((n if comm.getRank() == root else 0, n), comm=comm)
+    if comm.getRank() == root:
+        vec.setArray(np.asarray(values, dtype=np.float64))
+    out = _gather(PETSc, vec)
+    vec.destroy()
+    return out
+
+
+def broadcast_arrays(comm, arrays: dict | None, root: int = 0) -> dict:
+    """Numpy arrays given on rank ``root``, on every rank of ``comm`` (collective; without mpi4py).
+
+    For the small coarse levels of :meth:`solvers.petsc.PetscMultigrid.from_distributed` (built once on
+    one rank). Values travel as float64: integers must stay below 2**53 in magnitude.
+
+    Parameters
+    ----------
+    comm : petsc4py ``PETSc.Comm``
+    arrays : dict of str -> array_like on ``root`` (real or integer or bool); ignored on other ranks
+    root : int
+
+    Returns
+    -------
+    dict of str -> numpy array, the same names, dtypes and shapes on every rank.
+    """
+    import json
+
+    from .petsc_common import _petsc
+
+    PETSc = _petsc()
+    header = payload = None
+    if comm.getRank() == root:
+        items = {k: np.asarray(v) for k, v in arrays.items()}
+        for k, v in items.items():
+            if v.dtype.kind not in "biuf":
+                raise SolverInputError(f"broadcast_arrays: {k!r} has dtype {v.dtype}; real, int or bool only")
+        spec = json.dumps([[k, v.dtype.str, list(v.shape)] for k, v in items.items()]).encode()
+        header = np.frombuffer(spec, dtype=np.uint8).astype(np.float64)
+        payload = np.concatenate([v.astype(np.float64).ravel() for v in items.values()] or [np.zeros(0)])
+    sizes = _bcast_floats(PETSc, comm, None if header is None else [len(header), len(payload)], 2, root)
+    header = _bcast_floats(PETSc, comm, header, int(sizes[0]), root)
+    payload = _bcast_floats(PETSc, comm, payload, int(sizes[1]), root)
+    out, pos = {}, 0
+    for name, dtype, shape in json.loads(header.astype(np.uint8).tobytes().decode()):
+        size = int(np.prod(shape))
+        out[name] = payload[pos:pos + size].astype(np.dtype(dtype)).reshape(shape)
+        pos += size
+    return out

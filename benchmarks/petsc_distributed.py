@@ -56,7 +56,8 @@ def _events(PETSc, names) -> dict:
     for name in names:
         info = PETSc.Log.Event(name).getPerfInfo()
         out[name] = {"count": int(info["count"]), "messages": float(info["numMessages"]),
-                     "bytes": float(info["messageLength"]), "seconds": float(info["time"])}
+                     "bytes": float(info["messageLength"]), "reductions": float(info["numReductions"]),
+                     "seconds": float(info["time"])}
     return out
 
 
@@ -92,11 +93,12 @@ def worker(args) -> None:
     A, b, points = drv.assemble(PETSc, dm, X, tets, ldof, owned, gidx)
     t_mesh = time.perf_counter() - t
     rss["assembled"] = _rss()
-    ptap0 = _events(PETSc, ["MatPtAP"])
+    setup_events = ["MatPtAPSymbolic", "MatPtAPNumeric", "PCSetUp"]
+    ptap0 = _events(PETSc, setup_events)
     mg = PetscMultigrid.from_distributed(A, points, (V1, T1), coarse_Ps)
     rss["hierarchy"] = _rss()
-    ptap = _events(PETSc, ["MatPtAP"])["MatPtAP"]
-    ptap = {k: ptap[k] - ptap0["MatPtAP"][k] for k in ptap}
+    ptap1 = _events(PETSc, setup_events)
+    ptap = {e: {q: ptap1[e][q] - ptap0[e][q] for q in ptap1[e]} for e in setup_events}
     pc = mg.ksp.getPC()
     P0 = pc.getMGInterpolation(len(mg.levels) - 1)
     solve0 = _events(PETSc, ["KSPSolve", "PCApply", "MatMult"])

@@ -288,6 +288,42 @@ def petsc_scale() -> str:
                   "solutions differ (relative)"], rows)
 
 
+DIST = "petsc/petsc_distributed.json"
+
+
+@generator("petsc.distributed", DIST)
+def petsc_distributed() -> str:
+    head, rows = sibling("petsc_distributed").memory_table(load(DIST))
+    return table(head, rows)
+
+
+@generator("petsc.distributed_comm", DIST)
+def petsc_distributed_comm() -> str:
+    rows = [[c["ranks"], f"{c['tets_per_rank']:,.0f}", f"{c['ptap_bytes'] / 2**20:.2f}", f"{c['setup_bytes'] / 2**20:.2f}",
+             f"{c['cycle_bytes'] / 2**10:.0f}", f"{c['cycle_messages']:.0f}", f"{c['reductions']:.0f}"]
+            for c in sibling("petsc_distributed").comm_rows(load(DIST))]
+    return table(["ranks", "fine tets per rank", "MatPtAP MiB sent per rank", "PCSetUp MiB sent per rank",
+                  "KiB sent per rank per CG iteration", "messages per rank per CG iteration",
+                  "reductions per CG iteration"], rows)
+
+
+@generator("petsc.estimate", DIST)
+def petsc_estimate() -> str:
+    e = sibling("petsc_distributed").estimate(load(DIST))
+    mib = 2.0**20
+    rows = [["fine tets per rank", f"{e['tets_per_rank']:,.0f}"],
+            ["fine-level bytes per tet (measured, largest run)", f"{e['fine_bytes_per_tet']:.0f}"],
+            ["fine level per rank", f"{e['fine_bytes'] / mib:,.0f} MiB"],
+            ["start-up (Python, PETSc, libigl) per rank", f"{e['start_bytes'] / mib:,.0f} MiB"],
+            [f"global coarse levels per rank (first coarse level {e['first_coarse_tets']:,.0f} tets)",
+             f"{e['coarse_bytes'] / mib:,.0f} MiB"],
+            ["**memory per rank**", f"**{e['memory_per_rank'] / mib:,.0f} MiB**"],
+            [f"MatPtAP bytes sent per rank (x{e['surface_scale']:.1f}, from {e['from_ranks']} ranks)",
+             f"{e['ptap_bytes_per_rank'] / mib:.1f} MiB"],
+            ["bytes sent per rank per CG iteration", f"{e['cycle_bytes_per_rank'] / mib:.2f} MiB"]]
+    return table(["100M tets on 64 ranks (model)", "estimate"], rows)
+
+
 # ----------------------------------------------------------------------------------------- cage backends
 SDF_ZOO = "sdf/zoo_all_ba988c4.json"
 

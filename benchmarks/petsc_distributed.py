@@ -62,7 +62,10 @@ def _events(PETSc, names) -> dict:
 
 
 def _mat_bytes(PETSc, M) -> int:
-    return int(M.getInfo(PETSc.Mat.InfoType.LOCAL)["memory"])
+    """AIJ storage of this rank's rows: 8 + 4 bytes per allocated non-zero, 4 per row (PETSc's own memory
+    figure is 0 in Debian's build, which logs no memory)."""
+    info = M.getInfo(PETSc.Mat.InfoType.LOCAL)
+    return int(info["nz_allocated"] * (8 + np.dtype(PETSc.IntType).itemsize) + 4 * M.getLocalSize()[0])
 
 
 def worker(args) -> None:
@@ -227,11 +230,82 @@ def launcher(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------- tables (benchmarks/doc_tables.py)
+MIB = 2.0**20
+
+
+def _fine_bytes(rec: dict) -> int:
+    """A rank's fine-level memory: its peak minus its resident memory before the fine mesh existed."""
+    return rec["peak"] - rec["rss"]["coarse levels"]
+
+
+def memory_table(doc: dict) -> tuple[list[str], list[list]]:
+    """Per rank count: tets and peak per rank, fine-level memory and its breakdown (max over ranks)."""
+    base = doc["runs"][0]
+    f1 = max(_fine_bytes(r) for r in base["per_rank"]) * base["ranks"]
+    rows = []
+    for run in doc["runs"]:
+        recs, p = run["per_rank"], run["ranks"]
+        fine = max(_fine_bytes(r) for r in recs)
+        obj = {k: max(r["fine_objects"][k] for r in recs) for k in recs[0]["fine_objects"]}
+        rows.append([p, f"{max(r['tets'] for r in recs):,}", f"{max(r['peak'] for r in recs) / MIB:.0f}",
+                     f"{fine / MIB:.0f}", f"{fine * p / f1:.2f}",
+                     f"{obj['DMPlex (rss delta of distribute + refine)'] / MIB:.0f}",
+                     f"{obj['A (MPIAIJ, local)'] / MIB:.1f}", f"{obj['P0 (MPIAIJ, local)'] / MIB:.1f}",
+                     f"{obj['local mesh arrays (X, tets, dof maps)'] / MIB:.1f}",
+                     f"{recs[0]['iterations']}", f"{run['solution_vs_first_run']:.0e}"])
+    head = ["ranks", "fine tets per rank (max)", "peak MiB per rank (max)", "fine-level MiB per rank (max)",
+            "fine-level memory x p / 1-rank", "DMPlex MiB", "A MiB", "P₀ MiB", "mesh arrays MiB",
+            "CG iterations (1e-8)", "solution vs 1 rank (1e-12 solves)"]
+    return head, rows
+
+
+def comm_rows(doc: dict) -> list[dict]:
+    """Per rank count: PtAP and per-CG-iteration message bytes and counts (mean per rank)."""
+    out = []
+    for run in doc["runs"]:
+        recs, p = run["per_rank"], run["ranks"]
+        its = recs[0]["iterations"]
+        ptap = sum(r["ptap"]["MatPtAPSymbolic"]["bytes"] + r["ptap"]["MatPtAPNumeric"]["bytes"] for r in recs) / p
+        setup = sum(r["ptap"]["PCSetUp"]["bytes"] for r in recs) / p
+        cyc = sum(r["solve"]["KSPSolve"]["bytes"] for r in recs) / p / its
+        msgs = sum(r["solve"]["KSPSolve"]["messages"] for r in recs) / p / its
+        out.append({"ranks": p, "tets_per_rank": sum(r["tets"] for r in recs) / p, "ptap_bytes": ptap,
+                    "setup_bytes": setup, "cycle_bytes": cyc, "cycle_messages": msgs,
+                    "reductions": sum(r["solve"]["KSPSolve"]["reductions"] for r in recs) / p / its})
+    return out
+
+
+def estimate(doc: dict, tets: float = 1e8, ranks: int = 64) -> dict:
+    """Measured-model estimate of a ``tets``-tet solve on ``ranks`` ranks (the refinement ratio kept).
+
+    Memory per rank = start-up (measured) + the global coarse levels (their measured memory scaled by the
+    first coarse level's tet count, which grows with the fine one) + fine-level bytes per tet (the largest
+    rank-count run's) x tets per rank. Communication per rank: halo volume scales with the surface of a
+    rank's part, ``(tets per rank)^(2/3)``, from the largest rank-count run.
+    """
+    last = doc["runs"][-1]
+    recs, p = last["per_rank"], last["ranks"]
+    per_tet = max(_fine_bytes(r) / r["tets"] for r in recs)
+    start = max(r["rss"]["start"] for r in recs)
+    coarse_now = max(r["rss"]["coarse levels"] - r["rss"]["start"] for r in recs)
+    ratio = tets / sum(r["tets"] for r in recs)  # the input (first coarse) mesh grows with the fine one
+    coarse = coarse_now * ratio
+    tpr = tets / ranks
+    c = comm_rows(doc)[-1]
+    scale = (tpr / c["tets_per_rank"]) ** (2.0 / 3.0)
+    return {"tets": tets, "ranks": ranks, "tets_per_rank": tpr, "fine_bytes_per_tet": per_tet,
+            "start_bytes": start, "coarse_bytes": coarse, "first_coarse_tets": doc["input_mesh"]["tets"] * ratio,
+            "fine_bytes": per_tet * tpr, "memory_per_rank": start + coarse + per_tet * tpr,
+            "ptap_bytes_per_rank": c["ptap_bytes"] * scale, "cycle_bytes_per_rank": c["cycle_bytes"] * scale,
+            "from_ranks": p, "surface_scale": scale}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--mesh", help="a tet mesh file (default: TetWild mesh of a procedural torus)")
-    ap.add_argument("--edge-length", type=float, default=0.04, help="TetWild edge factor of the default torus")
+    ap.add_argument("--edge-length", type=float, default=0.03, help="TetWild edge factor of the default torus")
     ap.add_argument("--levels", type=int, default=3, help="levels of the input mesh's hierarchy")
     ap.add_argument("--refine", type=int, default=2, help="parallel refinements of the input mesh")
     ap.add_argument("--tol", type=float, default=1e-8)

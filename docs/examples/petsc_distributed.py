@@ -74,7 +74,10 @@ def distribute(PETSc, V: np.ndarray, T: np.ndarray, refine: int):
 
 
 def _cones(dm, start: int, end: int, width: int) -> np.ndarray:
-    return np.array([dm.getCone(p) for p in range(start, end)], dtype=np.int64).reshape(-1, width)
+    out = np.empty((end - start, width), dtype=np.int64)  # filled row by row: no list of small arrays
+    for i, p in enumerate(range(start, end)):
+        out[i] = dm.getCone(p)
+    return out
 
 
 def local_mesh(dm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -363,10 +363,12 @@ class PetscMultigrid:
         if omega is not None and not (np.isfinite(omega) and 0 < omega < 2):
             raise SolverInputError(f"omega must lie in (0, 2), got {omega!r}")
         if not isinstance(options_prefix, str) or not options_prefix or options_prefix.startswith("-"):
-            raise SolverInputError(f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
+            raise SolverInputError(
+                f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
         if coarse_solver not in ("auto", "splu", "regularized", "pinv", "petsc"):
             raise SolverInputError(
-                f"coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', got {coarse_solver!r}")
+                "coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', "
+                f"got {coarse_solver!r}")
         self.nullspace = _check_nullspace(nullspace)
         self.comm = PETSc.COMM_WORLD if comm is None else comm
         self.comm_size = self.comm.getSize()
@@ -386,8 +388,8 @@ class PetscMultigrid:
         owner = None
         if isinstance(partition, str) and partition not in ("auto", "natural", "rcm"):
             if partition not in ("ptscotch", "parmetis"):
-                raise SolverInputError(f"partition must be 'auto', 'natural', 'rcm', 'ptscotch', 'parmetis' or an "
-                                       f"array of ranks, got {partition!r}")
+                raise SolverInputError("partition must be 'auto', 'natural', 'rcm', 'ptscotch', 'parmetis' "
+                                       f"or an array of ranks, got {partition!r}")
             if not PETSc.Sys.hasExternalPackage(partition):
                 raise SolverInputError(f"this PETSc was built without {partition}; use 'auto' or 'natural'")
         if isinstance(partition, str) and partition == "auto":
@@ -408,7 +410,8 @@ class PetscMultigrid:
                     A_nat.destroy()
         elif partition == "rcm" and size > 1:
             owner = _fine_owner(PETSc, A, None, partition, self.n, size, self.comm)
-        self.partition = "natural" if owner is None else (partition if isinstance(partition, str) else "given")
+        given = partition if isinstance(partition, str) else "given"
+        self.partition = "natural" if owner is None else given
         layouts = [_Layout(owner, self.n, size)]
         for P in Ps:
             if owner is not None:
@@ -560,7 +563,8 @@ class PetscMultigrid:
             f"Smoother:           {self.smoother} (omega={self.omega})",
             f"Coarse operators:   {'Galerkin (PETSc MatPtAP)' if self.coarse == 'galerkin' else 'given'}",
             (f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}"
-             + ("" if self.ghosts_per_rank is None else f", off-rank couplings {self.ghosts_per_rank}") + ")"),
+             + ("" if self.ghosts_per_rank is None else f", off-rank couplings {self.ghosts_per_rank}")
+             + ")"),
             f"Null space:         {self.nullspace}",
             f"Coarsest solve:     {self.coarse_solver}{' (redundant)' if self.comm_size > 1 else ''}",
             "  level   unknowns     nonzeros   nnz/row",
@@ -686,7 +690,8 @@ class PetscMultigrid:
             error = str(e)
         bad = np.flatnonzero(_allgather(self._PETSc, self.comm, float(bool(error))))
         if bad.size:
-            raise SolverInputError(error or f"rank {bad[0]} was given a bad local b or x0 (this rank's are fine)")
+            raise SolverInputError(error or f"rank {bad[0]} was given a bad local b or x0 (this rank's are "
+                                   "fine)")
         bv.setArray(b)
         if x0 is not None:
             xv.setArray(x0)
@@ -696,8 +701,8 @@ class PetscMultigrid:
                 bv.shift(-total / self.n)
             elif abs(total) > 1e-10 * max(scale, 1e-300):
                 raise IncompatibleRHSError(
-                    f"sum(b) = {total:.3e} over all ranks is not zero (relative {abs(total) / scale:.2e}): the "
-                    "singular system has no solution; pass project=True to remove the mean of b")
+                    f"sum(b) = {total:.3e} over all ranks is not zero (relative {abs(total) / scale:.2e}): "
+                    "the singular system has no solution; pass project=True to remove the mean of b")
 
     def destroy(self) -> None:
         """Free the PETSc objects now (collective; idempotent).

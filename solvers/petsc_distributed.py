@@ -84,14 +84,16 @@ def _check_inputs(PETSc, A, points, coarse_mesh, coarse_Ps):
     for k, P in enumerate(coarse_Ps):
         P = _as_csr(P, f"coarse_Ps[{k}]")
         if P.shape[0] != rows or not 0 < P.shape[1] < P.shape[0]:
-            raise SolverInputError(f"coarse_Ps[{k}] has shape {P.shape}; expected ({rows}, n) with 0 < n < {rows}")
+            raise SolverInputError(
+                f"coarse_Ps[{k}] has shape {P.shape}; expected ({rows}, n) with 0 < n < {rows}")
         Ps.append(P)
         rows = P.shape[1]
     d = A.getDiagonal()
     dmin = d.min()[1]
     d.destroy()
     if not dmin > 0:
-        raise SolverInputError(f"A has a non-positive diagonal entry ({dmin:g}); the smoothers need an SPD operator")
+        raise SolverInputError(
+            f"A has a non-positive diagonal entry ({dmin:g}); the smoothers need an SPD operator")
     return pts, V1, T1, Ps
 
 

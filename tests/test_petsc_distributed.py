@@ -110,7 +110,8 @@ def test_outside_node_is_refused(prob):
 
 
 @pytest.mark.parametrize("case,match", [
-    ("count", "one finite"), ("nan", "one finite"), ("mesh", "pair"), ("Ps", "coarse_Ps"), ("partition", "partition"),
+    ("count", "one finite"), ("nan", "one finite"), ("mesh", "pair"), ("Ps", "coarse_Ps"),
+    ("partition", "partition"),
 ])
 def test_bad_input(prob, case, match):
     A = _petsc_mat(prob["A"])
@@ -186,7 +187,8 @@ def test_two_ranks_uneven_rows(tmp_path, prob):
         # processor-local SOR (block Jacobi across ranks): equal or one more CG iteration
         assert ref["iterations"] <= rec["iterations"] <= ref["iterations"] + 1
         # the certification failure of rank 1's one point is raised on both ranks
-        assert rec["error"] is not None and rec["error"]["n_outside"] == 1 and "rank 1: 1" in rec["error"]["message"]
+        err = rec["error"]
+        assert err is not None and err["n_outside"] == 1 and "rank 1: 1" in err["message"]
     assert np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)
     assert np.linalg.norm(prob["A"] @ x - prob["b"]) <= 1e-8 * np.linalg.norm(prob["b"])
 
@@ -200,8 +202,8 @@ def test_driver_two_ranks(tmp_path):
            "--refine", "1", "--out", str(tmp_path)]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(), cwd=tmp_path, timeout=900)
     assert proc.returncode == 0, f"mpirun failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-4000:]}"
-    m = re.search(r"(\d+) fine tets on 2 ranks: (\d+) CG iterations, relative residual (\S+), n_outside (\d+)",
-                  proc.stdout)
+    m = re.search(r"(\d+) fine tets on 2 ranks: (\d+) CG iterations, "
+                  r"relative residual (\S+), n_outside (\d+)", proc.stdout)
     assert m, proc.stdout[-3000:]
     tets, its, res, outside = int(m[1]), int(m[2]), float(m[3]), int(m[4])
     assert tets > 10000 and outside == 0 and res <= 1e-8 and its <= 12

@@ -7,6 +7,11 @@ copies only its own rows into PETSc::
 
     mpirun -n 4 python my_solve.py            # inside: PetscMultigrid(A, Ps).solve(b)
 
+When the fine level is too large for one rank, :meth:`PetscMultigrid.from_distributed` takes the caller's
+distributed PETSc matrix and the coordinates of each rank's unknowns instead, and builds each rank's rows
+of ``P₀`` by point location in the (small, global) first coarse tet mesh: no rank holds a global
+fine-level object (issue 33; ``docs/examples/petsc_distributed.py``).
+
 Level numbering follows :class:`solvers.MultigridSolver` (level 0 finest, ``Ps[k]`` of shape
 ``(n_k, n_{k+1})`` maps level ``k+1`` to level ``k``). PETSc numbers the other way (its level 0 is the
 coarsest); the translation happens here. ``Ps[k]`` is handed to ``PCMGSetInterpolation`` and PETSc

@@ -25,14 +25,19 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 
 
+def _load_base():
+    """tests/mpi_petsc_check.py (its problem builders) as a module."""
+    spec = importlib.util.spec_from_file_location("mpi_petsc_check", HERE / "mpi_petsc_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def problem(n: int, levels: int) -> dict:
     """The interior-node Kuhn cube Dirichlet problem of tests/mpi_petsc_check.py, with its tet meshes."""
     from solvers.gallery import kuhn_cube_hierarchy
 
-    spec = importlib.util.spec_from_file_location("mpi_petsc_check", HERE / "mpi_petsc_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    prob = mod.dirichlet_problem(n, levels)
+    prob = _load_base().dirichlet_problem(n, levels)
     meshes, Ps = kuhn_cube_hierarchy(n, levels)
     prob["coarse_mesh"], prob["coarse_Ps"] = meshes[1], Ps[1:]
     return prob

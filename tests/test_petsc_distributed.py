@@ -210,3 +210,28 @@ def test_driver_two_ranks(tmp_path):
     parts = [np.load(tmp_path / f"rank{r}.npz") for r in range(2)]
     assert all(len(p["x"]) > 0.2 * sum(len(q["x"]) for q in parts) for p in parts)  # both ranks hold a share
     assert all(np.all(p["x"] > 0) for p in parts)  # -Δu = f > 0, u = 0 on the boundary: u > 0 inside
+
+
+def test_neumann_nullspace_one_rank():
+    """Pure Neumann: constant null space, zero-mean answer, the in-process histories; bad b refused."""
+    from solvers.errors import IncompatibleRHSError
+    from solvers.gallery import kuhn_cube_hierarchy
+
+    neu = _check._load_base().neumann_problem(N, LEVELS)
+    meshes, Ps = kuhn_cube_hierarchy(N, LEVELS)
+    prob = {"xyz": meshes[0][0], "coarse_mesh": meshes[1], "coarse_Ps": Ps[1:]}
+    A = _petsc_mat(neu["A"])
+    with PetscMultigrid.from_distributed(A, prob["xyz"], prob["coarse_mesh"], prob["coarse_Ps"],
+                                         nullspace="constant", krylov="richardson") as mg:
+        x, info = mg.solve(neu["b"], tol=1e-8, maxiter=100)
+        with pytest.raises(IncompatibleRHSError, match="over all ranks"):
+            mg.solve(neu["b"] + 1.0)
+        xp, _ = mg.solve(neu["b"] + 1.0, project=True)
+    A.destroy()
+    ml = MultigridSolver(neu["A"], _inprocess_ps(prob), presmoother=_sgs(), postsmoother=_sgs(),
+                         nullspace="constant")
+    xr, ref = ml.solve(neu["b"], tol=1e-8, maxiter=100, return_info=True)
+    assert info["iterations"] == ref["iterations"] <= 30
+    np.testing.assert_allclose(info["residuals"], ref["residuals"], rtol=1e-6, atol=1e-14)
+    assert abs(x.mean()) < 1e-12 and np.linalg.norm(x - xr) <= 1e-9 * np.linalg.norm(xr)
+    assert np.linalg.norm(xp - x) <= 1e-6 * np.linalg.norm(x)  # b + 1 projected is b

@@ -1,4 +1,4 @@
-"""Distributed solve: your tet mesh partitioned by PETSc, P1 Poisson assembled per rank, nestmg's cages as coarse levels.
+"""Distributed solve: your tet mesh partitioned by PETSc, P1 Poisson assembled per rank, cages below.
 
 Run it under MPI (as root add ``--allow-run-as-root``)::
 
@@ -88,11 +88,15 @@ def local_mesh(dm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     cs, ce = dm.getDepthStratum(3)
     edges = _cones(dm, es, ee, 2) - vs  # cell -> faces -> edges -> vertices, vectorised per stratum
     faces = _cones(dm, fs, fe, 3) - es
+    e0, e1 = edges[faces[:, 0]], edges[faces[:, 1]]  # two edges of every face
+    third = np.where((e1[:, 0] == e0[:, 0]) | (e1[:, 0] == e0[:, 1]), e1[:, 1], e1[:, 0])
+    fverts = np.column_stack([e0, third])  # the face's 3 vertices
+    del edges, faces, e0, e1, third
     cells = _cones(dm, cs, ce, 4) - fs
-    corners = np.sort(edges[faces[cells]].reshape(len(cells), -1), axis=1)  # 24 entries, 4 distinct
-    keep = np.ones(corners.shape, dtype=bool)
-    keep[:, 1:] = corners[:, 1:] != corners[:, :-1]
-    tets = corners[keep].reshape(-1, 4)
+    f0, f1 = fverts[cells[:, 0]], fverts[cells[:, 1]]
+    shared = (f1[:, :, None] == f0[:, None, :]).any(axis=2)  # which of face 1's vertices are in face 0
+    tets = np.column_stack([f0, f1[np.arange(len(cells)), np.argmin(shared, axis=1)]])
+    del fverts, cells, f0, f1, shared
     X = dm.getCoordinatesLocal().getArray().reshape(-1, 3)
     label = dm.getLabel("boundary")
     dm.labelComplete(label)  # the closure of the boundary faces: their vertices
@@ -141,7 +145,8 @@ def assemble(PETSc, dm, X, tets, ldof, owned, gidx):
     A = dm.createMatrix()
     A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
     it = PETSc.IntType
-    A.setValuesLocalCSR(Kf.indptr.astype(it), Kf.indices.astype(it), Kf.data, addv=PETSc.InsertMode.ADD_VALUES)
+    A.setValuesLocalCSR(Kf.indptr.astype(it), Kf.indices.astype(it), Kf.data,
+                        addv=PETSc.InsertMode.ADD_VALUES)
     A.assemble()
     bl = dm.createLocalVec()
     bl.setArray(m[order] * source(X[order]))

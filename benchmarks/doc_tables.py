@@ -309,7 +309,7 @@ def petsc_dist_summary() -> str:
             f"goal). On one rank MG-PCG took {its[0]} iterations, the in-process `MultigridSolver` on the same "
             f"hierarchy and cycle {ip['iterations']} (solutions {ip['solution_vs_petsc_1rank']:.0e} apart); on "
             f"{', '.join(str(r['ranks']) for r in d['runs'][1:])} ranks {', '.join(str(i) for i in its[1:])} "
-            f"(processor-local SOR). Solved to 1e-12, every run's solution matches the 1-rank one (by node "
+            f"{'(the same, despite' if len(set(its)) == 1 else '(with'} processor-local SOR). Solved to 1e-12, every run's solution matches the 1-rank one (by node "
             f"coordinates) to {diff:.0e}.")
 
 

@@ -110,7 +110,8 @@ def worker(args) -> None:
     rss["solved"] = _rss()
     xt, info_t = mg.solve(b.getArray(), tol=TIGHT)
     peak = _peak()
-    objects = {"DMPlex (rss delta of distribute + refine)": rss["mesh distributed and refined"] - rss["coarse levels"],
+    dmplex = rss["mesh distributed and refined"] - rss["coarse levels"]
+    objects = {"DMPlex (rss delta of distribute + refine)": dmplex,
                "local mesh arrays (X, tets, dof maps)": int(X.nbytes + tets.nbytes + ldof.nbytes + gidx.nbytes
                                                             + owned.nbytes + bnd.nbytes),
                "A (MPIAIJ, local)": _mat_bytes(PETSc, A), "P0 (MPIAIJ, local)": _mat_bytes(PETSc, P0),
@@ -155,7 +156,8 @@ def _dump(PETSc, mg, A, b, path: Path) -> None:
 
 
 def _mpirun(ranks: int, argv: list[str], log: Path) -> float:
-    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1",
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMP_NUM_THREADS="1",
                PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     cmd = ["mpirun", "-n", str(ranks), "--oversubscribe", sys.executable, __file__, *argv]
     t = time.perf_counter()
@@ -266,7 +268,7 @@ def comm_rows(doc: dict) -> list[dict]:
     for run in doc["runs"]:
         recs, p = run["per_rank"], run["ranks"]
         its = recs[0]["iterations"]
-        ptap = sum(r["ptap"]["MatPtAPSymbolic"]["bytes"] + r["ptap"]["MatPtAPNumeric"]["bytes"] for r in recs) / p
+        ptap = sum(r["ptap"][e]["bytes"] for r in recs for e in ("MatPtAPSymbolic", "MatPtAPNumeric")) / p
         setup = sum(r["ptap"]["PCSetUp"]["bytes"] for r in recs) / p
         cyc = sum(r["solve"]["KSPSolve"]["bytes"] for r in recs) / p / its
         msgs = sum(r["solve"]["KSPSolve"]["messages"] for r in recs) / p / its
@@ -295,7 +297,8 @@ def estimate(doc: dict, tets: float = 1e8, ranks: int = 64) -> dict:
     c = comm_rows(doc)[-1]
     scale = (tpr / c["tets_per_rank"]) ** (2.0 / 3.0)
     return {"tets": tets, "ranks": ranks, "tets_per_rank": tpr, "fine_bytes_per_tet": per_tet,
-            "start_bytes": start, "coarse_bytes": coarse, "first_coarse_tets": doc["input_mesh"]["tets"] * ratio,
+            "start_bytes": start, "coarse_bytes": coarse,
+            "first_coarse_tets": doc["input_mesh"]["tets"] * ratio,
             "fine_bytes": per_tet * tpr, "memory_per_rank": start + coarse + per_tet * tpr,
             "ptap_bytes_per_rank": c["ptap_bytes"] * scale, "cycle_bytes_per_rank": c["cycle_bytes"] * scale,
             "from_ranks": p, "surface_scale": scale}
@@ -305,7 +308,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--mesh", help="a tet mesh file (default: TetWild mesh of a procedural torus)")
-    ap.add_argument("--edge-length", type=float, default=0.03, help="TetWild edge factor of the default torus")
+    ap.add_argument("--edge-length", type=float, default=0.027,
+                    help="TetWild edge factor of the default torus")
     ap.add_argument("--levels", type=int, default=3, help="levels of the input mesh's hierarchy")
     ap.add_argument("--refine", type=int, default=2, help="parallel refinements of the input mesh")
     ap.add_argument("--tol", type=float, default=1e-8)

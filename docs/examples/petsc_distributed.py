@@ -28,6 +28,9 @@ from pathlib import Path
 import numpy as np
 
 
+CHUNK = 1 << 16  # tets per assembly chunk
+
+
 def source(X: np.ndarray) -> np.ndarray:
     """The right-hand side f(x, y, z) = 1 + sin(3x) cos(2y) + z at points ``X`` (n,3)."""
     return 1.0 + np.sin(3 * X[:, 0]) * np.cos(2 * X[:, 1]) + X[:, 2]
@@ -137,7 +140,9 @@ def assemble(PETSc, dm, X, tets, ldof, owned, gidx):
 
     from solvers.fem import mass_matrix, stiffness_matrix
 
-    K = stiffness_matrix(X, tets, check=False)  # local vertices, this rank's tets only
+    K = sp.csr_matrix((len(X), len(X)))  # local vertices, this rank's tets only, in chunks: the
+    for lo in range(0, len(tets), CHUNK):  # COO temporaries of one chunk, not of all tets at once
+        K = K + stiffness_matrix(X, tets[lo:lo + CHUNK], check=False)
     m = mass_matrix(X, tets, check=False).diagonal()
     free = np.flatnonzero(ldof >= 0)
     order = free[np.argsort(ldof[free])]  # local dofs in section order

@@ -68,6 +68,16 @@ def _mat_bytes(PETSc, M) -> int:
     return int(info["nz_allocated"] * (8 + np.dtype(PETSc.IntType).itemsize) + 4 * M.getLocalSize()[0])
 
 
+def _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points) -> dict:
+    """Bytes of this rank's fine-level objects."""
+    dmplex = rss["mesh distributed and refined"] - rss["coarse levels"]
+    arrays = int(X.nbytes + tets.nbytes + ldof.nbytes + gidx.nbytes + owned.nbytes + bnd.nbytes)
+    return {"DMPlex (rss delta of distribute + refine)": dmplex,
+            "local mesh arrays (X, tets, dof maps)": arrays,
+            "A (MPIAIJ, local)": _mat_bytes(PETSc, A), "P0 (MPIAIJ, local)": _mat_bytes(PETSc, P0),
+            "points + b + x (local)": int(points.nbytes + 2 * 8 * len(points))}
+
+
 def worker(args) -> None:
     """One MPI rank: the driver's steps with memory and communication recorded; writes rank<r>.json/.npz."""
     import petsc4py
@@ -110,12 +120,7 @@ def worker(args) -> None:
     rss["solved"] = _rss()
     xt, info_t = mg.solve(b.getArray(), tol=TIGHT)
     peak = _peak()
-    dmplex = rss["mesh distributed and refined"] - rss["coarse levels"]
-    objects = {"DMPlex (rss delta of distribute + refine)": dmplex,
-               "local mesh arrays (X, tets, dof maps)": int(X.nbytes + tets.nbytes + ldof.nbytes + gidx.nbytes
-                                                            + owned.nbytes + bnd.nbytes),
-               "A (MPIAIJ, local)": _mat_bytes(PETSc, A), "P0 (MPIAIJ, local)": _mat_bytes(PETSc, P0),
-               "points + b + x (local)": int(points.nbytes + 2 * 8 * len(points))}
+    objects = _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points)
     coarse_ops = 0
     for lev in range(len(mg.levels) - 1):
         op = (pc.getMGCoarseSolve() if lev == 0 else pc.getMGSmootherDown(lev)).getOperators()[0]

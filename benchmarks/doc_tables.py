@@ -288,6 +288,59 @@ def petsc_scale() -> str:
                   "solutions differ (relative)"], rows)
 
 
+DIST = "petsc/petsc_distributed.json"
+
+
+@generator("petsc.distributed", DIST)
+def petsc_distributed() -> str:
+    head, rows = sibling("petsc_distributed").memory_table(load(DIST))
+    return table(head, rows)
+
+
+@generator("petsc.dist_summary", DIST)
+def petsc_dist_summary() -> str:
+    d = load(DIST)
+    head, rows = sibling("petsc_distributed").memory_table(d)
+    ratios = ", ".join(f"{r[4]} on {r[0]} ranks" for r in rows[1:])
+    its = [r["per_rank"][0]["iterations"] for r in d["runs"]]
+    diff = max(r["solution_vs_first_run"] for r in d["runs"])
+    ip = d["inprocess"]
+    return (f"Fine-level memory per rank times p, relative to one rank: {ratios} (1/p within 20% is the "
+            f"goal). On one rank MG-PCG took {its[0]} iterations, the in-process `MultigridSolver` on the same "
+            f"hierarchy and cycle {ip['iterations']} (solutions {ip['solution_vs_petsc_1rank']:.0e} apart); on "
+            f"{', '.join(str(r['ranks']) for r in d['runs'][1:])} ranks {', '.join(str(i) for i in its[1:])} "
+            f"{'(the same, despite' if len(set(its)) == 1 else '(with'} processor-local SOR). Solved to 1e-12, every run's solution matches the 1-rank one (by node "
+            f"coordinates) to {diff:.0e}.")
+
+
+@generator("petsc.distributed_comm", DIST)
+def petsc_distributed_comm() -> str:
+    rows = [[c["ranks"], f"{c['tets_per_rank']:,.0f}", f"{c['ptap_bytes'] / 2**20:.2f}",
+             f"{c['setup_bytes'] / 2**20:.2f}", f"{c['cycle_bytes'] / 2**10:.0f}", f"{c['cycle_messages']:.0f}",
+             f"{c['reductions']:.0f}"]
+            for c in sibling("petsc_distributed").comm_rows(load(DIST))]
+    return table(["ranks", "fine tets per rank", "MatPtAP MiB sent per rank", "PCSetUp MiB sent per rank",
+                  "KiB sent per rank per CG iteration", "messages per rank per CG iteration",
+                  "reductions per CG iteration"], rows)
+
+
+@generator("petsc.estimate", DIST)
+def petsc_estimate() -> str:
+    e = sibling("petsc_distributed").estimate(load(DIST))
+    mib = 2.0**20
+    rows = [["fine tets per rank", f"{e['tets_per_rank']:,.0f}"],
+            ["fine-level bytes per tet (measured, largest run)", f"{e['fine_bytes_per_tet']:.0f}"],
+            ["fine level per rank", f"{e['fine_bytes'] / mib:,.0f} MiB"],
+            ["start-up (Python, PETSc, libigl) per rank", f"{e['start_bytes'] / mib:,.0f} MiB"],
+            [f"global coarse levels per rank (first coarse level {e['first_coarse_tets']:,.0f} tets)",
+             f"{e['coarse_bytes'] / mib:,.0f} MiB"],
+            ["**memory per rank**", f"**{e['memory_per_rank'] / mib:,.0f} MiB**"],
+            [f"MatPtAP bytes sent per rank (x{e['surface_scale']:.1f}, from {e['from_ranks']} ranks)",
+             f"{e['ptap_bytes_per_rank'] / mib:.1f} MiB"],
+            ["bytes sent per rank per CG iteration", f"{e['cycle_bytes_per_rank'] / mib:.2f} MiB"]]
+    return table(["100M tets on 64 ranks (model)", "estimate"], rows)
+
+
 # ----------------------------------------------------------------------------------------- cage backends
 SDF_ZOO = "sdf/zoo_all_ba988c4.json"
 

@@ -27,11 +27,10 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-import igl
 import numpy as np
 import scipy.sparse as sp
 
-from solvers.fem import boundary_faces
+from solvers.locate import clean_weights, locate_in_tets, tet_barycentric
 
 from .errors import NestmgInputError
 
@@ -75,19 +74,6 @@ class ProlongationReport:
     def to_dict(self) -> dict:
         """JSON-serialisable dictionary of the figures."""
         return asdict(self)
-
-
-def _tet_barycentric(Q: np.ndarray, Vc: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (n,4) of points ``Q`` (n,3) in tets ``tets`` (n,4) of ``Vc``."""
-    if len(Q) == 0:
-        return np.zeros((0, 4))
-    return igl.barycentric_coordinates(
-        np.ascontiguousarray(Q, dtype=np.float64),
-        np.ascontiguousarray(Vc[tets[:, 0]]),
-        np.ascontiguousarray(Vc[tets[:, 1]]),
-        np.ascontiguousarray(Vc[tets[:, 2]]),
-        np.ascontiguousarray(Vc[tets[:, 3]]),
-    )
 
 
 def prolongation(
@@ -146,38 +132,14 @@ def prolongation(
     if Tc.min() < 0 or Tc.max() >= len(Vc):
         raise NestmgInputError("Tc indexes nodes outside Vc")
     nf, nc = len(Vf), len(Vc)
-
-    tree = igl.AABB()
-    tree.init(Vc, Tc)
-    tet = igl.in_element(Vc, Tc, Vf, tree)
-    inside = tet >= 0
-    out = np.flatnonzero(~inside)
-
-    rows = np.repeat(np.arange(nf), 4).reshape(nf, 4)
-    cols = np.zeros((nf, 4), dtype=np.int64)
-    W = np.zeros((nf, 4))
-    ins = np.flatnonzero(inside)
-    cols[ins] = Tc[tet[ins]]
-    W[ins] = _tet_barycentric(Vf[ins], Vc, Tc[tet[ins]])
-
-    max_d = 0.0
-    n_on = 0
     diag = float(np.linalg.norm(Vf.max(axis=0) - Vf.min(axis=0))) if nf else 1.0
+    loc = locate_in_tets(Vf, Vc, Tc, on_boundary_tol=on_boundary_tol, diag=diag)
+    rows = np.repeat(np.arange(nf), 4).reshape(nf, 4)
+    cols, W, out = loc.cols, loc.weights, loc.outside
+    n_on = loc.n_on_boundary
+    max_d = float(np.sqrt(loc.distance2.max())) if len(out) else 0.0
     if len(out):
-        Fb, J = boundary_faces(Tc)
-        d2, fi, C = igl.point_mesh_squared_distance(Vf[out], Vc, np.ascontiguousarray(Fb))
-        # nodes on the coarse boundary up to round-off (a fine boundary node on a coarse boundary facet
-        # that point location missed by ~1e-17) are located at their closest point, not extrapolated
-        on = d2 <= (on_boundary_tol * diag) ** 2
-        if on.any():
-            on_idx = out[on]
-            cols[on_idx] = Tc[J[fi[on]]]
-            W[on_idx] = _tet_barycentric(C[on], Vc, Tc[J[fi[on]]])
-            n_on = int(on.sum())
-            out, d2, fi, C = out[~on], d2[~on], fi[~on], C[~on]
-    if len(out):
-        max_d = float(np.sqrt(d2.max()))
-        near_tet = Tc[J[fi]]
+        # loc gives the nearest tet (owning the closest boundary face) and unclamped coordinates there
         if extrapolation == "nearest_vertex":
             from scipy.spatial import cKDTree
 
@@ -185,21 +147,11 @@ def prolongation(
             cols[out] = vi[:, None]
             W[out] = np.array([1.0, 0.0, 0.0, 0.0])
         elif extrapolation == "closest_point":
-            cols[out] = near_tet
-            W[out] = _tet_barycentric(C, Vc, near_tet)
-        else:
-            cols[out] = near_tet
-            w = _tet_barycentric(Vf[out], Vc, near_tet)
-            if extrapolation == "clamped":
-                w = np.maximum(w, 0.0)
-                w /= w.sum(axis=1, keepdims=True)
-            W[out] = w
-
-    # Nodes on a coarse face/edge get round-off weights (~1e-17) on the opposite corners; left in, they
-    # make coarse columns that are reached only by round-off, i.e. near-zero rows in P^T A P (a
-    # near-singular coarse operator). Drop them and renormalise so rows still sum to 1.
-    W[np.abs(W) < 1e-10] = 0.0
-    W /= W.sum(axis=1, keepdims=True)
+            W[out] = tet_barycentric(loc.closest, Vc, cols[out])
+        elif extrapolation == "clamped":
+            w = np.maximum(W[out], 0.0)
+            W[out] = w / w.sum(axis=1, keepdims=True)
+    clean_weights(W)
     P = sp.csr_matrix((W.ravel(), (rows.ravel(), cols.ravel())), shape=(nf, nc))
     P.eliminate_zeros()
     rep = ProlongationReport(

@@ -18,6 +18,7 @@ from .errors import (
     IncompatibleRHSError,
     InsufficientMemoryError,
     NestmgError,
+    OutsideCoarseMeshError,
     SolverError,
     SolverInputError,
 )
@@ -62,6 +63,7 @@ __all__ = [
     "MultigridSolver",
     "NestmgError",
     "NullspaceMultigridSolver",
+    "OutsideCoarseMeshError",
     "Smoother",
     "SolverError",
     "SolverInputError",

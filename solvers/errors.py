@@ -66,3 +66,23 @@ class InsufficientMemoryError(SolverError, MemoryError):
         super().__init__(message)
         self.needed = int(needed)
         self.available = int(available)
+
+
+class OutsideCoarseMeshError(SolverError):
+    """Fine nodes lie outside every tet of the first coarse mesh: the hierarchy is not nested there.
+
+    Raised by :meth:`solvers.petsc.PetscMultigrid.from_distributed` on every MPI rank at once (the count
+    is reduced over ranks), instead of extrapolating.
+
+    Attributes
+    ----------
+    n_outside : int
+        Fine nodes outside, summed over ranks.
+    max_distance : float
+        Largest distance of one of them to the coarse mesh.
+    """
+
+    def __init__(self, message: str, n_outside: int, max_distance: float):
+        super().__init__(message)
+        self.n_outside = int(n_outside)
+        self.max_distance = float(max_distance)

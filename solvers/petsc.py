@@ -7,6 +7,11 @@ copies only its own rows into PETSc::
 
     mpirun -n 4 python my_solve.py            # inside: PetscMultigrid(A, Ps).solve(b)
 
+When the fine level is too large for one rank, :meth:`PetscMultigrid.from_distributed` takes the caller's
+distributed PETSc matrix and the coordinates of each rank's unknowns instead, and builds each rank's rows
+of ``P₀`` by point location in the (small, global) first coarse tet mesh: no rank holds a global
+fine-level object (issue 33; ``docs/examples/petsc_distributed.py``).
+
 Level numbering follows :class:`solvers.MultigridSolver` (level 0 finest, ``Ps[k]`` of shape
 ``(n_k, n_{k+1})`` maps level ``k+1`` to level ``k``). PETSc numbers the other way (its level 0 is the
 coarsest); the translation happens here. ``Ps[k]`` is handed to ``PCMGSetInterpolation`` and PETSc
@@ -42,7 +47,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import SolverError, SolverInputError
+from .errors import IncompatibleRHSError, SolverError, SolverInputError
 from .multilevel import DEFAULT_MAXITER, convergence_factor
 from .petsc_amg import petsc_amg_solve
 from .petsc_common import (
@@ -71,10 +76,12 @@ from .petsc_common import (
     petsc_available,
     row_partition,
 )
+from .petsc_distributed import broadcast_arrays
 from .petsc_io import load_operators, save_operators
 
 __all__ = [
     "PetscMultigrid",
+    "broadcast_arrays",
     "PetscUnavailableError",
     "load_operators",
     "petsc_amg_solve",
@@ -250,6 +257,104 @@ class PetscMultigrid:
         pinv_max: int = 3000,
     ):
         PETSc = _petsc()
+        self._configure(PETSc, comm, cycle=cycle, smoother=smoother, presmooth=presmooth,
+                        postsmooth=postsmooth, omega=omega, nullspace=nullspace, krylov=krylov,
+                        options_prefix=options_prefix, coarse_solver=coarse_solver, pinv_max=pinv_max)
+        galerkin, given_ops = _coarse_choice(coarse)
+        A, Ps, given_ops = _check_hierarchy(A, Ps, given_ops)
+        _check_diagonal(A, "A")
+        for k, Ac in enumerate(given_ops or []):
+            _check_diagonal(Ac, f"coarse[{k}]")
+        self.coarse = "galerkin" if galerkin else "given"  # as MultigridSolver.coarse
+        self.n = A.shape[0]
+        self.distributed = False
+        t0 = _barrier_time(self.comm)
+        layouts = self._layouts_for(PETSc, A, Ps, partition)
+        self._layouts = layouts
+        ghosts = _allgather(PETSc, self.comm, _ghost_count(A, layouts[0], self.comm.getRank()))
+        self.rows_per_rank = np.diff(layouts[0].offsets).tolist()
+        self.ghosts_per_rank = ghosts.astype(np.int64).tolist()
+
+        mats = [_to_petsc(PETSc, A, layouts[0], layouts[0], self.comm)]
+        interp = [_to_petsc(PETSc, P, layouts[k], layouts[k + 1], self.comm) for k, P in enumerate(Ps)]
+        given = [] if given_ops is None else [
+            _to_petsc(PETSc, Ac, layouts[k + 1], layouts[k + 1], self.comm) for k, Ac in enumerate(given_ops)
+        ]
+        self._owned.extend(mats + given + interp)
+        self._build(mats[0], interp, given, galerkin, options)
+        self.setup_seconds = _barrier_time(self.comm) - t0
+
+    @classmethod
+    def from_distributed(cls, A, points, coarse_mesh, coarse_Ps=(), **kwargs) -> PetscMultigrid:
+        """PCMG on the caller's distributed fine matrix; each rank builds only its own rows of ``P₀``.
+
+        No rank ever holds a global fine-level object: the caller's ``A`` stays as it is (any row
+        ownership), each rank locates its own fine nodes in the first coarse tet mesh
+        (:func:`solvers.locate.locate_in_tets`) and assembles its rows of ``P₀`` directly as an MPI AIJ
+        matrix, and PETSc forms the Galerkin operators ``P_kᵀ A_k P_k`` by its parallel ``MatPtAP``. The
+        coarse levels (small: cage tet meshes) are the same global arrays on every rank. Collective.
+
+        Parameters
+        ----------
+        A : petsc4py ``PETSc.Mat`` (MPIAIJ / AIJ)
+            Fine operator, assembled by the caller; rank ``r`` owns rows ``A.getOwnershipRange()``. Its
+            communicator is the solver's. Used as is (with ``nullspace="constant"`` the constant null
+            space is attached to it).
+        points : (n_local,3) float array
+            Coordinates of this rank's fine unknowns, in the order of its owned rows.
+        coarse_mesh : tuple ``(V_1, T_1)``
+            First coarse tet mesh, ``V_1`` (n_1,3) float, ``T_1`` (t_1,4) int; identical on every rank.
+        coarse_Ps : list of sparse
+            Prolongations between the coarse levels, ``coarse_Ps[k-1]`` of shape ``(n_k, n_{k+1})``, k >= 1
+            (identical on every rank; may be empty: two levels).
+        **kwargs
+            ``on_boundary_tol`` (default 1e-12, relative to the global fine bounding-box diagonal, as
+            :func:`nestmg.prolongation.prolongation`) and every keyword of :class:`PetscMultigrid` except
+            ``comm``, ``coarse`` (Galerkin only) and ``partition`` (the caller's ownership is kept; each
+            coarse node goes to the rank holding most of its interpolation weight).
+
+        Returns
+        -------
+        PetscMultigrid
+            ``solve(b)`` then takes and returns this rank's entries only. ``location`` holds the
+            certification reduced over ranks: ``n_outside`` (0), ``n_on_boundary``, ``seconds``.
+
+        Raises
+        ------
+        SolverInputError
+            Wrong shapes, NaN, a ``points`` count that differs from the rank's row count.
+        OutsideCoarseMeshError
+            On every rank, when any rank has fine nodes outside every coarse tet (``n_outside > 0``).
+        """
+        from .petsc_distributed import distributed_prolongations
+
+        PETSc = _petsc()
+        if not isinstance(A, PETSc.Mat):
+            raise SolverInputError(f"A must be a petsc4py PETSc.Mat, got {type(A).__name__}")
+        for bad in ("comm", "coarse", "partition"):
+            if bad in kwargs:
+                raise SolverInputError(f"from_distributed takes no {bad!r}: see its docstring")
+        tol = kwargs.pop("on_boundary_tol", 1e-12)
+        options = kwargs.pop("options", None)
+        self = cls.__new__(cls)
+        self._configure(PETSc, A.getComm(), **kwargs)
+        t0 = _barrier_time(self.comm)
+        self.coarse, self.distributed, self.partition = "galerkin", True, "caller's"
+        self.n = int(A.getSize()[0])
+        self._layouts = None
+        interp, self.location = distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, tol)
+        self._owned.extend(interp)
+        self.rows_per_rank = _allgather(PETSc, self.comm, A.getLocalSize()[0]).astype(np.int64).tolist()
+        self.ghosts_per_rank = None
+        self._build(A, interp, [], True, options)
+        self.setup_seconds = _barrier_time(self.comm) - t0
+        return self
+
+    def _configure(self, PETSc, comm, *, cycle: str = "V", smoother: str = "sor", presmooth: int = 1,
+                   postsmooth: int = 1, omega: float | None = None, nullspace: str | None = None,
+                   krylov: str = "cg", options_prefix: str = "nestmg_", coarse_solver: str = "auto",
+                   pinv_max: int = 3000) -> None:
+        """Check and store the cycle's settings; start the list of owned PETSc objects."""
         self._PETSc = PETSc
         if cycle not in ("V", "W"):
             raise SolverInputError(f"cycle must be 'V' or 'W' (PCMG), got {cycle!r}")
@@ -263,40 +368,33 @@ class PetscMultigrid:
         if omega is not None and not (np.isfinite(omega) and 0 < omega < 2):
             raise SolverInputError(f"omega must lie in (0, 2), got {omega!r}")
         if not isinstance(options_prefix, str) or not options_prefix or options_prefix.startswith("-"):
-            raise SolverInputError(f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
-        galerkin, given_ops = _coarse_choice(coarse)
+            raise SolverInputError(
+                f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
+        if coarse_solver not in ("auto", "splu", "regularized", "pinv", "petsc"):
+            raise SolverInputError(
+                "coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', "
+                f"got {coarse_solver!r}")
         self.nullspace = _check_nullspace(nullspace)
-        A, Ps, given_ops = _check_hierarchy(A, Ps, given_ops)
-        _check_diagonal(A, "A")
-        for k, Ac in enumerate(given_ops or []):
-            _check_diagonal(Ac, f"coarse[{k}]")
         self.comm = PETSc.COMM_WORLD if comm is None else comm
         self.comm_size = self.comm.getSize()
         self.cycle, self.smoother, self.krylov = cycle, smoother, krylov
         self.presmooth, self.postsmooth = int(presmooth), int(postsmooth)
-        self.coarse = "galerkin" if galerkin else "given"  # as MultigridSolver.coarse
         self.prefix = options_prefix
-        self.n = A.shape[0]
-        if omega is None:
-            omega = {"sor": 1.0, "jacobi": 2.0 / 3.0}.get(smoother)
-        self.omega = omega
-        if coarse_solver not in ("auto", "splu", "regularized", "pinv", "petsc"):
-            raise SolverInputError(
-                f"coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', got {coarse_solver!r}")
+        self.omega = {"sor": 1.0, "jacobi": 2.0 / 3.0}.get(smoother) if omega is None else omega
         self._coarse_method, self._pinv_max = coarse_solver, int(pinv_max)
-
         # every PETSc object this solver owns, destroyed last-created first by destroy(), by the garbage
         # collector or at exit (before PetscFinalize: see the module docstring), also if __init__ fails
         self._owned: list = []
         self._finalizer = weakref.finalize(self, _destroy_petsc, PETSc, self._owned)
-        t0 = _barrier_time(self.comm)
+
+    def _layouts_for(self, PETSc, A, Ps, partition) -> list[_Layout]:
+        """Row layout of every level for global matrices: the fine partition, then coarse owners."""
         size = self.comm_size
-        nat = _Layout(None, self.n, size)
         owner = None
         if isinstance(partition, str) and partition not in ("auto", "natural", "rcm"):
             if partition not in ("ptscotch", "parmetis"):
-                raise SolverInputError(f"partition must be 'auto', 'natural', 'rcm', 'ptscotch', 'parmetis' or an "
-                                       f"array of ranks, got {partition!r}")
+                raise SolverInputError("partition must be 'auto', 'natural', 'rcm', 'ptscotch', 'parmetis' "
+                                       f"or an array of ranks, got {partition!r}")
             if not PETSc.Sys.hasExternalPackage(partition):
                 raise SolverInputError(f"this PETSc was built without {partition}; use 'auto' or 'natural'")
         if isinstance(partition, str) and partition == "auto":
@@ -308,6 +406,7 @@ class PetscMultigrid:
                         partition = name
                         break
         if not (isinstance(partition, str) and partition in ("natural", "rcm")) and partition is not None:
+            nat = _Layout(None, self.n, size)
             A_nat = _to_petsc(PETSc, A, nat, nat, self.comm) if isinstance(partition, str) else None
             try:
                 owner = _fine_owner(PETSc, A, A_nat, partition, self.n, size, self.comm)
@@ -316,39 +415,33 @@ class PetscMultigrid:
                     A_nat.destroy()
         elif partition == "rcm" and size > 1:
             owner = _fine_owner(PETSc, A, None, partition, self.n, size, self.comm)
-        self.partition = "natural" if owner is None else (partition if isinstance(partition, str) else "given")
+        given = partition if isinstance(partition, str) else "given"
+        self.partition = "natural" if owner is None else given
         layouts = [_Layout(owner, self.n, size)]
         for P in Ps:
             if owner is not None:
                 owner = _coarse_owner(P, owner, size)
             layouts.append(_Layout(owner, P.shape[1], size))
-        self._layouts = layouts
-        ghosts = _allgather(PETSc, self.comm, _ghost_count(A, layouts[0], self.comm.getRank()))
-        self.rows_per_rank = np.diff(layouts[0].offsets).tolist()
-        self.ghosts_per_rank = ghosts.astype(np.int64).tolist()
+        return layouts
 
-        mats = [_to_petsc(PETSc, A, layouts[0], layouts[0], self.comm)]
-        interp = [_to_petsc(PETSc, P, layouts[k], layouts[k + 1], self.comm) for k, P in enumerate(Ps)]
-        given = [] if given_ops is None else [
-            _to_petsc(PETSc, Ac, layouts[k + 1], layouts[k + 1], self.comm) for k, Ac in enumerate(given_ops)
-        ]
-        self._owned.extend(mats + given + interp)
+    def _build(self, A, interp: list, given: list, galerkin: bool, options: dict | None) -> None:
+        """KSP + PCMG on the PETSc fine operator ``A`` and interpolations ``interp`` (finest first)."""
+        PETSc = self._PETSc
         if self.nullspace == "constant":
             ns = PETSc.NullSpace().create(constant=True, comm=self.comm)
             self._owned.append(ns)
-            for M in mats + given:
+            for M in [A] + given:
                 M.setNullSpace(ns)
-        self._A = mats[0]
-
-        nlev = len(Ps) + 1
+        self._A = A
+        nlev = len(interp) + 1
         self._nlev = nlev
         ksp = PETSc.KSP().create(comm=self.comm)
         self._owned.append(ksp)  # destroyed first: it holds the operators and the python coarse PC
-        ksp.setOptionsPrefix(options_prefix)
+        ksp.setOptionsPrefix(self.prefix)
         ksp.setOperators(self._A)
-        ksp.setType("cg" if krylov == "cg" else "richardson")
+        ksp.setType("cg" if self.krylov == "cg" else "richardson")
         ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        if krylov == "richardson":
+        if self.krylov == "richardson":
             # Without a monitor KSPRICHARDSON hands the whole iteration to PCApplyRichardson_MG, which
             # neither records a residual history nor computes the true residual each cycle.
             ksp.setMonitor(_noop_monitor)
@@ -356,7 +449,7 @@ class PetscMultigrid:
         pc.setType("mg")
         pc.setMGLevels(nlev)
         pc.setMGType(PETSc.PC.MGType.MULTIPLICATIVE)
-        pc.setMGCycleType(PETSc.PC.MGCycleType.V if cycle == "V" else PETSc.PC.MGCycleType.W)
+        pc.setMGCycleType(PETSc.PC.MGCycleType.V if self.cycle == "V" else PETSc.PC.MGCycleType.W)
         for k, P in enumerate(interp):
             pc.setMGInterpolation(nlev - 1 - k, P)  # PETSc level nlev-1-k is nestmg level k
         if not galerkin:
@@ -367,13 +460,17 @@ class PetscMultigrid:
                 else:
                     pc.getMGSmootherDown(lev).setOperators(Ac)
                     pc.getMGSmootherUp(lev).setOperators(Ac)
+        self._setup_ksp(ksp, pc, galerkin, options)
 
+    def _setup_ksp(self, ksp, pc, galerkin: bool, options: dict | None) -> None:
+        """Options database, smoothers, coarsest solve and ``KSPSetUp``; then the per-level sizes."""
+        PETSc, nlev, prefix = self._PETSc, self._nlev, self.prefix
         top = {"pc_mg_galerkin": "both" if galerkin else "none"}
         top.update(options or {})
-        with _options(PETSc, options_prefix, top):
+        with _options(PETSc, prefix, top):
             ksp.setFromOptions()
             # the user may have asked for another cycle through -<prefix>pc_mg_cycle_type
-            user_cycle = PETSc.Options().getString(f"{options_prefix}pc_mg_cycle_type", cycle)
+            user_cycle = PETSc.Options().getString(f"{prefix}pc_mg_cycle_type", self.cycle)
             self.cycle = "W" if str(user_cycle).lower().startswith("w") else "V"
             for lev in range(1, nlev):
                 down = pc.getMGSmootherDown(lev)
@@ -395,7 +492,6 @@ class PetscMultigrid:
                 pc.getMGCoarseSolve() if lev == 0 else pc.getMGSmootherDown(lev)).getOperators()[0]
             info = M.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)
             self.levels.append({"n": int(M.getSize()[0]), "nnz": int(info["nz_used"])})
-        self.setup_seconds = _barrier_time(self.comm) - t0
 
     # ------------------------------------------------------------------ setup helpers
     def _setup_smoother(self, sksp, steps: int) -> None:
@@ -471,8 +567,9 @@ class PetscMultigrid:
             f"Krylov / cycle:     {self.krylov} / {self.cycle}({self.presmooth},{self.postsmooth})",
             f"Smoother:           {self.smoother} (omega={self.omega})",
             f"Coarse operators:   {'Galerkin (PETSc MatPtAP)' if self.coarse == 'galerkin' else 'given'}",
-            (f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}, "
-             f"off-rank couplings {self.ghosts_per_rank})"),
+            (f"Partition:          {self.partition} (fine rows per rank {self.rows_per_rank}"
+             + ("" if self.ghosts_per_rank is None else f", off-rank couplings {self.ghosts_per_rank}")
+             + ")"),
             f"Null space:         {self.nullspace}",
             f"Coarsest solve:     {self.coarse_solver}{' (redundant)' if self.comm_size > 1 else ''}",
             "  level   unknowns     nonzeros   nnz/row",
@@ -492,6 +589,8 @@ class PetscMultigrid:
 
     def local_rows(self) -> np.ndarray:
         """Global (caller's numbering) fine rows owned by this rank."""
+        if self.distributed:
+            return np.arange(*self._A.getOwnershipRange())
         return self._layouts[0].local_rows(self.comm.getRank())
 
     # ------------------------------------------------------------------ solve
@@ -502,7 +601,8 @@ class PetscMultigrid:
         Parameters
         ----------
         b : (n_0,) array_like
-            Global right-hand side (identical on every rank).
+            Global right-hand side (identical on every rank); for a solver made by
+            :meth:`from_distributed`, this rank's entries only, ``(n_local,)`` in the order of its rows.
         tol : float
             Stop when ``||b - A x||_2 <= tol ||b||_2`` (unpreconditioned norm, as in-process).
         maxiter : int
@@ -517,7 +617,8 @@ class PetscMultigrid:
         Returns
         -------
         x : (n_0,) float64
-            Global solution on every rank (zero plain mean with ``nullspace="constant"``).
+            Global solution on every rank (zero plain mean with ``nullspace="constant"``); this rank's
+            entries only, ``(n_local,)``, for a solver made by :meth:`from_distributed`.
         info : dict
             ``iterations``, ``converged``, ``reason`` (PETSc's KSPConvergedReason name), ``residuals``
             (relative residual norms, initial first), ``factor`` (:func:`solvers.convergence_factor`
@@ -538,28 +639,33 @@ class PetscMultigrid:
             raise SolverInputError(f"maxiter must be >= 0, got {maxiter}")
         if not tol > 0:
             raise SolverInputError(f"tol must be > 0, got {tol}")
-        b = _prepare_rhs(b, self.n, self.nullspace, project)
-        lay = self._layouts[0]
-        rank = self.comm.getRank()
-        rows = lay.local_rows(rank)
         xv, bv = self._A.createVecs()
-        bv.setArray(b[rows])
-        if x0 is not None:
-            xv.setArray(_check_vector(x0, self.n, "x0")[rows])
-            self.ksp.setInitialGuessNonzero(True)
+        if self.distributed:
+            self._fill_local(bv, xv, b, x0, project)
         else:
+            b = _prepare_rhs(b, self.n, self.nullspace, project)
+            rows = self._layouts[0].local_rows(self.comm.getRank())
+            bv.setArray(b[rows])
+            if x0 is not None:
+                xv.setArray(_check_vector(x0, self.n, "x0")[rows])
+        self.ksp.setInitialGuessNonzero(x0 is not None)
+        if x0 is None:
             xv.set(0.0)
-            self.ksp.setInitialGuessNonzero(False)
-        normb = float(np.linalg.norm(b))
+        normb = float(bv.norm())
         ksp = self.ksp
         ksp.setTolerances(rtol=tol, atol=1e-300, divtol=divtol, max_it=maxiter)
         ksp.setConvergenceHistory(length=maxiter + 1, reset=True)
         out = _ksp_solve(PETSc, ksp, self._A, bv, xv, normb, self.comm)
         hist, its, reason = out["history"], out["iterations"], out["reason"]
         solve_seconds, final = out["solve_seconds"], out["final"]
-        x = lay.to_old(_gather(PETSc, xv))
-        if self.nullspace == "constant":
-            x -= x.mean()
+        if self.distributed:
+            if self.nullspace == "constant":
+                xv.shift(-xv.sum() / self.n)
+            x = xv.getArray().copy()
+        else:
+            x = self._layouts[0].to_old(_gather(PETSc, xv))
+            if self.nullspace == "constant":
+                x -= x.mean()
         for v in (xv, bv):
             v.destroy()
         _check_reason(reason, its, hist, f"PETSc KSP {self.krylov}+PCMG", tol)
@@ -576,8 +682,32 @@ class PetscMultigrid:
             "levels": [dict(L) for L in self.levels],
             "partition": self.partition,
             "rows_per_rank": list(self.rows_per_rank),
-            "ghosts_per_rank": list(self.ghosts_per_rank),
+            "ghosts_per_rank": None if self.ghosts_per_rank is None else list(self.ghosts_per_rank),
         }
+
+    def _fill_local(self, bv, xv, b, x0, project: bool) -> None:
+        """This rank's ``b`` (and ``x0``) into PETSc vectors; the Neumann compatibility check is global."""
+        n_local = bv.getLocalSize()
+        try:  # a bad local vector must stop every rank, not leave the others waiting in KSPSolve
+            b, error = _check_vector(b, n_local), ""
+            x0 = None if x0 is None else _check_vector(x0, n_local, "x0")
+        except SolverInputError as e:
+            error = str(e)
+        bad = np.flatnonzero(_allgather(self._PETSc, self.comm, float(bool(error))))
+        if bad.size:
+            raise SolverInputError(error or f"rank {bad[0]} was given a bad local b or x0 (this rank's are "
+                                   "fine)")
+        bv.setArray(b)
+        if x0 is not None:
+            xv.setArray(x0)
+        if self.nullspace == "constant":
+            total, scale = bv.sum(), bv.norm(self._PETSc.NormType.NORM_1)
+            if project:
+                bv.shift(-total / self.n)
+            elif abs(total) > 1e-10 * max(scale, 1e-300):
+                raise IncompatibleRHSError(
+                    f"sum(b) = {total:.3e} over all ranks is not zero (relative {abs(total) / scale:.2e}): "
+                    "the singular system has no solution; pass project=True to remove the mean of b")
 
     def destroy(self) -> None:
         """Free the PETSc objects now (collective; idempotent).

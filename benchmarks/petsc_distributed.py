@@ -1,0 +1,333 @@
+"""Distributed fine level (issue 33): memory per rank, communication and answers on 1, 2 and 4 ranks.
+
+    OMP_NUM_THREADS=1 python benchmarks/petsc_distributed.py --ranks 1 2 4 --refine 2 \
+        --out benchmarks/results/petsc/petsc_distributed.json
+
+The input is a TetWild mesh of a procedural torus (``--mesh FILE`` for your own tet mesh); its coarse levels
+(``hierarchy_from_tets``: the mesh, then tet-meshed nested cages) are built once here and saved; then, for
+each rank count, ``mpirun -n p`` runs this script's worker, which is the driver
+``docs/examples/petsc_distributed.py`` step by step (DMPlex from rank 0, PT-Scotch distribution,
+``--refine`` parallel refinements, per-rank P1 assembly, ``PetscMultigrid.from_distributed``, MG-PCG) with
+every rank recording its resident memory after each step (``/proc/self/statm``), its peak
+(``getrusage`` maxrss), the bytes of its fine-level objects, and PETSc's message counts and bytes in
+``MatPtAP`` and ``KSPSolve``. Answers: the solution of every run is matched by coordinates with the
+1-rank one; a last 1-rank run dumps its (global) operators and the in-process ``MultigridSolver`` solves
+the same hierarchy with the same cycle. Writes the JSON and prints the memory table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+TIGHT = 1e-12  # second solve, for comparing solutions across rank counts
+
+
+def _driver():
+    spec = importlib.util.spec_from_file_location("petsc_distributed_example",
+                                                  ROOT / "docs" / "examples" / "petsc_distributed.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _rss() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _peak() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _events(PETSc, names) -> dict:
+    out = {}
+    for name in names:
+        info = PETSc.Log.Event(name).getPerfInfo()
+        out[name] = {"count": int(info["count"]), "messages": float(info["numMessages"]),
+                     "bytes": float(info["messageLength"]), "reductions": float(info["numReductions"]),
+                     "seconds": float(info["time"])}
+    return out
+
+
+def _mat_bytes(PETSc, M) -> int:
+    """AIJ storage of this rank's rows: 8 + 4 bytes per allocated non-zero, 4 per row (PETSc's own memory
+    figure is 0 in Debian's build, which logs no memory)."""
+    info = M.getInfo(PETSc.Mat.InfoType.LOCAL)
+    return int(info["nz_allocated"] * (8 + np.dtype(PETSc.IntType).itemsize) + 4 * M.getLocalSize()[0])
+
+
+def _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points) -> dict:
+    """Bytes of this rank's fine-level objects."""
+    dmplex = rss["mesh distributed and refined"] - rss["coarse levels"]
+    arrays = int(X.nbytes + tets.nbytes + ldof.nbytes + gidx.nbytes + owned.nbytes + bnd.nbytes)
+    return {"DMPlex (rss delta of distribute + refine)": dmplex,
+            "local mesh arrays (X, tets, dof maps)": arrays,
+            "A (MPIAIJ, local)": _mat_bytes(PETSc, A), "P0 (MPIAIJ, local)": _mat_bytes(PETSc, P0),
+            "points + b + x (local)": int(points.nbytes + 2 * 8 * len(points))}
+
+
+def worker(args) -> None:
+    """One MPI rank: the driver's steps with memory and communication recorded; writes rank<r>.json/.npz."""
+    import petsc4py
+
+    petsc4py.init([sys.argv[0]])
+    from petsc4py import PETSc
+
+    from solvers.petsc import PetscMultigrid
+
+    drv = _driver()
+    PETSc.Log.begin()
+    comm = PETSc.COMM_WORLD
+    rank = comm.getRank()
+    rss = {"start": _rss()}
+    with np.load(args.worker) as z:  # the coarse levels, loaded by every rank
+        arrays = {k: z[k] for k in z.files}
+    (V1, T1), coarse_Ps = drv._broadcast_coarse(PETSc, arrays if rank == 0 else None)
+    rss["coarse levels"] = _rss()
+    V0, T0 = (V1, T1) if rank == 0 else (np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64))
+    t = time.perf_counter()
+    dm = drv.distribute(PETSc, V0, T0, args.refine)
+    rss["mesh distributed and refined"] = _rss()
+    X, tets, bnd = drv.local_mesh(dm)
+    ldof, gidx, owned = drv.dof_numbering(PETSc, dm, bnd)
+    rss["local mesh arrays"] = _rss()
+    A, b, points = drv.assemble(PETSc, dm, X, tets, ldof, owned, gidx)
+    t_mesh = time.perf_counter() - t
+    rss["assembled"] = _rss()
+    setup_events = ["MatPtAPSymbolic", "MatPtAPNumeric", "PCSetUp"]
+    ptap0 = _events(PETSc, setup_events)
+    mg = PetscMultigrid.from_distributed(A, points, (V1, T1), coarse_Ps)
+    rss["hierarchy"] = _rss()
+    ptap1 = _events(PETSc, setup_events)
+    ptap = {e: {q: ptap1[e][q] - ptap0[e][q] for q in ptap1[e]} for e in setup_events}
+    pc = mg.ksp.getPC()
+    P0 = pc.getMGInterpolation(len(mg.levels) - 1)
+    solve0 = _events(PETSc, ["KSPSolve", "PCApply", "MatMult"])
+    x, info = mg.solve(b.getArray(), tol=args.tol)
+    solve1 = _events(PETSc, ["KSPSolve", "PCApply", "MatMult"])
+    rss["solved"] = _rss()
+    xt, info_t = mg.solve(b.getArray(), tol=TIGHT)
+    peak = _peak()
+    objects = _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points)
+    coarse_ops = 0
+    for lev in range(len(mg.levels) - 1):
+        op = (pc.getMGCoarseSolve() if lev == 0 else pc.getMGSmootherDown(lev)).getOperators()[0]
+        coarse_ops += _mat_bytes(PETSc, op)
+    rec = {"rank": rank, "ranks": comm.getSize(), "rows": len(points), "tets": len(tets), "rss": rss,
+           "peak": peak, "fine_objects": objects, "coarse_operators_bytes": coarse_ops,
+           "ptap": ptap, "solve": {k: {q: solve1[k][q] - solve0[k][q] for q in solve1[k]} for k in solve1},
+           "iterations": info["iterations"], "final_residual": info["final_residual"],
+           "iterations_tight": info_t["iterations"], "final_residual_tight": info_t["final_residual"],
+           "levels": info["levels"], "location": mg.location, "setup_seconds": mg.setup_seconds,
+           "solve_seconds": info["solve_seconds"], "mesh_and_assembly_seconds": t_mesh}
+    out = Path(args.outdir)
+    (out / f"rank{rank}.json").write_text(json.dumps(rec))
+    np.savez(out / f"rank{rank}.npz", points=points, x=x, xt=xt)
+    if args.dump:  # 1 rank only: the whole hierarchy as scipy matrices, for the in-process solver
+        _dump(PETSc, mg, A, b, out / "hierarchy.npz")
+    mg.destroy()
+    for obj in (A, b, dm):
+        obj.destroy()
+
+
+def _csr(M):
+    import scipy.sparse as sp
+
+    ai, aj, av = M.getValuesCSR()
+    return sp.csr_matrix((av, aj, ai), shape=M.getSize())
+
+
+def _dump(PETSc, mg, A, b, path: Path) -> None:
+    from solvers.petsc import save_operators
+
+    if mg.comm_size != 1:
+        raise SystemExit("--dump needs one rank")
+    pc = mg.ksp.getPC()
+    nlev = len(mg.levels)
+    Ps = [_csr(pc.getMGInterpolation(nlev - 1 - k)) for k in range(nlev - 1)]
+    save_operators(path, _csr(A), Ps, b=b.getArray())
+
+
+def _mpirun(ranks: int, argv: list[str], log: Path) -> float:
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMP_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    cmd = ["mpirun", "-n", str(ranks), "--oversubscribe", sys.executable, __file__, *argv]
+    t = time.perf_counter()
+    with open(log, "w") as f:
+        subprocess.run(cmd, check=True, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, timeout=3600)
+    return time.perf_counter() - t
+
+
+def _sorted_solution(d: Path, ranks: int, key: str) -> tuple[np.ndarray, np.ndarray]:
+    parts = [np.load(d / f"rank{r}.npz") for r in range(ranks)]
+    pts = np.concatenate([p["points"] for p in parts])
+    x = np.concatenate([p[key] for p in parts])
+    order = np.lexsort(pts.T[::-1])
+    return pts[order], x[order]
+
+
+def _inprocess(path: Path, tol: float) -> dict:
+    """The in-process MultigridSolver on the dumped hierarchy, PCMG's cycle (symmetric GS, V(1,1), CG)."""
+    from solvers.multilevel import MultigridSolver
+    from solvers.petsc import load_operators
+
+    h = load_operators(path)
+    sgs = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
+    ml = MultigridSolver(h["A"], h["Ps"], presmoother=sgs, postsmoother=sgs)
+    x, info = ml.solve(h["b"], tol=tol, accel="cg", return_info=True)
+    return {"iterations": int(info["iterations"]), "x": x}
+
+
+def launcher(args) -> int:
+    drv = _driver()
+    doc = {"benchmark": "petsc_distributed", "command": " ".join(["python", "benchmarks/petsc_distributed.py",
+                                                                   *sys.argv[1:]]),
+           "refine": args.refine, "tol": args.tol, "tight_tol": TIGHT, "runs": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        t = time.perf_counter()
+        arrays = drv.coarse_levels(args.mesh, args.levels, edge_length_fac=args.edge_length)
+        doc["input_mesh"] = {"nodes": len(arrays["V"]), "tets": len(arrays["T"]),
+                             "source": args.mesh and Path(args.mesh).name or "procedural torus"}
+        doc["coarse_levels_seconds"] = time.perf_counter() - t
+        np.savez(tmp / "coarse.npz", **arrays)
+        ref = None
+        for p in args.ranks:
+            d = tmp / f"p{p}"
+            d.mkdir()
+            wall = _mpirun(p, ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine",
+                               str(args.refine), "--tol", str(args.tol)], d / "log.txt")
+            recs = [json.loads((d / f"rank{r}.json").read_text()) for r in range(p)]
+            run = {"ranks": p, "wall_seconds": wall, "per_rank": recs}
+            pts, x = _sorted_solution(d, p, "xt")
+            if ref is None:
+                ref = (pts, x)
+            if not np.array_equal(pts, ref[0]):
+                raise SystemExit(f"{p} ranks: the fine nodes differ from the first run's")
+            run["solution_vs_first_run"] = float(np.linalg.norm(x - ref[1]) / np.linalg.norm(ref[1]))
+            doc["runs"].append(run)
+            print(f"{p} ranks: {wall:.1f} s, peak per rank {[r['peak'] >> 20 for r in recs]} MiB, "
+                  f"iterations {recs[0]['iterations']}", flush=True)
+        d = tmp / "dump"
+        d.mkdir()
+        _mpirun(1, ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine", str(args.refine),
+                    "--tol", str(args.tol), "--dump"], d / "log.txt")
+        inproc = _inprocess(d / "hierarchy.npz", args.tol)
+        pts1, x1 = _sorted_solution(d, 1, "x")
+        order = np.lexsort(np.load(d / "rank0.npz")["points"].T[::-1])
+        doc["inprocess"] = {"iterations": inproc["iterations"],
+                            "solution_vs_petsc_1rank": float(np.linalg.norm(inproc["x"][order] - x1)
+                                                             / np.linalg.norm(x1))}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(doc, indent=1))
+    print(json.dumps(doc["inprocess"]), f"-> {args.out}")
+    return 0
+
+
+# ------------------------------------------------------------------------- tables (benchmarks/doc_tables.py)
+MIB = 2.0**20
+
+
+def _fine_bytes(rec: dict) -> int:
+    """A rank's fine-level memory: its peak minus its resident memory before the fine mesh existed."""
+    return rec["peak"] - rec["rss"]["coarse levels"]
+
+
+def memory_table(doc: dict) -> tuple[list[str], list[list]]:
+    """Per rank count: tets and peak per rank, fine-level memory and its breakdown (max over ranks)."""
+    base = doc["runs"][0]
+    f1 = max(_fine_bytes(r) for r in base["per_rank"]) * base["ranks"]
+    rows = []
+    for run in doc["runs"]:
+        recs, p = run["per_rank"], run["ranks"]
+        fine = max(_fine_bytes(r) for r in recs)
+        obj = {k: max(r["fine_objects"][k] for r in recs) for k in recs[0]["fine_objects"]}
+        rows.append([p, f"{max(r['tets'] for r in recs):,}", f"{max(r['peak'] for r in recs) / MIB:.0f}",
+                     f"{fine / MIB:.0f}", f"{fine * p / f1:.2f}",
+                     f"{obj['DMPlex (rss delta of distribute + refine)'] / MIB:.0f}",
+                     f"{obj['A (MPIAIJ, local)'] / MIB:.1f}", f"{obj['P0 (MPIAIJ, local)'] / MIB:.1f}",
+                     f"{obj['local mesh arrays (X, tets, dof maps)'] / MIB:.1f}",
+                     f"{recs[0]['iterations']}", f"{run['solution_vs_first_run']:.0e}"])
+    head = ["ranks", "fine tets per rank (max)", "peak MiB per rank (max)", "fine-level MiB per rank (max)",
+            "fine-level memory x p / 1-rank", "DMPlex MiB", "A MiB", "P₀ MiB", "mesh arrays MiB",
+            "CG iterations (1e-8)", "solution vs 1 rank (1e-12 solves)"]
+    return head, rows
+
+
+def comm_rows(doc: dict) -> list[dict]:
+    """Per rank count: PtAP and per-CG-iteration message bytes and counts (mean per rank)."""
+    out = []
+    for run in doc["runs"]:
+        recs, p = run["per_rank"], run["ranks"]
+        its = recs[0]["iterations"]
+        ptap = sum(r["ptap"][e]["bytes"] for r in recs for e in ("MatPtAPSymbolic", "MatPtAPNumeric")) / p
+        setup = sum(r["ptap"]["PCSetUp"]["bytes"] for r in recs) / p
+        cyc = sum(r["solve"]["KSPSolve"]["bytes"] for r in recs) / p / its
+        msgs = sum(r["solve"]["KSPSolve"]["messages"] for r in recs) / p / its
+        out.append({"ranks": p, "tets_per_rank": sum(r["tets"] for r in recs) / p, "ptap_bytes": ptap,
+                    "setup_bytes": setup, "cycle_bytes": cyc, "cycle_messages": msgs,
+                    "reductions": sum(r["solve"]["KSPSolve"]["reductions"] for r in recs) / p / its})
+    return out
+
+
+def estimate(doc: dict, tets: float = 1e8, ranks: int = 64) -> dict:
+    """Measured-model estimate of a ``tets``-tet solve on ``ranks`` ranks (the refinement ratio kept).
+
+    Memory per rank = start-up (measured) + the global coarse levels (their measured memory scaled by the
+    first coarse level's tet count, which grows with the fine one) + fine-level bytes per tet (the largest
+    rank-count run's) x tets per rank. Communication per rank: halo volume scales with the surface of a
+    rank's part, ``(tets per rank)^(2/3)``, from the largest rank-count run.
+    """
+    last = doc["runs"][-1]
+    recs, p = last["per_rank"], last["ranks"]
+    per_tet = max(_fine_bytes(r) / r["tets"] for r in recs)
+    start = max(r["rss"]["start"] for r in recs)
+    coarse_now = max(r["rss"]["coarse levels"] - r["rss"]["start"] for r in recs)
+    ratio = tets / sum(r["tets"] for r in recs)  # the input (first coarse) mesh grows with the fine one
+    coarse = coarse_now * ratio
+    tpr = tets / ranks
+    c = comm_rows(doc)[-1]
+    scale = (tpr / c["tets_per_rank"]) ** (2.0 / 3.0)
+    return {"tets": tets, "ranks": ranks, "tets_per_rank": tpr, "fine_bytes_per_tet": per_tet,
+            "start_bytes": start, "coarse_bytes": coarse,
+            "first_coarse_tets": doc["input_mesh"]["tets"] * ratio,
+            "fine_bytes": per_tet * tpr, "memory_per_rank": start + coarse + per_tet * tpr,
+            "ptap_bytes_per_rank": c["ptap_bytes"] * scale, "cycle_bytes_per_rank": c["cycle_bytes"] * scale,
+            "from_ranks": p, "surface_scale": scale}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--mesh", help="a tet mesh file (default: TetWild mesh of a procedural torus)")
+    ap.add_argument("--edge-length", type=float, default=0.027,
+                    help="TetWild edge factor of the default torus")
+    ap.add_argument("--levels", type=int, default=3, help="levels of the input mesh's hierarchy")
+    ap.add_argument("--refine", type=int, default=2, help="parallel refinements of the input mesh")
+    ap.add_argument("--tol", type=float, default=1e-8)
+    ap.add_argument("--out", default="bench_out/petsc_distributed.json")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--outdir", help=argparse.SUPPRESS)
+    ap.add_argument("--dump", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        worker(args)
+        return 0
+    return launcher(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -30,13 +30,14 @@ from .progress import Timer, stage_line, stages
 from .prolongation import ProlongationReport, prolongation
 from .refine import refine_tets
 from .sizing import DEFAULT_TIME_BUDGET, edge_length_for_tets, plan_hierarchy
-from .tetmesh import OUTER_EDGE_FACTOR, tetrahedralize
+from .tetmesh import tetrahedralize
 
 __all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "predecimate", "tet_hierarchy"]
 
 #: TetWild knobs used by the pipeline (measured in docs/scale.md: fTetWild's own defaults are
-#: stop_energy=10, 80 optimisation passes; the coarse outside: nestmg.tetmesh.outer_sizing_field)
-TETWILD_DEFAULTS = {"stop_energy": 10.0, "max_opt_iter": 80, "outer_edge_factor": OUTER_EDGE_FACTOR}
+#: stop_energy=10, 80 optimisation passes; ``tetwild_opts={"outer_edge_factor": 3}`` coarsens the outside:
+#: nestmg.tetmesh.outer_sizing_field)
+TETWILD_DEFAULTS = {"stop_energy": 10.0, "max_opt_iter": 80}
 
 
 @dataclass

@@ -340,14 +340,14 @@ def _limit_hint(limit: float | None) -> str:
 #: flat tets between coplanar facets, or a mesh-improvement loop on those flat tets that never ends (the
 #: hang of issue 27). "merged": TetGen's own treatment of coplanar facets (merged within 0.1 degrees),
 #: which meshes those; the boundary may then move by the height of a fold below 0.1 degrees.
-#: edge of fTetWild's working mesh outside the solid, relative to the target edge (:func:`outer_sizing_field`)
-OUTER_EDGE_FACTOR = 3.0
-#: the coarse outside is used when fTetWild's box holds at least this many times the solid's volume
-#: (:func:`box_solid_ratio`). One thread, CPU seconds, graded / uniform at the pipeline's meshed edge:
-#: homer.obj (ratio 10.1) 50.7 / 178.5 and 51.8 / - ; bunny.off (5.8) 59.5 / 51.1; angle_block.stl
-#: (2.4) 24.7 / 15.7 and 20.9 / 15.5. Below the ratio the sizing-field passes cost more than the
-#: outside they save.
-OUTER_GRADING_RATIO = 8.0
+#: edge of fTetWild's working mesh outside the solid, relative to the target edge (:func:`outer_sizing_field`);
+#: 1 (off) by default. One thread, CPU seconds, outside at 3x / uniform, at the pipeline's meshed edge,
+#: against the ratio of fTetWild's box volume to the solid's: homer.obj (10.1) 50.7 / 178.5 and
+#: 51.8 / 124.3, elephant.obj (8.8) 66.6 / 102.2, but bunny.off (5.8) 59.5 / 51.1 and angle_block.stl
+#: (2.4) 24.7 / 15.7 and 20.9 / 15.5 (the sizing-field passes cost more than the outside saves); a torus
+#: meshed at about its minor radius got 1.9x the tets (2026-12-03, loaded machine: to be re-measured
+#: on a quiet one before it becomes a default, e.g. above a box / solid ratio of 8)
+OUTER_EDGE_FACTOR = 1.0
 #: most background-grid nodes of :func:`outer_sizing_field` (the spacing grows past it)
 SIZING_GRID_NODES = 1_000_000
 
@@ -378,15 +378,6 @@ def outer_sizing_field(V: np.ndarray, F: np.ndarray, h: float, factor: float) ->
     values = np.where((wn > 0.5) | (d < band), h, np.minimum(factor * h, h + 0.5 * (d - band)))
     return {"edge_length_abs": factor * h, "bg_vertices": G, "bg_tets": _kuhn_tets(n),
             "bg_values": values.astype(np.float64)}
-
-
-def box_solid_ratio(V: np.ndarray, F: np.ndarray) -> float:
-    """Volume of fTetWild's box (the bounding box grown by 1/15 of its longest side) over the solid's."""
-    ext = V.max(axis=0) - V.min(axis=0)
-    box = float(np.prod(ext + 2.0 / 15.0 * ext.max()))
-    P = V[np.asarray(F)]
-    vol = abs(float(np.einsum("ij,ij->i", P[:, 0], np.cross(P[:, 1], P[:, 2])).sum()) / 6.0)
-    return box / vol if vol > 0 else float("inf")
 
 
 def _kuhn_tets(n: np.ndarray) -> np.ndarray:
@@ -512,8 +503,9 @@ def tetrahedralize(
         cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
     outer_edge_factor : float
         TetWild: target edge of its working mesh *outside* the solid, relative to the edge length
-        (:func:`outer_sizing_field`; 1: fTetWild's uniform sizing). fTetWild optimises a mesh of the
-        whole bounding box and discards the outside at the end; a coarse outside cuts its work.
+        (:func:`outer_sizing_field`; 1, the default: fTetWild's uniform sizing). fTetWild optimises a
+        mesh of the whole bounding box and discards the outside at the end; a coarse outside cuts that
+        work on slender shapes (homer.obj: 3.5x fewer CPU seconds) and adds to it on compact ones.
     time_limit : float, "auto" or None
         Seconds the mesher may run (in a worker process, killed when over). ``"auto"``:
         :func:`mesh_time_limit` (``$NESTMG_MESH_TIME_LIMIT``, else 10x the sizing estimate, at least
@@ -559,7 +551,7 @@ def tetrahedralize(
             c = (lo + hi) / 2
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
-            if outer_edge_factor > 1.0 and box_solid_ratio(V, F) >= OUTER_GRADING_RATIO:
+            if outer_edge_factor > 1.0:
                 opts.update(outer_sizing_field((V - c) / diag, F, h / diag, float(outer_edge_factor)))
             try:
                 Vt, T = _mesher_call("tetwild", (V - c) / diag, F, opts, deadline)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -62,6 +63,145 @@ def build(args) -> dict:
     return info
 
 
+#: nestmg cycles compared by ``run --variants`` (the default cycle of ``MultigridSolver(A, P)`` is "default")
+VARIANTS = {
+    "default": {},
+    "symmetric_gs": {"presmoother": ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})},
+    "forward_gs": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 1})},
+    "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
+                                           ("gauss_seidel", {"sweep": "forward", "iterations": 2})]},
+}
+
+
+def load_case(work: Path) -> dict:
+    """The user's mesh (read back from its file), the saved hierarchy, the matrices and right-hand sides."""
+    from nestmg import load_hierarchy, load_tet_mesh
+    from solvers import restrict_prolongations
+    from solvers.fem import boundary_nodes, mass_matrix, stiffness_matrix
+
+    V, T = load_tet_mesh(work / "user_mesh.vtu")
+    H = load_hierarchy(work / "hierarchy")
+    if not (np.array_equal(H.tets[0][0], V) and np.array_equal(H.tets[0][1], T)):
+        raise SystemExit(f"{work}: the hierarchy's fine level is not the user's mesh")
+    K = stiffness_matrix(V, T)
+    M = mass_matrix(V, T)
+    d = np.linalg.norm(V.max(axis=0) - V.min(axis=0))
+    f = 1.0 + np.sin(3 * V[:, 0] / d) * np.cos(2 * V[:, 1] / d) + V[:, 2] / d
+    b = M @ f
+    interior = np.setdiff1d(np.arange(len(V)), boundary_nodes(T))
+    Pf, _ = restrict_prolongations(H.P, interior)
+    m = M.diagonal()
+    return {
+        "name": work.name, "tets": len(T), "nodes": len(V), "level_tets": [len(t) for _, t in H.tets],
+        "n_outside": list(H.n_outside),
+        "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
+        "neumann": (K, b - m * (b.sum() / m.sum()), list(H.P), "constant"),
+    }
+
+
+def sp_csr(A):
+    import scipy.sparse as sp
+
+    A = sp.csr_matrix(A)
+    A.sort_indices()
+    return A
+
+
+def run_nestmg(A, b, Ps, nullspace, tol, opts) -> dict:
+    from solvers import MultigridSolver
+
+    t = time.perf_counter()
+    ml = MultigridSolver(A, Ps, nullspace=nullspace, **opts)
+    setup = time.perf_counter() - t
+    _, r = ml.solve(b, tol=tol, accel="cg", return_info=True)
+    return {"setup_seconds": setup, "solve_seconds": r["seconds"], "iterations": r["iterations"],
+            "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
+            "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
+            "coarsest": ml.levels[-1].A.shape[0]}
+
+
+def run_sa(A, b, nullspace, tol) -> dict:
+    from solvers.baselines import pyamg_sa
+
+    r = pyamg_sa(A, b, tol=tol, nullspace=nullspace)
+    return {"setup_seconds": r.setup_seconds, "solve_seconds": r.solve_seconds, "iterations": r.iterations,
+            "final_residual": r.info["final_true_residual"], "operator_complexity": r.info["operator_complexity"]}
+
+
+def run_gamg(A, b, nullspace, tol) -> dict:
+    from solvers.petsc_amg import petsc_amg_solve
+
+    x, r = petsc_amg_solve(A, b, "gamg", tol=tol, nullspace=nullspace)
+    return {"setup_seconds": r["setup_seconds"], "solve_seconds": r["solve_seconds"], "iterations": r["iterations"],
+            "final_residual": float(np.linalg.norm(b - A @ x) / np.linalg.norm(b))}
+
+
+def spmv_seconds(A, repeats: int = 30) -> float:
+    x = np.ones(A.shape[0])
+    best = np.inf
+    for _ in range(3):
+        t = time.perf_counter()
+        for _ in range(repeats):
+            A @ x
+        best = min(best, (time.perf_counter() - t) / repeats)
+    return best
+
+
+def run(args) -> dict:
+    """Interleaved repeats over cases x problems x solvers; medians and within-run ratios."""
+    solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants] + list(args.baselines)
+    cases = [load_case(Path(w)) for w in args.cases]
+    raw: dict = {}
+    for rep in range(args.repeats):
+        for c in cases:
+            for prob in args.problems:
+                A, b, Ps, ns = c[prob]
+                for sname in solvers:
+                    if sname == "pyamg_sa":
+                        r = run_sa(A, b, ns, args.tol)
+                    elif sname == "petsc_gamg":
+                        r = run_gamg(A, b, ns, args.tol)
+                    else:
+                        v = sname[len("nestmg_"):] if sname != "nestmg" else "default"
+                        r = run_nestmg(A, b, Ps, ns, args.tol, VARIANTS[v])
+                    r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
+                    raw.setdefault((c["name"], prob, sname), []).append(r)
+                    print(f"[{rep}] {c['name']:>14s} {prob:9s} {sname:28s} setup {r['setup_seconds']:.3f} solve "
+                          f"{r['solve_seconds']:.3f} it {r['iterations']}", flush=True)
+    out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+           "cases": []}
+    for c in cases:
+        cd = {k: c[k] for k in ("name", "tets", "nodes", "level_tets", "n_outside")}
+        cd["problems"] = {}
+        for prob in args.problems:
+            A = c[prob][0]
+            t_spmv = spmv_seconds(A)
+            pd: dict = {"unknowns": A.shape[0], "nnz": A.nnz, "spmv_seconds": t_spmv, "solvers": {}}
+            for sname in solvers:
+                runs = raw[(c["name"], prob, sname)]
+                med = {k: float(np.median([r[k] for r in runs])) for k in
+                       ("setup_seconds", "solve_seconds", "total_seconds")}
+                med.update(iterations=int(np.median([r["iterations"] for r in runs])),
+                           max_final_residual=max(r["final_residual"] for r in runs),
+                           solve_spmv=med["solve_seconds"] / t_spmv, runs=runs)
+                pd["solvers"][sname] = med
+            ref = pd["solvers"][solvers[0]]
+            for base in ("pyamg_sa", "petsc_gamg"):
+                if base in pd["solvers"]:
+                    pd[f"speedup_vs_{base}"] = float(np.median(
+                        [rb["total_seconds"] / rn["total_seconds"] for rb, rn in
+                         zip(raw[(c["name"], prob, base)], raw[(c["name"], prob, solvers[0])])]))
+                    pd[f"setup_ratio_vs_{base}"] = float(np.median(
+                        [rn["setup_seconds"] / rb["setup_seconds"] for rb, rn in
+                         zip(raw[(c["name"], prob, base)], raw[(c["name"], prob, solvers[0])])]))
+            cd["problems"][prob] = pd
+            print(f"{c['name']} {prob}: {solvers[0]} {ref['setup_seconds']:.3f}+{ref['solve_seconds']:.3f} s "
+                  f"({ref['iterations']} it, {ref['solve_spmv']:.0f} SpMV); "
+                  + "; ".join(f"x{pd[k]:.2f} {k[11:]}" for k in pd if k.startswith("speedup")), flush=True)
+        out["cases"].append(cd)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -72,10 +212,25 @@ def main(argv=None):
     b.add_argument("--fine-tets", type=int, default=1_000_000)
     b.add_argument("--levels", type=int, default=4)
     b.add_argument("--work", type=Path, required=True)
+    r = sub.add_parser("run", help="compare the solvers on built cases")
+    r.add_argument("cases", nargs="+", type=Path)
+    r.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"], choices=("dirichlet", "neumann"))
+    r.add_argument("--variants", nargs="+", default=["default"], choices=sorted(VARIANTS),
+                   help="nestmg cycles; the first one is the reference of the ratios")
+    r.add_argument("--baselines", nargs="*", default=["pyamg_sa", "petsc_gamg"], choices=("pyamg_sa", "petsc_gamg"))
+    r.add_argument("--repeats", type=int, default=3)
+    r.add_argument("--tol", type=float, default=1e-8)
+    r.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "build":
         return build(args)
-    return None
+    out = run(args)
+    if args.json:
+        from nestmg.io import json_default
+
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=1, default=json_default))
+    return out
 
 
 if __name__ == "__main__":

@@ -412,8 +412,13 @@ def _split_column(P, j):
 
 
 @pytest.mark.parametrize("bc", ["dirichlet", "neumann"])
-def test_rank_deficient_prolongation(cube, bc):
-    """Extra null vectors of P^T A P (rank-deficient P): pseudo-inverse copes, SuperLU refuses clearly."""
+@pytest.mark.parametrize("dense_max", [0, 1500])
+def test_rank_deficient_prolongation(cube, bc, dense_max, monkeypatch):
+    """Extra null vectors of P^T A P (rank-deficient P): pseudo-inverse copes, SuperLU refuses clearly;
+    on a small coarsest level "auto" goes straight to the dense regularised Cholesky."""
+    import solvers.coarse
+
+    monkeypatch.setattr(solvers.coarse, "DENSE_MAX", dense_max)
     _meshes, Ps, K, _M = cube
     Ps = Ps[:2]
     if bc == "neumann":
@@ -425,12 +430,18 @@ def test_rank_deficient_prolongation(cube, bc):
     bad = [Ps[0], _split_column(Ps[1], j)]
     ref = MultigridSolver(A, Ps, nullspace=nullspace)
     ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> regularised LU
-    assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.fallback and "fallback" in repr(ml)
+    if dense_max:  # dense: the regularised factor first, no fallback
+        assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.dense and "(dense)" in repr(ml)
+        assert not ml._coarse_solver.fallback and not ref._coarse_solver.fallback
+    else:
+        assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.fallback and "fallback" in repr(ml)
     mp = MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="pinv")
-    assert mp.coarse_nullity == ref.coarse_nullity + 1  # the pseudo-inverse sees the extra null vector
+    expected = 1 if nullspace == "constant" else 0
+    assert mp.coarse_nullity == expected + 1  # the pseudo-inverse sees the extra null vector
+    assert ref.coarse_nullity == (-1 if dense_max else expected)  # the regularised factor does not count them
     fp, resp = _factor(mp, b)
     assert resp[-1] < 1e-11 and fp <= _factor(ref, b)[0] + 0.01
-    assert ref._coarse_solver.method == "splu" and not ref._coarse_solver.fallback
+    assert ref._coarse_solver.method == ("regularized" if dense_max else "splu") and not ref._coarse_solver.fallback
     f_ref, _ = _factor(ref, b)
     f, res = _factor(ml, b)
     assert res[-1] < 1e-11 and f <= f_ref + 0.01, (f, f_ref)  # the split column adds nothing, breaks nothing

@@ -33,6 +33,7 @@ def build(args) -> dict:
     import trimesh
 
     from nestmg import hierarchy_from_tets, load_mesh, load_tet_mesh, save_hierarchy, save_tet_mesh, tetrahedralize
+    from nestmg.refine import refine_tets
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -45,8 +46,12 @@ def build(args) -> dict:
         fill = 1.8 if args.mesher == "tetgen" else 1.0
         h = float((6 * np.sqrt(2) * vol * fill / args.fine_tets) ** (1 / 3))
         t = time.perf_counter()
-        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length=h, time_limit=None)
+        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length=h * 2**args.refine, time_limit=None)
         info["user_mesher_seconds"] = time.perf_counter() - t
+        info["mesher_tets"] = len(Tu)
+        for _ in range(args.refine):  # the user refines the mesher's output uniformly (8x tets each time)
+            Vu, Tu, _P = refine_tets(Vu, Tu)
+        info["refined"] = args.refine
         save_tet_mesh(mesh_file, Vu, Tu)
     t = time.perf_counter()
     V0, T0 = load_tet_mesh(mesh_file)
@@ -211,6 +216,8 @@ def main(argv=None):
     b.add_argument("--coarse-mesher", choices=("tetgen", "tetwild"), default="tetgen")
     b.add_argument("--fine-tets", type=int, default=1_000_000)
     b.add_argument("--levels", type=int, default=4)
+    b.add_argument("--refine", type=int, default=0,
+                   help="red-refine the mesher's output this many times (mesher target: fine-tets / 8^refine)")
     b.add_argument("--work", type=Path, required=True)
     r = sub.add_parser("run", help="compare the solvers on built cases")
     r.add_argument("cases", nargs="+", type=Path)

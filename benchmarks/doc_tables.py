@@ -271,6 +271,55 @@ def usermesh_tets() -> str:
     return f"{load('user_mesh/gargo.json')['user_tets'] / 1e3:.0f}k"
 
 
+USER_SOLVERS = "user_mesh/solvers.json"
+USER_PROFILE = ("user_mesh/setup_profile_before.json", "user_mesh/setup_profile_after.json")
+_USER_LABELS = {"nestmg": "`MultigridSolver(A, P)`, defaults", "pyamg_sa": "pyamg SA + CG",
+                "petsc_gamg": "PETSc GAMG + CG, 1 rank"}
+
+
+def _user_cell(r: dict, spmv: bool) -> str:
+    it = f"{r['iterations']}, {r['solve_spmv']:.0f} fine SpMV" if spmv else f"{r['iterations']}"
+    return f"{r['setup_seconds']:.2f} + {r['solve_seconds']:.2f} s ({it})"
+
+
+@generator("usermesh.solvers", USER_SOLVERS)
+def usermesh_solvers() -> str:
+    d = load(USER_SOLVERS)
+    rows = []
+    for c in d["cases"]:
+        pr = c["problems"]
+        label = f"{c['label']} ({c['tets']:,})"
+        for sname in pr["dirichlet"]["solvers"]:
+            rows.append([label, _USER_LABELS.get(sname, sname)]
+                        + [_user_cell(pr[p]["solvers"][sname], sname.startswith("nestmg")) for p in ("dirichlet", "neumann")])
+        rows.append([label, "**nestmg speed-up** (setup + solve) vs SA / vs GAMG"]
+                    + [f"**{pr[p]['speedup_vs_pyamg_sa']:.2f}x / {pr[p]['speedup_vs_petsc_gamg']:.2f}x**"
+                       for p in ("dirichlet", "neumann")])
+    return table(["user mesh (fine tets)", "solver", "Dirichlet: setup + solve (CG it)",
+                  "Neumann: setup + solve (CG it)"], rows)
+
+
+@generator("usermesh.setup", USER_SOLVERS)
+def usermesh_setup() -> str:
+    d = load(USER_SOLVERS)
+    r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    return rng(r, ".2f") + "x"
+
+
+@generator("usermesh.profile", *USER_PROFILE)
+def usermesh_profile() -> str:
+    rows = []
+    for rel, when in zip(USER_PROFILE, ("before (base commit)", "after")):
+        d = load(rel)
+        for p, r in d["problems"].items():
+            top = "; ".join(f"`{t['function'].split('(')[-1].rstrip(')').split('.')[-1]}` {t['tottime']:.2f}"
+                            for t in r["top_tottime"][:5])
+            rows.append([when, p, f"{r['setup_seconds_median']:.2f}", f"{r['pyamg_sa_setup_seconds_median']:.2f}",
+                         f"{r['setup_ratio_vs_sa_median']:.2f}", top])
+    return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio",
+                  "top 5 by own time under cProfile (s)"], rows)
+
+
 # ----------------------------------------------------------------------------------------- PETSc
 @generator("petsc.scale", "petsc/petsc_scale_gargo.json", "petsc/petsc_scale_bunny.json")
 def petsc_scale() -> str:

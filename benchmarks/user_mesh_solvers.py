@@ -96,8 +96,13 @@ def load_case(work: Path) -> dict:
     interior = np.setdiff1d(np.arange(len(V)), boundary_nodes(T))
     Pf, _ = restrict_prolongations(H.P, interior)
     m = M.diagonal()
+    info = json.loads((work / "build.json").read_text())
+    mesher = {"tetgen": "TetGen", "tetwild": "TetWild"}[info["mesher"]]
+    if info.get("refined"):
+        mesher += f" {info.get('mesher_tets', 0) / 1e3:.0f}k tets, red-refined x{info['refined']}"
     return {
-        "name": work.name, "tets": len(T), "nodes": len(V), "level_tets": [len(t) for _, t in H.tets],
+        "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V),
+        "level_tets": [len(t) for _, t in H.tets],
         "n_outside": list(H.n_outside),
         "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
         "neumann": (K, b - m * (b.sum() / m.sum()), list(H.P), "constant"),
@@ -176,7 +181,7 @@ def run(args) -> dict:
     out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "cases": []}
     for c in cases:
-        cd = {k: c[k] for k in ("name", "tets", "nodes", "level_tets", "n_outside")}
+        cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside")}
         cd["problems"] = {}
         for prob in args.problems:
             A = c[prob][0]
@@ -207,6 +212,48 @@ def run(args) -> dict:
     return out
 
 
+def profile(args) -> dict:
+    """cProfile of ``MultigridSolver(A, P)`` set-up (the code on ``PYTHONPATH``: run it once on the base
+    commit's tree and once on this one for the before/after), plus pyamg SA's set-up time in the same run."""
+    import cProfile
+    import pstats
+
+    import pyamg
+
+    import solvers
+    from solvers import MultigridSolver
+
+    c = load_case(Path(args.case))
+    out: dict = {"case": c["name"], "tets": c["tets"], "solvers_file": str(Path(solvers.__file__).parent.name),
+                 "problems": {}}
+    for prob in args.problems:
+        A, b, Ps, ns = c[prob]
+        t_mg, t_sa = [], []
+        for _ in range(args.repeats):  # interleaved
+            t = time.perf_counter()
+            MultigridSolver(A, Ps, nullspace=ns)
+            t_mg.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            pyamg.smoothed_aggregation_solver(A)
+            t_sa.append(time.perf_counter() - t)
+        pr = cProfile.Profile()
+        pr.enable()
+        MultigridSolver(A, Ps, nullspace=ns)
+        pr.disable()
+        st = pstats.Stats(pr)
+        rows = sorted(((v[2], v[3], f"{Path(k[0]).name}:{k[1]}({k[2]})") for k, v in st.stats.items()),
+                      reverse=True)
+        out["problems"][prob] = {
+            "setup_seconds_median": float(np.median(t_mg)), "pyamg_sa_setup_seconds_median": float(np.median(t_sa)),
+            "setup_ratio_vs_sa_median": float(np.median(np.array(t_mg) / np.array(t_sa))),
+            "profile_seconds": float(st.total_tt),
+            "top_tottime": [{"function": f, "tottime": tt, "cumtime": ct} for tt, ct, f in rows[:12]],
+        }
+        print(f"{prob}: setup {np.median(t_mg):.3f} s vs SA {np.median(t_sa):.3f} s; top: "
+              + ", ".join(f"{f} {tt:.3f}" for tt, _, f in rows[:5]), flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -228,15 +275,22 @@ def main(argv=None):
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
     r.add_argument("--json", type=Path, default=None)
+    pr = sub.add_parser("profile", help="cProfile of the MultigridSolver set-up on one case")
+    pr.add_argument("case", type=Path)
+    pr.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"], choices=("dirichlet", "neumann"))
+    pr.add_argument("--repeats", type=int, default=3)
+    pr.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "build":
         return build(args)
-    out = run(args)
+    out = profile(args) if args.cmd == "profile" else run(args)
     if args.json:
         from nestmg.io import json_default
 
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=1, default=json_default))
+    if args.cmd == "run" and "petsc_gamg" in args.baselines:
+        os._exit(0)  # Debian's PETSc 3.18 may segfault at interpreter exit after correct solves (solvers/petsc.py)
     return out
 
 

@@ -56,11 +56,13 @@ __all__ = [
 ]
 
 #: The default cycle of ``MultigridSolver(A, Ps)``: two forward Gauss–Seidel sweeps before the coarse-grid
-#: correction and, as the adjoint post-smoother, two backward sweeps after it (a symmetric V(2,2) that
-#: preconditions CG). Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward GS V(1,1)
-#: and V(2,2), and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies (TetGen bunny and spot,
-#: Dirichlet and Neumann; docs/usermesh.md): 7 CG iterations to 1e-8 on Dirichlet where symmetric GS
-#: V(1,1) took 8-9, at the same cost per cycle.
+#: correction and, as the adjoint post-smoother, two backward sweeps after it, on every level (a symmetric
+#: V(2,2) that preconditions CG). Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward
+#: GS V(1,1), V(2,2) and V(3,3), and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies (TetGen bunny
+#: and spot, Dirichlet and Neumann; docs/usermesh.md): 7 / 11-12 CG iterations (Dirichlet / Neumann) where
+#: symmetric GS V(1,1), at the same cost per cycle, took 8-9 / 12-14. One sweep on the coarser levels was
+#: 10-20% cheaper per cycle there at equal iterations, but on nested hierarchies its stationary factor grew
+#: with the number of levels (0.20 / 0.28 / 0.30 for 2 / 3 / 4 Kuhn-cube levels), so it is not the default.
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
 
 #: Default cap on cycles (stationary) or CG iterations (``accel="cg"``) of every multigrid solve:

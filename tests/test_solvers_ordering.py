@@ -29,7 +29,8 @@ def scattered():
 
 def test_constructor_defaults_are_the_documented_fast_path():
     """MultigridSolver(A, P) with no options is the cycle docs/usermesh.md measured fastest under CG:
-    forward Gauss-Seidel x2 before, backward x2 after (symmetric V(2,2)), locality ordering, dense coarsest."""
+    forward Gauss-Seidel x2 before, backward x2 after on every level, locality ordering, dense coarsest
+    solve."""
     params = inspect.signature(MultigridSolver).parameters
     assert DEFAULT_SMOOTHER == ("gauss_seidel", {"sweep": "forward", "iterations": 2})
     assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
@@ -41,6 +42,9 @@ def test_constructor_defaults_are_the_documented_fast_path():
     ml = MultigridSolver(fem.stiffness_matrix(V, T), Ps, nullspace="constant")
     pre, post = ml.levels[0].presmoother.params, ml.levels[0].postsmoother.params
     assert (pre["sweep"], pre["iterations"], post["sweep"], post["iterations"]) == ("forward", 2, "backward", 2)
+    for L in ml.levels[1:-1]:
+        pre, post = L.presmoother.params, L.postsmoother.params
+        assert (pre["sweep"], pre["iterations"], post["sweep"], post["iterations"]) == ("forward", 2, "backward", 2)
     assert ml.symmetric_cycle and ml._coarse_solver.dense and ml.perm is None  # small: caller's order kept
 
 

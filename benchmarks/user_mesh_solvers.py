@@ -73,6 +73,8 @@ VARIANTS = {
     "default": {},
     "symmetric_gs": {"presmoother": ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})},
     "forward_gs": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 1})},
+    # Neumann only: one forward / backward sweep over the fine boundary layer (solvers.fem.boundary_layer_nodes)
+    "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
     "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
                                            ("gauss_seidel", {"sweep": "forward", "iterations": 2})]},
 }
@@ -82,7 +84,7 @@ def load_case(work: Path) -> dict:
     """The user's mesh (read back from its file), the saved hierarchy, the matrices and right-hand sides."""
     from nestmg import load_hierarchy, load_tet_mesh
     from solvers import restrict_prolongations
-    from solvers.fem import boundary_nodes, mass_matrix, stiffness_matrix
+    from solvers.fem import boundary_layer_nodes, boundary_nodes, mass_matrix, stiffness_matrix
 
     V, T = load_tet_mesh(work / "user_mesh.vtu")
     H = load_hierarchy(work / "hierarchy")
@@ -106,6 +108,7 @@ def load_case(work: Path) -> dict:
         "n_outside": list(H.n_outside),
         "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
         "neumann": (K, b - m * (b.sum() / m.sum()), list(H.P), "constant"),
+        "boundary_layer": boundary_layer_nodes(T, 1),
     }
 
 
@@ -127,7 +130,9 @@ def run_nestmg(A, b, Ps, nullspace, tol, opts) -> dict:
     return {"setup_seconds": setup, "solve_seconds": r["seconds"], "iterations": r["iterations"],
             "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
             "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
-            "coarsest": ml.levels[-1].A.shape[0]}
+            "level_unknowns": [L.A.shape[0] for L in ml.levels],
+            "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels], "reordered": ml.perm is not None,
+            "spmv_internal_seconds": spmv_seconds(ml.levels[0].A, 10)}
 
 
 def run_sa(A, b, nullspace, tol) -> dict:
@@ -159,6 +164,8 @@ def spmv_seconds(A, repeats: int = 30) -> float:
 
 def run(args) -> dict:
     """Interleaved repeats over cases x problems x solvers; medians and within-run ratios."""
+    from solvers.ordering import index_spread
+
     solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants] + list(args.baselines)
     cases = [load_case(Path(w)) for w in args.cases]
     raw: dict = {}
@@ -167,13 +174,18 @@ def run(args) -> dict:
             for prob in args.problems:
                 A, b, Ps, ns = c[prob]
                 for sname in solvers:
+                    if sname == "nestmg_boundary_layer" and prob != "neumann":
+                        continue
                     if sname == "pyamg_sa":
                         r = run_sa(A, b, ns, args.tol)
                     elif sname == "petsc_gamg":
                         r = run_gamg(A, b, ns, args.tol)
                     else:
                         v = sname[len("nestmg_"):] if sname != "nestmg" else "default"
-                        r = run_nestmg(A, b, Ps, ns, args.tol, VARIANTS[v])
+                        opts = dict(VARIANTS[v])
+                        if v == "boundary_layer":
+                            opts["local_nodes"] = c["boundary_layer"]
+                        r = run_nestmg(A, b, Ps, ns, args.tol, opts)
                     r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
                     raw.setdefault((c["name"], prob, sname), []).append(r)
                     print(f"[{rep}] {c['name']:>14s} {prob:9s} {sname:28s} setup {r['setup_seconds']:.3f} solve "
@@ -186,14 +198,20 @@ def run(args) -> dict:
         for prob in args.problems:
             A = c[prob][0]
             t_spmv = spmv_seconds(A)
-            pd: dict = {"unknowns": A.shape[0], "nnz": A.nnz, "spmv_seconds": t_spmv, "solvers": {}}
+            pd: dict = {"unknowns": A.shape[0], "nnz": A.nnz, "spmv_seconds": t_spmv, "solvers": {},
+                        "index_spread": index_spread(A)}
             for sname in solvers:
+                if (c["name"], prob, sname) not in raw:
+                    continue
                 runs = raw[(c["name"], prob, sname)]
                 med = {k: float(np.median([r[k] for r in runs])) for k in
                        ("setup_seconds", "solve_seconds", "total_seconds")}
                 med.update(iterations=int(np.median([r["iterations"] for r in runs])),
                            max_final_residual=max(r["final_residual"] for r in runs),
                            solve_spmv=med["solve_seconds"] / t_spmv, runs=runs)
+                if "spmv_internal_seconds" in runs[0]:
+                    med["spmv_internal_seconds"] = float(np.median([r["spmv_internal_seconds"] for r in runs]))
+                    med["spmv_speedup_internal_order"] = t_spmv / med["spmv_internal_seconds"]
                 pd["solvers"][sname] = med
             ref = pd["solvers"][solvers[0]]
             for base in ("pyamg_sa", "petsc_gamg"):
@@ -218,14 +236,15 @@ def profile(args) -> dict:
     import cProfile
     import pstats
 
+    import importlib.util
+
     import pyamg
 
-    import solvers
     from solvers import MultigridSolver
 
     c = load_case(Path(args.case))
-    out: dict = {"case": c["name"], "tets": c["tets"], "solvers_file": str(Path(solvers.__file__).parent.name),
-                 "problems": {}}
+    out: dict = {"case": c["name"], "tets": c["tets"], "code": args.label,
+                 "has_locality_ordering": importlib.util.find_spec("solvers.ordering") is not None, "problems": {}}
     for prob in args.problems:
         A, b, Ps, ns = c[prob]
         t_mg, t_sa = [], []
@@ -279,6 +298,7 @@ def main(argv=None):
     pr.add_argument("case", type=Path)
     pr.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"], choices=("dirichlet", "neumann"))
     pr.add_argument("--repeats", type=int, default=3)
+    pr.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
     pr.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "build":

@@ -45,6 +45,7 @@ from .transfer import (
 __all__ = [
     "DEFAULT_MAXITER",
     "DEFAULT_SMOOTHER",
+    "DENSE_LEVEL_ROWS",
     "Level",
     "MultigridSolver",
     "convergence_factor",
@@ -56,14 +57,20 @@ __all__ = [
 ]
 
 #: The default cycle of ``MultigridSolver(A, Ps)``: two forward Gauss–Seidel sweeps before the coarse-grid
-#: correction and, as the adjoint post-smoother, two backward sweeps after it, on every level (a symmetric
-#: V(2,2) that preconditions CG). Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward
-#: GS V(1,1), V(2,2) and V(3,3), and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies (TetGen bunny
-#: and spot, Dirichlet and Neumann; docs/usermesh.md): 7 / 11-12 CG iterations (Dirichlet / Neumann) where
-#: symmetric GS V(1,1), at the same cost per cycle, took 8-9 / 12-14. One sweep on the coarser levels was
-#: 10-20% cheaper per cycle there at equal iterations, but on nested hierarchies its stationary factor grew
-#: with the number of levels (0.20 / 0.28 / 0.30 for 2 / 3 / 4 Kuhn-cube levels), so it is not the default.
+#: correction and, as the adjoint post-smoother, two backward sweeps after it (a symmetric V(2,2) that
+#: preconditions CG), except on dense coarse levels (:data:`DENSE_LEVEL_ROWS`), which get one sweep each.
+#: Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward GS V(1,1), V(2,2) and V(3,3),
+#: V(2,2) with one or three coarse sweeps, and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies
+#: (TetGen bunny and spot, Dirichlet and Neumann; docs/usermesh.md): 7 / 11-12 CG iterations (Dirichlet /
+#: Neumann) where symmetric GS V(1,1), at the same cost per cycle, took 8-9 / 12-14.
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
+
+#: With the default smoother, a coarse level whose operator has more than this many times the nonzeros per
+#: row of the finest one (Galerkin levels of a non-nested hierarchy: 40-90 against 15) gets one sweep
+#: instead of two: on the 1M-tet user hierarchies that cut 10-20% of a cycle's time at equal CG iterations.
+#: Levels as sparse as the finest keep two: on nested hierarchies (Kuhn cube) one coarse sweep made the
+#: stationary factor grow with the number of levels (0.20 / 0.28 / 0.30 for 2 / 3 / 4 levels).
+DENSE_LEVEL_ROWS = 2.0
 
 #: Default cap on cycles (stationary) or CG iterations (``accel="cg"``) of every multigrid solve:
 #: :meth:`MultigridSolver.solve`, :meth:`solvers.petsc.PetscMultigrid.solve`,
@@ -149,7 +156,9 @@ class MultigridSolver:
         See :func:`solvers.smoothing.make_smoother`. A list gives one spec per level, finest first,
         the last one repeated on deeper levels (e.g. more sweeps on the cheap coarse levels: the
         variable V-cycle). Default :data:`DEFAULT_SMOOTHER`: two forward Gauss–Seidel sweeps, and two
-        backward ones after the correction (V(2,2)). ``postsmoother=None`` (default) means the adjoint of the presmoother: the same smoother,
+        backward ones after the correction (V(2,2)); one of each on coarse levels denser than
+        :data:`DENSE_LEVEL_ROWS` times the finest (only for the default itself: an equal spec passed
+        explicitly gives two sweeps on every level). ``postsmoother=None`` (default) means the adjoint of the presmoother: the same smoother,
         with a forward Gauss–Seidel sweep turned into a backward one, so the cycle is symmetric and can
         precondition CG. An explicit non-adjoint pair (e.g. forward GS on both sides) is allowed for
         stationary cycling; ``solve(accel="cg")`` then warns.
@@ -317,6 +326,8 @@ class MultigridSolver:
                         f"(max |A_{k} 1| = {r:.3e})"
                     )
         pre_specs = _level_specs(presmoother, len(Ps))
+        if presmoother is DEFAULT_SMOOTHER:
+            pre_specs = _dense_level_specs(ops, pre_specs)
         post_specs = ([_adjoint_spec(s) for s in pre_specs] if postsmoother is None
                       else _level_specs(postsmoother, len(Ps)))
         local = _local_sets(_permuted_nodes(local_nodes, self.perm), Ps, local_levels, ops[0].shape[0])
@@ -770,6 +781,14 @@ def _local_sets(nodes, Ps, levels, n0) -> list:
         out[k] = idx
         idx = np.unique(Ps[k][idx].indices).astype(np.int64)
     return out
+
+
+def _dense_level_specs(ops, specs) -> list:
+    """The default cycle's specs with one sweep on dense coarse levels (see :data:`DENSE_LEVEL_ROWS`)."""
+    fine = ops[0].nnz / max(ops[0].shape[0], 1)
+    one = (DEFAULT_SMOOTHER[0], dict(DEFAULT_SMOOTHER[1], iterations=1))
+    return [one if k and ops[k].nnz / max(ops[k].shape[0], 1) > DENSE_LEVEL_ROWS * fine else spec
+            for k, spec in enumerate(specs)]
 
 
 def _level_specs(spec, n_smoothed: int) -> list:

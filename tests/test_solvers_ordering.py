@@ -9,7 +9,7 @@ import scipy.sparse as sp
 import solvers.coarse
 from solvers import MultigridSolver, fem
 from solvers.gallery import kuhn_cube_hierarchy
-from solvers.multilevel import DEFAULT_SMOOTHER
+from solvers.multilevel import DEFAULT_SMOOTHER, DENSE_LEVEL_ROWS
 from solvers.ordering import ORDER_MIN_N, index_spread, locality_order, permute_symmetric
 
 
@@ -29,8 +29,8 @@ def scattered():
 
 def test_constructor_defaults_are_the_documented_fast_path():
     """MultigridSolver(A, P) with no options is the cycle docs/usermesh.md measured fastest under CG:
-    forward Gauss-Seidel x2 before, backward x2 after on every level, locality ordering, dense coarsest
-    solve."""
+    forward Gauss-Seidel x2 before, backward x2 after (x1 on dense coarse levels), locality ordering,
+    dense coarsest solve."""
     params = inspect.signature(MultigridSolver).parameters
     assert DEFAULT_SMOOTHER == ("gauss_seidel", {"sweep": "forward", "iterations": 2})
     assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
@@ -46,6 +46,17 @@ def test_constructor_defaults_are_the_documented_fast_path():
         pre, post = L.presmoother.params, L.postsmoother.params
         assert (pre["sweep"], pre["iterations"], post["sweep"], post["iterations"]) == ("forward", 2, "backward", 2)
     assert ml.symmetric_cycle and ml._coarse_solver.dense and ml.perm is None  # small: caller's order kept
+    # a dense coarse level (more than DENSE_LEVEL_ROWS times the fine nonzeros per row) gets one sweep
+    assert DENSE_LEVEL_ROWS == 2.0
+    P0 = sp.csr_matrix(Ps[0])
+    dense_P = sp.csr_matrix(P0 @ sp.csr_matrix(np.kron(np.eye(P0.shape[1] // 5 + 1), np.ones((5, 5)))
+                                               [: P0.shape[1], : P0.shape[1]] / 5.0))  # smears each column
+    md = MultigridSolver(fem.stiffness_matrix(V, T), [dense_P] + list(Ps[1:]), nullspace="constant")
+    rows = [L.A.nnz / L.A.shape[0] for L in md.levels]
+    for k, L in enumerate(md.levels[1:-1], start=1):
+        want = 1 if rows[k] > 2.0 * rows[0] else 2
+        assert L.presmoother.params["iterations"] == L.postsmoother.params["iterations"] == want
+    assert md.levels[1].presmoother.params["iterations"] == 1, rows
 
 
 def test_locality_order_is_a_permutation_that_gathers(scattered):

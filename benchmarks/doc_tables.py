@@ -306,6 +306,16 @@ def usermesh_setup() -> str:
     return rng(r, ".2f") + "x"
 
 
+@generator("usermesh.speedup", USER_SOLVERS)
+def usermesh_speedup() -> str:
+    d = load(USER_SOLVERS)
+    sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    tets = [c["tets"] for c in d["cases"]]
+    return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than PETSc GAMG "
+            f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
+
+
 @generator("usermesh.profile", *USER_PROFILE)
 def usermesh_profile() -> str:
     rows = []

@@ -336,9 +336,9 @@ class MultigridSolver:
             if k < len(Ps):
                 P = Ps[k]
                 pre_spec, post_spec = pre_specs[k], post_specs[k]
-                pre = make_smoother(Ak, pre_spec)
+                pre = make_smoother(Ak, pre_spec, diagonal_checked=True)  # checked above
                 # a self-adjoint smoother is shared (one spectral radius estimate per level)
-                post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec)
+                post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec, diagonal_checked=True)
                 if local[k] is not None:
                     one_way = local_sweep == "one-way"
                     rows = local_rows(Ak, local[k])  # one copy of the rows for both smoothers

@@ -103,7 +103,7 @@ def load_case(work: Path) -> dict:
     if info.get("refined"):
         mesher += f" {info.get('mesher_tets', 0) / 1e3:.0f}k tets, red-refined x{info['refined']}"
     return {
-        "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V),
+        "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V), "build": info,
         "level_tets": [len(t) for _, t in H.tets],
         "n_outside": list(H.n_outside),
         "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
@@ -193,7 +193,7 @@ def run(args) -> dict:
     out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "cases": []}
     for c in cases:
-        cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside")}
+        cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside", "build")}
         cd["problems"] = {}
         for prob in args.problems:
             A = c[prob][0]

@@ -316,14 +316,73 @@ def usermesh_speedup() -> str:
             f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
 
 
+def _user_nestmg(key: str, problems=("dirichlet", "neumann"), solver: str = "nestmg") -> list:
+    d = load(USER_SOLVERS)
+    return [c["problems"][p]["solvers"][solver][key] for c in d["cases"] for p in problems
+            if solver in c["problems"][p]["solvers"]]
+
+
+@generator("usermesh.spread", USER_SOLVERS)
+def usermesh_spread() -> str:
+    d = load(USER_SOLVERS)
+    return rng([100 * c["problems"][p]["index_spread"] for c in d["cases"] for p in ("dirichlet", "neumann")],
+               ".0f") + "%"
+
+
+@generator("usermesh.spmv", USER_SOLVERS)
+def usermesh_spmv() -> str:
+    return rng(_user_nestmg("spmv_speedup_internal_order"), ".2f") + "x"
+
+
+@generator("usermesh.rows", USER_SOLVERS)
+def usermesh_rows() -> str:
+    rows = [r["runs"][0]["level_nnz_per_row"] for r in
+            (c["problems"][p]["solvers"]["nestmg"] for c in load(USER_SOLVERS)["cases"] for p in ("dirichlet", "neumann"))]
+    return (f"{rng([r[0] for r in rows], '.0f')} nonzeros per row on the fine level, "
+            f"{rng([r[1] for r in rows], '.0f')} on the first coarse level and "
+            f"{rng([r[-1] for r in rows], '.0f')} on the coarsest")
+
+
+@generator("usermesh.layer", USER_SOLVERS)
+def usermesh_layer() -> str:
+    plain = _user_nestmg("iterations", ("neumann",))
+    layer = _user_nestmg("iterations", ("neumann",), "nestmg_boundary_layer")
+    tp = _user_nestmg("solve_seconds", ("neumann",))
+    tl = _user_nestmg("solve_seconds", ("neumann",), "nestmg_boundary_layer")
+    return (f"{rng(layer, 'd')} instead of {rng(plain, 'd')} CG iterations, solve time x"
+            f"{rng([b / a for a, b in zip(tp, tl)], '.2f')}")
+
+
+def _kernel_seconds(rel: str, prob: str, names: tuple) -> float:
+    top = load(rel)["problems"][prob]["top_tottime"]
+    return sum(t["tottime"] for t in top if any(n in t["function"] for n in names))
+
+
+@generator("usermesh.kernels", *USER_PROFILE)
+def usermesh_kernels() -> str:
+    parts = []
+    for label, names in (("sparse products (`csr_matmat` + `csr_matmat_maxnnz`)", ("csr_matmat",)),
+                         ("coarsest factorisation (SuperLU `gstrf` / LAPACK Cholesky)", ("gstrf", "_cholesky"))):
+        b = [_kernel_seconds(USER_PROFILE[0], p, names) for p in ("dirichlet", "neumann")]
+        a = [_kernel_seconds(USER_PROFILE[1], p, names) for p in ("dirichlet", "neumann")]
+        parts.append(f"{label} {rng(b, '.2f')} s before, {rng(a, '.2f')} s after")
+    return "; ".join(parts)
+
+
+def _func_label(f: str) -> str:
+    """``csr_matmat`` from cProfile's ``~:0(<built-in method scipy.sparse._sparsetools.csr_matmat>)``,
+    ``argsort`` from ``~:0(<method 'argsort' of ...>)``, ``_reorder`` from ``multilevel.py:371(_reorder)``."""
+    m = re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f) or re.search(r"\((\w+)\)$", f)
+    return m.group(1).split(".")[-1] if m else f
+
+
 @generator("usermesh.profile", *USER_PROFILE)
 def usermesh_profile() -> str:
     rows = []
     for rel, when in zip(USER_PROFILE, ("before (base commit)", "after")):
         d = load(rel)
         for p, r in d["problems"].items():
-            top = "; ".join(f"`{t['function'].split('(')[-1].rstrip(')').split('.')[-1]}` {t['tottime']:.2f}"
-                            for t in r["top_tottime"][:5])
+            top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}" for t in r["top_tottime"][:5])
             rows.append([when, p, f"{r['setup_seconds_median']:.2f}", f"{r['pyamg_sa_setup_seconds_median']:.2f}",
                          f"{r['setup_ratio_vs_sa_median']:.2f}", top])
     return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio",

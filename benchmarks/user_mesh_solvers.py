@@ -139,8 +139,8 @@ def run_sa(A, b, nullspace, tol) -> dict:
     """pyamg SA (defaults) as CG's preconditioner. Dirichlet: pyamg's own CG (``solvers.baselines.pyamg_sa``).
     Neumann: the same SA V-cycle inside :func:`solvers.krylov.pcg` with the iterates, the right-hand side and
     the preconditioned residual kept at zero mean, as nestmg's MG-PCG does: pyamg's CG on the singular
-    matrix drifts along the constant null space (runs of 14 iterations aborted as "indefinite", 72 and 500
-    iterations on these meshes)."""
+    matrix drifts along the constant null space (on these meshes it aborted as "indefinite" or ran to 500
+    iterations in some repeats)."""
     import pyamg
     import scipy.sparse.linalg as spla
 

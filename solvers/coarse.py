@@ -20,9 +20,9 @@ __all__ = ["DENSE_MAX", "sparse_lu"]
 
 #: ``coarse_solver="auto"`` factorises a coarsest level of at most this many unknowns densely (LAPACK
 #: Cholesky, ``scipy.linalg.cho_factor``) instead of with SuperLU. Galerkin products of non-nested
-#: levels fill up (85 nonzeros per row at 831 unknowns on a 314k-tet user hierarchy): there the dense
-#: factor (n³/3 flops, BLAS 3) took 0.01 s where SuperLU's validated factorisations took 0.12 s, and
-#: its triangular solves cost about what SuperLU's sparse ones do (docs/usermesh.md).
+#: levels fill up (86-95 nonzeros per row on the coarsest level of 1M-tet user hierarchies): there the
+#: dense factor (n³/3 flops, BLAS 3) took 0.07-0.08 s where SuperLU's validated factorisations took
+#: 0.33-0.52 s (cProfile, docs/usermesh.md).
 DENSE_MAX = 1500
 
 

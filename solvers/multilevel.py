@@ -61,8 +61,9 @@ __all__ = [
 #: preconditions CG), except on dense coarse levels (:data:`DENSE_LEVEL_ROWS`), which get one sweep each.
 #: Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward GS V(1,1), V(2,2) and V(3,3),
 #: V(2,2) with one or three coarse sweeps, and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies
-#: (TetGen bunny and spot, Dirichlet and Neumann; docs/usermesh.md): 7 / 11-12 CG iterations (Dirichlet /
-#: Neumann) where symmetric GS V(1,1), at the same cost per cycle, took 8-9 / 12-14.
+#: (TetGen bunny and spot, Dirichlet and Neumann; exploratory runs, the final figures in docs/usermesh.md):
+#: 7 / 11-12 CG iterations (Dirichlet / Neumann) where symmetric GS V(1,1), at the same cost per cycle,
+#: took 8-9 / 12-14.
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
 
 #: With the default smoother, a coarse level whose operator has more than this many times the nonzeros per
@@ -198,9 +199,9 @@ class MultigridSolver:
     ordering : {"auto", "locality"} or None
         Internal order of the finest level's unknowns. ``"locality"``: :func:`solvers.ordering.locality_order`
         (from the prolongations; a few integer sorts), applied as ``A[p][:, p]`` before the Galerkin products;
-        ``solve`` and ``aspreconditioner`` take and return vectors in the caller's order. On a scattered
-        1M-tet user mesh it made the first Galerkin product 3x and every fine SpMV and smoothing sweep
-        1.75x faster (docs/usermesh.md). ``"auto"`` (default): ``"locality"`` when the finest level has
+        ``solve`` and ``aspreconditioner`` take and return vectors in the caller's order. On scattered
+        1M-tet user meshes the Galerkin products ran ~2.5x and a fine SpMV up to 1.4x faster
+        (docs/usermesh.md). ``"auto"`` (default): ``"locality"`` when the finest level has
         at least :data:`solvers.ordering.ORDER_MIN_N` unknowns and a scattered order
         (:func:`solvers.ordering.index_spread` above :data:`solvers.ordering.ORDER_MIN_SPREAD`); None:
         the caller's order. ``levels[0]`` then holds the permuted operator and ``perm`` the permutation.

@@ -371,6 +371,28 @@ def usermesh_kernels() -> str:
     return "; ".join(parts)
 
 
+USER_CYCLES = "user_mesh/cycles.json"
+_CYCLE_LABELS = {"nestmg": "default", "nestmg_symmetric_gs": "symmetric GS V(1,1)",
+                 "nestmg_forward_gs": "forward/backward GS V(1,1)", "nestmg_forward_gs2_uniform": "V(2,2) on every level",
+                 "nestmg_chebyshev3": "Chebyshev degree 3"}
+
+
+@generator("usermesh.cycles", USER_CYCLES)
+def usermesh_cycles() -> str:
+    d = load(USER_CYCLES)
+    names = list(d["cases"][0]["problems"]["dirichlet"]["solvers"])
+    rows = []
+    for c in d["cases"]:
+        for p, pd in c["problems"].items():
+            cells = []
+            for n in names:
+                r = pd["solvers"][n]
+                ratio = "1" if n == names[0] else f"{r['solve_ratio_vs_first']:.2f}"
+                cells.append(f"{r['iterations']} / {ratio}")
+            rows.append([f"{c['label']} ({c['tets']:,})", p] + cells)
+    return table(["user mesh (fine tets)", "problem"] + [_CYCLE_LABELS.get(n, n) for n in names], rows)
+
+
 def _func_label(f: str) -> str:
     """``csr_matmat`` from cProfile's ``~:0(<built-in method scipy.sparse._sparsetools.csr_matmat>)``,
     ``argsort`` from ``~:0(<method 'argsort' of ...>)``, ``_reorder`` from ``multilevel.py:371(_reorder)``."""

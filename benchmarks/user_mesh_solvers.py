@@ -73,6 +73,9 @@ VARIANTS = {
     "default": {},
     "symmetric_gs": {"presmoother": ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})},
     "forward_gs": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 1})},
+    # an explicit spec equal to the default: two sweeps on every level (no one-sweep dense levels)
+    "forward_gs2_uniform": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 2})},
+    "chebyshev3": {"presmoother": ("chebyshev", {"degree": 3})},
     # Neumann only: one forward / backward sweep over the fine boundary layer (solvers.fem.boundary_layer_nodes)
     "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
     "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
@@ -108,6 +111,8 @@ def load_case(work: Path) -> dict:
         "n_outside": list(H.n_outside),
         "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
         "neumann": (K, b - m * (b.sum() / m.sum()), list(H.P), "constant"),
+        # Neumann diffusion (λK + M) u = M f with λ = (d/10)², d the bounding-box diagonal: one implicit step
+        "diffusion": (sp_csr((d / 10) ** 2 * K + M), b, list(H.P), None),
         "boundary_layer": boundary_layer_nodes(T, 1),
     }
 
@@ -239,6 +244,11 @@ def run(args) -> dict:
                     med["spmv_speedup_internal_order"] = t_spmv / med["spmv_internal_seconds"]
                 pd["solvers"][sname] = med
             ref = pd["solvers"][solvers[0]]
+            for sname, med in pd["solvers"].items():
+                if sname != solvers[0]:
+                    med["solve_ratio_vs_first"] = float(np.median(
+                        [rs["solve_seconds"] / r0["solve_seconds"] for rs, r0 in
+                         zip(raw[(c["name"], prob, sname)], raw[(c["name"], prob, solvers[0])])]))
             for base in ("pyamg_sa", "petsc_gamg"):
                 if base in pd["solvers"]:
                     pd[f"speedup_vs_{base}"] = float(np.median(
@@ -312,7 +322,8 @@ def main(argv=None):
     b.add_argument("--work", type=Path, required=True)
     r = sub.add_parser("run", help="compare the solvers on built cases")
     r.add_argument("cases", nargs="+", type=Path)
-    r.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"], choices=("dirichlet", "neumann"))
+    r.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
+                   choices=("dirichlet", "neumann", "diffusion"))
     r.add_argument("--variants", nargs="+", default=["default"], choices=sorted(VARIANTS),
                    help="nestmg cycles; the first one is the reference of the ratios")
     r.add_argument("--baselines", nargs="*", default=["pyamg_sa", "petsc_gamg"], choices=("pyamg_sa", "petsc_gamg"))

@@ -314,7 +314,8 @@ def usermesh_speedup() -> str:
     sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
     gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in ("dirichlet", "neumann")]
     tets = [c["tets"] for c in d["cases"]]
-    return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than PETSc GAMG "
+    return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than "
+            f"PETSc GAMG "
             f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
 
 
@@ -338,8 +339,9 @@ def usermesh_spmv() -> str:
 
 @generator("usermesh.rows", USER_SOLVERS)
 def usermesh_rows() -> str:
-    rows = [r["runs"][0]["level_nnz_per_row"] for r in
-            (c["problems"][p]["solvers"]["nestmg"] for c in load(USER_SOLVERS)["cases"] for p in ("dirichlet", "neumann"))]
+    cases = load(USER_SOLVERS)["cases"]
+    rows = [c["problems"][p]["solvers"]["nestmg"]["runs"][0]["level_nnz_per_row"]
+            for c in cases for p in ("dirichlet", "neumann")]
     return (f"{rng([r[0] for r in rows], '.0f')} nonzeros per row on the fine level, "
             f"{rng([r[1] for r in rows], '.0f')} on the first coarse level and "
             f"{rng([r[-1] for r in rows], '.0f')} on the coarsest")
@@ -364,7 +366,8 @@ def _kernel_seconds(rel: str, prob: str, names: tuple) -> float:
 def usermesh_kernels() -> str:
     parts = []
     for label, names in (("sparse products (`csr_matmat` + `csr_matmat_maxnnz`)", ("csr_matmat",)),
-                         ("coarsest factorisation (SuperLU `gstrf` / LAPACK Cholesky)", ("gstrf", "_cholesky"))):
+                         ("coarsest factorisation (SuperLU `gstrf` / LAPACK Cholesky)",
+                          ("gstrf", "_cholesky"))):
         b = [_kernel_seconds(USER_PROFILE[0], p, names) for p in ("dirichlet", "neumann")]
         a = [_kernel_seconds(USER_PROFILE[1], p, names) for p in ("dirichlet", "neumann")]
         parts.append(f"{label} {rng(b, '.2f')} s before, {rng(a, '.2f')} s after")
@@ -373,7 +376,8 @@ def usermesh_kernels() -> str:
 
 USER_CYCLES = "user_mesh/cycles.json"
 _CYCLE_LABELS = {"nestmg": "default", "nestmg_symmetric_gs": "symmetric GS V(1,1)",
-                 "nestmg_forward_gs": "forward/backward GS V(1,1)", "nestmg_forward_gs2_uniform": "V(2,2) on every level",
+                 "nestmg_forward_gs": "forward/backward GS V(1,1)",
+                 "nestmg_forward_gs2_uniform": "V(2,2) on every level",
                  "nestmg_chebyshev3": "Chebyshev degree 3"}
 
 
@@ -396,7 +400,8 @@ def usermesh_cycles() -> str:
 def _func_label(f: str) -> str:
     """``csr_matmat`` from cProfile's ``~:0(<built-in method scipy.sparse._sparsetools.csr_matmat>)``,
     ``argsort`` from ``~:0(<method 'argsort' of ...>)``, ``_reorder`` from ``multilevel.py:371(_reorder)``."""
-    m = re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f) or re.search(r"\((\w+)\)$", f)
+    m = (re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f)
+         or re.search(r"\((\w+)\)$", f))
     return m.group(1).split(".")[-1] if m else f
 
 
@@ -406,8 +411,10 @@ def usermesh_profile() -> str:
     for rel, when in zip(USER_PROFILE, ("before (base commit)", "after")):
         d = load(rel)
         for p, r in d["problems"].items():
-            top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}" for t in r["top_tottime"][:5])
-            rows.append([when, p, f"{r['setup_seconds_median']:.2f}", f"{r['pyamg_sa_setup_seconds_median']:.2f}",
+            top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}"
+                            for t in r["top_tottime"][:5])
+            rows.append([when, p, f"{r['setup_seconds_median']:.2f}",
+                         f"{r['pyamg_sa_setup_seconds_median']:.2f}",
                          f"{r['setup_ratio_vs_sa_median']:.2f}", top])
     return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio",
                   "top 5 by own time under cProfile (s)"], rows)

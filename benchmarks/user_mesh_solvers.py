@@ -32,13 +32,15 @@ def build(args) -> dict:
     """Mesh the surface (the user's mesher), write + read the file, build and save the hierarchy."""
     import trimesh
 
-    from nestmg import hierarchy_from_tets, load_mesh, load_tet_mesh, save_hierarchy, save_tet_mesh, tetrahedralize
+    from nestmg import (hierarchy_from_tets, load_mesh, load_tet_mesh, save_hierarchy, save_tet_mesh,
+                        tetrahedralize)
     from nestmg.refine import refine_tets
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     mesh_file = work / "user_mesh.vtu"
-    info: dict = {"surface": Path(args.surface).name, "mesher": args.mesher, "fine_tets_target": args.fine_tets}
+    info: dict = {"surface": Path(args.surface).name, "mesher": args.mesher,
+                  "fine_tets_target": args.fine_tets}
     if not mesh_file.exists():
         V, F = load_mesh(args.surface)
         vol = trimesh.Trimesh(V, F, process=False).volume
@@ -76,7 +78,8 @@ VARIANTS = {
     # an explicit spec equal to the default: two sweeps on every level (no one-sweep dense levels)
     "forward_gs2_uniform": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 2})},
     "chebyshev3": {"presmoother": ("chebyshev", {"degree": 3})},
-    # Neumann only: one forward / backward sweep over the fine boundary layer (solvers.fem.boundary_layer_nodes)
+    # Neumann only: one forward / backward sweep over the fine boundary layer
+    # (solvers.fem.boundary_layer_nodes)
     "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
     "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
                                            ("gauss_seidel", {"sweep": "forward", "iterations": 2})]},
@@ -106,12 +109,13 @@ def load_case(work: Path) -> dict:
     if info.get("refined"):
         mesher += f" {info.get('mesher_tets', 0) / 1e3:.0f}k tets, red-refined x{info['refined']}"
     return {
-        "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V), "build": info,
+        "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V),
+        "build": info,
         "level_tets": [len(t) for _, t in H.tets],
         "n_outside": list(H.n_outside),
         "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
         "neumann": (K, b - m * (b.sum() / m.sum()), list(H.P), "constant"),
-        # Neumann diffusion (λK + M) u = M f with λ = (d/10)², d the bounding-box diagonal: one implicit step
+        # Neumann diffusion (λK + M) u = M f, λ = (d/10)², d the bounding-box diagonal (an implicit step)
         "diffusion": (sp_csr((d / 10) ** 2 * K + M), b, list(H.P), None),
         "boundary_layer": boundary_layer_nodes(T, 1),
     }
@@ -136,7 +140,8 @@ def run_nestmg(A, b, Ps, nullspace, tol, opts) -> dict:
             "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
             "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
             "level_unknowns": [L.A.shape[0] for L in ml.levels],
-            "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels], "reordered": ml.perm is not None,
+            "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels],
+            "reordered": ml.perm is not None,
             "spmv_internal_seconds": spmv_seconds(ml.levels[0].A, 10)}
 
 
@@ -154,7 +159,8 @@ def run_sa(A, b, nullspace, tol) -> dict:
 
     if nullspace is None:
         r = pyamg_sa(A, b, tol=tol, nullspace=nullspace)
-        return {"setup_seconds": r.setup_seconds, "solve_seconds": r.solve_seconds, "iterations": r.iterations,
+        return {"setup_seconds": r.setup_seconds, "solve_seconds": r.solve_seconds,
+                "iterations": r.iterations,
                 "final_residual": r.info["final_true_residual"],
                 "operator_complexity": r.info["operator_complexity"]}
     t = time.perf_counter()
@@ -177,7 +183,8 @@ def run_gamg(A, b, nullspace, tol) -> dict:
     from solvers.petsc_amg import petsc_amg_solve
 
     x, r = petsc_amg_solve(A, b, "gamg", tol=tol, nullspace=nullspace)
-    return {"setup_seconds": r["setup_seconds"], "solve_seconds": r["solve_seconds"], "iterations": r["iterations"],
+    return {"setup_seconds": r["setup_seconds"], "solve_seconds": r["solve_seconds"],
+            "iterations": r["iterations"],
             "final_residual": float(np.linalg.norm(b - A @ x) / np.linalg.norm(b))}
 
 
@@ -218,7 +225,8 @@ def run(args) -> dict:
                         r = run_nestmg(A, b, Ps, ns, args.tol, opts)
                     r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
                     raw.setdefault((c["name"], prob, sname), []).append(r)
-                    print(f"[{rep}] {c['name']:>14s} {prob:9s} {sname:28s} setup {r['setup_seconds']:.3f} solve "
+                    print(f"[{rep}] {c['name']:>14s} {prob:9s} {sname:28s} "
+                          f"setup {r['setup_seconds']:.3f} solve "
                           f"{r['solve_seconds']:.3f} it {r['iterations']}", flush=True)
     out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "cases": []}
@@ -240,7 +248,8 @@ def run(args) -> dict:
                            max_final_residual=max(r["final_residual"] for r in runs),
                            solve_spmv=med["solve_seconds"] / t_spmv, runs=runs)
                 if "spmv_internal_seconds" in runs[0]:
-                    med["spmv_internal_seconds"] = float(np.median([r["spmv_internal_seconds"] for r in runs]))
+                    med["spmv_internal_seconds"] = float(
+                        np.median([r["spmv_internal_seconds"] for r in runs]))
                     med["spmv_speedup_internal_order"] = t_spmv / med["spmv_internal_seconds"]
                 pd["solvers"][sname] = med
             ref = pd["solvers"][solvers[0]]
@@ -279,7 +288,8 @@ def profile(args) -> dict:
 
     c = load_case(Path(args.case))
     out: dict = {"case": c["name"], "tets": c["tets"], "code": args.label,
-                 "has_locality_ordering": importlib.util.find_spec("solvers.ordering") is not None, "problems": {}}
+                 "has_locality_ordering": importlib.util.find_spec("solvers.ordering") is not None,
+                 "problems": {}}
     for prob in args.problems:
         A, b, Ps, ns = c[prob]
         t_mg, t_sa = [], []
@@ -298,7 +308,8 @@ def profile(args) -> dict:
         rows = sorted(((v[2], v[3], f"{Path(k[0]).name}:{k[1]}({k[2]})") for k, v in st.stats.items()),
                       reverse=True)
         out["problems"][prob] = {
-            "setup_seconds_median": float(np.median(t_mg)), "pyamg_sa_setup_seconds_median": float(np.median(t_sa)),
+            "setup_seconds_median": float(np.median(t_mg)),
+            "pyamg_sa_setup_seconds_median": float(np.median(t_sa)),
             "setup_ratio_vs_sa_median": float(np.median(np.array(t_mg) / np.array(t_sa))),
             "profile_seconds": float(st.total_tt),
             "top_tottime": [{"function": f, "tottime": tt, "cumtime": ct} for tt, ct, f in rows[:12]],
@@ -318,7 +329,7 @@ def main(argv=None):
     b.add_argument("--fine-tets", type=int, default=1_000_000)
     b.add_argument("--levels", type=int, default=4)
     b.add_argument("--refine", type=int, default=0,
-                   help="red-refine the mesher's output this many times (mesher target: fine-tets / 8^refine)")
+                   help="red-refine the mesher's output this many times (mesher target: fine-tets / 8^n)")
     b.add_argument("--work", type=Path, required=True)
     r = sub.add_parser("run", help="compare the solvers on built cases")
     r.add_argument("cases", nargs="+", type=Path)
@@ -326,13 +337,15 @@ def main(argv=None):
                    choices=("dirichlet", "neumann", "diffusion"))
     r.add_argument("--variants", nargs="+", default=["default"], choices=sorted(VARIANTS),
                    help="nestmg cycles; the first one is the reference of the ratios")
-    r.add_argument("--baselines", nargs="*", default=["pyamg_sa", "petsc_gamg"], choices=("pyamg_sa", "petsc_gamg"))
+    r.add_argument("--baselines", nargs="*", default=["pyamg_sa", "petsc_gamg"],
+                   choices=("pyamg_sa", "petsc_gamg"))
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
     r.add_argument("--json", type=Path, default=None)
     pr = sub.add_parser("profile", help="cProfile of the MultigridSolver set-up on one case")
     pr.add_argument("case", type=Path)
-    pr.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"], choices=("dirichlet", "neumann"))
+    pr.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
+                    choices=("dirichlet", "neumann"))
     pr.add_argument("--repeats", type=int, default=3)
     pr.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
     pr.add_argument("--json", type=Path, default=None)
@@ -346,7 +359,7 @@ def main(argv=None):
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=1, default=json_default))
     if args.cmd == "run" and "petsc_gamg" in args.baselines:
-        os._exit(0)  # Debian's PETSc 3.18 may segfault at interpreter exit after correct solves (solvers/petsc.py)
+        os._exit(0)  # Debian's PETSc 3.18 may segfault at interpreter exit after correct solves
     return out
 
 

@@ -146,12 +146,14 @@ class _CoarseSolver:
                 self.lu = self._factor(Ar, self.symmetric)
             except RuntimeError as e:
                 if not (self.dense and self.symmetric):
-                    raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU failed: {e}") from None
+                    raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU "
+                                      f"failed: {e}") from None
                 # dense path: a symmetric operator that is not semi-definite gets the pivoting LU instead
                 try:
                     self.lu = _DenseFactor(A, False)
                 except RuntimeError as e2:
-                    raise SolverError(f"coarsest operator (level {level}, n={self.n}): dense LU failed: {e2}") from None
+                    raise SolverError(f"coarsest operator (level {level}, n={self.n}): dense LU failed: "
+                                      f"{e2}") from None
             self.nnz = self._nnz()
             self.nullity = -1  # not computed (at least the expected one)
             v = np.random.default_rng(0).standard_normal(self.n)
@@ -188,9 +190,9 @@ class _CoarseSolver:
                 v -= v.mean()
             self.nullity = expected
             # symmetric mode first (no pivoting: right for the SPD operators of this project); a symmetric
-            # indefinite operator whose unpivoted factor fails validation gets SuperLU's pivoting LU. The dense
-            # path tries Cholesky only: a failure (mostly a semi-definite Galerkin operator with null vectors
-            # from a rank-deficient P) goes to the regularised step, which tries the pivoting LU last
+            # indefinite operator whose unpivoted factor fails validation gets SuperLU's pivoting LU. The
+            # dense path tries Cholesky only: a failure (mostly a semi-definite Galerkin operator with null
+            # vectors from a rank-deficient P) goes to the regularised step, which tries the pivoting LU last
             err = np.inf
             for sym in ((True, False) if self.symmetric and not self.dense else (self.symmetric,)):
                 self.lu = None

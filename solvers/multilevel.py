@@ -159,7 +159,8 @@ class MultigridSolver:
         variable V-cycle). Default :data:`DEFAULT_SMOOTHER`: two forward Gauss–Seidel sweeps, and two
         backward ones after the correction (V(2,2)); one of each on coarse levels denser than
         :data:`DENSE_LEVEL_ROWS` times the finest (only for the default itself: an equal spec passed
-        explicitly gives two sweeps on every level). ``postsmoother=None`` (default) means the adjoint of the presmoother: the same smoother,
+        explicitly gives two sweeps on every level). ``postsmoother=None`` (default) means the adjoint of
+        the presmoother: the same smoother,
         with a forward Gauss–Seidel sweep turned into a backward one, so the cycle is symmetric and can
         precondition CG. An explicit non-adjoint pair (e.g. forward GS on both sides) is allowed for
         stationary cycling; ``solve(accel="cg")`` then warns.

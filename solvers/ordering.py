@@ -33,7 +33,7 @@ ORDER_MIN_SPREAD = 0.05
 
 
 def index_spread(A: sp.csr_matrix) -> float:
-    """Mean ``|i - j|`` over the nonzeros ``(i, j)`` of ``A``, divided by ``n`` (0: diagonal, ~1/3: random)."""
+    """Mean ``|i - j|`` over the nonzeros ``(i, j)`` of ``A`` divided by ``n`` (0: diagonal, ~1/3: random)."""
     n = A.shape[0]
     if A.nnz == 0 or n == 0:
         return 0.0

@@ -271,6 +271,155 @@ def usermesh_tets() -> str:
     return f"{load('user_mesh/gargo.json')['user_tets'] / 1e3:.0f}k"
 
 
+USER_SOLVERS = "user_mesh/solvers.json"
+USER_PROFILE = ("user_mesh/setup_profile_before.json", "user_mesh/setup_profile_after.json")
+_USER_LABELS = {"nestmg": "`MultigridSolver(A, P)`, defaults", "pyamg_sa": "pyamg SA + CG",
+                "petsc_gamg": "PETSc GAMG + CG, 1 rank"}
+
+
+def _user_cell(r: dict, spmv: bool, tol: float) -> str:
+    it = f"{r['iterations']}, {r['solve_spmv']:.0f} fine SpMV" if spmv else f"{r['iterations']}"
+    bad = "" if r["max_final_residual"] <= 1.01 * tol else f", residual {r['max_final_residual']:.0e} ✗"
+    return f"{r['setup_seconds']:.2f} + {r['solve_seconds']:.2f} s ({it}{bad})"
+
+
+@generator("usermesh.solvers", USER_SOLVERS)
+def usermesh_solvers() -> str:
+    d = load(USER_SOLVERS)
+    rows = []
+    for c in d["cases"]:
+        pr = c["problems"]
+        label = f"{c['label']} ({c['tets']:,})"
+        for sname in ("nestmg", "pyamg_sa", "petsc_gamg"):
+            rows.append([label, _USER_LABELS.get(sname, sname)]
+                        + [_user_cell(pr[p]["solvers"][sname], sname.startswith("nestmg"), d["tol"])
+                           for p in ("dirichlet", "neumann")])
+        rows.append([label, "**nestmg speed-up** (setup + solve) vs SA / vs GAMG"]
+                    + [f"**{pr[p]['speedup_vs_pyamg_sa']:.2f}x / {pr[p]['speedup_vs_petsc_gamg']:.2f}x**"
+                       for p in ("dirichlet", "neumann")])
+    return table(["user mesh (fine tets)", "solver", "Dirichlet: setup + solve (CG it)",
+                  "Neumann: setup + solve (CG it)"], rows)
+
+
+@generator("usermesh.setup", USER_SOLVERS)
+def usermesh_setup() -> str:
+    d = load(USER_SOLVERS)
+    r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    return rng(r, ".2f") + "x"
+
+
+@generator("usermesh.speedup", USER_SOLVERS)
+def usermesh_speedup() -> str:
+    d = load(USER_SOLVERS)
+    sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    tets = [c["tets"] for c in d["cases"]]
+    return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than "
+            f"PETSc GAMG "
+            f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
+
+
+def _user_nestmg(key: str, problems=("dirichlet", "neumann"), solver: str = "nestmg") -> list:
+    d = load(USER_SOLVERS)
+    return [c["problems"][p]["solvers"][solver][key] for c in d["cases"] for p in problems
+            if solver in c["problems"][p]["solvers"]]
+
+
+@generator("usermesh.spread", USER_SOLVERS)
+def usermesh_spread() -> str:
+    d = load(USER_SOLVERS)
+    return rng([100 * c["problems"][p]["index_spread"] for c in d["cases"] for p in ("dirichlet", "neumann")],
+               ".0f") + "%"
+
+
+@generator("usermesh.spmv", USER_SOLVERS)
+def usermesh_spmv() -> str:
+    return rng(_user_nestmg("spmv_speedup_internal_order"), ".2f") + "x"
+
+
+@generator("usermesh.rows", USER_SOLVERS)
+def usermesh_rows() -> str:
+    cases = load(USER_SOLVERS)["cases"]
+    rows = [c["problems"][p]["solvers"]["nestmg"]["runs"][0]["level_nnz_per_row"]
+            for c in cases for p in ("dirichlet", "neumann")]
+    return (f"{rng([r[0] for r in rows], '.0f')} nonzeros per row on the fine level, "
+            f"{rng([r[1] for r in rows], '.0f')} on the first coarse level and "
+            f"{rng([r[-1] for r in rows], '.0f')} on the coarsest")
+
+
+@generator("usermesh.layer", USER_SOLVERS)
+def usermesh_layer() -> str:
+    plain = _user_nestmg("iterations", ("neumann",))
+    layer = _user_nestmg("iterations", ("neumann",), "nestmg_boundary_layer")
+    tp = _user_nestmg("solve_seconds", ("neumann",))
+    tl = _user_nestmg("solve_seconds", ("neumann",), "nestmg_boundary_layer")
+    return (f"{rng(layer, 'd')} instead of {rng(plain, 'd')} CG iterations, solve time x"
+            f"{rng([b / a for a, b in zip(tp, tl)], '.2f')}")
+
+
+def _kernel_seconds(rel: str, prob: str, names: tuple) -> float:
+    top = load(rel)["problems"][prob]["top_tottime"]
+    return sum(t["tottime"] for t in top if any(n in t["function"] for n in names))
+
+
+@generator("usermesh.kernels", *USER_PROFILE)
+def usermesh_kernels() -> str:
+    parts = []
+    for label, names in (("sparse products (`csr_matmat` + `csr_matmat_maxnnz`)", ("csr_matmat",)),
+                         ("coarsest factorisation (SuperLU `gstrf` / LAPACK Cholesky)",
+                          ("gstrf", "_cholesky"))):
+        b = [_kernel_seconds(USER_PROFILE[0], p, names) for p in ("dirichlet", "neumann")]
+        a = [_kernel_seconds(USER_PROFILE[1], p, names) for p in ("dirichlet", "neumann")]
+        parts.append(f"{label} {rng(b, '.2f')} s before, {rng(a, '.2f')} s after")
+    return "; ".join(parts)
+
+
+USER_CYCLES = "user_mesh/cycles.json"
+_CYCLE_LABELS = {"nestmg": "default", "nestmg_symmetric_gs": "symmetric GS V(1,1)",
+                 "nestmg_forward_gs": "forward/backward GS V(1,1)",
+                 "nestmg_forward_gs2_uniform": "V(2,2) on every level",
+                 "nestmg_chebyshev3": "Chebyshev degree 3"}
+
+
+@generator("usermesh.cycles", USER_CYCLES)
+def usermesh_cycles() -> str:
+    d = load(USER_CYCLES)
+    names = list(d["cases"][0]["problems"]["dirichlet"]["solvers"])
+    rows = []
+    for c in d["cases"]:
+        for p, pd in c["problems"].items():
+            cells = []
+            for n in names:
+                r = pd["solvers"][n]
+                ratio = "1" if n == names[0] else f"{r['solve_ratio_vs_first']:.2f}"
+                cells.append(f"{r['iterations']} / {ratio}")
+            rows.append([f"{c['label']} ({c['tets']:,})", p] + cells)
+    return table(["user mesh (fine tets)", "problem"] + [_CYCLE_LABELS.get(n, n) for n in names], rows)
+
+
+def _func_label(f: str) -> str:
+    """``csr_matmat`` from cProfile's ``~:0(<built-in method scipy.sparse._sparsetools.csr_matmat>)``,
+    ``argsort`` from ``~:0(<method 'argsort' of ...>)``, ``_reorder`` from ``multilevel.py:371(_reorder)``."""
+    m = (re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f)
+         or re.search(r"\((\w+)\)$", f))
+    return m.group(1).split(".")[-1] if m else f
+
+
+@generator("usermesh.profile", *USER_PROFILE)
+def usermesh_profile() -> str:
+    rows = []
+    for rel, when in zip(USER_PROFILE, ("before (base commit)", "after")):
+        d = load(rel)
+        for p, r in d["problems"].items():
+            top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}"
+                            for t in r["top_tottime"][:5])
+            rows.append([when, p, f"{r['setup_seconds_median']:.2f}",
+                         f"{r['pyamg_sa_setup_seconds_median']:.2f}",
+                         f"{r['setup_ratio_vs_sa_median']:.2f}", top])
+    return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio",
+                  "top 5 by own time under cProfile (s)"], rows)
+
+
 # ----------------------------------------------------------------------------------------- PETSc
 @generator("petsc.scale", "petsc/petsc_scale_gargo.json", "petsc/petsc_scale_bunny.json")
 def petsc_scale() -> str:

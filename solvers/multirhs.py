@@ -24,9 +24,10 @@ from .multilevel import DEFAULT_MAXITER, MultigridSolver
 
 __all__ = ["MULTI_RHS_SMOOTHER", "solve_many"]
 
-#: Smoother spec of a :class:`MultigridSolver` whose cycle takes blocks of right-hand sides: symmetric
-#: multicolour point Gauss–Seidel (its own adjoint, so the cycle is a symmetric preconditioner for CG).
-MULTI_RHS_SMOOTHER = ("block_gauss_seidel", {"blocksize": 1, "sweep": "symmetric"})
+#: Smoother spec of a :class:`MultigridSolver` whose cycle takes blocks of right-hand sides: multicolour
+#: point Gauss–Seidel, a forward sweep before the coarse correction and (the default post-smoother, its
+#: adjoint) a backward one after it, so the cycle is a symmetric preconditioner for CG.
+MULTI_RHS_SMOOTHER = ("block_gauss_seidel", {"blocksize": 1, "sweep": "forward"})
 
 
 def _check_block_cycle(ml: MultigridSolver) -> None:

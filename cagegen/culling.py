@@ -109,6 +109,17 @@ def solids_intersect(VA, FA, VB, FB, *, box=None, engine: str | None = None) -> 
     return out
 
 
+def _distinct(layers) -> list:
+    """The layers without repeats of the previous one (a hierarchy whose first tet levels share the input
+    surface lists it more than once)."""
+    out: list = []
+    for V, F in layers:
+        if out and np.array_equal(out[-1][0], V) and np.array_equal(out[-1][1], F):
+            continue
+        out.append((V, F))
+    return out
+
+
 def _pairs(na: int, nb: int) -> list[tuple[int, int]]:
     """Layer pairs coarse to fine: both objects step down together; the one with fewer layers waits at its
     input."""
@@ -123,7 +134,8 @@ def cull_collisions(layers_a, layers_b, *, engine: str | None = None) -> Culling
     ----------
     layers_a, layers_b : sequence of (V, F)
         Each object's layers, finest (the input) first, every layer containing the previous one
-        (``Hierarchy.surfaces``, or :func:`cagegen.build_cages`' output). Nesting is the caller's
+        (``Hierarchy.surfaces``, or :func:`cagegen.build_cages`' output); a layer repeating the previous
+        one is skipped, and ``decided_at`` indexes the remaining layers. Nesting is the caller's
         guarantee (certified by :func:`cagegen.verify_nesting`); it is not re-checked here.
     engine : {"filtered", "cgal"}, optional
         The verifier's exact intersection engine (default ``"filtered"``, no copyleft code).
@@ -145,7 +157,7 @@ def cull_collisions(layers_a, layers_b, *, engine: str | None = None) -> Culling
     >>> cull_collisions(A, [(V + [2.2, 0, 0], F) for V, F in A]).decided_at   # cages meet, inputs do not
     (0, 0)
     """
-    layers_a, layers_b = list(layers_a), list(layers_b)
+    layers_a, layers_b = _distinct(layers_a), _distinct(layers_b)
     if not layers_a or not layers_b:
         raise CageOptionError("cull_collisions needs at least one layer per object")
     engine = _engine(engine)

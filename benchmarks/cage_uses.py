@@ -39,7 +39,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, peak_rss_mb, write_json
 
 MODELS = ("filled", "fraction", "galerkin")
 
@@ -107,6 +106,8 @@ def run_embedded(h, nu: float, band: float, repeat: int) -> dict:
 
 def run_harmonic(h, refine: int, repeat: int, chunk: int) -> dict:
     """Harmonic coordinates by block MG-PCG and by one factorisation."""
+    from exp_common import peak_rss_mb
+
     from nestmg.harmonic import hierarchy_harmonic_coordinates
 
     out = {"refine": refine, "cage_vertices": len(h.surfaces[-1][0]), "cage_faces": len(h.surfaces[-1][1]),
@@ -294,6 +295,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--png", type=Path, default=None, help="folder for the pictures (first mesh)")
     a = ap.parse_args(argv)
+    from exp_common import environment, peak_rss_mb, write_json  # the benchmarks folder (sys.path[0])
+
     if a.table is not None:
         res = json.loads(a.table.read_text())
         print(table_embedded(res), table_harmonic(res), table_culling(res), sep="\n\n")

@@ -288,6 +288,25 @@ def petsc_scale() -> str:
                   "solutions differ (relative)"], rows)
 
 
+# ----------------------------------------------------------------------------------------- cage uses
+CAGE_USES = "cage_uses/cage_uses.json"
+
+
+@generator("cage_uses.embedded", CAGE_USES)
+def cage_uses_embedded() -> str:
+    return sibling("cage_uses").table_embedded(load(CAGE_USES))
+
+
+@generator("cage_uses.harmonic", CAGE_USES)
+def cage_uses_harmonic() -> str:
+    return sibling("cage_uses").table_harmonic(load(CAGE_USES))
+
+
+@generator("cage_uses.culling", CAGE_USES)
+def cage_uses_culling() -> str:
+    return sibling("cage_uses").table_culling(load(CAGE_USES))
+
+
 # ----------------------------------------------------------------------------------------- cage backends
 SDF_ZOO = "sdf/zoo_all_ba988c4.json"
 

@@ -3,12 +3,14 @@
 For each input surface (a certified ``nestmg`` hierarchy with the defaults, ``--levels`` levels, from the
 cache when built before; normalised frame, unit bounding-box diagonal):
 
-``embedded``  Clamped elasticity under gravity (E = 1, ν, the boundary in the lowest ``--band`` of x fixed) solved on the fine
+``embedded``  Clamped elasticity under gravity (E = 1, ν, the boundary in the lowest ``--band`` of x
+              fixed) solved on the fine
               level by MG-PCG to 1e-8 (:func:`nestmg.elasticity.setup_elasticity`: assembly + multigrid
               set-up + solve), and on the coarsest (cage) level only with each model of
               :func:`nestmg.embedded.embedded_solve` (``filled``, ``fraction``, ``galerkin``), carried to
               the input surface's vertices through the prolongations. Errors at those vertices against the
-              fine solve: ``‖u_e − u_f‖ / ‖u_f‖`` (all vertices, 2-norm) and ``max_i |u_e − u_f|_i /
+              fine solve: ``‖u_e − u_f‖ / ‖u_f‖`` (all vertices, 2-norm) and
+              ``max_i |u_e − u_f|_i /
               max_i |u_f|_i``. Seconds exclude locating the vertices in the fine tets (once per input,
               reused by both; recorded as ``locate_seconds``).
 ``harmonic``  Harmonic coordinates of the coarsest cage at the input's vertices
@@ -81,7 +83,8 @@ def run_embedded(h, nu: float, band: float, repeat: int) -> dict:
     t = time.perf_counter()
     S, rep = prolongation(pts, *tets[0])
     out = {"nu": nu, "band": band, "locate_seconds": time.perf_counter() - t, "n_points": len(pts),
-           "points_outside_fine_tets": rep.n_outside, "fine_nodes": len(tets[0][0]), "fine_tets": len(tets[0][1])}
+           "points_outside_fine_tets": rep.n_outside, "fine_nodes": len(tets[0][0]),
+           "fine_tets": len(tets[0][1])}
     (u_f, its), fine_s, fine_all = _median_run(lambda: _fine_solve(tets, h.P, nu, band), repeat)
     us = S @ u_f
     out["fine"] = {"seconds": fine_s, "all_seconds": fine_all, "iterations": its,
@@ -92,7 +95,8 @@ def run_embedded(h, nu: float, band: float, repeat: int) -> dict:
                                           repeat)
         e = sol.u_points - us
         out["models"][model] = {
-            "seconds": sec, "all_seconds": all_s, "stages": sol.info["seconds"], "unknowns": sol.info["unknowns"],
+            "seconds": sec, "all_seconds": all_s, "stages": sol.info["seconds"],
+            "unknowns": sol.info["unknowns"],
             "coarse_nodes": sol.info["coarse_nodes"], "coarse_tets": sol.info["coarse_tets"],
             "fixed_nodes": len(sol.fixed), "rel_l2": float(np.linalg.norm(e) / np.linalg.norm(us)),
             "rel_max": float(np.linalg.norm(e, axis=1).max() / np.linalg.norm(us, axis=1).max()),
@@ -204,7 +208,8 @@ def picture_embedded(h, emb: dict, path: Path) -> None:
     panels = [(f"fine MG-PCG ({emb['fine_tets']:,} tets)", emb["_u_fine"])]
     for m in ("filled", "galerkin"):
         r = emb["models"][m]
-        panels.append((f"embedded '{m}' ({r['coarse_tets']:,} tets), error {100 * r['rel_l2']:.0f} %", r["_u"]))
+        title = f"embedded '{m}' ({r['coarse_tets']:,} tets), error {100 * r['rel_l2']:.0f} %"
+        panels.append((title, r["_u"]))
     mx = emb["fine"]["max_displacement"]
     _panels(path, [(t, [(V + scale * u, F, {"scalars": np.linalg.norm(u, axis=1) / mx,
                                            "smooth_shading": True})]) for t, u in panels], clim=(0.0, 1.0))
@@ -217,7 +222,8 @@ def picture_harmonic(h, hc, path: Path) -> None:
     cage = {"style": "wireframe", "color": "#c0392b", "line_width": 0.8}
     body = {"color": "#d9c9a8", "smooth_shading": True}
     _panels(path, [(f"input and cage ({len(C)} vertices)", [(V, F, dict(body)), (C, G, dict(cage))]),
-                   ("cage twisted 60 deg, input deformed", [(hc.deform(C2), F, dict(body)), (C2, G, dict(cage))])])
+                   ("cage twisted 60 deg, input deformed",
+                    [(hc.deform(C2), F, dict(body)), (C2, G, dict(cage))])])
 
 
 def _public(obj):
@@ -230,26 +236,32 @@ def _public(obj):
 
 
 def table_embedded(res: dict) -> str:
-    rows = ["| mesh | fine tets | fine MG-PCG s (it) | model | cage tets | s | speedup | error L2 | error max |",
+    rows = ["| mesh | fine tets | fine MG-PCG s (it) | model | cage tets | s | speedup | error L2 "
+            "| error max |",
             "|---|---|---|---|---|---|---|---|---|"]
     for m in res["meshes"]:
         e = m["embedded"]
         for name, r in e["models"].items():
-            rows.append(f"| {m['mesh']} | {e['fine_tets']:,} | {e['fine']['seconds']:.2f} ({e['fine']['iterations']}) "
+            fine = f"{e['fine']['seconds']:.2f} ({e['fine']['iterations']})"
+            rows.append(f"| {m['mesh']} | {e['fine_tets']:,} | {fine} "
                         f"| {name} | {r['coarse_tets']:,} | {r['seconds']:.3f} | {r['speedup']:.0f}x | "
                         f"{100 * r['rel_l2']:.1f} % | {100 * r['rel_max']:.1f} % |")
     return "\n".join(rows)
 
 
 def table_harmonic(res: dict) -> str:
-    rows = ["| mesh | cage vertices | points | unknowns (tets) | solver | setup s | solve s | total s | iterations "
-            "| partition of unity | linear precision | min weight |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| mesh | cage vertices | points | unknowns (tets) | solver | setup s | solve s | total s "
+            "| iterations | partition of unity | linear precision | min weight |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for m in res["meshes"]:
         hm = m["harmonic"]
         for name, r in hm["solvers"].items():
-            it = f"{r['iterations_median']:.0f} (max {r['iterations_max']})" if "iterations_median" in r else "–"
+            it = "–"
+            if "iterations_median" in r:
+                it = f"{r['iterations_median']:.0f} (max {r['iterations_max']})"
             rows.append(f"| {m['mesh']} | {hm['cage_vertices']} | {hm['n_points']:,} | {r['unknowns']:,} "
-                        f"({r['tets']:,}) | {r['backend']} | {r['seconds_setup']:.2f} | {r['seconds_solve']:.2f} "
+                        f"({r['tets']:,}) | {r['backend']} | {r['seconds_setup']:.2f} "
+                        f"| {r['seconds_solve']:.2f} "
                         f"| {r['seconds']:.2f} | {it} | {r['pu_error']:.1e} | {r['lp_error']:.1e} | "
                         f"{r['min_weight']:.3f} |")
     return "\n".join(rows)
@@ -259,12 +271,14 @@ def table_culling(res: dict) -> str:
     c = res.get("culling")
     if not c:
         return ""
-    rows = ["| offset | answer | decided at layers | faces tested (A + B) | culled ms | direct ms | direct / culled |",
+    rows = ["| offset | answer | decided at layers | faces tested (A + B) | culled ms | direct ms "
+            "| direct / culled |",
             "|---|---|---|---|---|---|---|"]
     for r in c["rows"]:
         faces = " → ".join(str(sum(t["faces"])) for t in r["tests"])
         ans = "separated" if r["separated"] else "intersecting"
-        rows.append(f"| {r['offset']:.2f} | {ans} | {tuple(r['decided_at'])} | {faces} | {1e3 * r['cull_seconds']:.1f} "
+        rows.append(f"| {r['offset']:.2f} | {ans} | {tuple(r['decided_at'])} | {faces} "
+                    f"| {1e3 * r['cull_seconds']:.1f} "
                     f"| {1e3 * r['direct_seconds']:.1f} | {r['direct_seconds'] / r['cull_seconds']:.1f} |")
     return "\n".join(rows)
 

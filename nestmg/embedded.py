@@ -76,7 +76,8 @@ def _slab_nodes(Vc: np.ndarray, Tc: np.ndarray, V0: np.ndarray, band: float) -> 
     fixed = np.sort(bnd[Vc[bnd, 0] <= lo + band * (hi - lo)])
     span = Vc[fixed] - Vc[fixed].mean(axis=0) if len(fixed) else np.zeros((0, 3))
     if len(fixed) < 3 or np.linalg.matrix_rank(span, tol=1e-9 * (hi - lo)) < 2:
-        raise NestmgInputError(f"the clamped slab (band={band}) holds {len(fixed)} coarse boundary nodes, not a "
+        raise NestmgInputError(f"the clamped slab (band={band}) holds {len(fixed)} coarse boundary nodes, "
+                               "not a "
                                "plane's worth: widen the band")
     return fixed
 

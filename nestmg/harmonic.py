@@ -132,7 +132,8 @@ def snap_boundary(V: np.ndarray, T: np.ndarray, cage_V: np.ndarray, cage_F: np.n
     vol0, vol1 = tet_volumes(V, T), tet_volumes(Vs, T)
     bad = np.count_nonzero(vol1 <= 1e-3 * vol0)
     if bad:
-        raise NestmgInputError(f"moving the boundary nodes onto the cage flattens or inverts {bad} tets; mesh the "
+        raise NestmgInputError(f"moving the boundary nodes onto the cage flattens or inverts {bad} tets; "
+                               "mesh the "
                                "cage's interior with a smaller envelope (epsilon)")
     rows = np.repeat(np.arange(len(bnd)), 3)
     G = sp.csr_matrix((L.ravel(), (rows, tri.ravel())), shape=(len(bnd), len(cage_V)))

@@ -36,7 +36,8 @@ def _check_block_cycle(ml: MultigridSolver) -> None:
         for sm in (L.presmoother, L.postsmoother):
             if sm.name != "block_gauss_seidel" or sm.params.get("ordering") != "multicolor":
                 raise SolverInputError(
-                    f"solve_many needs smoothers that take blocks of columns; level {k} has {sm.name!r}: build the "
+                    f"solve_many needs smoothers that take blocks of columns; level {k} has {sm.name!r}: "
+                    "build the "
                     "MultigridSolver with presmoother=solvers.multirhs.MULTI_RHS_SMOOTHER")
     if ml.nullspace is not None or ml._coarse_solver.lu is None or ml._coarse_solver.pin is not None:
         raise SolverInputError("solve_many handles non-singular operators with a SuperLU coarsest solve only")

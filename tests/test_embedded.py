@@ -14,7 +14,9 @@ from solvers.gallery import kuhn_cube_hierarchy
 
 def _fine_solution(tets, P):
     prob = setup_elasticity(tets, P, "elasticity-clamped", nu=0.3)
-    x = prob.multigrid().solve(prob.b, tol=1e-10, accel="cg", maxiter=300) if P else sp.linalg.spsolve(prob.A, prob.b)
+    if not P:
+        return prob.expand(sp.linalg.spsolve(prob.A, prob.b))
+    x = prob.multigrid().solve(prob.b, tol=1e-10, accel="cg", maxiter=300)
     return prob.expand(x)
 
 

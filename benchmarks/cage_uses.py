@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 MODELS = ("filled", "fraction", "galerkin")
+PARTS = ("embedded", "harmonic", "culling")
 
 
 def _median_run(fn, repeat: int):
@@ -108,7 +109,7 @@ def run_embedded(h, nu: float, band: float, repeat: int) -> dict:
     return out
 
 
-def run_harmonic(h, refine: int, repeat: int, chunk: int) -> dict:
+def run_harmonic(h, refine: int, repeat: int, chunk: int, solvers=("multigrid", "direct")) -> dict:
     """Harmonic coordinates by block MG-PCG and by one factorisation."""
     from exp_common import peak_rss_mb
 
@@ -117,7 +118,7 @@ def run_harmonic(h, refine: int, repeat: int, chunk: int) -> dict:
     out = {"refine": refine, "cage_vertices": len(h.surfaces[-1][0]), "cage_faces": len(h.surfaces[-1][1]),
            "n_points": len(h.surfaces[0][0]), "solvers": {}}
     W = {}
-    for solver in ("multigrid", "direct"):
+    for solver in solvers:
         hc, sec, all_s = _median_run(
             lambda: hierarchy_harmonic_coordinates(h, refine=refine, solver=solver, chunk=chunk), repeat)
         its = hc.info.pop("iterations", None)
@@ -130,8 +131,9 @@ def run_harmonic(h, refine: int, repeat: int, chunk: int) -> dict:
         W[solver] = hc
         print(f"  harmonic ({solver}, refine {refine}): {sec:.2f} s, PU {r['pu_error']:.1e}, "
               f"LP {r['lp_error']:.1e}, {hc.info['unknowns']} unknowns", flush=True)
-    out["max_weight_difference"] = float(np.abs(W["multigrid"].W - W["direct"].W).max())
-    out["_hc"] = W["multigrid"]
+    if len(W) == 2:
+        out["max_weight_difference"] = float(np.abs(W["multigrid"].W - W["direct"].W).max())
+    out["_hc"] = W[solvers[0]]
     return out
 
 
@@ -240,6 +242,8 @@ def table_embedded(res: dict) -> str:
             "| error max |",
             "|---|---|---|---|---|---|---|---|---|"]
     for m in res["meshes"]:
+        if "embedded" not in m:
+            continue
         e = m["embedded"]
         for name, r in e["models"].items():
             fine = f"{e['fine']['seconds']:.2f} ({e['fine']['iterations']})"
@@ -249,11 +253,12 @@ def table_embedded(res: dict) -> str:
     return "\n".join(rows)
 
 
-def table_harmonic(res: dict) -> str:
+def table_harmonic(*results: dict) -> str:
+    """Rows of every result given (e.g. the main run and a larger refinement run)."""
     rows = ["| mesh | cage vertices | points | unknowns (tets) | solver | setup s | solve s | total s "
             "| iterations | partition of unity | linear precision | min weight |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for m in res["meshes"]:
+    for m in (m for res in results for m in res["meshes"] if "harmonic" in m):
         hm = m["harmonic"]
         for name, r in hm["solvers"].items():
             it = "–"
@@ -271,14 +276,14 @@ def table_culling(res: dict) -> str:
     c = res.get("culling")
     if not c:
         return ""
-    rows = ["| offset | answer | decided at layers | faces tested (A + B) | culled ms | direct ms "
-            "| direct / culled |",
-            "|---|---|---|---|---|---|---|"]
+    rows = ["| offset | answer | decided at layers | faces tested (A + B), coarse → fine | culled ms "
+            "| faces tested directly | direct ms | direct / culled |",
+            "|---|---|---|---|---|---|---|---|"]
     for r in c["rows"]:
         faces = " → ".join(str(sum(t["faces"])) for t in r["tests"])
         ans = "separated" if r["separated"] else "intersecting"
         rows.append(f"| {r['offset']:.2f} | {ans} | {tuple(r['decided_at'])} | {faces} "
-                    f"| {1e3 * r['cull_seconds']:.1f} "
+                    f"| {1e3 * r['cull_seconds']:.1f} | {sum(r['direct_faces'])} "
                     f"| {1e3 * r['direct_seconds']:.1f} | {r['direct_seconds'] / r['cull_seconds']:.1f} |")
     return "\n".join(rows)
 
@@ -304,8 +309,11 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3, help="repeats of the embedded and culling timings")
     ap.add_argument("--harmonic-repeat", type=int, default=1)
     ap.add_argument("--offsets", type=float, nargs="+",
-                    default=[0.3, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 0.9, 1.1])
+                    default=[0.3, 0.45, 0.5, 0.51, 0.52, 0.53, 0.54, 0.55, 0.57, 0.6, 0.8])
     ap.add_argument("--direction", type=float, nargs=3, default=[1.0, 0.3, 0.2])
+    ap.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
+    ap.add_argument("--harmonic-solvers", nargs="+", default=["multigrid", "direct"],
+                    choices=["multigrid", "direct"])
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--png", type=Path, default=None, help="folder for the pictures (first mesh)")
     a = ap.parse_args(argv)
@@ -328,16 +336,20 @@ def main(argv=None) -> int:
         h, build_s = _hierarchy(path, a.max_tets, a.levels)
         hs.append(h)
         m = {"mesh": name, "hierarchy": h.to_dict(), "hierarchy_seconds": build_s}
-        emb = run_embedded(h, a.nu, a.band, a.repeat)
-        hm = run_harmonic(h, a.refine, a.harmonic_repeat, a.chunk)
-        if a.png is not None and k == 0:
-            stem = Path(path).stem
-            picture_embedded(h, emb, a.png / f"embedded_{stem}.png")
-            picture_harmonic(h, hm["_hc"], a.png / f"harmonic_{stem}.png")
-        m["embedded"], m["harmonic"] = _public(emb), _public(hm)
+        stem = Path(path).stem
+        if "embedded" in a.parts:
+            emb = run_embedded(h, a.nu, a.band, a.repeat)
+            if a.png is not None and k == 0:
+                picture_embedded(h, emb, a.png / f"embedded_{stem}.png")
+            m["embedded"] = _public(emb)
+        if "harmonic" in a.parts:
+            hm = run_harmonic(h, a.refine, a.harmonic_repeat, a.chunk, tuple(a.harmonic_solvers))
+            if a.png is not None and k == 0:
+                picture_harmonic(h, hm["_hc"], a.png / f"harmonic_{stem}.png")
+            m["harmonic"] = _public(hm)
         res["meshes"].append(m)
         write_json(res, a.out)
-    if len(hs) >= 2:
+    if len(hs) >= 2 and "culling" in a.parts:
         res["culling"] = {"objects": [Path(p).name for p in a.meshes[:2]], "direction": a.direction,
                           "rows": run_culling(hs[0], hs[1], a.offsets, a.direction, a.repeat)}
     res["peak_rss_mb"] = peak_rss_mb()

@@ -196,11 +196,11 @@ def _block_solver(A, Ps, interior, solver: str, tol: float, maxiter: int, chunk:
         from sksparse.cholmod import cholesky
 
         fac = cholesky(sp.csc_matrix(A))
-        return fac, time.perf_counter() - t0, {"backend": "CHOLMOD"}
+        return fac, time.perf_counter() - t0, {"backend": "CHOLMOD", "factor_nnz": int(fac.L().nnz)}
     from solvers.coarse import sparse_lu
 
     lu = sparse_lu(A, symmetric=True)
-    return lu.solve, time.perf_counter() - t0, {"backend": "SuperLU"}
+    return lu.solve, time.perf_counter() - t0, {"backend": "SuperLU", "factor_nnz": int(lu.L.nnz + lu.U.nnz)}
 
 
 def harmonic_coordinates(

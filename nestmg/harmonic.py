@@ -175,7 +175,7 @@ def _block_solver(A, Ps, interior, solver: str, tol: float, maxiter: int, chunk:
     """``solve(R) -> X`` for blocks of right-hand sides, set up once, and its set-up seconds."""
     t0 = time.perf_counter()
     if solver == "multigrid":
-        from solvers import MultigridSolver, restrict_prolongations
+        from solvers import MultigridSolver, SolverError, restrict_prolongations
         from solvers.multirhs import MULTI_RHS_SMOOTHER, solve_many
 
         Pf, _ = restrict_prolongations(Ps, interior)
@@ -185,7 +185,8 @@ def _block_solver(A, Ps, interior, solver: str, tol: float, maxiter: int, chunk:
         def solve(R):
             X, info = solve_many(ml, R, tol=tol, maxiter=maxiter, chunk=chunk, return_info=True)
             if not info["converged"]:
-                raise NestmgInputError(f"MG-PCG did not reach tol={tol:g} in {maxiter} iterations")
+                raise SolverError(f"harmonic coordinates: MG-PCG did not reach tol={tol:g} in {maxiter} "
+                                  "iterations")
             its.extend(info["iterations"].tolist())
             return X
 

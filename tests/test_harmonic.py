@@ -60,11 +60,22 @@ def test_curved_cage_of_a_torus():
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("torus", [0.0, 0.12], [20, 8])
-    tets, _, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
     (cV, cF), pts = S[-1], S[0][0]
     hc = harmonic_coordinates(cV, cF, pts, tets[-1], refine=1)
     assert hc.info["n_outside"] == 0 and hc.W.shape == (len(pts), len(cV))
     assert hc.partition_of_unity_error() < 1e-8 and hc.linear_precision_error() < 1e-8
+    # the same from a Hierarchy, whose frame is the input's (a shifted, scaled copy: coordinates are affine
+    # invariant, so the weights do not change)
+    from nestmg import Hierarchy
+    from nestmg.harmonic import hierarchy_harmonic_coordinates
+
+    frame = {"center": [0.3, -0.2, 1.0], "scale": 2.5}
+    user = lambda X: np.asarray(X) * frame["scale"] + frame["center"]  # noqa: E731
+    h = Hierarchy([(user(V), F) for V, F in S], [(user(V), T) for V, T in tets], P, reps, "iso", frame=frame)
+    hh = hierarchy_harmonic_coordinates(h, refine=1)
+    assert np.abs(hh.W - hc.W).max() < 1e-8 and np.abs(hh.points - user(pts)).max() < 1e-12
+    assert np.abs(hh.deform(hh.cage_V) - hh.points).max() < 1e-7 * frame["scale"]
 
 
 def test_bad_inputs_are_refused():

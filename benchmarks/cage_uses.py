@@ -288,6 +288,45 @@ def table_culling(res: dict) -> str:
     return "\n".join(rows)
 
 
+def _span(xs, fmt: str) -> str:
+    lo, hi = format(min(xs), fmt), format(max(xs), fmt)
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
+def summary_embedded(res: dict) -> str:
+    """One sentence per model: speedup and L2 error ranges over the meshes."""
+    parts = []
+    for model in MODELS:
+        rs = [m["embedded"]["models"][model] for m in res["meshes"] if "embedded" in m]
+        parts.append(f"`{model}` {_span([r['speedup'] for r in rs], '.1f')}x faster at "
+                     f"{_span([100 * r['rel_l2'] for r in rs], '.1f')} % error")
+    return "; ".join(parts)
+
+
+def summary_harmonic(res: dict) -> str:
+    """Direct against multigrid total seconds, per mesh."""
+    rows = [m["harmonic"]["solvers"] for m in res["meshes"] if "harmonic" in m]
+    ratio = [s["multigrid"]["seconds"] / s["direct"]["seconds"] for s in rows if len(s) == 2]
+    pu = [s["multigrid"]["pu_error"] for s in rows]
+    return (f"the factorisation took {_span(ratio, '.1f')}x less time than block MG-PCG; partition of unity "
+            f"held to {max(pu):.1e} with MG-PCG")
+
+
+def summary_culling(res: dict) -> str:
+    """Ratios direct / culled by outcome."""
+    rows = res["culling"]["rows"]
+    cage = [r for r in rows if r["separated"] and r["decided_at"] != [0, 0] and r["direct_faces"] != [0, 0]]
+    inner = [r for r in rows if r["decided_at"] == [0, 0]]
+    out = []
+    if cage:
+        out.append(f"separated by the cages while the inputs' boxes overlap: the culled test "
+                   f"{_span([r['direct_seconds'] / r['cull_seconds'] for r in cage], '.1f')}x faster")
+    if inner:
+        out.append(f"decided on the inputs (cages meet): "
+                   f"{_span([r['cull_seconds'] / r['direct_seconds'] for r in inner], '.1f')}x slower")
+    return "; ".join(out)
+
+
 def _commit() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,

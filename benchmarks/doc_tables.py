@@ -302,6 +302,21 @@ def cage_uses_harmonic() -> str:
     return sibling("cage_uses").table_harmonic(load(CAGE_USES))
 
 
+@generator("cage_uses.embedded_summary", CAGE_USES)
+def cage_uses_embedded_summary() -> str:
+    return sibling("cage_uses").summary_embedded(load(CAGE_USES))
+
+
+@generator("cage_uses.harmonic_summary", CAGE_USES)
+def cage_uses_harmonic_summary() -> str:
+    return sibling("cage_uses").summary_harmonic(load(CAGE_USES))
+
+
+@generator("cage_uses.culling_summary", CAGE_USES)
+def cage_uses_culling_summary() -> str:
+    return sibling("cage_uses").summary_culling(load(CAGE_USES))
+
+
 @generator("cage_uses.culling", CAGE_USES)
 def cage_uses_culling() -> str:
     return sibling("cage_uses").table_culling(load(CAGE_USES))

@@ -11,7 +11,7 @@ One test of two closed surfaces (:func:`solids_intersect`): their solids interse
 meets a triangle of the other (the verifier's exact test, :func:`cagegen._geometry.cross_intersection_pairs`;
 touching counts as meeting, so rounding can only make the answer conservative) or, when no triangles meet,
 one surface lies inside the other (the winding number of one vertex, exact enough: the vertex is off the
-other surface). Faces are first filtered by a box: the solids' intersection at a finer pair lies in the
+other surface; only tried when one bounding box holds the other). Faces are first filtered by a box: the solids' intersection at a finer pair lies in the
 intersection of the bounding boxes of every coarser pair (``A_i ⊂ A_k``), and two meeting triangles share
 a point of it, so faces whose boxes miss it cannot meet.
 """
@@ -66,9 +66,21 @@ def _faces_in_box(V: np.ndarray, F: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 
 def _inside(V: np.ndarray, F: np.ndarray, q: np.ndarray) -> bool:
-    import igl
+    """Is ``q`` inside the closed surface? Its winding number, the sum of the triangles' signed solid
+    angles over 4π (Van Oosterom & Strackee's formula), is an integer up to rounding for a point off the
+    surface: one vectorised pass, no tree to build for a single point."""
+    a, b, c = (V[F[:, k]] - q for k in range(3))
+    la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+    num = np.einsum("ij,ij->i", a, np.cross(b, c))
+    den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la \
+        + np.einsum("ij,ij->i", c, a) * lb
+    return bool(np.arctan2(num, den).sum() / (2.0 * np.pi) >= 0.5)
 
-    return bool(igl.winding_number(V, F, q[None, :])[0] >= 0.5)
+
+def _box_inside(inner: np.ndarray, outer: np.ndarray) -> bool:
+    """Is the bounding box of ``inner`` within that of ``outer`` (necessary for one solid to hold the other)?"""
+    lo, hi = outer.min(axis=0), outer.max(axis=0)
+    return bool(np.all(inner.min(axis=0) >= lo) and np.all(inner.max(axis=0) <= hi))
 
 
 def solids_intersect(VA, FA, VB, FB, *, box=None, engine: str | None = None) -> dict:
@@ -104,7 +116,8 @@ def solids_intersect(VA, FA, VB, FB, *, box=None, engine: str | None = None) -> 
     if len(fa) and len(fb):
         out["crossing"] = len(cross_intersection_pairs(VA, FA[fa], VB, FB[fb], engine))
     if not out["crossing"]:  # no surface contact: disjoint solids unless one holds the other
-        out["contained"] = _inside(VB, FB, VA[FA[0, 0]]) or _inside(VA, FA, VB[FB[0, 0]])
+        out["contained"] = ((_box_inside(VA, VB) and _inside(VB, FB, VA[FA[0, 0]]))
+                            or (_box_inside(VB, VA) and _inside(VA, FA, VB[FB[0, 0]])))
     out["intersect"] = bool(out["crossing"]) or out["contained"]
     return out
 

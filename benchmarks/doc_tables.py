@@ -290,6 +290,7 @@ def petsc_scale() -> str:
 
 # ----------------------------------------------------------------------------------------- cage uses
 CAGE_USES = "cage_uses/cage_uses.json"
+CAGE_CULLING = "cage_uses/cage_uses_culling.json"
 
 
 @generator("cage_uses.embedded", CAGE_USES)
@@ -312,14 +313,14 @@ def cage_uses_harmonic_summary() -> str:
     return sibling("cage_uses").summary_harmonic(load(CAGE_USES))
 
 
-@generator("cage_uses.culling_summary", CAGE_USES)
+@generator("cage_uses.culling_summary", CAGE_CULLING)
 def cage_uses_culling_summary() -> str:
-    return sibling("cage_uses").summary_culling(load(CAGE_USES))
+    return sibling("cage_uses").summary_culling(load(CAGE_CULLING))
 
 
-@generator("cage_uses.culling", CAGE_USES)
+@generator("cage_uses.culling", CAGE_CULLING)
 def cage_uses_culling() -> str:
-    return sibling("cage_uses").table_culling(load(CAGE_USES))
+    return sibling("cage_uses").table_culling(load(CAGE_CULLING))
 
 
 # ----------------------------------------------------------------------------------------- cage backends

@@ -256,7 +256,7 @@ def table_embedded(res: dict) -> str:
         for name, r in e["models"].items():
             fine = f"{e['fine']['seconds']:.2f} ({e['fine']['iterations']})"
             rows.append(f"| {m['mesh']} | {e['fine_tets']:,} | {fine} "
-                        f"| {name} | {r['coarse_tets']:,} | {r['seconds']:.3f} | {r['speedup']:.0f}x | "
+                        f"| {name} | {r['coarse_tets']:,} | {r['seconds']:.3f} | {r['speedup']:.1f}x | "
                         f"{100 * r['rel_l2']:.1f} % | {100 * r['rel_max']:.1f} % |")
     return "\n".join(rows)
 

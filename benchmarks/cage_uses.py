@@ -321,6 +321,19 @@ def summary_harmonic(res: dict) -> str:
             f"held to {max(pu):.1e} with MG-PCG")
 
 
+def summary_harmonic_scale(res: dict, larger: dict) -> str:
+    """The larger refinement's MG-PCG run beside the main run's factor size."""
+    big = [m for m in larger["meshes"] if "harmonic" in m][0]
+    mg = big["harmonic"]["solvers"]["multigrid"]
+    small = [m["harmonic"]["solvers"]["direct"] for m in res["meshes"]
+             if m["mesh"] == big["mesh"] and "harmonic" in m][0]
+    return (f"{big['mesh']} with {mg['unknowns']:,} unknowns ({mg['tets']:,} tets): block MG-PCG in "
+            f"{mg['seconds']:.0f} s, {mg['iterations_median']:.0f} iterations (max {mg['iterations_max']}), "
+            f"peak memory {mg['peak_rss_mb']:.0f} MB, partition of unity {mg['pu_error']:.1e}; "
+            f"SuperLU's factor at {small['unknowns']:,} unknowns already held "
+            f"{small['factor_nnz'] / 1e6:.1f}M nonzeros")
+
+
 def summary_culling(res: dict) -> str:
     """Ratios direct / culled by outcome."""
     rows = res["culling"]["rows"]

@@ -291,6 +291,7 @@ def petsc_scale() -> str:
 # ----------------------------------------------------------------------------------------- cage uses
 CAGE_USES = "cage_uses/cage_uses.json"
 CAGE_CULLING = "cage_uses/cage_uses_culling.json"
+CAGE_R3 = "cage_uses/cage_uses_refine3.json"
 
 
 @generator("cage_uses.embedded", CAGE_USES)
@@ -298,9 +299,14 @@ def cage_uses_embedded() -> str:
     return sibling("cage_uses").table_embedded(load(CAGE_USES))
 
 
-@generator("cage_uses.harmonic", CAGE_USES)
+@generator("cage_uses.harmonic", CAGE_USES, CAGE_R3)
 def cage_uses_harmonic() -> str:
-    return sibling("cage_uses").table_harmonic(load(CAGE_USES))
+    return sibling("cage_uses").table_harmonic(load(CAGE_USES), load(CAGE_R3))
+
+
+@generator("cage_uses.harmonic_scale", CAGE_USES, CAGE_R3)
+def cage_uses_harmonic_scale() -> str:
+    return sibling("cage_uses").summary_harmonic_scale(load(CAGE_USES), load(CAGE_R3))
 
 
 @generator("cage_uses.embedded_summary", CAGE_USES)

@@ -490,6 +490,47 @@ def petsc_estimate() -> str:
     return table(["100M tets on 64 ranks (model)", "estimate"], rows)
 
 
+# ----------------------------------------------------------------------------------------- cage uses
+CAGE_USES = "cage_uses/cage_uses.json"
+CAGE_CULLING = "cage_uses/cage_uses_culling.json"
+CAGE_R3 = "cage_uses/cage_uses_refine3.json"
+
+
+@generator("cage_uses.embedded", CAGE_USES)
+def cage_uses_embedded() -> str:
+    return sibling("cage_uses").table_embedded(load(CAGE_USES))
+
+
+@generator("cage_uses.harmonic", CAGE_USES, CAGE_R3)
+def cage_uses_harmonic() -> str:
+    return sibling("cage_uses").table_harmonic(load(CAGE_USES), load(CAGE_R3))
+
+
+@generator("cage_uses.harmonic_scale", CAGE_USES, CAGE_R3)
+def cage_uses_harmonic_scale() -> str:
+    return sibling("cage_uses").summary_harmonic_scale(load(CAGE_USES), load(CAGE_R3))
+
+
+@generator("cage_uses.embedded_summary", CAGE_USES)
+def cage_uses_embedded_summary() -> str:
+    return sibling("cage_uses").summary_embedded(load(CAGE_USES))
+
+
+@generator("cage_uses.harmonic_summary", CAGE_USES)
+def cage_uses_harmonic_summary() -> str:
+    return sibling("cage_uses").summary_harmonic(load(CAGE_USES))
+
+
+@generator("cage_uses.culling_summary", CAGE_CULLING)
+def cage_uses_culling_summary() -> str:
+    return sibling("cage_uses").summary_culling(load(CAGE_CULLING))
+
+
+@generator("cage_uses.culling", CAGE_CULLING)
+def cage_uses_culling() -> str:
+    return sibling("cage_uses").table_culling(load(CAGE_CULLING))
+
+
 # ----------------------------------------------------------------------------------------- cage backends
 SDF_ZOO = "sdf/zoo_all_ba988c4.json"
 

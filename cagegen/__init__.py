@@ -15,6 +15,7 @@ from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's li
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
 from .components import build_cages_per_component, split_components
+from .culling import CullingReport, cull_collisions, solids_intersect
 from .errors import (
     BackendUnavailableError,
     CageError,
@@ -33,6 +34,7 @@ __all__ = [
     "BackendUnavailableError",
     "CageError",
     "CageOptionError",
+    "CullingReport",
     "LevelsError",
     "MeshAudit",
     "MeshInputError",
@@ -46,12 +48,14 @@ __all__ = [
     "build_cages_per_component",
     "check_face_counts",
     "check_mesh",
+    "cull_collisions",
     "default_face_counts",
     "errors",
     "get_backend",
     "register_backend",
     "registered_backends",
     "repair_mesh",
+    "solids_intersect",
     "split_components",
     "verify_nesting",
 ]

@@ -18,11 +18,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-from solvers.fem_p2 import p2_basis, p2_jacobians, tet_quadrature
+from solvers.fem_p2 import det3, p2_basis, p2_jacobians, tet_quadrature
 
 from .curved import jacobian_bernstein
 
-__all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy"]
+__all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy", "slide_mid_nodes"]
 
 #: Ideal (regular, unit-edge) tet of the paper's eq. 4: columns map the reference tet's edges.
 A_TET = np.array([[1.0, 0.5, 0.5], [0.0, np.sqrt(3) / 2, np.sqrt(3) / 6], [0.0, 0.0, np.sqrt(2.0 / 3.0)]])
@@ -41,7 +41,7 @@ def reference_inverse(V: np.ndarray, T: np.ndarray, reference: str = "straight")
 
 
 def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: int = 3,
-                  gradient: bool = True) -> tuple[float, np.ndarray | None]:
+                  gradient: bool = True, weighting: str = "volume") -> tuple[float, np.ndarray | None]:
     """Volume-weighted mean Hencky distortion of P2 tets and its gradient with respect to ``X``.
 
     Parameters
@@ -50,6 +50,10 @@ def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: i
     T10 : (t,10) int array
     Ainv : (t,3,3) float array
         Inverse ideal-element Jacobians (:func:`reference_inverse`).
+    weighting : {"volume", "element"}
+        ``"volume"``: the integral of eq. 7 over the patch divided by its volume (large tets dominate);
+        ``"element"``: the mean over tets of each tet's own mean distortion (every tet counts alike:
+        the quality pass, where the worst tets are the small ones).
 
     Returns
     -------
@@ -60,26 +64,31 @@ def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: i
     """
     pts, w = tet_quadrature(degree)
     _, dN = p2_basis(pts)
-    J = p2_jacobians(X, T10, dN)  # (t,q,3,3)
-    F = J @ Ainv[:, None]
-    vol = np.abs(1.0 / np.linalg.det(Ainv))  # |det A| per tet
-    if np.any(np.linalg.det(F) <= 0):
+    F = np.einsum("tqdk,tkl->tqdl", p2_jacobians(X, T10, dN), Ainv, optimize=True)  # F = J A⁻¹
+    if np.any(det3(F) <= 0):
         return np.inf, (np.zeros_like(X) if gradient else None)
-    C = np.swapaxes(F, 2, 3) @ F
-    mu, Q = np.linalg.eigh(C)
-    lg = 0.5 * np.log(mu)  # eigenvalues of H
-    eps = 0.5 * (lg**2).sum(axis=2)  # ε = ½‖H‖²
-    wq = w[None, :] * vol[:, None] / (vol.sum() / 6.0)
-    E = float((wq * eps).sum())
+    mu, Q = np.linalg.eigh(np.einsum("tqki,tqkj->tqij", F, F, optimize=True))  # C = FᵀF
+    lg = 0.5 * np.log(mu)  # eigenvalues of H = ln U
+    wq = _quadrature_weights(w, np.abs(1.0 / det3(Ainv)), weighting)
+    E = float(wq.ravel() @ (0.5 * (lg**2).sum(axis=2)).ravel())  # ε = ½‖H‖²
     if not gradient:
         return E, None
-    H = (Q * lg[:, :, None, :]) @ np.swapaxes(Q, 2, 3)
-    dF = np.swapaxes(np.linalg.inv(F), 2, 3) @ H  # dε/dF = F^{-T} H (App. A)
-    dJ = dF @ np.swapaxes(Ainv, 1, 2)[:, None]  # F = J A^{-1}
-    g = np.einsum("tq,tqdk,qak->tad", wq, dJ, dN, optimize=True)
+    # dε/dF = F⁻ᵀH (App. A) = F C⁻¹ H = F Q diag(lg / μ) Qᵀ: no inverse needed
+    S = np.einsum("tqik,tqk,tqjk->tqij", Q, wq[..., None] * lg / mu, Q, optimize=True)
+    dJ = np.einsum("tqdk,tqkl,tml->tqdm", F, S, Ainv, optimize=True)  # ∂/∂J = ∂/∂F A⁻ᵀ
+    g = np.einsum("tqdk,qak->tad", dJ, dN, optimize=True)
     G = np.zeros_like(X)
     np.add.at(G, T10, g)
     return E, G
+
+
+def _quadrature_weights(w: np.ndarray, vol: np.ndarray, weighting: str) -> np.ndarray:
+    """(t,q) weights of eq. 7: by tet volume (the integral / the patch volume), or every tet alike."""
+    if weighting == "volume":
+        return w[None, :] * vol[:, None] / (vol.sum() / 6.0)
+    if weighting == "element":
+        return np.broadcast_to(6.0 * w[None, :] / len(vol), (len(vol), len(w)))
+    raise ValueError(f"weighting must be 'volume' or 'element', got {weighting!r}")
 
 
 class FitResult(dict):
@@ -87,8 +96,8 @@ class FitResult(dict):
 
 
 def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.ndarray, bnd: np.ndarray,
-                  h: np.ndarray, project, *, lam: float = 0.05, rounds: int = 4,
-                  maxiter: int = 200) -> tuple[np.ndarray, FitResult]:
+                  h: np.ndarray, project, *, lam: float = 0.05, rounds: int = 4, maxiter: int = 200,
+                  weighting: str = "volume") -> tuple[np.ndarray, FitResult]:
     """Minimise ``E_S + λ E_Ω`` over the nodes ``free`` of the tets ``T10`` (a patch), L-BFGS.
 
     Parameters
@@ -111,6 +120,10 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
         Weight λ of the volume energy (paper: 0.05 for the close fit).
     rounds : int
         L-BFGS runs, each with the point-to-plane targets refreshed at the current positions.
+    maxiter : int
+        L-BFGS iterations per round.
+    weighting : {"volume", "element"}
+        How tets are weighted in ``E_Ω`` (:func:`hencky_energy`).
 
     Returns
     -------
@@ -132,7 +145,7 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
 
         def energy(y):
             X[free] = (x0 + scale * y).reshape(-1, 3)
-            Ev, Gv = hencky_energy(X, T10, Ainv)
+            Ev, Gv = hencky_energy(X, T10, Ainv, weighting=weighting)
             if not np.isfinite(Ev) or jacobian_bernstein(X, T10)[0].min() <= 0:  # barrier: certified only
                 return np.inf, np.zeros_like(y)
             d = np.einsum("ij,ij->i", n, X[bidx] - p) / hb  # eq. 9, point-to-plane
@@ -151,4 +164,61 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
         info["energy"].append(float(r.fun))
         info["fit_rms"].append(float(np.sqrt(np.mean(
             (np.linalg.norm(project(X[bidx])[0] - X[bidx], axis=1) / hb) ** 2))) if len(bidx) else 0.0)
+    return X, info
+
+
+def _tangent_bases(n: np.ndarray) -> np.ndarray:
+    """Two unit tangents per unit normal (m,3) -> (m,3,2)."""
+    a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return np.stack([t1, np.cross(n, t1)], axis=2)
+
+
+def slide_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.ndarray, bnd: np.ndarray,
+                    h: np.ndarray, project, *, rounds: int = 3, maxiter: int = 200,
+                    certified=None) -> tuple[np.ndarray, FitResult]:
+    """Minimise ``E_Ω`` (every tet alike) over ``free`` with the boundary nodes held on the surface.
+
+    The fit of eq. 9 as a hard constraint: a free boundary node moves in the tangent plane of the
+    surface at its closest point (point-to-plane distance 0) and is projected back onto the surface
+    between L-BFGS rounds; interior nodes move freely. Every iterate is certified (the barrier of
+    :func:`fit_mid_nodes`); a round whose re-projected result fails ``certified(X) -> bool`` (default:
+    all Bernstein coefficients positive) is dropped and the rounds stop.
+
+    Parameters and returns as :func:`fit_mid_nodes` (``bnd``: which free nodes are on the boundary).
+    """
+    X = np.array(X, dtype=np.float64)  # the start: boundary nodes on the surface, certified
+    free = np.asarray(free, dtype=np.int64)
+    bnd = np.asarray(bnd, dtype=bool)
+    certified = certified or (lambda Y: jacobian_bernstein(Y, T10)[0].min() > 0)
+    info = FitResult(rounds=0, iterations=0, energy=[])
+    for _ in range(rounds):
+        n = project(X[free[bnd]])[1] if bnd.any() else np.zeros((0, 3))
+        B = np.zeros((len(free), 3, 3))  # per node: columns = its directions of motion, scaled
+        B[~bnd] = np.eye(3)
+        B[bnd, :, :2] = _tangent_bases(n)
+        B *= 0.1 * np.asarray(h, dtype=np.float64)[:, None, None]  # first steps of ~0.1 h
+        x0 = X[free].copy()
+        Y = X.copy()
+
+        def energy(y):
+            Y[free] = x0 + np.einsum("mdk,mk->md", B, y.reshape(-1, 3))
+            Ev, Gv = hencky_energy(Y, T10, Ainv, weighting="element")
+            if not np.isfinite(Ev) or jacobian_bernstein(Y, T10)[0].min() <= 0:  # barrier: certified only
+                return np.inf, np.zeros_like(y)
+            return Ev, np.einsum("mdk,md->mk", B, Gv[free]).ravel()
+
+        r = minimize(energy, np.zeros(3 * len(free)), jac=True, method="L-BFGS-B",
+                     options={"maxiter": maxiter, "gtol": 1e-10, "ftol": 1e-12})
+        if not np.isfinite(r.fun):
+            break
+        Y[free] = x0 + np.einsum("mdk,mk->md", B, r.x.reshape(-1, 3))
+        Y[free[bnd]] = project(Y[free[bnd]])[0]  # back onto the surface
+        info["rounds"] += 1
+        info["iterations"] += int(r.nit)
+        info["energy"].append(float(r.fun))
+        if not certified(Y):
+            break
+        X = Y
     return X, info

@@ -129,7 +129,8 @@ def torus_projector(R: float = 1.0, r: float = 0.35) -> Projector:
     return project
 
 
-def surface_projector(V: np.ndarray, F: np.ndarray, normals: str = "smooth", crease: float = 60.0) -> Projector:
+def surface_projector(V: np.ndarray, F: np.ndarray, normals: str = "smooth",
+                      crease: float = 60.0) -> Projector:
     """Closest points on a triangle mesh (libigl ``point_mesh_squared_distance``) and normals there.
 
     Parameters
@@ -162,7 +163,9 @@ def surface_projector(V: np.ndarray, F: np.ndarray, normals: str = "smooth", cre
     F = np.ascontiguousarray(F, dtype=np.int64)
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
-    CN = np.asarray(igl.per_corner_normals(V, F, float(crease))).reshape(-1, 3, 3) if normals == "smooth" else None
+    CN = None
+    if normals == "smooth":
+        CN = np.asarray(igl.per_corner_normals(V, F, float(crease))).reshape(-1, 3, 3)
     cos_max = np.cos(np.radians(crease))
 
     def project(P):
@@ -255,7 +258,8 @@ def jacobian_bernstein(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None =
     return vals @ Binv.T, vals
 
 
-def certify_tets(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None = None, *, depth: int = 2) -> np.ndarray:
+def certify_tets(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None = None, *,
+                 depth: int = 2) -> np.ndarray:
     """Certify ``det J > 0`` on whole P2 tets: 1 valid (proved), -1 invalid (proved), 0 undecided.
 
     All Bernstein coefficients positive proves validity; a lattice value ``<= 0`` proves invalidity;
@@ -358,7 +362,7 @@ def linear_scaled_jacobians(V: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 
 def surface_distance(X: np.ndarray, F6: np.ndarray, project: Projector, order: int = 4) -> np.ndarray:
-    """Largest distance to the surface of each curved 6-node facet, sampled on its degree-``order`` lattice."""
+    """Largest distance to the surface of each curved 6-node facet (sampled: degree-``order`` lattice)."""
     from solvers.fem_p2 import _p2_tri_basis
 
     st = np.array([(i / order, j / order) for i in range(order + 1) for j in range(order + 1 - i)])
@@ -373,7 +377,7 @@ def surface_distance(X: np.ndarray, F6: np.ndarray, project: Projector, order: i
 
 @dataclass
 class CurvedMesh:
-    """A tet mesh with quadratic (``tetra10``) elements, straight inside, fitted to the surface at the boundary.
+    """A tet mesh of quadratic (``tetra10``) elements, straight inside, fitted to the surface at the boundary.
 
     Attributes
     ----------
@@ -446,7 +450,7 @@ def _tets_with_nodes(T10: np.ndarray, nodes: np.ndarray, N: int) -> np.ndarray:
 
 
 def _fit_patch(X, Xs, T, T10, bad, project, *, lam, reference, rounds, depth) -> tuple[np.ndarray, dict]:
-    """Move the edge nodes around the ``bad`` tets by the paper's energy, from a valid (straightened) start."""
+    """Move the edge nodes around the ``bad`` tets by the paper's energy, from a valid (straight) start."""
     from .curved_fit import fit_mid_nodes, reference_inverse
 
     N = len(X)
@@ -502,7 +506,7 @@ def _moved_tets(X: np.ndarray, Xs: np.ndarray, T10: np.ndarray) -> np.ndarray:
 
 
 def _sj_summary(X: np.ndarray, T10: np.ndarray, tets: np.ndarray, threshold: float) -> dict:
-    """Min / mean scaled Jacobian of ``tets`` (sampled and certified lower bound), count below ``threshold``."""
+    """Min / mean scaled Jacobian of ``tets`` (sampled; certified lower bound), count below ``threshold``."""
     sj = scaled_jacobians(X, T10[tets])
     lb = scaled_jacobians(X, T10[tets], bound=True)
     return {"tets": int(len(tets)), "min": float(sj.min()), "mean": float(sj.mean()),
@@ -519,7 +523,7 @@ def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, rounds: in
     minimises the Hencky energy ``E_Ω`` over them with the fit held hard: boundary edge nodes slide on
     the surface (:func:`nestmg.curved_fit.slide_mid_nodes`; every iterate certified; ``E_Ω`` weights
     every tet alike, so small bad tets count as much as large ones). A pass is kept only if all its
-    tets are certified and its worst scaled Jacobian went up.
+    tets are certified, its worst scaled Jacobian did not go down and its mean went up.
     """
     from .curved_fit import reference_inverse, slide_mid_nodes
 
@@ -538,11 +542,14 @@ def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, rounds: in
         Ainv = reference_inverse(Xs, T[etets], "straight")
         h = _edge_length_of_nodes(Xs, T10, free)
         X1, fit = slide_mid_nodes(X, T10[etets], Ainv, free, bmark[free], h, project, rounds=rounds)
-        old, new = scaled_jacobians(X, T10[etets]).min(), scaled_jacobians(X1, T10[etets]).min()
-        kept = bool(new > old and (certify_tets(X1, T10, etets, depth=depth) == VALID).all())
+        old, new = scaled_jacobians(X, T10[etets]), scaled_jacobians(X1, T10[etets])
+        kept = bool(new.min() >= old.min() and new.mean() > old.mean()
+                    and (certify_tets(X1, T10, etets, depth=depth) == VALID).all())
         info["passes"].append({"below": int((sj < threshold).sum()), "free_nodes": int(len(free)),
                                "energy_tets": int(len(etets)), "iterations": fit["iterations"],
-                               "min_before": float(old), "min_after": float(new), "kept": kept})
+                               "reverted_nodes": fit["reverted"], "min_before": float(old.min()),
+                               "min_after": float(new.min()), "mean_before": float(old.mean()),
+                               "mean_after": float(new.mean()), "kept": kept})
         info["iterations"] += fit["iterations"]
         if not kept:
             break
@@ -603,7 +610,8 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
     V = np.asarray(V, dtype=np.float64)
     T = np.asarray(T, dtype=np.int64)
     if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
-        raise NestmgInputError(f"curve_mesh needs V (n,3) and T (t,4) with t > 0, got {V.shape} and {T.shape}")
+        raise NestmgInputError(f"curve_mesh needs V (n,3) and T (t,4) with t > 0, got {V.shape} and "
+                               f"{T.shape}")
     if np.any(np.abs(tet_volumes(V, T)) <= 0):
         raise NestmgInputError("curve_mesh needs a tet mesh without degenerate (zero-volume) tets")
     if quality is not None and not 0.0 < quality < 1.0:
@@ -623,7 +631,7 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
 
 
 def _project_and_repair(V, T, project, *, vertices, fit, lam, reference, rounds, depth):
-    """Steps 1–3 of :func:`curve_mesh`: project, certify, fit the uncertified patches, straighten the rest."""
+    """Steps 1–3 of :func:`curve_mesh`: project, certify, fit uncertified patches, straighten the rest."""
     from .tetmesh import orient_tets
 
     sec: dict[str, float] = {}

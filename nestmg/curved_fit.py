@@ -2,15 +2,19 @@
 
 ``E = E_S + λ E_Ω`` (paper eq. 1) over the free edge nodes of a patch of tets:
 
-* ``E_Ω`` (eq. 2–3, 7): the volume-weighted mean of the Hencky distortion ``ε(F) = ½‖½ ln(FᵀF)‖²`` of
-  ``F = J A⁻¹``, ``J`` the P2 map's Jacobian at quadrature points, ``A`` the ideal element: the straight
-  tet itself (``reference="straight"``, energy 0 before curving) or the regular tet of eq. 4 with the
-  straight tet's volume (``reference="regular"``). ``dε/dF = F⁻ᵀ H`` (paper App. A). ``E_Ω = ∞`` where
-  ``det F <= 0`` at a quadrature point (paper §3.4: a barrier that stops L-BFGS's line search), and here
-  also where a Bernstein coefficient of ``det J`` is ``<= 0``: every iterate is a certified mesh.
-* ``E_S`` (eq. 9, point-to-plane): the mean of ``(n·(x − p) / h)²`` over the free boundary nodes, ``p`` the
-  closest surface point, ``n`` the surface normal there, ``h`` the edge's length; planes are refreshed
-  between L-BFGS rounds, so boundary nodes slide along the surface.
+* ``E_Ω`` (eq. 2–3, 7): the volume-weighted mean of the Hencky distortion
+  ``ε(F) = ½‖½ ln(FᵀF)‖²`` of ``F = J A⁻¹``, ``J`` the P2 map's Jacobian at quadrature points, ``A`` the
+  ideal element: the straight tet itself (``reference="straight"``, energy 0 before curving) or the
+  regular tet of eq. 4 with the straight tet's volume (``reference="regular"``). ``dε/dF = F⁻ᵀ H``
+  (paper App. A). ``E_Ω = ∞`` where ``det F <= 0`` at a quadrature point (paper §3.4: a barrier that
+  stops L-BFGS's line search), and here also where a Bernstein coefficient of ``det J`` is ``<= 0``:
+  every iterate is a certified mesh.
+* ``E_S`` (eq. 9, point-to-plane): the mean of ``(n·(x − p) / h)²`` over the free boundary nodes, ``p``
+  the closest surface point, ``n`` the surface normal there, ``h`` the edge's length; planes are
+  refreshed between L-BFGS rounds, so boundary nodes slide along the surface.
+
+:func:`slide_mid_nodes` (the quality pass of :func:`nestmg.curved.curve_mesh`) holds ``E_S = 0`` as a
+constraint instead: boundary nodes move in their tangent planes and are projected back between rounds.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ A_TET = np.array([[1.0, 0.5, 0.5], [0.0, np.sqrt(3) / 2, np.sqrt(3) / 6], [0.0, 
 
 
 def reference_inverse(V: np.ndarray, T: np.ndarray, reference: str = "straight") -> np.ndarray:
-    """``A⁻¹`` per tet (t,3,3): the straight tet's own Jacobian or the regular tet of eq. 4 of the same volume."""
+    """``A⁻¹`` per tet (t,3,3): the straight tet's own Jacobian, or eq. 4's regular tet (same volume)."""
     P = np.asarray(V, dtype=np.float64)[np.asarray(T)]
     Js = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], axis=2)  # (t,3,3)
     if reference == "straight":
@@ -176,23 +180,22 @@ def _tangent_bases(n: np.ndarray) -> np.ndarray:
 
 
 def slide_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.ndarray, bnd: np.ndarray,
-                    h: np.ndarray, project, *, rounds: int = 3, maxiter: int = 200,
-                    certified=None) -> tuple[np.ndarray, FitResult]:
+                    h: np.ndarray, project, *, rounds: int = 3,
+                    maxiter: int = 200) -> tuple[np.ndarray, FitResult]:
     """Minimise ``E_Ω`` (every tet alike) over ``free`` with the boundary nodes held on the surface.
 
     The fit of eq. 9 as a hard constraint: a free boundary node moves in the tangent plane of the
     surface at its closest point (point-to-plane distance 0) and is projected back onto the surface
     between L-BFGS rounds; interior nodes move freely. Every iterate is certified (the barrier of
-    :func:`fit_mid_nodes`); a round whose re-projected result fails ``certified(X) -> bool`` (default:
-    all Bernstein coefficients positive) is dropped and the rounds stop.
+    :func:`fit_mid_nodes`); after the projection back, the free nodes of any tet with a Bernstein
+    coefficient ``<= 0`` return to where the round started (a certified state), until none is left.
 
     Parameters and returns as :func:`fit_mid_nodes` (``bnd``: which free nodes are on the boundary).
     """
     X = np.array(X, dtype=np.float64)  # the start: boundary nodes on the surface, certified
     free = np.asarray(free, dtype=np.int64)
     bnd = np.asarray(bnd, dtype=bool)
-    certified = certified or (lambda Y: jacobian_bernstein(Y, T10)[0].min() > 0)
-    info = FitResult(rounds=0, iterations=0, energy=[])
+    info = FitResult(rounds=0, iterations=0, energy=[], reverted=0)
     for _ in range(rounds):
         n = project(X[free[bnd]])[1] if bnd.any() else np.zeros((0, 3))
         B = np.zeros((len(free), 3, 3))  # per node: columns = its directions of motion, scaled
@@ -218,7 +221,23 @@ def slide_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.n
         info["rounds"] += 1
         info["iterations"] += int(r.nit)
         info["energy"].append(float(r.fun))
-        if not certified(Y):
-            break
-        X = Y
+        X, reverted = _revert_uncertified(Y, X, T10, free)
+        info["reverted"] += reverted
     return X, info
+
+
+def _revert_uncertified(Y: np.ndarray, X: np.ndarray, T10: np.ndarray,
+                        free: np.ndarray) -> tuple[np.ndarray, int]:
+    """``Y`` with the free nodes of its uncertified tets back at ``X`` (certified) until all are certified."""
+    mark = np.zeros(len(Y), dtype=bool)
+    mark[free] = True
+    back = np.zeros(len(Y), dtype=bool)
+    for _ in range(20):
+        bad = jacobian_bernstein(Y, T10)[0].min(axis=1) <= 0
+        if not bad.any():
+            return Y, int(back.sum())
+        nodes = np.unique(T10[bad])
+        nodes = nodes[mark[nodes]]
+        Y[nodes] = X[nodes]
+        back[nodes] = True
+    return X, int(mark.sum())

@@ -129,7 +129,8 @@ def _hierarchy(path: str, args):
 
 def _curve(h, proj, args, quality):
     t0 = time.perf_counter()
-    cm = curve_mesh(*h.tets_in("normalized")[1], proj, lam=args.lam, quality=quality)
+    cm = curve_mesh(*h.tets_in("normalized")[1], proj, lam=args.lam, quality=quality,
+                    quality_lam=args.quality_lam)
     return cm, cm.report | {"seconds_total": time.perf_counter() - t0}
 
 
@@ -208,6 +209,7 @@ def main(argv=None) -> int:
     p.add_argument("--lam", type=float, default=0.05, help="λ of the fitting energy")
     p.add_argument("--quality", type=float, default=0.96,
                    help="scaled-Jacobian threshold of the quality pass")
+    p.add_argument("--quality-lam", type=float, default=1.0, help="λ of the quality pass")
     p.add_argument("--tol", type=float, default=1e-8)
     p.add_argument("--png", default=None, help="also draw a coarse curved mesh of --png-mesh here")
     p.add_argument("--png-mesh", default=None, help="surface for the picture (default: the first MESH; "
@@ -226,7 +228,7 @@ def main(argv=None) -> int:
     zoo = " ".join(f"ZOO_DIR/{Path(m).name}" for m in args.meshes)
     res = {"command": f"python benchmarks/curved.py {zoo} --levels {args.levels} --method {args.method}"
            + f" --edge-length {args.edge_length} --lam {args.lam}"
-           + f" --quality {args.quality}",
+           + f" --quality {args.quality} --quality-lam {args.quality_lam}",
            "commit": commit, "machine": platform.machine(), "solution": "sin(6x) exp(2y) cos(4z)",
            "results": [run_mesh(m, args) for m in args.meshes], "picture": pic if args.png else None}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -12,9 +12,6 @@
 * ``E_S`` (eq. 9, point-to-plane): the mean of ``(n·(x − p) / h)²`` over the free boundary nodes, ``p``
   the closest surface point, ``n`` the surface normal there, ``h`` the edge's length; planes are
   refreshed between L-BFGS rounds, so boundary nodes slide along the surface.
-
-:func:`slide_mid_nodes` (the quality pass of :func:`nestmg.curved.curve_mesh`) holds ``E_S = 0`` as a
-constraint instead: boundary nodes move in their tangent planes and are projected back between rounds.
 """
 
 from __future__ import annotations
@@ -26,7 +23,7 @@ from solvers.fem_p2 import det3, p2_basis, p2_jacobians, tet_quadrature
 
 from .curved import jacobian_bernstein
 
-__all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy", "slide_mid_nodes"]
+__all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy"]
 
 #: Ideal (regular, unit-edge) tet of the paper's eq. 4: columns map the reference tet's edges.
 A_TET = np.array([[1.0, 0.5, 0.5], [0.0, np.sqrt(3) / 2, np.sqrt(3) / 6], [0.0, 0.0, np.sqrt(2.0 / 3.0)]])
@@ -170,74 +167,3 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
             (np.linalg.norm(project(X[bidx])[0] - X[bidx], axis=1) / hb) ** 2))) if len(bidx) else 0.0)
     return X, info
 
-
-def _tangent_bases(n: np.ndarray) -> np.ndarray:
-    """Two unit tangents per unit normal (m,3) -> (m,3,2)."""
-    a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(n, a)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    return np.stack([t1, np.cross(n, t1)], axis=2)
-
-
-def slide_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.ndarray, bnd: np.ndarray,
-                    h: np.ndarray, project, *, rounds: int = 3,
-                    maxiter: int = 200) -> tuple[np.ndarray, FitResult]:
-    """Minimise ``E_Ω`` (every tet alike) over ``free`` with the boundary nodes held on the surface.
-
-    The fit of eq. 9 as a hard constraint: a free boundary node moves in the tangent plane of the
-    surface at its closest point (point-to-plane distance 0) and is projected back onto the surface
-    between L-BFGS rounds; interior nodes move freely. Every iterate is certified (the barrier of
-    :func:`fit_mid_nodes`); after the projection back, the free nodes of any tet with a Bernstein
-    coefficient ``<= 0`` return to where the round started (a certified state), until none is left.
-
-    Parameters and returns as :func:`fit_mid_nodes` (``bnd``: which free nodes are on the boundary).
-    """
-    X = np.array(X, dtype=np.float64)  # the start: boundary nodes on the surface, certified
-    free = np.asarray(free, dtype=np.int64)
-    bnd = np.asarray(bnd, dtype=bool)
-    info = FitResult(rounds=0, iterations=0, energy=[], reverted=0)
-    for _ in range(rounds):
-        n = project(X[free[bnd]])[1] if bnd.any() else np.zeros((0, 3))
-        B = np.zeros((len(free), 3, 3))  # per node: columns = its directions of motion, scaled
-        B[~bnd] = np.eye(3)
-        B[bnd, :, :2] = _tangent_bases(n)
-        B *= 0.1 * np.asarray(h, dtype=np.float64)[:, None, None]  # first steps of ~0.1 h
-        x0 = X[free].copy()
-        Y = X.copy()
-
-        def energy(y):
-            Y[free] = x0 + np.einsum("mdk,mk->md", B, y.reshape(-1, 3))
-            Ev, Gv = hencky_energy(Y, T10, Ainv, weighting="element")
-            if not np.isfinite(Ev) or jacobian_bernstein(Y, T10)[0].min() <= 0:  # barrier: certified only
-                return np.inf, np.zeros_like(y)
-            return Ev, np.einsum("mdk,md->mk", B, Gv[free]).ravel()
-
-        r = minimize(energy, np.zeros(3 * len(free)), jac=True, method="L-BFGS-B",
-                     options={"maxiter": maxiter, "gtol": 1e-10, "ftol": 1e-12})
-        if not np.isfinite(r.fun):
-            break
-        Y[free] = x0 + np.einsum("mdk,mk->md", B, r.x.reshape(-1, 3))
-        Y[free[bnd]] = project(Y[free[bnd]])[0]  # back onto the surface
-        info["rounds"] += 1
-        info["iterations"] += int(r.nit)
-        info["energy"].append(float(r.fun))
-        X, reverted = _revert_uncertified(Y, X, T10, free)
-        info["reverted"] += reverted
-    return X, info
-
-
-def _revert_uncertified(Y: np.ndarray, X: np.ndarray, T10: np.ndarray,
-                        free: np.ndarray) -> tuple[np.ndarray, int]:
-    """``Y`` with the free nodes of its uncertified tets back at ``X`` (certified) until all are certified."""
-    mark = np.zeros(len(Y), dtype=bool)
-    mark[free] = True
-    back = np.zeros(len(Y), dtype=bool)
-    for _ in range(20):
-        bad = jacobian_bernstein(Y, T10)[0].min(axis=1) <= 0
-        if not bad.any():
-            return Y, int(back.sum())
-        nodes = np.unique(T10[bad])
-        nodes = nodes[mark[nodes]]
-        Y[nodes] = X[nodes]
-        back[nodes] = True
-    return X, int(mark.sum())

@@ -222,6 +222,9 @@ def main(argv=None) -> int:
         pic = picture(args.png_mesh or args.meshes[0], args.png, args.png_edge)
         print(f"wrote {args.png}: {pic['curving']['tets']} tets, certified {pic['curving']['certified']}")
         if args.png_only:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps({"picture": pic | {"png": Path(pic["png"]).name}}, indent=1,
+                                                  default=json_default))
             return 0
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()

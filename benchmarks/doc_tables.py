@@ -504,6 +504,29 @@ def curved_accuracy() -> str:
                   "MG-PCG it P1 / P2 straight / P2 curved"], rows)
 
 
+CURVED_LAM = "curved/curved_lam0.05.json"
+
+
+@generator("curved.lambda", CURVED, CURVED_LAM)
+def curved_lambda() -> str:
+    rows = []
+    runs = [load(CURVED_LAM)["results"], _curved()]
+    for k, r in enumerate(_curved()):
+        variants = [("no quality pass", r["curving_no_quality"], r["problems"]["poisson-dirichlet"],
+                     "P2_curved_no_quality")]
+        variants += [(f"λ = {run[k]['curving']['quality']['lam']:g}", run[k]["curving"],
+                      run[k]["problems"]["poisson-dirichlet"], "P2_curved") for run in runs]
+        for label, c, p, key in variants:
+            sj, d = c["scaled_jacobian"], c["surface_distance"]
+            q = c.get("quality")
+            rows.append([r["mesh"], label, f"{sj['min']:.3f} / {sj['mean']:.3f}",
+                         f"{sj['below_threshold']:,}" if q else "", f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}",
+                         f"{p[key]['l2_error']:.2e}", f"{c['seconds']['quality']:.0f}" if q else ""])
+    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
+    return table(["mesh", "curving", "scaled Jacobian min / mean", f"tets below {thr}",
+                  "facet distance max / mean", "L2 Dirichlet, curved P2", "quality pass s"], rows)
+
+
 @generator("curved.sj_min", CURVED)
 def curved_sj_min() -> str:
     return rng([r["curving"]["scaled_jacobian"]["min"] for r in _curved()], ".3f")

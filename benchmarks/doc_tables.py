@@ -519,12 +519,20 @@ def curved_lambda() -> str:
         for label, c, p, key in variants:
             sj, d = c["scaled_jacobian"], c["surface_distance"]
             q = c.get("quality")
-            rows.append([r["mesh"], label, f"{sj['min']:.3f} / {sj['mean']:.3f}",
-                         f"{sj['below_threshold']:,}" if q else "", f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}",
-                         f"{p[key]['l2_error']:.2e}", f"{c['seconds']['quality']:.0f}" if q else ""])
+            kept = f"{sum(x['kept'] for x in q['passes'])} of {len(q['passes'])}" if q else ""
+            rows.append([r["mesh"], label, kept, f"{sj['min']:.3f} / {sj['mean']:.3f}",
+                         f"{sj['below_threshold']:,}" if q else "",
+                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}", f"{p[key]['l2_error']:.2e}",
+                         f"{c['seconds']['quality']:.0f}" if q else ""])
     thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
-    return table(["mesh", "curving", "scaled Jacobian min / mean", f"tets below {thr}",
+    return table(["mesh", "curving", "passes kept", "scaled Jacobian min / mean", f"tets below {thr}",
                   "facet distance max / mean", "L2 Dirichlet, curved P2", "quality pass s"], rows)
+
+
+@generator("curved.neumann_face_all", CURVED, CURVED_LAM)
+def curved_neumann_face_all() -> str:
+    runs = [load(CURVED_LAM)["results"], _curved()]
+    return rng([r["problems"]["neumann_face"]["p1_over_curved"] for run in runs for r in run], ".1f")
 
 
 @generator("curved.sj_min", CURVED)
@@ -556,12 +564,6 @@ def curved_sj_min_2() -> str:
 def curved_quality_cost() -> str:
     p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
     return rng([x["P2_curved"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p], ".1f", "x")
-
-
-@generator("curved.neumann_face", CURVED)
-def curved_neumann_face() -> str:
-    return " / ".join(f"{r['problems']['neumann_face']['p1_over_curved']:.1f} ({r['mesh'].split('.')[0]})"
-                      for r in _curved())
 
 
 @generator("curved.dirichlet_gain_noq", CURVED)

@@ -627,6 +627,158 @@ def skeleton_hierarchy() -> str:
                   "Neumann: cycles, factor"], rows)
 
 
+# ----------------------------------------------------------------------------------------- curved P2
+CURVED = "curved/curved.json"
+
+
+def _curved():
+    return load(CURVED)["results"]
+
+
+def _mesh_label(r: dict) -> str:
+    return r["mesh"] + (" (CAD)" if r["mesh"].startswith("fandisk") else "")
+
+
+@generator("curved.caption", "curved/picture_torus.json")
+def curved_caption() -> str:
+    c = load("curved/picture_torus.json")["picture"]["curving"]
+    d = c["surface_distance"]
+    return (f"{c['tets']} tets of the procedural solid torus (`shapes.torus_tets(0, segments=12)`), straight "
+            f"and curved onto the exact torus: facet distance to the surface {d['straight_max']:.4f} → "
+            f"{d['curved_max']:.4f}, " + ("every tet certified" if c["certified"] else "NOT certified"))
+
+
+@generator("curved.curving", CURVED)
+def curved_curving() -> str:
+    rows = []
+    for r in _curved():
+        c, c0 = r["curving"], r["curving_no_quality"]
+        sj, sj0, lin, d = c["scaled_jacobian"], c["scaled_jacobian"]["before_quality"], \
+            c["linear_scaled_jacobian"], c["surface_distance"]
+        fit = c["fit"]["patch_tets"] if c["fit"] else 0
+        rows.append([_mesh_label(r), f"{c['tets']:,}", f"{c['curved_tets']:,}",
+                     f"{c['invalid_after_projection']} / {fit} / {c['straightened']}",
+                     f"{sj0['min']:.3f} / {sj0['mean']:.3f}",
+                     f"**{sj['min']:.3f}** / {sj['mean']:.3f} ({sj['bound_min']:.3f})",
+                     f"{sj0['below_threshold']:,} → {sj['below_threshold']:,}",
+                     f"{lin['min_curved']:.3f} / {lin['mean_curved']:.3f}",
+                     f"{d['straight_max']:.1e} → {c0['surface_distance']['curved_max']:.1e} → "
+                     f"{d['curved_max']:.1e}",
+                     f"{c0['seconds_total']:.1f} / {c['seconds']['quality']:.1f}"])
+    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
+    return table(["mesh", "level-1 tets", "curved tets", "invalid after projection / tets in the fitted "
+                  "patches / straightened", "scaled Jacobian min / mean, no quality pass",
+                  "with the quality pass: min / mean (certified bound on the min)", f"tets below {thr}",
+                  "straight tets' linear scaled Jacobian min / mean (curved tets)",
+                  "facet distance max: straight → curved → with the quality pass",
+                  "curving s / quality pass s"], rows)
+
+
+@generator("curved.accuracy", CURVED)
+def curved_accuracy() -> str:
+    rows = []
+    names = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann, smooth normals",
+             "neumann_face": "Neumann, face normals"}
+    for r in _curved():
+        for key, label in names.items():
+            p = r["problems"][key]
+            nq = p.get("P2_curved_no_quality")
+            rows.append([r["mesh"], label, f"{p['P1']['unknowns']:,}", f"{p['P1']['l2_error']:.2e}",
+                         f"{p['P2_straight']['l2_error']:.2e}", f"{p['P2_curved']['l2_error']:.2e}",
+                         f"{nq['l2_error']:.2e}" if nq else "",
+                         f"**{p['p1_over_curved']:.1f}**",
+                         f"{p['P1']['iterations']} / {p['P2_straight']['iterations']} / "
+                         f"{p['P2_curved']['iterations']}"])
+    return table(["mesh", "problem", "unknowns (P1)", "L2 P1", "L2 P2 straight", "L2 P2 curved, quality pass",
+                  "L2 P2 curved, no quality pass", "P1 / curved (quality pass)",
+                  "MG-PCG it P1 / P2 straight / P2 curved"], rows)
+
+
+CURVED_LAM = "curved/curved_lam0.05.json"
+
+
+@generator("curved.lambda", CURVED, CURVED_LAM)
+def curved_lambda() -> str:
+    rows = []
+    runs = [load(CURVED_LAM)["results"], _curved()]
+    for k, r in enumerate(_curved()):
+        variants = [("no quality pass", r["curving_no_quality"], r["problems"]["poisson-dirichlet"],
+                     "P2_curved_no_quality")]
+        variants += [(f"λ = {run[k]['curving']['quality']['lam']:g}", run[k]["curving"],
+                      run[k]["problems"]["poisson-dirichlet"], "P2_curved") for run in runs]
+        for label, c, p, key in variants:
+            sj, d = c["scaled_jacobian"], c["surface_distance"]
+            q = c.get("quality")
+            kept = f"{sum(x['kept'] for x in q['passes'])} of {len(q['passes'])}" if q else ""
+            rows.append([r["mesh"], label, kept, f"{sj['min']:.3f} / {sj['mean']:.3f}",
+                         f"{sj['below_threshold']:,}" if q else "",
+                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}", f"{p[key]['l2_error']:.2e}",
+                         f"{c['seconds']['quality']:.0f}" if q else ""])
+    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
+    return table(["mesh", "curving", "passes kept", "scaled Jacobian min / mean", f"tets below {thr}",
+                  "facet distance max / mean", "L2 Dirichlet, curved P2", "quality pass s"], rows)
+
+
+@generator("curved.neumann_face_all", CURVED, CURVED_LAM)
+def curved_neumann_face_all() -> str:
+    runs = [load(CURVED_LAM)["results"], _curved()]
+    return rng([r["problems"]["neumann_face"]["p1_over_curved"] for run in runs for r in run], ".1f")
+
+
+@generator("curved.sj_min", CURVED)
+def curved_sj_min() -> str:
+    return rng([r["curving"]["scaled_jacobian"]["min"] for r in _curved()], ".3f")
+
+
+@generator("curved.sj_min_before", CURVED)
+def curved_sj_min_before() -> str:
+    return rng([r["curving"]["scaled_jacobian"]["before_quality"]["min"] for r in _curved()], ".3f")
+
+
+@generator("curved.sj_mean", CURVED)
+def curved_sj_mean() -> str:
+    return rng([r["curving"]["scaled_jacobian"]["mean"] for r in _curved()], ".3f")
+
+
+@generator("curved.sj_mean_2", CURVED)
+def curved_sj_mean_2() -> str:
+    return curved_sj_mean()
+
+
+@generator("curved.sj_min_2", CURVED)
+def curved_sj_min_2() -> str:
+    return curved_sj_min()
+
+
+@generator("curved.quality_cost", CURVED)
+def curved_quality_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P2_curved"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p], ".1f", "x")
+
+
+@generator("curved.dirichlet_gain_noq", CURVED)
+def curved_dirichlet_gain_noq() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P1"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p], ".0f", "x")
+
+
+@generator("curved.lin_min", CURVED)
+def curved_lin_min() -> str:
+    return rng([r["curving"]["linear_scaled_jacobian"]["min_curved"] for r in _curved()], ".3f")
+
+
+@generator("curved.pcg_extra", CURVED)
+def curved_pcg_extra() -> str:
+    extra = [p["P2_curved"]["iterations"] - p["P1"]["iterations"] for r in _curved()
+             for p in r["problems"].values()]
+    return f"+{max(extra)}"
+
+
+@generator("curved.dirichlet_gain", CURVED)
+def curved_dirichlet_gain() -> str:
+    return rng([r["problems"]["poisson-dirichlet"]["p1_over_curved"] for r in _curved()], ".0f", "x")
+
+
 # ----------------------------------------------------------------------------------------- corpus views
 def _corpus() -> dict:
     return load(CORPUS)

@@ -173,6 +173,7 @@ def skeleton_cage(
     face_neighbours: float | None = None,
     refine_levels: int = 0,
     recentre: float = 0.0,
+    containment: str = "mesh",
     **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
@@ -276,6 +277,8 @@ def skeleton_cage(
     """
     say = progress if callable(progress) else (lambda msg: None)
     t_all = time.perf_counter()
+    if containment not in _CONTAINMENTS:
+        raise CageOptionError(f"containment must be one of {_CONTAINMENTS}, got {containment!r}")
     sec: dict = {}
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
@@ -308,9 +311,13 @@ def skeleton_cage(
     sec["assembly"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds, refine_levels,
-                                                          info, say)
-    sec["pre_inflation"] = time.perf_counter() - t
+    if containment == "flow":
+        Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
+                                                              refine_levels, info, say)
+        sec["pre_inflation"] = time.perf_counter() - t
+    else:  # the sweep starts from the tight cage itself
+        Vp, Ft, Vt, quads_out, tris_out = tc["V"], tc["F"], tc["V"], tc["quads"], tc["tris"]
+        info["pre_inflation"] = {"self_intersections": 0, "skipped": True}
     # what was built, for the result and for the ``exc.partial`` of a later failure
     parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
              "tris": tris_out, "Vt": Vt, "Vp": Vp, "diag": diag, "center": center, "info": info, "sec": sec,
@@ -321,7 +328,10 @@ def skeleton_cage(
                        "add bending nodes", parts)
 
     t = time.perf_counter()
-    C = _inflation_step(parts, inner, Vn, F, min_gap, nested_opts)
+    if containment == "flow":
+        C = _inflation_step(parts, inner, Vn, F, min_gap, nested_opts)
+    else:
+        C = _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say)
     sec["inflation"] = time.perf_counter() - t
     Vc = C * diag + center
     Fc = np.ascontiguousarray(Ft, dtype=np.int64)
@@ -736,6 +746,68 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     info = parts["info"]
     info["inflation"] = {k: v for k, v in ninfo.items() if k != "seconds"}
     info["inflation"]["seconds"] = ninfo["seconds"]
+    return C
+
+
+_CONTAINMENTS = ("mesh", "envelope", "proxy", "flow")
+
+
+def _sweep_target(containment, inner, Vn, F, gap, say):
+    """The surface the cage must contain (unit-diagonal frame) and whether it is M's own offset."""
+    if inner is not None:
+        return inner[0], inner[1], "inner", {}
+    if containment == "mesh":
+        from ..nested.backend import offset_surface
+
+        return offset_surface(Vn, F, gap) if gap > 0 else Vn, F, "mesh", {}
+    if containment == "envelope":
+        from ..envelope import build_envelope
+
+        c = max(0.01, 3.0 * gap)
+        env = build_envelope(Vn, F, c=c, h=c, amplify=False, band=4.0 * c)
+        say(f"containment: offset envelope at {c:.3g}, {len(env.F)} faces")
+        return env.V, env.F, "envelope", {"c": c, "n_faces": len(env.F), "seconds": env.info["seconds"]}
+    from ..nested import nested_backend
+
+    layers, _ = nested_backend(Vn, F, [1500], min_gap=gap)
+    say(f"containment: nested proxy cage, {len(layers[0][1])} faces")
+    return layers[0][0], layers[0][1], "proxy", {"n_faces": len(layers[0][1])}
+
+
+def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
+    """Step 7 (default): re-inflate a target swept down the guiding field's level sets, pushing the
+    tight cage out (:mod:`cagegen.skeleton.contain`), then complete the clearance."""
+    from ..nested.backend import _complete_clearance
+    from ..nested.reinflate import reinflate
+    from .contain import start_level, sweep_history
+
+    diag, center, Vc, Fc = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
+    gap = 1.1 * float(min_gap)
+    t = time.perf_counter()
+    if inner is not None:
+        inner = ((np.asarray(inner[0], dtype=float) - center) / diag, np.asarray(inner[1], dtype=np.int64))
+    VT, FT, kind, tinfo = _sweep_target(containment, inner, Vn, F, gap, say)
+    rec = {"target": kind, **tinfo, "seconds_target": time.perf_counter() - t}
+    parts["info"]["containment"] = rec
+    levels = [0.8, 0.6, 0.4, 0.25, 0.15, 0.08, 0.04]
+    hist, rec["sweep"] = sweep_history(field, VT, Vn, F, levels)
+    j = start_level(hist, FT, Vc, Fc)
+    rec["start_level"] = rec["sweep"]["levels"][j] if j >= 0 else None
+    if j < 0:
+        raise _failure("skeleton cage, containment: the target swept down to f = "
+                       f"{levels[-1]} is not inside the tight cage (the skeleton leaves the cage?)",
+                       parts, reason="start")
+    say(f"containment: re-inflating the {kind} target ({len(VT)} vertices) from f = {rec['start_level']}")
+    rr = reinflate(hist[: j + 1], FT, Vc, Fc, energy="volume")
+    rec["reinflate"] = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in rr.stats.items()}
+    if not rr.success:
+        raise _failure(f"skeleton cage, containment (re-inflation of the swept {kind} target): {rr.reason}",
+                       parts, reason=rr.reason)
+    C = rr.cage
+    Vi, Fi = inner if inner is not None else (Vn, F)
+    if gap > 0:
+        C, d, rec["clearance_completion"] = _complete_clearance(C, Fc, Vi, Fi, gap)
+        rec["distance"] = float(d)
     return C
 
 

@@ -311,13 +311,9 @@ def skeleton_cage(
     sec["assembly"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    if containment == "flow":
-        Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
-                                                              refine_levels, info, say)
-        sec["pre_inflation"] = time.perf_counter() - t
-    else:  # the sweep starts from the tight cage itself
-        Vp, Ft, Vt, quads_out, tris_out = tc["V"], tc["F"], tc["V"], tc["quads"], tc["tris"]
-        info["pre_inflation"] = {"self_intersections": 0, "skipped": True}
+    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
+                                                          refine_levels, info, say)
+    sec["pre_inflation"] = time.perf_counter() - t
     # what was built, for the result and for the ``exc.partial`` of a later failure
     parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
              "tris": tris_out, "Vt": Vt, "Vp": Vp, "diag": diag, "center": center, "info": info, "sec": sec,
@@ -779,7 +775,7 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     tight cage out (:mod:`cagegen.skeleton.contain`), then complete the clearance."""
     from ..nested.backend import _complete_clearance
     from ..nested.reinflate import reinflate
-    from .contain import start_level, sweep_history
+    from .contain import collapse_inside, start_level, sweep_history
 
     diag, center, Vc, Fc = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
     gap = 1.1 * float(min_gap)
@@ -791,11 +787,15 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     parts["info"]["containment"] = rec
     levels = [0.8, 0.6, 0.4, 0.25, 0.15, 0.08, 0.04]
     hist, rec["sweep"] = sweep_history(field, VT, Vn, F, levels)
+    core = collapse_inside(field, hist[-1], Vc, Fc)
+    if core is not None:
+        hist.append(core)
+        rec["sweep"]["levels"].append("collapsed")
     j = start_level(hist, FT, Vc, Fc)
     rec["start_level"] = rec["sweep"]["levels"][j] if j >= 0 else None
     if j < 0:
-        raise _failure("skeleton cage, containment: the target swept down to f = "
-                       f"{levels[-1]} is not inside the tight cage (the skeleton leaves the cage?)",
+        raise _failure("skeleton cage, containment: the target swept down the guiding field and "
+                       "collapsed onto the skeleton is not inside the tight cage",
                        parts, reason="start")
     say(f"containment: re-inflating the {kind} target ({len(VT)} vertices) from f = {rec['start_level']}")
     rr = reinflate(hist[: j + 1], FT, Vc, Fc, energy="volume")

@@ -27,7 +27,7 @@ import numpy as np
 
 from .field import GuidingField
 
-__all__ = ["descend", "sweep_history", "start_level"]
+__all__ = ["collapse_inside", "descend", "sweep_history", "start_level"]
 
 
 def _inside_points(field: GuidingField, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -165,3 +165,29 @@ def start_level(history: list, FT: np.ndarray, Vc: np.ndarray, Fc: np.ndarray) -
             break
         best = j
     return best
+
+
+def collapse_inside(field: GuidingField, Y: np.ndarray, Vc: np.ndarray, Fc: np.ndarray,
+                    shrink: float = 0.05) -> np.ndarray | None:
+    """A last history entry strictly inside the cage: each point of ``Y`` (the deepest level) taken
+    to ``q + shrink (y - q)``, q its nearest skeleton node inside ``(Vc, Fc)`` (field nodes with f = 0,
+    winding number > 0.5, farther than 1e-3 from the cage). Skeleton ends beyond a leaf section, or
+    chords of the tight cage that cut the skeleton, leave some skeleton nodes outside the tight cage;
+    the sweep then carries those parts of M in from the nearest skeleton node inside. None when no
+    skeleton node is inside."""
+    from scipy.spatial import cKDTree
+
+    Z = field.TV[field.f <= 0.0]
+    w = igl.fast_winding_number(Vc, Fc, Z)
+    Z = Z[w > 0.5]
+    if len(Z):
+        d2, _, _ = igl.point_mesh_squared_distance(Z, Vc, Fc)
+        Z = Z[d2 > 1e-6]
+    if len(Z) == 0:
+        return None
+    r = np.sqrt(igl.point_mesh_squared_distance(Z, Vc, Fc)[0])
+    _, qi = cKDTree(Z).query(Y)
+    q = Z[qi]
+    L = np.linalg.norm(Y - q, axis=1)
+    a = np.minimum(shrink, 0.5 * r[qi] / np.maximum(L, 1e-300))  # stays within half q's clearance
+    return np.ascontiguousarray(q + a[:, None] * (Y - q))

@@ -312,7 +312,8 @@ def skeleton_cage(
 
     t = time.perf_counter()
     Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
-                                                          refine_levels, info, say)
+                                                          refine_levels, info, say,
+                                                          pushes=containment == "flow" or _PUSHES)
     sec["pre_inflation"] = time.perf_counter() - t
     # what was built, for the result and for the ``exc.partial`` of a later failure
     parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
@@ -689,12 +690,16 @@ def _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_b
     kit.say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
 
 
-def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say):
-    """Step 6: pull the tight cage out to M along the integral lines (optionally splitting faces there)."""
+def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say, pushes=True):
+    """Step 6: pull the tight cage out to M along the integral lines (optionally splitting faces there).
+
+    ``pushes`` False: the paper's step only (no containment, crease or polish pushes: the sweep
+    containment does not need M inside the cage, only the skeleton)."""
     from .._geometry import self_intersection_pairs
 
     Vt, Ft = tc["V"], tc["F"]
-    Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=rounds)
+    extra = {} if pushes else {"crease_rounds": 0, "polish_rounds": 0}
+    Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=rounds, **extra)
     quads_out, tris_out = tc["quads"], tc["tris"]
     if refine_levels and pinfo.get("polish", {}).get("outside", 0) > 0:
         Vp, Ft, pinfo["refine"] = refine_polish(Vp, Ft, Vn, F, levels=refine_levels)
@@ -745,6 +750,8 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     return C
 
 
+import os as _os
+_PUSHES = bool(int(_os.environ.get("NESTMG_SKEL_PUSHES", "0")))  # experiment switch (temporary)
 _CONTAINMENTS = ("mesh", "envelope", "proxy", "flow")
 
 
@@ -787,7 +794,7 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     parts["info"]["containment"] = rec
     levels = [0.8, 0.6, 0.4, 0.25, 0.15, 0.08, 0.04]
     hist, rec["sweep"] = sweep_history(field, VT, Vn, F, levels)
-    core = collapse_inside(field, hist[-1], Vc, Fc)
+    core = collapse_inside(field, hist[-1], FT, Vc, Fc)
     if core is not None:
         hist.append(core)
         rec["sweep"]["levels"].append("collapsed")

@@ -167,27 +167,48 @@ def start_level(history: list, FT: np.ndarray, Vc: np.ndarray, Fc: np.ndarray) -
     return best
 
 
-def collapse_inside(field: GuidingField, Y: np.ndarray, Vc: np.ndarray, Fc: np.ndarray,
-                    shrink: float = 0.05) -> np.ndarray | None:
+def collapse_inside(field: GuidingField, Y: np.ndarray, FT: np.ndarray, Vc: np.ndarray, Fc: np.ndarray,
+                    shrink: float = 0.05, rounds: int = 60) -> np.ndarray | None:
     """A last history entry strictly inside the cage: each point of ``Y`` (the deepest level) taken
-    to ``q + shrink (y - q)``, q its nearest skeleton node inside ``(Vc, Fc)`` (field nodes with f = 0,
-    winding number > 0.5, farther than 1e-3 from the cage). Skeleton ends beyond a leaf section, or
-    chords of the tight cage that cut the skeleton, leave some skeleton nodes outside the tight cage;
-    the sweep then carries those parts of M in from the nearest skeleton node inside. None when no
-    skeleton node is inside."""
+    to ``q + a (y - q)``, q a skeleton node inside ``(Vc, Fc)`` (field nodes with f = 0 and winding
+    number > 0.5), ``a <= shrink`` small enough to stay within half q's distance to the cage.
+
+    Skeleton ends beyond a leaf section, or chords of the tight cage that cut the skeleton, leave some
+    skeleton nodes outside the cage; those parts of the target start from the nearest node inside.
+    q starts as the nearest such node; where an edge of ``FT`` joins two nodes whose chord leaves the
+    cage (16 samples, winding number), the endpoint takes its neighbour's node (up to ``rounds``
+    times). None when no skeleton node is inside.
+    """
     from scipy.spatial import cKDTree
 
     Z = field.TV[field.f <= 0.0]
-    w = igl.fast_winding_number(Vc, Fc, Z)
-    Z = Z[w > 0.5]
-    if len(Z):
-        d2, _, _ = igl.point_mesh_squared_distance(Z, Vc, Fc)
-        Z = Z[d2 > 1e-6]
+    Z = Z[igl.fast_winding_number(Vc, Fc, Z) > 0.5]
     if len(Z) == 0:
         return None
     r = np.sqrt(igl.point_mesh_squared_distance(Z, Vc, Fc)[0])
-    _, qi = cKDTree(Z).query(Y)
-    q = Z[qi]
+    _, lab = cKDTree(Z).query(Y)
+    E = np.unique(np.sort(np.vstack([FT[:, [0, 1]], FT[:, [1, 2]], FT[:, [2, 0]]]), axis=1), axis=0)
+    t = np.linspace(0.0, 1.0, 16)[1:-1]
+    ok_pair: dict = {}
+    for _ in range(rounds):
+        a, b = lab[E[:, 0]], lab[E[:, 1]]
+        diff = np.flatnonzero(a != b)
+        pairs = {(int(x), int(y)) for x, y in zip(a[diff], b[diff])} - set(ok_pair)
+        if pairs:
+            P = np.array(sorted(pairs))
+            S = Z[P[:, 0]][:, None] + t[None, :, None] * (Z[P[:, 1]] - Z[P[:, 0]])[:, None]
+            w = igl.fast_winding_number(Vc, Fc, S.reshape(-1, 3)).reshape(len(P), -1)
+            ok_pair.update({(int(x), int(y)): bool(v) for (x, y), v in zip(P, (w > 0.5).all(axis=1))})
+        bad = [e for e in diff if not ok_pair[(int(a[e]), int(b[e]))]]
+        if not bad:
+            break
+        for e in bad:  # the endpoint whose node is farther from the cage's core gives way
+            u, v = E[e]
+            if r[lab[u]] < r[lab[v]]:
+                lab[u] = lab[v]
+            else:
+                lab[v] = lab[u]
+    q = Z[lab]
     L = np.linalg.norm(Y - q, axis=1)
-    a = np.minimum(shrink, 0.5 * r[qi] / np.maximum(L, 1e-300))  # stays within half q's clearance
-    return np.ascontiguousarray(q + a[:, None] * (Y - q))
+    a_ = np.minimum(shrink, 0.5 * r[lab] / np.maximum(L, 1e-300))
+    return np.ascontiguousarray(q + a_[:, None] * (Y - q))

@@ -155,8 +155,12 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
                 picture(V, F, part, png / f"skeleton_{Path(case).stem}.png", title=f"{case} ({step} failed)")
                 out["png"] = str(png / f"skeleton_{Path(case).stem}.png")
         return out
-    rep = verify_nesting([(V, F), (c.V, c.F)])
+    gap = float(_OPTS.get("min_gap", 0.0))
+    rep = verify_nesting([(V, F), (c.V, c.F)], min_gap=gap)
     out.update({
+        "min_gap": gap, "gap_rel": float(rep.pairs[0].min_gap_rel),
+        "quad_share": 2 * len(c.quads) / len(c.F),
+        "tight_cage_quads": c.info["tight_cage"]["n_quads"],
         "certified": bool(rep.ok),
         "cage_vertices": len(c.V), "cage_faces": len(c.F), "cage_quads": len(c.quads),
         "cage_junction_triangles": len(c.tris), "sections": len(c.sections),
@@ -171,7 +175,7 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
     out["cage_digest"] = hashlib.sha256(np.ascontiguousarray(c.V).tobytes()
                                         + np.ascontiguousarray(c.F).tobytes()).hexdigest()
     out["sections_flattened"] = c.info.get("sections_flattened")
-    out["inflation"] = {k: c.info["inflation"].get(k) for k in ("flow", "seconds")}
+    out["containment"] = c.info.get("containment") or {k: c.info["inflation"].get(k) for k in ("flow", "seconds")}
     if "extraction" in c.info:
         out["extraction"] = c.info["extraction"]
     if compare_nested:
@@ -211,7 +215,7 @@ def picture(V, F, c, path: Path, title: str) -> None:
 
     for k, (name, VV) in enumerate([("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
                                     (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
-                                     else f"pre-inflated cage, NOT certified ({len(c.F)} triangles)", c.V)]):
+                                     else f"start cage, NOT certified ({len(c.F)} triangles)", c.V)]):
         p.subplot(0, k)
         p.add_mesh(mesh, color="tan", opacity=0.35 if k else 0.25)
         p.add_mesh(bones, color="red", line_width=4)

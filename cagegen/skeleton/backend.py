@@ -313,7 +313,7 @@ def skeleton_cage(
     t = time.perf_counter()
     Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
                                                           refine_levels, info, say,
-                                                          pushes=containment == "flow" or _PUSHES)
+                                                          pushes=containment == "flow")
     sec["pre_inflation"] = time.perf_counter() - t
     # what was built, for the result and for the ``exc.partial`` of a later failure
     parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
@@ -750,8 +750,6 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     return C
 
 
-import os as _os
-_PUSHES = bool(int(_os.environ.get("NESTMG_SKEL_PUSHES", "0")))  # experiment switch (temporary)
 _CONTAINMENTS = ("mesh", "envelope", "proxy", "flow")
 
 

@@ -208,7 +208,34 @@ def collapse_inside(field: GuidingField, Y: np.ndarray, FT: np.ndarray, Vc: np.n
                 lab[u] = lab[v]
             else:
                 lab[v] = lab[u]
+    return _exact_repair(Y, FT, Vc, Fc, Z, r, lab, shrink)
+
+
+def _collapsed(Y, Z, r, lab, shrink):
     q = Z[lab]
     L = np.linalg.norm(Y - q, axis=1)
-    a_ = np.minimum(shrink, 0.5 * r[lab] / np.maximum(L, 1e-300))
-    return np.ascontiguousarray(q + a_[:, None] * (Y - q))
+    a = np.minimum(shrink, 0.5 * r[lab] / np.maximum(L, 1e-300))
+    return np.ascontiguousarray(q + a[:, None] * (Y - q))
+
+
+def _exact_repair(Y, FT, Vc, Fc, Z, r, lab, shrink, rounds: int = 30):
+    """The collapsed entry, with the vertices of target faces that still cross the cage (exact test)
+    or lie outside it moved to the deepest node (largest clearance) of their one-ring, repeatedly."""
+    from .._geometry import cross_intersection_pairs
+
+    ring = igl.adjacency_list(np.asarray(FT, dtype=np.int64))
+    for _ in range(rounds):
+        X = _collapsed(Y, Z, r, lab, shrink)
+        bad = set(np.flatnonzero(igl.fast_winding_number(Vc, Fc, X) < 0.5).tolist())
+        pr = cross_intersection_pairs(Vc, Fc, X, FT)
+        if len(pr):
+            bad |= set(np.unique(FT[pr[:, 1]]).tolist())
+        if not bad:
+            return X
+        new = lab.copy()
+        for v in bad:
+            cand = [v, *ring[v]]
+            best = max(cand, key=lambda u: r[lab[u]])
+            new[v] = lab[best] if lab[best] != lab[v] else int(np.argmax(r))
+        lab = new
+    return _collapsed(Y, Z, r, lab, shrink)

@@ -757,10 +757,8 @@ def _sweep_target(containment, inner, Vn, F, gap, say):
     """The surface the cage must contain (unit-diagonal frame) and whether it is M's own offset."""
     if inner is not None:
         return inner[0], inner[1], "inner", {}
-    if containment == "mesh":
-        from ..nested.backend import offset_surface
-
-        return offset_surface(Vn, F, gap) if gap > 0 else Vn, F, "mesh", {}
+    if containment == "mesh":  # the clearance comes after, by push_out (homer: re-inflating the offset stuck)
+        return Vn, F, "mesh", {}
     if containment == "envelope":
         from ..envelope import build_envelope
 
@@ -803,8 +801,16 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
                        "collapsed onto the skeleton is not inside the tight cage",
                        parts, reason="start")
     say(f"containment: re-inflating the {kind} target ({len(VT)} vertices) from f = {rec['start_level']}")
-    rr = reinflate(hist[: j + 1], FT, Vc, Fc, energy="volume")
-    rec["reinflate"] = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in rr.stats.items()}
+    for dhat in (5e-3, 2e-3):  # nest_pair's barrier range, then a shorter one where limbs are close
+        # the final (volume) phase's barrier range keeps room for the clearance's push_out
+        rr = reinflate(hist[: j + 1], FT, Vc, Fc, energy="volume", dhat=dhat, max_move=min(5e-3, dhat),
+                       dhat_final=max(1e-3, 4.0 * gap))
+        rec["reinflate"] = {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                            for k, v in rr.stats.items()}
+        rec["reinflate"]["dhat"] = dhat
+        if rr.success:
+            break
+        say(f"containment: re-inflation with dhat {dhat:g} failed ({rr.reason})")
     if not rr.success:
         raise _failure(f"skeleton cage, containment (re-inflation of the swept {kind} target): {rr.reason}",
                        parts, reason=rr.reason)
@@ -813,6 +819,10 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     if gap > 0:
         C, d, rec["clearance_completion"] = _complete_clearance(C, Fc, Vi, Fi, gap)
         rec["distance"] = float(d)
+        if d < float(min_gap):
+            raise _failure(f"skeleton cage, clearance: the contained cage is {d:.3g} from the input, "
+                           f"less than min_gap {min_gap:.3g} ({(rec['clearance_completion'] or {}).get('reason')})",
+                           parts, reason="clearance")
     return C
 
 

@@ -15,7 +15,7 @@ from cagegen import CageError, CageOptionError, verify_nesting
 from cagegen.skeleton import skeleton_cage
 from cagegen.skeleton.contain import descend
 from cagegen.skeleton.field import GuidingField
-from nestmg.shapes import star_of_capsules, stick_figure
+from nestmg.shapes import hand, star_of_capsules
 
 
 @pytest.fixture(scope="module")
@@ -59,13 +59,14 @@ def test_unknown_containment_is_an_option_error(star):
 
 
 @pytest.mark.slow
-def test_old_flow_stalls_without_elbows_and_the_sweep_certifies():
-    """Paper Fig. 18: a skeleton without bending nodes at the elbows and knees gives straight tubes whose
-    faces are far from the bent limbs; the Nested Cages flow does not bring M inside (it stalls), the
-    sweep containment certifies."""
-    V, F, S = stick_figure()
-    with pytest.raises(CageError, match="inflation") as ei:
-        skeleton_cage(V, F, S, bending=[], containment="flow")
+def test_old_flow_stalls_on_close_fingers_and_the_sweep_certifies():
+    """Four fingers close together: M wraps around the concave corners between neighbouring finger tubes
+    and the Nested Cages flow stalls (no progress over its stall window); the sweep containment
+    certifies the same tight cage with the pipeline's clearance."""
+    V, F, S = hand(res=44)
+    with pytest.raises(CageError, match="inflation .*flow failed: stalled") as ei:
+        skeleton_cage(V, F, S, bending="given", containment="flow", flow_stall_window=100)
     assert ei.value.partial.certified is False
-    c = skeleton_cage(V, F, S, bending=[], min_gap=2.5e-3)
-    assert verify_nesting([(V, F), (c.V, c.F)], min_gap=2.5e-3).ok
+    c = skeleton_cage(V, F, S, bending="given", min_gap=2.5e-3)
+    rep = verify_nesting([(V, F), (c.V, c.F)], min_gap=2.5e-3)
+    assert rep.ok and c.info["containment"]["reinflate"]["reverse_steps"] > 0

@@ -12,8 +12,10 @@ Steps (each timed in ``info["seconds"]``, each failure raised as a :class:`CageE
 5. ``assembly``: tubes, junction hulls (with Steiner vertices, Sec. 3.3), leaf caps -> closed tight
    cage with its vertices on M; junction sections moved away / dropped / shrunk and self-intersecting
    tight cages repaired by shrinking or dropping sections (ours, recorded in ``info``).
-6. ``pre_inflation``: along the integral lines (Sec. 3.5).
-7. ``inflation``: the ``nested`` backend's flow + re-inflation (Nested Cages), then certification by
+6. ``pre_inflation``: along the integral lines (Sec. 3.5), then a containment push.
+7. ``containment`` (timed as ``inflation``): M swept down the guiding field's level sets and re-inflated,
+   pushing the cage out (:mod:`cagegen.skeleton.contain`, issue 29; ``containment="flow"``: the
+   ``nested`` backend's flow + re-inflation), then the clearance (``push_out``) and certification by
    :func:`cagegen.verify_nesting`.
 
 Everything runs on a copy scaled to a unit bounding-box diagonal; the cage is returned in the
@@ -255,8 +257,17 @@ def skeleton_cage(
         ``recentre`` x their chain's median radius (or below 2e-3 of the diagonal) towards the local
         medial axis (:func:`cagegen.skeleton.extract.recentre_nodes`; ``info["extraction"]["recentred"]``).
         0: off (default).
+    containment : {"mesh", "envelope", "proxy", "flow"}
+        How the cage is made to contain M (step 7). ``"mesh"`` (default): M swept down the guiding
+        field's level sets and collapsed onto the skeleton nodes inside the pre-inflated cage, then
+        re-inflated to rest pushing the cage out (IPC barrier + CCD; :mod:`cagegen.skeleton.contain`),
+        then the clearance by :func:`cagegen.nested.backend.push_out`; no flow, so no stall.
+        ``"envelope"`` / ``"proxy"``: the same sweep with M's offset envelope at ``max(0.01, 3 min_gap)``
+        or a 1500-face ``nested`` cage of M as the surface re-inflated (measured, docs/skeleton.md).
+        ``"flow"``: the paper's route, the Nested Cages flow + re-inflation after the full pre-inflation
+        (stalls on most zoo characters).
     **nested_opts
-        Passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
+        ``containment="flow"`` only: passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
         flow; ``None``: the paper's flow). ``flow_stall_iter``, ``flow_expand_after`` and
         ``flow_max_expansions`` (the flow's own defaults: 150, 50, 20) set how long the flow waits with
@@ -818,12 +829,31 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     Vi, Fi = inner if inner is not None else (Vn, F)
     if gap > 0:
         C, d, rec["clearance_completion"] = _complete_clearance(C, Fc, Vi, Fi, gap)
+        if d < float(min_gap):  # push_out blocked: carry M out to its offset, pushing the cage (a short
+            C, d = _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say)  # re-inflation, nest_pair's way)
         rec["distance"] = float(d)
         if d < float(min_gap):
             raise _failure(f"skeleton cage, clearance: the contained cage is {d:.3g} from the input, "
                            f"less than min_gap {min_gap:.3g} ({(rec['clearance_completion'] or {}).get('reason')})",
                            parts, reason="clearance")
     return C
+
+
+def _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say):
+    """The contained cage ``C`` pushed out by re-inflating the inner surface from rest to its offset by
+    ``gap`` (:func:`cagegen.nested.backend.offset_surface`), then :func:`push_out` again."""
+    from ..nested.backend import _complete_clearance, offset_surface
+    from ..nested.reinflate import reinflate
+
+    say("clearance: push_out blocked, re-inflating the input to its offset")
+    target = offset_surface(Vi, Fi, gap)
+    rr = reinflate([target, np.asarray(Vi, dtype=float)], Fi, C, Fc, energy="volume", dhat=2e-3,
+                   max_move=2e-3, dhat_final=max(1e-3, 4.0 * gap))
+    rec["clearance_reinflation"] = {"success": bool(rr.success), "reason": rr.reason}
+    if not rr.success:
+        return C, 0.0
+    C2, d, rec["clearance_completion_2"] = _complete_clearance(rr.cage, Fc, Vi, Fi, gap)
+    return C2, d
 
 
 def _certification_step(parts, V, F, inner, Vc, Fc, min_gap) -> None:

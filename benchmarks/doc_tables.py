@@ -404,6 +404,8 @@ def skeleton_containment() -> str:
             elif r.get("certified"):
                 cells.append(f"{r['cage_faces']} tris, {100 * r['tightness']['max_dist_rel']:.1f}%, "
                              f"{r['seconds']['inflation']:.0f} s")
+            elif r.get("error", "").startswith("timeout"):
+                cells.append(f"not done: {r['error']}")
             else:
                 step = r.get("error", "?").split(":")[1].strip().split(" ")[-1] if ":" in r.get("error", "") else "?"
                 cells.append(f"fails (`{step}`)")

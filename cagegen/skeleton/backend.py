@@ -257,15 +257,13 @@ def skeleton_cage(
         ``recentre`` x their chain's median radius (or below 2e-3 of the diagonal) towards the local
         medial axis (:func:`cagegen.skeleton.extract.recentre_nodes`; ``info["extraction"]["recentred"]``).
         0: off (default).
-    containment : {"mesh", "envelope", "proxy", "flow"}
+    containment : {"mesh", "flow"}
         How the cage is made to contain M (step 7). ``"mesh"`` (default): M swept down the guiding
         field's level sets and collapsed onto the skeleton nodes inside the pre-inflated cage, then
         re-inflated to rest pushing the cage out (IPC barrier + CCD; :mod:`cagegen.skeleton.contain`),
-        then the clearance by :func:`cagegen.nested.backend.push_out`; no flow, so no stall.
-        ``"envelope"`` / ``"proxy"``: the same sweep with M's offset envelope at ``max(0.01, 3 min_gap)``
-        or a 1500-face ``nested`` cage of M as the surface re-inflated (measured, docs/skeleton.md).
-        ``"flow"``: the paper's route, the Nested Cages flow + re-inflation after the full pre-inflation
-        (stalls on most zoo characters).
+        then the clearance by :func:`cagegen.nested.backend.push_out` (or, when blocked, a re-inflation
+        of M to its offset); no flow, so no stall. ``"flow"``: the paper's route, the Nested Cages flow +
+        re-inflation after the full pre-inflation (stalls on most zoo characters).
     **nested_opts
         ``containment="flow"`` only: passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
@@ -761,27 +759,7 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     return C
 
 
-_CONTAINMENTS = ("mesh", "envelope", "proxy", "flow")
-
-
-def _sweep_target(containment, inner, Vn, F, gap, say):
-    """The surface the cage must contain (unit-diagonal frame) and whether it is M's own offset."""
-    if inner is not None:
-        return inner[0], inner[1], "inner", {}
-    if containment == "mesh":  # the clearance comes after, by push_out (homer: re-inflating the offset stuck)
-        return Vn, F, "mesh", {}
-    if containment == "envelope":
-        from ..envelope import build_envelope
-
-        c = max(0.01, 3.0 * gap)
-        env = build_envelope(Vn, F, c=c, h=c, amplify=False, band=4.0 * c)
-        say(f"containment: offset envelope at {c:.3g}, {len(env.F)} faces")
-        return env.V, env.F, "envelope", {"c": c, "n_faces": len(env.F), "seconds": env.info["seconds"]}
-    from ..nested import nested_backend
-
-    layers, _ = nested_backend(Vn, F, [1500], min_gap=gap)
-    say(f"containment: nested proxy cage, {len(layers[0][1])} faces")
-    return layers[0][0], layers[0][1], "proxy", {"n_faces": len(layers[0][1])}
+_CONTAINMENTS = ("mesh", "flow")
 
 
 def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
@@ -796,8 +774,10 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     t = time.perf_counter()
     if inner is not None:
         inner = ((np.asarray(inner[0], dtype=float) - center) / diag, np.asarray(inner[1], dtype=np.int64))
-    VT, FT, kind, tinfo = _sweep_target(containment, inner, Vn, F, gap, say)
-    rec = {"target": kind, **tinfo, "seconds_target": time.perf_counter() - t}
+    # the surface carried down the field and re-inflated: M itself, or the inner layer of a hierarchy
+    # (an offset envelope and a 1500-face nested proxy were measured and dropped: docs/skeleton.md)
+    VT, FT, kind = (inner[0], inner[1], "inner") if inner is not None else (Vn, F, "mesh")
+    rec = {"target": kind, "seconds_target": time.perf_counter() - t}
     parts["info"]["containment"] = rec
     levels = [0.8, 0.6, 0.4, 0.25, 0.15, 0.08, 0.04]
     hist, rec["sweep"] = sweep_history(field, VT, Vn, F, levels)

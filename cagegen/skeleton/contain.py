@@ -12,10 +12,9 @@ up to 1 and then to T's own positions, this is the history that Nested Cages' re
 potential) replays while pushing the cage out of the way. No flow is run, so nothing can stall
 before the re-inflation.
 
-T is M's outward offset by the clearance (``target="mesh"``), the closed offset envelope of M at
-distance c (``target="envelope"``, :func:`cagegen.envelope.build_envelope`), or a certified ``nested``
-proxy cage of M (``target="proxy"``); each vertex of an envelope or proxy starts its descent at its
-closest point on M.
+The target T is M itself (or the inner layer of a hierarchy); M's offset envelope and a ``nested``
+proxy cage were measured as targets and dropped (slower, not tighter: docs/skeleton.md). The clearance is
+added afterwards (:func:`cagegen.nested.backend.push_out`).
 """
 
 from __future__ import annotations

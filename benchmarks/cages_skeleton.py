@@ -281,6 +281,12 @@ def _child(q, case, zoo, png, compare, min_nested=False):
         q.put({"case": case, "certified": False, "error": traceback.format_exc(limit=3)})
 
 
+def _command(args) -> str:
+    """The command line, the zoo folder written ``ZOO_DIR`` (no path of this machine in the JSON)."""
+    cmd = " ".join(sys.argv)
+    return cmd.replace(str(args.zoo), "ZOO_DIR") if args.zoo else cmd
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--zoo", type=Path, default=None, help="folder of the dev zoo meshes")
@@ -303,7 +309,7 @@ def main(argv=None) -> dict:
         from nestmg.io import json_default
 
         res = [hierarchy_case(c, args.zoo) for c in (args.hierarchy or ["stick"])]
-        out = {"benchmark": "cages_skeleton --hierarchy", "command": " ".join(sys.argv),
+        out = {"benchmark": "cages_skeleton --hierarchy", "command": _command(args),
                **({"result": res[0]} if not args.hierarchy else {"results": res})}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1, default=json_default))
@@ -331,7 +337,7 @@ def main(argv=None) -> dict:
               file=sys.stderr, flush=True)
     from nestmg.io import json_default
 
-    out = {"benchmark": "cages_skeleton", "command": " ".join(sys.argv), "options": _OPTS, "results": results}
+    out = {"benchmark": "cages_skeleton", "command": _command(args), "options": _OPTS, "results": results}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1, default=json_default))
     print(json.dumps(out, default=json_default))

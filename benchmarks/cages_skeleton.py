@@ -175,7 +175,8 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
     out["cage_digest"] = hashlib.sha256(np.ascontiguousarray(c.V).tobytes()
                                         + np.ascontiguousarray(c.F).tobytes()).hexdigest()
     out["sections_flattened"] = c.info.get("sections_flattened")
-    out["containment"] = c.info.get("containment") or {k: c.info["inflation"].get(k) for k in ("flow", "seconds")}
+    out["containment"] = (c.info.get("containment")
+                          or {k: c.info["inflation"].get(k) for k in ("flow", "seconds")})
     if "extraction" in c.info:
         out["extraction"] = c.info["extraction"]
     if compare_nested:
@@ -247,7 +248,7 @@ def hierarchy_case(case: str = "stick", zoo: Path | None = None, face_counts=(12
     V, F, S, bending = _load(case, zoo)
     if S is not None:
         _, center, scale = normalize(V)
-        S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: the skeleton must follow
+        S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: so must the skeleton
     out: dict = {"shape": Path(case).stem, "input_faces": len(F), "face_counts": list(face_counts)}
     for name, opts in (("skeleton", {"skeleton": S, "bending": bending}), ("nested", {})):
         t = time.perf_counter()
@@ -257,7 +258,7 @@ def hierarchy_case(case: str = "stick", zoo: Path | None = None, face_counts=(12
                                 cache=False, cage_opts=opts)
             res: dict = {"build_seconds": time.perf_counter() - t, "certified": bool(h.certified),
                          "tets": [len(T) for _, T in h.tets], "n_outside": [int(x) for x in h.n_outside],
-                         "cage_faces": [len(Fk) for _, Fk in h.surfaces[1:]] if hasattr(h, "surfaces") else None}
+                         "cage_faces": [len(Fk) for _, Fk in h.surfaces[1:]]}
             if name == "skeleton" and res["cage_faces"]:
                 out["face_counts"] = counts[:-1] + [res["cage_faces"][-1]]  # nested-only: the same counts
             for pname in problems:

@@ -357,6 +357,12 @@ def skeleton_procedural() -> str:
                   "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
 
 
+def _failed_step(r: dict) -> str:
+    """The step named by a skeleton ``CageError`` ("skeleton cage, STEP: ...")."""
+    err = r.get("error", "")
+    return err.split(":")[1].strip().split(" ")[-1] if ":" in err else "?"
+
+
 def _skel_zoo_results() -> list:
     rerun = {r["case"]: r for r in load(SKEL_ZOO_RERUN)["results"]}
     return [rerun.get(r["case"], r) for r in load(SKEL_ZOO)["results"]]
@@ -368,7 +374,7 @@ def skeleton_zoo() -> str:
     for r in _skel_zoo_results():
         name = f"{r['case'].split('.')[0]} ({r.get('input_faces', 0):,})"
         if not r.get("certified"):
-            step = r.get("error", "?").split(":")[1].strip().split(" ")[-1] if ":" in r.get("error", "") else "?"
+            step = _failed_step(r)
             rows.append([name, f"not certified: `CageError` at step `{step}`", r.get("sections", ""),
                          "", "", "", "", f"{r.get('wall_seconds', 0):.0f}"])
             continue
@@ -381,7 +387,8 @@ def skeleton_zoo() -> str:
                      f"{r['gap_rel']:.4f}", f"{steps} / {s['total']:.0f}"])
     return table(["mesh (faces)", "result", "sections", "cage triangles (quads + junction tris)",
                   "quads kept", "max distance, % of diag", "gap / diag",
-                  "seconds: skeleton / field / sections / assembly / pre-inflation / containment / verify / total"],
+                  "seconds: skeleton / field / sections / assembly / pre-inflation / containment / verify / "
+                  "total"],
                  rows)
 
 
@@ -407,7 +414,7 @@ def skeleton_containment() -> str:
             elif r.get("error", "").startswith("timeout"):
                 cells.append(f"not done: {r['error']}")
             else:
-                step = r.get("error", "?").split(":")[1].strip().split(" ")[-1] if ":" in r.get("error", "") else "?"
+                step = _failed_step(r)
                 cells.append(f"fails (`{step}`)")
         rows.append([c.split(".")[0], *cells])
     return table(["mesh", *(f"{k}: faces, max dist, containment s" for k in SKEL_CMP)], rows)

@@ -73,3 +73,26 @@ def test_old_flow_stalls_on_close_fingers_and_the_sweep_certifies():
     c = skeleton_cage(V, F, S, bending="given", min_gap=2.5e-3)
     rep = verify_nesting([(V, F), (c.V, c.F)], min_gap=2.5e-3)
     assert rep.ok and c.info["containment"]["reinflate"]["reverse_steps"] > 0
+
+
+def test_containment_failure_names_the_step_and_carries_the_partial_cage(star, monkeypatch):
+    """A re-inflation that fails (stubbed) twice, at both barrier ranges: a CageError naming the
+    containment step, with the uncertified start cage, skeleton, sections and tight cage in
+    ``exc.partial``."""
+    import importlib
+
+    rf = importlib.import_module("cagegen.nested.reinflate")  # the module (the package exports the function)
+
+    calls = []
+
+    def stuck(history, Ff, Vc, Fc, **kw):
+        calls.append(kw["dhat"])
+        return rf.ReinflateResult(cage=Vc, fine=history[-1], success=False, reason="stub: stuck", stats={})
+
+    monkeypatch.setattr(rf, "reinflate", stuck)
+    V, F, S = star
+    with pytest.raises(CageError, match="containment .*stub: stuck") as ei:
+        skeleton_cage(V, F, S, bending="given")
+    assert calls == [5e-3, 2e-3]
+    p = ei.value.partial
+    assert p.certified is False and len(p.sections) == 8 and len(p.tight_V) == len(p.V)

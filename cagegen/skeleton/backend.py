@@ -265,7 +265,8 @@ def skeleton_cage(
         of M to its offset); no flow, so no stall. ``"flow"``: the paper's route, the Nested Cages flow +
         re-inflation after the full pre-inflation (stalls on most zoo characters).
     **nested_opts
-        ``containment="flow"`` only: passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
+        ``containment="flow"`` only: passed to
+        :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
         flow; ``None``: the paper's flow). ``flow_stall_iter``, ``flow_expand_after`` and
         ``flow_max_expansions`` (the flow's own defaults: 150, 50, 20) set how long the flow waits with
@@ -813,9 +814,9 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
             C, d = _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say)  # re-inflation, nest_pair's way)
         rec["distance"] = float(d)
         if d < float(min_gap):
+            why = (rec["clearance_completion"] or {}).get("reason")
             raise _failure(f"skeleton cage, clearance: the contained cage is {d:.3g} from the input, "
-                           f"less than min_gap {min_gap:.3g} ({(rec['clearance_completion'] or {}).get('reason')})",
-                           parts, reason="clearance")
+                           f"less than min_gap {min_gap:.3g} ({why})", parts, reason="clearance")
     return C
 
 

@@ -420,6 +420,24 @@ def skeleton_containment() -> str:
     return table(["mesh", *(f"{k}: faces, max dist, containment s" for k in SKEL_CMP)], rows)
 
 
+SKEL_MN = "skeleton/zoo_min_nested.json"
+
+
+@generator("skeleton.zoo_min_nested", SKEL_MN)
+def skeleton_zoo_min_nested() -> str:
+    rows = []
+    for r in load(SKEL_MN)["results"]:
+        if not r.get("certified"):
+            continue
+        n = r["smallest_nested_at_same_distance"]
+        rows.append([r["case"].split(".")[0], r["cage_faces"], f"{100 * r['tightness']['max_dist_rel']:.1f}",
+                     f"{2 * r['cage_quads'] / r['cage_faces']:.2f}", n["smallest_faces"],
+                     f"{n['face_ratio_nested_over_skeleton']:.2f}" if n.get("face_ratio_nested_over_skeleton")
+                     else "-"])
+    return table(["mesh", "skeleton cage triangles", "max distance, % of diag", "share of triangles in quads",
+                  "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
+
+
 SKEL_HZ = "skeleton/hierarchy_zoo.json"
 
 

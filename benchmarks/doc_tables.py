@@ -579,7 +579,9 @@ def sdf_summary() -> str:
 
 
 SKEL = "skeleton/min_nested.json"
-SKEL_ZOO = ("skeleton/zoo_png_f3b0576.json", "skeleton/zoo_png_elephant_b2_f3b0576.json")
+SKEL_ZOO = "skeleton/zoo_sweep.json"
+#: the knight re-run after the clearance fallback (re-inflation to the offset when push_out is blocked)
+SKEL_ZOO_RERUN = "skeleton/zoo_sweep_knight.json"
 SKEL_H = "skeleton/hierarchy_stick_61b5d66.json"
 
 
@@ -598,18 +600,107 @@ def skeleton_procedural() -> str:
                   "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
 
 
-@generator("skeleton.zoo", *SKEL_ZOO)
+def _failed_step(r: dict) -> str:
+    """The step named by a skeleton ``CageError`` ("skeleton cage, STEP: ...")."""
+    err = r.get("error", "")
+    return err.split(":")[1].strip().split(" ")[-1] if ":" in err else "?"
+
+
+def _skel_zoo_results() -> list:
+    rerun = {r["case"]: r for r in load(SKEL_ZOO_RERUN)["results"]}
+    return [rerun.get(r["case"], r) for r in load(SKEL_ZOO)["results"]]
+
+
+@generator("skeleton.zoo", SKEL_ZOO, SKEL_ZOO_RERUN)
 def skeleton_zoo() -> str:
     rows = []
-    for rel in SKEL_ZOO:
-        for r in load(rel)["results"]:
-            if r.get("certified"):
-                what = f"certified, {r.get('cage_faces', '?')} triangles" if r.get("cage_faces") else "certified"
+    for r in _skel_zoo_results():
+        name = f"{r['case'].split('.')[0]} ({r.get('input_faces', 0):,})"
+        if not r.get("certified"):
+            step = _failed_step(r)
+            rows.append([name, f"not certified: `CageError` at step `{step}`", r.get("sections", ""),
+                         "", "", "", "", f"{r.get('wall_seconds', 0):.0f}"])
+            continue
+        s, t = r["seconds"], r["tightness"]
+        steps = " / ".join(f"{s.get(k, 0):.0f}" for k in ("skeleton", "field", "sections", "assembly",
+                                                         "pre_inflation", "inflation", "verify"))
+        rows.append([name, "certified", r["sections"],
+                     f"{r['cage_faces']} ({r['cage_quads']} + {r['cage_junction_triangles']})",
+                     f"{r['cage_quads']} of {r['tight_cage_quads']}", f"{100 * t['max_dist_rel']:.1f}",
+                     f"{r['gap_rel']:.4f}", f"{steps} / {s['total']:.0f}"])
+    return table(["mesh (faces)", "result", "sections", "cage triangles (quads + junction tris)",
+                  "quads kept", "max distance, % of diag", "gap / diag",
+                  "seconds: skeleton / field / sections / assembly / pre-inflation / containment / verify / "
+                  "total"],
+                 rows)
+
+
+SKEL_CMP = {"M (default)": SKEL_ZOO, "offset envelope": "skeleton/zoo_envelope.json",
+            "nested proxy": "skeleton/zoo_proxy.json"}
+
+
+@generator("skeleton.containment", *SKEL_CMP.values())
+def skeleton_containment() -> str:
+    by = {k: {r["case"]: r for r in (_skel_zoo_results() if v == SKEL_ZOO else load(v)["results"])}
+          for k, v in SKEL_CMP.items()}
+    cases = [c for c in by["offset envelope"] if c in by["nested proxy"]]
+    rows = []
+    for c in cases:
+        cells = []
+        for k in SKEL_CMP:
+            r = by[k].get(c)
+            if r is None:
+                cells.append("not run")
+            elif r.get("certified"):
+                cells.append(f"{r['cage_faces']} tris, {100 * r['tightness']['max_dist_rel']:.1f}%, "
+                             f"{r['seconds']['inflation']:.0f} s")
+            elif r.get("error", "").startswith("timeout"):
+                cells.append(f"not done: {r['error']}")
             else:
-                what = f"`CageError` at step `{r.get('failure', {}).get('stage', '?')}` (not certified)"
-            rows.append([r["case"].split(".")[0], what, r.get("sections", ""),
-                         f"{r.get('seconds', {}).get('total', r.get('wall_seconds', 0)):.1f}"])
-    return table(["character", "result", "sections", "seconds"], rows)
+                step = _failed_step(r)
+                cells.append(f"fails (`{step}`)")
+        rows.append([c.split(".")[0], *cells])
+    return table(["mesh", *(f"{k}: faces, max dist, containment s" for k in SKEL_CMP)], rows)
+
+
+SKEL_MN = "skeleton/zoo_min_nested.json"
+
+
+@generator("skeleton.zoo_min_nested", SKEL_MN)
+def skeleton_zoo_min_nested() -> str:
+    rows = []
+    for r in load(SKEL_MN)["results"]:
+        if not r.get("certified"):
+            continue
+        n = r["smallest_nested_at_same_distance"]
+        rows.append([r["case"].split(".")[0], r["cage_faces"], f"{100 * r['tightness']['max_dist_rel']:.1f}",
+                     f"{2 * r['cage_quads'] / r['cage_faces']:.2f}", n["smallest_faces"],
+                     f"{n['face_ratio_nested_over_skeleton']:.2f}" if n.get("face_ratio_nested_over_skeleton")
+                     else "-"])
+    return table(["mesh", "skeleton cage triangles", "max distance, % of diag", "share of triangles in quads",
+                  "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
+
+
+SKEL_HZ = "skeleton/hierarchy_zoo.json"
+
+
+@generator("skeleton.hierarchy_zoo", SKEL_HZ)
+def skeleton_hierarchy_zoo() -> str:
+    rows = []
+    for d in load(SKEL_HZ)["results"]:
+        for key in ("skeleton", "nested"):
+            r = d[key]
+            label = f"{d['shape']}: {'skeleton cage' if key == 'skeleton' else '`nested` only'}"
+            if "error" in r:
+                rows.append([label, f"fails: {r['error'][:80]}", "", "", "", "", ""])
+                continue
+            rows.append([label, "yes" if r["certified"] else "no",
+                         " / ".join(f"{x:,}" for x in r["cage_faces"] or []),
+                         " / ".join(f"{x:,}" for x in r["tets"]), f"{r['build_seconds']:.0f}",
+                         f"{r['poisson-dirichlet']['cycles']}, {r['poisson-dirichlet']['mean_factor']:.3f}",
+                         f"{r['poisson-neumann']['cycles']}, {r['poisson-neumann']['mean_factor']:.3f}"])
+    return table(["hierarchy", "certified", "cage faces", "tets per level", "build s",
+                  "Dirichlet: cycles, factor", "Neumann: cycles, factor"], rows)
 
 
 @generator("skeleton.hierarchy", SKEL_H)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -351,14 +350,6 @@ def summary_culling(res: dict) -> str:
     return "; ".join(out)
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent, check=False).stdout.strip()
-    except OSError:
-        return ""
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("meshes", nargs="*", help="closed surface files (the first two are the culling pair)")
@@ -380,7 +371,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--png", type=Path, default=None, help="folder for the pictures (first mesh)")
     a = ap.parse_args(argv)
-    from exp_common import environment, peak_rss_mb, write_json  # the benchmarks folder (sys.path[0])
+    from exp_common import environment, git_commit, peak_rss_mb, write_json  # benchmarks/ is sys.path[0]
 
     if a.table is not None:
         res = json.loads(a.table.read_text())
@@ -391,7 +382,7 @@ def main(argv=None) -> int:
     res = {"params": {k: v for k, v in vars(a).items() if k not in ("meshes", "out", "png", "table")},
            "command": " ".join(["benchmarks/cage_uses.py"] + [Path(x).name if Path(x).exists() else x
                                                              for x in sys.argv[1:]]),
-           "commit": _commit(), "environment": environment(), "meshes": []}
+           "commit": git_commit(), "environment": environment(), "meshes": []}
     hs = []
     for k, path in enumerate(a.meshes):
         name = Path(path).name

@@ -274,6 +274,28 @@ def test_recovery_after_flow_failure(neck, monkeypatch, failing_flow):
     assert verify_nesting([(V, F)] + layers).ok
 
 
+def test_only_the_last_target_gets_the_full_flow_cap(neck, monkeypatch, failing_flow):
+    """Every target Ĉ but the last one tried gets a flow cap of QUICK_FLOW_WORK / fine faces iterations
+    (at least QUICK_FLOW_MIN_ITER), so a plateaued flow cannot spend minutes before the next target;
+    the last target keeps the full ``flow_max_iter``."""
+    V, F = neck
+    caps: list = []
+
+    def record(*args, **kw):
+        caps.append((len(args[1]), kw["max_iter"]))
+        return failing_flow(*args, **kw)
+
+    monkeypatch.setattr(nested_backend_module, "flow_inside", record)
+    monkeypatch.setattr(nested_backend_module, "QUICK_FLOW_WORK", 40 * len(F))
+    with pytest.raises(Exception):
+        nested_backend(V, F, [600], max_recovery_depth=0, fallback=None)
+    assert len(caps) == 3  # layer decimated by qslim, its envelope, the layer by the other decimator
+    (n0, c0), (n1, c1), (n2, c2) = caps
+    assert c0 == max(nested_backend_module.QUICK_FLOW_MIN_ITER, 40 * len(F) // n0) < 1000
+    assert c1 == max(nested_backend_module.QUICK_FLOW_MIN_ITER, 40 * len(F) // n1) < 1000
+    assert c2 == 1000
+
+
 def test_unrecoverable_layer_raises_cage_error(neck, monkeypatch, failing_flow):
     V, F = neck
     monkeypatch.setattr(nested_backend_module, "flow_inside",

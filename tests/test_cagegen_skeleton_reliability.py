@@ -233,8 +233,8 @@ def test_flow_stall_window_stops_a_flow_that_cannot_finish_in_time():
 def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
     """``nest_pair`` passes ``flow_stall_iter`` / ``flow_expand_after`` / ``flow_max_expansions`` to
     the flow as ``stall_iter`` / ``expand_after`` / ``max_expansions`` (so the skeleton backend can
-    pass them through its options); its defaults are the flow's own, so the ``nested`` backend is
-    unchanged."""
+    pass them through its options); its defaults are the flow's own, except ``expand_after`` (5: the
+    nested backend expands Ĉ sooner than the flow's own 50)."""
     import inspect
 
     from cagegen.nested import backend as nb
@@ -253,8 +253,9 @@ def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
     with pytest.raises(nb._PairFailure, match="stub"):
         nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs, flow_stall_iter=600, flow_expand_after=None, flow_max_expansions=3)
     defaults = {k: v.default for k, v in inspect.signature(flow_inside).parameters.items()}
-    for name in ("stall_iter", "expand_after", "max_expansions"):
+    for name in ("stall_iter", "max_expansions"):
         assert seen[0][name] == defaults[name]
+    assert seen[0]["expand_after"] == 5 != defaults["expand_after"]
     assert (seen[1]["stall_iter"], seen[1]["expand_after"], seen[1]["max_expansions"]) == (600, None, 3)
 
 

@@ -6,7 +6,8 @@ The one entry point is :func:`build_cages`::
 
 Layer 0 is the audited input; layer ``k+1`` is a coarser cage that strictly contains layer ``k``
 (checked by :func:`verify_nesting`) for every method except the naive ``"decimate"`` baseline.
-Backends are looked up by name in :mod:`cagegen.registry` and imported lazily.
+Backends are looked up by name in :mod:`cagegen.registry` and imported lazily; each has a typed options
+class (:mod:`cagegen.options`: ``build_cages(V, F, 3, "sdf", options=SdfOptions(c=0.02))``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from .errors import (
     NestmgError,
     UnknownMethodError,
 )
-from .registry import available_backends, get_backend, register_backend, registered_backends
+from .options import CageOptions, DecimateOptions, LazyOptions, NestedOptions, SdfOptions, SkeletonOptions
+from .registry import available_backends, get_backend, options_class, register_backend, registered_backends
 from .sizes import check_face_counts, default_face_counts
 from .verify import NestingReport, PairReport, verify_nesting
 
@@ -32,13 +34,19 @@ __all__ = [
     "UNCERTIFIED_METHODS",
     "BackendUnavailableError",
     "CageError",
+    "CageOptions",
     "CageOptionError",
+    "DecimateOptions",
+    "LazyOptions",
     "LevelsError",
     "MeshAudit",
     "MeshInputError",
+    "NestedOptions",
     "NestingReport",
     "NestmgError",
     "PairReport",
+    "SdfOptions",
+    "SkeletonOptions",
     "UnknownMethodError",
     "audit_mesh",
     "available_backends",
@@ -49,6 +57,7 @@ __all__ = [
     "default_face_counts",
     "errors",
     "get_backend",
+    "options_class",
     "register_backend",
     "registered_backends",
     "repair_mesh",

@@ -6,6 +6,7 @@ Re-exported by the package (``cagegen.build_cages``); kept in its own module so 
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import sys
 import time
@@ -14,7 +15,8 @@ from collections.abc import Callable
 from ._geometry import as_mesh_arrays
 from .audit import check_mesh
 from .errors import CageError, CageOptionError, LevelsError, MeshInputError
-from .registry import get_backend
+from .options import CageOptions, cage_options
+from .registry import get_backend, options_class
 from .sizes import check_face_counts, default_face_counts
 from .verify import verify_nesting
 
@@ -47,6 +49,18 @@ def fallback_layers(info: dict) -> list[dict]:
             for i, d in enumerate(layers) if isinstance(d, dict) and d.get("fallback")]
 
 
+def _options(method: str, options: CageOptions | None, opts: dict) -> CageOptions:
+    """The method's options object, from ``options`` or from loose keyword ``opts`` (not both)."""
+    cls = options_class(method)
+    if options is None:
+        return cage_options(cls, method, **opts)
+    if opts:
+        raise CageOptionError(f"give the options either as options= or by name, not both (got {sorted(opts)})")
+    if not isinstance(options, cls):
+        raise CageOptionError(f"method {method!r} takes {cls.__name__}, got {type(options).__name__}")
+    return options
+
+
 def _accepts(fn: Callable, name: str) -> bool:
     try:
         params = inspect.signature(fn).parameters
@@ -65,8 +79,7 @@ def build_cages(
     return_info: bool = False,
     progress: bool | Callable[[str], None] | None = None,
     *,
-    repair: bool = False,
-    min_gap: float = 0.0,
+    options: CageOptions | None = None,
     components: str = "single",
     **opts,
 ):
@@ -95,17 +108,18 @@ def build_cages(
     progress : bool or callable, optional
         ``progress(message)`` is called at each stage; ``True`` prints the messages to stderr;
         ``None``/``False`` is silent. Backends that accept a ``progress`` keyword get the callable.
-    repair : bool
-        Merge duplicate vertices, drop unreferenced ones and orient outward before the audit.
-    min_gap : float
-        Clearance demanded between consecutive layers, relative to the input's bounding-box diagonal
-        (see :func:`verify_nesting`).
+    options : CageOptions, optional
+        The method's options (:func:`cagegen.options_class`, e.g. :class:`cagegen.NestedOptions`), among
+        them ``repair`` (merge duplicate vertices, drop unreferenced ones and orient outward before the
+        audit) and ``min_gap`` (clearance demanded between consecutive layers, relative to the input's
+        bounding-box diagonal, see :func:`verify_nesting`). Default: the class's defaults.
     components : {"single", "separate"}
         ``"single"`` (default): the input must be one closed piece. ``"separate"``: one hierarchy per
         disjoint closed piece; the return value is then a *list* with one ``build_cages`` result per
         piece (see :func:`cagegen.components.build_cages_per_component`).
     **opts
-        Passed to the backend.
+        Instead of ``options``: its fields by name (``build_cages(V, F, 3, "sdf", c=0.02)`` is
+        ``options=SdfOptions(c=0.02)``); validated by the class, unknown names refused.
 
     Returns
     -------
@@ -128,12 +142,13 @@ def build_cages(
     CageError
         The backend failed, or (certified methods) a layer does not nest; ``.layer`` names it.
     """
+    options = _options(method, options, opts)
     if components == "separate":
         from .components import build_cages_per_component
 
         return build_cages_per_component(
             V, F, levels, method, face_counts=face_counts, verify=verify, return_info=return_info,
-            progress=progress, repair=repair, min_gap=min_gap, **opts,
+            progress=progress, repair=options.repair, options=dataclasses.replace(options, repair=False),
         )
     if components != "single":
         raise CageOptionError(f"components must be 'single' or 'separate', got {components!r}")
@@ -149,6 +164,7 @@ def build_cages(
         raise TypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
     say = report_to if report_to is not None else (lambda msg: None)
 
+    repair, min_gap = options.repair, float(options.min_gap or 0.0)
     V, F, audit = check_mesh(V, F, repair=repair, name="input", return_audit=True)
     t_audit = time.perf_counter() - t0
     say(f"input: {V.shape[0]} vertices, {F.shape[0]} faces, audit ok ({t_audit:.2f} s)")
@@ -168,7 +184,7 @@ def build_cages(
         raise LevelsError("no cage requested (levels must be >= 2)")
 
     backend = get_backend(method)
-    kwargs = dict(opts)
+    kwargs = options.backend_kwargs()
     if report_to is not None and _accepts(backend, "progress"):
         kwargs["progress"] = report_to
     if min_gap > 0 and _accepts(backend, "min_gap"):

@@ -11,6 +11,10 @@ A backend is a function ::
 
 The backend does not certify: :func:`cagegen.build_cages` runs the verifier on every consecutive
 pair and raises :class:`cagegen.CageError` for the first failing layer.
+
+Each backend registers its options class (:mod:`cagegen.options`, a frozen dataclass; imported eagerly,
+it has no optional dependency): ``opts`` are the fields of that class but its common ones
+(:meth:`CageOptions.backend_kwargs`), validated before the backend is called.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import importlib
 from collections.abc import Callable
 
 from .errors import BackendUnavailableError, UnknownMethodError
+from .options import CageOptions, DecimateOptions, LazyOptions, NestedOptions, SdfOptions, SkeletonOptions
 
 # name -> "module:function" (imported on first use so optional dependencies stay optional)
 _BACKENDS: dict[str, str] = {
@@ -29,8 +34,17 @@ _BACKENDS: dict[str, str] = {
     "skeleton": "cagegen.skeleton:skeleton_backend",
 }
 
+# name -> options class
+_OPTIONS: dict[str, type[CageOptions]] = {
+    "decimate": DecimateOptions,
+    "nested": NestedOptions,
+    "lazy": LazyOptions,
+    "sdf": SdfOptions,
+    "skeleton": SkeletonOptions,
+}
 
-def register_backend(name: str, target: str | Callable) -> None:
+
+def register_backend(name: str, target: str | Callable, options: type[CageOptions] = CageOptions) -> None:
     """Register a backend under ``name``.
 
     Parameters
@@ -39,8 +53,27 @@ def register_backend(name: str, target: str | Callable) -> None:
         Method name used in ``build_cages(..., method=name)``.
     target : str or callable
         Either ``"module:function"`` (imported lazily) or the backend function itself.
+    options : type
+        Its options class, a frozen dataclass deriving from :class:`cagegen.CageOptions` (default: the
+        common options only).
     """
+    if not (isinstance(options, type) and issubclass(options, CageOptions)):
+        raise TypeError(f"options must be a subclass of cagegen.CageOptions, got {options!r}")
     _BACKENDS[name] = target  # type: ignore[assignment]
+    _OPTIONS[name] = options
+
+
+def options_class(name: str) -> type[CageOptions]:
+    """The options class registered with the backend ``name`` (nothing of the backend is imported).
+
+    Raises
+    ------
+    UnknownMethodError
+        If no backend of that name is registered.
+    """
+    if name not in _BACKENDS:
+        raise UnknownMethodError(f"unknown cage method {name!r}; registered: {sorted(_BACKENDS)}")
+    return _OPTIONS.get(name, CageOptions)
 
 
 def get_backend(name: str) -> Callable:

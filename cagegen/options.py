@@ -47,7 +47,7 @@ class OptionFieldError(CageOptionError):
 
 def field_spec(default: Any, help: str, *, low: float | None = None, strict: bool = False,
                high: float | None = None, choices: tuple | None = None, kind: type | None = None,
-               cli: bool = True) -> Any:
+               optional: bool = False, cli: bool = True) -> Any:
     """A dataclass field with its validation rule and help text in ``metadata``.
 
     Parameters
@@ -62,11 +62,15 @@ def field_spec(default: Any, help: str, *, low: float | None = None, strict: boo
         Allowed values.
     kind : type, optional
         ``int``, ``float``, ``bool`` or ``str`` (default: the type of ``default``).
+    optional : bool
+        None is allowed (always when the default is None or None is among ``choices``).
     cli : bool
         Whether the command line offers it (:func:`nestmg.options.add_arguments`).
     """
     kind = kind or (type(default) if default is not None else None)
-    meta = {"help": help, "low": low, "strict": strict, "high": high, "choices": choices, "kind": kind, "cli": cli}
+    optional = optional or default is None or (choices is not None and None in choices)
+    meta = {"help": help, "low": low, "strict": strict, "high": high, "choices": choices, "kind": kind, "cli": cli,
+            "optional": optional}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -84,12 +88,13 @@ def _problem(value: Any, meta: dict, optional: bool) -> str | None:
         if not ok or isinstance(value, (bool, np.bool_)):
             return f"must be {'an integer' if kind is int else 'a number'}, got {value!r}"
         low, high = meta["low"], meta["high"]
-        if not math.isfinite(float(value)):
-            return f"must be finite, got {value!r}"
-        if low is not None and (value <= low if meta["strict"] else value < low):
+        finite = math.isfinite(float(value))
+        if low is not None and (not finite or (value <= low if meta["strict"] else value < low)):
             return f"must be {'>' if meta['strict'] else '>='} {low:g}, got {value!r}"
-        if high is not None and not value < high:
+        if high is not None and (not finite or not value < high):
             return f"must be < {high:g}, got {value!r}"
+        if not finite:
+            return f"must be finite, got {value!r}"
     if kind is str and not isinstance(value, str):
         return f"must be a string, got {value!r}"
     return None
@@ -107,7 +112,7 @@ def check_fields(obj: Any, error: type[NestmgError] | None = None) -> None:
     for f in fields(obj):
         if "help" not in f.metadata:
             continue
-        problem = _problem(getattr(obj, f.name), f.metadata, optional=f.default is None)
+        problem = _problem(getattr(obj, f.name), f.metadata, optional=f.metadata["optional"])
         if problem is not None:
             raise error(type(obj).__name__, f.name, problem)
 
@@ -206,7 +211,7 @@ class SdfOptions(CageOptions):
                                           "(0: off)", low=0.0)
     time_budget: float | None = field_spec(_SDF_TIME_BUDGET, "wall-clock seconds the sdf cages may take, "
                                                              "estimated before any work (None: no limit)",
-                                           low=0.0, kind=float)
+                                           low=0.0, kind=float, optional=True)
 
 
 @dataclass(frozen=True)

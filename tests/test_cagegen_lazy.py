@@ -62,10 +62,12 @@ def test_lazy_layers_certified(neck_lazy):
 def test_lazy_tet_layers_have_no_fine_node_outside(neck_lazy):
     """Tet-level certification: TetGen keeps each cage's boundary, so no fine node falls outside."""
     pytest.importorskip("tetgen")
+    from nestmg import MeshingOptions, SizingOptions
     from nestmg.hierarchy import tet_hierarchy
 
     layers, _ = neck_lazy
-    tets, P, reps, _ = tet_hierarchy(layers, mesher="tetgen", edge_length_fac=0.06, cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(layers, sizing=SizingOptions(edge_length=0.06, coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     assert [r.n_outside for r in reps] == [0, 0]
     for k, Pk in enumerate(P):
         assert Pk.shape == (len(tets[k][0]), len(tets[k + 1][0]))

@@ -201,8 +201,8 @@ def test_cli_cages_exits_0_without_third_party_lines(tmp_path):
 
 
 @pytest.mark.parametrize("args,expect", [
-    (["--epsilon", "0"], "--epsilon must be positive"),
-    (["--epsilon", "-1"], "--epsilon must be positive"),
+    (["--epsilon", "0"], "argument --epsilon: must be > 0"),
+    (["--epsilon", "-1"], "argument --epsilon: must be > 0"),
     (["--out", "afile"], "afile: File exists"),
 ])
 def test_cli_misuse_is_one_line(tmp_path, args, expect):

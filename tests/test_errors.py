@@ -79,10 +79,14 @@ def test_nestmg_errors_derive_from_the_root():
 def test_build_hierarchy_input_errors_are_nestmg_errors():
     """Bad arguments raise NestmgInputError (a NestmgError and a ValueError) before any work."""
     V, F = shapes.sphere(res=6)
-    for kwargs, match in (({"levels": 1}, "levels must be >= 2"), ({"fine_level": "coarse"}, "fine_level"),
-                          ({"same_domain_levels": 5}, "same_domain_levels")):
+    for call, match in ((lambda: nestmg.build_hierarchy(V, F, 1), "levels must be >= 2"),
+                        (lambda: nestmg.SizingOptions(fine_level="coarse"), "SizingOptions.fine_level: must be one"),
+                        (lambda: nestmg.build_hierarchy(V, F, 3, sizing=nestmg.SizingOptions(same_domain_levels=5)),
+                         "same_domain_levels"),
+                        (lambda: nestmg.build_hierarchy(V, F, 3, sizing={"max_tets": 5}), "sizing must be a"),
+                        (lambda: nestmg.SolverOptions(tol=float("nan")), r"SolverOptions.tol: must be > 0")):
         with pytest.raises(nestmg.NestmgInputError, match=match) as ei:
-            nestmg.build_hierarchy(V, F, **{"levels": 3, **kwargs})
+            call()
         assert isinstance(ei.value, ValueError) and isinstance(ei.value, nestmg.NestmgError)
     with pytest.raises(nestmg.NestmgInputError, match="unknown problem"):
         nestmg.setup_problem([(V, np.zeros((0, 4), dtype=np.int64))], [], "heat")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from nestmg import shapes
+from nestmg import MeshingOptions, SizingOptions, shapes
 from nestmg.hierarchy import build_hierarchy
 
 
@@ -16,8 +16,8 @@ def test_same_domain_levels(sphere_surface):
     pytest.importorskip("tetgen")
     V, F = sphere_surface
     V0, F0 = V.copy(), F.copy()
-    h = build_hierarchy(V, F, 3, method="decimate", mesher="tetgen", edge_length_fac=0.03,
-                        same_domain_levels=1, cache=False, progress=False)
+    h = build_hierarchy(V, F, 3, "decimate", sizing=SizingOptions(edge_length=0.03, same_domain_levels=1),
+                        meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     np.testing.assert_array_equal(V, V0)
     np.testing.assert_array_equal(F, F0)
     assert h.levels == 3 and len(h.P) == 2
@@ -33,7 +33,7 @@ def test_same_domain_levels(sphere_surface):
     a = np.array([0.7, -0.2, 1.3])
     Vf, Vc = h.tets[0][0], h.tets[1][0]
     assert np.abs(h.P[0] @ (Vc @ a) - Vf @ a).max() < 1e-8
-    assert h.options["same_domain_levels"] == 1
+    assert h.options["sizing"]["same_domain_levels"] == 1
     # the cage pair itself is not nested (decimation): extrapolated nodes only on the coarse level
     assert h.n_outside[1] > 0
 
@@ -42,4 +42,5 @@ def test_same_domain_levels(sphere_surface):
 def test_same_domain_levels_validated(sphere_surface, bad):
     V, F = sphere_surface
     with pytest.raises(ValueError, match="same_domain_levels"):
-        build_hierarchy(V, F, 3, method="decimate", mesher="tetgen", same_domain_levels=bad, cache=False)
+        build_hierarchy(V, F, 3, "decimate", sizing=SizingOptions(same_domain_levels=bad),
+                        meshing=MeshingOptions(mesher="tetgen"), cache=False)

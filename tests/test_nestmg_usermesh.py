@@ -197,9 +197,9 @@ import sys
 import numpy as np
 import cagegen.nested.backend as nb
 from cagegen import CageError
-from nestmg import build_hierarchy, shapes
+from nestmg import SizingOptions, build_hierarchy, shapes
 V, F = shapes.sphere(res=12)
-h = build_hierarchy(V, F, levels=2, edge_length_fac=0.15, cache=False, progress=False)
+h = build_hierarchy(V, F, levels=2, sizing=SizingOptions(edge_length=0.15), cache=False, progress=False)
 assert h.certified and h.fallbacks == [], h
 # the default nested backend, forced to fail: its default fallback is the MIT sdf cage, never the GPL
 # lazy one; without a fallback it raises

@@ -233,7 +233,8 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     """Stick figure: 3-layer hierarchies (input, cage of 1200 faces, coarsest cage) whose coarsest layer is
     the skeleton cage, beside the ``nested``-only one with the same face counts; TetWild layers (nestmg
     defaults), V(1,1) cycles (``MultigridSolver`` defaults), mean residual reduction per cycle to 1e-8."""
-    from nestmg import build_hierarchy, setup_problem
+    from cagegen import NestedOptions, SkeletonOptions
+    from nestmg import SizingOptions, build_hierarchy, setup_problem
     from nestmg.io import normalize
     from nestmg.shapes import stick_figure
     from solvers import MultigridSolver
@@ -242,11 +243,11 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     _, center, scale = normalize(V)
     S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: the skeleton must follow
     out: dict = {"shape": "stick", "face_counts": list(face_counts)}
-    for name, opts in (("skeleton", {"skeleton": S, "bending": "given"}), ("nested", {})):
+    for name, opts in (("skeleton", SkeletonOptions(skeleton=S, bending="given")), ("nested", NestedOptions())):
         t = time.perf_counter()
         try:
-            h = build_hierarchy(V, F, levels=len(face_counts) + 1, method=name, face_counts=list(face_counts),
-                                cache=False, cage_opts=opts)
+            h = build_hierarchy(V, F, len(face_counts) + 1, name, sizing=SizingOptions(face_counts=face_counts),
+                                cages=opts, cache=False)
             res: dict = {"build_seconds": time.perf_counter() - t, "certified": bool(h.certified),
                          "tets": [len(T) for _, T in h.tets]}
             for pname in problems:

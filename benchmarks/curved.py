@@ -38,6 +38,7 @@ from nestmg.io import json_default
 from nestmg.tetmesh import orient_tets, tet_volumes
 from solvers import stiffness_matrix
 from solvers.fem_p2 import p2_boundary_facets, p2_l2_error, p2_load, p2_neumann_load
+from nestmg import SizingOptions
 
 A, B, C = 6.0, 2.0, 4.0  # u = sin(A x) e^{B y} cos(C z), Δu = (B² - A² - C²) u
 
@@ -115,7 +116,7 @@ def p2_case(h, cm, name, proj, tol):
 def run_mesh(path: str, args) -> dict:
     V, F = load_mesh(path)
     t0 = time.perf_counter()
-    h = build_hierarchy(V, F, levels=args.levels, method=args.method, edge_length_fac=args.edge_length,
+    h = build_hierarchy(V, F, args.levels, args.method, sizing=SizingOptions(edge_length=args.edge_length),
                         progress=False)
     t_h = time.perf_counter() - t0
     if not str(h.prolongation_reports[0].extrapolation).startswith("none (refinement)"):

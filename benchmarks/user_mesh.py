@@ -66,7 +66,7 @@ def main(argv=None) -> dict:
         tmp_dir.cleanup()
     out.update(user_nodes=len(V0), user_tets=len(T0), same_as_written=bool(np.array_equal(T0, Tu)))
     t = time.perf_counter()
-    H = hierarchy_from_tets(V0, T0, levels=args.levels, cache=not args.no_cache, progress=False)
+    H = hierarchy_from_tets(V0, T0, args.levels, cache=not args.no_cache, progress=False)
     sec["hierarchy"] = time.perf_counter() - t
     sec["hierarchy_stages"] = {k: v for k, v in H.timings.items() if isinstance(v, float)}
     out["hierarchy"] = {"tets": [len(T) for _, T in H.tets], "nodes": [len(Vk) for Vk, _ in H.tets],

@@ -48,7 +48,7 @@ def coarse_levels(mesh: str | None, levels: int, edge_length_fac: float = 0.08) 
         V, T = tetrahedralize(Vs, Fs, edge_length_fac=edge_length_fac)  # stands in for the user's own mesh
     else:
         V, T = load_tet_mesh(mesh)
-    H = hierarchy_from_tets(V, T, levels=levels, progress=False)
+    H = hierarchy_from_tets(V, T, levels, progress=False)
     if not H.certified:
         raise SystemExit("the coarse levels are not certified nested (n_outside > 0 on some level)")
     out = {"V": V, "T": T, "n_coarse": np.array(len(H.P))}

@@ -246,7 +246,7 @@ def test_blocked_push_out_rejects_the_candidate(neck, monkeypatch):
 
 def test_distance_lower_bound_is_below_the_exact_distance(neck, neck_lazy):
     from cagegen.copyleft.lazy import _distance_lower_bound
-    from cagegen.nested.collision import min_distance
+    from cagegen.collision import min_distance
 
     V, F = neck
     (L1, L2) = neck_lazy[0][1:]

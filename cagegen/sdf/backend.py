@@ -83,7 +83,7 @@ def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0,
     import igl
     from scipy.spatial import cKDTree
 
-    from ..nested.collision import min_distance
+    from ..collision import min_distance
     from .simplify import too_close
 
     tree = cKDTree(Vf) if clear > 0 else None
@@ -734,24 +734,3 @@ def sdf_backend(
         "layers": per_layer,
     }
     return layers, info
-
-
-def nested_fallback(Vf, Ff, m, exc, rep, log, k, gap=0.0):
-    """Fallback ``"sdf"`` of the ``nested`` backend (``nested_backend(..., fallback="sdf")``): an sdf cage.
-
-    Same signature as the other entries of :data:`cagegen.nested.backend.FALLBACKS`: fine layer
-    ``(Vf, Ff)`` in the input's unit-diagonal coordinates, target ``m`` faces (rounded up to even), the
-    flow's error ``exc``, a reporter, the recovery log, the layer number and the clearance ``gap``
-    (absolute in that frame, so relative to the input's diagonal: ``unit=1``), which the sdf cage keeps
-    and certifies. MIT, no copyleft import.
-    """
-    m = int(m) + int(m) % 2
-    rep.say(f"layer {k}: flow and intermediate layers failed; falling back to an sdf cage")
-    try:
-        # audited input or a certified layer; lengths relative to the input's diagonal (1 here)
-        C, G, info = sdf_cage_layer(Vf, Ff, m, check_input=False, unit=1.0, min_gap=float(gap))
-    except (CageError, ValueError) as exc2:
-        raise CageError(f"{exc}; the sdf fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
-    log.append({"layer": k, "action": f"fall back to an sdf cage of {len(G)} faces (cagegen.sdf)",
-                "stage": "fallback", "reason": str(exc)})
-    return C, G, {"fallback": "sdf", "sdf": info, "seconds": {"sdf": info["seconds"]["total"]}}

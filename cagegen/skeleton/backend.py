@@ -703,7 +703,8 @@ def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say):
 
 def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     """Step 7: the Nested Cages flow + re-inflation of the pre-inflated cage around M (or ``inner``)."""
-    from ..nested.backend import _PairFailure, nest_pair
+    from ..failures import PairFailure
+    from ..nested import nest_pair
 
     diag, center, Vp, Ft = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
     if inner is not None:
@@ -722,7 +723,7 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     nested_opts.setdefault("flow_active_depth", 0.01)
     try:
         C, ninfo = nest_pair(Vi, Fi, Vp, Ft, gap=gap, **nested_opts)
-    except _PairFailure as exc:
+    except PairFailure as exc:
         hint = ""
         if exc.stage == "flow":
             n_out = int(np.sum(_winding(Vp, Ft, Vi) < 0.5))

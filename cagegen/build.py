@@ -7,16 +7,17 @@ Re-exported by the package (``cagegen.build_cages``); kept in its own module so 
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import sys
 import time
 from collections.abc import Callable
 
-from ._geometry import as_mesh_arrays
+import numpy as np
+
+from ._geometry import as_mesh_arrays, bbox_diagonal, signed_volume
 from .audit import check_mesh
 from .errors import CageError, CageOptionError, LevelsError, MeshInputError
 from .options import CageOptions, cage_options
-from .registry import get_backend, options_class
+from .registry import backend_spec, get_backend, options_class
 from .sizes import check_face_counts, default_face_counts
 from .verify import verify_nesting
 
@@ -61,12 +62,45 @@ def _options(method: str, options: CageOptions | None, opts: dict) -> CageOption
     return options
 
 
-def _accepts(fn: Callable, name: str) -> bool:
-    try:
-        params = inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
-    return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+def _layer_loop(method: str, layer_fn: Callable, V: np.ndarray, F: np.ndarray, face_counts: list[int],
+                kwargs: dict, say: Callable[[str], None]) -> tuple[list, dict]:
+    """The loop over the layers of a per-layer backend (:mod:`cagegen.registry`): layer ``k`` around layer
+    ``k - 1``, lengths relative to the input's diagonal on every layer, one progress line and the same info
+    keys per layer for every such backend."""
+    import igl
+
+    t0 = time.perf_counter()
+    diag0, vol0 = bbox_diagonal(V), signed_volume(V, F)
+    min_gap = float(kwargs.get("min_gap", 0.0))
+    layers, per_layer, changes = [], [], []
+    Vp, Fp = V, F
+    for k, m in enumerate(face_counts, start=1):
+        t = time.perf_counter()
+        try:
+            U, G, li = layer_fn(Vp, Fp, int(m), unit=diag0, **kwargs)
+        except CageError as exc:
+            raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
+        note = li.pop("progress", "")
+        li["layer"] = k
+        li["hausdorff_relative_to_input"] = float(igl.hausdorff(U, G, V, F)) / diag0
+        li["volume_ratio_to_input"] = signed_volume(U, G) / vol0
+        if li.get("genus_changed"):
+            changes.append({"layer": k, "from": li["genus_fine"], "to": li["genus"]})
+        per_layer.append(li)
+        layers.append((U, G))
+        genus = f", genus {li['genus_fine']} -> {li['genus']}" if li.get("genus_changed") else ""
+        say(f"{method}: layer {k}: {len(G)} faces (target {m}){', ' + note if note else ''}, max distance "
+            f"{li['hausdorff_relative_to_input']:.4f} of the diagonal, {time.perf_counter() - t:.2f} s{genus}")
+        Vp, Fp = U, G
+    info = {
+        "method": method,
+        "nested_by_construction": method not in UNCERTIFIED_METHODS,
+        "genus_changes": changes,
+        "min_gap_requested": {"relative": min_gap, "absolute": min_gap * diag0},
+        "seconds": time.perf_counter() - t0,
+        "layers": per_layer,
+    }
+    return layers, info
 
 
 def build_cages(
@@ -183,18 +217,24 @@ def build_cages(
     if not face_counts:
         raise LevelsError("no cage requested (levels must be >= 2)")
 
+    spec = backend_spec(method)
     backend = get_backend(method)
     kwargs = options.backend_kwargs()
-    if report_to is not None and _accepts(backend, "progress"):
+    if report_to is not None and "progress" in spec.takes:
         kwargs["progress"] = report_to
-    if min_gap > 0 and _accepts(backend, "min_gap"):
+    if min_gap > 0 and "min_gap" in spec.takes:
         kwargs["min_gap"] = min_gap  # the backend must build the clearance the verifier will demand
-    if verify and "certify" not in kwargs and _accepts(backend, "certify"):
+    if verify and "certify" in spec.takes:
         kwargs["certify"] = False  # the whole hierarchy is verified below: once is enough
+    if "audit" in spec.takes:
+        kwargs["audit"] = audit  # the input is audited once per run
     say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
     t1 = time.perf_counter()
     # the backend gets its own copies: it may not modify the layer we return
-    cages, backend_info = backend(V.copy(), F.copy(), list(face_counts), **kwargs)
+    if spec.layer:
+        cages, backend_info = _layer_loop(method, backend, V.copy(), F.copy(), list(face_counts), kwargs, say)
+    else:
+        cages, backend_info = backend(V.copy(), F.copy(), list(face_counts), **kwargs)
     t_backend = time.perf_counter() - t1
 
     cages = list(cages)

@@ -139,7 +139,7 @@ class CageOptions:
 
 @dataclass(frozen=True)
 class DecimateOptions(CageOptions):
-    """``"decimate"``: the naive baseline (:func:`cagegen.decimate.decimate_backend`)."""
+    """``"decimate"``: the naive baseline (:func:`cagegen.decimate.decimate_layer`)."""
 
     algorithm: str = field_spec("qslim", "decimator", choices=("qslim", "decimate"))
     block_intersections: bool = field_spec(False, "refuse collapses that create self-intersections")
@@ -247,14 +247,12 @@ class SkeletonOptions(CageOptions):
 
 @dataclass(frozen=True)
 class LazyOptions(CageOptions):
-    """``"lazy"``: SDF offset + decimation + binary search (gpytoolbox, GPL; ``lazy_backend``)."""
+    """``"lazy"``: SDF offset + decimation + binary search (gpytoolbox, GPL; ``cagegen.copyleft.lazy.lazy_layer``)."""
 
     grid_size: int = field_spec(50, "SDF grid cells per side", low=4)
     max_iter: int = field_spec(10, "binary-search steps", low=1)
     decimation: str = field_spec("shortest_edge", "gpytoolbox decimation", choices=("shortest_edge", "qslim"))
     self_union: bool = field_spec(True, "union the offset with itself (removes self-intersections)")
-    min_gap_abs: float | None = field_spec(None, "min_gap in the input's units (overrides min_gap)", low=0.0,
-                                           kind=float)
 
 
 def cage_options(options_class: type[CageOptions], method: str, **opts: Any) -> CageOptions:

@@ -35,7 +35,8 @@ def _scaled_spheres(V, F, face_counts, *, scales=None, progress=None):
 
 @pytest.fixture
 def spheres_backend(monkeypatch):
-    monkeypatch.setitem(registry._BACKENDS, "spheres", _scaled_spheres)
+    monkeypatch.setitem(registry._BACKENDS, "spheres",
+                        registry.BackendSpec(_scaled_spheres, takes=frozenset({"progress"})))
     return "spheres"
 
 
@@ -146,3 +147,42 @@ def test_public_exports():
                  "default_face_counts", "register_backend", "available_backends", "errors"]:
         assert hasattr(cagegen, name)
     assert cagegen.errors.CageError is CageError
+
+
+def test_per_layer_backend_is_looped_by_build_cages(ball, monkeypatch):
+    """A registered per-layer function gets the previous layer and the input's diagonal as ``unit``;
+    build_cages loops, reports one line per layer and writes the same info keys as for every such backend."""
+    calls = []
+
+    def grow(V, F, n_faces, *, unit, factor=1.2):
+        calls.append((len(F), n_faces, unit))
+        c = V.mean(axis=0)
+        return c + factor * (V - c), F.copy(), {"n_faces": len(F), "progress": "grown"}
+
+    monkeypatch.setitem(registry._BACKENDS, "grow", registry.BackendSpec(grow, layer=True))
+    msgs = []
+    layers, info = cagegen.build_cages(*ball, method="grow", face_counts=[1280, 320], return_info=True,
+                                       progress=msgs.append)
+    diag = cagegen._geometry.bbox_diagonal(ball[0])
+    assert calls == [(5120, 1280, diag), (5120, 320, diag)]
+    assert info["certified"] and [len(F) for _, F in layers] == [5120] * 3
+    be = info["backend"]
+    assert be["method"] == "grow" and be["nested_by_construction"] is True and be["genus_changes"] == []
+    assert [li["layer"] for li in be["layers"]] == [1, 2] and "progress" not in be["layers"][0]
+    assert be["layers"][1]["volume_ratio_to_input"] == pytest.approx(1.44**3, rel=1e-9)
+    assert be["layers"][0]["hausdorff_relative_to_input"] > 0
+    assert sum(m.startswith("grow: layer ") and ", grown, max distance" in m for m in msgs) == 2
+
+
+def test_registry_declares_what_each_backend_takes():
+    for name in ("nested", "skeleton", "sdf"):
+        spec = registry.backend_spec(name)
+        assert not spec.layer and spec.own_loop  # each says why it loops itself
+    for name in ("decimate", "lazy"):
+        assert registry.backend_spec(name).layer and not registry.backend_spec(name).own_loop
+    assert "audit" in registry.backend_spec("sdf").takes  # the input is audited once per run
+    with pytest.raises(TypeError, match="takes must be a subset"):
+        registry.register_backend("x", lambda *a: None, takes=("colour",))
+    with pytest.raises(TypeError, match="CageOptions"):
+        registry.register_backend("x", lambda *a: None, options=dict)
+    assert "x" not in registry.registered_backends()

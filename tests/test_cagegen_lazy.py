@@ -16,7 +16,7 @@ from cagegen.errors import BackendUnavailableError, CageError
 
 pytest.importorskip("gpytoolbox", reason="the lazy backend needs the optional 'lazy' extra (gpytoolbox, GPL)")
 
-from cagegen.copyleft.lazy import genus, lazy_backend, lazy_cage_layer
+from cagegen.copyleft.lazy import genus, lazy_cage_layer
 from nestmg import shapes
 
 FAST = {"grid_size": 20, "max_iter": 5}
@@ -128,7 +128,7 @@ def test_no_certified_candidate_raises_cage_error(neck, monkeypatch):
     monkeypatch.setattr(lazy_mod, "_accept", lambda *a: "rejected by the test")
     V, F = neck
     with pytest.raises(CageError) as exc:
-        lazy_backend(V, F, [300], grid_size=12, max_iter=2)
+        cagegen.build_cages(V, F, method="lazy", face_counts=[300], grid_size=12, max_iter=2)
     assert exc.value.layer == 1 and "rejected by the test" in str(exc.value)
 
 
@@ -236,12 +236,12 @@ def test_blocked_push_out_rejects_the_candidate(neck, monkeypatch):
     monkeypatch.setattr(lazy_mod, "_distance_lower_bound", lambda *a: 0.0)  # every candidate needs the push
     V, F = neck
     with pytest.raises(CageError, match="push-out failed: blocked") as exc:
-        lazy_backend(V, F, [300], min_gap=0.01, grid_size=12, max_iter=2)
+        cagegen.build_cages(V, F, method="lazy", face_counts=[300], min_gap=0.01, grid_size=12, max_iter=2)
     assert exc.value.layer == 1
     with pytest.raises(ValueError, match="gap"):
         lazy_cage_layer(V, F, 300, gap=-1.0)
     with pytest.raises(ValueError, match="min_gap"):
-        lazy_backend(V, F, [300], min_gap=float("nan"))
+        cagegen.build_cages(V, F, method="lazy", face_counts=[300], min_gap=float("nan"))
 
 
 def test_distance_lower_bound_is_below_the_exact_distance(neck, neck_lazy):

@@ -47,17 +47,17 @@ def _fields(cls) -> dict:
 
 def test_cage_options_match_the_backends_keywords():
     """Every backend keyword is a field with the same default, and no field is unknown to the backend."""
-    from cagegen.decimate import decimate_backend
+    from cagegen.decimate import decimate_layer
     from cagegen.nested.backend import _DEFAULTS, nested_backend
     from cagegen.sdf.backend import sdf_cage_layer
     from cagegen.skeleton.backend import skeleton_backend, skeleton_cage
 
-    assert _fields(DecimateOptions) == _keyword_defaults(decimate_backend)
+    assert _fields(DecimateOptions) == _keyword_defaults(decimate_layer)
     assert _fields(NestedOptions) == {**_keyword_defaults(nested_backend), **_DEFAULTS}
     assert _fields(SdfOptions) == _keyword_defaults(sdf_cage_layer)
     assert _fields(SkeletonOptions) == {**_keyword_defaults(skeleton_cage), **_keyword_defaults(skeleton_backend)}
     lazy = pytest.importorskip("cagegen.copyleft.lazy")
-    assert _fields(LazyOptions) == _keyword_defaults(lazy.lazy_backend)
+    assert _fields(LazyOptions) == _keyword_defaults(lazy.lazy_layer)
 
 
 def test_registry_gives_each_method_its_class():

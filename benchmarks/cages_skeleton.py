@@ -243,10 +243,12 @@ def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poiss
     _, center, scale = normalize(V)
     S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: the skeleton must follow
     out: dict = {"shape": "stick", "face_counts": list(face_counts)}
-    for name, opts in (("skeleton", SkeletonOptions(skeleton=S, bending="given")), ("nested", NestedOptions())):
+    cases = (("skeleton", SkeletonOptions(skeleton=S, bending="given")), ("nested", NestedOptions()))
+    for name, opts in cases:
         t = time.perf_counter()
         try:
-            h = build_hierarchy(V, F, len(face_counts) + 1, name, sizing=SizingOptions(face_counts=face_counts),
+            h = build_hierarchy(V, F, len(face_counts) + 1, name,
+                                sizing=SizingOptions(face_counts=face_counts),
                                 cages=opts, cache=False)
             res: dict = {"build_seconds": time.perf_counter() - t, "certified": bool(h.certified),
                          "tets": [len(T) for _, T in h.tets]}

@@ -116,12 +116,14 @@ def case_cages(mesh: Path, method: str) -> dict:
     args = _cli_args("cages", mesh, ["--method", method])
     V, F, _ = _load(str(mesh))
     t = time.perf_counter()
-    layers, info = build_cage_surfaces(V, F, args.levels, method, meshing=args.meshing, cache=False, progress=False,
+    layers, info = build_cage_surfaces(V, F, args.levels, method, meshing=args.meshing, cache=False,
+                                       progress=False,
                                        cages=_cage_options(args, method))
     ver = info.get("verification") or {}
     return {"seconds": time.perf_counter() - t, "certified": bool(ver.get("ok")) if ver else None,
             "faces": [len(Fk) for _, Fk in layers], "fallbacks": fallback_layers(info),
-            "layer_seconds": info.get("layer_seconds"), "min_gap": (info.get("cage_options") or {}).get("min_gap")}
+            "layer_seconds": info.get("layer_seconds"),
+            "min_gap": (info.get("cage_options") or {}).get("min_gap")}
 
 
 def case_wheel(mesh: Path, counts: list[int]) -> dict:

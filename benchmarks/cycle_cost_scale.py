@@ -69,7 +69,8 @@ def main(argv=None):
         h, _ = load_hierarchy(args.mesh, edge_length_fac=args.edge_length)
     else:
         h = build_hierarchy(V, F, 4, "nested", meshing=MeshingOptions(mesher="tetgen"), progress=False,
-                            sizing=SizingOptions(edge_length=edge_for_tets(V, F, args.fine_tets), same_domain_levels=1))
+                            sizing=SizingOptions(edge_length=edge_for_tets(V, F, args.fine_tets),
+                                                 same_domain_levels=1))
     doc: dict = {"benchmark": "cycle_cost_scale", "mesh": args.mesh.name, "build_seconds": time.perf_counter() - t0,
                  "tets": [len(T) for _, T in h.tets], "nodes": [len(Vk) for Vk, _ in h.tets],
                  "n_outside": [int(x) for x in h.n_outside]}
@@ -111,11 +112,13 @@ def main(argv=None):
             # on pure Neumann "fast" adds boundary-layer sweeps (FAST_NEUMANN_SMOOTHERS); "fast-textbook"
             # is the plain V(1,1) it replaced
             one_way = {"robust+one-way-local": (SolverOptions(), {"local_sweep": "one-way"}),
-                       "fast-textbook": (SolverOptions(smoothing="fast", local=False), {"presmoother": FAST_SMOOTHERS})}
+                       "fast-textbook": (SolverOptions(smoothing="fast", local=False),
+                                         {"presmoother": FAST_SMOOTHERS})}
             variants = ({**{p: (SolverOptions(smoothing=p), {}) for p in PRESETS},
                          **(one_way if pr.local_nodes is not None else {})}
                         if args.presets else
-                        {k: (None, {"presmoother": pre, "postsmoother": post}) for k, (pre, post) in SMOOTHERS.items()})
+                        {k: (None, {"presmoother": pre, "postsmoother": post})
+                         for k, (pre, post) in SMOOTHERS.items()})
             for sname, (opts, kw) in variants.items():
                 t0 = time.perf_counter()
                 ml = pr.multigrid(opts, **kw)

@@ -237,7 +237,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
 
     V, F = load_surface(spec)
     t0 = time.perf_counter()
-    h = nestmg.build_hierarchy(V, F, levels, "nested", sizing=nestmg.SizingOptions(max_tets=max_tets, edge_length=edge),
+    h = nestmg.build_hierarchy(V, F, levels, "nested", sizing=nestmg.SizingOptions(max_tets=max_tets,
+                                                                                   edge_length=edge),
                                cache=True, progress=False)
     load_s = time.perf_counter() - t0
     tets = h.tets_in("normalized")

@@ -45,7 +45,8 @@ def _solve_all(tets, P, maxiter):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                st = solve_on_hierarchy(tets, P, "poisson-dirichlet", SolverOptions(coarse=coarse, maxiter=maxiter),
+                st = solve_on_hierarchy(tets, P, "poisson-dirichlet", SolverOptions(coarse=coarse,
+                                                                                    maxiter=maxiter),
                                         cost=False)
                 cg = solve_on_hierarchy(tets, P, "poisson-dirichlet", SolverOptions(coarse=coarse, accel="cg",
                                                                                     maxiter=200), cost=False)

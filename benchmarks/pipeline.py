@@ -54,7 +54,8 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, problems, coarse_li
         rec["solves"] = []
         for prob in problems:
             for coarse in coarse_list:
-                r = solve_on_hierarchy(h.tets, h.P, prob, SolverOptions(coarse=coarse, smoother=smoother, maxiter=60))
+                r = solve_on_hierarchy(h.tets, h.P, prob, SolverOptions(coarse=coarse, smoother=smoother,
+                                                                        maxiter=60))
                 r.pop("residuals_full", None)
                 rec["solves"].append(r)
                 print(f"  {path.name:<14} {m:<9} {prob:<18} {coarse:<13} factor {r['factor']:.3f} "

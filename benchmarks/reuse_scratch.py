@@ -6,7 +6,8 @@ reported separately, not counted). Everyone pays the assembly of the fine system
 
 ``nestmg``    :func:`nestmg.problems.setup_problem` (assembly, boundary, restricted prolongations,
               boundary layer) + ``Problem.multigrid()`` (Galerkin, project defaults) + MG-PCG.
-``nestmg_fast`` the same with ``Problem.multigrid(SolverOptions(smoothing="fast"))`` (textbook V(1,1); on pure Neumann
+``nestmg_fast`` the same with ``Problem.multigrid(SolverOptions(smoothing="fast"))`` (textbook V(1,1); on
+              pure Neumann
               with one-way boundary-layer sweeps and two sweeps on the coarser levels).
 others        the same fine matrix and right-hand side assembled with the same ``solvers.fem`` kernels
               (checked equal to nestmg's), then: ``pyamg_sa`` (pyamg smoothed aggregation + CG; on the

@@ -54,7 +54,8 @@ for problem in ("poisson-neumann", "poisson-dirichlet", "diffusion-neumann"):
         r.pop("residuals_by_level", None)
         row["pcg" if accel else "v11"] = r
         if accel is None:  # the plain V(1,1) (no boundary-layer sweeps, one sweep on coarse levels)
-            r0 = solve_on_hierarchy(tets, h.P, problem, SolverOptions(tol=1e-8, maxiter=100, local=False, coarse_nu=1),
+            r0 = solve_on_hierarchy(tets, h.P, problem, SolverOptions(tol=1e-8, maxiter=100, local=False,
+                                                                      coarse_nu=1),
                                     cost=True)
             row["v11_plain"] = {k: r0[k] for k in ("factor", "iterations", "cycle_cost", "nu", "coarse_nu")}
         if problem == "poisson-neumann" and accel == "cg":

@@ -56,7 +56,7 @@ def _options(method: str, options: CageOptions | None, opts: dict) -> CageOption
     if options is None:
         return cage_options(cls, method, **opts)
     if opts:
-        raise CageOptionError(f"give the options either as options= or by name, not both (got {sorted(opts)})")
+        raise CageOptionError(f"give the options as options= or by name, not both (got {sorted(opts)})")
     if not isinstance(options, cls):
         raise CageOptionError(f"method {method!r} takes {cls.__name__}, got {type(options).__name__}")
     return options
@@ -90,7 +90,8 @@ def _layer_loop(method: str, layer_fn: Callable, V: np.ndarray, F: np.ndarray, f
         layers.append((U, G))
         genus = f", genus {li['genus_fine']} -> {li['genus']}" if li.get("genus_changed") else ""
         say(f"{method}: layer {k}: {len(G)} faces (target {m}){', ' + note if note else ''}, max distance "
-            f"{li['hausdorff_relative_to_input']:.4f} of the diagonal, {time.perf_counter() - t:.2f} s{genus}")
+            f"{li['hausdorff_relative_to_input']:.4f} of the diagonal, {time.perf_counter() - t:.2f} s"
+            f"{genus}")
         Vp, Fp = U, G
     info = {
         "method": method,

@@ -167,7 +167,7 @@ def decimate_layer(
     block_intersections: bool = False,
     check_self: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Per-layer function of the ``"decimate"`` backend: the next layer is a decimation of ``(V, F)`` (NOT nested).
+    """Per-layer function of ``"decimate"``: the next layer is a decimation of ``(V, F)`` (NOT nested).
 
     :func:`cagegen.build_cages` loops over the layers (registry contract, :mod:`cagegen.registry`).
 
@@ -190,7 +190,7 @@ def decimate_layer(
     info : dict
         :func:`decimate_surface`'s info plus ``target`` and ``n_vertices``.
     """
-    U, G, li = decimate_surface(V, F, int(n_faces), algorithm=algorithm, block_intersections=block_intersections,
-                                check_self=check_self)
+    U, G, li = decimate_surface(V, F, int(n_faces), algorithm=algorithm,
+                                block_intersections=block_intersections, check_self=check_self)
     li.update(target=int(n_faces), n_vertices=int(U.shape[0]))
     return U, G, li

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+from .errors import NestmgError
+
 __all__ = ["PairFailure"]
 
 
-class PairFailure(Exception):
+class PairFailure(NestmgError):
     """One pair (a cage nesting a fine surface) failed in the flow, the re-inflation or the certification.
 
     Raised by :func:`cagegen.nested.nest_pair`; the ``nested`` backend's recovery and the ``skeleton``
-    backend's final inflation catch it. Not an error of the library's API (a :class:`cagegen.CageError`
-    is raised when no recovery helps).
+    backend's final inflation catch it. Under the root :class:`NestmgError`, but not a
+    :class:`cagegen.CageError`: that is raised when no recovery helps.
 
     Attributes
     ----------

@@ -20,7 +20,8 @@ __all__ = ["FALLBACKS", "lazy_fallback", "sdf_fallback"]
 
 
 def lazy_fallback(Vf, Ff, m, exc, rep, log, k, gap):
-    """Fallback ``"lazy"``: a lazy cage (GPL ``gpytoolbox.copyleft``, loaded only here), pushed out to ``gap``."""
+    """Fallback ``"lazy"``: a lazy cage (GPL ``gpytoolbox.copyleft``, loaded only here) pushed out to ``gap``.
+    """
     try:
         from .copyleft.lazy import lazy_cage_layer
     except ImportError as imp:  # BackendUnavailableError: the GPL extra is not installed

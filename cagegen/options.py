@@ -69,8 +69,8 @@ def field_spec(default: Any, help: str, *, low: float | None = None, strict: boo
     """
     kind = kind or (type(default) if default is not None else None)
     optional = optional or default is None or (choices is not None and None in choices)
-    meta = {"help": help, "low": low, "strict": strict, "high": high, "choices": choices, "kind": kind, "cli": cli,
-            "optional": optional}
+    meta = {"help": help, "low": low, "strict": strict, "high": high, "choices": choices, "kind": kind,
+            "cli": cli, "optional": optional}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -84,7 +84,7 @@ def _problem(value: Any, meta: dict, optional: bool) -> str | None:
     if kind is bool and not isinstance(value, (bool, np.bool_)):
         return f"must be True or False, got {value!r}"
     if kind in (int, float):
-        ok = isinstance(value, (int, np.integer)) if kind is int else isinstance(value, (int, float, np.number))
+        ok = isinstance(value, (int, np.integer) if kind is int else (int, float, np.number))
         if not ok or isinstance(value, (bool, np.bool_)):
             return f"must be {'an integer' if kind is int else 'a number'}, got {value!r}"
         low, high = meta["low"], meta["high"]
@@ -123,8 +123,8 @@ class CageOptions:
 
     repair: bool = field_spec(False, "merge duplicate vertices, drop unreferenced ones and orient outward "
                                      "before the audit")
-    min_gap: float | None = field_spec(None, "clearance between consecutive layers / bbox diagonal (default 0; "
-                                             "nestmg: 2.5 epsilon under TetWild)", low=0.0, kind=float)
+    min_gap: float | None = field_spec(None, "clearance between consecutive layers / bbox diagonal (default "
+                                             "0; nestmg: 2.5 epsilon under TetWild)", low=0.0, kind=float)
 
     #: fields build_cages consumes itself (not passed to the backend)
     COMMON = ("repair", "min_gap")
@@ -155,7 +155,8 @@ class NestedOptions(CageOptions):
     quad_order: int = field_spec(2, "quadrature degree of the flow", low=1)
     min_gap_abs: float | None = field_spec(None, "min_gap in the input's units (overrides min_gap)", low=0.0,
                                            kind=float)
-    decimate_from: str = field_spec("previous", "decimate the previous layer or the input", choices=("previous", "input"))
+    decimate_from: str = field_spec("previous", "decimate the previous layer or the input",
+                                    choices=("previous", "input"))
     decimator: str = field_spec("qslim", "decimator tried first", choices=("qslim", "decimate"))
     max_recovery_depth: int = field_spec(2, "intermediate layers allowed when recovering", low=0)
     fallback: str | None = field_spec("sdf", "last resort when the flow fails", choices=("sdf", "lazy", None))
@@ -165,12 +166,13 @@ class NestedOptions(CageOptions):
     flow_max_iter: int = field_spec(1000, "flow iterations at most", low=1)
     dhat: float = field_spec(5e-3, "barrier activation distance / diagonal", low=0.0, strict=True)
     kappa: float = field_spec(1e3, "barrier stiffness", low=0.0, strict=True)
-    dhat_final: float = field_spec(1e-3, "barrier distance of the final energy / diagonal", low=0.0, strict=True)
+    dhat_final: float = field_spec(1e-3, "final energy's barrier distance / diagonal", low=0.0, strict=True)
     kappa_final: float = field_spec(1e3, "barrier stiffness of the final energy", low=0.0, strict=True)
     max_move: float = field_spec(5e-3, "largest vertex move per re-inflation step / diagonal", low=0.0,
                                  strict=True)
     final_iters: int = field_spec(60, "iterations of the final energy", low=0)
-    clearance: str = field_spec("reinflate", "how the clearance is built", choices=("reinflate", "offset", "flow"))
+    clearance: str = field_spec("reinflate", "how the clearance is built",
+                                choices=("reinflate", "offset", "flow"))
 
 
 @dataclass(frozen=True)
@@ -183,14 +185,15 @@ class SdfOptions(CageOptions):
     """
 
     c: float = field_spec(0.01, "envelope iso-value / diagonal", low=0.0, strict=True)
-    h: float | None = field_spec(None, "grid spacing / diagonal (default c, refined for small targets)", low=0.0,
-                                 strict=True, kind=float)
+    h: float | None = field_spec(None, "grid spacing / diagonal (default c, refined for small targets)",
+                                 low=0.0, strict=True, kind=float)
     amplify: bool = field_spec(True, "local amplification near nearly-touching parts (paper eqs. 2-3)")
     r: float = field_spec(0.025, "amplification radius / diagonal", low=0.0, strict=True)
     l: float = field_spec(0.15, "amplification length / diagonal", low=0.0, strict=True)  # noqa: E741
     alpha: float = field_spec(3.0, "amplification exponent", low=0.0)
     beta: float = field_spec(8.0, "amplification sharpness (1/beta / diagonal)", low=0.0, strict=True)
-    margin: float = field_spec(0.3, "clearance of the simplification on the distance grid, in units of c", low=0.0)
+    margin: float = field_spec(0.3, "clearance of the simplification on the distance grid, units of c",
+                               low=0.0)
     optimize: bool = field_spec(True, "run the barrier-protected optimisation")
     spacing: float = field_spec(0.5, "target cage spacing of the optimisation, in units of c", low=0.0,
                                 strict=True)
@@ -230,24 +233,27 @@ class SkeletonOptions(CageOptions):
                                     low=0.0, strict=True)
     tet_edge_length: float | None = field_spec(None, "field tet edge / diagonal (default from the radii)",
                                                low=0.0, strict=True, kind=float)
-    tet_epsilon: float = field_spec(1e-3, "TetWild envelope of the field mesh / diagonal", low=0.0, strict=True)
+    tet_epsilon: float = field_spec(1e-3, "TetWild envelope of the field's mesh / diagonal", low=0.0,
+                                    strict=True)
     mesher: str = field_spec("delaunay", "tet mesh of the guiding field", choices=("delaunay", "tetwild"))
     preinflate_rounds: int = field_spec(3, "pre-inflation rounds", low=0)
     drop_bad_sections: bool = field_spec(True, "drop a bending node whose section breaks the junction hull")
     relocate_sections: bool = field_spec(True, "move sections that few integral lines reach")
     symmetry: Any = field_spec(None, "None, 'auto' or (point, normal)", kind=object, cli=False)
-    skeleton_cache: Any = field_spec(None, "None ($NESTMG_CACHE/skeleton), False or a path", kind=object, cli=False)
+    skeleton_cache: Any = field_spec(None, "None ($NESTMG_CACHE/skeleton), False or a path", kind=object,
+                                     cli=False)
     untangle: bool = field_spec(True, "flatten degenerate or crossing sections before each assembly")
     face_neighbours: float | None = field_spec(None, "turn sections to face a limb closer than this many "
                                                      "inscribed radii", low=0.0, kind=float)
     refine_levels: int = field_spec(0, "refinement levels of the polish", low=0)
-    recentre: float = field_spec(0.0, "recentre nodes below this fraction of the chain's median radius", low=0.0)
+    recentre: float = field_spec(0.0, "recentre nodes below this fraction of the chain's median radius",
+                                 low=0.0)
     nested_face_counts: str = field_spec("above", "how the finer nested layers are sized")
 
 
 @dataclass(frozen=True)
 class LazyOptions(CageOptions):
-    """``"lazy"``: SDF offset + decimation + binary search (gpytoolbox, GPL; ``cagegen.copyleft.lazy.lazy_layer``)."""
+    """``"lazy"``: SDF offset + decimation + binary search (gpytoolbox, GPL; ``copyleft.lazy.lazy_layer``)."""
 
     grid_size: int = field_spec(50, "SDF grid cells per side", low=4)
     max_iter: int = field_spec(10, "binary-search steps", low=1)

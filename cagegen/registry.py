@@ -1,4 +1,4 @@
-"""Backend registry: name -> :class:`BackendSpec`, the backend imported lazily (like trimesh's boolean engines).
+"""Backend registry: name -> :class:`BackendSpec`, backends imported lazily (like trimesh's boolean engines).
 
 A backend registers one of two functions, and its options class (:mod:`cagegen.options`, a frozen
 dataclass, imported eagerly: it has no optional dependency):
@@ -76,16 +76,18 @@ _BACKENDS: dict[str, BackendSpec | str | Callable] = {
     "decimate": BackendSpec("cagegen.decimate:decimate_layer", DecimateOptions, layer=True),
     "nested": BackendSpec("cagegen.nested:nested_backend", NestedOptions,
                           takes=frozenset({"progress", "min_gap", "certify"}),
-                          own_loop="recovery: a failing layer is rebuilt through intermediate layers nested into "
-                                   "each other, then a fallback"),
-    "lazy": BackendSpec("cagegen.copyleft.lazy:lazy_layer", LazyOptions, layer=True, takes=frozenset({"min_gap"})),
-    "sdf": BackendSpec("cagegen.sdf:sdf_backend", SdfOptions, takes=frozenset({"progress", "min_gap", "certify", "audit"}),
-                       own_loop="one time budget for all its layers, checked before any work; each layer's deadline "
-                                "leaves the estimates of the layers after it"),
+                          own_loop="recovery: a failing layer is rebuilt through intermediate layers nested "
+                                   "into each other, then a fallback"),
+    "lazy": BackendSpec("cagegen.copyleft.lazy:lazy_layer", LazyOptions, layer=True,
+                        takes=frozenset({"min_gap"})),
+    "sdf": BackendSpec("cagegen.sdf:sdf_backend", SdfOptions,
+                       takes=frozenset({"progress", "min_gap", "certify", "audit"}),
+                       own_loop="one time budget for all its layers, checked before any work; each layer's "
+                                "deadline leaves the estimates of the layers after it"),
     "skeleton": BackendSpec("cagegen.skeleton:skeleton_backend", SkeletonOptions,
                             takes=frozenset({"progress", "min_gap", "certify"}),
-                            own_loop="the finer layers are nested cages; the skeleton cage is inflated around "
-                                     "the coarsest of them"),
+                            own_loop="the finer layers are nested cages; the skeleton cage is inflated "
+                                     "around the coarsest of them"),
 }
 
 

@@ -181,8 +181,9 @@ def cmd_cages(args) -> int:
     # the same function and clearance as `solve`, layers in the input's coordinates
     n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
     layers, info = build_cage_surfaces(
-        V, F, n_layers, args.method, sizing=args.sizing, meshing=args.meshing, cages=_cage_options(args, args.method),
-        cache=not args.no_cache, progress=None if args.quiet is False else False,
+        V, F, n_layers, args.method, sizing=args.sizing, meshing=args.meshing,
+        cages=_cage_options(args, args.method), cache=not args.no_cache,
+        progress=None if args.quiet is False else False,
     )
     for k, (Vk, Fk) in enumerate(layers):
         save_mesh(out / f"layer_{k}.obj", Vk, Fk)

@@ -391,8 +391,8 @@ def build_cage_surfaces(
     if lp.note:
         stage_line(lp.note, t0)
     levels = lp.levels
-    key = cache_key([Vn, F], {"stage": "cages", "method": method, "levels": levels, "face_counts": face_counts,
-                              "cages": as_dict(cages)})
+    key = cache_key([Vn, F], {"stage": "cages", "method": method, "levels": levels,
+                              "face_counts": face_counts, "cages": as_dict(cages)})
     hit = load_entry(key) if cache else None
     if hit is not None:
         arrays, info = hit
@@ -522,19 +522,21 @@ def _fine_level(levels: int, sizing: SizingOptions, mesher: str) -> tuple[str, b
         fine_level = "refine" if mesher == "tetwild" else "mesh"
     n_same, fc = sizing.same_domain_levels, sizing.face_counts
     # keep at least one cage level; face counts given for every coarse level mean "all cages"
-    refine = (fine_level == "refine" and levels - n_same >= 3 and (fc is None or len(fc) != levels - n_same - 1))
+    refine = (fine_level == "refine" and levels - n_same >= 3
+              and (fc is None or len(fc) != levels - n_same - 1))
     if not n_same <= levels - 2:
         raise NestmgInputError(
-            f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "
-            f"level), got {n_same!r}"
+            f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one "
+            f"cage level), got {n_same!r}"
         )
     return fine_level, refine
 
 
 def _plan(Vn, F, levels, sizing: SizingOptions, mesher: str, refine: bool, **extra):
     """:func:`nestmg.sizing.plan_hierarchy` for these options (milliseconds, before any expensive stage)."""
-    return plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=sizing.edge_length, max_tets=sizing.max_tets,
-                          time_budget=sizing.mesh_time_budget, meshed_fraction=0.125 if refine else 1.0,
+    return plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=sizing.edge_length,
+                          max_tets=sizing.max_tets, time_budget=sizing.mesh_time_budget,
+                          meshed_fraction=0.125 if refine else 1.0,
                           mesh_edge_factor=2.0 if refine else 1.0,
                           face_counts=None if sizing.face_counts is None else list(sizing.face_counts),
                           fixed_levels=sizing.same_domain_levels + int(refine), **extra)
@@ -566,8 +568,9 @@ def _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0
         stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
                    f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
     elif pre.get("rejected"):
-        stage_line(f"predecimation refused (Hausdorff {[round(r['hausdorff'], 4) for r in pre['rejected']]} > "
-                   f"{max(epsilon, 0.25 * h_mesh):.3g}); keeping the {len(F):,} input faces", t0)
+        errors = [round(r["hausdorff"], 4) for r in pre["rejected"]]
+        stage_line(f"predecimation refused (Hausdorff {errors} > {max(epsilon, 0.25 * h_mesh):.3g}); keeping "
+                   f"the {len(F):,} input faces", t0)
         plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine, surface_faces=len(F))
         stage_line(f"sizing (again): fine edge {plan.edge_length:.3g} ({plan.rule}), expected tets "
                    f"{[f'{n:,}' for n in plan.expected_tets]}", t0)
@@ -691,8 +694,8 @@ def build_hierarchy(
     S0, F0, pre, plan = _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0)
     # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
-        surfaces_u, info = build_cage_surfaces(S0, F0, n_surf, method, sizing=sizing, meshing=meshing, cages=cages,
-                                               cache=cache, progress=progress, t0=t0)
+        surfaces_u, info = build_cage_surfaces(S0, F0, n_surf, method, sizing=sizing, meshing=meshing,
+                                               cages=cages, cache=cache, progress=progress, t0=t0)
     info["predecimation"] = pre
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
                f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)

@@ -1,4 +1,4 @@
-"""Typed options of the pipeline's stages: sizing, meshing, solving (the cages' are in :mod:`cagegen.options`).
+"""Typed options of the pipeline's stages: sizing, meshing, solving (cages: :mod:`cagegen.options`).
 
 Frozen dataclasses, validated on construction (a bad value is a one-line :class:`OptionError`, a
 :class:`nestmg.NestmgInputError`). Every length is relative to the bounding-box diagonal of the
@@ -26,7 +26,8 @@ from .problems import COARSE, SMOOTHING
 from .sizing import DEFAULT_TIME_BUDGET
 from .tetmesh import OUTER_EDGE_FACTOR
 
-__all__ = ["MeshingOptions", "OptionError", "SizingOptions", "SolverOptions", "add_arguments", "from_arguments"]
+__all__ = ["MeshingOptions", "OptionError", "SizingOptions", "SolverOptions", "add_arguments",
+           "from_arguments"]
 
 
 class OptionError(NestmgInputError):
@@ -47,25 +48,28 @@ class SizingOptions:
     max_tets: int | None = field_spec(None, "cap on the fine level's expected tets when edge_length is not "
                                             "given (default 1.5M)", low=1, kind=int)
     mesh_time_budget: float | None = field_spec(
-        DEFAULT_TIME_BUDGET, "seconds (2 cores) allowed for meshing the fine level; the fine edge grows to fit "
-                             "(None: no limit)", low=0.0, kind=float, optional=True)
+        DEFAULT_TIME_BUDGET, "seconds (2 cores) allowed for meshing the fine level; the fine edge grows to "
+                             "fit (None: no limit)", low=0.0, kind=float, optional=True)
     coarsening: float | None = field_spec(8.0, "wanted tet ratio between consecutive cage levels (None: the "
                                                "edge length doubles)", low=1.0, strict=True, kind=float,
                                           optional=True)
-    face_counts: tuple[int, ...] | None = field_spec(None, "cage face counts, finest first (default: 4x fewer "
-                                                           "per level)", kind=tuple)
+    face_counts: tuple[int, ...] | None = field_spec(
+        None, "cage face counts, finest first (default: 4x fewer per level)", kind=tuple)
     same_domain_levels: int = field_spec(0, "levels that re-mesh the input at 2x, 4x... the fine edge before "
                                             "the cages", low=0)
-    fine_level: str | None = field_spec(None, "refine: the fine level is a red refinement of the input meshed at "
-                                              "twice the edge (default with TetWild); mesh: the input meshed at "
-                                              "the fine edge (default with TetGen)", choices=("refine", "mesh", None))
-    predecimate: bool = field_spec(True, "with TetWild, decimate an input much finer than the fine tets first")
+    fine_level: str | None = field_spec(
+        None, "refine: the fine level is a red refinement of the input meshed at twice the edge (default "
+              "with TetWild); mesh: the input meshed at the fine edge (default with TetGen)",
+        choices=("refine", "mesh", None))
+    predecimate: bool = field_spec(True, "with TetWild, decimate an input much finer than the fine tets "
+                                         "first")
 
     def __post_init__(self) -> None:
         fc = self.face_counts
         if fc is not None:  # a list is accepted and stored as a tuple (hashable, frozen)
             if isinstance(fc, (str, bytes)) or not hasattr(fc, "__iter__"):
-                raise OptionError("SizingOptions", "face_counts", f"must be a sequence of integers, got {fc!r}")
+                raise OptionError("SizingOptions", "face_counts",
+                                  f"must be a sequence of integers, got {fc!r}")
             fc = tuple(fc)
             if not fc or any(isinstance(n, bool) or not isinstance(n, int) and not hasattr(n, "__index__")
                              or n < 4 for n in fc):
@@ -82,13 +86,13 @@ class MeshingOptions:
     epsilon: float = field_spec(1e-3, "TetWild envelope / bbox diagonal", low=0.0, strict=True, high=1.0)
     extrapolation: str = field_spec("clamped", "rule for fine nodes outside the coarse tets",
                                     choices=("clamped", "linear", "closest_point", "nearest_vertex"))
-    tet_retries: int | None = field_spec(None, "re-mesh a coarse TetWild layer with a 4x smaller envelope while "
-                                               "fine nodes are outside it (default 2; 0 for decimate)", low=0,
-                                         kind=int)
+    tet_retries: int | None = field_spec(
+        None, "re-mesh a coarse TetWild layer with a 4x smaller envelope while fine nodes are outside it "
+              "(default 2; 0 for decimate)", low=0, kind=int)
     stop_energy: float = field_spec(10.0, "TetWild's stop energy", low=0.0, strict=True)
     max_opt_iter: int = field_spec(80, "TetWild's optimisation passes at most", low=1)
-    outer_edge_factor: float = field_spec(OUTER_EDGE_FACTOR, "TetWild's coarse outside: edge factor beyond the "
-                                                             "envelope", low=1.0)
+    outer_edge_factor: float = field_spec(
+        OUTER_EDGE_FACTOR, "TetWild's coarse outside: edge factor beyond the envelope", low=1.0)
     threads: int | None = field_spec(None, "TetWild threads (default: its own)", low=0, kind=int)
     coarsen_coarse: bool = field_spec(True, "TetWild's coarsen on the coarse levels")
 
@@ -113,7 +117,8 @@ class SolverOptions:
     coarse: str = field_spec("galerkin", "coarse operators", choices=tuple(COARSE))
     smoothing: str = field_spec("robust", "preset: robust (smoother / nu / coarse_nu below, boundary-layer "
                                           "sweeps) or fast (textbook V(1,1))", choices=SMOOTHING)
-    smoother: str = field_spec("symmetric_gauss_seidel", "smoother (robust preset)", choices=tuple(sorted(SMOOTHERS)))
+    smoother: str = field_spec("symmetric_gauss_seidel", "smoother (robust preset)",
+                               choices=tuple(sorted(SMOOTHERS)))
     nu: int = field_spec(1, "pre/post smoothing sweeps on the fine level (robust preset)", low=1)
     coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu)", low=1, kind=int)
     local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems")
@@ -124,8 +129,8 @@ class SolverOptions:
     tol: float = field_spec(1e-8, "relative residual to reach", low=0.0, strict=True)
     maxiter: int = field_spec(DEFAULT_MAXITER, "cap on cycles (or CG iterations)", low=1)
     lam: float = field_spec(1e-2, "λ of diffusion-neumann", low=0.0, strict=True)
-    poisson_ratio: float = field_spec(0.3, "ν of the elasticity problems, in (-1, 0.5)", low=-1.0, strict=True,
-                                      high=0.5)
+    poisson_ratio: float = field_spec(0.3, "ν of the elasticity problems, in (-1, 0.5)", low=-1.0,
+                                      strict=True, high=0.5)
 
     def __post_init__(self) -> None:
         _check(self)

@@ -166,7 +166,8 @@ class Problem:
             kwargs.setdefault("local_nodes", self.local_nodes)
             kwargs.setdefault("local_sweep", "one-way")
             kwargs.setdefault("local_levels", 1)
-        kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else cycle_smoothers(o.smoother, o.nu, o.coarse_nu))
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
+        kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)

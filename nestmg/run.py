@@ -74,7 +74,8 @@ def solve_on_hierarchy(
         Coarse operators, ``lam``, ``poisson_ratio`` (the problem); smoothing (``smoothing`` preset, or
         ``nu`` sweeps of ``smoother`` on the fine level and ``coarse_nu`` -- default ``2 * nu`` -- on the
         coarser ones, plus boundary-layer sweeps with ``local``; :meth:`nestmg.problems.Problem.multigrid`);
-        ``coarse_scaling``; ``cycle``, ``accel``, ``tol``, ``maxiter`` (:meth:`solvers.MultigridSolver.solve`).
+        ``coarse_scaling``; ``cycle``, ``accel``, ``tol``, ``maxiter``
+        (:meth:`solvers.MultigridSolver.solve`).
     element, curved
         ``"P2"``: quadratic elements on ``tets[0]``, curved when ``curved`` is its
         :class:`nestmg.curved.CurvedMesh` (see :func:`nestmg.setup_problem`); the solution is then on
@@ -121,7 +122,8 @@ def solve_on_hierarchy(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            x, info = ml.solve(prob.b, tol=o.tol, maxiter=o.maxiter, cycle=o.cycle, accel=o.accel, return_info=True)
+            x, info = ml.solve(prob.b, tol=o.tol, maxiter=o.maxiter, cycle=o.cycle, accel=o.accel,
+                               return_info=True)
         out.update(residuals=info["residuals"], iterations=info["iterations"], converged=info["converged"],
                    diverged=False, message="")
         out["solution_norm"] = float(np.linalg.norm(x))

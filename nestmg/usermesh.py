@@ -222,7 +222,8 @@ def hierarchy_from_tets(
     unused = [f for f in ("max_tets", "mesh_time_budget", "same_domain_levels", "fine_level", "predecimate")
               if getattr(sizing, f) != getattr(SizingOptions(), f)]
     if unused:
-        raise NestmgInputError(f"hierarchy_from_tets: sizing.{unused[0]} does not apply (the fine level is yours)")
+        raise NestmgInputError(f"hierarchy_from_tets: sizing.{unused[0]} does not apply (the fine level is "
+                               "yours)")
     if levels < 2:
         raise NestmgInputError(f"levels must be >= 2, got {levels}")
     cages = cage_options_for(method, cages, meshing)
@@ -236,7 +237,8 @@ def hierarchy_from_tets(
         Vs, Fs, index = boundary_surface(Vn, T)
     # `levels` is a ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps
     # >= 100 faces (one line says so); explicit face counts that cannot be met fail here, before any work
-    lp = plan_levels(len(Fs), levels, face_counts=None if sizing.face_counts is None else list(sizing.face_counts))
+    fc = None if sizing.face_counts is None else list(sizing.face_counts)
+    lp = plan_levels(len(Fs), levels, face_counts=fc)
     if lp.note:
         stage_line(lp.note, t0)
     with timer("cages"):
@@ -256,13 +258,15 @@ def hierarchy_from_tets(
     H = Hierarchy(
         surfaces=surfaces, tets=tets, P=Ps, prolongation_reports=reps, method=method, cage_info=info,
         timings={**timer.seconds, **tt, "total": time.perf_counter() - t0},
-        options={"fine_level": "user", "levels": lp.levels, "levels_requested": levels, "levels_plan": lp.to_dict(),
-                 "edge_length": h0, "sizing": as_dict(sizing), "meshing": as_dict(meshing), "cages": as_dict(cages)},
+        options={"fine_level": "user", "levels": lp.levels, "levels_requested": levels,
+                 "levels_plan": lp.to_dict(), "edge_length": h0, "sizing": as_dict(sizing),
+                 "meshing": as_dict(meshing), "cages": as_dict(cages)},
         frame={"center": center, "scale": scale},
     )
     if method != "decimate" and any(H.n_outside):
         warnings.warn(f"hierarchy_from_tets: fine nodes outside the coarse tet meshes per level: {H.n_outside} "
-                      f"(extrapolated by {meshing.extrapolation!r}); the hierarchy is not certified", stacklevel=2)
+                      f"(extrapolated by {meshing.extrapolation!r}); the hierarchy is not certified",
+                      stacklevel=2)
     return H
 
 

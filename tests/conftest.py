@@ -26,7 +26,8 @@ def torus_iso_tets():
 
     # default sizing (fine edge = the input's mean edge, doubling per level): 77k / 14k / 3k / 1.8k tets
     S = shapes.nested_isosurfaces("torus", [0.0, 0.06, 0.15, 0.35], [32, 20, 12, 8])
-    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None), meshing=MeshingOptions(mesher="tetgen"),
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"),
                                      cache=False, progress=False)
     return S, tets, P, reps
 

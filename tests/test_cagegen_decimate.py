@@ -25,7 +25,8 @@ def test_layers_watertight_at_target_counts(genus2, algorithm):
     V, F = genus2
     V0, F0 = V.copy(), F.copy()
     targets = [2400, 600, 150]
-    layers, info = build_cages(V, F, method="decimate", face_counts=targets, algorithm=algorithm, return_info=True)
+    layers, info = build_cages(V, F, method="decimate", face_counts=targets, algorithm=algorithm,
+                               return_info=True)
     layers, info = layers[1:], info["backend"]  # build_cages' loop over decimate_layer
     assert np.array_equal(V, V0) and np.array_equal(F, F0)
     assert len(layers) == 3 and info["nested_by_construction"] is False

@@ -42,7 +42,8 @@ def iso_hierarchy():
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("torus", [0.0, 0.1, 0.3], [20, 12, 8])
-    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None), meshing=MeshingOptions(mesher="tetgen"),
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"),
                                      cache=False, progress=False)
     assert [r.n_outside for r in reps] == [0, 0]  # every fine node inside a coarse tet: exact interpolation
     return tets, P

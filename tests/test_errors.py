@@ -80,8 +80,10 @@ def test_build_hierarchy_input_errors_are_nestmg_errors():
     """Bad arguments raise NestmgInputError (a NestmgError and a ValueError) before any work."""
     V, F = shapes.sphere(res=6)
     for call, match in ((lambda: nestmg.build_hierarchy(V, F, 1), "levels must be >= 2"),
-                        (lambda: nestmg.SizingOptions(fine_level="coarse"), "SizingOptions.fine_level: must be one"),
-                        (lambda: nestmg.build_hierarchy(V, F, 3, sizing=nestmg.SizingOptions(same_domain_levels=5)),
+                        (lambda: nestmg.SizingOptions(fine_level="coarse"),
+                         "SizingOptions.fine_level: must be one"),
+                        (lambda: nestmg.build_hierarchy(V, F, 3,
+                                                        sizing=nestmg.SizingOptions(same_domain_levels=5)),
                          "same_domain_levels"),
                         (lambda: nestmg.build_hierarchy(V, F, 3, sizing={"max_tets": 5}), "sizing must be a"),
                         (lambda: nestmg.SolverOptions(tol=float("nan")), r"SolverOptions.tol: must be > 0")):

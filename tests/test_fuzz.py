@@ -237,7 +237,8 @@ def test_build_hierarchy_certified_or_documented_error(case, repair):
     expect = _expectation(kind, V, repair)
     try:
         h = build_hierarchy(V, F, 3, "fuzz-hull", sizing=SizingOptions(face_counts=[60, 24]),
-                            meshing=MeshingOptions(mesher="tetgen"), cages=CageOptions(repair=repair), cache=False,
+                            meshing=MeshingOptions(mesher="tetgen"), cages=CageOptions(repair=repair),
+                            cache=False,
                             progress=False)
     except NestmgError as exc:
         event(f"{type(exc).__name__}")

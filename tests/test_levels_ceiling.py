@@ -92,7 +92,8 @@ def test_too_small_input_is_audited_first_then_refused():
     with pytest.raises(MeshInputError):  # a broken small input is named as broken, not as too small
         build_cage_surfaces(V, F[:-1], 3, cache=False, progress=False)
     # an explicit small cage is the user's choice
-    layers, info = build_cage_surfaces(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[80]), cache=False,
+    layers, info = build_cage_surfaces(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[80]),
+                                       cache=False,
                                        progress=False)
     assert len(layers) == 2 and info["levels"]["face_counts"] == [80]
 
@@ -101,7 +102,8 @@ def test_impossible_face_counts_fail_in_milliseconds_naming_the_option(small_sph
     V, F = small_sphere
     t = time.perf_counter()
     with pytest.raises(LevelsError, match=r"^--face-counts 5000 100 cannot be met on an input of 776 faces"):
-        build_hierarchy(V, F, levels=3, sizing=SizingOptions(face_counts=[5000, 100]), cache=False, progress=False)
+        build_hierarchy(V, F, levels=3, sizing=SizingOptions(face_counts=[5000, 100]), cache=False,
+                        progress=False)
     with pytest.raises(LevelsError, match=r"--face-counts 300 100 gives 2 cage face counts, but --levels 2"):
         plan_levels(776, 2, face_counts=[300, 100])
     with pytest.raises(LevelsError, match=r"--face-counts 100 300 .*face_counts\[1\] = 300 >= 100"):
@@ -136,7 +138,8 @@ def test_tet_mesh_with_few_boundary_faces(small_tets, stage_lines):
     V, T, nb = small_tets
     t = time.perf_counter()
     with pytest.raises(LevelsError, match="--face-counts 2000 cannot be met"):
-        hierarchy_from_tets(V, T, levels=2, sizing=SizingOptions(face_counts=[2000]), cache=False, progress=False)
+        hierarchy_from_tets(V, T, levels=2, sizing=SizingOptions(face_counts=[2000]), cache=False,
+                            progress=False)
     assert time.perf_counter() - t < 1.0
     H = hierarchy_from_tets(V, T, levels=3, cache=False, progress=False)
     assert H.levels == 2 and H.certified and np.array_equal(H.tets[0][1], T)

@@ -56,7 +56,8 @@ def test_pipeline_and_cli_refuse_with_artificial_limit(monkeypatch, capsys, tmp_
     monkeypatch.setenv("NESTMG_MEMORY_LIMIT", "2M")
     t0 = time.perf_counter()
     with pytest.raises(TetMeshMemoryError, match=r"only 2\.0 MB are available \(limit: \$NESTMG_MEMORY_LIMIT\)"):
-        build_hierarchy(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[100]), cache=False, progress=False)
+        build_hierarchy(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[100]), cache=False,
+                        progress=False)
     assert time.perf_counter() - t0 < 5.0  # refused up front, TetWild never ran
     rc = main(["solve", "shape:sphere", "--method", "decimate", "--levels", "2", "--no-cache", "--quiet",
                "--json", str(tmp_path / "r.json")])

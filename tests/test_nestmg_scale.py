@@ -121,7 +121,8 @@ def test_hierarchy_gives_both_frames():
 
     V, F = shapes.sphere(res=12)
     Vu = 50.0 * V + 3.0
-    h = build_hierarchy(Vu, F, 2, "decimate", sizing=SizingOptions(face_counts=[100], max_tets=4000), cache=False,
+    h = build_hierarchy(Vu, F, 2, "decimate", sizing=SizingOptions(face_counts=[100], max_tets=4000),
+                        cache=False,
                         progress=False)
     assert h.surfaces[0][0] is Vu or np.array_equal(h.surfaces[0][0], Vu)
     Vt, _ = h.tets[0]
@@ -174,7 +175,8 @@ def test_input_much_finer_than_the_tets_is_decimated_first():
     from nestmg import build_hierarchy
 
     V, F = shapes.sphere(res=48)
-    h = build_hierarchy(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[300], max_tets=20000), cache=False,
+    h = build_hierarchy(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[300], max_tets=20000),
+                        cache=False,
                         progress=False)
     pre = h.cage_info["predecimation"]
     assert pre["faces_out"] < 0.5 * pre["faces_in"]

@@ -55,7 +55,8 @@ def test_cage_options_match_the_backends_keywords():
     assert _fields(DecimateOptions) == _keyword_defaults(decimate_layer)
     assert _fields(NestedOptions) == {**_keyword_defaults(nested_backend), **_DEFAULTS}
     assert _fields(SdfOptions) == _keyword_defaults(sdf_cage_layer)
-    assert _fields(SkeletonOptions) == {**_keyword_defaults(skeleton_cage), **_keyword_defaults(skeleton_backend)}
+    assert _fields(SkeletonOptions) == {**_keyword_defaults(skeleton_cage),
+                                        **_keyword_defaults(skeleton_backend)}
     lazy = pytest.importorskip("cagegen.copyleft.lazy")
     assert _fields(LazyOptions) == _keyword_defaults(lazy.lazy_layer)
 
@@ -147,7 +148,8 @@ def test_cli_flags_are_the_option_fields():
 def test_cli_builds_the_same_objects():
     from nestmg.cli import _cage_options, _typed_options, build_parser
 
-    args = build_parser().parse_args(["solve", "shape:torus", "--mesher", "tetgen", "--face-counts", "300", "80",
+    args = build_parser().parse_args(["solve", "shape:torus", "--mesher", "tetgen", "--face-counts", "300",
+                                      "80",
                                       "--mesh-time-budget", "0", "--accel", "cg", "--no-local", "--repair",
                                       "--method", "sdf", "--cage-time-budget", "60"])
     _typed_options(args)

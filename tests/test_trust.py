@@ -91,7 +91,8 @@ def test_divergence_is_reported_with_cycle_through_nestmg(ball_hierarchy):
     bad = [tets[0], tets[1], (tets[2][0] * 1e-3, tets[2][1])]
     # the energy-optimal scaling of re-discretised corrections (issue 15, default "auto") would absorb
     # the 1000x; without it the divergence must be detected and reported
-    r = solve_on_hierarchy(bad, P, "poisson-dirichlet", SolverOptions(coarse="rediscretized", coarse_scaling=None),
+    r = solve_on_hierarchy(bad, P, "poisson-dirichlet", SolverOptions(coarse="rediscretized",
+                                                                      coarse_scaling=None),
                            cost=False)
     assert r["diverged"] and not r["converged"]
     assert 1 <= r["iterations"] <= 5

@@ -391,6 +391,7 @@ def lazy_layer(
     if gap > 0:
         got = (f"{li['distance'] / unit:.3g}" if li["distance"] is not None
                else f"> {li['distance_lower_bound'] / unit:.3g}")
-        c = f", gap {got} >= min_gap {gap / unit:.3g}" + (f" (pushed out, {li['pushed']} passes)" if li["pushed"] else "")
+        pushed = f" (pushed out, {li['pushed']} passes)" if li["pushed"] else ""
+        c = f", gap {got} >= min_gap {gap / unit:.3g}{pushed}"
     li["progress"] = f"offset {li['offset_relative']:.3g} of the diagonal{c}"
     return U, G, li

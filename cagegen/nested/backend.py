@@ -585,7 +585,8 @@ def nested_backend(
         Verify every pair with :func:`cagegen.verify_nesting` (the layer is recomputed through the
         recovery path, or :class:`CageError` is raised, when it fails).
     fallback : str or None
-        Last resort, by name (:data:`cagegen.fallbacks.FALLBACKS`), when the flow fails and intermediate layers do not
+        Last resort, by name (:data:`cagegen.fallbacks.FALLBACKS`), when the flow fails and intermediate
+        layers do not
         help either; the layer it builds is certified like every other, recorded in ``info["recovery"]``
         and in the layer's ``fallback`` entry (``Hierarchy.fallbacks`` reports it). ``"sdf"`` (default):
         :func:`cagegen.sdf.sdf_cage_layer` around the previous layer (tight, exact face count, MIT;

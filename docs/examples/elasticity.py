@@ -14,7 +14,8 @@ from nestmg.elasticity import setup_elasticity
 
 def main(max_tets: int = 200_000, mesher: str = "tetwild", nu: float = 0.3):
     V, F = shapes.torus(res=24)
-    h = build_hierarchy(V, F, 3, "nested", sizing=SizingOptions(max_tets=max_tets), meshing=MeshingOptions(mesher=mesher))
+    h = build_hierarchy(V, F, 3, "nested", sizing=SizingOptions(max_tets=max_tets),
+                        meshing=MeshingOptions(mesher=mesher))
     tets = h.tets_in("normalized")  # unit bounding-box diagonal, as the command line poses its problems
     out = {}
     for name in ("elasticity-clamped", "elasticity-free"):

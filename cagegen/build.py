@@ -17,7 +17,7 @@ from ._geometry import as_mesh_arrays, bbox_diagonal, signed_volume
 from .audit import check_mesh
 from .errors import CageError, CageOptionError, LevelsError, MeshInputError
 from .options import CageOptions, cage_options
-from .registry import backend_spec, get_backend, options_class
+from .registry import backend_spec, get_backend, get_schedule, options_class
 from .sizes import check_face_counts, default_face_counts
 from .verify import verify_nesting
 
@@ -63,7 +63,8 @@ def _options(method: str, options: CageOptions | None, opts: dict) -> CageOption
 
 
 def _layer_loop(method: str, layer_fn: Callable, V: np.ndarray, F: np.ndarray, face_counts: list[int],
-                kwargs: dict, say: Callable[[str], None]) -> tuple[list, dict]:
+                kwargs: dict, say: Callable[[str], None], plan: list[dict] | None = None,
+                ) -> tuple[list, dict]:
     """The loop over the layers of a per-layer backend (:mod:`cagegen.registry`): layer ``k`` around layer
     ``k - 1``, lengths relative to the input's diagonal on every layer, one progress line and the same info
     keys per layer for every such backend."""
@@ -77,7 +78,7 @@ def _layer_loop(method: str, layer_fn: Callable, V: np.ndarray, F: np.ndarray, f
     for k, m in enumerate(face_counts, start=1):
         t = time.perf_counter()
         try:
-            U, G, li = layer_fn(Vp, Fp, int(m), unit=diag0, **kwargs)
+            U, G, li = layer_fn(Vp, Fp, int(m), unit=diag0, **{**kwargs, **(plan[k - 1] if plan else {})})
         except CageError as exc:
             raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
         note = li.pop("progress", "")
@@ -227,13 +228,16 @@ def build_cages(
         kwargs["min_gap"] = min_gap  # the backend must build the clearance the verifier will demand
     if verify and "certify" in spec.takes:
         kwargs["certify"] = False  # the whole hierarchy is verified below: once is enough
-    if "audit" in spec.takes:
-        kwargs["audit"] = audit  # the input is audited once per run
     say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
     t1 = time.perf_counter()
     # the backend gets its own copies: it may not modify the layer we return
     if spec.layer:
-        cages, backend_info = _layer_loop(method, backend, V.copy(), F.copy(), list(face_counts), kwargs, say)
+        plan = None
+        schedule = get_schedule(method)
+        if schedule is not None:  # the whole run checked before any layer (e.g. sdf's time budget)
+            plan = schedule(V, F, list(face_counts), t0=t1, **kwargs)
+        cages, backend_info = _layer_loop(method, backend, V.copy(), F.copy(), list(face_counts), kwargs, say,
+                                          plan)
     else:
         cages, backend_info = backend(V.copy(), F.copy(), list(face_counts), **kwargs)
     t_backend = time.perf_counter() - t1

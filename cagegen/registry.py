@@ -3,28 +3,31 @@
 A backend registers one of two functions, and its options class (:mod:`cagegen.options`, a frozen
 dataclass, imported eagerly: it has no optional dependency):
 
-* a **per-layer** function (``BackendSpec.layer=True``; ``decimate``, ``lazy``) ::
+* a **per-layer** function (``BackendSpec.layer=True``; ``decimate``, ``sdf``, ``lazy``) ::
 
       layer(V, F, n_faces, *, unit, **opts) -> (U, G, info)
 
   one cage with ``n_faces`` faces around the closed surface ``(V, F)`` (the previous layer); ``unit`` is
   the input's bounding-box diagonal, the length that relative options refer to on every layer.
-  :func:`cagegen.build_cages` owns the loop over the layers, the progress lines and the info keys;
+  :func:`cagegen.build_cages` owns the loop over the layers, the progress lines and the info keys. An
+  optional ``schedule(V, F, face_counts, *, t0, **opts) -> [dict per layer]`` checks the whole run
+  before any layer is built (``sdf``: even face counts, the time budget of all the layers) and returns
+  each layer's extra keywords (``sdf``: its deadline);
 * a **whole-hierarchy** function, for a backend that needs its own loop (``own_loop`` says why:
   ``nested``'s recovery nests intermediate layers, ``skeleton``'s outer cage is built around the nested
-  layers, ``sdf``'s time budget is shared by its layers) ::
+  layers) ::
 
       backend(V, F, face_counts, **opts) -> (layers, info)
 
   ``layers`` are the cages only, finest first; ``info`` a JSON-serialisable dict of the backend's figures.
 
 ``V`` (n,3) float64, ``F`` (m,3) int64 is the closed input, audited once by :func:`cagegen.build_cages`
-(backends that would audit it again take its ``audit``). ``opts`` are the fields of the options class
+(no backend audits it again). ``opts`` are the fields of the options class
 but its common ones (:meth:`CageOptions.backend_kwargs`), validated before the backend is called. The
 keywords :func:`cagegen.build_cages` adds are declared in ``BackendSpec.takes`` (no signature
 inspection): ``progress`` (a callable), ``min_gap`` (the clearance the verifier will demand, which the
-backend must build), ``certify`` (False: the backend's own certification is skipped, the whole hierarchy
-is verified once afterwards) and ``audit`` (the input's :class:`cagegen.MeshAudit`).
+backend must build) and ``certify`` (False: the backend's own certification is skipped, the whole
+hierarchy is verified once afterwards).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from .errors import BackendUnavailableError, UnknownMethodError
 from .options import CageOptions, DecimateOptions, LazyOptions, NestedOptions, SdfOptions, SkeletonOptions
 
 #: the keywords :func:`cagegen.build_cages` may pass besides the options
-TAKES = frozenset({"progress", "min_gap", "certify", "audit"})
+TAKES = frozenset({"progress", "min_gap", "certify"})
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,9 @@ class BackendSpec:
         Keywords of :data:`TAKES` the function accepts.
     own_loop : str
         Why a whole-hierarchy backend loops itself ("" for per-layer backends).
+    schedule : str or callable, optional
+        Per-layer backends: the run's plan, ``schedule(V, F, face_counts, *, t0, **opts)`` (the same
+        keywords as the layer function) -> one dict per layer of keywords that override them.
     """
 
     target: str | Callable
@@ -64,6 +70,7 @@ class BackendSpec:
     layer: bool = False
     takes: frozenset = frozenset()
     own_loop: str = ""
+    schedule: str | Callable | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.options, type) and issubclass(self.options, CageOptions)):
@@ -80,10 +87,8 @@ _BACKENDS: dict[str, BackendSpec | str | Callable] = {
                                    "into each other, then a fallback"),
     "lazy": BackendSpec("cagegen.copyleft.lazy:lazy_layer", LazyOptions, layer=True,
                         takes=frozenset({"min_gap"})),
-    "sdf": BackendSpec("cagegen.sdf:sdf_backend", SdfOptions,
-                       takes=frozenset({"progress", "min_gap", "certify", "audit"}),
-                       own_loop="one time budget for all its layers, checked before any work; each layer's "
-                                "deadline leaves the estimates of the layers after it"),
+    "sdf": BackendSpec("cagegen.sdf:sdf_cage_layer", SdfOptions, layer=True, takes=frozenset({"min_gap"}),
+                       schedule="cagegen.sdf:sdf_schedule"),
     "skeleton": BackendSpec("cagegen.skeleton:skeleton_backend", SkeletonOptions,
                             takes=frozenset({"progress", "min_gap", "certify"}),
                             own_loop="the finer layers are nested cages; the skeleton cage is inflated "
@@ -149,7 +154,16 @@ def get_backend(name: str) -> Callable:
     BackendUnavailableError
         If the backend's module (or one of its optional dependencies) cannot be imported.
     """
-    target = backend_spec(name).target
+    return _resolve(backend_spec(name).target, name)
+
+
+def get_schedule(name: str) -> Callable | None:
+    """The per-layer backend's ``schedule`` function (:class:`BackendSpec`), or None."""
+    target = backend_spec(name).schedule
+    return None if target is None else _resolve(target, name)
+
+
+def _resolve(target: str | Callable, name: str) -> Callable:
     if callable(target):
         return target
     module, func = target.split(":")

@@ -175,12 +175,13 @@ def test_per_layer_backend_is_looped_by_build_cages(ball, monkeypatch):
 
 
 def test_registry_declares_what_each_backend_takes():
-    for name in ("nested", "skeleton", "sdf"):
+    for name in ("nested", "skeleton"):
         spec = registry.backend_spec(name)
         assert not spec.layer and spec.own_loop  # each says why it loops itself
-    for name in ("decimate", "lazy"):
+    for name in ("decimate", "lazy", "sdf"):
         assert registry.backend_spec(name).layer and not registry.backend_spec(name).own_loop
-    assert "audit" in registry.backend_spec("sdf").takes  # the input is audited once per run
+    assert registry.get_schedule("sdf") is cagegen.sdf.sdf_schedule  # its time budget: the whole run
+    assert registry.get_schedule("decimate") is None
     with pytest.raises(TypeError, match="takes must be a subset"):
         registry.register_backend("x", lambda *a: None, takes=("colour",))
     with pytest.raises(TypeError, match="CageOptions"):

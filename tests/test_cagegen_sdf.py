@@ -261,15 +261,13 @@ def test_self_intersecting_input_refused_quickly():
     import time
 
     from cagegen.intersect import self_pairs
-    from cagegen.sdf.backend import sdf_backend
-
     V, F = _pierced_sphere()
     assert len(self_pairs(V, F)) > 0
     t = time.perf_counter()
     with pytest.raises(cagegen.MeshInputError, match="self-intersect"):
         sdf_cage_layer(V, F, 2 * (len(F) // 8))
     with pytest.raises(cagegen.MeshInputError, match="self-intersect"):
-        sdf_backend(V, F, [2 * (len(F) // 8)])
+        build_cages(V, F, method="sdf", face_counts=[2 * (len(F) // 8)])
     assert time.perf_counter() - t < 10.0  # the audit, not minutes of rebuilds
 
 
@@ -537,7 +535,7 @@ def test_time_budget_refuses_in_milliseconds_and_names_the_option(blobs):
     the input and with the layers."""
     import time
 
-    from cagegen.sdf.backend import estimate_layer_seconds, sdf_backend
+    from cagegen.sdf.backend import estimate_layer_seconds, sdf_schedule
 
     V, F = blobs
     V0, F0 = V.copy(), F.copy()
@@ -554,7 +552,11 @@ def test_time_budget_refuses_in_milliseconds_and_names_the_option(blobs):
     assert estimate_layer_seconds(len(F)) < 40.0 < estimate_layer_seconds(len(F)) + estimate_layer_seconds(m)
     assert estimate_layer_seconds(100_000) == pytest.approx(515.0)
     with pytest.raises(CageError, match="time_budget"):
-        sdf_backend(V, F, [m, 2 * (m // 8)], time_budget=40.0)
+        sdf_schedule(V, F, [m, 2 * (m // 8)], t0=t, time_budget=40.0)
+    plan = sdf_schedule(V, F, [m, 2 * (m // 8)], t0=t, time_budget=1e4)  # deadlines leave the later layers
+    assert plan[1]["deadline"] == pytest.approx(t + 1e4) and plan[1]["time_budget"] is None
+    assert plan[0]["deadline"] == pytest.approx(t + 1e4 - estimate_layer_seconds(m))
+    assert not any(p["check_input"] for p in plan)  # build_cages audited the input once
 
 
 def test_tightening_starts_no_round_after_its_deadline():

@@ -40,7 +40,7 @@ from .optimize import _min_angles, mips, optimize_cage
 from .simplify import SimplifyStuck, constrained_simplify
 from .tighten import tighten_cage
 
-__all__ = ["estimate_layer_seconds", "genus", "sdf_backend", "sdf_cage_layer"]
+__all__ = ["estimate_layer_seconds", "genus", "sdf_cage_layer", "sdf_schedule"]
 
 #: paper defaults (Sec. 4), lengths relative to the unit bounding-box diagonal
 DEFAULTS = {"c": 0.01, "r": 0.025, "l": 0.15, "alpha": 3.0, "beta": 8.0}
@@ -149,7 +149,7 @@ def _pick_envelope(tried: list[dict], g_fine: int | None) -> int | None:
 #: the envelope is built (``h`` not given) with at least this many times the target's faces
 ENVELOPE_OVER_TARGET = 4.0
 
-#: default wall-clock budget (seconds) of one sdf_backend / sdf_cage_layer call; None = no limit
+#: default wall-clock budget (seconds) of one sdf run (all its layers) or sdf_cage_layer call; None = no limit
 DEFAULT_TIME_BUDGET = 900.0
 
 
@@ -176,7 +176,8 @@ def _budget_check(n_input: list[int], time_budget: float | None, what: str) -> f
             f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds time_budget="
             f"{float(time_budget):.0f} s; pass a larger time_budget (None: no limit; nestmg CLI: "
             f"--cage-time-budget, 0: no limit), or decimate the input "
-            f"first (nestmg.build_hierarchy does: predecimate_input=True)", layer=1, reason="time budget")
+            f"first (nestmg.build_hierarchy does: SizingOptions(predecimate=True))", layer=1,
+            reason="time budget")
     return est
 
 
@@ -318,8 +319,8 @@ def sdf_cage_layer(
         round is started only if the time already spent plus the last round's time fits the budget (the
         pass is an improvement of an already certified cage; ``info["tighten"]["stopped"]`` records it).
     deadline : float, optional
-        A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_backend`
-        sets it from its own ``time_budget`` and calls this with ``time_budget=None``).
+        A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_schedule`
+        sets it from the run's ``time_budget`` and calls this with ``time_budget=None``).
 
     Returns
     -------
@@ -641,100 +642,39 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
     return Uo, G, info
 
 
-def sdf_backend(
-    V: np.ndarray,
-    F: np.ndarray,
-    face_counts,
-    *,
-    progress: Callable[[str], None] | None = None,
-    certify: bool = True,
-    audit=None,
-    **opts,
-) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
-    """Cage backend ``"sdf"``: layer ``k+1`` is :func:`sdf_cage_layer` of layer ``k`` (nested, exact sizes).
+def sdf_schedule(V: np.ndarray, F: np.ndarray, face_counts, *, t0: float,
+                 time_budget: float | None = DEFAULT_TIME_BUDGET, **layer_opts) -> list[dict]:
+    """The ``"sdf"`` backend's run plan (registry ``schedule``): checked before any layer is built.
+
+    The face counts must be even; the whole run's estimate (:func:`estimate_layer_seconds` of each layer's
+    input) must fit ``time_budget`` (else :class:`CageError`, ``reason="time budget"``, in milliseconds).
+    Each layer then runs without a budget of its own but with a deadline after which no tightening round
+    starts: the run's budget less the estimates of the layers after it (the layers themselves always
+    run: the budget was checked first).
 
     Parameters
     ----------
     V : (n,3) float array
     F : (m,3) int array
-        The audited input surface (layer 0; not modified).
+        The audited input.
     face_counts : sequence of int
         Exact (even) face counts of the cages, finest first.
-    progress : callable, optional
-        Called with a one-line message per layer.
-    certify : bool
-        Accepted for the registry's protocol; every layer is certified inside :func:`sdf_cage_layer`
-        regardless (the certificate decides between the optimised cage, the simplified one and a
-        rebuild), so False changes nothing.
-    audit : cagegen.MeshAudit, optional
-        The input's audit (:func:`cagegen.build_cages` passes it): the input is then not audited again
-        (``check_input`` is ignored; the exact audit costs ~46 CPU s at 85k faces).
-    **opts
-        Passed to :func:`sdf_cage_layer` (``c``, ``amplify``, ``optimize``, ``min_gap``, ...). Lengths
-        are relative to the *input's* bounding-box diagonal on every layer. ``check_input`` (default
-        True) audits the input (layer 0) only: the coarser layers' inputs are certified cages.
+    t0 : float
+        ``time.perf_counter()`` at the start of the run.
+    time_budget : float or None
+        Wall-clock seconds for all the layers (None: no limit).
+    **layer_opts
+        The other options (each layer's; unused here).
 
     Returns
     -------
-    layers : list of (U_k, G_k)
-        The cages only, finest first.
-    info : dict
-        ``method``, ``nested_by_construction`` (True: each layer was certified against the previous
-        one), ``genus_changes``, ``seconds``, ``layers`` (per layer the :func:`sdf_cage_layer` info
-        plus ``layer``, ``hausdorff_relative_to_input`` and ``volume_ratio_to_input``).
-
-    Raises
-    ------
-    cagegen.MeshInputError
-        The input fails the audit (``check_input``), before any cage is built.
-    cagegen.CageError
-        With ``layer`` set (1 = first cage) when a layer could not be built and certified.
+    list of dict
+        Per layer, the keywords of :func:`sdf_cage_layer` the run sets (``deadline``, ``time_budget``,
+        ``check_input``).
     """
-    import inspect
-
-    import igl
-
-    allowed = set(list(inspect.signature(sdf_cage_layer).parameters)[3:]) - {"unit", "deadline"}
-    unknown = set(opts) - allowed
-    if unknown:
-        raise CageOptionError(f"unknown option(s) for the sdf backend: {sorted(unknown)}")
-    t0 = time.perf_counter()
-    V = np.array(V, dtype=np.float64)
-    F = np.array(F, dtype=np.int64)
     counts = [_check_target(m) for m in face_counts]
-    budget = opts.pop("time_budget", DEFAULT_TIME_BUDGET)
-    _budget_check([len(F)] + counts[:-1], budget, f"sdf cages {counts}")
-    check0 = bool(opts.pop("check_input", True)) and audit is None  # audited once per run
-    diag0 = bbox_diagonal(V)
-    vol0 = _signed_volume(V, F)
-    layers, per_layer, changes = [], [], []
-    Vp, Fp = V, F
-    for k, m in enumerate(counts, start=1):
-        try:
-            # no tightening round after the budget less the estimate of the layers after this one (the
-            # layers themselves always run: the budget was checked before any work)
-            dl = None if budget is None else (t0 + float(budget)
-                                              - sum(estimate_layer_seconds(n) for n in counts[k - 1:-1]))
-            U, G, li = sdf_cage_layer(Vp, Fp, m, unit=diag0, check_input=check0 and k == 1,
-                                      time_budget=None, deadline=dl, **opts)
-        except CageError as exc:
-            raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
-        li["layer"] = k
-        li["hausdorff_relative_to_input"] = float(igl.hausdorff(U, G, V, F)) / diag0
-        li["volume_ratio_to_input"] = _signed_volume(U, G) / vol0
-        if li["genus_changed"]:
-            changes.append({"layer": k, "from": li["genus_fine"], "to": li["genus"]})
-        per_layer.append(li)
-        layers.append((U, G))
-        if progress is not None:
-            progress(f"sdf: layer {k}: {len(G)} faces, max distance {li['hausdorff_relative_to_input']:.4f} of the "
-                     f"diagonal, {li['seconds']['total']:.2f} s")
-        Vp, Fp = U, G
-    info = {
-        "method": "sdf",
-        "nested_by_construction": True,
-        "genus_changes": changes,
-        "seconds": time.perf_counter() - t0,
-        "layers": per_layer,
-    }
-    return layers, info
+    _budget_check([len(F)] + counts[:-1], time_budget, f"sdf cages {counts}")
+    later = [sum(estimate_layer_seconds(n) for n in counts[k:-1]) for k in range(len(counts))]
+    # check_input False: build_cages audited the input once, the later layers are certified cages
+    return [{"time_budget": None, "check_input": False,
+             "deadline": None if time_budget is None else t0 + float(time_budget) - rest} for rest in later]

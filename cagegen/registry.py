@@ -111,7 +111,8 @@ def backend_spec(name: str) -> BackendSpec:
 
 
 def register_backend(name: str, target: str | Callable, options: type[CageOptions] = CageOptions, *,
-                     layer: bool = False, takes=(), own_loop: str = "") -> None:
+                     layer: bool = False, takes=(), own_loop: str = "",
+                     schedule: str | Callable | None = None) -> None:
     """Register a backend under ``name`` (see the module docstring for the two contracts).
 
     Parameters
@@ -129,8 +130,11 @@ def register_backend(name: str, target: str | Callable, options: type[CageOption
         Keywords of :data:`TAKES` the function accepts.
     own_loop : str
         For a whole-hierarchy function: why it needs its own loop.
+    schedule : str or callable, optional
+        For a per-layer function: the run's plan (:class:`BackendSpec`).
     """
-    _BACKENDS[name] = BackendSpec(target, options, layer=layer, takes=frozenset(takes), own_loop=own_loop)
+    _BACKENDS[name] = BackendSpec(target, options, layer=layer, takes=frozenset(takes), own_loop=own_loop,
+                                  schedule=schedule)
 
 
 def options_class(name: str) -> type[CageOptions]:

@@ -704,7 +704,7 @@ def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say):
 def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     """Step 7: the Nested Cages flow + re-inflation of the pre-inflated cage around M (or ``inner``)."""
     from ..failures import PairFailure
-    from ..nested import nest_pair
+    from ..nested.backend import nest_pair
 
     diag, center, Vp, Ft = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
     if inner is not None:

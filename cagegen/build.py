@@ -189,23 +189,57 @@ def build_cages(
     if components != "single":
         raise CageOptionError(f"components must be 'single' or 'separate', got {components!r}")
     t0 = time.perf_counter()
-    if progress is None or progress is False:
-        report_to = None
-    elif progress is True:
-        def report_to(msg: str) -> None:
-            print(f"[cagegen] {msg}", file=sys.stderr, flush=True)
-    elif callable(progress):
-        report_to = progress
-    else:
-        raise TypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
+    report_to = _reporter(progress)
     say = report_to if report_to is not None else (lambda msg: None)
-
-    repair, min_gap = options.repair, float(options.min_gap or 0.0)
-    V, F, audit = check_mesh(V, F, repair=repair, name="input", return_audit=True)
+    V, F, audit = check_mesh(V, F, repair=options.repair, name="input", return_audit=True)
     t_audit = time.perf_counter() - t0
     say(f"input: {V.shape[0]} vertices, {F.shape[0]} faces, audit ok ({t_audit:.2f} s)")
+    face_counts = _face_counts(face_counts, levels, int(F.shape[0]))
+    min_gap = float(options.min_gap or 0.0)
+    say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
+    t1 = time.perf_counter()
+    cages, backend_info = _run_backend(method, options, V, F, face_counts, verify, report_to, say)
+    t_backend = time.perf_counter() - t1
+    layers = [(V, F)] + _checked_cages(method, cages, len(face_counts))
+    report = None
+    t_verify = 0.0
+    if verify:
+        t2 = time.perf_counter()
+        report = verify_nesting(layers, min_gap=min_gap)
+        t_verify = time.perf_counter() - t2
+        say(f"verification: {'nested' if report.ok else 'NOT nested'} ({t_verify:.2f} s)")
+        if method not in UNCERTIFIED_METHODS:
+            report.raise_if_failed()
+    if not return_info:
+        return layers
+    info = {
+        "method": method,
+        "face_counts": [int(c) for c in face_counts],
+        "achieved_face_counts": [int(Fk.shape[0]) for _, Fk in layers[1:]],
+        "audit": audit.to_dict(),
+        "backend": backend_info,
+        "verification": None if report is None else report.to_dict(),
+        "nested": None if report is None else bool(report.ok),
+        "certified": bool(report is not None and report.ok and method not in UNCERTIFIED_METHODS),
+        "seconds": {"audit": t_audit, "backend": t_backend, "verify": t_verify,
+                    "total": time.perf_counter() - t0},
+    }
+    return layers, info
 
-    n_faces = int(F.shape[0])
+
+def _reporter(progress) -> Callable[[str], None] | None:
+    """``progress`` as a message callable: True prints to stderr, None / False is silent (None)."""
+    if progress is None or progress is False:
+        return None
+    if progress is True:
+        return lambda msg: print(f"[cagegen] {msg}", file=sys.stderr, flush=True)
+    if callable(progress):
+        return progress
+    raise TypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
+
+
+def _face_counts(face_counts, levels: int | None, n_faces: int) -> list[int]:
+    """The cages' face counts: the default 4x per level, or the caller's, checked against ``levels``."""
     if face_counts is None:
         if levels is None:
             raise LevelsError("give levels (number of layers, input included) or face_counts")
@@ -218,73 +252,44 @@ def build_cages(
             )
     if not face_counts:
         raise LevelsError("no cage requested (levels must be >= 2)")
+    return face_counts
 
+
+def _run_backend(method: str, options: CageOptions, V: np.ndarray, F: np.ndarray, face_counts: list[int],
+                 verify: bool, report_to, say: Callable[[str], None]) -> tuple[list, dict]:
+    """The registered backend on the audited input: the keywords its spec takes, then its own loop or
+    :func:`_layer_loop` (after its schedule). The backend gets copies: it may not modify layer 0."""
     spec = backend_spec(method)
     backend = get_backend(method)
     kwargs = options.backend_kwargs()
+    min_gap = float(options.min_gap or 0.0)
     if report_to is not None and "progress" in spec.takes:
         kwargs["progress"] = report_to
     if min_gap > 0 and "min_gap" in spec.takes:
         kwargs["min_gap"] = min_gap  # the backend must build the clearance the verifier will demand
     if verify and "certify" in spec.takes:
-        kwargs["certify"] = False  # the whole hierarchy is verified below: once is enough
-    say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
-    t1 = time.perf_counter()
-    # the backend gets its own copies: it may not modify the layer we return
-    if spec.layer:
-        plan = None
-        schedule = get_schedule(method)
-        if schedule is not None:  # the whole run checked before any layer (e.g. sdf's time budget)
-            plan = schedule(V, F, list(face_counts), t0=t1, **kwargs)
-        cages, backend_info = _layer_loop(method, backend, V.copy(), F.copy(), list(face_counts), kwargs, say,
-                                          plan)
-    else:
-        cages, backend_info = backend(V.copy(), F.copy(), list(face_counts), **kwargs)
-    t_backend = time.perf_counter() - t1
+        kwargs["certify"] = False  # the whole hierarchy is verified afterwards: once is enough
+    if not spec.layer:
+        return backend(V.copy(), F.copy(), list(face_counts), **kwargs)
+    schedule = get_schedule(method)
+    # the whole run checked before any layer (e.g. sdf's time budget)
+    plan = None if schedule is None else schedule(V, F, list(face_counts), t0=time.perf_counter(), **kwargs)
+    return _layer_loop(method, backend, V.copy(), F.copy(), list(face_counts), kwargs, say, plan)
 
+
+def _checked_cages(method: str, cages, n_expected: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The backend's cages as float64 / int64 arrays; :class:`CageError` naming a missing or invalid one."""
     cages = list(cages)
-    if len(cages) != len(face_counts):
-        raise CageError(
-            f"backend {method!r} returned {len(cages)} layers for {len(face_counts)} face counts",
-            layer=min(len(cages), len(face_counts)) + 1,
-        )
-    layers = [(V, F)]
+    if len(cages) != n_expected:
+        raise CageError(f"backend {method!r} returned {len(cages)} layers for {n_expected} face counts",
+                        layer=min(len(cages), n_expected) + 1)
+    out = []
     for k, layer in enumerate(cages, start=1):
         try:
             Vk, Fk = layer
             Vk, Fk = as_mesh_arrays(Vk, Fk, f"layer {k}")
         except (MeshInputError, TypeError, ValueError) as exc:
             raise CageError(f"backend {method!r} returned an invalid layer {k}: {exc}", layer=k) from exc
-        layers.append((Vk, Fk))
-
-    report = None
-    t_verify = 0.0
-    if verify:
-        t2 = time.perf_counter()
-        report = verify_nesting(layers, min_gap=min_gap)
-        t_verify = time.perf_counter() - t2
-        say(f"verification: {'nested' if report.ok else 'NOT nested'} ({t_verify:.2f} s)")
-        if method not in UNCERTIFIED_METHODS:
-            report.raise_if_failed()
-
-    certified = bool(report is not None and report.ok and method not in UNCERTIFIED_METHODS)
-    if not return_info:
-        return layers
-    info = {
-        "method": method,
-        "face_counts": [int(c) for c in face_counts],
-        "achieved_face_counts": [int(Fk.shape[0]) for _, Fk in layers[1:]],
-        "audit": audit.to_dict(),
-        "backend": backend_info,
-        "verification": None if report is None else report.to_dict(),
-        "nested": None if report is None else bool(report.ok),
-        "certified": certified,
-        "seconds": {
-            "audit": t_audit,
-            "backend": t_backend,
-            "verify": t_verify,
-            "total": time.perf_counter() - t0,
-        },
-    }
-    return layers, info
+        out.append((Vk, Fk))
+    return out
 

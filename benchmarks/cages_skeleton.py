@@ -155,8 +155,12 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
                 picture(V, F, part, png / f"skeleton_{Path(case).stem}.png", title=f"{case} ({step} failed)")
                 out["png"] = str(png / f"skeleton_{Path(case).stem}.png")
         return out
-    rep = verify_nesting([(V, F), (c.V, c.F)])
+    gap = float(_OPTS.get("min_gap", 0.0))
+    rep = verify_nesting([(V, F), (c.V, c.F)], min_gap=gap)
     out.update({
+        "min_gap": gap, "gap_rel": float(rep.pairs[0].min_gap_rel),
+        "quad_share": 2 * len(c.quads) / len(c.F),
+        "tight_cage_quads": c.info["tight_cage"]["n_quads"],
         "certified": bool(rep.ok),
         "cage_vertices": len(c.V), "cage_faces": len(c.F), "cage_quads": len(c.quads),
         "cage_junction_triangles": len(c.tris), "sections": len(c.sections),
@@ -171,7 +175,8 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
     out["cage_digest"] = hashlib.sha256(np.ascontiguousarray(c.V).tobytes()
                                         + np.ascontiguousarray(c.F).tobytes()).hexdigest()
     out["sections_flattened"] = c.info.get("sections_flattened")
-    out["inflation"] = {k: c.info["inflation"].get(k) for k in ("flow", "seconds")}
+    out["containment"] = (c.info.get("containment")
+                          or {k: c.info["inflation"].get(k) for k in ("flow", "seconds")})
     if "extraction" in c.info:
         out["extraction"] = c.info["extraction"]
     if compare_nested:
@@ -211,7 +216,7 @@ def picture(V, F, c, path: Path, title: str) -> None:
 
     for k, (name, VV) in enumerate([("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
                                     (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
-                                     else f"pre-inflated cage, NOT certified ({len(c.F)} triangles)", c.V)]):
+                                     else f"start cage, NOT certified ({len(c.F)} triangles)", c.V)]):
         p.subplot(0, k)
         p.add_mesh(mesh, color="tan", opacity=0.35 if k else 0.25)
         p.add_mesh(bones, color="red", line_width=4)
@@ -229,29 +234,35 @@ def picture(V, F, c, path: Path, title: str) -> None:
     p.close()
 
 
-def hierarchy_case(face_counts=(1200, 76), problems=("poisson-dirichlet", "poisson-neumann")) -> dict:
-    """Stick figure: 3-layer hierarchies (input, cage of 1200 faces, coarsest cage) whose coarsest layer is
-    the skeleton cage, beside the ``nested``-only one with the same face counts; TetWild layers (nestmg
-    defaults), V(1,1) cycles (``MultigridSolver`` defaults), mean residual reduction per cycle to 1e-8."""
+def hierarchy_case(case: str = "stick", zoo: Path | None = None, face_counts=(1200, 76),
+                   problems=("poisson-dirichlet", "poisson-neumann")) -> dict:
+    """3-layer hierarchies (input, ``nested`` cage of ``face_counts[0]`` faces, coarsest cage) whose coarsest
+    layer is the skeleton cage, beside the ``nested``-only one with the same face counts (a zoo mesh: the
+    skeleton cage's own face count as the last); TetWild layers (nestmg defaults, automatic clearance),
+    V(1,1) cycles (``MultigridSolver`` defaults), mean residual reduction per cycle to 1e-8. ``case``:
+    ``"stick"`` (known skeleton) or a zoo file name (automatic skeleton)."""
     from cagegen import NestedOptions, SkeletonOptions
     from nestmg import SizingOptions, build_hierarchy, setup_problem
     from nestmg.io import normalize
-    from nestmg.shapes import stick_figure
     from solvers import MultigridSolver
 
-    V, F, S = stick_figure()
-    _, center, scale = normalize(V)
-    S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: the skeleton must follow
-    out: dict = {"shape": "stick", "face_counts": list(face_counts)}
-    cases = (("skeleton", SkeletonOptions(skeleton=S, bending="given")), ("nested", NestedOptions()))
+    V, F, S, bending = _load(case, zoo)
+    if S is not None:
+        _, center, scale = normalize(V)
+        S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: so must the skeleton
+    out: dict = {"shape": Path(case).stem, "input_faces": len(F), "face_counts": list(face_counts)}
+    cases = (("skeleton", SkeletonOptions(skeleton=S, bending=bending)), ("nested", NestedOptions()))
     for name, opts in cases:
         t = time.perf_counter()
+        counts = list(out["face_counts"])
         try:
-            h = build_hierarchy(V, F, len(face_counts) + 1, name,
-                                sizing=SizingOptions(face_counts=face_counts),
+            h = build_hierarchy(V, F, len(counts) + 1, name, sizing=SizingOptions(face_counts=counts),
                                 cages=opts, cache=False)
             res: dict = {"build_seconds": time.perf_counter() - t, "certified": bool(h.certified),
-                         "tets": [len(T) for _, T in h.tets]}
+                         "tets": [len(T) for _, T in h.tets], "n_outside": [int(x) for x in h.n_outside],
+                         "cage_faces": [len(Fk) for _, Fk in h.surfaces[1:]]}
+            if name == "skeleton" and res["cage_faces"]:
+                out["face_counts"] = counts[:-1] + [res["cage_faces"][-1]]  # nested-only: the same counts
             for pname in problems:
                 prob = setup_problem(h.tets, h.P, pname)
                 ml = MultigridSolver(prob.A, prob.P, nullspace=prob.nullspace)
@@ -273,6 +284,12 @@ def _child(q, case, zoo, png, compare, min_nested=False):
         q.put({"case": case, "certified": False, "error": traceback.format_exc(limit=3)})
 
 
+def _command(args) -> str:
+    """The command line, the zoo folder written ``ZOO_DIR`` (no path of this machine in the JSON)."""
+    cmd = " ".join(sys.argv)
+    return cmd.replace(str(args.zoo), "ZOO_DIR") if args.zoo else cmd
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--zoo", type=Path, default=None, help="folder of the dev zoo meshes")
@@ -282,18 +299,21 @@ def main(argv=None) -> dict:
     ap.add_argument("--timeout", type=float, default=900.0)
     ap.add_argument("--min-nested", action="store_true",
                     help="per certified case, the smallest nested face count at the skeleton cage's max distance")
-    ap.add_argument("--hierarchy", action="store_true",
-                    help="only the stick-figure hierarchy (skeleton cage coarsest) beside nested-only, V-cycles")
+    ap.add_argument("--hierarchy", nargs="*", default=None, metavar="CASE",
+                    help="only hierarchies (skeleton cage coarsest) beside nested-only, V-cycles: the stick "
+                         "figure (no CASE) or zoo file names (with --zoo)")
     ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                     help="extra skeleton_cage keyword (Python literal value), e.g. --opt refine_levels=1")
     args = ap.parse_args(argv)
     import ast
 
     _OPTS.update({k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in args.opt)})
-    if args.hierarchy:
+    if args.hierarchy is not None:
         from nestmg.io import json_default
 
-        out = {"benchmark": "cages_skeleton --hierarchy", "command": " ".join(sys.argv), "result": hierarchy_case()}
+        res = [hierarchy_case(c, args.zoo) for c in (args.hierarchy or ["stick"])]
+        out = {"benchmark": "cages_skeleton --hierarchy", "command": _command(args),
+               **({"result": res[0]} if not args.hierarchy else {"results": res})}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1, default=json_default))
         print(json.dumps(out, default=json_default))
@@ -320,7 +340,7 @@ def main(argv=None) -> dict:
               file=sys.stderr, flush=True)
     from nestmg.io import json_default
 
-    out = {"benchmark": "cages_skeleton", "command": " ".join(sys.argv), "options": _OPTS, "results": results}
+    out = {"benchmark": "cages_skeleton", "command": _command(args), "options": _OPTS, "results": results}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1, default=json_default))
     print(json.dumps(out, default=json_default))

@@ -1,4 +1,4 @@
-"""Curved P2 on real inputs: fit, certified validity, accuracy against P1 at equal unknowns, MG-PCG iterations.
+"""Curved P2 on real inputs: fit, certified validity, accuracy vs P1 at equal unknowns, MG-PCG iterations.
 
 For every MESH (a closed surface): the pipeline's hierarchy (``build_hierarchy``: TetWild at 2 h_0, the
 fine level its red refinement, then nested cages); level 1 curved onto the input surface
@@ -6,19 +6,23 @@ fine level its red refinement, then nested cages); level 1 curved onto the input
 unknowns of P1 on level 0. Recorded per mesh:
 
 * the curving: boundary edge nodes, tets invalid after projection, fitted by the energy, straightened,
-  certified, min / mean scaled Jacobian (``min det J / max det J`` per curved tet), largest distance
-  of the boundary facets to the input surface (straight and curved), seconds per stage;
+  certified, min / mean scaled Jacobian (``min det J / max det J`` per curved tet, sampled and its
+  certified Bernstein lower bound) before and after the quality pass, the straight tets' own (linear)
+  scaled Jacobian, largest and mean distance of the boundary facets to the input surface (straight
+  and curved), seconds per stage;
 * a manufactured solution ``u = sin(6x) e^{2y} cos(4z)`` (``-Δu = 48u``) on the normalised shape
   (unit bounding-box diagonal), Dirichlet data ``u`` and Neumann flux ``∇u·n`` taken at the closest
-  point of the *input surface* (``n``: the normal of its closest triangle; the input is piecewise flat,
-  so the flux is discontinuous across its edges): L2 errors against ``u`` by quadrature over each discrete domain of
-  P1 on level 0 (boundary vertices projected onto the input), straight P2 and curved P2 on level 1;
-  MG-PCG iterations to 1e-8 (default cycle), seconds.
+  point of the *input surface* (``n``: the smooth normal of :func:`nestmg.curved.surface_projector`,
+  corner normals interpolated on the closest triangle; ``neumann_face``: the closest triangle's own
+  normal, discontinuous across the input's edges): L2 errors against ``u`` by quadrature over each
+  discrete domain of P1 on level 0 (boundary vertices projected onto the input), straight P2 and
+  curved P2 on level 1 (with and without the quality pass); MG-PCG iterations to 1e-8 (default
+  cycle), seconds.
 
 Run from the repository root::
 
     OMP_NUM_THREADS=1 python benchmarks/curved.py ZOO_DIR/bunny.off ZOO_DIR/gargo.off ZOO_DIR/fandisk.obj \\
-        --edge-length 0.012 --json benchmarks/results/curved/curved.json
+        --edge-length 0.015 --json benchmarks/results/curved/curved.json
 """
 
 from __future__ import annotations
@@ -113,7 +117,7 @@ def p2_case(h, cm, name, proj, tol):
             "seconds": {"setup": t_setup, "solve": t_solve}}
 
 
-def run_mesh(path: str, args) -> dict:
+def _hierarchy(path: str, args):
     V, F = load_mesh(path)
     t0 = time.perf_counter()
     h = build_hierarchy(V, F, args.levels, args.method, sizing=SizingOptions(edge_length=args.edge_length),
@@ -121,32 +125,52 @@ def run_mesh(path: str, args) -> dict:
     t_h = time.perf_counter() - t0
     if not str(h.prolongation_reports[0].extrapolation).startswith("none (refinement)"):
         raise SystemExit(f"{path}: level 0 is not the refinement of level 1 (use TetWild and >= 3 levels)")
-    Vs, Fs = h.surfaces_in("normalized")[0]
-    proj = surface_projector(Vs, Fs)
-    V1, T1 = h.tets_in("normalized")[1]
+    return h, len(F), t_h
+
+
+def _curve(h, proj, args, quality):
     t0 = time.perf_counter()
-    cm = curve_mesh(V1, T1, proj, lam=args.lam)
-    t_c = time.perf_counter() - t0
-    # P1 on level 0 with its boundary vertices on the input: exactly cm's nodes (the same numbering)
+    cm = curve_mesh(*h.tets_in("normalized")[1], proj, lam=args.lam, quality=quality,
+                    quality_lam=args.quality_lam)
+    return cm, cm.report | {"seconds_total": time.perf_counter() - t0}
+
+
+def _problem_row(h, Vp, cms, name, proj, tol) -> dict:
+    """P1, straight P2 and curved P2 (each curving of ``cms``) on one problem; errors and iterations."""
+    r = {"P1": p1_case(h, Vp, name, proj, tol), "P2_straight": p2_case(h, None, name, proj, tol)}
+    for key, cm in cms.items():
+        r[key] = p2_case(h, cm, name, proj, tol)
+    r["p1_over_curved"] = r["P1"]["l2_error"] / r["P2_curved"]["l2_error"]
+    r["straight_over_curved"] = r["P2_straight"]["l2_error"] / r["P2_curved"]["l2_error"]
+    return r
+
+
+def run_mesh(path: str, args) -> dict:
+    h, n_faces, t_h = _hierarchy(path, args)
+    Vs, Fs = h.surfaces_in("normalized")[0]
+    proj = surface_projector(Vs, Fs, normals="smooth")
+    cm, rep = _curve(h, proj, args, args.quality)
+    cm0, rep0 = _curve(h, proj, args, None)  # the same without the quality pass
+    # P1 on level 0 with its boundary vertices on the input: the nodes of the curving without quality pass
     V0 = h.tets_in("normalized")[0][0]
-    assert len(V0) == len(cm.X)
-    Vp = cm.X.copy()
+    assert len(V0) == len(cm0.X)
+    Vp = cm0.X.copy()
     if np.any(tet_volumes(Vp, orient_tets(V0, h.tets[0][1])) <= 0):
         Vp = V0  # a projected vertex would invert a P1 tet: keep TetWild's boundary
-    out = {"mesh": Path(path).name, "input_faces": int(len(F)), "hierarchy": {
+    out = {"mesh": Path(path).name, "input_faces": n_faces, "hierarchy": {
         "tets": [len(T) for _, T in h.tets], "nodes": [len(Vk) for Vk, _ in h.tets], "certified": h.certified,
-        "seconds": t_h}, "curving": cm.report | {"seconds_total": t_c}, "p1_vertices_projected": Vp is not V0,
+        "seconds": t_h}, "curving": rep, "curving_no_quality": rep0, "p1_vertices_projected": Vp is not V0,
         "problems": {}}
-    for name in ("poisson-dirichlet", "poisson-neumann"):
-        r = {"P1": p1_case(h, Vp, name, proj, args.tol),
-             "P2_straight": p2_case(h, None, name, proj, args.tol),
-             "P2_curved": p2_case(h, cm, name, proj, args.tol)}
-        r["p1_over_curved"] = r["P1"]["l2_error"] / r["P2_curved"]["l2_error"]
-        r["straight_over_curved"] = r["P2_straight"]["l2_error"] / r["P2_curved"]["l2_error"]
-        out["problems"][name] = r
-        print(f"{out['mesh']} {name}: L2 P1 {r['P1']['l2_error']:.3e} ({r['P1']['iterations']} it), P2 straight "
-              f"{r['P2_straight']['l2_error']:.3e} ({r['P2_straight']['iterations']} it), P2 curved "
-              f"{r['P2_curved']['l2_error']:.3e} ({r['P2_curved']['iterations']} it)", flush=True)
+    cms = {"P2_curved": cm, "P2_curved_no_quality": cm0}
+    face = surface_projector(Vs, Fs, normals="face")
+    for name, pr, key in (("poisson-dirichlet", proj, "poisson-dirichlet"),
+                          ("poisson-neumann", proj, "poisson-neumann"),
+                          ("poisson-neumann", face, "neumann_face")):
+        r = _problem_row(h, Vp, cms if key != "neumann_face" else {"P2_curved": cm}, name, pr, args.tol)
+        out["problems"][key] = r
+        print(f"{out['mesh']} {key}: L2 P1 {r['P1']['l2_error']:.3e} ({r['P1']['iterations']} it), "
+              f"P2 straight {r['P2_straight']['l2_error']:.3e} ({r['P2_straight']['iterations']} it), "
+              f"P2 curved {r['P2_curved']['l2_error']:.3e} ({r['P2_curved']['iterations']} it)", flush=True)
     return out
 
 
@@ -165,7 +189,7 @@ def picture(path: str, png: str, edge: float) -> dict:
         V, F = load_mesh(path)
         Vn = normalize(V)[0]
         Vt, Tt = tetrahedralize(Vn, F, edge_length_fac=edge, coarsen=True)
-        proj = surface_projector(Vn, F)
+        proj = surface_projector(Vn, F, normals="smooth")
     cm = curve_mesh(Vt, Tt, proj)
     rep = cm.report
     render_curved(cm.X, cm.boundary_facets(), cm.straight().X, png, titles=(
@@ -181,23 +205,34 @@ def main(argv=None) -> int:
     p.add_argument("--json", required=True, help="output JSON")
     p.add_argument("--levels", type=int, default=4)
     p.add_argument("--method", default="nested")
-    p.add_argument("--edge-length", type=float, default=0.012, help="fine edge / bbox diagonal (level 1: twice)")
+    p.add_argument("--edge-length", type=float, default=0.015,
+                   help="fine edge / bbox diagonal (level 1: twice)")
     p.add_argument("--lam", type=float, default=0.05, help="λ of the fitting energy")
+    p.add_argument("--quality", type=float, default=0.96,
+                   help="scaled-Jacobian threshold of the quality pass")
+    p.add_argument("--quality-lam", type=float, default=1.0, help="λ of the quality pass")
     p.add_argument("--tol", type=float, default=1e-8)
     p.add_argument("--png", default=None, help="also draw a coarse curved mesh of --png-mesh here")
     p.add_argument("--png-mesh", default=None, help="surface for the picture (default: the first MESH; "
                                                       "shape:torus: the procedural solid torus)")
-    p.add_argument("--png-edge", type=float, default=0.08, help="TetWild edge / bbox diagonal of the picture's mesh")
+    p.add_argument("--png-edge", type=float, default=0.08,
+                   help="TetWild edge / bbox diagonal of the picture's mesh")
     p.add_argument("--png-only", action="store_true", help="only the picture (no hierarchy, no solves)")
     args = p.parse_args(argv)
     if args.png:
         pic = picture(args.png_mesh or args.meshes[0], args.png, args.png_edge)
         print(f"wrote {args.png}: {pic['curving']['tets']} tets, certified {pic['curving']['certified']}")
         if args.png_only:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps({"picture": pic | {"png": Path(pic["png"]).name}}, indent=1,
+                                                  default=json_default))
             return 0
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    res = {"command": "python benchmarks/curved.py " + " ".join(f"ZOO_DIR/{Path(m).name}" for m in args.meshes)
-           + f" --levels {args.levels} --method {args.method} --edge-length {args.edge_length} --lam {args.lam}",
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    zoo = " ".join(f"ZOO_DIR/{Path(m).name}" for m in args.meshes)
+    res = {"command": f"python benchmarks/curved.py {zoo} --levels {args.levels} --method {args.method}"
+           + f" --edge-length {args.edge_length} --lam {args.lam}"
+           + f" --quality {args.quality} --quality-lam {args.quality_lam}",
            "commit": commit, "machine": platform.machine(), "solution": "sin(6x) exp(2y) cos(4z)",
            "results": [run_mesh(m, args) for m in args.meshes], "picture": pic if args.png else None}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

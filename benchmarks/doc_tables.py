@@ -31,7 +31,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_5e7149f.json"
+CORPUS = "corpus/zoo_4994a95.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
@@ -271,6 +271,155 @@ def usermesh_tets() -> str:
     return f"{load('user_mesh/gargo.json')['user_tets'] / 1e3:.0f}k"
 
 
+USER_SOLVERS = "user_mesh/solvers.json"
+USER_PROFILE = ("user_mesh/setup_profile_before.json", "user_mesh/setup_profile_after.json")
+_USER_LABELS = {"nestmg": "`MultigridSolver(A, P)`, defaults", "pyamg_sa": "pyamg SA + CG",
+                "petsc_gamg": "PETSc GAMG + CG, 1 rank"}
+
+
+def _user_cell(r: dict, spmv: bool, tol: float) -> str:
+    it = f"{r['iterations']}, {r['solve_spmv']:.0f} fine SpMV" if spmv else f"{r['iterations']}"
+    bad = "" if r["max_final_residual"] <= 1.01 * tol else f", residual {r['max_final_residual']:.0e} ✗"
+    return f"{r['setup_seconds']:.2f} + {r['solve_seconds']:.2f} s ({it}{bad})"
+
+
+@generator("usermesh.solvers", USER_SOLVERS)
+def usermesh_solvers() -> str:
+    d = load(USER_SOLVERS)
+    rows = []
+    for c in d["cases"]:
+        pr = c["problems"]
+        label = f"{c['label']} ({c['tets']:,})"
+        for sname in ("nestmg", "pyamg_sa", "petsc_gamg"):
+            rows.append([label, _USER_LABELS.get(sname, sname)]
+                        + [_user_cell(pr[p]["solvers"][sname], sname.startswith("nestmg"), d["tol"])
+                           for p in ("dirichlet", "neumann")])
+        rows.append([label, "**nestmg speed-up** (setup + solve) vs SA / vs GAMG"]
+                    + [f"**{pr[p]['speedup_vs_pyamg_sa']:.2f}x / {pr[p]['speedup_vs_petsc_gamg']:.2f}x**"
+                       for p in ("dirichlet", "neumann")])
+    return table(["user mesh (fine tets)", "solver", "Dirichlet: setup + solve (CG it)",
+                  "Neumann: setup + solve (CG it)"], rows)
+
+
+@generator("usermesh.setup", USER_SOLVERS)
+def usermesh_setup() -> str:
+    d = load(USER_SOLVERS)
+    r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    return rng(r, ".2f") + "x"
+
+
+@generator("usermesh.speedup", USER_SOLVERS)
+def usermesh_speedup() -> str:
+    d = load(USER_SOLVERS)
+    sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    tets = [c["tets"] for c in d["cases"]]
+    return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than "
+            f"PETSc GAMG "
+            f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
+
+
+def _user_nestmg(key: str, problems=("dirichlet", "neumann"), solver: str = "nestmg") -> list:
+    d = load(USER_SOLVERS)
+    return [c["problems"][p]["solvers"][solver][key] for c in d["cases"] for p in problems
+            if solver in c["problems"][p]["solvers"]]
+
+
+@generator("usermesh.spread", USER_SOLVERS)
+def usermesh_spread() -> str:
+    d = load(USER_SOLVERS)
+    return rng([100 * c["problems"][p]["index_spread"] for c in d["cases"] for p in ("dirichlet", "neumann")],
+               ".0f") + "%"
+
+
+@generator("usermesh.spmv", USER_SOLVERS)
+def usermesh_spmv() -> str:
+    return rng(_user_nestmg("spmv_speedup_internal_order"), ".2f") + "x"
+
+
+@generator("usermesh.rows", USER_SOLVERS)
+def usermesh_rows() -> str:
+    cases = load(USER_SOLVERS)["cases"]
+    rows = [c["problems"][p]["solvers"]["nestmg"]["runs"][0]["level_nnz_per_row"]
+            for c in cases for p in ("dirichlet", "neumann")]
+    return (f"{rng([r[0] for r in rows], '.0f')} nonzeros per row on the fine level, "
+            f"{rng([r[1] for r in rows], '.0f')} on the first coarse level and "
+            f"{rng([r[-1] for r in rows], '.0f')} on the coarsest")
+
+
+@generator("usermesh.layer", USER_SOLVERS)
+def usermesh_layer() -> str:
+    plain = _user_nestmg("iterations", ("neumann",))
+    layer = _user_nestmg("iterations", ("neumann",), "nestmg_boundary_layer")
+    tp = _user_nestmg("solve_seconds", ("neumann",))
+    tl = _user_nestmg("solve_seconds", ("neumann",), "nestmg_boundary_layer")
+    return (f"{rng(layer, 'd')} instead of {rng(plain, 'd')} CG iterations, solve time x"
+            f"{rng([b / a for a, b in zip(tp, tl)], '.2f')}")
+
+
+def _kernel_seconds(rel: str, prob: str, names: tuple) -> float:
+    top = load(rel)["problems"][prob]["top_tottime"]
+    return sum(t["tottime"] for t in top if any(n in t["function"] for n in names))
+
+
+@generator("usermesh.kernels", *USER_PROFILE)
+def usermesh_kernels() -> str:
+    parts = []
+    for label, names in (("sparse products (`csr_matmat` + `csr_matmat_maxnnz`)", ("csr_matmat",)),
+                         ("coarsest factorisation (SuperLU `gstrf` / LAPACK Cholesky)",
+                          ("gstrf", "_cholesky"))):
+        b = [_kernel_seconds(USER_PROFILE[0], p, names) for p in ("dirichlet", "neumann")]
+        a = [_kernel_seconds(USER_PROFILE[1], p, names) for p in ("dirichlet", "neumann")]
+        parts.append(f"{label} {rng(b, '.2f')} s before, {rng(a, '.2f')} s after")
+    return "; ".join(parts)
+
+
+USER_CYCLES = "user_mesh/cycles.json"
+_CYCLE_LABELS = {"nestmg": "default", "nestmg_symmetric_gs": "symmetric GS V(1,1)",
+                 "nestmg_forward_gs": "forward/backward GS V(1,1)",
+                 "nestmg_forward_gs2_uniform": "V(2,2) on every level",
+                 "nestmg_chebyshev3": "Chebyshev degree 3"}
+
+
+@generator("usermesh.cycles", USER_CYCLES)
+def usermesh_cycles() -> str:
+    d = load(USER_CYCLES)
+    names = list(d["cases"][0]["problems"]["dirichlet"]["solvers"])
+    rows = []
+    for c in d["cases"]:
+        for p, pd in c["problems"].items():
+            cells = []
+            for n in names:
+                r = pd["solvers"][n]
+                ratio = "1" if n == names[0] else f"{r['solve_ratio_vs_first']:.2f}"
+                cells.append(f"{r['iterations']} / {ratio}")
+            rows.append([f"{c['label']} ({c['tets']:,})", p] + cells)
+    return table(["user mesh (fine tets)", "problem"] + [_CYCLE_LABELS.get(n, n) for n in names], rows)
+
+
+def _func_label(f: str) -> str:
+    """``csr_matmat`` from cProfile's ``~:0(<built-in method scipy.sparse._sparsetools.csr_matmat>)``,
+    ``argsort`` from ``~:0(<method 'argsort' of ...>)``, ``_reorder`` from ``multilevel.py:371(_reorder)``."""
+    m = (re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f)
+         or re.search(r"\((\w+)\)$", f))
+    return m.group(1).split(".")[-1] if m else f
+
+
+@generator("usermesh.profile", *USER_PROFILE)
+def usermesh_profile() -> str:
+    rows = []
+    for rel, when in zip(USER_PROFILE, ("before (base commit)", "after")):
+        d = load(rel)
+        for p, r in d["problems"].items():
+            top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}"
+                            for t in r["top_tottime"][:5])
+            rows.append([when, p, f"{r['setup_seconds_median']:.2f}",
+                         f"{r['pyamg_sa_setup_seconds_median']:.2f}",
+                         f"{r['setup_ratio_vs_sa_median']:.2f}", top])
+    return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio",
+                  "top 5 by own time under cProfile (s)"], rows)
+
+
 # ----------------------------------------------------------------------------------------- PETSc
 @generator("petsc.scale", "petsc/petsc_scale_gargo.json", "petsc/petsc_scale_bunny.json")
 def petsc_scale() -> str:
@@ -341,6 +490,47 @@ def petsc_estimate() -> str:
     return table(["100M tets on 64 ranks (model)", "estimate"], rows)
 
 
+# ----------------------------------------------------------------------------------------- cage uses
+CAGE_USES = "cage_uses/cage_uses.json"
+CAGE_CULLING = "cage_uses/cage_uses_culling.json"
+CAGE_R3 = "cage_uses/cage_uses_refine3.json"
+
+
+@generator("cage_uses.embedded", CAGE_USES)
+def cage_uses_embedded() -> str:
+    return sibling("cage_uses").table_embedded(load(CAGE_USES))
+
+
+@generator("cage_uses.harmonic", CAGE_USES, CAGE_R3)
+def cage_uses_harmonic() -> str:
+    return sibling("cage_uses").table_harmonic(load(CAGE_USES), load(CAGE_R3))
+
+
+@generator("cage_uses.harmonic_scale", CAGE_USES, CAGE_R3)
+def cage_uses_harmonic_scale() -> str:
+    return sibling("cage_uses").summary_harmonic_scale(load(CAGE_USES), load(CAGE_R3))
+
+
+@generator("cage_uses.embedded_summary", CAGE_USES)
+def cage_uses_embedded_summary() -> str:
+    return sibling("cage_uses").summary_embedded(load(CAGE_USES))
+
+
+@generator("cage_uses.harmonic_summary", CAGE_USES)
+def cage_uses_harmonic_summary() -> str:
+    return sibling("cage_uses").summary_harmonic(load(CAGE_USES))
+
+
+@generator("cage_uses.culling_summary", CAGE_CULLING)
+def cage_uses_culling_summary() -> str:
+    return sibling("cage_uses").summary_culling(load(CAGE_CULLING))
+
+
+@generator("cage_uses.culling", CAGE_CULLING)
+def cage_uses_culling() -> str:
+    return sibling("cage_uses").table_culling(load(CAGE_CULLING))
+
+
 # ----------------------------------------------------------------------------------------- cage backends
 SDF_ZOO = "sdf/zoo_all_ba988c4.json"
 
@@ -389,7 +579,9 @@ def sdf_summary() -> str:
 
 
 SKEL = "skeleton/min_nested.json"
-SKEL_ZOO = ("skeleton/zoo_png_f3b0576.json", "skeleton/zoo_png_elephant_b2_f3b0576.json")
+SKEL_ZOO = "skeleton/zoo_sweep.json"
+#: the knight re-run after the clearance fallback (re-inflation to the offset when push_out is blocked)
+SKEL_ZOO_RERUN = "skeleton/zoo_sweep_knight.json"
 SKEL_H = "skeleton/hierarchy_stick_61b5d66.json"
 
 
@@ -408,18 +600,107 @@ def skeleton_procedural() -> str:
                   "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
 
 
-@generator("skeleton.zoo", *SKEL_ZOO)
+def _failed_step(r: dict) -> str:
+    """The step named by a skeleton ``CageError`` ("skeleton cage, STEP: ...")."""
+    err = r.get("error", "")
+    return err.split(":")[1].strip().split(" ")[-1] if ":" in err else "?"
+
+
+def _skel_zoo_results() -> list:
+    rerun = {r["case"]: r for r in load(SKEL_ZOO_RERUN)["results"]}
+    return [rerun.get(r["case"], r) for r in load(SKEL_ZOO)["results"]]
+
+
+@generator("skeleton.zoo", SKEL_ZOO, SKEL_ZOO_RERUN)
 def skeleton_zoo() -> str:
     rows = []
-    for rel in SKEL_ZOO:
-        for r in load(rel)["results"]:
-            if r.get("certified"):
-                what = f"certified, {r.get('cage_faces', '?')} triangles" if r.get("cage_faces") else "certified"
+    for r in _skel_zoo_results():
+        name = f"{r['case'].split('.')[0]} ({r.get('input_faces', 0):,})"
+        if not r.get("certified"):
+            step = _failed_step(r)
+            rows.append([name, f"not certified: `CageError` at step `{step}`", r.get("sections", ""),
+                         "", "", "", "", f"{r.get('wall_seconds', 0):.0f}"])
+            continue
+        s, t = r["seconds"], r["tightness"]
+        steps = " / ".join(f"{s.get(k, 0):.0f}" for k in ("skeleton", "field", "sections", "assembly",
+                                                         "pre_inflation", "inflation", "verify"))
+        rows.append([name, "certified", r["sections"],
+                     f"{r['cage_faces']} ({r['cage_quads']} + {r['cage_junction_triangles']})",
+                     f"{r['cage_quads']} of {r['tight_cage_quads']}", f"{100 * t['max_dist_rel']:.1f}",
+                     f"{r['gap_rel']:.4f}", f"{steps} / {s['total']:.0f}"])
+    return table(["mesh (faces)", "result", "sections", "cage triangles (quads + junction tris)",
+                  "quads kept", "max distance, % of diag", "gap / diag",
+                  "seconds: skeleton / field / sections / assembly / pre-inflation / containment / verify / "
+                  "total"],
+                 rows)
+
+
+SKEL_CMP = {"M (default)": SKEL_ZOO, "offset envelope": "skeleton/zoo_envelope.json",
+            "nested proxy": "skeleton/zoo_proxy.json"}
+
+
+@generator("skeleton.containment", *SKEL_CMP.values())
+def skeleton_containment() -> str:
+    by = {k: {r["case"]: r for r in (_skel_zoo_results() if v == SKEL_ZOO else load(v)["results"])}
+          for k, v in SKEL_CMP.items()}
+    cases = [c for c in by["offset envelope"] if c in by["nested proxy"]]
+    rows = []
+    for c in cases:
+        cells = []
+        for k in SKEL_CMP:
+            r = by[k].get(c)
+            if r is None:
+                cells.append("not run")
+            elif r.get("certified"):
+                cells.append(f"{r['cage_faces']} tris, {100 * r['tightness']['max_dist_rel']:.1f}%, "
+                             f"{r['seconds']['inflation']:.0f} s")
+            elif r.get("error", "").startswith("timeout"):
+                cells.append(f"not done: {r['error']}")
             else:
-                what = f"`CageError` at step `{r.get('failure', {}).get('stage', '?')}` (not certified)"
-            rows.append([r["case"].split(".")[0], what, r.get("sections", ""),
-                         f"{r.get('seconds', {}).get('total', r.get('wall_seconds', 0)):.1f}"])
-    return table(["character", "result", "sections", "seconds"], rows)
+                step = _failed_step(r)
+                cells.append(f"fails (`{step}`)")
+        rows.append([c.split(".")[0], *cells])
+    return table(["mesh", *(f"{k}: faces, max dist, containment s" for k in SKEL_CMP)], rows)
+
+
+SKEL_MN = "skeleton/zoo_min_nested.json"
+
+
+@generator("skeleton.zoo_min_nested", SKEL_MN)
+def skeleton_zoo_min_nested() -> str:
+    rows = []
+    for r in load(SKEL_MN)["results"]:
+        if not r.get("certified"):
+            continue
+        n = r["smallest_nested_at_same_distance"]
+        rows.append([r["case"].split(".")[0], r["cage_faces"], f"{100 * r['tightness']['max_dist_rel']:.1f}",
+                     f"{2 * r['cage_quads'] / r['cage_faces']:.2f}", n["smallest_faces"],
+                     f"{n['face_ratio_nested_over_skeleton']:.2f}" if n.get("face_ratio_nested_over_skeleton")
+                     else "-"])
+    return table(["mesh", "skeleton cage triangles", "max distance, % of diag", "share of triangles in quads",
+                  "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
+
+
+SKEL_HZ = "skeleton/hierarchy_zoo.json"
+
+
+@generator("skeleton.hierarchy_zoo", SKEL_HZ)
+def skeleton_hierarchy_zoo() -> str:
+    rows = []
+    for d in load(SKEL_HZ)["results"]:
+        for key in ("skeleton", "nested"):
+            r = d[key]
+            label = f"{d['shape']}: {'skeleton cage' if key == 'skeleton' else '`nested` only'}"
+            if "error" in r:
+                rows.append([label, f"fails: {r['error'][:80]}", "", "", "", "", ""])
+                continue
+            rows.append([label, "yes" if r["certified"] else "no",
+                         " / ".join(f"{x:,}" for x in r["cage_faces"] or []),
+                         " / ".join(f"{x:,}" for x in r["tets"]), f"{r['build_seconds']:.0f}",
+                         f"{r['poisson-dirichlet']['cycles']}, {r['poisson-dirichlet']['mean_factor']:.3f}",
+                         f"{r['poisson-neumann']['cycles']}, {r['poisson-neumann']['mean_factor']:.3f}"])
+    return table(["hierarchy", "certified", "cage faces", "tets per level", "build s",
+                  "Dirichlet: cycles, factor", "Neumann: cycles, factor"], rows)
 
 
 @generator("skeleton.hierarchy", SKEL_H)
@@ -435,6 +716,158 @@ def skeleton_hierarchy() -> str:
                      f"{r['poisson-neumann']['cycles']}, {r['poisson-neumann']['mean_factor']:.3f}"])
     return table(["coarsest layer", "certified", "tets per level", "build s", "Dirichlet: cycles, factor",
                   "Neumann: cycles, factor"], rows)
+
+
+# ----------------------------------------------------------------------------------------- curved P2
+CURVED = "curved/curved.json"
+
+
+def _curved():
+    return load(CURVED)["results"]
+
+
+def _mesh_label(r: dict) -> str:
+    return r["mesh"] + (" (CAD)" if r["mesh"].startswith("fandisk") else "")
+
+
+@generator("curved.caption", "curved/picture_torus.json")
+def curved_caption() -> str:
+    c = load("curved/picture_torus.json")["picture"]["curving"]
+    d = c["surface_distance"]
+    return (f"{c['tets']} tets of the procedural solid torus (`shapes.torus_tets(0, segments=12)`), straight "
+            f"and curved onto the exact torus: facet distance to the surface {d['straight_max']:.4f} → "
+            f"{d['curved_max']:.4f}, " + ("every tet certified" if c["certified"] else "NOT certified"))
+
+
+@generator("curved.curving", CURVED)
+def curved_curving() -> str:
+    rows = []
+    for r in _curved():
+        c, c0 = r["curving"], r["curving_no_quality"]
+        sj, sj0, lin, d = c["scaled_jacobian"], c["scaled_jacobian"]["before_quality"], \
+            c["linear_scaled_jacobian"], c["surface_distance"]
+        fit = c["fit"]["patch_tets"] if c["fit"] else 0
+        rows.append([_mesh_label(r), f"{c['tets']:,}", f"{c['curved_tets']:,}",
+                     f"{c['invalid_after_projection']} / {fit} / {c['straightened']}",
+                     f"{sj0['min']:.3f} / {sj0['mean']:.3f}",
+                     f"**{sj['min']:.3f}** / {sj['mean']:.3f} ({sj['bound_min']:.3f})",
+                     f"{sj0['below_threshold']:,} → {sj['below_threshold']:,}",
+                     f"{lin['min_curved']:.3f} / {lin['mean_curved']:.3f}",
+                     f"{d['straight_max']:.1e} → {c0['surface_distance']['curved_max']:.1e} → "
+                     f"{d['curved_max']:.1e}",
+                     f"{c0['seconds_total']:.1f} / {c['seconds']['quality']:.1f}"])
+    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
+    return table(["mesh", "level-1 tets", "curved tets", "invalid after projection / tets in the fitted "
+                  "patches / straightened", "scaled Jacobian min / mean, no quality pass",
+                  "with the quality pass: min / mean (certified bound on the min)", f"tets below {thr}",
+                  "straight tets' linear scaled Jacobian min / mean (curved tets)",
+                  "facet distance max: straight → curved → with the quality pass",
+                  "curving s / quality pass s"], rows)
+
+
+@generator("curved.accuracy", CURVED)
+def curved_accuracy() -> str:
+    rows = []
+    names = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann, smooth normals",
+             "neumann_face": "Neumann, face normals"}
+    for r in _curved():
+        for key, label in names.items():
+            p = r["problems"][key]
+            nq = p.get("P2_curved_no_quality")
+            rows.append([r["mesh"], label, f"{p['P1']['unknowns']:,}", f"{p['P1']['l2_error']:.2e}",
+                         f"{p['P2_straight']['l2_error']:.2e}", f"{p['P2_curved']['l2_error']:.2e}",
+                         f"{nq['l2_error']:.2e}" if nq else "",
+                         f"**{p['p1_over_curved']:.1f}**",
+                         f"{p['P1']['iterations']} / {p['P2_straight']['iterations']} / "
+                         f"{p['P2_curved']['iterations']}"])
+    return table(["mesh", "problem", "unknowns (P1)", "L2 P1", "L2 P2 straight", "L2 P2 curved, quality pass",
+                  "L2 P2 curved, no quality pass", "P1 / curved (quality pass)",
+                  "MG-PCG it P1 / P2 straight / P2 curved"], rows)
+
+
+CURVED_LAM = "curved/curved_lam0.05.json"
+
+
+@generator("curved.lambda", CURVED, CURVED_LAM)
+def curved_lambda() -> str:
+    rows = []
+    runs = [load(CURVED_LAM)["results"], _curved()]
+    for k, r in enumerate(_curved()):
+        variants = [("no quality pass", r["curving_no_quality"], r["problems"]["poisson-dirichlet"],
+                     "P2_curved_no_quality")]
+        variants += [(f"λ = {run[k]['curving']['quality']['lam']:g}", run[k]["curving"],
+                      run[k]["problems"]["poisson-dirichlet"], "P2_curved") for run in runs]
+        for label, c, p, key in variants:
+            sj, d = c["scaled_jacobian"], c["surface_distance"]
+            q = c.get("quality")
+            kept = f"{sum(x['kept'] for x in q['passes'])} of {len(q['passes'])}" if q else ""
+            rows.append([r["mesh"], label, kept, f"{sj['min']:.3f} / {sj['mean']:.3f}",
+                         f"{sj['below_threshold']:,}" if q else "",
+                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}", f"{p[key]['l2_error']:.2e}",
+                         f"{c['seconds']['quality']:.0f}" if q else ""])
+    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
+    return table(["mesh", "curving", "passes kept", "scaled Jacobian min / mean", f"tets below {thr}",
+                  "facet distance max / mean", "L2 Dirichlet, curved P2", "quality pass s"], rows)
+
+
+@generator("curved.neumann_face_all", CURVED, CURVED_LAM)
+def curved_neumann_face_all() -> str:
+    runs = [load(CURVED_LAM)["results"], _curved()]
+    return rng([r["problems"]["neumann_face"]["p1_over_curved"] for run in runs for r in run], ".1f")
+
+
+@generator("curved.sj_min", CURVED)
+def curved_sj_min() -> str:
+    return rng([r["curving"]["scaled_jacobian"]["min"] for r in _curved()], ".3f")
+
+
+@generator("curved.sj_min_before", CURVED)
+def curved_sj_min_before() -> str:
+    return rng([r["curving"]["scaled_jacobian"]["before_quality"]["min"] for r in _curved()], ".3f")
+
+
+@generator("curved.sj_mean", CURVED)
+def curved_sj_mean() -> str:
+    return rng([r["curving"]["scaled_jacobian"]["mean"] for r in _curved()], ".3f")
+
+
+@generator("curved.sj_mean_2", CURVED)
+def curved_sj_mean_2() -> str:
+    return curved_sj_mean()
+
+
+@generator("curved.sj_min_2", CURVED)
+def curved_sj_min_2() -> str:
+    return curved_sj_min()
+
+
+@generator("curved.quality_cost", CURVED)
+def curved_quality_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P2_curved"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p], ".1f", "x")
+
+
+@generator("curved.dirichlet_gain_noq", CURVED)
+def curved_dirichlet_gain_noq() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P1"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p], ".0f", "x")
+
+
+@generator("curved.lin_min", CURVED)
+def curved_lin_min() -> str:
+    return rng([r["curving"]["linear_scaled_jacobian"]["min_curved"] for r in _curved()], ".3f")
+
+
+@generator("curved.pcg_extra", CURVED)
+def curved_pcg_extra() -> str:
+    extra = [p["P2_curved"]["iterations"] - p["P1"]["iterations"] for r in _curved()
+             for p in r["problems"].values()]
+    return f"+{max(extra)}"
+
+
+@generator("curved.dirichlet_gain", CURVED)
+def curved_dirichlet_gain() -> str:
+    return rng([r["problems"]["poisson-dirichlet"]["p1_over_curved"] for r in _curved()], ".0f", "x")
 
 
 # ----------------------------------------------------------------------------------------- corpus views

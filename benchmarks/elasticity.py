@@ -43,14 +43,13 @@ Markdown table of a result file (docs/elasticity.md).
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, peak_rss_mb, relres, write_json
+from exp_common import environment, git_commit, peak_rss_mb, relres, write_json
 
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr",
            "hypre_nodal")
@@ -297,14 +296,6 @@ def _mark(residual: float, tol: float) -> str:
     return "" if residual <= 1.01 * tol else (" *" if residual <= 10 * tol else " ✗")
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent, check=False).stdout.strip()
-    except OSError:
-        return ""
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("meshes", nargs="*", help="closed surface files or shape:NAME")
@@ -338,7 +329,7 @@ def main(argv=None) -> int:
     res = {"params": {"tol": a.tol, "repeat": a.repeat, "levels": a.levels, "methods": methods,
                       "command": " ".join(["benchmarks/elasticity.py"]
                                           + [Path(x).name if Path(x).exists() else x for x in sys.argv[1:]]),
-                      "commit": _commit(), "seconds": "wall; median of the repeats"},
+                      "commit": git_commit(), "seconds": "wall; median of the repeats"},
            "environment": environment(), "meshes": []}
     mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets
     edges = a.edge_length or [None] * len(a.meshes)

@@ -173,6 +173,17 @@ def environment() -> dict:
             "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
 
 
+def git_commit() -> str:
+    """Short hash of the checkout this script runs from ("" outside a git checkout)."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parent, check=False).stdout.strip()
+    except OSError:
+        return ""
+
+
 def write_json(obj: dict, path: Path) -> None:
     """Write ``obj`` as indented JSON (numpy scalars converted)."""
 

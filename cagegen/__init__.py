@@ -16,6 +16,7 @@ from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's li
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
 from .components import build_cages_per_component, split_components
+from .culling import CullingReport, cull_collisions, solids_intersect
 from .errors import (
     BackendUnavailableError,
     CageError,
@@ -36,6 +37,7 @@ __all__ = [
     "CageError",
     "CageOptions",
     "CageOptionError",
+    "CullingReport",
     "DecimateOptions",
     "LazyOptions",
     "LevelsError",
@@ -54,6 +56,7 @@ __all__ = [
     "build_cages_per_component",
     "check_face_counts",
     "check_mesh",
+    "cull_collisions",
     "default_face_counts",
     "errors",
     "get_backend",
@@ -61,6 +64,7 @@ __all__ = [
     "register_backend",
     "registered_backends",
     "repair_mesh",
+    "solids_intersect",
     "split_components",
     "verify_nesting",
 ]

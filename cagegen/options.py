@@ -248,6 +248,9 @@ class SkeletonOptions(CageOptions):
     refine_levels: int = field_spec(0, "refinement levels of the polish", low=0)
     recentre: float = field_spec(0.0, "recentre nodes below this fraction of the chain's median radius",
                                  low=0.0)
+    containment: str = field_spec("mesh", "how the cage comes to contain M: mesh (M swept down the guiding "
+                                          "field, re-inflated) or flow (the Nested Cages flow)",
+                                  choices=("mesh", "flow"))
     nested_face_counts: str = field_spec("above", "how the finer nested layers are sized")
 
 

@@ -97,12 +97,12 @@ def _p2_level(h) -> int:
     return 1 if rep is not None and str(rep.extrapolation).startswith("none (refinement)") else 0
 
 
-def _curve(h, base: int):
+def _curve(h, base: int, quality: float | None = None):
     """Level ``base`` of ``h`` curved onto the input surface (normalised frame), certified."""
     from .curved import curve_mesh, surface_projector
 
     Vs, Fs = h.surfaces_in("normalized")[0]
-    return curve_mesh(*h.tets_in("normalized")[base], surface_projector(Vs, Fs))
+    return curve_mesh(*h.tets_in("normalized")[base], surface_projector(Vs, Fs), quality=quality)
 
 
 def _solve(h, args, solution: bool = False) -> dict:
@@ -115,7 +115,7 @@ def _solve(h, args, solution: bool = False) -> dict:
         if args.problem.startswith("elasticity"):
             raise NestmgError("--element P2 supports the scalar problems only (not elasticity)")
         base = _p2_level(h)
-        cm = _curve(h, base)
+        cm = _curve(h, base, getattr(args, "quality", None))
         tets, P, extra = tets[base:], P[base:], {"element": "P2", "curved": cm}
     r = solve_on_hierarchy(tets, P, args.problem, args.solver, return_solution=solution, **extra)
     if extra:
@@ -373,6 +373,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="P2: quadratic tets curved onto the input surface (certified valid), on the level "
                         "refined into level 0 (the same unknowns) or on level 0; p-multigrid to the P1 levels; "
                         "--out writes p2.vtu (tetra10)")
+    s.add_argument("--quality", type=float, default=None,
+                   help="with --element P2: quality pass on the curved tets whose scaled Jacobian (min / max "
+                        "det J) is below this, e.g. 0.96")
     s.add_argument("--json", default=None, help="write the report here")
     s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")
     s.add_argument("--out", default=None,

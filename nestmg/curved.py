@@ -36,6 +36,7 @@ __all__ = [
     "certify_tets",
     "curve_mesh",
     "jacobian_bernstein",
+    "linear_scaled_jacobians",
     "p2_nodes",
     "p2_prolongation",
     "scaled_jacobians",
@@ -128,18 +129,59 @@ def torus_projector(R: float = 1.0, r: float = 0.35) -> Projector:
     return project
 
 
-def surface_projector(V: np.ndarray, F: np.ndarray) -> Projector:
-    """Closest points on a triangle mesh (libigl ``point_mesh_squared_distance``) and its face normals there."""
+def surface_projector(V: np.ndarray, F: np.ndarray, normals: str = "face",
+                      crease: float = 60.0) -> Projector:
+    """Closest points on a triangle mesh (libigl ``point_mesh_squared_distance``) and normals there.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (f,3) int array
+        A consistently oriented triangle mesh.
+    normals : {"smooth", "face"}
+        ``"face"``: the closest triangle's normal (piecewise constant: it jumps across every input edge).
+        ``"smooth"``: the corner normals of the closest triangle (libigl ``per_corner_normals``: incident
+        face normals averaged over the faces within ``crease`` degrees of the corner's face, so sharp
+        features keep their jump) interpolated with the closest point's barycentric coordinates; where
+        the result is more than ``crease`` degrees from the face normal (or vanishes), the face normal.
+    crease : float
+        Dihedral angle in degrees above which an input edge is a sharp feature.
+
+    Examples
+    --------
+    >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    >>> F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    >>> C, n = surface_projector(V, F)(np.array([[0.2, 0.2, -1.0]]))
+    >>> C.round(3).tolist(), n.round(3).tolist()   # the face z = 0: a 90° crease all around
+    ([[0.2, 0.2, 0.0]], [[0.0, 0.0, -1.0]])
+    """
     import igl
 
+    if normals not in ("smooth", "face"):
+        raise NestmgInputError(f"normals must be 'smooth' or 'face', got {normals!r}")
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
+    CN = None
+    if normals == "smooth":
+        CN = np.asarray(igl.per_corner_normals(V, F, float(crease))).reshape(-1, 3, 3)
+    cos_max = np.cos(np.radians(crease))
 
     def project(P):
         _, idx, C = igl.point_mesh_squared_distance(np.ascontiguousarray(P, dtype=np.float64), V, F)
-        return np.asarray(C), N[np.asarray(idx).ravel()]
+        idx, C = np.asarray(idx).ravel(), np.asarray(C)
+        if CN is None:
+            return C, N[idx]
+        a, b, c = (np.ascontiguousarray(V[F[idx, k]]) for k in range(3))
+        bc = np.asarray(igl.barycentric_coordinates(C, a, b, c))
+        n = np.einsum("ik,ikd->id", bc, CN[idx])
+        length = np.linalg.norm(n, axis=1)
+        ok = length > 1e-12
+        n[ok] /= length[ok, None]
+        off = ~ok | (np.einsum("ij,ij->i", n, N[idx]) < cos_max)  # orientation / crease guard
+        n[off] = N[idx[off]]
+        return C, n
 
     return project
 
@@ -216,7 +258,8 @@ def jacobian_bernstein(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None =
     return vals @ Binv.T, vals
 
 
-def certify_tets(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None = None, *, depth: int = 2) -> np.ndarray:
+def certify_tets(X: np.ndarray, T10: np.ndarray, tets: np.ndarray | None = None, *,
+                 depth: int = 2) -> np.ndarray:
     """Certify ``det J > 0`` on whole P2 tets: 1 valid (proved), -1 invalid (proved), 0 undecided.
 
     All Bernstein coefficients positive proves validity; a lattice value ``<= 0`` proves invalidity;
@@ -261,23 +304,65 @@ def _child_barycentric() -> np.ndarray:
     return np.concatenate([1.0 - kids.sum(axis=2, keepdims=True), kids], axis=2)
 
 
-def scaled_jacobians(X: np.ndarray, T10: np.ndarray, order: int = 6) -> np.ndarray:
-    """Per tet ``min det J / max det J`` over the degree-``order`` lattice (1 for straight tets).
+def scaled_jacobians(X: np.ndarray, T10: np.ndarray, order: int = 6, *, bound: bool = False) -> np.ndarray:
+    """Scaled Jacobian of P2 tets: ``min det J / max det J`` over each tet (1 for a straight tet).
 
-    The usual distortion measure of curved elements (<= 0 for an invalid tet).
+    The usual distortion measure of curved elements (<= 0 for an invalid tet). It is invariant to the
+    straight tet's shape: it measures what curving costs, not how well shaped the straight tet is
+    (:func:`linear_scaled_jacobians`).
+
+    Parameters
+    ----------
+    X : (N,3) float array
+    T10 : (t,10) int array
+    order : int
+        ``det J`` is sampled on the degree-``order`` lattice of each tet (an upper estimate of the
+        true ratio).
+    bound : bool
+        Return instead the certified lower bound ``max(min c, 0) / max c`` of the Bernstein
+        coefficients ``c`` of ``det J`` (:func:`jacobian_bernstein`; they bound ``det J`` on both sides).
+
+    Returns
+    -------
+    (t,) float array
     """
     lam = _lattice(order) / float(order)
     xi = lam[:, 1:]
     out = np.empty(len(T10))
     for s in range(0, len(T10), 20000):
         idx = np.arange(s, min(len(T10), s + 20000))
+        if bound:
+            c = jacobian_bernstein(X, T10, idx)[0]
+            out[idx] = np.maximum(c.min(axis=1), 0.0) / c.max(axis=1)
+            continue
         d = _det_at(X, T10, idx, xi)
         out[idx] = d.min(axis=1) / d.max(axis=1)
     return out
 
 
+def linear_scaled_jacobians(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Scaled Jacobian of straight tets (Knupp): the smallest over the 4 corners of ``det(e1, e2, e3) /
+    (|e1| |e2| |e3|)``, ``e`` the corner's edges, times √2 (1 for the regular tet, 0 for a flat one).
+
+    Examples
+    --------
+    >>> V = np.array([[1., 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]])   # regular
+    >>> linear_scaled_jacobians(V, np.array([[0, 1, 2, 3]])).round(6).tolist()
+    [1.0]
+    """
+    P = np.asarray(V, dtype=np.float64)[np.asarray(T)]
+    from solvers.fem_p2 import det3
+
+    q = np.empty((len(P), 4))
+    for c, (a, b, d) in enumerate(((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))):  # same orientation
+        e = P[:, [a, b, d]] - P[:, [c]]
+        q[:, c] = det3(np.swapaxes(e, 1, 2)) / np.prod(np.linalg.norm(e, axis=2), axis=1)
+    q *= np.sign(q.sum(axis=1, keepdims=True))  # either orientation of T
+    return np.sqrt(2.0) * q.min(axis=1)
+
+
 def surface_distance(X: np.ndarray, F6: np.ndarray, project: Projector, order: int = 4) -> np.ndarray:
-    """Largest distance to the surface of each curved 6-node facet, sampled on its degree-``order`` lattice."""
+    """Largest distance to the surface of each curved 6-node facet (sampled: degree-``order`` lattice)."""
     from solvers.fem_p2 import _p2_tri_basis
 
     st = np.array([(i / order, j / order) for i in range(order + 1) for j in range(order + 1 - i)])
@@ -292,7 +377,7 @@ def surface_distance(X: np.ndarray, F6: np.ndarray, project: Projector, order: i
 
 @dataclass
 class CurvedMesh:
-    """A tet mesh with quadratic (``tetra10``) elements, straight inside, fitted to the surface at the boundary.
+    """A tet mesh of quadratic (``tetra10``) elements, straight inside, fitted to the surface at the boundary.
 
     Attributes
     ----------
@@ -365,7 +450,7 @@ def _tets_with_nodes(T10: np.ndarray, nodes: np.ndarray, N: int) -> np.ndarray:
 
 
 def _fit_patch(X, Xs, T, T10, bad, project, *, lam, reference, rounds, depth) -> tuple[np.ndarray, dict]:
-    """Move the edge nodes around the ``bad`` tets by the paper's energy, from a valid (straightened) start."""
+    """Move the edge nodes around the ``bad`` tets by the paper's energy, from a valid (straight) start."""
     from .curved_fit import fit_mid_nodes, reference_inverse
 
     N = len(X)
@@ -415,8 +500,68 @@ def _straighten(X, Xs, T10, bad, depth) -> tuple[np.ndarray, int]:
     return X, int(straight.sum())
 
 
+def _moved_tets(X: np.ndarray, Xs: np.ndarray, T10: np.ndarray) -> np.ndarray:
+    """Tets with an edge node off its straight position (the curved tets)."""
+    return _tets_with_nodes(T10, np.flatnonzero(np.any(X != Xs, axis=1)), len(X))
+
+
+def _sj_summary(X: np.ndarray, T10: np.ndarray, tets: np.ndarray, threshold: float) -> dict:
+    """Min / mean scaled Jacobian of ``tets`` (sampled; certified lower bound), count below ``threshold``."""
+    sj = scaled_jacobians(X, T10[tets])
+    lb = scaled_jacobians(X, T10[tets], bound=True)
+    return {"tets": int(len(tets)), "min": float(sj.min()), "mean": float(sj.mean()),
+            "below_threshold": int((sj < threshold).sum()), "bound_min": float(lb.min()),
+            "bound_mean": float(lb.mean())}
+
+
+def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, lam: float, rounds: int,
+                  passes: int, depth: int) -> tuple[np.ndarray, dict]:
+    """Raise the scaled Jacobian of the tets below ``threshold`` by the paper's energy (quality pass).
+
+    A pass frees the edge nodes of the curved tets whose scaled Jacobian is below ``threshold`` (from
+    the second pass on, those of their vertex neighbours too: more room for the few tets left) and
+    minimises the paper's ``E_S + λ E_Ω`` over them (:func:`nestmg.curved_fit.fit_mid_nodes`: boundary
+    nodes held near their tangent planes, every iterate certified; here ``E_Ω`` weights every tet
+    alike, so small bad tets count as much as large ones). A pass is kept only if all its tets are
+    certified, its worst scaled Jacobian did not go down and its mean went up.
+    """
+    from .curved_fit import fit_mid_nodes, reference_inverse
+
+    t0 = time.perf_counter()
+    info: dict = {"threshold": threshold, "lam": lam, "passes": [], "iterations": 0}
+    for k in range(passes):
+        curved = _moved_tets(X, Xs, T10)
+        sj = scaled_jacobians(X, T10[curved])
+        low = curved[sj < threshold]
+        if low.size == 0:
+            break
+        if k:  # the vertex neighbours too
+            low = _tets_with_nodes(T10, np.unique(T[low]), len(X))
+        free = np.unique(T10[low, 4:])
+        etets = _tets_with_nodes(T10, free, len(X))
+        Ainv = reference_inverse(Xs, T[etets], "straight")
+        h = _edge_length_of_nodes(Xs, T10, free)
+        X1, fit = fit_mid_nodes(X, T10[etets], Ainv, free, bmark[free], h, project, lam=lam, rounds=rounds,
+                                weighting="element")
+        old, new = scaled_jacobians(X, T10[etets]), scaled_jacobians(X1, T10[etets])
+        kept = bool(new.min() >= old.min() and new.mean() > old.mean()
+                    and (certify_tets(X1, T10, etets, depth=depth) == VALID).all())
+        info["passes"].append({"below": int((sj < threshold).sum()), "free_nodes": int(len(free)),
+                               "energy_tets": int(len(etets)), "iterations": fit["iterations"],
+                               "min_before": float(old.min()),
+                               "min_after": float(new.min()), "mean_before": float(old.mean()),
+                               "mean_after": float(new.mean()), "kept": kept})
+        info["iterations"] += fit["iterations"]
+        if not kept:
+            break
+        X = X1
+    info["seconds"] = time.perf_counter() - t0
+    return X, info
+
+
 def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bool = True, fit: bool = True,
-               lam: float = 0.05, reference: str = "straight", rounds: int = 4, depth: int = 2) -> CurvedMesh:
+               lam: float = 0.05, reference: str = "straight", rounds: int = 4, depth: int = 2,
+               quality: float | None = None, quality_lam: float = 1.0, quality_passes: int = 2) -> CurvedMesh:
     """Curve a tet mesh's boundary onto a surface at order 2, with every element certified valid.
 
     1. P2 nodes (:func:`p2_nodes`); the boundary vertices (``vertices=True``; a vertex whose move would
@@ -425,6 +570,10 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
        ``fit`` is on, the edge nodes of those tets and of their vertex neighbours are restarted straight
        and moved by the paper's energy ``E_S + λ E_Ω`` (:func:`nestmg.curved_fit.fit_mid_nodes`).
     3. Tets still not certified get their edge nodes straightened (counted in ``report["straightened"]``).
+    4. Quality pass (``quality`` not None): the edge nodes of the curved tets whose scaled Jacobian
+       (:func:`scaled_jacobians`) is below ``quality`` are moved by ``E_S + quality_lam E_Ω`` (the fit
+       and the Hencky energy, every tet weighted alike), every iterate certified, up to
+       ``quality_passes`` times (``report["quality"]``).
 
     Parameters
     ----------
@@ -438,26 +587,57 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
     fit : bool
         Run the energy where the projection is not certified (else straighten at once).
     lam : float
-        λ of the volume energy (paper eq. 1; 0.05 is its close-fitting value).
+        λ of the volume energy in step 2 (paper eq. 1; 0.05 is its close-fitting value).
     reference : {"straight", "regular"}
-        The ideal element of the Hencky energy (:func:`nestmg.curved_fit.reference_inverse`).
+        The ideal element of the Hencky energy in step 2 (:func:`nestmg.curved_fit.reference_inverse`).
     rounds : int
         L-BFGS rounds (point-to-plane targets refreshed between them).
     depth : int
         Subdivision depth of the Bernstein certification.
+    quality : float or None
+        Scaled-Jacobian threshold of the quality pass (None: no pass).
+    quality_lam : float
+        λ of the quality pass: larger trades surface fit for element quality (10 un-curves a coarse
+        ball; 1 keeps the facet distance within ~1.5x).
+    quality_passes : int
+        Quality passes at most (each on the tets still below the threshold).
 
     Returns
     -------
     CurvedMesh
+        ``report``: counts, ``scaled_jacobian`` (final, over the curved tets; ``before_quality``: after
+        step 3), ``linear_scaled_jacobian`` (the straight tets', :func:`linear_scaled_jacobians`),
+        ``surface_distance``, ``seconds``.
     """
-    from .tetmesh import orient_tets, tet_volumes
+    from .tetmesh import tet_volumes
 
     V = np.asarray(V, dtype=np.float64)
     T = np.asarray(T, dtype=np.int64)
     if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
-        raise NestmgInputError(f"curve_mesh needs V (n,3) and T (t,4) with t > 0, got {V.shape} and {T.shape}")
+        raise NestmgInputError(f"curve_mesh needs V (n,3) and T (t,4) with t > 0, got {V.shape} and "
+                               f"{T.shape}")
     if np.any(np.abs(tet_volumes(V, T)) <= 0):
         raise NestmgInputError("curve_mesh needs a tet mesh without degenerate (zero-volume) tets")
+    if quality is not None and not 0.0 < quality < 1.0:
+        raise NestmgInputError(f"quality must be a scaled Jacobian in (0, 1) or None, got {quality}")
+    X, Xs, T, T10, E, rep = _project_and_repair(V, T, project, vertices=vertices, fit=fit, lam=lam,
+                                                reference=reference, rounds=rounds, depth=depth)
+    bmark = np.zeros(len(X), dtype=bool)
+    bmark[p2_boundary_facets(T10)[0][:, 3:].ravel()] = True
+    thr = 0.9 if quality is None else quality
+    rep["scaled_jacobian"] = {"before_quality": _sj_summary(X, T10, _moved_tets(X, Xs, T10), thr)}
+    if quality is not None:
+        X, rep["quality"] = _quality_pass(X, Xs, T, T10, bmark, project, threshold=quality, lam=quality_lam,
+                                          rounds=rounds, passes=quality_passes, depth=depth)
+        rep["seconds"]["quality"] = rep["quality"]["seconds"]
+    _measure(X, Xs, T, T10, project, thr, rep, depth)
+    return CurvedMesh(X, T, T10, E, rep)
+
+
+def _project_and_repair(V, T, project, *, vertices, fit, lam, reference, rounds, depth):
+    """Steps 1–3 of :func:`curve_mesh`: project, certify, fit uncertified patches, straighten the rest."""
+    from .tetmesh import orient_tets
+
     sec: dict[str, float] = {}
     t0 = time.perf_counter()
     T = orient_tets(V, T)
@@ -486,13 +666,26 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
         bad = recheck[certify_tets(X, T10, recheck, depth=depth) != VALID]
     sec["fit"] = time.perf_counter() - t0
     X, rep["straightened"] = _straighten(X, Xs, T10, bad, depth)
-    rep["certified"] = bool((certify_tets(X, T10, curved, depth=depth) == VALID).all())
-    t0 = time.perf_counter()
-    sj = scaled_jacobians(X, T10[curved])  # straight tets have a scaled Jacobian of exactly 1
-    rep["scaled_jacobian"] = {"min": float(sj.min()), "mean_curved": float(sj.mean()),
-                              "mean_all": float((sj.sum() + len(T) - len(curved)) / len(T))}
-    rep["surface_distance"] = {"curved_max": float(surface_distance(X, F6, project).max()),
-                               "straight_max": float(surface_distance(Xs, F6, project).max())}
-    sec["measure"] = time.perf_counter() - t0
     rep["seconds"] = sec
-    return CurvedMesh(X, T, T10, E, rep)
+    return X, Xs, T, T10, E, rep
+
+
+def _measure(X, Xs, T, T10, project, threshold, rep, depth) -> None:
+    """Certification, scaled Jacobians (curved and straight) and surface distances into ``rep``."""
+    t0 = time.perf_counter()
+    curved = _moved_tets(X, Xs, T10)
+    rep["curved_tets"] = int(len(curved))
+    rep["certified"] = bool((certify_tets(X, T10, curved, depth=depth) == VALID).all())
+    sj = rep["scaled_jacobian"]
+    sj.update(_sj_summary(X, T10, curved, threshold), threshold=threshold)
+    sj["mean_curved"] = sj["mean"]  # straight tets have a scaled Jacobian of exactly 1
+    sj["mean_all"] = (sj["mean"] * len(curved) + len(T) - len(curved)) / len(T)
+    lin = linear_scaled_jacobians(X, T)
+    rep["linear_scaled_jacobian"] = {"min": float(lin.min()), "mean": float(lin.mean()),
+                                     "min_curved": float(lin[curved].min()),
+                                     "mean_curved": float(lin[curved].mean())}
+    F6 = p2_boundary_facets(T10)[0]
+    dc, ds = surface_distance(X, F6, project), surface_distance(Xs, F6, project)
+    rep["surface_distance"] = {"curved_max": float(dc.max()), "straight_max": float(ds.max()),
+                               "curved_mean": float(dc.mean()), "straight_mean": float(ds.mean())}
+    rep["seconds"]["measure"] = time.perf_counter() - t0

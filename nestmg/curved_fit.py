@@ -2,15 +2,16 @@
 
 ``E = E_S + λ E_Ω`` (paper eq. 1) over the free edge nodes of a patch of tets:
 
-* ``E_Ω`` (eq. 2–3, 7): the volume-weighted mean of the Hencky distortion ``ε(F) = ½‖½ ln(FᵀF)‖²`` of
-  ``F = J A⁻¹``, ``J`` the P2 map's Jacobian at quadrature points, ``A`` the ideal element: the straight
-  tet itself (``reference="straight"``, energy 0 before curving) or the regular tet of eq. 4 with the
-  straight tet's volume (``reference="regular"``). ``dε/dF = F⁻ᵀ H`` (paper App. A). ``E_Ω = ∞`` where
-  ``det F <= 0`` at a quadrature point (paper §3.4: a barrier that stops L-BFGS's line search), and here
-  also where a Bernstein coefficient of ``det J`` is ``<= 0``: every iterate is a certified mesh.
-* ``E_S`` (eq. 9, point-to-plane): the mean of ``(n·(x − p) / h)²`` over the free boundary nodes, ``p`` the
-  closest surface point, ``n`` the surface normal there, ``h`` the edge's length; planes are refreshed
-  between L-BFGS rounds, so boundary nodes slide along the surface.
+* ``E_Ω`` (eq. 2–3, 7): the volume-weighted mean of the Hencky distortion
+  ``ε(F) = ½‖½ ln(FᵀF)‖²`` of ``F = J A⁻¹``, ``J`` the P2 map's Jacobian at quadrature points, ``A`` the
+  ideal element: the straight tet itself (``reference="straight"``, energy 0 before curving) or the
+  regular tet of eq. 4 with the straight tet's volume (``reference="regular"``). ``dε/dF = F⁻ᵀ H``
+  (paper App. A). ``E_Ω = ∞`` where ``det F <= 0`` at a quadrature point (paper §3.4: a barrier that
+  stops L-BFGS's line search), and here also where a Bernstein coefficient of ``det J`` is ``<= 0``:
+  every iterate is a certified mesh.
+* ``E_S`` (eq. 9, point-to-plane): the mean of ``(n·(x − p) / h)²`` over the free boundary nodes, ``p``
+  the closest surface point, ``n`` the surface normal there, ``h`` the edge's length; planes are
+  refreshed between L-BFGS rounds, so boundary nodes slide along the surface.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-from solvers.fem_p2 import p2_basis, p2_jacobians, tet_quadrature
+from solvers.fem_p2 import det3, p2_basis, p2_jacobians, tet_quadrature
 
 from .curved import jacobian_bernstein
 
@@ -29,7 +30,7 @@ A_TET = np.array([[1.0, 0.5, 0.5], [0.0, np.sqrt(3) / 2, np.sqrt(3) / 6], [0.0, 
 
 
 def reference_inverse(V: np.ndarray, T: np.ndarray, reference: str = "straight") -> np.ndarray:
-    """``A⁻¹`` per tet (t,3,3): the straight tet's own Jacobian or the regular tet of eq. 4 of the same volume."""
+    """``A⁻¹`` per tet (t,3,3): the straight tet's own Jacobian, or eq. 4's regular tet (same volume)."""
     P = np.asarray(V, dtype=np.float64)[np.asarray(T)]
     Js = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], axis=2)  # (t,3,3)
     if reference == "straight":
@@ -41,7 +42,7 @@ def reference_inverse(V: np.ndarray, T: np.ndarray, reference: str = "straight")
 
 
 def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: int = 3,
-                  gradient: bool = True) -> tuple[float, np.ndarray | None]:
+                  gradient: bool = True, weighting: str = "volume") -> tuple[float, np.ndarray | None]:
     """Volume-weighted mean Hencky distortion of P2 tets and its gradient with respect to ``X``.
 
     Parameters
@@ -50,6 +51,10 @@ def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: i
     T10 : (t,10) int array
     Ainv : (t,3,3) float array
         Inverse ideal-element Jacobians (:func:`reference_inverse`).
+    weighting : {"volume", "element"}
+        ``"volume"``: the integral of eq. 7 over the patch divided by its volume (large tets dominate);
+        ``"element"``: the mean over tets of each tet's own mean distortion (every tet counts alike:
+        the quality pass, where the worst tets are the small ones).
 
     Returns
     -------
@@ -60,26 +65,31 @@ def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: i
     """
     pts, w = tet_quadrature(degree)
     _, dN = p2_basis(pts)
-    J = p2_jacobians(X, T10, dN)  # (t,q,3,3)
-    F = J @ Ainv[:, None]
-    vol = np.abs(1.0 / np.linalg.det(Ainv))  # |det A| per tet
-    if np.any(np.linalg.det(F) <= 0):
+    F = np.einsum("tqdk,tkl->tqdl", p2_jacobians(X, T10, dN), Ainv, optimize=True)  # F = J A⁻¹
+    if np.any(det3(F) <= 0):
         return np.inf, (np.zeros_like(X) if gradient else None)
-    C = np.swapaxes(F, 2, 3) @ F
-    mu, Q = np.linalg.eigh(C)
-    lg = 0.5 * np.log(mu)  # eigenvalues of H
-    eps = 0.5 * (lg**2).sum(axis=2)  # ε = ½‖H‖²
-    wq = w[None, :] * vol[:, None] / (vol.sum() / 6.0)
-    E = float((wq * eps).sum())
+    mu, Q = np.linalg.eigh(np.einsum("tqki,tqkj->tqij", F, F, optimize=True))  # C = FᵀF
+    lg = 0.5 * np.log(mu)  # eigenvalues of H = ln U
+    wq = _quadrature_weights(w, np.abs(1.0 / det3(Ainv)), weighting)
+    E = float(wq.ravel() @ (0.5 * (lg**2).sum(axis=2)).ravel())  # ε = ½‖H‖²
     if not gradient:
         return E, None
-    H = (Q * lg[:, :, None, :]) @ np.swapaxes(Q, 2, 3)
-    dF = np.swapaxes(np.linalg.inv(F), 2, 3) @ H  # dε/dF = F^{-T} H (App. A)
-    dJ = dF @ np.swapaxes(Ainv, 1, 2)[:, None]  # F = J A^{-1}
-    g = np.einsum("tq,tqdk,qak->tad", wq, dJ, dN, optimize=True)
+    # dε/dF = F⁻ᵀH (App. A) = F C⁻¹ H = F Q diag(lg / μ) Qᵀ: no inverse needed
+    S = np.einsum("tqik,tqk,tqjk->tqij", Q, wq[..., None] * lg / mu, Q, optimize=True)
+    dJ = np.einsum("tqdk,tqkl,tml->tqdm", F, S, Ainv, optimize=True)  # ∂/∂J = ∂/∂F A⁻ᵀ
+    g = np.einsum("tqdk,qak->tad", dJ, dN, optimize=True)
     G = np.zeros_like(X)
     np.add.at(G, T10, g)
     return E, G
+
+
+def _quadrature_weights(w: np.ndarray, vol: np.ndarray, weighting: str) -> np.ndarray:
+    """(t,q) weights of eq. 7: by tet volume (the integral / the patch volume), or every tet alike."""
+    if weighting == "volume":
+        return w[None, :] * vol[:, None] / (vol.sum() / 6.0)
+    if weighting == "element":
+        return np.broadcast_to(6.0 * w[None, :] / len(vol), (len(vol), len(w)))
+    raise ValueError(f"weighting must be 'volume' or 'element', got {weighting!r}")
 
 
 class FitResult(dict):
@@ -87,8 +97,8 @@ class FitResult(dict):
 
 
 def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.ndarray, bnd: np.ndarray,
-                  h: np.ndarray, project, *, lam: float = 0.05, rounds: int = 4,
-                  maxiter: int = 200) -> tuple[np.ndarray, FitResult]:
+                  h: np.ndarray, project, *, lam: float = 0.05, rounds: int = 4, maxiter: int = 200,
+                  weighting: str = "volume") -> tuple[np.ndarray, FitResult]:
     """Minimise ``E_S + λ E_Ω`` over the nodes ``free`` of the tets ``T10`` (a patch), L-BFGS.
 
     Parameters
@@ -111,6 +121,10 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
         Weight λ of the volume energy (paper: 0.05 for the close fit).
     rounds : int
         L-BFGS runs, each with the point-to-plane targets refreshed at the current positions.
+    maxiter : int
+        L-BFGS iterations per round.
+    weighting : {"volume", "element"}
+        How tets are weighted in ``E_Ω`` (:func:`hencky_energy`).
 
     Returns
     -------
@@ -132,7 +146,7 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
 
         def energy(y):
             X[free] = (x0 + scale * y).reshape(-1, 3)
-            Ev, Gv = hencky_energy(X, T10, Ainv)
+            Ev, Gv = hencky_energy(X, T10, Ainv, weighting=weighting)
             if not np.isfinite(Ev) or jacobian_bernstein(X, T10)[0].min() <= 0:  # barrier: certified only
                 return np.inf, np.zeros_like(y)
             d = np.einsum("ij,ij->i", n, X[bidx] - p) / hb  # eq. 9, point-to-plane
@@ -152,3 +166,4 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
         info["fit_rms"].append(float(np.sqrt(np.mean(
             (np.linalg.norm(project(X[bidx])[0] - X[bidx], axis=1) / hb) ** 2))) if len(bidx) else 0.0)
     return X, info
+

@@ -37,12 +37,13 @@ def _mesh(tets, curved: CurvedMesh | None) -> CurvedMesh:
         return CurvedMesh(X, T, T10, E, {"straight": True})
     if curved.n_vertices != len(V0) or len(curved.T) != len(T0):
         raise NestmgInputError(f"curved mesh has {curved.n_vertices} vertices / {len(curved.T)} tets, "
-                               f"tets[0] has {len(V0)} / {len(T0)}: curve tets[0] itself (nestmg.curved.curve_mesh)")
+                               f"tets[0] has {len(V0)} / {len(T0)}: curve tets[0] itself "
+                               "(nestmg.curved.curve_mesh)")
     return curved
 
 
 def _rhs(cm: CurvedMesh, M: sp.csr_matrix, f) -> np.ndarray:
-    """``∫ f N_a``: by quadrature for a callable ``f``, ``M f`` for nodal values, default source otherwise."""
+    """``∫ f N_a``: quadrature for a callable ``f``, ``M f`` for nodal values, else the default source."""
     from .problems import default_rhs
 
     if f is None:
@@ -55,7 +56,8 @@ def _rhs(cm: CurvedMesh, M: sp.csr_matrix, f) -> np.ndarray:
     return M @ f
 
 
-def setup_p2_problem(tets: list, P: list, name: str = "poisson-dirichlet", *, curved: CurvedMesh | None = None,
+def setup_p2_problem(tets: list, P: list, name: str = "poisson-dirichlet", *,
+                     curved: CurvedMesh | None = None,
                      coarse: str = "galerkin", lam: float = 1e-2, f=None,
                      boundary_values: Callable[[np.ndarray], np.ndarray] | None = None,
                      flux: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None, prune: float = 0.2):
@@ -126,15 +128,18 @@ def setup_p2_problem(tets: list, P: list, name: str = "poisson-dirichlet", *, cu
         local = np.unique(cm.T10[np.unique(np.r_[p2_boundary_tets(cm.T10)])].ravel())
     return Problem(name=name, A=A, b=np.asarray(b), P=Pr, coarse="galerkin", free=free, n_fine=N,
                    nullspace="constant" if name == "poisson-neumann" else None,
-                   params={"lam": lam if name == "diffusion-neumann" else None, "coarse": coarse, "prune": prune,
+                   params={"lam": lam if name == "diffusion-neumann" else None, "coarse": coarse,
+                           "prune": prune,
                            "element": "P2", "curved": not cm.report.get("straight", False)},
                    local_nodes=local, fixed_values=fixed if dirichlet else None, mesh=cm)
 
 
 def _restrict(cm: CurvedMesh, P: list, free0: np.ndarray, dirichlet: bool, prune: float):
-    """Prolongations on the free nodes: P2 -> P1 on the same tets (Dirichlet: interior vertices), then ``P``."""
+    """Prolongations on the free nodes: P2 -> P1 on the same tets (Dirichlet: interior vertices), then P."""
     n = cm.n_vertices
-    p1_free = np.setdiff1d(np.arange(n), np.unique(cm.boundary_facets()[:, :3])) if dirichlet else np.arange(n)
+    p1_free = np.arange(n)
+    if dirichlet:
+        p1_free = np.setdiff1d(p1_free, np.unique(cm.boundary_facets()[:, :3]))
     Pa, fa = restrict_prolongations([cm.prolongation()], free0, coarse_free=[p1_free], support_only=True)
     if not P:
         return Pa, fa

@@ -24,6 +24,7 @@ __all__ = [
     "SHAPES",
     "ball_tets",
     "genus2",
+    "hand",
     "mesh_implicit",
     "neck_blobs",
     "nested_isosurfaces",
@@ -281,6 +282,25 @@ def stick_figure(res: int = 56):
     S = Skeleton(np.array([J[n] for n in names], float), np.array([(idx[a], idx[b]) for a, b in bones]),
                  [idx["elbow_l"], idx["elbow_r"], idx["knee_l"], idx["knee_r"]])
     return V, F, S
+
+
+def hand(res: int = 56, spacing: float = 0.2, finger_radius: float = 0.08):
+    """A palm with four parallel fingers close together (gaps ``spacing - 2 finger_radius``), with its
+    skeleton: wrist leaf, palm branching node, finger bases (bending nodes) and tips (leaves).
+
+    Where the fingers meet the palm, M wraps around the concave corners between neighbouring tubes of a
+    skeleton cage (the Nested Cages flow stalls there, issue 29). Returns ``(V, F, S)``.
+    """
+    from cagegen.skeleton import Skeleton
+
+    wrist, palm = (0.0, -0.5, 0.0), (0.0, 0.0, 0.0)
+    base = [(x * spacing, 0.15, 0.0) for x in (-1.5, -0.5, 0.5, 1.5)]
+    tips = [(x, 0.85, 0.0) for x, _, _ in base]
+    segs = [(wrist, palm)] + [(palm, b) for b in base] + list(zip(base, tips))
+    f = _capsule_union(segs, [0.2] + [0.12] * 4 + [finger_radius] * 4, 0.04)
+    V, F = mesh_implicit(f, np.array([[-0.8, -0.8, -0.3], [0.8, 1.05, 0.3]]), res=res)
+    edges = [(0, 1)] + [(1, 2 + i) for i in range(4)] + [(2 + i, 6 + i) for i in range(4)]
+    return V, F, Skeleton(np.array([wrist, palm, *base, *tips], float), np.array(edges), [2, 3, 4, 5])
 
 
 # ----------------------------------------------------------------------------- a CAD-like part

@@ -5,8 +5,9 @@ built or any tet meshed, and an impossible request fails in seconds naming the o
 
 The rule (:func:`plan_hierarchy`)
 ---------------------------------
-* Fine edge length ``h_0``: ``--edge-length`` if given; otherwise the input's mean edge length,
-  enlarged when needed so that the estimated fine tet count stays within ``max_tets`` (default
+* Fine edge length ``h_0``: ``--edge-length`` if given; otherwise the input's mean edge length or its
+  mean thickness (enclosed volume over area), whichever is smaller (:func:`_resolution_edge`: a CAD
+  export's or a low-poly model's triangles say nothing of the solid), enlarged when needed so that the estimated fine tet count stays within ``max_tets`` (default
   1.5M) *and* the estimated fine meshing time within ``time_budget``.
 * Level ``k`` is meshed at ``h_0 * 2**k`` (~8x fewer tets per level, since the cages enclose a
   volume only slightly larger than the layer inside).
@@ -210,7 +211,8 @@ class SizingPlan:
     expected_seconds : float
         Estimated seconds of the fine tet meshing (model in :func:`fine_mesh_seconds`).
     rule : str
-        Which constraint set ``h_0``: ``"user"``, ``"input resolution"``, ``"max_tets"``, ``"time_budget"``.
+        Which constraint set ``h_0``: ``"user"``, ``"input resolution"``, ``"thickness"``, ``"max_tets"``,
+        ``"time_budget"``.
     notes : list of str
     levels : dict or None
         :meth:`LevelsPlan.to_dict` of the levels granted (``levels`` <= ``requested``; ``note``: the one
@@ -255,6 +257,25 @@ def _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, su
         area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
         faces = min(len(F), int(area / (np.sqrt(3) / 4 * (mesh_edge_factor * h) ** 2)))
     return fine_mesh_seconds(faces, int(meshed_fraction * expected_tets(vol, h, mesher)), mesher)
+
+
+def _resolution_edge(V: np.ndarray, F: np.ndarray, vol: float) -> tuple[float, str]:
+    """The mesher's edge that the input asks for: its mean edge, at most its mean thickness ``V / A``.
+
+    The mean edge follows the input's triangles, which on a CAD export (long slivers across flat
+    faces) or a decimated low-poly model say nothing of the solid: round.stl's mean edge is 0.086 of
+    the diagonal for a plate 0.005 thick, and TetWild, asked for that edge, refined where it had to
+    (20x the expected tets, one cage level meshed as finely as the level inside it: operator complexity
+    2.82). ``V / A`` (half the thickness of a plate, a third of a ball's radius) does not depend on the
+    triangulation; a mesher's edge at most ``V / A`` puts about two tets across the solid.
+    """
+    E = V[F[:, [1, 2, 0]]] - V[F]
+    mean_edge = float(np.linalg.norm(E, axis=2).mean())
+    area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
+    thickness = vol / area if area > 0 else mean_edge
+    if thickness < mean_edge:
+        return thickness, "thickness"
+    return mean_edge, "input resolution"
 
 
 def fine_mesh_seconds(n_faces: int, n_tets: int, mesher: str = "tetwild") -> float:
@@ -362,11 +383,13 @@ def plan_hierarchy(
         cap = DEFAULT_MAX_TETS if max_tets is None else int(max_tets)
         if cap < 100:
             raise SizingError(f"--max-tets {cap} is too small for a multigrid hierarchy; use >= 100")
-        E = V[F[:, [1, 2, 0]]] - V[F]
-        # the mesher's own edge (mesh_edge_factor x the fine edge) need not be finer than the input's
-        h_in = float(np.linalg.norm(E, axis=2).mean()) / mesh_edge_factor
+        h_in, rule = _resolution_edge(V, F, vol)
+        h_in /= mesh_edge_factor  # the mesher's own edge (mesh_edge_factor x the fine edge)
         h_cap = edge_length_for_tets(V, F, cap, mesher)
-        h, rule = (h_in, "input resolution") if h_in >= h_cap else (h_cap, "max_tets")
+        if h_in < h_cap:
+            h, rule = h_cap, "max_tets"
+        else:
+            h = h_in
         if time_budget is not None:
             t_h = _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces)
             if t_h > time_budget:

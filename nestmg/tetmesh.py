@@ -332,16 +332,14 @@ def _limit_hint(limit: float | None) -> str:
             "tetrahedralize(time_limit=SECONDS) ('none': no limit)")
 
 
-#: TetGen's modes, tried in order while the previous one fails (a TetGen error, flat tets, or its share
-#: of the time limit). "exact": no merging of coplanar facets or close vertices, so the boundary is the
-#: input's triangles (a cage touching the finer surface keeps it inside; merging lost 3e-4 of a torus
-#: cage's volume, docs/experiments.md). Exact mode fails on some surfaces with many (nearly) coplanar
-#: neighbouring faces, e.g. the convex hull of a rotated torus (flat caps): an internal TetGen error,
-#: flat tets between coplanar facets, or a mesh-improvement loop on those flat tets that never ends (the
-#: hang of issue 27). "merged": TetGen's own treatment of coplanar facets (merged within 0.1 degrees),
-#: which meshes those; the boundary may then move by the height of a fold below 0.1 degrees.
-#: edge of fTetWild's working mesh outside the solid, relative to the target edge (:func:`outer_sizing_field`)
-OUTER_EDGE_FACTOR = 3.0
+#: fTetWild's edge outside the solid, relative to the target edge (:func:`outer_sizing_field`);
+#: 1 (off) by default. One thread, CPU seconds, outside at 3x / uniform, at the pipeline's meshed edge,
+#: against the ratio of fTetWild's box volume to the solid's: homer.obj (10.1) 50.7 / 178.5 and
+#: 51.8 / 124.3, elephant.obj (8.8) 66.6 / 102.2, but bunny.off (5.8) 59.5 / 51.1 and angle_block.stl
+#: (2.4) 24.7 / 15.7 and 20.9 / 15.5 (the sizing-field passes cost more than the outside saves); a torus
+#: meshed at about its minor radius got 1.9x the tets (2026-12-03, loaded machine: to be re-measured
+#: on a quiet one before it becomes a default, e.g. above a box / solid ratio of 8)
+OUTER_EDGE_FACTOR = 1.0
 #: most background-grid nodes of :func:`outer_sizing_field` (the spacing grows past it)
 SIZING_GRID_NODES = 1_000_000
 
@@ -391,6 +389,14 @@ def _kuhn_tets(n: np.ndarray) -> np.ndarray:
     return np.concatenate(tets).astype(np.int32)
 
 
+#: TetGen's modes, tried in order while the previous one fails (a TetGen error, flat tets, or its share
+#: of the time limit). "exact": no merging of coplanar facets or close vertices, so the boundary is the
+#: input's triangles (a cage touching the finer surface keeps it inside; merging lost 3e-4 of a torus
+#: cage's volume, docs/experiments.md). Exact mode fails on some surfaces with many (nearly) coplanar
+#: neighbouring faces, e.g. the convex hull of a rotated torus (flat caps): an internal TetGen error,
+#: flat tets between coplanar facets, or a mesh-improvement loop on those flat tets that never ends (the
+#: hang of issue 27). "merged": TetGen's own treatment of coplanar facets (merged within 0.1 degrees),
+#: which meshes those; the boundary may then move by the height of a fold below 0.1 degrees.
 _TETGEN_MODES = {
     "exact": {"nomergefacet": True, "nomergevertex": True},
     "merged": {"nomergefacet": False, "nomergevertex": True},
@@ -497,8 +503,9 @@ def tetrahedralize(
         cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
     outer_edge_factor : float
         TetWild: target edge of its working mesh *outside* the solid, relative to the edge length
-        (:func:`outer_sizing_field`; 1: fTetWild's uniform sizing). fTetWild optimises a mesh of the
-        whole bounding box and discards the outside at the end; a coarse outside cuts its work.
+        (:func:`outer_sizing_field`; 1, the default: fTetWild's uniform sizing). fTetWild optimises a
+        mesh of the whole bounding box and discards the outside at the end; a coarse outside cuts that
+        work on slender shapes (homer.obj: 3.5x fewer CPU seconds) and adds to it on compact ones.
     time_limit : float, "auto" or None
         Seconds the mesher may run (in a worker process, killed when over). ``"auto"``:
         :func:`mesh_time_limit` (``$NESTMG_MESH_TIME_LIMIT``, else 10x the sizing estimate, at least

@@ -97,6 +97,9 @@ class DiffusionStepper:
         # the sparse sums are Galerkin operators: no energy scaling; symmetric by construction (M, K
         # symmetric, products symmetrised), so the solver need not test it at every step
         multigrid_kwargs.setdefault("symmetric", True)
+        # the caller's node order: a locality permutation (MultigridSolver(ordering="auto")) would re-permute
+        # the fine matrix and every coarse sum at each step; the reuse figures (docs/reuse.md) are without it
+        multigrid_kwargs.setdefault("ordering", None)
         ml = prob.multigrid(SolverOptions(smoothing=self.smoothing, coarse_scaling=None), **multigrid_kwargs)
         t2, c2 = time.perf_counter(), time.process_time()
         u, info = ml.solve(b, x0=u_prev, tol=tol, maxiter=maxiter, accel="cg", return_info=True)

@@ -48,10 +48,12 @@ from .multilevel import (
     restrict_prolongations,
     sparsified_galerkin_operators,
 )
+from .multirhs import MULTI_RHS_SMOOTHER, solve_many
 from .smoothing import SMOOTHERS, Smoother, make_smoother
 
 __all__ = [
     "DEFAULT_MAXITER",
+    "MULTI_RHS_SMOOTHER",
     "SMOOTHERS",
     "ConvergenceWarning",
     "DirichletSystem",
@@ -90,6 +92,7 @@ __all__ = [
     "reroute_to_pattern",
     "rigid_body_modes",
     "restrict_prolongations",
+    "solve_many",
     "sparsified_galerkin_operators",
     "stiffness_matrix",
 ]

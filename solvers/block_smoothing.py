@@ -75,7 +75,9 @@ class _MulticolorSweeps:
             indptr = np.zeros(len(R) + 1, dtype=np.int64)
             np.cumsum(counts[R], out=indptr[1:])
             shape = (bs * len(R), Ab.shape[1])
-            self.rows.append(sp.bsr_matrix((DA.data[sel], DA.indices[sel], indptr), shape=shape))
+            rows_c = sp.bsr_matrix((DA.data[sel], DA.indices[sel], indptr), shape=shape)
+            # 1x1 blocks: CSR (scipy's BSR product with many right-hand sides is a slow generic loop there)
+            self.rows.append(rows_c.tocsr() if bs == 1 else rows_c)
             self.dofs.append((bs * R[:, None] + np.arange(bs)).ravel())
             start = end
         self.colors = len(self.dofs)

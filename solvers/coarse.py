@@ -16,7 +16,39 @@ import scipy.sparse.linalg as spla
 from .errors import SolverError, SolverInputError
 from .transfer import _is_symmetric
 
-__all__ = ["sparse_lu"]
+__all__ = ["DENSE_MAX", "sparse_lu"]
+
+#: ``coarse_solver="auto"`` factorises a coarsest level of at most this many unknowns densely (LAPACK
+#: Cholesky, ``scipy.linalg.cho_factor``) instead of with SuperLU. Galerkin products of non-nested
+#: levels fill up (86-95 nonzeros per row on the coarsest level of 1M-tet user hierarchies): there the
+#: dense factor (n³/3 flops, BLAS 3) took 0.07-0.08 s where SuperLU's validated factorisations took
+#: 0.33-0.52 s (cProfile, docs/usermesh.md).
+DENSE_MAX = 1500
+
+
+class _DenseFactor:
+    """Dense Cholesky (symmetric) or LU factor with SuperLU's ``solve`` / ``L`` / ``U`` interface."""
+
+    def __init__(self, A: sp.spmatrix, symmetric: bool):
+        Ad = A.toarray()
+        self.symmetric = symmetric
+        try:
+            if symmetric:
+                self.c = sla.cho_factor(Ad, lower=True, check_finite=False)
+                if not np.all(np.isfinite(self.c[0].diagonal())):
+                    raise sla.LinAlgError("non-finite Cholesky factor")
+            else:
+                self.c = sla.lu_factor(Ad, check_finite=False)
+        except (sla.LinAlgError, ValueError) as e:
+            raise RuntimeError(str(e)) from None
+        n = Ad.shape[0]
+        self.L = self.U = sp.csr_matrix((n, n))
+        self.nnz = n * (n + 1)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self.symmetric:
+            return sla.cho_solve(self.c, b, check_finite=False)
+        return sla.lu_solve(self.c, b, check_finite=False)
 
 
 def sparse_lu(A: sp.spmatrix, symmetric: bool | None = None):
@@ -69,7 +101,21 @@ class _CoarseSolver:
             raise SolverInputError(
                 f"coarse_solver must be 'auto', 'pinv', 'splu' or 'regularized', got {method!r}")
         self.fallback = False
-        if method == "auto":
+        # "auto" factorises small coarsest levels densely (same pinning, regularisation and validation)
+        self.dense = method == "auto" and self.n <= DENSE_MAX
+        if method == "auto" and self.dense and level > 0:
+            # the coarsest level of a hierarchy: its solve is part of a preconditioner, where the regularised
+            # factor's O(1e-9) perturbation is invisible; starting there saves the plain Cholesky that fails
+            # on the extra null vectors of non-nested Galerkin levels (0.1 s of 0.2 s at 1,263 unknowns)
+            try:
+                self._setup(A, nullspace, level, "regularized", rtol)
+            except SolverError:
+                self.fallback = True
+                self.pin, self.lu = None, None
+                if self.n > pinv_max:
+                    raise
+                self._setup(A, nullspace, level, "pinv", rtol)
+        elif method == "auto":
             try:
                 self._setup(A, nullspace, level, "splu", rtol)
             except SolverError:
@@ -97,10 +143,18 @@ class _CoarseSolver:
             eps = 1e-9
             Ar = sp.csc_matrix(A + eps * sp.diags(np.maximum(A.diagonal(), np.finfo(float).tiny)))
             try:
-                self.lu = sparse_lu(Ar, self.symmetric)
+                self.lu = self._factor(Ar, self.symmetric)
             except RuntimeError as e:
-                raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU failed: {e}") from None
-            self.nnz = int(self.lu.L.nnz + self.lu.U.nnz)
+                if not (self.dense and self.symmetric):
+                    raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU "
+                                      f"failed: {e}") from None
+                # dense path: a symmetric operator that is not semi-definite gets the pivoting LU instead
+                try:
+                    self.lu = _DenseFactor(A, False)
+                except RuntimeError as e2:
+                    raise SolverError(f"coarsest operator (level {level}, n={self.n}): dense LU failed: "
+                                      f"{e2}") from None
+            self.nnz = self._nnz()
             self.nullity = -1  # not computed (at least the expected one)
             v = np.random.default_rng(0).standard_normal(self.n)
             b = A @ v
@@ -136,19 +190,21 @@ class _CoarseSolver:
                 v -= v.mean()
             self.nullity = expected
             # symmetric mode first (no pivoting: right for the SPD operators of this project); a symmetric
-            # indefinite operator whose unpivoted factor fails validation gets SuperLU's pivoting LU
+            # indefinite operator whose unpivoted factor fails validation gets SuperLU's pivoting LU. The
+            # dense path tries Cholesky only: a failure (mostly a semi-definite Galerkin operator with null
+            # vectors from a rank-deficient P) goes to the regularised step, which tries the pivoting LU last
             err = np.inf
-            for sym in ((True, False) if self.symmetric else (False,)):
+            for sym in ((True, False) if self.symmetric and not self.dense else (self.symmetric,)):
                 self.lu = None
                 if self.n > 1 or nullspace != "constant":
                     try:
-                        self.lu = sparse_lu(Af, sym)
+                        self.lu = self._factor(Af, sym)
                     except RuntimeError as e:
                         if sym:
                             continue
                         raise SolverError(f"coarsest operator (level {level}, n={self.n}) is singular: {e}; "
                                           "use coarse_solver='pinv'") from None
-                self.nnz = 0 if self.lu is None else int(self.lu.L.nnz + self.lu.U.nnz)
+                self.nnz = self._nnz()
                 with np.errstate(all="ignore"):
                     err = np.linalg.norm(self(A @ v) - v) / np.linalg.norm(v)
                 if err < 1e-6:
@@ -162,6 +218,19 @@ class _CoarseSolver:
                     "(or more levels so the coarsest is small enough for it), or drop those coarse nodes "
                     "(prune_prolongations)"
                 )
+
+    def _factor(self, A: sp.spmatrix, symmetric: bool):
+        """SuperLU (:func:`sparse_lu`) or, for a small level under ``"auto"``, the dense factor."""
+        if self.dense:
+            return _DenseFactor(A, symmetric)
+        return sparse_lu(A, symmetric)
+
+    def _nnz(self) -> int:
+        if self.lu is None:
+            return 0
+        if isinstance(self.lu, _DenseFactor):
+            return self.lu.nnz
+        return int(self.lu.L.nnz + self.lu.U.nnz)
 
     def __call__(self, b: np.ndarray) -> np.ndarray:
         if self.nullspace == "constant":

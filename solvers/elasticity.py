@@ -322,6 +322,7 @@ class NullspaceMultigridSolver(MultigridSolver):
         if len(nullspaces) != len(Ps) + 1:
             raise SolverInputError(
                 f"nullspaces needs {len(Ps) + 1} bases (one per level), got {len(nullspaces)}")
+        kwargs.setdefault("ordering", None)  # the null-space bases are given in the caller's order
         super().__init__(A, Ps, coarse_solver=coarse_solver, **kwargs)
         if len(self.levels) != len(nullspaces):
             raise SolverInputError("the hierarchy was changed at set-up (unreached coarse unknowns dropped): "

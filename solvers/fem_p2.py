@@ -198,8 +198,8 @@ def inv3(J: np.ndarray, det: np.ndarray) -> np.ndarray:
     for i in range(3):
         for j in range(3):
             a, b = [k for k in range(3) if k != j], [k for k in range(3) if k != i]
-            C[..., i, j] = (J[..., a[0], b[0]] * J[..., a[1], b[1]] - J[..., a[0], b[1]] * J[..., a[1], b[0]]) * (
-                -1) ** (i + j)
+            minor = J[..., a[0], b[0]] * J[..., a[1], b[1]] - J[..., a[0], b[1]] * J[..., a[1], b[0]]
+            C[..., i, j] = minor * (-1) ** (i + j)
     return C / det[..., None, None]
 
 
@@ -223,7 +223,7 @@ def _straight_elements(X: np.ndarray, T10: np.ndarray) -> np.ndarray:
 
 
 def p2_stiffness_matrix(X, T10, coefficient: np.ndarray | None = None, *, degree: int = 4) -> sp.csr_matrix:
-    """Stiffness ``K_ab = ∫ κ ∇N_a · ∇N_b`` of straight or curved P2 tets (symmetric PSD, ``K 1 = 0``).
+    """Stiffness ``K_ab = ∫ κ ∇N_a · ∇N_b`` of straight or curved P2 tets (symmetric PSD, ``K1 = 0``).
 
     Straight elements (affine maps) use the exact degree-2 rule; curved ones the ``degree`` rule.
 
@@ -324,7 +324,8 @@ def p2_neumann_load(X, F6, flux: Callable[[np.ndarray, np.ndarray], np.ndarray],
     F6 : (f, 6) int array
         Outward 6-node facets (:func:`p2_boundary_facets`).
     flux : callable ``g(x, n) -> (q,)``
-        Normal flux ``∂u/∂n`` at points ``x`` (q,3) with the curved facet's unit outer normals ``n`` (q,3).
+        Normal flux ``∂u/∂n`` at points ``x`` (q,3), given the curved facet's unit outer normals ``n``
+        (q,3).
 
     Returns
     -------
@@ -366,7 +367,8 @@ def p2_l2_error(X, T10, uh: np.ndarray, u: Callable[[np.ndarray], np.ndarray], *
     for sl in _chunks(len(T10)):
         _, det = _geometry(X, T10, sl, dN)
         xq = np.einsum("qa,tad->tqd", N, X[T10[sl]], optimize=True)
-        e = np.einsum("qa,ta->tq", N, np.asarray(uh)[T10[sl]]) - np.asarray(u(xq.reshape(-1, 3))).reshape(det.shape)
+        e = (np.einsum("qa,ta->tq", N, np.asarray(uh)[T10[sl]])
+             - np.asarray(u(xq.reshape(-1, 3))).reshape(det.shape))
         dv.append((det * w).ravel())
         ev.append(e.ravel())
     dv, ev = np.concatenate(dv), np.concatenate(ev)

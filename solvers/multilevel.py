@@ -27,10 +27,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
+from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, index_spread, locality_order, permute_prolongation,
+                       permute_symmetric)
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
 from .transfer import (
     _as_csr,
+    _galerkin_chain,
     _is_symmetric,
     galerkin_operators,
     prune_prolongations,
@@ -41,6 +44,8 @@ from .transfer import (
 
 __all__ = [
     "DEFAULT_MAXITER",
+    "DEFAULT_SMOOTHER",
+    "DENSE_LEVEL_ROWS",
     "Level",
     "MultigridSolver",
     "convergence_factor",
@@ -51,7 +56,22 @@ __all__ = [
     "sparsified_galerkin_operators",
 ]
 
-DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
+#: The default cycle of ``MultigridSolver(A, Ps)``: two forward Gauss–Seidel sweeps before the coarse-grid
+#: correction and, as the adjoint post-smoother, two backward sweeps after it (a symmetric V(2,2) that
+#: preconditions CG), except on dense coarse levels (:data:`DENSE_LEVEL_ROWS`), which get one sweep each.
+#: Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward GS V(1,1), V(2,2) and V(3,3),
+#: V(2,2) with one or three coarse sweeps, and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies
+#: (TetGen bunny and spot, Dirichlet and Neumann; exploratory runs, the final figures in docs/usermesh.md):
+#: 7 / 11-12 CG iterations (Dirichlet / Neumann) where symmetric GS V(1,1), at the same cost per cycle,
+#: took 8-9 / 12-14.
+DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
+
+#: With the default smoother, a coarse level whose operator has more than this many times the nonzeros per
+#: row of the finest one (Galerkin levels of a non-nested hierarchy: 40-90 against 15) gets one sweep
+#: instead of two: on the 1M-tet user hierarchies that cut 10-20% of a cycle's time at equal CG iterations.
+#: Levels as sparse as the finest keep two: on nested hierarchies (Kuhn cube) one coarse sweep made the
+#: stationary factor grow with the number of levels (0.20 / 0.28 / 0.30 for 2 / 3 / 4 levels).
+DENSE_LEVEL_ROWS = 2.0
 
 #: Default cap on cycles (stationary) or CG iterations (``accel="cg"``) of every multigrid solve:
 #: :meth:`MultigridSolver.solve`, :meth:`solvers.petsc.PetscMultigrid.solve`,
@@ -136,8 +156,11 @@ class MultigridSolver:
     presmoother, postsmoother : str or (str, dict), or a list of them
         See :func:`solvers.smoothing.make_smoother`. A list gives one spec per level, finest first,
         the last one repeated on deeper levels (e.g. more sweeps on the cheap coarse levels: the
-        variable V-cycle). Default symmetric Gauss–Seidel, one sweep each:
-        V(1,1). ``postsmoother=None`` (default) means the adjoint of the presmoother: the same smoother,
+        variable V-cycle). Default :data:`DEFAULT_SMOOTHER`: two forward Gauss–Seidel sweeps, and two
+        backward ones after the correction (V(2,2)); one of each on coarse levels denser than
+        :data:`DENSE_LEVEL_ROWS` times the finest (only for the default itself: an equal spec passed
+        explicitly gives two sweeps on every level). ``postsmoother=None`` (default) means the adjoint of
+        the presmoother: the same smoother,
         with a forward Gauss–Seidel sweep turned into a backward one, so the cycle is symmetric and can
         precondition CG. An explicit non-adjoint pair (e.g. forward GS on both sides) is allowed for
         stationary cycling; ``solve(accel="cg")`` then warns.
@@ -152,7 +175,9 @@ class MultigridSolver:
         (validated by the residual). ``"pinv"``: dense pseudo-inverse (robust to extra null vectors
         from rank-deficient prolongations; O(n³) setup). ``"auto"`` (default): SuperLU, then the
         regularised LU when validation fails, then the pseudo-inverse if the coarsest level has at most
-        ``pinv_max`` unknowns (the fallback is reported by ``repr``). Measured on a 550k-tet bunny
+        ``pinv_max`` unknowns (the fallback is reported by ``repr``); a coarsest level of at most
+        :data:`solvers.coarse.DENSE_MAX` unknowns is factorised densely (LAPACK Cholesky) in these
+        steps, a larger one by SuperLU. Measured on a 550k-tet bunny
         Galerkin hierarchy (2k-node coarsest level, 3 extra null vectors): regularised 3 s setup,
         pseudo-inverse 31-54 s, identical residual histories.
     pinv_max : int
@@ -172,6 +197,15 @@ class MultigridSolver:
         ``"symmetric"`` (default): each local sweep is a forward and a backward pass. ``"one-way"``:
         forward after pre-smoothing, backward before post-smoothing (still an adjoint pair, half the
         cost).
+    ordering : {"auto", "locality"} or None
+        Internal order of the finest level's unknowns. ``"locality"``: :func:`solvers.ordering.locality_order`
+        (from the prolongations; a few integer sorts), applied as ``A[p][:, p]`` before the Galerkin products;
+        ``solve`` and ``aspreconditioner`` take and return vectors in the caller's order. On scattered
+        1M-tet user meshes the Galerkin products ran ~2.5x and a fine SpMV up to 1.4x faster
+        (docs/usermesh.md). ``"auto"`` (default): ``"locality"`` when the finest level has
+        at least :data:`solvers.ordering.ORDER_MIN_N` unknowns and a scattered order
+        (:func:`solvers.ordering.index_spread` above :data:`solvers.ordering.ORDER_MIN_SPREAD`); None:
+        the caller's order. ``levels[0]`` then holds the permuted operator and ``perm`` the permutation.
     symmetric : bool, optional
         The caller's statement that ``A`` and the given coarse operators are symmetric (e.g. the sparse
         sums of :class:`solvers.shifted.ShiftedGalerkin`, symmetric by construction), which skips the
@@ -181,6 +215,9 @@ class MultigridSolver:
     Attributes
     ----------
     levels : list of Level
+        Level 0 in the internal order ``perm`` (``levels[0].A == A[perm][:, perm]``).
+    perm : (n_0,) int64 array or None
+        The finest level's internal order (None: the caller's).
     setup_seconds : float
 
     Examples
@@ -215,6 +252,7 @@ class MultigridSolver:
         local_sweeps: int = 1,
         local_levels: int | None = None,
         local_sweep: str = "symmetric",
+        ordering: str | None = "auto",
         symmetric: bool | None = None,
     ):
         t0 = time.perf_counter()
@@ -255,8 +293,8 @@ class MultigridSolver:
                 # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
                 Ps, _ = restrict_prolongations(Ps, np.arange(A.shape[0]))
                 Rs = [sp.csr_matrix(P.T) for P in Ps]
-            sym0 = _is_symmetric(A) if symmetric is None else bool(symmetric)
-            ops = galerkin_operators(A, Ps, symmetric=sym0, Rs=Rs)
+            A, Ps, Rs, _, sym0 = self._reorder(A, Ps, Rs, ordering, [], symmetric)
+            ops = _galerkin_chain(A, Ps, sym0, Rs)  # A was validated above: no second copy and check
             self.coarse = "galerkin"
         else:
             given = list(coarse)
@@ -270,6 +308,8 @@ class MultigridSolver:
                     )
             self.coarse = "given"
             Rs = [sp.csr_matrix(P.T) for P in Ps]
+            A, Ps, Rs, given, _ = self._reorder(A, Ps, Rs, ordering, ops[1:], False)
+            ops = [A] + given
         for k, Ak in enumerate(ops):
             d = Ak.diagonal()
             if np.any(d <= 0):
@@ -281,23 +321,26 @@ class MultigridSolver:
                 )
             if nullspace == "constant":
                 r = np.abs(Ak @ np.ones(Ak.shape[0])).max()
-                if r > 1e-9 * np.abs(Ak).sum(axis=1).max():  # relative to ||A_k||_inf
+                # relative to ||A_k||_inf (no empty rows: the diagonal is positive)
+                if r > 1e-9 * np.add.reduceat(np.abs(Ak.data), Ak.indptr[:-1]).max():
                     raise SolverError(
                         f"nullspace='constant' but the level {k} operator does not annihilate constants "
                         f"(max |A_{k} 1| = {r:.3e})"
                     )
         pre_specs = _level_specs(presmoother, len(Ps))
+        if presmoother is DEFAULT_SMOOTHER:
+            pre_specs = _dense_level_specs(ops, pre_specs)
         post_specs = ([_adjoint_spec(s) for s in pre_specs] if postsmoother is None
                       else _level_specs(postsmoother, len(Ps)))
-        local = _local_sets(local_nodes, Ps, local_levels, ops[0].shape[0])
+        local = _local_sets(_permuted_nodes(local_nodes, self.perm), Ps, local_levels, ops[0].shape[0])
         self.levels: list[Level] = []
         for k, Ak in enumerate(ops):
             if k < len(Ps):
                 P = Ps[k]
                 pre_spec, post_spec = pre_specs[k], post_specs[k]
-                pre = make_smoother(Ak, pre_spec)
+                pre = make_smoother(Ak, pre_spec, diagonal_checked=True)  # checked above
                 # a self-adjoint smoother is shared (one spectral radius estimate per level)
-                post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec)
+                post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec, diagonal_checked=True)
                 if local[k] is not None:
                     one_way = local_sweep == "one-way"
                     rows = local_rows(Ak, local[k])  # one copy of the rows for both smoothers
@@ -327,6 +370,39 @@ class MultigridSolver:
         )
         self.setup_seconds = time.perf_counter() - t0
 
+    def _reorder(self, A, Ps, Rs, ordering, given, symmetric):
+        """Apply the internal orders of every level (see ``ordering``) to ``A``, ``Ps``, ``Rs`` and the given
+        coarse operators; set ``self.perm``. Returns them and whether ``A`` is symmetric (``symmetric`` if
+        not None, else tested: on the permuted copy's by-product transpose when reordering)."""
+        if ordering not in ("auto", "locality", None):
+            raise SolverInputError(f"ordering must be 'auto', 'locality' or None, got {ordering!r}")
+        self.perm = None
+        keep = (not Ps or ordering is None or any((np.diff(P.indptr) == 0).any() for P in Ps)  # unreached row
+                or (ordering == "auto" and (A.shape[0] < ORDER_MIN_N or index_spread(A) <= ORDER_MIN_SPREAD)))
+        if keep:
+            return A, Ps, Rs, list(given), (_is_symmetric(A) if symmetric is None else bool(symmetric))
+        orders = locality_order(Ps)
+        self.perm = orders[0]
+        Ap, At = permute_symmetric(A, orders[0], with_transpose=True)
+        if symmetric is None:
+            symmetric = bool(np.array_equal(Ap.indices, At.indices) and np.array_equal(Ap.indptr, At.indptr)
+                             and (Ap.nnz == 0 or np.abs(Ap.data - At.data).max()
+                                  <= 1e-10 * np.abs(Ap.data).max())) or _is_symmetric(Ap)
+        del At
+        Ps = [permute_prolongation(P, orders[k], orders[k + 1]) for k, P in enumerate(Ps)]
+        given = [permute_symmetric(G, orders[k + 1]) for k, G in enumerate(given)]
+        return Ap, Ps, [sp.csr_matrix(P.T) for P in Ps], given, bool(symmetric)
+
+    def _to_internal(self, v: np.ndarray) -> np.ndarray:
+        return v if self.perm is None else v[self.perm]
+
+    def _to_caller(self, v: np.ndarray) -> np.ndarray:
+        if self.perm is None:
+            return v
+        out = np.empty_like(v)
+        out[self.perm] = v
+        return out
+
     # ------------------------------------------------------------------ description
     def __repr__(self) -> str:
         cs = self._coarse_solver
@@ -336,7 +412,7 @@ class MultigridSolver:
             ("Coarse operators", self.coarse),
             ("Smoothers (pre/post)", self._smoother_desc()),
             ("Null space", f"{self.nullspace}"),
-            ("Coarsest solver", (f"{cs.method}{fallback} (null vectors: "
+            ("Coarsest solver", (f"{cs.method}{' (dense)' if cs.dense else ''}{fallback} (null vectors: "
                                  f"{self.coarse_nullity if self.coarse_nullity >= 0 else 'not computed'})")),
             ("Operator complexity", f"{self.operator_complexity():.3f}"),
             ("Grid complexity", f"{self.grid_complexity():.3f}"),
@@ -550,7 +626,7 @@ class MultigridSolver:
         maxiter = int(maxiter)
         if maxiter < 0:
             raise SolverInputError(f"maxiter must be >= 0, got {maxiter}")
-        b = self._prepare_rhs(b, project)
+        b = self._to_internal(self._prepare_rhs(b, project))
         n = b.size
         A = self.levels[0].A
         if x0 is None:
@@ -559,6 +635,7 @@ class MultigridSolver:
             x = np.array(np.asarray(x0).reshape(-1), dtype=np.float64)
             if x.shape != (n,) or not np.all(np.isfinite(x)):
                 raise SolverInputError(f"x0 must be a finite array of shape ({n},)")
+            x = self._to_internal(x)
         t0 = time.perf_counter()
         normb = float(np.linalg.norm(b))
         hist: list[float] = []
@@ -575,7 +652,7 @@ class MultigridSolver:
                     stacklevel=2,
                 )
 
-            res = pcg(A, b, M=self.aspreconditioner(cycle), x0=x, tol=tol, maxiter=maxiter,
+            res = pcg(A, b, M=self._preconditioner(cycle), x0=x, tol=tol, maxiter=maxiter,
                       nullspace=self.nullspace, divtol=divtol, flexible=self.coarse_scaling is not None)
             x, hist = res.x, res.residuals
             if res.nonfinite:
@@ -617,6 +694,7 @@ class MultigridSolver:
                     )
         if self.nullspace == "constant":
             x -= x.mean()
+        x = self._to_caller(x)
         seconds = time.perf_counter() - t0
         converged = hist[-1] <= tol
         if not converged:
@@ -644,6 +722,17 @@ class MultigridSolver:
         are SPD and the pre/post smoothers are adjoint. With ``nullspace="constant"`` input and output are
         projected to zero mean.
         """
+        M = self._preconditioner(cycle)
+        if self.perm is None:
+            return M
+
+        def matvec(b):
+            return self._to_caller(M.matvec(self._to_internal(np.asarray(b, dtype=np.float64).reshape(-1))))
+
+        return spla.LinearOperator(M.shape, matvec=matvec, rmatvec=matvec, dtype=np.float64)
+
+    def _preconditioner(self, cycle: str) -> spla.LinearOperator:
+        """One cycle from zero in the internal order (what ``solve(accel="cg")`` uses)."""
         cycle = self._check_cycle(cycle)
         n = self.levels[0].A.shape[0]
 
@@ -658,6 +747,21 @@ class MultigridSolver:
             return x
 
         return spla.LinearOperator((n, n), matvec=matvec, rmatvec=matvec, dtype=np.float64)
+
+
+def _permuted_nodes(nodes, perm):
+    """The caller's level-0 node set (indices or mask) in the internal order ``perm``."""
+    if nodes is None or perm is None:
+        return nodes
+    idx = np.asarray(nodes)
+    if idx.dtype == bool:
+        return idx[perm] if idx.shape == perm.shape else idx  # a wrong shape is reported by _local_sets
+    idx = idx.astype(np.int64)
+    if idx.size and (idx.min() < 0 or idx.max() >= perm.size):
+        return idx
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.size, dtype=perm.dtype)
+    return inv[idx]
 
 
 def _local_sets(nodes, Ps, levels, n0) -> list:
@@ -679,6 +783,14 @@ def _local_sets(nodes, Ps, levels, n0) -> list:
         out[k] = idx
         idx = np.unique(Ps[k][idx].indices).astype(np.int64)
     return out
+
+
+def _dense_level_specs(ops, specs) -> list:
+    """The default cycle's specs with one sweep on dense coarse levels (see :data:`DENSE_LEVEL_ROWS`)."""
+    fine = ops[0].nnz / max(ops[0].shape[0], 1)
+    one = (DEFAULT_SMOOTHER[0], dict(DEFAULT_SMOOTHER[1], iterations=1))
+    return [one if k and ops[k].nnz / max(ops[k].shape[0], 1) > DENSE_LEVEL_ROWS * fine else spec
+            for k, spec in enumerate(specs)]
 
 
 def _level_specs(spec, n_smoothed: int) -> list:

@@ -111,12 +111,18 @@ def _rho(A, rho) -> float:
     return rho
 
 
-def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int = 1, omega: float = 1.0):
-    """Gauss–Seidel (SOR with ``omega != 1``); ``sweep`` is forward, backward or symmetric."""
+def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int = 1, omega: float = 1.0,
+                       *, diagonal_checked: bool = False):
+    """Gauss–Seidel (SOR with ``omega != 1``); ``sweep`` is forward, backward or symmetric.
+
+    ``diagonal_checked=True``: the caller has checked that ``A``'s diagonal is positive (as
+    :class:`solvers.MultigridSolver` does once per level), so the O(nnz) check is skipped.
+    """
     if sweep not in ("forward", "backward", "symmetric"):
         raise SolverInputError(f"sweep must be 'forward', 'backward' or 'symmetric', got {sweep!r}")
     it = _check_iterations(iterations)
-    _diag(A)
+    if not diagonal_checked:
+        _diag(A)
     omega = float(omega)
     if not 0.0 < omega < 2.0:
         raise SolverInputError(f"Gauss-Seidel/SOR weight must be in (0, 2), got {omega}")
@@ -300,7 +306,7 @@ SMOOTHERS: dict[str, Callable[..., Smoother]] = {
 }
 
 
-def make_smoother(A: sp.csr_matrix, spec) -> Smoother:
+def make_smoother(A: sp.csr_matrix, spec, *, diagonal_checked: bool = False) -> Smoother:
     """Build a :class:`Smoother` for operator ``A`` from a spec.
 
     Parameters
@@ -309,6 +315,9 @@ def make_smoother(A: sp.csr_matrix, spec) -> Smoother:
     spec : str, (str, dict), or Smoother
         A name from :data:`SMOOTHERS`, or ``(name, options)`` such as
         ``("gauss_seidel", {"sweep": "symmetric", "iterations": 2})``.
+
+    diagonal_checked : bool
+        The caller has checked that ``A``'s diagonal is positive: Gauss–Seidel skips its own check.
 
     Returns
     -------
@@ -324,6 +333,8 @@ def make_smoother(A: sp.csr_matrix, spec) -> Smoother:
         raise SolverInputError(f"smoother spec must be a name or (name, options), got {spec!r}")
     if name not in SMOOTHERS:
         raise SolverInputError(f"unknown smoother {name!r}; choose one of {sorted(SMOOTHERS)}")
+    if diagonal_checked and SMOOTHERS[name] is setup_gauss_seidel:
+        opts["diagonal_checked"] = True
     try:
         return SMOOTHERS[name](A, **opts)
     except TypeError as e:  # unknown option name

@@ -74,12 +74,60 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=Non
         Before a product whose estimated size (:func:`solvers.memory.galerkin_bytes`) exceeds the
         memory available (``$NESTMG_MEMORY_LIMIT`` or the system's).
     """
-    ops = [_as_csr(A, "A")]
-    if symmetric is None:
-        symmetric = _is_symmetric(ops[0])
+    A = _as_csr(A, "A")
+    return _galerkin_chain(A, Ps, _is_symmetric(A) if symmetric is None else bool(symmetric), Rs)
+
+
+def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None) -> list[sp.csr_matrix]:
+    """:func:`galerkin_operators` for an ``A`` already checked by :func:`_as_csr` (no second copy, sort and
+    finiteness pass: :class:`solvers.MultigridSolver` validates its input once)."""
+    ops = [A]
     for k, P in enumerate(Ps):
         ops.append(_galerkin_level(ops[-1], P, k, None if Rs is None else Rs[k], symmetric))
     return ops
+
+
+def _galerkin_fits(Ak: sp.csr_matrix, P: sp.csr_matrix, k: int) -> None:
+    """Refuse a Galerkin product that would not fit in memory (before allocating it).
+
+    A pattern bound first, from row counts only: ``nnz(A P) <= nnz(A) p`` and
+    ``nnz(Pᵀ A P) <= min(nnz(A) p², m²)`` with ``p`` the longest row of ``P``; only when that bound
+    does not fit is the sampled estimate :func:`solvers.memory.galerkin_bytes` formed (it costs a
+    tenth of the product itself on a 1M-tet level, docs/usermesh.md).
+    """
+    from .memory import BYTES_PER_NNZ, available_memory
+
+    p = int(np.diff(P.indptr).max()) if P.nnz else 0
+    m = P.shape[1]
+    bound = BYTES_PER_NNZ * (Ak.nnz * p + P.nnz + 3 * min(Ak.nnz * p * p, m * m)) + 8 * (P.shape[0] + 4 * m)
+    avail, _ = available_memory()
+    if avail is not None and bound <= avail:
+        return
+    check_memory(galerkin_bytes(Ak, P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
+
+
+def _canonical_symmetric_part(Ac: sp.csr_matrix) -> sp.csr_matrix:
+    """``(Ac + Acᵀ)/2`` in canonical CSR form, for a product ``Ac`` with a (structurally) symmetric pattern.
+
+    Two O(nnz) transposes (scipy's CSR<->CSC conversion writes every column's row indices in
+    increasing order) give both ``Acᵀ`` and ``Ac`` with sorted indices; when their patterns agree (always,
+    unless a sum cancelled to an exact zero on one side only) the symmetric part is one average of the
+    data arrays. Replaces a per-row sort, a transpose, a sparse addition and a second sort.
+    """
+    n = Ac.shape[0]
+    t = Ac.tocsc()  # the CSR arrays of Acᵀ, rows sorted
+    At = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(n, n))
+    s = At.tocsc()  # the CSR arrays of Ac, rows sorted
+    if np.array_equal(s.indptr, t.indptr) and np.array_equal(s.indices, t.indices):
+        data = s.data + t.data
+        data *= 0.5
+        out = sp.csr_matrix((data, s.indices, s.indptr), shape=(n, n))
+        out.has_canonical_format = True  # no duplicates (a product), rows sorted (the transposes)
+        return out
+    Ac = sp.csr_matrix(0.5 * (Ac + At))
+    Ac.sum_duplicates()
+    Ac.sort_indices()
+    return Ac
 
 
 def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_matrix:
@@ -88,11 +136,11 @@ def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_
     if P.shape[0] != Ak.shape[0]:
         raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
     # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
-    check_memory(galerkin_bytes(Ak, P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
+    _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
-    Ac = sp.csr_matrix(R @ (Ak @ P))
+    Ac = sp.csr_matrix(R @ (Ak @ P))  # scipy's product: no duplicates, rows unsorted
     if symmetric:
-        Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
+        return _canonical_symmetric_part(Ac)
     Ac.sum_duplicates()
     Ac.sort_indices()
     return Ac

@@ -304,7 +304,7 @@ def test_late_failure_carries_the_uncertified_partial_cage(star, monkeypatch):
     monkeypatch.setattr(nb, "nest_pair", failing)
     V, F, S = star
     with pytest.raises(CageError, match="inflation .*flow failed: stub") as ei:
-        skeleton_cage(V, F, S, bending="given")
+        skeleton_cage(V, F, S, bending="given", containment="flow")
     p = ei.value.partial
     assert p.certified is False and np.array_equal(p.V, p.preinflated_V)
     assert p.F.shape[1] == 3 and p.F.max() < len(p.V) and len(p.tight_V) == len(p.V)

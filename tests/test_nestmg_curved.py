@@ -11,9 +11,11 @@ from nestmg.curved import (
     certify_tets,
     curve_mesh,
     jacobian_bernstein,
+    linear_scaled_jacobians,
     p2_nodes,
     scaled_jacobians,
     sphere_projector,
+    surface_projector,
     torus_projector,
 )
 from nestmg.refine import refine_tets
@@ -101,7 +103,7 @@ def test_negative_control_mid_node_through_opposite_face_is_invalid_then_repaire
     bad = curve_mesh(V, T, proj, fit=False)
     assert bad.report["invalid_after_projection"] >= 1
     assert bad.report["straightened"] >= 1 and bad.report["certified"]  # fallback: straight, counted
-    fitted = curve_mesh(V, T, proj, fit=True)
+    fitted = curve_mesh(V, T, proj, fit=True)  # the repair alone (no quality pass: it would undo the dent)
     assert fitted.report["invalid_after_projection"] >= 1
     assert fitted.report["fit"]["iterations"] > 0
     assert fitted.report["straightened"] == 0 and fitted.report["certified"]
@@ -109,6 +111,52 @@ def test_negative_control_mid_node_through_opposite_face_is_invalid_then_repaire
     # the energy moved the node towards the dent (as far as validity allows), not back to straight
     moved = (fitted.X[node] - mid) @ (-normal)
     assert moved > 0.1 * np.linalg.norm(far - mid)
+
+
+def test_quality_pass_raises_the_scaled_jacobian_at_a_fit_cost_set_by_lambda(ball):
+    V, T = ball[0][3]  # 160 tets of the unit ball: coarse, so curving costs quality
+    before = curve_mesh(V, T, sphere_projector(), quality=None)
+    cm = curve_mesh(V, T, sphere_projector(), quality=0.95, quality_lam=0.05)
+    sj0, sj = scaled_jacobians(before.X, before.T10), scaled_jacobians(cm.X, cm.T10)
+    assert sj0.min() < 0.7 and sj.min() > sj0.min() + 0.1 and sj.mean() > sj0.mean() + 0.03
+    assert cm.report["scaled_jacobian"]["min"] == pytest.approx(sj[sj < 1].min())
+    assert cm.report["scaled_jacobian"]["before_quality"]["min"] == pytest.approx(sj0.min())
+    assert cm.report["certified"] and (certify_tets(cm.X, cm.T10) == 1).all()
+    # the certified lower bound is a lower bound, and the pass kept its record
+    assert 0 < cm.report["scaled_jacobian"]["bound_min"] <= cm.report["scaled_jacobian"]["min"]
+    assert cm.report["quality"]["passes"][0]["kept"]
+    # λ trades fit for quality: at 0.05 the facets still take > 85 % of the way to the sphere
+    d = cm.report["surface_distance"]
+    assert before.report["surface_distance"]["curved_max"] < d["curved_max"] < 0.15 * d["straight_max"]
+    loose = curve_mesh(V, T, sphere_projector(), quality=0.95, quality_lam=1.0)
+    assert loose.report["scaled_jacobian"]["min"] > max(0.9, sj.min())
+    assert loose.report["surface_distance"]["curved_max"] > 2 * d["curved_max"]
+    # straight tets' own (linear) scaled Jacobian: 1 for the regular tet, reported for the curved mesh
+    lin = linear_scaled_jacobians(cm.V, cm.T)
+    assert cm.report["linear_scaled_jacobian"]["min"] == pytest.approx(lin.min()) and 0 < lin.max() <= 1.5
+
+
+def test_smooth_normals_follow_the_surface_and_keep_sharp_creases():
+    Vs, Fs = shapes.sphere(16)
+    Vs = Vs / np.linalg.norm(Vs, axis=1, keepdims=True)
+    rng = np.random.default_rng(0)
+    P = rng.standard_normal((400, 3))
+    P *= (1.0 + 0.01 * rng.standard_normal((400, 1))) / np.linalg.norm(P, axis=1, keepdims=True)
+    errs = {}
+    for kind in ("face", "smooth"):
+        C, n = surface_projector(Vs, Fs, normals=kind)(P)
+        true = C / np.linalg.norm(C, axis=1, keepdims=True)
+        errs[kind] = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, true), -1, 1))).max()
+    assert errs["smooth"] < 0.25 * errs["face"]
+    # a cube: every edge is a 90° crease, the normal is the face's own up to the edges
+    Vc = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    Fc = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                   [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    Q = np.array([[0.5, 0.5, 1.2], [1.3, 0.2, 0.7], [0.01, 0.5, 0.5]])
+    _, n = surface_projector(Vc, Fc, normals="smooth")(Q)
+    np.testing.assert_allclose(np.abs(n), [[0, 0, 1], [1, 0, 0], [1, 0, 0]], atol=1e-12)
+    with pytest.raises(NestmgInputError, match="normals"):
+        surface_projector(Vc, Fc, normals="vertex")
 
 
 def test_p2_stiffness_matches_scikit_fem_on_curved_tets(ball):

@@ -140,8 +140,8 @@ def test_cli_flags_are_the_option_fields():
             assert a.default == f.default, (f.name, a.default, f.default)
     owner, field = CAGE_FLAGS["--cage-time-budget"]
     assert field in {f.name for f in dataclasses.fields(getattr(cagegen, owner))}
-    others = {"help", "problem", "method", "element", "json", "png", "out", "levels", "cage_time_budget",
-              "no_cache", "quiet"}
+    others = {"help", "problem", "method", "element", "quality", "json", "png", "out", "levels",
+              "cage_time_budget", "no_cache", "quiet"}
     assert set(actions) == others, set(actions) ^ others
 
 

@@ -39,7 +39,7 @@ from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signe
 from .flow import flow_inside
 from .reinflate import reinflate
 
-__all__ = ["nest_pair", "nested_backend", "offset_surface", "push_out"]
+__all__ = ["complete_clearance", "nest_pair", "nested_backend", "offset_surface", "push_out"]
 
 _DEFAULTS = {
     "energy": "volume",
@@ -443,13 +443,35 @@ def _envelope_target(Vf, Ff, n_faces, offset):
                   "seconds": time.perf_counter() - t}
 
 
-def _complete_clearance(C, G, Vf, Ff, gap):
+def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,
+                       gap: float) -> tuple[np.ndarray, float, dict | None]:
     """The re-inflated cage, pushed out (:func:`push_out`) where it is closer than ``gap / GAP_AIM``.
 
     The re-inflation keeps the cage outside the fine surface's offset (:func:`offset_surface`), which
     is ``gap`` from it on face planes but not at spikes, where the offset factor is clamped, nor in
     sharp creases, where the offset crosses the surface: decimated-knight.off (0.00184 for 0.0025)
-    and 42400-IDGH.stl (0.00096) fell short there. Returns the cage, its distance and a record.
+    and 42400-IDGH.stl (0.00096) fell short there. Used by nested's recovery and skeleton's clearance.
+
+    Parameters
+    ----------
+    C : (n,3) float array
+        Cage vertices (outside the fine surface).
+    G : (m,3) int array
+        Cage faces.
+    Vf : (k,3) float array
+    Ff : (l,3) int array
+        The fine surface the cage must clear.
+    gap : float
+        Wanted clearance, in the units of ``C``.
+
+    Returns
+    -------
+    C : (n,3) float array
+        The cage, pushed out where needed (unchanged when already clear or when ``push_out`` is blocked).
+    distance : float
+        Its smallest distance to the fine surface.
+    record : dict or None
+        ``push_out``'s record (None: nothing to do).
     """
     d = min_distance(C, G, Vf, Ff)
     if d >= gap / GAP_AIM:
@@ -500,7 +522,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue
-        C, d, pinfo["clearance_completion"] = _complete_clearance(C, G, Vf, Ff, gap)
+        C, d, pinfo["clearance_completion"] = complete_clearance(C, G, Vf, Ff, gap)
         if d < gap / GAP_AIM:
             failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
                              "stage": "clearance", "reason": f"gap {d:.3g} < {gap / GAP_AIM:.3g}"})

@@ -12,8 +12,10 @@ Steps (each timed in ``info["seconds"]``, each failure raised as a :class:`CageE
 5. ``assembly``: tubes, junction hulls (with Steiner vertices, Sec. 3.3), leaf caps -> closed tight
    cage with its vertices on M; junction sections moved away / dropped / shrunk and self-intersecting
    tight cages repaired by shrinking or dropping sections (ours, recorded in ``info``).
-6. ``pre_inflation``: along the integral lines (Sec. 3.5).
-7. ``inflation``: the ``nested`` backend's flow + re-inflation (Nested Cages), then certification by
+6. ``pre_inflation``: along the integral lines (Sec. 3.5), then a containment push.
+7. ``containment`` (timed as ``inflation``): M swept down the guiding field's level sets and re-inflated,
+   pushing the cage out (:mod:`cagegen.skeleton.contain`, issue 29; ``containment="flow"``: the
+   ``nested`` backend's flow + re-inflation), then the clearance (``push_out``) and certification by
    :func:`cagegen.verify_nesting`.
 
 Everything runs on a copy scaled to a unit bounding-box diagonal; the cage is returned in the
@@ -173,6 +175,7 @@ def skeleton_cage(
     face_neighbours: float | None = None,
     refine_levels: int = 0,
     recentre: float = 0.0,
+    containment: str = "mesh",
     **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
@@ -254,8 +257,16 @@ def skeleton_cage(
         ``recentre`` x their chain's median radius (or below 2e-3 of the diagonal) towards the local
         medial axis (:func:`cagegen.skeleton.extract.recentre_nodes`; ``info["extraction"]["recentred"]``).
         0: off (default).
+    containment : {"mesh", "flow"}
+        How the cage is made to contain M (step 7). ``"mesh"`` (default): M swept down the guiding
+        field's level sets and collapsed onto the skeleton nodes inside the pre-inflated cage, then
+        re-inflated to rest pushing the cage out (IPC barrier + CCD; :mod:`cagegen.skeleton.contain`),
+        then the clearance by :func:`cagegen.nested.backend.push_out` (or, when blocked, a re-inflation
+        of M to its offset); no flow, so no stall. ``"flow"``: the paper's route, the Nested Cages flow +
+        re-inflation after the full pre-inflation (stalls on most zoo characters).
     **nested_opts
-        Passed to :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
+        ``containment="flow"`` only: passed to
+        :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
         flow; ``None``: the paper's flow). ``flow_stall_iter``, ``flow_expand_after`` and
         ``flow_max_expansions`` (the flow's own defaults: 150, 50, 20) set how long the flow waits with
@@ -276,6 +287,8 @@ def skeleton_cage(
     """
     say = progress if callable(progress) else (lambda msg: None)
     t_all = time.perf_counter()
+    if containment not in _CONTAINMENTS:
+        raise CageOptionError(f"containment must be one of {_CONTAINMENTS}, got {containment!r}")
     sec: dict = {}
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
@@ -308,8 +321,9 @@ def skeleton_cage(
     sec["assembly"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds, refine_levels,
-                                                          info, say)
+    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
+                                                          refine_levels, info, say,
+                                                          pushes=containment == "flow")
     sec["pre_inflation"] = time.perf_counter() - t
     # what was built, for the result and for the ``exc.partial`` of a later failure
     parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
@@ -321,7 +335,10 @@ def skeleton_cage(
                        "add bending nodes", parts)
 
     t = time.perf_counter()
-    C = _inflation_step(parts, inner, Vn, F, min_gap, nested_opts)
+    if containment == "flow":
+        C = _inflation_step(parts, inner, Vn, F, min_gap, nested_opts)
+    else:
+        C = _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say)
     sec["inflation"] = time.perf_counter() - t
     Vc = C * diag + center
     Fc = np.ascontiguousarray(Ft, dtype=np.int64)
@@ -683,12 +700,16 @@ def _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_b
     kit.say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
 
 
-def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say):
-    """Step 6: pull the tight cage out to M along the integral lines (optionally splitting faces there)."""
+def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say, pushes=True):
+    """Step 6: pull the tight cage out to M along the integral lines (optionally splitting faces there).
+
+    ``pushes`` False: the paper's step only (no containment, crease or polish pushes: the sweep
+    containment does not need M inside the cage, only the skeleton)."""
     from .._geometry import self_intersection_pairs
 
     Vt, Ft = tc["V"], tc["F"]
-    Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=rounds)
+    extra = {} if pushes else {"crease_rounds": 0, "polish_rounds": 0}
+    Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=rounds, **extra)
     quads_out, tris_out = tc["quads"], tc["tris"]
     if refine_levels and pinfo.get("polish", {}).get("outside", 0) > 0:
         Vp, Ft, pinfo["refine"] = refine_polish(Vp, Ft, Vn, F, levels=refine_levels)
@@ -738,6 +759,83 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     info["inflation"] = {k: v for k, v in ninfo.items() if k != "seconds"}
     info["inflation"]["seconds"] = ninfo["seconds"]
     return C
+
+
+_CONTAINMENTS = ("mesh", "flow")
+
+
+def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
+    """Step 7 (default): re-inflate a target swept down the guiding field's level sets, pushing the
+    tight cage out (:mod:`cagegen.skeleton.contain`), then complete the clearance."""
+    from ..nested.backend import complete_clearance
+    from ..nested.reinflate import reinflate
+    from .contain import collapse_inside, start_level, sweep_history
+
+    diag, center, Vc, Fc = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
+    gap = 1.1 * float(min_gap)
+    t = time.perf_counter()
+    if inner is not None:
+        inner = ((np.asarray(inner[0], dtype=float) - center) / diag, np.asarray(inner[1], dtype=np.int64))
+    # the surface carried down the field and re-inflated: M itself, or the inner layer of a hierarchy
+    # (an offset envelope and a 1500-face nested proxy were measured and dropped: docs/skeleton.md)
+    VT, FT, kind = (inner[0], inner[1], "inner") if inner is not None else (Vn, F, "mesh")
+    rec = {"target": kind, "seconds_target": time.perf_counter() - t}
+    parts["info"]["containment"] = rec
+    levels = [0.8, 0.6, 0.4, 0.25, 0.15, 0.08, 0.04]
+    hist, rec["sweep"] = sweep_history(field, VT, Vn, F, levels)
+    core = collapse_inside(field, hist[-1], FT, Vc, Fc)
+    if core is not None:
+        hist.append(core)
+        rec["sweep"]["levels"].append("collapsed")
+    j = start_level(hist, FT, Vc, Fc)
+    rec["start_level"] = rec["sweep"]["levels"][j] if j >= 0 else None
+    if j < 0:
+        raise _failure("skeleton cage, containment: the target swept down the guiding field and "
+                       "collapsed onto the skeleton is not inside the tight cage",
+                       parts, reason="start")
+    say(f"containment: re-inflating the {kind} target ({len(VT)} vertices) from f = {rec['start_level']}")
+    for dhat in (5e-3, 2e-3):  # nest_pair's barrier range, then a shorter one where limbs are close
+        # the final (volume) phase's barrier range keeps room for the clearance's push_out
+        rr = reinflate(hist[: j + 1], FT, Vc, Fc, energy="volume", dhat=dhat, max_move=min(5e-3, dhat),
+                       dhat_final=max(1e-3, 4.0 * gap))
+        rec["reinflate"] = {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                            for k, v in rr.stats.items()}
+        rec["reinflate"]["dhat"] = dhat
+        if rr.success:
+            break
+        say(f"containment: re-inflation with dhat {dhat:g} failed ({rr.reason})")
+    if not rr.success:
+        raise _failure(f"skeleton cage, containment (re-inflation of the swept {kind} target): {rr.reason}",
+                       parts, reason=rr.reason)
+    C = rr.cage
+    Vi, Fi = inner if inner is not None else (Vn, F)
+    if gap > 0:
+        C, d, rec["clearance_completion"] = complete_clearance(C, Fc, Vi, Fi, gap)
+        if d < float(min_gap):  # push_out blocked: carry M out to its offset, pushing the cage (a short
+            C, d = _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say)  # re-inflation, nest_pair's way)
+        rec["distance"] = float(d)
+        if d < float(min_gap):
+            why = (rec["clearance_completion"] or {}).get("reason")
+            raise _failure(f"skeleton cage, clearance: the contained cage is {d:.3g} from the input, "
+                           f"less than min_gap {min_gap:.3g} ({why})", parts, reason="clearance")
+    return C
+
+
+def _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say):
+    """The contained cage ``C`` pushed out by re-inflating the inner surface from rest to its offset by
+    ``gap`` (:func:`cagegen.nested.backend.offset_surface`), then :func:`push_out` again."""
+    from ..nested.backend import complete_clearance, offset_surface
+    from ..nested.reinflate import reinflate
+
+    say("clearance: push_out blocked, re-inflating the input to its offset")
+    target = offset_surface(Vi, Fi, gap)
+    rr = reinflate([target, np.asarray(Vi, dtype=float)], Fi, C, Fc, energy="volume", dhat=2e-3,
+                   max_move=2e-3, dhat_final=max(1e-3, 4.0 * gap))
+    rec["clearance_reinflation"] = {"success": bool(rr.success), "reason": rr.reason}
+    if not rr.success:
+        return C, 0.0
+    C2, d, rec["clearance_completion_2"] = complete_clearance(rr.cage, Fc, Vi, Fi, gap)
+    return C2, d
 
 
 def _certification_step(parts, V, F, inner, Vc, Fc, min_gap) -> None:

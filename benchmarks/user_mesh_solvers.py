@@ -1,0 +1,368 @@
+"""nestmg vs pyamg SA vs PETSc GAMG on a user's own mesh and matrix (issue 31).
+
+The path a user's matrix takes: a tet mesh file from the user's mesher (TetGen or TetWild stand in),
+:func:`nestmg.load_tet_mesh` (meshio), :func:`nestmg.hierarchy_from_tets`, a P1 matrix assembled on the
+user's nodes (libigl cotangent stiffness + lumped mass), then ``MultigridSolver(A, P)`` with its defaults
+and MG-PCG, against pyamg smoothed aggregation + CG and PETSc GAMG + CG (1 rank) on the same matrix and
+right-hand side, to ``--tol``. Two stages::
+
+    # once per case: mesh, write the file, read it, build and save the hierarchy (under WORK, not the repo)
+    python benchmarks/user_mesh_solvers.py build ZOO_DIR/bunny.off --mesher tetgen --fine-tets 1000000 \\
+        --work WORK/bunny-tetgen
+    # the solver comparison on saved cases: setup + solve, interleaved repeats, medians
+    OMP_NUM_THREADS=1 python benchmarks/user_mesh_solvers.py run WORK/bunny-tetgen WORK/spot-tetwild ... \\
+        --repeats 3 --json benchmarks/results/user_mesh/solvers.json
+
+``build`` writes ``user_mesh.vtu`` (the user's file) and ``hierarchy/`` (:func:`nestmg.save_hierarchy`) in
+its work directory and is skipped when they exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def build(args) -> dict:
+    """Mesh the surface (the user's mesher), write + read the file, build and save the hierarchy."""
+    import trimesh
+
+    from nestmg import (MeshingOptions, hierarchy_from_tets, load_mesh, load_tet_mesh, save_hierarchy,
+                        save_tet_mesh, tetrahedralize)
+    from nestmg.refine import refine_tets
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    mesh_file = work / "user_mesh.vtu"
+    info: dict = {"surface": Path(args.surface).name, "mesher": args.mesher,
+                  "fine_tets_target": args.fine_tets}
+    if not mesh_file.exists():
+        V, F = load_mesh(args.surface)
+        vol = trimesh.Trimesh(V, F, process=False).volume
+        # TetGen's quality meshes come out ~1.8x denser than regular tets of edge h; TetWild's ~1x
+        fill = 1.8 if args.mesher == "tetgen" else 1.0
+        h = float((6 * np.sqrt(2) * vol * fill / args.fine_tets) ** (1 / 3))
+        t = time.perf_counter()
+        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length=h * 2**args.refine, time_limit=None)
+        info["user_mesher_seconds"] = time.perf_counter() - t
+        info["mesher_tets"] = len(Tu)
+        for _ in range(args.refine):  # the user refines the mesher's output uniformly (8x tets each time)
+            Vu, Tu, _P = refine_tets(Vu, Tu)
+        info["refined"] = args.refine
+        save_tet_mesh(mesh_file, Vu, Tu)
+    t = time.perf_counter()
+    V0, T0 = load_tet_mesh(mesh_file)
+    info.update(read_seconds=time.perf_counter() - t, nodes=len(V0), tets=len(T0))
+    if not (work / "hierarchy" / "hierarchy.npz").exists():
+        t = time.perf_counter()
+        H = hierarchy_from_tets(V0, T0, args.levels, meshing=MeshingOptions(mesher=args.coarse_mesher),
+                                progress=True)
+        info["hierarchy_seconds"] = time.perf_counter() - t
+        save_hierarchy(work / "hierarchy", H)
+        info["hierarchy"] = {"tets": [len(T) for _, T in H.tets], "n_outside": H.n_outside,
+                             "certified": H.certified}
+    (work / "build.json").write_text(json.dumps(info, indent=1))
+    print(json.dumps(info))
+    return info
+
+
+#: nestmg cycles compared by ``run --variants`` (the default cycle of ``MultigridSolver(A, P)`` is "default")
+VARIANTS = {
+    "default": {},
+    "symmetric_gs": {"presmoother": ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})},
+    "forward_gs": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 1})},
+    # an explicit spec equal to the default: two sweeps on every level (no one-sweep dense levels)
+    "forward_gs2_uniform": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 2})},
+    "chebyshev3": {"presmoother": ("chebyshev", {"degree": 3})},
+    # Neumann only: one forward / backward sweep over the fine boundary layer
+    # (solvers.fem.boundary_layer_nodes)
+    "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
+    "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
+                                           ("gauss_seidel", {"sweep": "forward", "iterations": 2})]},
+}
+
+
+def load_case(work: Path) -> dict:
+    """The user's mesh (read back from its file), the saved hierarchy, the matrices and right-hand sides."""
+    from nestmg import load_hierarchy, load_tet_mesh
+    from solvers import restrict_prolongations
+    from solvers.fem import boundary_layer_nodes, boundary_nodes, mass_matrix, stiffness_matrix
+
+    V, T = load_tet_mesh(work / "user_mesh.vtu")
+    H = load_hierarchy(work / "hierarchy")
+    if not (np.array_equal(H.tets[0][0], V) and np.array_equal(H.tets[0][1], T)):
+        raise SystemExit(f"{work}: the hierarchy's fine level is not the user's mesh")
+    K = stiffness_matrix(V, T)
+    M = mass_matrix(V, T)
+    d = np.linalg.norm(V.max(axis=0) - V.min(axis=0))
+    f = 1.0 + np.sin(3 * V[:, 0] / d) * np.cos(2 * V[:, 1] / d) + V[:, 2] / d
+    b = M @ f
+    interior = np.setdiff1d(np.arange(len(V)), boundary_nodes(T))
+    Pf, _ = restrict_prolongations(H.P, interior)
+    m = M.diagonal()
+    info = json.loads((work / "build.json").read_text())
+    mesher = {"tetgen": "TetGen", "tetwild": "TetWild"}[info["mesher"]]
+    if info.get("refined"):
+        mesher += f" {info.get('mesher_tets', 0) / 1e3:.0f}k tets, red-refined x{info['refined']}"
+    return {
+        "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V),
+        "build": info,
+        "level_tets": [len(t) for _, t in H.tets],
+        "n_outside": list(H.n_outside),
+        "dirichlet": (sp_csr(K[interior][:, interior]), b[interior], Pf, None),
+        "neumann": (K, b - m * (b.sum() / m.sum()), list(H.P), "constant"),
+        # Neumann diffusion (λK + M) u = M f, λ = (d/10)², d the bounding-box diagonal (an implicit step)
+        "diffusion": (sp_csr((d / 10) ** 2 * K + M), b, list(H.P), None),
+        "boundary_layer": boundary_layer_nodes(T, 1),
+    }
+
+
+def sp_csr(A):
+    import scipy.sparse as sp
+
+    A = sp.csr_matrix(A)
+    A.sort_indices()
+    return A
+
+
+def run_nestmg(A, b, Ps, nullspace, tol, opts) -> dict:
+    from solvers import MultigridSolver
+
+    t = time.perf_counter()
+    ml = MultigridSolver(A, Ps, nullspace=nullspace, **opts)
+    setup = time.perf_counter() - t
+    _, r = ml.solve(b, tol=tol, accel="cg", return_info=True)
+    return {"setup_seconds": setup, "solve_seconds": r["seconds"], "iterations": r["iterations"],
+            "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
+            "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
+            "level_unknowns": [L.A.shape[0] for L in ml.levels],
+            "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels],
+            "reordered": ml.perm is not None,
+            "spmv_internal_seconds": spmv_seconds(ml.levels[0].A, 10)}
+
+
+def run_sa(A, b, nullspace, tol) -> dict:
+    """pyamg SA (defaults) as CG's preconditioner. Dirichlet: pyamg's own CG (``solvers.baselines.pyamg_sa``).
+    Neumann: the same SA V-cycle inside :func:`solvers.krylov.pcg` with the iterates, the right-hand side and
+    the preconditioned residual kept at zero mean, as nestmg's MG-PCG does: pyamg's CG on the singular
+    matrix drifts along the constant null space (on these meshes it aborted as "indefinite" or ran to 500
+    iterations in some repeats)."""
+    import pyamg
+    import scipy.sparse.linalg as spla
+
+    from solvers.baselines import pyamg_sa
+    from solvers.krylov import pcg
+
+    if nullspace is None:
+        r = pyamg_sa(A, b, tol=tol, nullspace=nullspace)
+        return {"setup_seconds": r.setup_seconds, "solve_seconds": r.solve_seconds,
+                "iterations": r.iterations,
+                "final_residual": r.info["final_true_residual"],
+                "operator_complexity": r.info["operator_complexity"]}
+    t = time.perf_counter()
+    ml = pyamg.smoothed_aggregation_solver(A)
+    setup = time.perf_counter() - t
+    M0 = ml.aspreconditioner(cycle="V")
+
+    def mv(r):
+        z = M0.matvec(r - r.mean())
+        return z - z.mean()
+
+    M = spla.LinearOperator(A.shape, matvec=mv, dtype=np.float64)
+    res = pcg(A, b, M=M, tol=tol, maxiter=500, nullspace="constant")
+    return {"setup_seconds": setup, "solve_seconds": res.seconds, "iterations": res.iterations,
+            "final_residual": float(np.linalg.norm(b - A @ res.x) / np.linalg.norm(b)),
+            "operator_complexity": float(ml.operator_complexity())}
+
+
+def run_gamg(A, b, nullspace, tol) -> dict:
+    from solvers.petsc_amg import petsc_amg_solve
+
+    x, r = petsc_amg_solve(A, b, "gamg", tol=tol, nullspace=nullspace)
+    return {"setup_seconds": r["setup_seconds"], "solve_seconds": r["solve_seconds"],
+            "iterations": r["iterations"],
+            "final_residual": float(np.linalg.norm(b - A @ x) / np.linalg.norm(b))}
+
+
+def spmv_seconds(A, repeats: int = 30) -> float:
+    x = np.ones(A.shape[0])
+    best = np.inf
+    for _ in range(3):
+        t = time.perf_counter()
+        for _ in range(repeats):
+            A @ x
+        best = min(best, (time.perf_counter() - t) / repeats)
+    return best
+
+
+def run(args) -> dict:
+    """Interleaved repeats over cases x problems x solvers; medians and within-run ratios."""
+    from solvers.ordering import index_spread
+
+    solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants] + list(args.baselines)
+    cases = [load_case(Path(w)) for w in args.cases]
+    raw: dict = {}
+    for rep in range(args.repeats):
+        for c in cases:
+            for prob in args.problems:
+                A, b, Ps, ns = c[prob]
+                for sname in solvers:
+                    if sname == "nestmg_boundary_layer" and prob != "neumann":
+                        continue
+                    if sname == "pyamg_sa":
+                        r = run_sa(A, b, ns, args.tol)
+                    elif sname == "petsc_gamg":
+                        r = run_gamg(A, b, ns, args.tol)
+                    else:
+                        v = sname[len("nestmg_"):] if sname != "nestmg" else "default"
+                        opts = dict(VARIANTS[v])
+                        if v == "boundary_layer":
+                            opts["local_nodes"] = c["boundary_layer"]
+                        r = run_nestmg(A, b, Ps, ns, args.tol, opts)
+                    r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
+                    raw.setdefault((c["name"], prob, sname), []).append(r)
+                    print(f"[{rep}] {c['name']:>14s} {prob:9s} {sname:28s} "
+                          f"setup {r['setup_seconds']:.3f} solve "
+                          f"{r['solve_seconds']:.3f} it {r['iterations']}", flush=True)
+    out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+           "cases": []}
+    for c in cases:
+        cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside", "build")}
+        cd["problems"] = {}
+        for prob in args.problems:
+            A = c[prob][0]
+            t_spmv = spmv_seconds(A)
+            pd: dict = {"unknowns": A.shape[0], "nnz": A.nnz, "spmv_seconds": t_spmv, "solvers": {},
+                        "index_spread": index_spread(A)}
+            for sname in solvers:
+                if (c["name"], prob, sname) not in raw:
+                    continue
+                runs = raw[(c["name"], prob, sname)]
+                med = {k: float(np.median([r[k] for r in runs])) for k in
+                       ("setup_seconds", "solve_seconds", "total_seconds")}
+                med.update(iterations=int(np.median([r["iterations"] for r in runs])),
+                           max_final_residual=max(r["final_residual"] for r in runs),
+                           solve_spmv=med["solve_seconds"] / t_spmv, runs=runs)
+                if "spmv_internal_seconds" in runs[0]:
+                    med["spmv_internal_seconds"] = float(
+                        np.median([r["spmv_internal_seconds"] for r in runs]))
+                    med["spmv_speedup_internal_order"] = t_spmv / med["spmv_internal_seconds"]
+                pd["solvers"][sname] = med
+            ref = pd["solvers"][solvers[0]]
+            for sname, med in pd["solvers"].items():
+                if sname != solvers[0]:
+                    med["solve_ratio_vs_first"] = float(np.median(
+                        [rs["solve_seconds"] / r0["solve_seconds"] for rs, r0 in
+                         zip(raw[(c["name"], prob, sname)], raw[(c["name"], prob, solvers[0])])]))
+            for base in ("pyamg_sa", "petsc_gamg"):
+                if base in pd["solvers"]:
+                    pd[f"speedup_vs_{base}"] = float(np.median(
+                        [rb["total_seconds"] / rn["total_seconds"] for rb, rn in
+                         zip(raw[(c["name"], prob, base)], raw[(c["name"], prob, solvers[0])])]))
+                    pd[f"setup_ratio_vs_{base}"] = float(np.median(
+                        [rn["setup_seconds"] / rb["setup_seconds"] for rb, rn in
+                         zip(raw[(c["name"], prob, base)], raw[(c["name"], prob, solvers[0])])]))
+            cd["problems"][prob] = pd
+            print(f"{c['name']} {prob}: {solvers[0]} {ref['setup_seconds']:.3f}+{ref['solve_seconds']:.3f} s "
+                  f"({ref['iterations']} it, {ref['solve_spmv']:.0f} SpMV); "
+                  + "; ".join(f"x{pd[k]:.2f} {k[11:]}" for k in pd if k.startswith("speedup")), flush=True)
+        out["cases"].append(cd)
+    return out
+
+
+def profile(args) -> dict:
+    """cProfile of ``MultigridSolver(A, P)`` set-up (the code on ``PYTHONPATH``: run it once on the base
+    commit's tree and once on this one for the before/after), plus pyamg SA's set-up time in the same run."""
+    import cProfile
+    import pstats
+
+    import importlib.util
+
+    import pyamg
+
+    from solvers import MultigridSolver
+
+    c = load_case(Path(args.case))
+    out: dict = {"case": c["name"], "tets": c["tets"], "code": args.label,
+                 "has_locality_ordering": importlib.util.find_spec("solvers.ordering") is not None,
+                 "problems": {}}
+    for prob in args.problems:
+        A, b, Ps, ns = c[prob]
+        t_mg, t_sa = [], []
+        for _ in range(args.repeats):  # interleaved
+            t = time.perf_counter()
+            MultigridSolver(A, Ps, nullspace=ns)
+            t_mg.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            pyamg.smoothed_aggregation_solver(A)
+            t_sa.append(time.perf_counter() - t)
+        pr = cProfile.Profile()
+        pr.enable()
+        MultigridSolver(A, Ps, nullspace=ns)
+        pr.disable()
+        st = pstats.Stats(pr)
+        rows = sorted(((v[2], v[3], f"{Path(k[0]).name}:{k[1]}({k[2]})") for k, v in st.stats.items()),
+                      reverse=True)
+        out["problems"][prob] = {
+            "setup_seconds_median": float(np.median(t_mg)),
+            "pyamg_sa_setup_seconds_median": float(np.median(t_sa)),
+            "setup_ratio_vs_sa_median": float(np.median(np.array(t_mg) / np.array(t_sa))),
+            "profile_seconds": float(st.total_tt),
+            "top_tottime": [{"function": f, "tottime": tt, "cumtime": ct} for tt, ct, f in rows[:12]],
+        }
+        print(f"{prob}: setup {np.median(t_mg):.3f} s vs SA {np.median(t_sa):.3f} s; top: "
+              + ", ".join(f"{f} {tt:.3f}" for tt, _, f in rows[:5]), flush=True)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("build", help="make one case: user mesh file + saved hierarchy")
+    b.add_argument("surface", type=Path)
+    b.add_argument("--mesher", choices=("tetgen", "tetwild"), default="tetgen", help="the user's mesher")
+    b.add_argument("--coarse-mesher", choices=("tetgen", "tetwild"), default="tetgen")
+    b.add_argument("--fine-tets", type=int, default=1_000_000)
+    b.add_argument("--levels", type=int, default=4)
+    b.add_argument("--refine", type=int, default=0,
+                   help="red-refine the mesher's output this many times (mesher target: fine-tets / 8^n)")
+    b.add_argument("--work", type=Path, required=True)
+    r = sub.add_parser("run", help="compare the solvers on built cases")
+    r.add_argument("cases", nargs="+", type=Path)
+    r.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
+                   choices=("dirichlet", "neumann", "diffusion"))
+    r.add_argument("--variants", nargs="+", default=["default"], choices=sorted(VARIANTS),
+                   help="nestmg cycles; the first one is the reference of the ratios")
+    r.add_argument("--baselines", nargs="*", default=["pyamg_sa", "petsc_gamg"],
+                   choices=("pyamg_sa", "petsc_gamg"))
+    r.add_argument("--repeats", type=int, default=3)
+    r.add_argument("--tol", type=float, default=1e-8)
+    r.add_argument("--json", type=Path, default=None)
+    pr = sub.add_parser("profile", help="cProfile of the MultigridSolver set-up on one case")
+    pr.add_argument("case", type=Path)
+    pr.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
+                    choices=("dirichlet", "neumann"))
+    pr.add_argument("--repeats", type=int, default=3)
+    pr.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
+    pr.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    if args.cmd == "build":
+        return build(args)
+    out = profile(args) if args.cmd == "profile" else run(args)
+    if args.json:
+        from nestmg.io import json_default
+
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=1, default=json_default))
+    if args.cmd == "run" and "petsc_gamg" in args.baselines:
+        os._exit(0)  # Debian's PETSc 3.18 may segfault at interpreter exit after correct solves
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""MultigridSolver's defaults (the documented fast path) and its internal locality ordering."""
+
+import inspect
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import solvers.coarse
+from solvers import MultigridSolver, fem
+from solvers.gallery import kuhn_cube_hierarchy
+from solvers.multilevel import DEFAULT_SMOOTHER, DENSE_LEVEL_ROWS
+from solvers.ordering import ORDER_MIN_N, index_spread, locality_order, permute_symmetric
+
+
+@pytest.fixture(scope="module")
+def scattered():
+    """A Neumann Poisson problem on the Kuhn cube (29^3 = 24,389 nodes, >= ORDER_MIN_N) whose fine nodes
+    are shuffled, as a mesher's output may be."""
+    meshes, Ps = kuhn_cube_hierarchy(28, 3)
+    V, T = meshes[0]
+    K = fem.stiffness_matrix(V, T)
+    q = np.random.default_rng(1).permutation(len(V))
+    Ks = sp.csr_matrix(K[q][:, q])
+    Ps = [sp.csr_matrix(Ps[0][q])] + list(Ps[1:])
+    b = np.random.default_rng(2).standard_normal(len(V))
+    return K, Ks, Ps, b - b.mean(), q, T
+
+
+def test_constructor_defaults_are_the_documented_fast_path():
+    """MultigridSolver(A, P) with no options is the cycle docs/usermesh.md measured fastest under CG:
+    forward Gauss-Seidel x2 before, backward x2 after (x1 on dense coarse levels), locality ordering,
+    dense coarsest solve."""
+    params = inspect.signature(MultigridSolver).parameters
+    assert DEFAULT_SMOOTHER == ("gauss_seidel", {"sweep": "forward", "iterations": 2})
+    assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
+    assert params["ordering"].default == "auto" and params["coarse_solver"].default == "auto"
+    assert params["coarse"].default == "galerkin" and params["coarse_scaling"].default is None
+    assert solvers.coarse.DENSE_MAX == 1500
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)
+    V, T = meshes[0]
+    ml = MultigridSolver(fem.stiffness_matrix(V, T), Ps, nullspace="constant")
+    pre, post = ml.levels[0].presmoother.params, ml.levels[0].postsmoother.params
+    assert (pre["sweep"], pre["iterations"]) == ("forward", 2)
+    assert (post["sweep"], post["iterations"]) == ("backward", 2)
+    for L in ml.levels[1:-1]:
+        pre, post = L.presmoother.params, L.postsmoother.params
+        assert (pre["sweep"], pre["iterations"]) == ("forward", 2)
+        assert (post["sweep"], post["iterations"]) == ("backward", 2)
+    assert ml.symmetric_cycle and ml._coarse_solver.dense and ml.perm is None  # small: caller's order kept
+    # a dense coarse level (more than DENSE_LEVEL_ROWS times the fine nonzeros per row) gets one sweep
+    assert DENSE_LEVEL_ROWS == 2.0
+    P0 = sp.csr_matrix(Ps[0])
+    dense_P = sp.csr_matrix(P0 @ sp.csr_matrix(np.kron(np.eye(P0.shape[1] // 5 + 1), np.ones((5, 5)))
+                                               [: P0.shape[1], : P0.shape[1]] / 5.0))  # smears each column
+    md = MultigridSolver(fem.stiffness_matrix(V, T), [dense_P] + list(Ps[1:]), nullspace="constant")
+    rows = [L.A.nnz / L.A.shape[0] for L in md.levels]
+    for k, L in enumerate(md.levels[1:-1], start=1):
+        want = 1 if rows[k] > 2.0 * rows[0] else 2
+        assert L.presmoother.params["iterations"] == L.postsmoother.params["iterations"] == want
+    assert md.levels[1].presmoother.params["iterations"] == 1, rows
+
+
+def test_locality_order_is_a_permutation_that_gathers(scattered):
+    K, Ks, Ps, _b, _q, _T = scattered
+    orders = locality_order(Ps)
+    assert [len(p) for p in orders] == [Ps[0].shape[0]] + [P.shape[1] for P in Ps]
+    for p in orders:
+        assert np.array_equal(np.sort(p), np.arange(len(p)))
+    Ap = permute_symmetric(Ks, orders[0])
+    assert Ap.has_canonical_format and abs(Ap - Ks[orders[0]][:, orders[0]]).max() == 0.0
+    # shuffled: ~1/3 (random); after the order, far below the "auto" threshold
+    assert index_spread(Ks) > 0.3 and index_spread(Ap) < 0.03, (index_spread(Ks), index_spread(Ap))
+
+
+def test_reordered_solver_solves_in_the_callers_order(scattered):
+    K, Ks, Ps, b, q, T = scattered
+    assert Ks.shape[0] >= ORDER_MIN_N
+    ml = MultigridSolver(Ks, Ps, nullspace="constant")
+    plain = MultigridSolver(Ks, Ps, nullspace="constant", ordering=None)
+    assert ml.perm is not None and plain.perm is None
+    assert abs(ml.levels[0].A - Ks[ml.perm][:, ml.perm]).max() == 0.0
+    x, info = ml.solve(b, tol=1e-10, accel="cg", return_info=True)
+    xp, info_p = plain.solve(b, tol=1e-10, accel="cg", return_info=True)
+    assert np.linalg.norm(Ks @ x - b) <= 1e-9 * np.linalg.norm(b)
+    assert np.abs(x - xp).max() <= 1e-7 * np.abs(xp).max()
+    assert abs(info["iterations"] - info_p["iterations"]) <= 1, (info["iterations"], info_p["iterations"])
+    # the same coarse operators up to the permutation of the coarse levels (the products' round-off may
+    # cancel a few entries to exact zeros in one order and not in the other)
+    assert ml.operator_complexity() == pytest.approx(plain.operator_complexity(), rel=2e-3)
+    # the public preconditioner works in the caller's order: symmetric, and scipy's CG converges with it
+    M = ml.aspreconditioner()
+    rng = np.random.default_rng(3)
+    u, v = rng.standard_normal(len(b)), rng.standard_normal(len(b))
+    u -= u.mean()
+    v -= v.mean()
+    assert abs((M @ u) @ v - u @ (M @ v)) <= 1e-10 * abs(u @ (M @ v))
+    y = ml.solve(b, x0=x, tol=1e-10)  # x0 in the caller's order: already converged, no cycle needed
+    assert np.abs(y - x).max() <= 1e-12 * np.abs(x).max() + 1e-300
+
+
+def test_local_nodes_follow_the_permutation(scattered):
+    K, Ks, Ps, b, q, T = scattered
+    inv = np.empty_like(q)
+    inv[q] = np.arange(len(q))
+    layer = inv[fem.boundary_layer_nodes(T, 1)]  # the shuffled problem's boundary layer, caller's numbering
+    ml = MultigridSolver(Ks, Ps, nullspace="constant", local_nodes=layer)
+    mask = np.zeros(len(q), bool)
+    mask[layer] = True
+    mm = MultigridSolver(Ks, Ps, nullspace="constant", local_nodes=mask)
+    assert ml.perm is not None
+    assert ml.levels[0].presmoother.params["local_nodes"] == layer.size == mm.levels[0].presmoother.params[
+        "local_nodes"]
+    # the local rows are those of the boundary layer: their count of nonzeros is the layer's
+    nnz_layer = int(np.diff(Ks.indptr)[layer].sum())
+    extra = ml.cycle_complexity() - MultigridSolver(Ks, Ps, nullspace="constant").cycle_complexity()
+    assert 0 < nnz_layer / Ks.nnz < extra
+    r1 = ml.solve(b, tol=1e-8, accel="cg", return_info=True)[1]
+    r2 = mm.solve(b, tol=1e-8, accel="cg", return_info=True)[1]
+    assert r1["residuals"] == r2["residuals"]
+
+
+def test_bad_ordering_name(scattered):
+    _K, Ks, Ps, _b, _q, _T = scattered
+    with pytest.raises(solvers.SolverInputError, match="ordering"):
+        MultigridSolver(Ks, Ps, ordering="rcm")

@@ -188,7 +188,7 @@ def picture(path: str, png: str, edge: float) -> dict:
     else:
         V, F = load_mesh(path)
         Vn = normalize(V)[0]
-        Vt, Tt = tetrahedralize(Vn, F, edge_length_fac=edge, coarsen=True)
+        Vt, Tt = tetrahedralize(Vn, F, edge_length=edge, coarsen=True)
         proj = surface_projector(Vn, F, normals="smooth")
     cm = curve_mesh(Vt, Tt, proj)
     rep = cm.report

@@ -66,7 +66,7 @@ def main(argv=None):
     if args.edge_length is not None:
         from exp_common import load_hierarchy
 
-        h, _ = load_hierarchy(args.mesh, edge_length_fac=args.edge_length)
+        h, _ = load_hierarchy(args.mesh, edge_length=args.edge_length)
     else:
         h = build_hierarchy(V, F, 4, "nested", meshing=MeshingOptions(mesher="tetgen"), progress=False,
                             sizing=SizingOptions(edge_length=edge_for_tets(V, F, args.fine_tets),

@@ -608,7 +608,7 @@ def add_hierarchy_arguments(ap) -> None:
 
 
 def hierarchies_from_args(a) -> list[tuple[Path, float | None]]:
-    """``(mesh path, edge_length_fac)`` pairs from :func:`add_hierarchy_arguments`' arguments."""
+    """``(mesh path, edge_length)`` pairs from :func:`add_hierarchy_arguments`' arguments."""
     edges = a.edge_length or [None] * len(a.meshes)
     if len(edges) != len(a.meshes):
         raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)}), got {len(edges)}")

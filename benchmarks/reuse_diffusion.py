@@ -70,7 +70,8 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
     h, load_s = load_hierarchy(path, edge_length=edge)
     V0 = h.tets[0][0]
     diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
-    rec: dict = {"mesh": path.name, "edge_length_fac": edge, "tets": [len(T) for _, T in h.tets], "nodes": [len(V) for V, _ in h.tets],
+    rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
+                 "nodes": [len(V) for V, _ in h.tets],
                  "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s, "diag": diag}
     print(f"{path.name}: tets {rec['tets']}, nodes {rec['nodes']}", file=sys.stderr, flush=True)
     # K and M are given to every method (a simulation code's own matrices); their assembly is not counted

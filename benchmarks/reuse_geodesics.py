@@ -136,7 +136,7 @@ def run_mesh(path: Path, edge, methods, n_sources: int, seed: int, states_dir: P
 
     h, _ = load_hierarchy(path, edge_length=edge)
     V0, T0 = h.tets[0]
-    rec: dict = {"mesh": path.name, "edge_length_fac": edge, "tets": [len(T) for _, T in h.tets],
+    rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(V) for V, _ in h.tets], "hierarchy_seconds": h.timings}
     print(f"{path.name}: tets {rec['tets']}, nodes {rec['nodes']}", file=sys.stderr, flush=True)
     pre, tw, _ = _timed(lambda: heat_precompute(V0, T0))

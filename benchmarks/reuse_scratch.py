@@ -131,7 +131,7 @@ def run_once(m: str, h, name: str, tol: float) -> tuple[dict, np.ndarray, object
 
 def run_mesh(path: Path, edge, methods, tol: float, repeat: int) -> dict:
     h, load_s = load_hierarchy(path, edge_length=edge)
-    rec: dict = {"mesh": path.name, "edge_length_fac": edge, "tets": [len(T) for _, T in h.tets],
+    rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(V) for V, _ in h.tets], "hierarchy_seconds": h.timings,
                  "hierarchy_load_seconds": load_s, "problems": {}}
     print(f"{path.name}: tets {rec['tets']}, nodes {rec['nodes']}", file=sys.stderr, flush=True)

@@ -50,7 +50,7 @@ def main(argv=None) -> dict:
     vol = trimesh.Trimesh(V, F, process=False).volume
     h = float((6 * np.sqrt(2) * vol / args.fine_tets) ** (1 / 3))  # regular tets of edge h fill it
     t = time.perf_counter()
-    Vu, Tu = tetrahedralize(V, F, mesher="tetgen", edge_length=h)
+    Vu, Tu = tetrahedralize(V, F, mesher="tetgen", edge_length_abs=h)
     sec["make_user_mesh_tetgen"] = time.perf_counter() - t
     tmp_dir = None
     if args.tmp is None:

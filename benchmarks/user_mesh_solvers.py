@@ -48,7 +48,7 @@ def build(args) -> dict:
         fill = 1.8 if args.mesher == "tetgen" else 1.0
         h = float((6 * np.sqrt(2) * vol * fill / args.fine_tets) ** (1 / 3))
         t = time.perf_counter()
-        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length=h * 2**args.refine, time_limit=None)
+        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length_abs=h * 2**args.refine, time_limit=None)
         info["user_mesher_seconds"] = time.perf_counter() - t
         info["mesher_tets"] = len(Tu)
         for _ in range(args.refine):  # the user refines the mesher's output uniformly (8x tets each time)

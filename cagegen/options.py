@@ -212,9 +212,9 @@ class SdfOptions(CageOptions):
     tighten_rounds: int = field_spec(3, "tightening rounds at most", low=0)
     bridge_retry: float = field_spec(0.5, "rebuild at c * bridge_retry when the envelope bridged a concavity "
                                           "(0: off)", low=0.0)
-    time_budget: float | None = field_spec(_SDF_TIME_BUDGET, "wall-clock seconds the sdf cages may take, "
-                                                             "estimated before any work (None: no limit)",
-                                           low=0.0, kind=float, optional=True)
+    cage_time_budget: float | None = field_spec(
+        _SDF_TIME_BUDGET, "wall-clock seconds the sdf cages may take, estimated before any work (None: no "
+                          "limit)", low=0.0, kind=float, optional=True)
 
 
 @dataclass(frozen=True)

@@ -297,7 +297,7 @@ def _number(kind, low, *, strict: bool = False, what: str = ""):
 
 
 #: cage flags that are not a field of :class:`cagegen.CageOptions`: flag -> (options class, field)
-CAGE_FLAGS = {"--cage-time-budget": ("SdfOptions", "time_budget")}
+CAGE_FLAGS = {"--cage-time-budget": ("SdfOptions", "cage_time_budget")}
 
 
 def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:

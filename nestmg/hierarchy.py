@@ -164,9 +164,9 @@ def _bbox_diag(V: np.ndarray) -> float:
     return bbox_diagonal(np.asarray(V, dtype=np.float64))  # overflow-safe
 
 
-def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_opts=None, layer=None):
+def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_kwargs=None, layer=None):
     """Tet-mesh one layer, through the cache."""
-    tw = dict(tetwild_opts or {}) if mesher == "tetwild" else {}
+    tw = dict(tetwild_kwargs or {}) if mesher == "tetwild" else {}
     opts = {"stage": "tets", "mesher": mesher, "h": round(h, 12), "epsilon": epsilon, **tw}
     key = cache_key([V, F], opts)
     if use_cache:
@@ -174,7 +174,7 @@ def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_opts=None, layer=No
         if hit is not None:
             return hit[0]["V"], hit[0]["T"]
     check_tet_memory(V, F, h, mesher, layer=layer)  # refuse before meshing a layer that would not fit
-    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=h, epsilon=epsilon, **tw)
+    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length_abs=h, epsilon=epsilon, **tw)
     if use_cache:
         save_entry(key, {"V": Vt, "T": T}, opts)
     return Vt, T
@@ -535,7 +535,7 @@ def _fine_level(levels: int, sizing: SizingOptions, mesher: str) -> tuple[str, b
 def _plan(Vn, F, levels, sizing: SizingOptions, mesher: str, refine: bool, **extra):
     """:func:`nestmg.sizing.plan_hierarchy` for these options (milliseconds, before any expensive stage)."""
     return plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=sizing.edge_length,
-                          max_tets=sizing.max_tets, time_budget=sizing.mesh_time_budget,
+                          max_tets=sizing.max_tets, mesh_time_budget=sizing.mesh_time_budget,
                           meshed_fraction=0.125 if refine else 1.0,
                           mesh_edge_factor=2.0 if refine else 1.0,
                           face_counts=None if sizing.face_counts is None else list(sizing.face_counts),

@@ -417,7 +417,7 @@ for bad in (np.zeros((0, 3), int), np.where(F == 0, 999, F)):
         tetrahedralize(V, bad, mesher="tetwild")
     except MeshInputError as exc:
         print("refused:", exc)
-Vt, T = tetrahedralize(V * 1e-9, F, mesher="tetwild", edge_length_fac=0.2)
+Vt, T = tetrahedralize(V * 1e-9, F, mesher="tetwild", edge_length=0.2)
 print("tiny:", len(T), float(np.ptp(Vt[:, 0])))
 """
 

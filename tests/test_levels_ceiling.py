@@ -45,7 +45,7 @@ def small_sphere():
 @pytest.fixture(scope="module")
 def small_tets():
     """A TetWild tet mesh of a coarse procedural sphere: 780 boundary faces (the 'user's Medit mesh')."""
-    V, T = tetrahedralize(*shapes.sphere(res=10), edge_length_fac=0.12)
+    V, T = tetrahedralize(*shapes.sphere(res=10), edge_length=0.12)
     nb = len(boundary_surface(V, T)[1])
     assert 4 * MIN_FACES <= nb < 16 * MIN_FACES, nb
     return V, T, nb

@@ -25,7 +25,7 @@ def test_estimate_bounds_tetgen_count(ball):
     V, F = ball
     for h in (0.06, 0.04):
         n_est = estimate_tets(V, F, h)
-        _, T = tetrahedralize(V, F, mesher="tetgen", edge_length=h)
+        _, T = tetrahedralize(V, F, mesher="tetgen", edge_length_abs=h)
         assert len(T) <= n_est <= 3 * len(T), (h, len(T), n_est)
     # the count scales like h^-3
     assert estimate_tets(V, F, 0.01) == pytest.approx(8 * estimate_tets(V, F, 0.02), rel=0.01)

@@ -15,7 +15,7 @@ from solvers.fem import boundary_faces
 @pytest.fixture(scope="module")
 def torus_tets():
     V, F = shapes.torus(res=16)
-    return tetrahedralize(V, F, edge_length=0.15)
+    return tetrahedralize(V, F, edge_length_abs=0.15)
 
 
 def test_refinement_is_exactly_nested(torus_tets):

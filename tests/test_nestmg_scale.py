@@ -48,7 +48,7 @@ def test_plan_follows_budget(ball):
     # a tighter cap gives a coarser mesh; a time budget can only make it coarser still
     p2 = plan_hierarchy(V, F, 3, max_tets=5_000)
     assert p2.rule == "max_tets" and p2.edge_length > p.edge_length
-    p3 = plan_hierarchy(V, F, 3, max_tets=5_000, time_budget=1e-3 + 1e-3 * len(F))
+    p3 = plan_hierarchy(V, F, 3, max_tets=5_000, mesh_time_budget=1e-3 + 1e-3 * len(F))
     assert p3.edge_length >= p2.edge_length
     # the user's explicit edge wins, unless it breaks an explicit cap: then the message names both options
     assert plan_hierarchy(V, F, 2, edge_length=0.05).rule == "user"

@@ -156,7 +156,7 @@ def test_cli_builds_the_same_objects():
     assert args.sizing == SizingOptions(face_counts=(300, 80), mesh_time_budget=None)
     assert args.meshing == MeshingOptions(mesher="tetgen")
     assert args.solver == SolverOptions(accel="cg", local=False)
-    assert _cage_options(args, "sdf") == SdfOptions(repair=True, time_budget=60.0)
+    assert _cage_options(args, "sdf") == SdfOptions(repair=True, cage_time_budget=60.0)
 
 
 def test_hierarchy_records_its_options_and_keys_the_cache_on_them(tmp_path, monkeypatch):

@@ -167,14 +167,14 @@ def estimate_layer_seconds(n_input_faces: int) -> float:
     return 15.0 + 5e-3 * float(n_input_faces)
 
 
-def _budget_check(n_input: list[int], time_budget: float | None, what: str) -> float:
+def _budget_check(n_input: list[int], cage_time_budget: float | None, what: str) -> float:
     """Raise :class:`CageError` (in milliseconds, before any work) when the estimate exceeds the budget."""
     est = float(sum(estimate_layer_seconds(n) for n in n_input))
-    if time_budget is not None and est > float(time_budget):
+    if cage_time_budget is not None and est > float(cage_time_budget):
         raise CageError(
             f"{what}: estimated {est:.0f} s for a {n_input[0]:,}-face input ({len(n_input)} layer(s), "
-            f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds time_budget="
-            f"{float(time_budget):.0f} s; pass a larger time_budget (None: no limit; nestmg CLI: "
+            f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds cage_time_budget="
+            f"{float(cage_time_budget):.0f} s; pass a larger cage_time_budget (None: no limit; nestmg CLI: "
             f"--cage-time-budget, 0: no limit), or decimate the input "
             f"first (nestmg.build_hierarchy does: SizingOptions(predecimate=True))", layer=1,
             reason="time budget")
@@ -221,7 +221,7 @@ def sdf_cage_layer(
     tighten: float = 1.5,
     tighten_rounds: int = 3,
     bridge_retry: float = 0.5,
-    time_budget: float | None = DEFAULT_TIME_BUDGET,
+    cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
     deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
@@ -309,10 +309,10 @@ def sdf_cage_layer(
         above), the layer is built once more at ``c * bridge_retry`` and that cage is kept if it is
         certified, has the first one's genus and is tighter (input-to-cage and symmetric Hausdorff
         distances both smaller). It runs only if three times the first
-        build's seconds fit in what is left of ``time_budget`` / ``deadline``, and only if
+        build's seconds fit in what is left of ``cage_time_budget`` / ``deadline``, and only if
         ``c * bridge_retry >= 4 min_gap`` (the clearance leaves room to simplify). ``info["bridge_retry"]``
         records the trigger, the distances and what was kept. Measured: ``docs/sdf.md``.
-    time_budget : float or None
+    cage_time_budget : float or None
         Wall-clock seconds this call may take (None: no limit). Checked first, in milliseconds: when
         :func:`estimate_layer_seconds` of the input exceeds it, :class:`CageError` (``reason="time
         budget"``) names the option before the audit or any other work. During the run, a tightening
@@ -320,7 +320,7 @@ def sdf_cage_layer(
         pass is an improvement of an already certified cage; ``info["tighten"]["stopped"]`` records it).
     deadline : float, optional
         A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_schedule`
-        sets it from the run's ``time_budget`` and calls this with ``time_budget=None``).
+        sets it from the run's ``cage_time_budget`` and calls this with ``cage_time_budget=None``).
 
     Returns
     -------
@@ -342,17 +342,17 @@ def sdf_cage_layer(
         Bad option values (odd or too small ``n_faces``, ...).
     cagegen.CageError
         No certified cage after ``max_retries`` rebuilds (the message gives each attempt's reason), or
-        the estimated time exceeds ``time_budget`` (raised before any work).
+        the estimated time exceeds ``cage_time_budget`` (raised before any work).
     """
     call = dict(locals())  # this call's arguments (first statement: nothing else is local yet), for the retry
     opts = SimpleNamespace(**call)
     t0 = time.perf_counter()
     V, F = as_mesh_arrays(V, F, "fine layer")
     n_faces = _check_target(n_faces)
-    _budget_check([len(F)], time_budget, f"sdf cage with {n_faces} faces")
+    _budget_check([len(F)], cage_time_budget, f"sdf cage with {n_faces} faces")
     tight_deadline = deadline
-    if time_budget is not None:
-        tight_deadline = min(t0 + float(time_budget), np.inf if deadline is None else deadline)
+    if cage_time_budget is not None:
+        tight_deadline = min(t0 + float(cage_time_budget), np.inf if deadline is None else deadline)
     if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0 or not pull >= 0:
         raise CageOptionError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
     t_check = None
@@ -615,7 +615,8 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
     rec["c_retry"] = c2
     # c is relative to `unit`: pass the same unit (the first call's default is V's own diagonal)
     unit = call["unit"] if call["unit"] is not None else bbox_diagonal(np.asarray(call["V"], float))
-    args = {**call, "c": c2, "unit": unit, "bridge_retry": 0.0, "check_input": False, "time_budget": None,
+    args = {**call, "c": c2, "unit": unit, "bridge_retry": 0.0, "check_input": False,
+            "cage_time_budget": None,
             "deadline": deadline, "max_retries": 0}
     try:
         U2o, G2, info2 = sdf_cage_layer(**args)
@@ -643,11 +644,11 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
 
 
 def sdf_schedule(V: np.ndarray, F: np.ndarray, face_counts, *, t0: float,
-                 time_budget: float | None = DEFAULT_TIME_BUDGET, **layer_opts) -> list[dict]:
+                 cage_time_budget: float | None = DEFAULT_TIME_BUDGET, **layer_opts) -> list[dict]:
     """The ``"sdf"`` backend's run plan (registry ``schedule``): checked before any layer is built.
 
     The face counts must be even; the whole run's estimate (:func:`estimate_layer_seconds` of each layer's
-    input) must fit ``time_budget`` (else :class:`CageError`, ``reason="time budget"``, in milliseconds).
+    input) must fit ``cage_time_budget`` (else :class:`CageError`, ``reason="time budget"``, in milliseconds).
     Each layer then runs without a budget of its own but with a deadline after which no tightening round
     starts: the run's budget less the estimates of the layers after it (the layers themselves always
     run: the budget was checked first).
@@ -661,7 +662,7 @@ def sdf_schedule(V: np.ndarray, F: np.ndarray, face_counts, *, t0: float,
         Exact (even) face counts of the cages, finest first.
     t0 : float
         ``time.perf_counter()`` at the start of the run.
-    time_budget : float or None
+    cage_time_budget : float or None
         Wall-clock seconds for all the layers (None: no limit).
     **layer_opts
         The other options (each layer's; unused here).
@@ -669,12 +670,13 @@ def sdf_schedule(V: np.ndarray, F: np.ndarray, face_counts, *, t0: float,
     Returns
     -------
     list of dict
-        Per layer, the keywords of :func:`sdf_cage_layer` the run sets (``deadline``, ``time_budget``,
+        Per layer, the keywords of :func:`sdf_cage_layer` the run sets (``deadline``, ``cage_time_budget``,
         ``check_input``).
     """
     counts = [_check_target(m) for m in face_counts]
-    _budget_check([len(F)] + counts[:-1], time_budget, f"sdf cages {counts}")
+    _budget_check([len(F)] + counts[:-1], cage_time_budget, f"sdf cages {counts}")
     later = [sum(estimate_layer_seconds(n) for n in counts[k:-1]) for k in range(len(counts))]
     # check_input False: build_cages audited the input once, the later layers are certified cages
-    return [{"time_budget": None, "check_input": False,
-             "deadline": None if time_budget is None else t0 + float(time_budget) - rest} for rest in later]
+    return [{"cage_time_budget": None, "check_input": False,
+             "deadline": None if cage_time_budget is None else t0 + float(cage_time_budget) - rest}
+            for rest in later]

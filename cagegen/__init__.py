@@ -8,11 +8,17 @@ Layer 0 is the audited input; layer ``k+1`` is a coarser cage that strictly cont
 (checked by :func:`verify_nesting`) for every method except the naive ``"decimate"`` baseline.
 Backends are looked up by name in :mod:`cagegen.registry` and imported lazily; each has a typed options
 class (:mod:`cagegen.options`: ``build_cages(V, F, 3, "sdf", options=SdfOptions(c=0.02))``).
+
+Small helpers the pipeline shares with the backends: :func:`as_mesh_arrays` (validated float64 / int64
+copies), :func:`bbox_diagonal` (overflow-safe bounding-box diagonal, the unit of every relative length)
+and :func:`in_temp_dir` (a throw-away working directory for meshers that write into the current one).
 """
 
 from __future__ import annotations
 
 from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's lines go there)
+from ._geometry import as_mesh_arrays, bbox_diagonal
+from ._tempdir import in_temp_dir
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
 from .components import build_cages_per_component, split_components
@@ -50,8 +56,10 @@ __all__ = [
     "SdfOptions",
     "SkeletonOptions",
     "UnknownMethodError",
+    "as_mesh_arrays",
     "audit_mesh",
     "available_backends",
+    "bbox_diagonal",
     "build_cages",
     "build_cages_per_component",
     "check_face_counts",
@@ -60,6 +68,7 @@ __all__ = [
     "default_face_counts",
     "errors",
     "get_backend",
+    "in_temp_dir",
     "options_class",
     "register_backend",
     "registered_backends",

@@ -73,6 +73,21 @@ def bbox_diagonal(V: np.ndarray) -> float:
 
     Computed as ``s * |ext / s|`` with ``s`` the largest extent, so that it neither underflows to 0
     (extents ~1e-200) nor overflows to inf (extents ~1e200) when squaring.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+
+    Returns
+    -------
+    float
+        The diagonal (0 when all points coincide; inf or nan passed through for non-finite input).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> bbox_diagonal(np.array([[0.0, 0, 0], [3, 4, 12]]))
+    13.0
     """
     ext = np.abs(V.max(axis=0) - V.min(axis=0))
     s = float(ext.max())

@@ -159,7 +159,7 @@ class Hierarchy:
 
 
 def _bbox_diag(V: np.ndarray) -> float:
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
 
     return bbox_diagonal(np.asarray(V, dtype=np.float64))  # overflow-safe
 
@@ -495,7 +495,7 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         raise MeshInputError(f"input: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     lo, hi = V.min(axis=0), V.max(axis=0)
     center = 0.5 * (lo + hi)
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
 
     scale = bbox_diagonal(V)  # overflow-safe (no squaring of 1e154 extents, no numpy warning)
     if not (np.isfinite(scale) and scale > 0):

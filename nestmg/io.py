@@ -91,7 +91,7 @@ def normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     if not np.isfinite(V).all():
         raise MeshInputError(f"{int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     lo, hi = V.min(axis=0), V.max(axis=0)
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
 
     scale = bbox_diagonal(V)  # overflow-safe
     if not (np.isfinite(scale) and scale > 0):

@@ -361,7 +361,7 @@ def plan_hierarchy(
         raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
     lp = plan_levels(len(F), levels, face_counts=face_counts, fixed_levels=fixed_levels)
     levels = lp.levels
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
 
     diag = bbox_diagonal(V)  # overflow-safe
     vol = enclosed_volume(V, F)

@@ -34,8 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cagegen._geometry import as_mesh_arrays, bbox_diagonal
-from cagegen._tempdir import in_temp_dir
+from cagegen import as_mesh_arrays, bbox_diagonal, in_temp_dir
 from cagegen.errors import MeshInputError, NestmgError
 
 from ._mesh_worker import run_job

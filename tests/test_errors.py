@@ -59,6 +59,20 @@ def test_solvers_imports_no_cage_or_pipeline_code():
     assert out.strip() == "[]", out
 
 
+def test_nestmg_imports_only_public_cagegen_names():
+    """nestmg reaches cagegen through public modules and names only (no ``cagegen._geometry``, no
+    ``from cagegen.x import _private``): what it needs is exported (``cagegen.bbox_diagonal``, ...)."""
+    private = re.compile(r"\bcagegen(\.\w+)*\._\w+|from\s+cagegen[\w.]*\s+import\s+\(?\s*_\w+"
+                         r"|from\s+cagegen[\w.]*\s+import\s+[^\n]*,\s*_\w+")
+    offenders = [f"{p.name}: {m.group(0)}" for p in (ROOT / "nestmg").rglob("*.py")
+                 for m in private.finditer(p.read_text())]
+    assert not offenders, offenders
+    assert private.search("from cagegen._geometry import bbox_diagonal")
+    assert private.search("from cagegen.nested.backend import push_out, _envelope_target")
+    for name in ("as_mesh_arrays", "bbox_diagonal", "in_temp_dir"):
+        assert name in cagegen.__all__ and getattr(cagegen, name).__doc__
+
+
 def test_solver_errors_derive_from_the_root():
     classes = _public_exceptions(solvers)
     assert solvers.SolverError in classes and solvers.errors.DivergenceError in classes

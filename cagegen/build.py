@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ._geometry import as_mesh_arrays, bbox_diagonal, signed_volume
-from .audit import check_mesh
+from .audit import MeshAudit, check_mesh
 from .errors import CageError, CageOptionError, LevelsError, MeshInputError
 from .options import CageOptions, cage_options
 from .registry import backend_spec, get_backend, get_schedule, options_class
@@ -117,6 +117,7 @@ def build_cages(
     *,
     options: CageOptions | None = None,
     components: str = "single",
+    audit: MeshAudit | None = None,
     **opts,
 ):
     """Build a hierarchy of cages around a closed surface, finest first.
@@ -153,6 +154,10 @@ def build_cages(
         ``"single"`` (default): the input must be one closed piece. ``"separate"``: one hierarchy per
         disjoint closed piece; the return value is then a *list* with one ``build_cages`` result per
         piece (see :func:`cagegen.components.build_cages_per_component`).
+    audit : MeshAudit, optional
+        A passed audit of exactly ``(V, F)`` (``check_mesh(V, F, return_audit=True)``, after any repair),
+        from a caller that audited the input already: the input is then not audited again (nor repaired),
+        and the verifier does not repeat its exact self-intersection test.
     **opts
         Instead of ``options``: its fields by name (``build_cages(V, F, 3, "sdf", c=0.02)`` is
         ``options=SdfOptions(c=0.02)``); validated by the class, unknown names refused.
@@ -182,6 +187,8 @@ def build_cages(
     if components == "separate":
         from .components import build_cages_per_component
 
+        if audit is not None:
+            raise CageOptionError("audit= is the audit of one piece: not with components='separate'")
         return build_cages_per_component(
             V, F, levels, method, face_counts=face_counts, verify=verify, return_info=return_info,
             progress=progress, repair=options.repair, options=dataclasses.replace(options, repair=False),
@@ -191,9 +198,10 @@ def build_cages(
     t0 = time.perf_counter()
     report_to = _reporter(progress)
     say = report_to if report_to is not None else (lambda msg: None)
-    V, F, audit = check_mesh(V, F, repair=options.repair, name="input", return_audit=True)
+    V, F, audit, given = _audited_input(V, F, audit, options.repair)
     t_audit = time.perf_counter() - t0
-    say(f"input: {V.shape[0]} vertices, {F.shape[0]} faces, audit ok ({t_audit:.2f} s)")
+    say(f"input: {V.shape[0]} vertices, {F.shape[0]} faces, audit ok "
+        f"({'passed in' if given else f'{t_audit:.2f} s'})")
     face_counts = _face_counts(face_counts, levels, int(F.shape[0]))
     min_gap = float(options.min_gap or 0.0)
     say(f"{method}: building {len(face_counts)} cages with face counts {face_counts}")
@@ -205,7 +213,7 @@ def build_cages(
     t_verify = 0.0
     if verify:
         t2 = time.perf_counter()
-        report = verify_nesting(layers, min_gap=min_gap)
+        report = verify_nesting(layers, min_gap=min_gap, audited=(0,))  # layer 0: the audited input
         t_verify = time.perf_counter() - t2
         say(f"verification: {'nested' if report.ok else 'NOT nested'} ({t_verify:.2f} s)")
         if method not in UNCERTIFIED_METHODS:
@@ -225,6 +233,22 @@ def build_cages(
                     "total": time.perf_counter() - t0},
     }
     return layers, info
+
+
+def _audited_input(V, F, audit: MeshAudit | None,
+                   repair: bool) -> tuple[np.ndarray, np.ndarray, MeshAudit, bool]:
+    """The input as float64 / int64 copies and its audit: the caller's (checked to be a passed audit of
+    arrays of this size, its exact self-intersection test included) or :func:`check_mesh`'s."""
+    if audit is None:
+        return (*check_mesh(V, F, repair=repair, name="input", return_audit=True), False)
+    if not isinstance(audit, MeshAudit):
+        raise CageOptionError(f"audit must be a cagegen.MeshAudit, got {type(audit).__name__}")
+    V, F = as_mesh_arrays(V, F, "input")
+    size = (audit.n_vertices, audit.n_faces) == (len(V), len(F))
+    if not (audit.ok and audit.n_self_intersections == 0 and size):
+        raise CageOptionError(f"audit= must be a passed audit (self-intersections tested) of this input's "
+                              f"{len(V)} vertices and {len(F)} faces; got {audit!r}")
+    return V, F, audit, True
 
 
 def _reporter(progress) -> Callable[[str], None] | None:

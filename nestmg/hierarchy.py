@@ -35,7 +35,7 @@ from .sizing import edge_length_for_tets, plan_hierarchy
 from .tetmesh import tetrahedralize
 
 if TYPE_CHECKING:
-    from cagegen import CageOptions
+    from cagegen import CageOptions, MeshAudit
 
 __all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "cage_options_for", "predecimate",
            "tet_hierarchy"]
@@ -339,6 +339,7 @@ def build_cage_surfaces(
     cache: bool = True,
     progress: bool | None = None,
     t0: float | None = None,
+    audit: MeshAudit | None = None,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """The cage layers of a hierarchy, exactly as :func:`build_hierarchy` builds them (same clearance).
 
@@ -367,6 +368,10 @@ def build_cage_surfaces(
         Progress bars (None: only on a terminal).
     t0 : float, optional
         ``time.perf_counter()`` the stage lines' elapsed seconds count from (default: this call's start).
+    audit : cagegen.MeshAudit, optional
+        A passed audit of ``(V, F)`` (:func:`cagegen.check_mesh`), handed to :func:`cagegen.build_cages`
+        so that the input is audited once per run; used when the normalised copy is ``V`` itself (an
+        input already normalised, as :func:`build_hierarchy`'s), else the copy is audited.
 
     Returns
     -------
@@ -406,8 +411,10 @@ def build_cage_surfaces(
             # a terminal: the backend's own bars; a log or a pipe: its per-layer messages as stage lines
             # (silent unless the `nestmg` logger has a handler, which the CLI installs off a terminal)
             cage_progress = True if sys.stderr.isatty() else (lambda msg: stage_line(f"cages ({method}): {msg}", t0))
+        given = audit if audit is not None and np.array_equal(Vn, V) else None
         surfaces, info = cagegen.build_cages(Vn, F, levels, method=method, face_counts=face_counts,
-                                             return_info=True, progress=cage_progress, options=cages)
+                                             return_info=True, progress=cage_progress, options=cages,
+                                             audit=given)
         info = dict(info, seconds=time.perf_counter() - t_start)
         if cache:
             arrays = {}
@@ -546,21 +553,26 @@ def _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0
     """The surface actually meshed: an input much finer than the tets is decimated first (QEM, error below
     half of TetWild's envelope), so neither TetWild nor the cages pay for detail no tet can see.
 
-    Returns ``(S0, F0, info, plan)``; the plan is redone when the decimation is refused (TetWild then
-    meshes every input face), still before any cage.
+    Returns ``(S0, F0, info, plan, audit)``; the plan is redone when the decimation is refused (TetWild
+    then meshes every input face), still before any cage. ``audit``: the input's audit (done before the
+    decimation) when the input itself is meshed, for :func:`cagegen.build_cages` not to repeat it.
     """
     import cagegen
 
     S0, F0, pre = Vn, F, {"faces_in": len(F), "faces_out": len(F), "hausdorff": 0.0}
+    audit = None
     if not (sizing.predecimate and meshing.mesher == "tetwild"):
-        return S0, F0, pre, plan
+        return S0, F0, pre, plan, audit
     epsilon = meshing.epsilon
     with timer("predecimate"):
         E = Vn[F[:, [1, 2, 0]]] - Vn[F]
         area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
         h_mesh = plan.edge_length * (2.0 if refine else 1.0)  # the edge TetWild is asked for
         if area / (np.sqrt(3) / 4 * h_mesh**2) < 0.6 * len(F):
-            cagegen.check_mesh(Vn, F, repair=bool(cages.repair), name="input")
+            Va, Fa, audit = cagegen.check_mesh(Vn, F, repair=bool(cages.repair), name="input",
+                                               return_audit=True)
+            if not (np.array_equal(Va, Vn) and np.array_equal(Fa, F)):
+                audit = None  # repaired: the audit is of other arrays than the ones meshed
             # error bound: TetWild's envelope, or a quarter of the meshed edge if larger (detail below
             # that is not resolved by the tets anyway, e.g. a scan's noise)
             S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=max(epsilon, 0.25 * h_mesh))
@@ -574,7 +586,7 @@ def _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0
         plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine, surface_faces=len(F))
         stage_line(f"sizing (again): fine edge {plan.edge_length:.3g} ({plan.rule}), expected tets "
                    f"{[f'{n:,}' for n in plan.expected_tets]}", t0)
-    return S0, F0, pre, plan
+    return S0, F0, pre, plan, audit if (S0 is Vn and F0 is F) else None
 
 
 def _refined_fine_level(tets_n, Ps, reps, surfaces_n, tt, plan, timer, t0):
@@ -691,11 +703,12 @@ def build_hierarchy(
         stage_line(f"sizing note: {note}", t0)
     timer = Timer()
     # 2. the surface actually meshed
-    S0, F0, pre, plan = _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0)
+    S0, F0, pre, plan, audit = _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0)
     # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
         surfaces_u, info = build_cage_surfaces(S0, F0, n_surf, method, sizing=sizing, meshing=meshing,
-                                               cages=cages, cache=cache, progress=progress, t0=t0)
+                                               cages=cages, cache=cache, progress=progress, t0=t0,
+                                               audit=audit)
     info["predecimation"] = pre
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
                f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)

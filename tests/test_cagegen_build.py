@@ -102,6 +102,46 @@ def test_input_is_audited_before_the_backend(ball, monkeypatch):
     assert np.array_equal(layers[0][1], ball[1])
 
 
+def test_input_audited_once_per_run(ball, spheres_backend, monkeypatch):
+    """One exact self-intersection test of the input per run: the audit's; the verifier skips layer 0,
+    and a caller's passed audit (audit=) replaces build_cages' own. Same layers and report either way."""
+    import cagegen.audit
+    import cagegen.verify
+
+    tested = []
+    for mod in (cagegen.audit, cagegen.verify):
+        real = mod.self_intersection_pairs
+        monkeypatch.setattr(mod, "self_intersection_pairs",
+                            lambda V, F, *a, real=real: tested.append(len(F)) or real(V, F, *a))
+    layers, info = cagegen.build_cages(*ball, method="spheres", face_counts=[1280, 320], return_info=True)
+    assert tested == [5120, 1280, 320]  # the audit's, then the cages' (not the input's again)
+    assert info["verification"]["pairs"][0]["self_intersections_fine"] == 0 and info["certified"]
+
+    _, _, audit = cagegen.check_mesh(*ball, return_audit=True)
+    tested.clear()
+    monkeypatch.setattr(cagegen.build, "check_mesh", lambda *a, **k: pytest.fail("audited again"))
+    layers2, info2 = cagegen.build_cages(*ball, method="spheres", face_counts=[1280, 320], return_info=True,
+                                         audit=audit)
+    assert tested == [1280, 320]
+    assert all(np.array_equal(Va, Vb) and np.array_equal(Fa, Fb)
+               for (Va, Fa), (Vb, Fb) in zip(layers, layers2))
+
+    def figures(i):  # the verifier's figures but its seconds and igl's threaded winding sums (last bits)
+        return [{k: v for k, v in p.items() if k not in ("seconds", "min_winding")}
+                for p in i["verification"]["pairs"]]
+
+    assert figures(info2) == figures(info)
+    assert info2["verification"]["pairs"][0]["min_winding"] == pytest.approx(1.0, abs=1e-12)
+    assert info2["audit"] == info["audit"]
+    # an audit of another mesh, or without the self-intersection test, is refused in one line
+    _, _, small = cagegen.check_mesh(*_ico(2), return_audit=True)
+    with pytest.raises(cagegen.CageOptionError, match="passed audit"):
+        cagegen.build_cages(*ball, method="spheres", face_counts=[1280], audit=small)
+    no_self = cagegen.audit_mesh(*ball, self_intersections=False)
+    with pytest.raises(cagegen.CageOptionError, match="self-intersections tested"):
+        cagegen.build_cages(*ball, method="spheres", face_counts=[1280], audit=no_self)
+
+
 def test_bad_backend_output(ball, monkeypatch):
     monkeypatch.setitem(registry._BACKENDS, "short", lambda V, F, c: ([_ico(3, 1.2)], {}))
     with pytest.raises(CageError, match="returned 1 layers for 2"):

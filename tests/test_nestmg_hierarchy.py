@@ -44,3 +44,22 @@ def test_same_domain_levels_validated(sphere_surface, bad):
     with pytest.raises(ValueError, match="same_domain_levels"):
         build_hierarchy(V, F, 3, "decimate", sizing=SizingOptions(same_domain_levels=bad),
                         meshing=MeshingOptions(mesher="tetgen"), cache=False)
+
+
+def test_cage_surfaces_take_the_callers_audit(sphere_surface, monkeypatch):
+    """build_cage_surfaces hands a passed audit of an already-normalised input to build_cages (not audited
+    again); an input in other coordinates is audited (its normalised copy is other arrays)."""
+    import cagegen
+    import cagegen.build
+    from nestmg.hierarchy import _normalize, build_cage_surfaces
+
+    V, F = sphere_surface
+    Vn = _normalize(np.ascontiguousarray(V, dtype=np.float64))[0]
+    _, _, audit = cagegen.check_mesh(Vn, F, return_audit=True)
+    real, calls = cagegen.build.check_mesh, []
+    monkeypatch.setattr(cagegen.build, "check_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    kw = {"sizing": SizingOptions(face_counts=[len(F) // 4]), "cache": False, "progress": False}
+    S, info = build_cage_surfaces(Vn, F, 2, "decimate", audit=audit, **kw)
+    assert not calls and info["audit"] == audit.to_dict() and len(S[1][1]) <= len(F) // 4
+    S2, _ = build_cage_surfaces(3.0 * Vn + 1.0, F, 2, "decimate", audit=audit, **kw)
+    assert calls == [1] and np.allclose(S2[1][0], 3.0 * S[1][0] + 1.0)

@@ -10,14 +10,15 @@ Backends are looked up by name in :mod:`cagegen.registry` and imported lazily; e
 class (:mod:`cagegen.options`: ``build_cages(V, F, 3, "sdf", options=SdfOptions(c=0.02))``).
 
 Small helpers the pipeline shares with the backends: :func:`as_mesh_arrays` (validated float64 / int64
-copies), :func:`bbox_diagonal` (overflow-safe bounding-box diagonal, the unit of every relative length)
-and :func:`in_temp_dir` (a throw-away working directory for meshers that write into the current one).
+copies), :func:`bbox_diagonal` (overflow-safe bounding-box diagonal, the unit of every relative length),
+:func:`normalize` (the one bounding-box normalisation) and :func:`in_temp_dir` (a throw-away working
+directory for meshers that write into the current one).
 """
 
 from __future__ import annotations
 
 from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's lines go there)
-from ._geometry import as_mesh_arrays, bbox_diagonal
+from ._geometry import as_mesh_arrays, bbox_diagonal, normalize
 from ._tempdir import in_temp_dir
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
@@ -69,6 +70,7 @@ __all__ = [
     "errors",
     "get_backend",
     "in_temp_dir",
+    "normalize",
     "options_class",
     "register_backend",
     "registered_backends",

@@ -500,9 +500,7 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         raise MeshInputError(f"input: vertices must be a non-empty (n,3) array, got shape {V.shape}")
     if not np.isfinite(V).all():
         raise MeshInputError(f"input: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    center = 0.5 * (lo + hi)
-    from cagegen import bbox_diagonal
+    from cagegen import bbox_diagonal, normalize
 
     scale = bbox_diagonal(V)  # overflow-safe (no squaring of 1e154 extents, no numpy warning)
     if not (np.isfinite(scale) and scale > 0):
@@ -517,7 +515,7 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     if offset > MAX_OFFSET * scale:
         raise MeshInputError(f"input: absurd size: mesh of diagonal {scale:.3g} sits {offset:.3g} from the origin "
                              "(float64 precision lost); translate it")
-    return (V - center) / scale, center, scale
+    return normalize(V, scale)
 
 
 def _fine_level(levels: int, sizing: SizingOptions, mesher: str) -> tuple[str, bool]:

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cagegen import as_mesh_arrays, bbox_diagonal, in_temp_dir
+from cagegen import as_mesh_arrays, bbox_diagonal, in_temp_dir, normalize
 from cagegen.errors import MeshInputError, NestmgError
 
 from ._mesh_worker import run_job
@@ -534,7 +534,6 @@ def tetrahedralize(
         raise MeshInputError(f"surface: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     if mesher not in MESHERS:
         raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
-    lo, hi = V.min(axis=0), V.max(axis=0)
     diag = bbox_diagonal(V)  # overflow-safe
     if not (np.isfinite(diag) and diag > 0):
         raise MeshInputError(f"surface: bounding-box diagonal {diag} (all vertices coincide, or overflow)")
@@ -548,13 +547,13 @@ def tetrahedralize(
     try:
         if mesher == "tetwild":
             # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
-            c = (lo + hi) / 2
+            Vn, c, _ = normalize(V, diag)
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
             if outer_edge_factor > 1.0:
-                opts.update(outer_sizing_field((V - c) / diag, F, h / diag, float(outer_edge_factor)))
+                opts.update(outer_sizing_field(Vn, F, h / diag, float(outer_edge_factor)))
             try:
-                Vt, T = _mesher_call("tetwild", (V - c) / diag, F, opts, deadline)
+                Vt, T = _mesher_call("tetwild", Vn, F, opts, deadline)
             except TetMeshTimeoutError as exc:
                 raise TetMeshTimeoutError(f"{exc}; {_limit_hint(limit)}; or give a larger edge length") from None
             Vt = Vt * diag + c

@@ -63,3 +63,18 @@ def test_cage_surfaces_take_the_callers_audit(sphere_surface, monkeypatch):
     assert not calls and info["audit"] == audit.to_dict() and len(S[1][1]) <= len(F) // 4
     S2, _ = build_cage_surfaces(3.0 * Vn + 1.0, F, 2, "decimate", audit=audit, **kw)
     assert calls == [1] and np.allclose(S2[1][0], 3.0 * S[1][0] + 1.0)
+
+
+def test_one_bounding_box_normalisation():
+    """nestmg's normalisations are cagegen.normalize, bit for bit: centred box, unit diagonal."""
+    import cagegen
+    from nestmg.hierarchy import _normalize
+    from nestmg.io import normalize
+
+    V = np.random.default_rng(3).normal(size=(200, 3)) * [3.0, 0.5, 1.0] + [10.0, -4.0, 0.25]
+    Vc, c, s = cagegen.normalize(V)
+    for Vn, cn, sn in (normalize(V), _normalize(V)):
+        assert np.array_equal(Vn, Vc) and np.array_equal(cn, c) and sn == s
+    assert np.allclose(Vc.max(0) + Vc.min(0), 0.0, atol=1e-15)
+    assert np.linalg.norm(Vc.max(0) - Vc.min(0)) == pytest.approx(1.0, abs=1e-15)
+    assert np.allclose(Vc * s + c, V, rtol=0, atol=1e-13)

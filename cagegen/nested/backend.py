@@ -27,6 +27,7 @@ from collections.abc import Callable
 import igl
 import numpy as np
 
+from .._geometry import normalize
 from ..collision import PairMesh, min_distance, self_collision_free_step
 from ..decimate import decimate_surface
 from ..envelope import build_envelope
@@ -659,9 +660,8 @@ def nested_backend(
 
     # work at unit bounding-box diagonal (the paper's relative step sizes)
     lo, hi = V.min(0), V.max(0)
-    center = 0.5 * (lo + hi)
-    diag = float(np.linalg.norm(hi - lo))
-    Vn = (V - center) / diag
+    diag = float(np.linalg.norm(hi - lo))  # this backend's own measure (its cages depend on its bits)
+    Vn, center, _ = normalize(V, diag)
     gap_abs = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag
     gap_n = gap_abs / diag
     # aim a little beyond the requested clearance (the offset is measured on face planes)

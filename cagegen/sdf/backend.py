@@ -29,7 +29,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .._geometry import as_mesh_arrays, bbox_diagonal, cross_intersection_pairs, edge_stats, n_components
+from .._geometry import (as_mesh_arrays, bbox_diagonal, cross_intersection_pairs, edge_stats, n_components,
+                         normalize)
 from .._geometry import signed_volume as _signed_volume
 from ..audit import check_mesh
 from ..decimate import decimate_surface
@@ -360,10 +361,7 @@ def sdf_cage_layer(
         t = time.perf_counter()
         check_mesh(V, F, name="sdf input")  # MeshInputError naming every problem (self-intersections, ...)
         t_check = time.perf_counter() - t
-    unit = float(bbox_diagonal(V) if unit is None else unit)
-    lo, hi = V.min(0), V.max(0)
-    center = 0.5 * (lo + hi)
-    Vn = (V - center) / unit
+    Vn, center, unit = normalize(V, unit)
     g_fine = genus(Vn, F)
     gap_rel = float(min_gap) / bbox_diagonal(Vn)  # verify_nesting's min_gap is relative to layer 0
     attempts = []

@@ -31,6 +31,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._geometry import normalize
 from ..errors import CageError, CageOptionError, MeshInputError
 from ..verify import verify_nesting
 from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage,
@@ -293,9 +294,8 @@ def skeleton_cage(
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     lo, hi = V.min(0), V.max(0)
-    center = 0.5 * (lo + hi)
-    diag = float(np.linalg.norm(hi - lo))
-    Vn = (V - center) / diag
+    diag = float(np.linalg.norm(hi - lo))  # this backend's own measure (its cages depend on its bits)
+    Vn, center, _ = normalize(V, diag)
     info: dict = {"method": "skeleton"}
 
     t = time.perf_counter()

@@ -60,8 +60,8 @@ def _hierarchy(path: str, max_tets: int, levels: int):
 
     V, F = nestmg.load_mesh(path)
     t = time.perf_counter()
-    h = nestmg.build_hierarchy(V, F, levels=levels, method="nested", max_tets=max_tets, cache=True,
-                               progress=False)
+    h = nestmg.build_hierarchy(V, F, levels, "nested", sizing=nestmg.SizingOptions(max_tets=max_tets),
+                               cache=True, progress=False)
     return h, time.perf_counter() - t
 
 

@@ -241,7 +241,8 @@ def hierarchy_case(case: str = "stick", zoo: Path | None = None, face_counts=(12
     skeleton cage's own face count as the last); TetWild layers (nestmg defaults, automatic clearance),
     V(1,1) cycles (``MultigridSolver`` defaults), mean residual reduction per cycle to 1e-8. ``case``:
     ``"stick"`` (known skeleton) or a zoo file name (automatic skeleton)."""
-    from nestmg import build_hierarchy, setup_problem
+    from cagegen import NestedOptions, SkeletonOptions
+    from nestmg import SizingOptions, build_hierarchy, setup_problem
     from nestmg.io import normalize
     from solvers import MultigridSolver
 
@@ -250,12 +251,13 @@ def hierarchy_case(case: str = "stick", zoo: Path | None = None, face_counts=(12
         _, center, scale = normalize(V)
         S = S.transformed(1.0 / scale, center)  # nestmg works on a unit-diagonal copy: so must the skeleton
     out: dict = {"shape": Path(case).stem, "input_faces": len(F), "face_counts": list(face_counts)}
-    for name, opts in (("skeleton", {"skeleton": S, "bending": bending}), ("nested", {})):
+    cases = (("skeleton", SkeletonOptions(skeleton=S, bending=bending)), ("nested", NestedOptions()))
+    for name, opts in cases:
         t = time.perf_counter()
         counts = list(out["face_counts"])
         try:
-            h = build_hierarchy(V, F, levels=len(counts) + 1, method=name, face_counts=counts,
-                                cache=False, cage_opts=opts)
+            h = build_hierarchy(V, F, len(counts) + 1, name, sizing=SizingOptions(face_counts=counts),
+                                cages=opts, cache=False)
             res: dict = {"build_seconds": time.perf_counter() - t, "certified": bool(h.certified),
                          "tets": [len(T) for _, T in h.tets], "n_outside": [int(x) for x in h.n_outside],
                          "cage_faces": [len(Fk) for _, Fk in h.surfaces[1:]]}

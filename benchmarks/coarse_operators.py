@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nestmg import MeshingOptions, SizingOptions, SolverOptions
+
 VARIANTS = (  # (coarse, coarse_scaling)
     ("galerkin", None),
     ("rediscretized", None),
@@ -39,7 +41,7 @@ def _solve(prob, scaling, maxiter):
     from solvers import DivergenceError
 
     t0 = time.perf_counter()
-    ml = prob.multigrid(coarse_scaling=scaling)
+    ml = prob.multigrid(SolverOptions(coarse_scaling=scaling))
     t_setup = time.perf_counter() - t0
     rec = {"setup_seconds": t_setup, "operator_complexity": ml.operator_complexity(),
            "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels]}
@@ -77,7 +79,8 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, maxiter, edge_lengt
         rec: dict = {}
         t0 = time.perf_counter()
         try:
-            h = build_hierarchy(V, F, levels, method=m, mesher=mesher, edge_length_fac=h0, progress=False)
+            h = build_hierarchy(V, F, levels, m, sizing=SizingOptions(edge_length=h0),
+                                meshing=MeshingOptions(mesher=mesher), progress=False)
         except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure and goes on
             rec["error"] = f"{type(exc).__name__}: {exc}"
             print(f"  {path.name:<12} {m:<9} ERROR {rec['error']}", flush=True)

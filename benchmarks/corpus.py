@@ -86,12 +86,12 @@ def case_solve(mesh: Path) -> dict:
                  "surfaces_nested": h.surfaces_nested, "n_outside": h.n_outside, "fallbacks": h.fallbacks,
                  "faces": [len(Fk) for _, Fk in h.surfaces], "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(Vt) for Vt, _ in h.tets], "levels": h.levels,
-                 "levels_note": (h.options.get("sizing", {}).get("levels") or {}).get("note"),
+                 "levels_note": (h.options.get("plan", {}).get("levels") or {}).get("note"),
                  "stages": {k: v for k, v in h.timings.items() if isinstance(v, (int, float))},
                  "cage_layer_seconds": h.cage_info.get("layer_seconds"),
                  "predecimation": {k: h.cage_info.get("predecimation", {}).get(k)
                                    for k in ("faces_in", "faces_out", "hausdorff")},
-                 "sizing_rule": h.options.get("sizing", {}).get("rule"), "problems": {}}
+                 "sizing_rule": h.options.get("plan", {}).get("rule"), "problems": {}}
     for problem in PROBLEMS:
         args.problem = problem
         args.accel = None
@@ -110,18 +110,20 @@ def case_solve(mesh: Path) -> dict:
 def case_cages(mesh: Path, method: str) -> dict:
     """``nestmg cages FILE --levels 3 --method M`` (the same function and clearance as ``solve``)."""
     from cagegen.build import fallback_layers
-    from nestmg.cli import _cage_opts, _load
+    from nestmg.cli import _cage_options, _load
     from nestmg.hierarchy import build_cage_surfaces
 
     args = _cli_args("cages", mesh, ["--method", method])
     V, F, _ = _load(str(mesh))
     t = time.perf_counter()
-    layers, info = build_cage_surfaces(V, F, args.levels, method=method, mesher=args.mesher, epsilon=args.epsilon,
-                                       cache=False, progress=False, cage_opts=_cage_opts(args, method))
+    layers, info = build_cage_surfaces(V, F, args.levels, method, meshing=args.meshing, cache=False,
+                                       progress=False,
+                                       cages=_cage_options(args, method))
     ver = info.get("verification") or {}
     return {"seconds": time.perf_counter() - t, "certified": bool(ver.get("ok")) if ver else None,
             "faces": [len(Fk) for _, Fk in layers], "fallbacks": fallback_layers(info),
-            "layer_seconds": info.get("layer_seconds"), "min_gap": (info.get("cage_opts") or {}).get("min_gap")}
+            "layer_seconds": info.get("layer_seconds"),
+            "min_gap": (info.get("cage_options") or {}).get("min_gap")}
 
 
 def case_wheel(mesh: Path, counts: list[int]) -> dict:

@@ -42,6 +42,7 @@ from nestmg.io import json_default
 from nestmg.tetmesh import orient_tets, tet_volumes
 from solvers import stiffness_matrix
 from solvers.fem_p2 import p2_boundary_facets, p2_l2_error, p2_load, p2_neumann_load
+from nestmg import SizingOptions
 
 A, B, C = 6.0, 2.0, 4.0  # u = sin(A x) e^{B y} cos(C z), Δu = (B² - A² - C²) u
 
@@ -119,7 +120,7 @@ def p2_case(h, cm, name, proj, tol):
 def _hierarchy(path: str, args):
     V, F = load_mesh(path)
     t0 = time.perf_counter()
-    h = build_hierarchy(V, F, levels=args.levels, method=args.method, edge_length_fac=args.edge_length,
+    h = build_hierarchy(V, F, args.levels, args.method, sizing=SizingOptions(edge_length=args.edge_length),
                         progress=False)
     t_h = time.perf_counter() - t0
     if not str(h.prolongation_reports[0].extrapolation).startswith("none (refinement)"):
@@ -187,7 +188,7 @@ def picture(path: str, png: str, edge: float) -> dict:
     else:
         V, F = load_mesh(path)
         Vn = normalize(V)[0]
-        Vt, Tt = tetrahedralize(Vn, F, edge_length_fac=edge, coarsen=True)
+        Vt, Tt = tetrahedralize(Vn, F, edge_length=edge, coarsen=True)
         proj = surface_projector(Vn, F, normals="smooth")
     cm = curve_mesh(Vt, Tt, proj)
     rep = cm.report

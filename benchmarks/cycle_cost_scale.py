@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nestmg import MeshingOptions, SizingOptions, SolverOptions
+
 SMOOTHERS = {
     "sgs/sgs": (("gauss_seidel", {"sweep": "symmetric", "iterations": 1}), None),
     "fgs/bgs": (("gauss_seidel", {"sweep": "forward", "iterations": 1}), None),  # post = adjoint = backward
@@ -64,10 +66,11 @@ def main(argv=None):
     if args.edge_length is not None:
         from exp_common import load_hierarchy
 
-        h, _ = load_hierarchy(args.mesh, edge_length_fac=args.edge_length)
+        h, _ = load_hierarchy(args.mesh, edge_length=args.edge_length)
     else:
-        h = build_hierarchy(V, F, 4, method="nested", mesher="tetgen",
-                            edge_length_fac=edge_for_tets(V, F, args.fine_tets), same_domain_levels=1, progress=False)
+        h = build_hierarchy(V, F, 4, "nested", meshing=MeshingOptions(mesher="tetgen"), progress=False,
+                            sizing=SizingOptions(edge_length=edge_for_tets(V, F, args.fine_tets),
+                                                 same_domain_levels=1))
     doc: dict = {"benchmark": "cycle_cost_scale", "mesh": args.mesh.name, "build_seconds": time.perf_counter() - t0,
                  "tets": [len(T) for _, T in h.tets], "nodes": [len(Vk) for Vk, _ in h.tets],
                  "n_outside": [int(x) for x in h.n_outside]}
@@ -108,14 +111,17 @@ def main(argv=None):
             t_spmv = best(lambda: [A @ x for _ in range(20)], args.repeat) / 20  # noqa: B023
             # on pure Neumann "fast" adds boundary-layer sweeps (FAST_NEUMANN_SMOOTHERS); "fast-textbook"
             # is the plain V(1,1) it replaced
-            one_way = {"robust+one-way-local": {"local_sweep": "one-way"},
-                       "fast-textbook": {"smoothing": "fast", "presmoother": FAST_SMOOTHERS, "local": False}}
-            variants = ({**{p: {"smoothing": p} for p in PRESETS}, **(one_way if pr.local_nodes is not None else {})}
+            one_way = {"robust+one-way-local": (SolverOptions(), {"local_sweep": "one-way"}),
+                       "fast-textbook": (SolverOptions(smoothing="fast", local=False),
+                                         {"presmoother": FAST_SMOOTHERS})}
+            variants = ({**{p: (SolverOptions(smoothing=p), {}) for p in PRESETS},
+                         **(one_way if pr.local_nodes is not None else {})}
                         if args.presets else
-                        {k: {"presmoother": pre, "postsmoother": post} for k, (pre, post) in SMOOTHERS.items()})
-            for sname, kw in variants.items():
+                        {k: (None, {"presmoother": pre, "postsmoother": post})
+                         for k, (pre, post) in SMOOTHERS.items()})
+            for sname, (opts, kw) in variants.items():
                 t0 = time.perf_counter()
-                ml = pr.multigrid(**kw)
+                ml = pr.multigrid(opts, **kw)
                 t_setup = time.perf_counter() - t0
                 M = ml.aspreconditioner()
                 t_cyc = best(lambda: M.matvec(x), args.repeat)  # noqa: B023

@@ -236,12 +236,13 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
 
     V, F = load_surface(spec)
     t0 = time.perf_counter()
-    h = nestmg.build_hierarchy(V, F, levels=levels, method="nested", max_tets=max_tets, edge_length_fac=edge,
+    h = nestmg.build_hierarchy(V, F, levels, "nested", sizing=nestmg.SizingOptions(max_tets=max_tets,
+                                                                                   edge_length=edge),
                                cache=True, progress=False)
     load_s = time.perf_counter() - t0
     tets = h.tets_in("normalized")
     rec = {"mesh": Path(spec).name if not spec.startswith("shape:") else spec, "max_tets": max_tets,
-           "edge_length_fac": edge,
+           "edge_length": edge,
            "tets": [len(T) for _, T in tets], "nodes": [len(Vk) for Vk, _ in tets], "certified": h.certified,
            "n_outside": h.n_outside, "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s,
            "cases": []}

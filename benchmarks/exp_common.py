@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nestmg import MeshingOptions, SizingOptions
+
 #: folder of the dev-zoo meshes: set by the experiments from their required ``--zoo`` argument
 ZOO: Path | None = None
 NAIVE_RULES = ("clamped", "linear", "closest_point", "nearest_vertex")
@@ -101,7 +103,8 @@ def build_pair(V, F, levels: int, fine_tets: int, *, same_domain: int = 0, rules
             surfaces, cage_seconds, nested_ok = [(V, F)], 0.0, None
         t1 = time.perf_counter()
         layers = [(V, F)] * (same_domain + 1) + list(surfaces[1:])
-        tets, P, reps, tt = tet_hierarchy(layers, mesher="tetgen", edge_length_fac=h0, progress=False)
+        tets, P, reps, tt = tet_hierarchy(layers, sizing=SizingOptions(edge_length=h0, coarsening=None),
+                                          meshing=MeshingOptions(mesher="tetgen"), progress=False)
         t2 = time.perf_counter()
         base = {
             "nodes": [len(Vk) for Vk, _ in tets],
@@ -374,9 +377,9 @@ def tightness(Vc: np.ndarray, Fc: np.ndarray, V0: np.ndarray, F0: np.ndarray, n_
 
 # ------------------------------------------------------------------ reuse benchmarks (issue 15 item 5)
 def load_hierarchy(path: Path, *, levels: int = 3, max_tets: int = 1_200_000, method: str = "nested",
-                   edge_length_fac: float | None = None):
+                   edge_length: float | None = None):
     """``nestmg.build_hierarchy`` of a mesh file with the project defaults, through the on-disk cache
-    (``edge_length_fac``: fine edge / bounding-box diagonal, default the input's mean edge).
+    (``edge_length``: fine edge / bounding-box diagonal, default the input's mean edge).
 
     Returns ``(hierarchy, seconds)``; on a cache hit ``seconds`` is the load time, and
     ``hierarchy.timings`` keeps the stage times of the original build.
@@ -386,8 +389,8 @@ def load_hierarchy(path: Path, *, levels: int = 3, max_tets: int = 1_200_000, me
 
     V, F = load_mesh(Path(path))
     t0 = time.perf_counter()
-    h = nestmg.build_hierarchy(V, F, levels=levels, method=method, cache=True, max_tets=max_tets, progress=False,
-                               edge_length_fac=edge_length_fac)
+    h = nestmg.build_hierarchy(V, F, levels, method, cache=True, progress=False,
+                               sizing=nestmg.SizingOptions(max_tets=max_tets, edge_length=edge_length))
     return h, time.perf_counter() - t0
 
 
@@ -605,7 +608,7 @@ def add_hierarchy_arguments(ap) -> None:
 
 
 def hierarchies_from_args(a) -> list[tuple[Path, float | None]]:
-    """``(mesh path, edge_length_fac)`` pairs from :func:`add_hierarchy_arguments`' arguments."""
+    """``(mesh path, edge_length)`` pairs from :func:`add_hierarchy_arguments`' arguments."""
     edges = a.edge_length or [None] * len(a.meshes)
     if len(edges) != len(a.meshes):
         raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)}), got {len(edges)}")

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
+from nestmg import SolverOptions
 
 
 def run(meshes, fine_tets, lams, levels, maxiter, nu):
@@ -40,8 +41,9 @@ def run(meshes, fine_tets, lams, levels, maxiter, nu):
             for coarse in ("galerkin", "rediscretized"):
                 for lam in [*lams, None]:
                     prob = "poisson-neumann" if lam is None else "diffusion-neumann"
-                    r = solve_on_hierarchy(tets, P, prob, coarse=coarse, nu=nu, maxiter=maxiter,
-                                           lam=1.0 if lam is None else lam, cost=False)
+                    opts = SolverOptions(coarse=coarse, nu=nu, maxiter=maxiter,
+                                         lam=1.0 if lam is None else lam)
+                    r = solve_on_hierarchy(tets, P, prob, opts, cost=False)
                     rec["runs"].append({
                         "hierarchy": name, "coarse": coarse, "lam": lam, "problem": prob,
                         "factor": r["factor"], "iterations": r["iterations"], "converged": r["converged"],

@@ -28,6 +28,7 @@ import warnings
 from pathlib import Path
 
 from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
+from nestmg import SolverOptions
 
 HIERARCHIES = ("nested", "naive-linear", "naive-closest_point")
 #: default: closest-point extrapolation gave the same figures as linear in every row of the first run
@@ -44,9 +45,11 @@ def _solve_all(tets, P, maxiter):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                st = solve_on_hierarchy(tets, P, "poisson-dirichlet", coarse=coarse, maxiter=maxiter, cost=False)
-                cg = solve_on_hierarchy(tets, P, "poisson-dirichlet", coarse=coarse, accel="cg", maxiter=200,
+                st = solve_on_hierarchy(tets, P, "poisson-dirichlet", SolverOptions(coarse=coarse,
+                                                                                    maxiter=maxiter),
                                         cost=False)
+                cg = solve_on_hierarchy(tets, P, "poisson-dirichlet", SolverOptions(coarse=coarse, accel="cg",
+                                                                                    maxiter=200), cost=False)
         except SolverError as exc:  # e.g. a large coarsest level that is singular beyond its null space
             out[coarse] = {"error": f"{type(exc).__name__}: {str(exc)[:160]}"}
             continue

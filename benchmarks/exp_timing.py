@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from exp_common import cages, edge_for_tets, environment, load_zoo, save_figure, write_json
+from nestmg import MeshingOptions, SizingOptions, SolverOptions
 
 
 def _status_kb(field: str) -> int:
@@ -87,7 +88,7 @@ def _nestmg(tets, P, coarse, tol):
     t0 = time.perf_counter()
     prob = setup_problem(tets, P, "poisson-dirichlet", coarse=coarse)
     t1 = time.perf_counter()
-    ml = prob.multigrid(coarse_scaling=None)
+    ml = prob.multigrid(SolverOptions(coarse_scaling=None))
     t2 = time.perf_counter()
     x, info = ml.solve(prob.b, tol=tol, maxiter=200, accel="cg", return_info=True)
     t3 = time.perf_counter()
@@ -120,7 +121,8 @@ def run_size(V, F, mesh, target, s, args):
     surfaces, cinfo = cages(V, F, 3, "nested")
     layers = [(V, F)] * (s + 1) + list(surfaces[1:])
     t0 = time.perf_counter()
-    tets, P, reps, tt = tet_hierarchy(layers, mesher="tetgen", edge_length_fac=h0, cache=False, progress=False)
+    tets, P, reps, tt = tet_hierarchy(layers, sizing=SizingOptions(edge_length=h0, coarsening=None),
+                                      meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     t_tets = time.perf_counter() - t0
     rec = {"mesh": mesh, "target_tets": target, "same_domain_levels": s,
            "tets": [len(T) for _, T in tets], "nodes": [len(Vk) for Vk, _ in tets],

@@ -38,6 +38,7 @@ import scipy.sparse as sp
 from solvers.fem import boundary_nodes, stiffness_matrix
 from solvers.gallery import kuhn_cube_hierarchy
 from solvers.multilevel import restrict_prolongations
+from nestmg import MeshingOptions, SizingOptions
 
 
 def kuhn_dirichlet(n: int, levels: int, seed: int = 0) -> dict:
@@ -62,7 +63,8 @@ def pipeline_dirichlet(path: str, levels: int, method: str, mesher: str, edge_fa
     from nestmg.problems import setup_problem
 
     V, F = load_mesh(path)
-    h = build_hierarchy(V, F, levels, method=method, mesher=mesher, edge_length_fac=edge_fac, progress=False)
+    h = build_hierarchy(V, F, levels, method, sizing=SizingOptions(edge_length=edge_fac),
+                        meshing=MeshingOptions(mesher=mesher), progress=False)
     gal = setup_problem(h.tets, h.P, "poisson-dirichlet", coarse="galerkin")
     red = setup_problem(h.tets, h.P, "poisson-dirichlet", coarse="rediscretized")
     return {"A": gal.A, "Ps": gal.P, "Ps_int": red.P, "coarse": red.coarse, "b": gal.b,

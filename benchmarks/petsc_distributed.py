@@ -199,7 +199,7 @@ def launcher(args) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         t = time.perf_counter()
-        arrays = drv.coarse_levels(args.mesh, args.levels, edge_length_fac=args.edge_length)
+        arrays = drv.coarse_levels(args.mesh, args.levels, edge_length=args.edge_length)
         doc["input_mesh"] = {"nodes": len(arrays["V"]), "tets": len(arrays["T"]),
                              "source": args.mesh and Path(args.mesh).name or "procedural torus"}
         doc["coarse_levels_seconds"] = time.perf_counter() - t

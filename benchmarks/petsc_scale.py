@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nestmg import SolverOptions
+
 #: one symmetric Gauss–Seidel sweep per smoothing step: what PetscMultigrid(smoother="sor") runs
 SGS = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
 
@@ -40,7 +42,7 @@ def main(argv=None) -> int:
     from nestmg.problems import setup_problem
     from solvers.petsc import PetscMultigrid
 
-    h, t_h = load_hierarchy(args.mesh, edge_length_fac=args.edge_length)
+    h, t_h = load_hierarchy(args.mesh, edge_length=args.edge_length)
     doc: dict = {"benchmark": "petsc_scale", "mesh": args.mesh.name, "edge_length": args.edge_length,
                  "tets": [len(T) for _, T in h.tets], "hierarchy_load_seconds": t_h, "runs": []}
     for name in ("poisson-dirichlet", "poisson-neumann"):
@@ -51,7 +53,7 @@ def main(argv=None) -> int:
                      "petsc": {"setup": [], "solve": [], "iterations": None}}
         for _ in range(args.repeat):
             t = time.perf_counter()
-            ml = pr.multigrid(presmoother=SGS, local=False)  # PCMG's SOR: symmetric sweeps
+            ml = pr.multigrid(SolverOptions(local=False), presmoother=SGS)  # PCMG's SOR: symmetric sweeps
             rec["inprocess"]["setup"].append(time.perf_counter() - t)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nestmg import MeshingOptions, SizingOptions, SolverOptions
+
 
 def _edge_for_tets(V, F, target: int) -> float:
     """Edge length of regular tets (volume h^3 / (6 sqrt 2)) filling the solid ``target`` times."""
@@ -38,7 +40,8 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, problems, coarse_li
         rec: dict = {}
         t0 = time.perf_counter()
         try:
-            h = build_hierarchy(V, F, levels, method=m, mesher=mesher, edge_length_fac=h0, progress=False)
+            h = build_hierarchy(V, F, levels, m, sizing=SizingOptions(edge_length=h0),
+                                meshing=MeshingOptions(mesher=mesher), progress=False)
         except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure and goes on
             rec["error"] = f"{type(exc).__name__}: {exc}"
             print(f"  {path.name:<14} {m:<9} ERROR {rec['error']}", flush=True)
@@ -51,7 +54,8 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, problems, coarse_li
         rec["solves"] = []
         for prob in problems:
             for coarse in coarse_list:
-                r = solve_on_hierarchy(h.tets, h.P, prob, coarse=coarse, smoother=smoother, maxiter=60)
+                r = solve_on_hierarchy(h.tets, h.P, prob, SolverOptions(coarse=coarse, smoother=smoother,
+                                                                        maxiter=60))
                 r.pop("residuals_full", None)
                 rec["solves"].append(r)
                 print(f"  {path.name:<14} {m:<9} {prob:<18} {coarse:<13} factor {r['factor']:.3f} "

@@ -51,6 +51,7 @@ from exp_common import (
     save_figure,
     write_json,
 )
+from nestmg import SolverOptions
 
 METHODS = ("nestmg", "nestmg_robust", "nestmg_rap", "pyamg_sa", "gamg", "gamg_reuse", "hypre", "cholmod")
 RESETUP = ("nestmg_rap", "pyamg_sa", "gamg", "hypre", "cholmod")  # re-factor / re-set up every step
@@ -66,10 +67,11 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
              tol: float, steps_for: dict | None = None, states_dir: Path | None = None) -> dict:
     from nestmg.timestepping import diffusion_stepper
 
-    h, load_s = load_hierarchy(path, edge_length_fac=edge)
+    h, load_s = load_hierarchy(path, edge_length=edge)
     V0 = h.tets[0][0]
     diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
-    rec: dict = {"mesh": path.name, "edge_length_fac": edge, "tets": [len(T) for _, T in h.tets], "nodes": [len(V) for V, _ in h.tets],
+    rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
+                 "nodes": [len(V) for V, _ in h.tets],
                  "hierarchy_seconds": h.timings, "hierarchy_load_seconds": load_s, "diag": diag}
     print(f"{path.name}: tets {rec['tets']}, nodes {rec['nodes']}", file=sys.stderr, flush=True)
     # K and M are given to every method (a simulation code's own matrices); their assembly is not counted
@@ -120,7 +122,7 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
                 elif m == "nestmg_rap":
                     t0, c0 = time.perf_counter(), time.process_time()
                     prob = dataclasses.replace(st.problem, A=A, b=b, coarse="galerkin")
-                    ml = prob.multigrid(smoothing=st.smoothing)
+                    ml = prob.multigrid(SolverOptions(smoothing=st.smoothing))
                     t1, c1 = time.perf_counter(), time.process_time()
                     x, i = ml.solve(b, x0=u, tol=tol, maxiter=200, accel="cg", return_info=True)
                     t2, c2 = time.perf_counter(), time.process_time()

@@ -47,6 +47,7 @@ from exp_common import (
     save_figure,
     write_json,
 )
+from nestmg import SolverOptions
 
 METHODS = ("nestmg", "nestmg_fast", "pyamg_sa", "gamg", "hypre", "cholmod")
 
@@ -67,7 +68,7 @@ def make_solvers(methods, h, pre) -> tuple[dict, dict]:
     for m in methods:
         rec: dict = {}
         if m in ("nestmg", "nestmg_fast"):
-            kw = {"smoothing": "fast"} if m == "nestmg_fast" else {}
+            kw = SolverOptions(smoothing="fast" if m == "nestmg_fast" else "robust")
             mls = {}
             for kind, name, prune in (("heat", "diffusion-neumann", 0.0), ("poisson", "poisson-neumann", 0.5)):
                 prob, tp, cp = _timed(lambda name=name, prune=prune: setup_problem(h.tets, h.P, name, lam=pre.t,
@@ -75,7 +76,7 @@ def make_solvers(methods, h, pre) -> tuple[dict, dict]:
                 diff = abs(prob.A - mats[kind]).max() / abs(mats[kind]).max()
                 if diff > 1e-12:
                     raise RuntimeError(f"setup_problem's {kind} matrix differs from the heat method's ({diff:.2e})")
-                ml, tm, cm = _timed(lambda prob=prob, kw=kw: prob.multigrid(**kw))
+                ml, tm, cm = _timed(lambda prob=prob, kw=kw: prob.multigrid(kw))
                 mls[kind] = ml
                 rec[kind] = {"setup_problem": tp, "multigrid": tm, "cpu": cp + cm,
                              "operator_complexity": ml.operator_complexity()}
@@ -133,9 +134,9 @@ TOL = 1e-8
 def run_mesh(path: Path, edge, methods, n_sources: int, seed: int, states_dir: Path | None = None) -> dict:
     from nestmg.geodesics import heat_geodesic, heat_precompute
 
-    h, _ = load_hierarchy(path, edge_length_fac=edge)
+    h, _ = load_hierarchy(path, edge_length=edge)
     V0, T0 = h.tets[0]
-    rec: dict = {"mesh": path.name, "edge_length_fac": edge, "tets": [len(T) for _, T in h.tets],
+    rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(V) for V, _ in h.tets], "hierarchy_seconds": h.timings}
     print(f"{path.name}: tets {rec['tets']}, nodes {rec['nodes']}", file=sys.stderr, flush=True)
     pre, tw, _ = _timed(lambda: heat_precompute(V0, T0))

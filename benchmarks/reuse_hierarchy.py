@@ -21,8 +21,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     out = []
     for p, edge in hierarchies_from_args(a):
-        h, s = load_hierarchy(p, edge_length_fac=edge)
-        out.append({"mesh": p.name, "edge_length_fac": edge, "seconds": s, "tets": [len(T) for _, T in h.tets],
+        h, s = load_hierarchy(p, edge_length=edge)
+        out.append({"mesh": p.name, "edge_length": edge, "seconds": s, "tets": [len(T) for _, T in h.tets],
                     "nodes": [len(V) for V, _ in h.tets], "timings": h.timings, "environment": environment()})
     print(json.dumps(out, indent=1, default=float))
     return 0

@@ -6,7 +6,8 @@ reported separately, not counted). Everyone pays the assembly of the fine system
 
 ``nestmg``    :func:`nestmg.problems.setup_problem` (assembly, boundary, restricted prolongations,
               boundary layer) + ``Problem.multigrid()`` (Galerkin, project defaults) + MG-PCG.
-``nestmg_fast`` the same with ``Problem.multigrid(smoothing="fast")`` (textbook V(1,1); on pure Neumann
+``nestmg_fast`` the same with ``Problem.multigrid(SolverOptions(smoothing="fast"))`` (textbook V(1,1); on
+              pure Neumann
               with one-way boundary-layer sweeps and two sweeps on the coarser levels).
 others        the same fine matrix and right-hand side assembled with the same ``solvers.fem`` kernels
               (checked equal to nestmg's), then: ``pyamg_sa`` (pyamg smoothed aggregation + CG; on the
@@ -48,6 +49,7 @@ from exp_common import (
     save_figure,
     write_json,
 )
+from nestmg import SolverOptions
 
 METHODS = ("nestmg", "nestmg_fast", "pyamg_sa", "gamg", "hypre", "cholmod")
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann")
@@ -84,7 +86,7 @@ def run_once(m: str, h, name: str, tol: float) -> tuple[dict, np.ndarray, object
     if m in ("nestmg", "nestmg_fast"):
         prob = setup_problem(h.tets, h.P, name)
         c1 = _clock()
-        ml = prob.multigrid(smoothing="fast" if m == "nestmg_fast" else "robust")
+        ml = prob.multigrid(SolverOptions(smoothing="fast" if m == "nestmg_fast" else "robust"))
         c2 = _clock()
         x, i = ml.solve(prob.b, tol=tol, maxiter=500, accel="cg", return_info=True)
         c3 = _clock()
@@ -128,8 +130,8 @@ def run_once(m: str, h, name: str, tol: float) -> tuple[dict, np.ndarray, object
 
 
 def run_mesh(path: Path, edge, methods, tol: float, repeat: int) -> dict:
-    h, load_s = load_hierarchy(path, edge_length_fac=edge)
-    rec: dict = {"mesh": path.name, "edge_length_fac": edge, "tets": [len(T) for _, T in h.tets],
+    h, load_s = load_hierarchy(path, edge_length=edge)
+    rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(V) for V, _ in h.tets], "hierarchy_seconds": h.timings,
                  "hierarchy_load_seconds": load_s, "problems": {}}
     print(f"{path.name}: tets {rec['tets']}, nodes {rec['nodes']}", file=sys.stderr, flush=True)

@@ -29,6 +29,7 @@ import numpy as np
 args = json.loads(sys.argv[1])
 t_start = time.perf_counter()
 from nestmg.io import load_mesh
+from nestmg import SizingOptions, SolverOptions
 from nestmg.hierarchy import build_hierarchy
 from nestmg.run import solve_on_hierarchy
 from nestmg.tetmesh import tet_quality
@@ -36,8 +37,8 @@ from nestmg.progress import enable_stage_lines
 enable_stage_lines()
 V, F = load_mesh(args["mesh"])
 t0 = time.perf_counter()
-h = build_hierarchy(V, F, levels=args["levels"], method=args["method"], cache=args["cache"], progress=False,
-                    **args.get("opts", {}))
+h = build_hierarchy(V, F, args["levels"], args["method"], cache=args["cache"], progress=False,
+                    sizing=SizingOptions(**args.get("opts", {})))
 t_h = time.perf_counter() - t0
 rss_h = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 tets = h.tets_in("normalized")
@@ -47,12 +48,15 @@ for problem in ("poisson-neumann", "poisson-dirichlet", "diffusion-neumann"):
     row = {}
     for accel in (None, "cg"):
         t1 = time.perf_counter()
-        r = solve_on_hierarchy(tets, h.P, problem, accel=accel, tol=1e-8, maxiter=100, cost=(accel is None))
+        r = solve_on_hierarchy(tets, h.P, problem, SolverOptions(accel=accel, tol=1e-8, maxiter=100),
+                               cost=(accel is None))
         r["wall_seconds"] = time.perf_counter() - t1
         r.pop("residuals_by_level", None)
         row["pcg" if accel else "v11"] = r
         if accel is None:  # the plain V(1,1) (no boundary-layer sweeps, one sweep on coarse levels)
-            r0 = solve_on_hierarchy(tets, h.P, problem, tol=1e-8, maxiter=100, cost=True, local=False, coarse_nu=1)
+            r0 = solve_on_hierarchy(tets, h.P, problem, SolverOptions(tol=1e-8, maxiter=100, local=False,
+                                                                      coarse_nu=1),
+                                    cost=True)
             row["v11_plain"] = {k: r0[k] for k in ("factor", "iterations", "cycle_cost", "nu", "coarse_nu")}
         if problem == "poisson-neumann" and accel == "cg":
             out["end_to_end_neumann_seconds"] = time.perf_counter() - t_start
@@ -138,7 +142,7 @@ def main(argv=None) -> int:
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--method", default="nested")
     ap.add_argument("--no-cache", action="store_true")
-    ap.add_argument("--opts", default="{}", help="extra build_hierarchy keywords as JSON")
+    ap.add_argument("--opts", default="{}", help="SizingOptions fields as JSON (build_hierarchy's sizing=)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--png", default=None)
     args = ap.parse_args(argv)

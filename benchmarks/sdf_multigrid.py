@@ -1,7 +1,8 @@
 """Multigrid on ``sdf`` cage hierarchies beside ``nested`` and ``decimate`` (issue 17, last item).
 
-For each mesh and cage method, ``nestmg.build_hierarchy(V, F, levels, method=..., max_tets=...,
-cache=True)`` (nestmg's defaults otherwise: TetWild, the fine level a red refinement of the input meshed
+For each mesh and cage method,
+``nestmg.build_hierarchy(V, F, levels, method, sizing=SizingOptions(max_tets=...), cache=True)``
+(nestmg's defaults otherwise: TetWild, the fine level a red refinement of the input meshed
 at twice the fine edge, the cages below it, ``min_gap = 2.5 epsilon`` for the certified methods), then for
 Dirichlet and Neumann Poisson with Galerkin and re-discretised coarse operators
 (``nestmg.run.solve_on_hierarchy`` with its defaults: the pipeline's variable V-cycle,
@@ -37,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nestmg import SizingOptions, SolverOptions
+
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann")
 COARSE = ("galerkin", "rediscretized")
 
@@ -55,7 +58,8 @@ def run_one(path: Path, method: str, args) -> dict:
     rec: dict = {"mesh": path.name, "input_faces": len(F), "method": method, "loadavg_1min": [os.getloadavg()[0]]}
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        h = build_hierarchy(V, F, levels=args.levels, method=method, max_tets=args.max_tets, cache=True,
+        h = build_hierarchy(V, F, args.levels, method, sizing=SizingOptions(max_tets=args.max_tets),
+                            cache=True,
                             progress=False)
     except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure and goes on
         rec.update(error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc()[-1500:],
@@ -73,7 +77,7 @@ def run_one(path: Path, method: str, args) -> dict:
         "surfaces_nested": h.surfaces_nested,
         "certified": bool(h.certified),
         "fine_level": h.options.get("fine_level"),
-        "cage_min_gap": h.options.get("cage_opts", {}).get("min_gap"),
+        "cage_min_gap": h.options.get("cages", {}).get("min_gap"),
     })
     ver = h.cage_info.get("verification") or {}
     rec["verification_min_gap_rel"] = [p.get("min_gap_rel") for p in ver.get("pairs", [])]
@@ -89,10 +93,11 @@ def run_one(path: Path, method: str, args) -> dict:
         for coarse in COARSE:
             row: dict = {"problem": prob, "coarse": coarse}
             try:
-                st = solve_on_hierarchy(h.tets, h.P, prob, coarse=coarse, nu=1, maxiter=args.cycles, tol=1e-8,
+                st = solve_on_hierarchy(h.tets, h.P, prob, SolverOptions(coarse=coarse, maxiter=args.cycles),
                                         cost=False)
-                cg = solve_on_hierarchy(h.tets, h.P, prob, coarse=coarse, nu=1, accel="cg", maxiter=200,
-                                        tol=1e-8, cost=False)
+                cg = solve_on_hierarchy(h.tets, h.P, prob, SolverOptions(coarse=coarse, accel="cg",
+                                                                         maxiter=200),
+                                        cost=False)
                 row.update(factor=st["factor"], cycles=st["iterations"], converged=st["converged"],
                            diverged=st["diverged"],
                            pcg_iterations=cg["iterations"] if cg["converged"] else None,

@@ -50,7 +50,7 @@ def main(argv=None) -> dict:
     vol = trimesh.Trimesh(V, F, process=False).volume
     h = float((6 * np.sqrt(2) * vol / args.fine_tets) ** (1 / 3))  # regular tets of edge h fill it
     t = time.perf_counter()
-    Vu, Tu = tetrahedralize(V, F, mesher="tetgen", edge_length=h)
+    Vu, Tu = tetrahedralize(V, F, mesher="tetgen", edge_length_abs=h)
     sec["make_user_mesh_tetgen"] = time.perf_counter() - t
     tmp_dir = None
     if args.tmp is None:
@@ -66,7 +66,7 @@ def main(argv=None) -> dict:
         tmp_dir.cleanup()
     out.update(user_nodes=len(V0), user_tets=len(T0), same_as_written=bool(np.array_equal(T0, Tu)))
     t = time.perf_counter()
-    H = hierarchy_from_tets(V0, T0, levels=args.levels, cache=not args.no_cache, progress=False)
+    H = hierarchy_from_tets(V0, T0, args.levels, cache=not args.no_cache, progress=False)
     sec["hierarchy"] = time.perf_counter() - t
     sec["hierarchy_stages"] = {k: v for k, v in H.timings.items() if isinstance(v, float)}
     out["hierarchy"] = {"tets": [len(T) for _, T in H.tets], "nodes": [len(Vk) for Vk, _ in H.tets],

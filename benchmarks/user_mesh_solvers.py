@@ -32,8 +32,8 @@ def build(args) -> dict:
     """Mesh the surface (the user's mesher), write + read the file, build and save the hierarchy."""
     import trimesh
 
-    from nestmg import (hierarchy_from_tets, load_mesh, load_tet_mesh, save_hierarchy, save_tet_mesh,
-                        tetrahedralize)
+    from nestmg import (MeshingOptions, hierarchy_from_tets, load_mesh, load_tet_mesh, save_hierarchy,
+                        save_tet_mesh, tetrahedralize)
     from nestmg.refine import refine_tets
 
     work = Path(args.work)
@@ -48,7 +48,7 @@ def build(args) -> dict:
         fill = 1.8 if args.mesher == "tetgen" else 1.0
         h = float((6 * np.sqrt(2) * vol * fill / args.fine_tets) ** (1 / 3))
         t = time.perf_counter()
-        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length=h * 2**args.refine, time_limit=None)
+        Vu, Tu = tetrahedralize(V, F, mesher=args.mesher, edge_length_abs=h * 2**args.refine, time_limit=None)
         info["user_mesher_seconds"] = time.perf_counter() - t
         info["mesher_tets"] = len(Tu)
         for _ in range(args.refine):  # the user refines the mesher's output uniformly (8x tets each time)
@@ -60,7 +60,8 @@ def build(args) -> dict:
     info.update(read_seconds=time.perf_counter() - t, nodes=len(V0), tets=len(T0))
     if not (work / "hierarchy" / "hierarchy.npz").exists():
         t = time.perf_counter()
-        H = hierarchy_from_tets(V0, T0, levels=args.levels, mesher=args.coarse_mesher, progress=True)
+        H = hierarchy_from_tets(V0, T0, args.levels, meshing=MeshingOptions(mesher=args.coarse_mesher),
+                                progress=True)
         info["hierarchy_seconds"] = time.perf_counter() - t
         save_hierarchy(work / "hierarchy", H)
         info["hierarchy"] = {"tets": [len(T) for _, T in H.tets], "n_outside": H.n_outside,

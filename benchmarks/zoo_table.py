@@ -36,6 +36,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from nestmg import MeshingOptions
 
 MESH_EXTS = (".obj", ".off", ".ply", ".stl")
 
@@ -69,7 +70,8 @@ def run_hierarchy_cell(path: str, method: str, levels: int, mesher: str) -> dict
     try:
         V, F = load_mesh(path)
         Vn, _, _ = normalize(V)
-        h = build_hierarchy(Vn, F, levels, method=method, mesher=mesher, cache=False, progress=False)
+        h = build_hierarchy(Vn, F, levels, method, meshing=MeshingOptions(mesher=mesher), cache=False,
+                            progress=False)
         out["faces"] = [len(Fk) for _, Fk in h.surfaces]
         out["tets"] = [len(T) for _, T in h.tets]
         out["n_outside"] = h.n_outside

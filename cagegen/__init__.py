@@ -6,12 +6,20 @@ The one entry point is :func:`build_cages`::
 
 Layer 0 is the audited input; layer ``k+1`` is a coarser cage that strictly contains layer ``k``
 (checked by :func:`verify_nesting`) for every method except the naive ``"decimate"`` baseline.
-Backends are looked up by name in :mod:`cagegen.registry` and imported lazily.
+Backends are looked up by name in :mod:`cagegen.registry` and imported lazily; each has a typed options
+class (:mod:`cagegen.options`: ``build_cages(V, F, 3, "sdf", options=SdfOptions(c=0.02))``).
+
+Small helpers the pipeline shares with the backends: :func:`as_mesh_arrays` (validated float64 / int64
+copies), :func:`bbox_diagonal` (overflow-safe bounding-box diagonal, the unit of every relative length),
+:func:`normalize` (the one bounding-box normalisation) and :func:`in_temp_dir` (a throw-away working
+directory for meshers that write into the current one).
 """
 
 from __future__ import annotations
 
 from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's lines go there)
+from ._geometry import as_mesh_arrays, bbox_diagonal, normalize
+from ._tempdir import in_temp_dir
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
 from .components import build_cages_per_component, split_components
@@ -25,7 +33,8 @@ from .errors import (
     NestmgError,
     UnknownMethodError,
 )
-from .registry import available_backends, get_backend, register_backend, registered_backends
+from .options import CageOptions, DecimateOptions, LazyOptions, NestedOptions, SdfOptions, SkeletonOptions
+from .registry import available_backends, get_backend, options_class, register_backend, registered_backends
 from .sizes import check_face_counts, default_face_counts
 from .verify import NestingReport, PairReport, verify_nesting
 
@@ -33,17 +42,25 @@ __all__ = [
     "UNCERTIFIED_METHODS",
     "BackendUnavailableError",
     "CageError",
+    "CageOptions",
     "CageOptionError",
     "CullingReport",
+    "DecimateOptions",
+    "LazyOptions",
     "LevelsError",
     "MeshAudit",
     "MeshInputError",
+    "NestedOptions",
     "NestingReport",
     "NestmgError",
     "PairReport",
+    "SdfOptions",
+    "SkeletonOptions",
     "UnknownMethodError",
+    "as_mesh_arrays",
     "audit_mesh",
     "available_backends",
+    "bbox_diagonal",
     "build_cages",
     "build_cages_per_component",
     "check_face_counts",
@@ -52,6 +69,9 @@ __all__ = [
     "default_face_counts",
     "errors",
     "get_backend",
+    "in_temp_dir",
+    "normalize",
+    "options_class",
     "register_backend",
     "registered_backends",
     "repair_mesh",

@@ -73,12 +73,59 @@ def bbox_diagonal(V: np.ndarray) -> float:
 
     Computed as ``s * |ext / s|`` with ``s`` the largest extent, so that it neither underflows to 0
     (extents ~1e-200) nor overflows to inf (extents ~1e200) when squaring.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+
+    Returns
+    -------
+    float
+        The diagonal (0 when all points coincide; inf or nan passed through for non-finite input).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> bbox_diagonal(np.array([[0.0, 0, 0], [3, 4, 12]]))
+    13.0
     """
     ext = np.abs(V.max(axis=0) - V.min(axis=0))
     s = float(ext.max())
     if s == 0.0 or not np.isfinite(s):
         return s
     return s * float(np.linalg.norm(ext / s))
+
+
+def normalize(V: np.ndarray, unit: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """The one bounding-box normalisation of the project: ``Vn = (V - center) / unit``.
+
+    ``center`` is the bounding box's centre; ``unit`` defaults to :func:`bbox_diagonal` (a unit-diagonal
+    copy centred at the origin, the frame of every relative length). Undo with ``Vn * unit + center``.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    unit : float, optional
+        Scale to divide by (a backend may keep its own measure of the diagonal, or the input's when
+        normalising a later layer in the input's frame).
+
+    Returns
+    -------
+    Vn : (n,3) float array
+    center : (3,) float array
+    unit : float
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> Vn, c, s = normalize(np.array([[0.0, 0, 0], [3, 4, 12]]))
+    >>> c.tolist(), s, Vn[1].round(4).tolist()
+    ([1.5, 2.0, 6.0], 13.0, [0.1154, 0.1538, 0.4615])
+    """
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    center = 0.5 * (lo + hi)
+    unit = bbox_diagonal(V) if unit is None else float(unit)
+    return (V - center) / unit, center, unit
 
 
 def signed_volume(V: np.ndarray, F: np.ndarray) -> float:

@@ -9,7 +9,7 @@ flow: harmless, every cage is certified afterwards) and its Python binding offer
 another sink, only ``ipctk.set_logger_level``. So:
 
 * outside any ipctk call of cagegen, ipctk's level is ``error`` (:func:`setup_ipctk`, at import of
-  :mod:`cagegen.nested.collision`): no warning of an unwrapped call reaches the terminal;
+  :mod:`cagegen.collision`): no warning of an unwrapped call reaches the terminal;
 * the calls that can warn (CCD, broad phase, collision sets) run inside :func:`ipctk_to_log`, which
   lowers ipctk's level to ``warn`` and points file descriptor 1 at a temporary file for the duration
   of the call; afterwards each captured line is logged on ``cagegen.ipctk`` at spdlog's level

@@ -25,7 +25,7 @@ import numpy as np
 from ._geometry import edge_stats, self_intersection_pairs, signed_volume
 from .errors import CageError, CageOptionError
 
-__all__ = ["decimate_backend", "decimate_surface"]
+__all__ = ["decimate_layer", "decimate_surface"]
 
 _ALGORITHMS = ("qslim", "decimate")
 
@@ -157,65 +157,40 @@ def decimate_surface(
     raise CageError(f"decimation to {n_faces} faces failed: {detail}", reason=detail)
 
 
-def decimate_backend(
+def decimate_layer(
     V: np.ndarray,
     F: np.ndarray,
-    face_counts,
+    n_faces: int,
     *,
+    unit: float | None = None,
     algorithm: str = "qslim",
     block_intersections: bool = False,
     check_self: bool = True,
-    progress: Callable[[str], None] | None = None,
-) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
-    """Cage backend ``"decimate"``: layer ``k+1`` is a decimation of layer ``k`` (NOT nested).
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per-layer function of ``"decimate"``: the next layer is a decimation of ``(V, F)`` (NOT nested).
+
+    :func:`cagegen.build_cages` loops over the layers (registry contract, :mod:`cagegen.registry`).
 
     Parameters
     ----------
     V : (n,3) float array
     F : (m,3) int array
-        The audited input surface.
-    face_counts : sequence of int
-        Target face counts, finest first.
+        The previous layer (the audited input for the first cage).
+    n_faces : int
+        Target face count.
+    unit : float, optional
+        The input's bounding-box diagonal (unused: no option of this backend is a length).
     algorithm, block_intersections, check_self
         See :func:`decimate_surface`.
-    progress : callable, optional
-        Called with a one-line message after each layer.
 
     Returns
     -------
-    layers : list of (U_k, G_k)
-        One per entry of ``face_counts`` (the input is not included).
+    U, G : arrays
+        The decimated layer.
     info : dict
-        ``method``, ``nested_by_construction`` (False), ``seconds`` (total), ``layers``: per layer
-        ``target``, ``n_faces``, ``n_vertices``, ``seconds``, ``algorithm``, ``block_intersections``,
-        ``attempts``.
-
-    Raises
-    ------
-    CageError
-        With ``layer`` set to the cage index (1 = first cage) when a layer cannot be decimated.
+        :func:`decimate_surface`'s info plus ``target`` and ``n_vertices``.
     """
-    t0 = time.perf_counter()
-    layers, per_layer = [], []
-    Vp, Fp = V, F
-    for k, target in enumerate(face_counts, start=1):
-        try:
-            U, G, li = decimate_surface(
-                Vp, Fp, int(target), algorithm=algorithm, block_intersections=block_intersections,
-                check_self=check_self,
-            )
-        except CageError as exc:
-            raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
-        li.update(target=int(target), n_vertices=int(U.shape[0]))
-        per_layer.append(li)
-        layers.append((U, G))
-        if progress is not None:
-            progress(f"decimate: layer {k}: {G.shape[0]} faces (target {target}) in {li['seconds']:.3f} s")
-        Vp, Fp = U, G
-    info = {
-        "method": "decimate",
-        "nested_by_construction": False,
-        "seconds": time.perf_counter() - t0,
-        "layers": per_layer,
-    }
-    return layers, info
+    U, G, li = decimate_surface(V, F, int(n_faces), algorithm=algorithm,
+                                block_intersections=block_intersections, check_self=check_self)
+    li.update(target=int(n_faces), n_vertices=int(U.shape[0]))
+    return U, G, li

@@ -224,7 +224,7 @@ class _Layer:
     self_pairs: int | None
 
 
-def _prepare(i: int, V, F, check_self: bool, engine: str | None = None) -> _Layer:
+def _prepare(i: int, V, F, check_self: bool, engine: str | None = None, audited: bool = False) -> _Layer:
     try:
         V, F = as_mesh_arrays(V, F, f"layer {i}")
     except MeshInputError as exc:
@@ -234,7 +234,8 @@ def _prepare(i: int, V, F, check_self: bool, engine: str | None = None) -> _Laye
     vol = signed_volume(V, F) if finite else float("nan")
     self_pairs = None
     if check_self and finite:
-        self_pairs = len(self_intersection_pairs(V, F, engine))
+        # an audited layer passed check_mesh's exact test on these arrays: no pair, not tested again
+        self_pairs = 0 if audited else len(self_intersection_pairs(V, F, engine))
     return _Layer(V, F, finite, es.n_boundary_edges, es.n_nonmanifold_edges, vol, self_pairs)
 
 
@@ -330,6 +331,7 @@ def verify_nesting(
     check_self: bool = True,
     exact_winding: bool = True,
     intersection_engine: str | None = None,
+    audited: tuple[int, ...] = (),
 ) -> NestingReport:
     """Certify that every layer of a hierarchy strictly contains the previous one.
 
@@ -351,6 +353,10 @@ def verify_nesting(
     intersection_engine : {"filtered", "cgal"}, optional
         Exact intersection tests: ``"filtered"`` (default; :mod:`cagegen.intersect`, no copyleft
         code) or ``"cgal"`` (libigl's GPL CGAL module). None: the default.
+    audited : tuple of int
+        Layers whose arrays passed :func:`cagegen.check_mesh` (its exact self-intersection test
+        included), e.g. ``(0,)`` for the input in :func:`cagegen.build_cages`: their self-intersection
+        test is not repeated (their count is 0).
 
     Returns
     -------
@@ -378,7 +384,7 @@ def verify_nesting(
         raise CageOptionError(f"verify_nesting needs at least two layers, got {len(layers)}")
     t0 = time.perf_counter()
     engine = _engine(intersection_engine)
-    prepared = [_prepare(i, V, F, check_self, engine) for i, (V, F) in enumerate(layers)]
+    prepared = [_prepare(i, V, F, check_self, engine, i in audited) for i, (V, F) in enumerate(layers)]
     diag = bbox_diagonal(prepared[0].V) if prepared[0].finite else float("nan")
     pairs = [
         _check_pair(i, prepared[i], prepared[i + 1], diag, float(min_gap), exact_winding, engine)

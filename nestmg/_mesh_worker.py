@@ -47,7 +47,7 @@ def run_job(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict) -> tuple[np.n
     """Run one mesher call: ``(nodes, tets)`` of the surface ``(V, F)`` with the mesher's own keywords.
 
     fTetWild writes ``__tracked_surface.stl`` into the working directory: the worker runs in a
-    temporary one; the in-process caller wraps this call in :func:`cagegen._tempdir.in_temp_dir`.
+    temporary one; the in-process caller wraps this call in :func:`cagegen.in_temp_dir`.
     """
     return _JOBS[mesher](V, F, opts)
 

@@ -17,10 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from cagegen._geometry import bbox_diagonal
 from cagegen.errors import NestmgError
 from solvers.errors import SolverError
-from solvers.multilevel import DEFAULT_MAXITER
 
 from .cache import atomic_write_bytes
 from .io import json_default
@@ -66,38 +64,31 @@ def _write_json(path: str | Path, obj: Any) -> None:
     atomic_write_bytes(Path(path), json.dumps(obj, indent=1, default=json_default).encode())
 
 
-def _cage_opts(args, method: str) -> dict | None:
-    """Cage backend options from the command line (``--repair``; ``--cage-time-budget`` for ``sdf``)."""
-    opts = {"repair": True} if args.repair else {}
+def _cage_options(args, method: str):
+    """The cage method's options (:func:`cagegen.options_class`) from ``--repair``, ``--min-gap`` and, for
+    ``sdf``, ``--cage-time-budget`` (0: no limit)."""
+    from cagegen import options_class
+
+    opts = {"repair": args.repair, "min_gap": args.min_gap}
     budget = getattr(args, "cage_time_budget", None)
     if budget is not None:
         if method != "sdf":
             raise NestmgError(f"--cage-time-budget applies to --method sdf only, not {method!r}")
-        opts["time_budget"] = budget if budget > 0 else None
-    return opts or None
+        opts[CAGE_FLAGS["--cage-time-budget"][1]] = budget if budget > 0 else None
+    return options_class(method)(**opts)
 
 
 def _hierarchy(V, F, args, method=None):
     from .hierarchy import build_hierarchy
 
+    method = method or args.method
+    kw = {"sizing": args.sizing, "meshing": args.meshing, "cages": _cage_options(args, method),
+          "cache": not args.no_cache, "progress": None if args.quiet is False else False}
     if F.shape[1] == 4:  # a tet mesh: it is the fine level, cages of its boundary below it
         from .usermesh import hierarchy_from_tets
 
-        return hierarchy_from_tets(
-            V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
-            mesher=args.mesher, epsilon=args.epsilon,  # --edge-length is relative to the bbox diagonal
-            edge_length=None if args.edge_length is None else args.edge_length * bbox_diagonal(np.asarray(V, float)),
-            extrapolation=args.extrapolation, cache=not args.no_cache,
-            progress=None if args.quiet is False else False, cage_opts=_cage_opts(args, method or args.method),
-        )
-
-    return build_hierarchy(
-        V, F, levels=args.levels, method=method or args.method, face_counts=args.face_counts,
-        mesher=args.mesher, edge_length_fac=args.edge_length, epsilon=args.epsilon,
-        max_tets=args.max_tets, time_budget=args.time_budget or None, fine_level=args.fine_level,
-        extrapolation=args.extrapolation, cache=not args.no_cache, progress=None if args.quiet is False else False,
-        cage_opts=_cage_opts(args, method or args.method),
-    )
+        return hierarchy_from_tets(V, F, args.levels, method, **kw)
+    return build_hierarchy(V, F, args.levels, method, **kw)
 
 
 def _p2_level(h) -> int:
@@ -126,11 +117,7 @@ def _solve(h, args, solution: bool = False) -> dict:
         base = _p2_level(h)
         cm = _curve(h, base, getattr(args, "quality", None))
         tets, P, extra = tets[base:], P[base:], {"element": "P2", "curved": cm}
-    r = solve_on_hierarchy(
-        tets, P, args.problem, coarse=args.coarse, smoother=args.smoother, nu=args.nu, cycle=args.cycle,
-        accel=args.accel, tol=args.tol, maxiter=args.maxiter, lam=args.lam, return_solution=solution,
-        poisson_ratio=args.poisson_ratio, **extra,
-    )
+    r = solve_on_hierarchy(tets, P, args.problem, args.solver, return_solution=solution, **extra)
     if extra:
         r["curved"] = cm.report | {"level": base}
         r["p2_mesh"] = cm  # popped before the report is written
@@ -194,9 +181,9 @@ def cmd_cages(args) -> int:
     # the same function and clearance as `solve`, layers in the input's coordinates
     n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
     layers, info = build_cage_surfaces(
-        V, F, n_layers, method=args.method, face_counts=args.face_counts, mesher=args.mesher,
-        epsilon=args.epsilon, cache=not args.no_cache, progress=None if args.quiet is False else False,
-        cage_opts=_cage_opts(args, args.method),
+        V, F, n_layers, args.method, sizing=args.sizing, meshing=args.meshing,
+        cages=_cage_options(args, args.method), cache=not args.no_cache,
+        progress=None if args.quiet is False else False,
     )
     for k, (Vk, Fk) in enumerate(layers):
         save_mesh(out / f"layer_{k}.obj", Vk, Fk)
@@ -309,49 +296,47 @@ def _number(kind, low, *, strict: bool = False, what: str = ""):
     return parse
 
 
+#: cage flags that are not a field of :class:`cagegen.CageOptions`: flag -> (options class, field)
+CAGE_FLAGS = {"--cage-time-budget": ("SdfOptions", "cage_time_budget")}
+
+
 def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
+    """The hierarchy's flags: ``--levels``, one per field of the sizing, meshing and common cage options."""
+    from cagegen import CageOptions
+
+    from .options import MeshingOptions, SizingOptions, add_arguments
+
     g = p.add_argument_group("hierarchy")
     g.add_argument("--levels", type=_number(int, 2), default=levels,
                    help="levels incl. the input, >= 2 (default %(default)s)")
-    g.add_argument("--face-counts", type=int, nargs="+", default=None, help="cage face counts, finest first")
-    g.add_argument("--mesher", choices=["tetwild", "tetgen"], default="tetwild")
-    g.add_argument("--edge-length", type=float, default=None,
-                   help="fine tet edge length / bbox diagonal, doubling per level (default: the input's mean edge)")
-    g.add_argument("--epsilon", type=float, default=1e-3, help="TetWild envelope / bbox diagonal")
-    g.add_argument("--max-tets", type=int, default=None,
-                   help="cap on the fine level's tets when --edge-length is not given (default 1.5M)")
-    g.add_argument("--time-budget", type=_number(float, 0), default=150.0,
-                   help="seconds (2 cores) allowed for meshing the fine level; the fine edge grows to fit "
-                        "(default %(default)s; 0: no time limit)")
+    add_arguments(g, SizingOptions)
+    add_arguments(g, MeshingOptions)
+    add_arguments(g, CageOptions)
     g.add_argument("--cage-time-budget", type=_number(float, 0), default=None,
                    help="seconds the sdf cage backend may take, estimated before any work (15 s + 5 ms per "
                         "input face per layer); refused at once above it (default 900; 0: no limit)")
-    g.add_argument("--fine-level", choices=["refine", "mesh"], default=None,
-                   help="refine: the fine level is a red refinement of the input meshed at twice the edge "
-                        "(default with TetWild and >= 3 levels); mesh: the input meshed at the fine edge "
-                        "(default with TetGen)")
-    g.add_argument("--extrapolation", choices=["clamped", "linear", "closest_point", "nearest_vertex"],
-                   default="clamped", help="rule for fine nodes outside the coarse tets")
     g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
-    g.add_argument("--repair", action="store_true",
-                   help="merge duplicate vertices, drop unreferenced ones and orient outward before the audit")
 
 
 def _solver_opts(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("solver")
-    g.add_argument("--coarse", choices=["galerkin", "rediscretized", "weighted", "sparsified"], default="galerkin")
-    g.add_argument("--smoother", default="symmetric_gauss_seidel",
-                   help="symmetric_gauss_seidel | gauss_seidel | jacobi | chebyshev")
-    g.add_argument("--nu", type=_number(int, 1), default=1, help="pre/post smoothing sweeps (>= 1)")
-    g.add_argument("--cycle", choices=["V", "W", "F"], default="V")
-    g.add_argument("--accel", choices=["cg"], default=None, help="use MG-preconditioned CG")
-    g.add_argument("--tol", type=_number(float, 0, strict=True), default=1e-8,
-                   help="relative residual to reach (> 0)")
-    g.add_argument("--maxiter", type=_number(int, 1), default=DEFAULT_MAXITER,
-                   help="cap on cycles (or CG iterations) (default %(default)s)")
-    g.add_argument("--lam", type=_number(float, 0, strict=True), default=1e-2, help="λ of diffusion-neumann (> 0)")
-    g.add_argument("--poisson-ratio", type=float, default=0.3, help="ν of the elasticity problems, in (-1, 0.5)")
+    """The solver's flags: one per field of :class:`nestmg.SolverOptions`."""
+    from .options import SolverOptions, add_arguments
+
+    add_arguments(p.add_argument_group("solver"), SolverOptions)
+
+
+def _typed_options(args: argparse.Namespace) -> None:
+    """``args.sizing`` / ``args.meshing`` / ``args.solver`` from the flags (raises :class:`OptionError`)."""
+    from .options import MeshingOptions, SizingOptions, SolverOptions, from_arguments
+
+    if hasattr(args, "mesh_time_budget"):
+        if args.mesh_time_budget == 0:  # the command line's "no limit"
+            args.mesh_time_budget = None
+        args.sizing = from_arguments(SizingOptions, args)
+        args.meshing = from_arguments(MeshingOptions, args)
+    if hasattr(args, "tol"):
+        args.solver = from_arguments(SolverOptions, args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -427,10 +412,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"nestmg: error: unknown --method {unknown[0]!r}; registered: {', '.join(registered_backends())}",
               file=sys.stderr)
         return 2
-    eps = getattr(args, "epsilon", None)
-    if eps is not None and not 0 < eps < float("inf"):  # TetWild segfaults on a negative envelope, hangs on 0
-        print(f"nestmg: error: --epsilon must be positive (a fraction of the bounding-box diagonal), got {eps:g}",
-              file=sys.stderr)
+    from .options import OptionError, flag
+
+    try:  # every field checked by its options class (a negative envelope would segfault TetWild)
+        _typed_options(args)
+    except OptionError as exc:
+        print(f"nestmg {args.command}: error: argument {flag(exc.field)}: {exc.problem}", file=sys.stderr)
         return 2
     try:
         return int(args.func(args) or 0)

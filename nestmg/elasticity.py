@@ -23,6 +23,7 @@ reproduction of linear fields that keeps the rigid modes in every coarse kernel.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,7 +39,10 @@ from solvers.fem import boundary_nodes, check_tet_mesh, mass_matrix
 from solvers.multilevel import restrict_prolongations
 
 from .errors import NestmgInputError
-from .problems import DEFAULT_SMOOTHERS, SMOOTHING, Problem
+
+if TYPE_CHECKING:
+    from .options import SolverOptions
+from .problems import DEFAULT_SMOOTHERS, Problem
 from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
 __all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "clamped_nodes", "default_body_force",
@@ -117,19 +121,16 @@ class ElasticityProblem(Problem):
     modes: list | None = None
     fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
-    def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, smoothing: str = "robust",
-                  block: bool = False, **kwargs):
+    def multigrid(self, options: SolverOptions | None = None, *, block: bool = False, **kwargs):
         """The multigrid solver: Galerkin operators, Gauss–Seidel (point or block), the rigid-body kernel.
 
         Parameters
         ----------
-        coarse_scaling : None, "energy" or "auto"
-            ``"auto"``: None (Galerkin operators).
-        local : bool
-            Unused (no boundary-layer sweeps for elasticity); accepted for the scalar problems' callers.
-        smoothing : {"robust", "fast"}
-            Preset where ``kwargs`` give no ``presmoother``: :data:`ROBUST_SMOOTHERS` or
-            :data:`FAST_SMOOTHERS`.
+        options : SolverOptions, optional
+            Its smoothing fields: ``smoothing="robust"`` (default) is ``nu`` sweeps of ``smoother`` on the
+            fine level and ``coarse_nu`` (default ``2 nu``) on the coarser ones (the defaults are
+            :data:`ROBUST_SMOOTHERS`), ``"fast"`` is :data:`FAST_SMOOTHERS`; ``coarse_scaling`` ``"auto"``
+            is None (Galerkin operators); ``local`` is unused (no boundary-layer sweeps for elasticity).
         block : bool
             ``True``: Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"``
             in ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks
@@ -147,11 +148,15 @@ class ElasticityProblem(Problem):
         """
         from solvers import MultigridSolver
 
-        if smoothing not in SMOOTHING:
-            raise NestmgInputError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
-        if coarse_scaling == "auto":
-            coarse_scaling = None
-        pre = kwargs.pop("presmoother", FAST_SMOOTHERS if smoothing == "fast" else ROBUST_SMOOTHERS)
+        from .options import SolverOptions
+        from .problems import cycle_smoothers
+
+        o = options if options is not None else SolverOptions()
+        if not isinstance(o, SolverOptions):
+            raise NestmgInputError(f"options must be a nestmg.SolverOptions, got {type(o).__name__}")
+        coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS with the defaults
+        pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)
         kwargs["presmoother"] = _as_block_specs(pre) if block else pre
         if self.modes is None:
             return MultigridSolver(self.A, self.P, coarse_scaling=coarse_scaling, **kwargs)

@@ -9,16 +9,17 @@
 
 Certification happens at the tet level too: TetWild's boundary is only within ``epsilon`` of a cage,
 so a fine node can fall just outside the coarse tet mesh. For certified methods the coarse layer is
-then re-meshed with a 4x smaller envelope (at most ``tet_retries`` times); whatever remains is
+then re-meshed with a 4x smaller envelope (at most ``MeshingOptions.tet_retries`` times); whatever remains is
 extrapolated and reported as ``n_outside`` per level.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,15 +30,15 @@ from .memory import check_tet_memory
 from .progress import Timer, stage_line, stages
 from .prolongation import ProlongationReport, prolongation
 from .refine import refine_tets
-from .sizing import DEFAULT_TIME_BUDGET, edge_length_for_tets, plan_hierarchy
+from .options import MeshingOptions, SizingOptions, as_dict
+from .sizing import edge_length_for_tets, plan_hierarchy
 from .tetmesh import tetrahedralize
 
-__all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "predecimate", "tet_hierarchy"]
+if TYPE_CHECKING:
+    from cagegen import CageOptions, MeshAudit
 
-#: TetWild knobs used by the pipeline (measured in docs/scale.md: fTetWild's own defaults are
-#: stop_energy=10, 80 optimisation passes; ``tetwild_opts={"outer_edge_factor": 3}`` coarsens the outside:
-#: nestmg.tetmesh.outer_sizing_field)
-TETWILD_DEFAULTS = {"stop_energy": 10.0, "max_opt_iter": 80}
+__all__ = ["Hierarchy", "build_cage_surfaces", "build_hierarchy", "cage_options_for", "predecimate",
+           "tet_hierarchy"]
 
 
 @dataclass
@@ -158,14 +159,14 @@ class Hierarchy:
 
 
 def _bbox_diag(V: np.ndarray) -> float:
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
 
     return bbox_diagonal(np.asarray(V, dtype=np.float64))  # overflow-safe
 
 
-def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_opts=None, layer=None):
+def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_kwargs=None, layer=None):
     """Tet-mesh one layer, through the cache."""
-    tw = dict(tetwild_opts or {}) if mesher == "tetwild" else {}
+    tw = dict(tetwild_kwargs or {}) if mesher == "tetwild" else {}
     opts = {"stage": "tets", "mesher": mesher, "h": round(h, 12), "epsilon": epsilon, **tw}
     key = cache_key([V, F], opts)
     if use_cache:
@@ -173,27 +174,29 @@ def _mesh_layer(V, F, mesher, h, epsilon, use_cache, tetwild_opts=None, layer=No
         if hit is not None:
             return hit[0]["V"], hit[0]["T"]
     check_tet_memory(V, F, h, mesher, layer=layer)  # refuse before meshing a layer that would not fit
-    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=h, epsilon=epsilon, **tw)
+    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length_abs=h, epsilon=epsilon, **tw)
     if use_cache:
         save_entry(key, {"V": Vt, "T": T}, opts)
     return Vt, T
 
 
+def _fine_edge(V0: np.ndarray, F0: np.ndarray, sizing: SizingOptions, edge_length_abs: float | None) -> float:
+    """Fine target edge: absolute, relative to ``V0``'s diagonal, or the input surface's mean edge."""
+    if edge_length_abs is not None:
+        return float(edge_length_abs)
+    if sizing.edge_length is not None:
+        return sizing.edge_length * _bbox_diag(V0)
+    return float(np.linalg.norm(V0[F0[:, 1]] - V0[F0[:, 0]], axis=1).mean())  # the input's resolution
+
+
 def tet_hierarchy(
     surfaces: list[tuple[np.ndarray, np.ndarray]],
     *,
-    mesher: str = "tetwild",
-    edge_length_fac: float | None = None,
-    edge_length: float | None = None,
-    coarsening: float | None = None,
-    same_domain_levels: int = 0,
-    epsilon: float = 1e-3,
-    extrapolation: str = "clamped",
-    tet_retries: int = 2,
+    sizing: SizingOptions | None = None,
+    meshing: MeshingOptions | None = None,
+    edge_length_abs: float | None = None,
     cache: bool = True,
     progress: bool | None = None,
-    tetwild_opts: dict | None = None,
-    coarsen_coarse: bool = True,
     t0: float | None = None,
     fine: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[list, list, list, dict]:
@@ -203,34 +206,24 @@ def tet_hierarchy(
     ----------
     surfaces : list of (V, F)
         Closed surfaces, finest first (each coarser one meant to contain the previous).
-    mesher, epsilon
-        See :func:`nestmg.tetmesh.tetrahedralize`.
-    edge_length_fac : float, optional
-        Fine target edge length relative to the bounding-box diagonal of ``surfaces[0]``.
-    edge_length : float, optional
-        Fine target edge length in absolute units (overrides ``edge_length_fac``). Default (both
-        None): the mean edge length of the input surface, so the fine tets match its resolution.
-    coarsening : float, optional
-        Wanted ratio of tets between consecutive levels. None (default): level ``k`` is meshed at
-        ``h_0 * 2**k``. A number: each *cage* level's edge length is chosen from its enclosed volume
-        so that it is expected to have ``coarsening`` times fewer tets than the level below it
-        actually has (cages enclose more volume than their inner layer, so plain doubling coarsens
-        by less than 8x). Same-domain levels always double.
-    same_domain_levels : int
-        How many of the first coarse surfaces are the input again (same-domain levels).
-    extrapolation : str
-        Rule for fine nodes outside the coarse tet mesh (see :mod:`nestmg.prolongation`).
-    tet_retries : int
-        With TetWild, re-mesh a coarse layer with a 4x smaller envelope up to this many times while
-        fine nodes remain outside it (0 disables).
+    sizing : SizingOptions, optional
+        ``edge_length`` (fine target edge relative to the bounding-box diagonal of ``surfaces[0]``;
+        default: the mean edge length of the input surface, so the fine tets match its resolution),
+        ``coarsening`` (None: level ``k`` is meshed at ``h_0 * 2**k``; a number: each *cage* level's
+        edge length is chosen from its enclosed volume so that it is expected to have ``coarsening``
+        times fewer tets than the level below it actually has -- cages enclose more volume than their
+        inner layer, so plain doubling coarsens by less than 8x; same-domain levels always double) and
+        ``same_domain_levels`` (how many of the first coarse surfaces are the input again). The other
+        fields are :func:`build_hierarchy`'s.
+    meshing : MeshingOptions, optional
+        Mesher, envelope, extrapolation rule, TetWild knobs; ``tet_retries`` (default 2): with TetWild,
+        re-mesh a coarse layer with a 4x smaller envelope while fine nodes remain outside it.
+    edge_length_abs : float, optional
+        Fine target edge in the surfaces' units (overrides ``sizing.edge_length``).
     cache : bool
         Reuse tet meshes from the on-disk cache.
     progress : bool or None
         Show a progress bar (None: only on a terminal). Stage lines go to the ``nestmg`` logger.
-    tetwild_opts : dict, optional
-        TetWild knobs (``stop_energy``, ``max_opt_iter``, ``threads``) for every layer.
-    coarsen_coarse : bool
-        TetWild's ``coarsen`` on the coarse levels (see :func:`nestmg.tetmesh.tetrahedralize`).
     t0 : float, optional
         ``time.perf_counter()`` at the start of the run, for the elapsed time of the stage lines.
     fine : (V, T), optional
@@ -246,39 +239,39 @@ def tet_hierarchy(
         ``tets`` and ``prolongation`` seconds, ``tet_seconds`` and ``edge_lengths`` per level,
         ``tet_retries`` and ``epsilon`` per level.
     """
+    sizing, meshing = sizing or SizingOptions(), meshing or MeshingOptions()
+    mesher, coarsening, n_same = meshing.mesher, sizing.coarsening, sizing.same_domain_levels
+    tet_retries = 2 if meshing.tet_retries is None else meshing.tet_retries
     timer = Timer()
     t0 = time.perf_counter() if t0 is None else t0
-    V0, F0 = surfaces[0]
-    if edge_length is not None:
-        h0 = float(edge_length)
-    elif edge_length_fac is not None:
-        h0 = edge_length_fac * _bbox_diag(V0)
-    else:  # match the input surface's resolution
-        h0 = float(np.linalg.norm(V0[F0[:, 1]] - V0[F0[:, 0]], axis=1).mean())
-    tw = dict(TETWILD_DEFAULTS, **(tetwild_opts or {}))
     n = len(surfaces)
     tets: list = [None] * n
-    hs = [h0] * n
-    eps = [epsilon] * n
+    hs = [_fine_edge(*surfaces[0], sizing, edge_length_abs)] * n
+    eps = [meshing.epsilon] * n
     retries = [0] * n
     t_level = [0.0] * n
     Ps, reps = [], []
+    tw = meshing.tetwild_kwargs()
 
     def mesh(k):
         t = time.perf_counter()
         # coarse TetWild levels are coarsened (else a cage's boundary triangles keep 2-8x the tets asked)
-        twk = dict(tw, coarsen=True) if (k > 0 and coarsen_coarse and mesher == "tetwild") else tw
+        twk = dict(tw, coarsen=True) if (k > 0 and meshing.coarsen_coarse and mesher == "tetwild") else tw
         with timer("tets"):
             tets[k] = _mesh_layer(*surfaces[k], mesher, hs[k], eps[k], cache, twk, layer=k)
         t_level[k] += time.perf_counter() - t
         stage_line(f"tets level {k}: {len(tets[k][1]):,} tets / {len(tets[k][0]):,} nodes "
                    f"(edge {hs[k]:.3g}, {mesher}, {time.perf_counter() - t:.1f} s)", t0)
 
+    def prolong(k):
+        with timer("prolongation"):
+            return prolongation(tets[k - 1][0], tets[k][0], tets[k][1], extrapolation=meshing.extrapolation)
+
     with stages(n, "tet layers", progress) as bar:
         for k, (V, F) in enumerate(surfaces):
             bar.describe(f"tet layer {k} ({len(F)} faces, {mesher})")
             if k > 0:
-                if coarsening is None or k <= same_domain_levels:
+                if coarsening is None or k <= n_same:
                     hs[k] = hs[k - 1] * 2.0
                 else:  # aim at `coarsening` x fewer tets than level k-1 really has
                     want = max(len(tets[k - 1][1]) / float(coarsening), 50)
@@ -290,15 +283,13 @@ def tet_hierarchy(
             bar.advance()
             if k == 0:
                 continue
-            with timer("prolongation"):
-                P, rep = prolongation(tets[k - 1][0], tets[k][0], tets[k][1], extrapolation=extrapolation)
+            P, rep = prolong(k)
             while rep.n_outside > 0 and mesher == "tetwild" and retries[k] < tet_retries:
                 retries[k] += 1
                 eps[k] /= 4
                 stage_line(f"level {k}: {rep.n_outside} fine nodes outside; re-meshing with epsilon {eps[k]:.2g}", t0)
                 mesh(k)
-                with timer("prolongation"):
-                    P, rep = prolongation(tets[k - 1][0], tets[k][0], tets[k][1], extrapolation=extrapolation)
+                P, rep = prolong(k)
             stage_line(f"prolongation {k - 1}<-{k}: {P.shape[0]:,} x {P.shape[1]:,}, n_outside {rep.n_outside}", t0)
             Ps.append(P)
             reps.append(rep)
@@ -310,19 +301,45 @@ def tet_hierarchy(
     return tets, Ps, reps, timings
 
 
+def cage_options_for(method: str, cages: CageOptions | None, meshing: MeshingOptions) -> CageOptions:
+    """The cage options a hierarchy uses: ``cages`` (default: the method's defaults) with its clearance.
+
+    With TetWild and a certified method, ``min_gap`` None becomes ``2.5 * meshing.epsilon``: TetWild's
+    boundary is only within ``epsilon`` (relative to each layer's bbox diagonal) of its input, outward on
+    the fine layer and inward on the cage, so that clearance keeps every fine node inside the coarse tet
+    mesh (tet-level nesting).
+
+    Raises
+    ------
+    cagegen.CageOptionError
+        ``cages`` is not an instance of the method's options class.
+    """
+    import cagegen
+
+    cls = cagegen.options_class(method)
+    if cages is None:
+        cages = cls()
+    elif not isinstance(cages, cls):
+        raise cagegen.CageOptionError(f"method {method!r} takes cagegen.{cls.__name__}, got "
+                                      f"{type(cages).__name__}")
+    if cages.min_gap is None and meshing.mesher == "tetwild" and method not in cagegen.UNCERTIFIED_METHODS:
+        cages = dataclasses.replace(cages, min_gap=2.5 * meshing.epsilon)
+    return cages
+
+
 def build_cage_surfaces(
     V: np.ndarray,
     F: np.ndarray,
     levels: int,
-    *,
     method: str = "nested",
-    face_counts: list[int] | None = None,
-    mesher: str = "tetwild",
-    epsilon: float = 1e-3,
+    *,
+    sizing: SizingOptions | None = None,
+    meshing: MeshingOptions | None = None,
+    cages: CageOptions | None = None,
     cache: bool = True,
     progress: bool | None = None,
-    cage_opts: dict | None = None,
     t0: float | None = None,
+    audit: MeshAudit | None = None,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """The cage layers of a hierarchy, exactly as :func:`build_hierarchy` builds them (same clearance).
 
@@ -337,32 +354,39 @@ def build_cage_surfaces(
     levels : int
         Number of surfaces asked, input included: a ceiling (:func:`nestmg.sizing.plan_levels`); a small
         input gets those that fit, with one stage line saying so and ``info["levels"]`` recording it.
-    method, face_counts
-        See :func:`cagegen.build_cages` (explicit face counts are checked before any work).
-    mesher, epsilon
-        The tet mesher the layers are meant for: with TetWild and a certified method the cages keep a
-        clearance ``min_gap = 2.5 * epsilon`` (relative to the diagonal) so that TetWild's envelope
-        cannot put a fine node outside the coarse tet mesh.
+    method : str
+        Cage backend (:func:`cagegen.build_cages`).
+    sizing : SizingOptions, optional
+        Only ``face_counts`` is used (explicit face counts are checked before any work).
+    meshing : MeshingOptions, optional
+        The tet mesher the layers are meant for: it sets the default clearance (:func:`cage_options_for`).
+    cages : cagegen.CageOptions, optional
+        The method's options (its class: ``cagegen.options_class(method)``).
     cache : bool
-        Reuse cages from the on-disk cache (keyed on the normalised input).
+        Reuse cages from the on-disk cache (keyed on the normalised input and the options).
     progress : bool or None
         Progress bars (None: only on a terminal).
-    cage_opts : dict, optional
-        Extra options of the cage backend (``min_gap`` overrides the automatic clearance).
     t0 : float, optional
         ``time.perf_counter()`` the stage lines' elapsed seconds count from (default: this call's start).
+    audit : cagegen.MeshAudit, optional
+        A passed audit of ``(V, F)`` (:func:`cagegen.check_mesh`), handed to :func:`cagegen.build_cages`
+        so that the input is audited once per run; used when the normalised copy is ``V`` itself (an
+        input already normalised, as :func:`build_hierarchy`'s), else the copy is audited.
 
     Returns
     -------
     surfaces : list of (V_k, F_k)
         In the input's coordinates, input first.
     info : dict
-        The backend's and verifier's info, plus ``frame`` (``center``, ``scale``).
+        The backend's and verifier's info, plus ``frame`` (``center``, ``scale``) and ``cage_options``.
     """
     import cagegen
 
     from .sizing import plan_levels
 
+    sizing, meshing = sizing or SizingOptions(), meshing or MeshingOptions()
+    cages = cage_options_for(method, cages, meshing)
+    face_counts = None if sizing.face_counts is None else list(sizing.face_counts)
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     Vn, center, scale = _normalize(V)
@@ -372,14 +396,8 @@ def build_cage_surfaces(
     if lp.note:
         stage_line(lp.note, t0)
     levels = lp.levels
-    cage_opts = dict(cage_opts or {})
-    if mesher == "tetwild" and method not in cagegen.UNCERTIFIED_METHODS:
-        # TetWild's boundary is only within `epsilon` (relative to each layer's bbox diagonal) of its
-        # input, outward on the fine layer and inward on the cage: a clearance of 2.5 epsilon between
-        # consecutive cages keeps every fine node inside the coarse tet mesh (tet-level nesting).
-        cage_opts.setdefault("min_gap", 2.5 * epsilon)
-    opts = {"stage": "cages", "method": method, "levels": levels, "face_counts": face_counts, **cage_opts}
-    key = cache_key([Vn, F], opts)
+    key = cache_key([Vn, F], {"stage": "cages", "method": method, "levels": levels,
+                              "face_counts": face_counts, "cages": as_dict(cages)})
     hit = load_entry(key) if cache else None
     if hit is not None:
         arrays, info = hit
@@ -393,10 +411,10 @@ def build_cage_surfaces(
             # a terminal: the backend's own bars; a log or a pipe: its per-layer messages as stage lines
             # (silent unless the `nestmg` logger has a handler, which the CLI installs off a terminal)
             cage_progress = True if sys.stderr.isatty() else (lambda msg: stage_line(f"cages ({method}): {msg}", t0))
-        surfaces, info = cagegen.build_cages(
-            Vn, F, levels, method=method, face_counts=face_counts, return_info=True, progress=cage_progress,
-            **cage_opts
-        )
+        given = audit if audit is not None and np.array_equal(Vn, V) else None
+        surfaces, info = cagegen.build_cages(Vn, F, levels, method=method, face_counts=face_counts,
+                                             return_info=True, progress=cage_progress, options=cages,
+                                             audit=given)
         info = dict(info, seconds=time.perf_counter() - t_start)
         if cache:
             arrays = {}
@@ -407,7 +425,7 @@ def build_cage_surfaces(
     V0, F0 = surfaces[0]
     same = V0.shape == Vn.shape and F0.shape == F.shape and np.array_equal(F0, F)
     out = [(V, F) if same else (V0 * scale + center, F0)] + [(Vk * scale + center, Fk) for Vk, Fk in surfaces[1:]]
-    info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_opts=cage_opts,
+    info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_options=as_dict(cages),
                 levels=lp.to_dict())
     return out, info
 
@@ -482,9 +500,7 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         raise MeshInputError(f"input: vertices must be a non-empty (n,3) array, got shape {V.shape}")
     if not np.isfinite(V).all():
         raise MeshInputError(f"input: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    center = 0.5 * (lo + hi)
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal, normalize
 
     scale = bbox_diagonal(V)  # overflow-safe (no squaring of 1e154 extents, no numpy warning)
     if not (np.isfinite(scale) and scale > 0):
@@ -499,31 +515,104 @@ def _normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     if offset > MAX_OFFSET * scale:
         raise MeshInputError(f"input: absurd size: mesh of diagonal {scale:.3g} sits {offset:.3g} from the origin "
                              "(float64 precision lost); translate it")
-    return (V - center) / scale, center, scale
+    return normalize(V, scale)
+
+
+def _fine_level(levels: int, sizing: SizingOptions, mesher: str) -> tuple[str, bool]:
+    """The fine-level rule (``sizing.fine_level`` or the mesher's default) and whether it refines."""
+    fine_level = sizing.fine_level
+    if fine_level is None:
+        # TetGen's radius-edge meshes keep slivers, and refining them keeps them too (torus: two-grid
+        # factor 0.73 refined vs 0.53 meshed directly, docs/scale.md); TetGen is fast at any size anyway
+        fine_level = "refine" if mesher == "tetwild" else "mesh"
+    n_same, fc = sizing.same_domain_levels, sizing.face_counts
+    # keep at least one cage level; face counts given for every coarse level mean "all cages"
+    refine = (fine_level == "refine" and levels - n_same >= 3
+              and (fc is None or len(fc) != levels - n_same - 1))
+    if not n_same <= levels - 2:
+        raise NestmgInputError(
+            f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one "
+            f"cage level), got {n_same!r}"
+        )
+    return fine_level, refine
+
+
+def _plan(Vn, F, levels, sizing: SizingOptions, mesher: str, refine: bool, **extra):
+    """:func:`nestmg.sizing.plan_hierarchy` for these options (milliseconds, before any expensive stage)."""
+    return plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=sizing.edge_length,
+                          max_tets=sizing.max_tets, mesh_time_budget=sizing.mesh_time_budget,
+                          meshed_fraction=0.125 if refine else 1.0,
+                          mesh_edge_factor=2.0 if refine else 1.0,
+                          face_counts=None if sizing.face_counts is None else list(sizing.face_counts),
+                          fixed_levels=sizing.same_domain_levels + int(refine), **extra)
+
+
+def _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0):
+    """The surface actually meshed: an input much finer than the tets is decimated first (QEM, error below
+    half of TetWild's envelope), so neither TetWild nor the cages pay for detail no tet can see.
+
+    Returns ``(S0, F0, info, plan, audit)``; the plan is redone when the decimation is refused (TetWild
+    then meshes every input face), still before any cage. ``audit``: the input's audit (done before the
+    decimation) when the input itself is meshed, for :func:`cagegen.build_cages` not to repeat it.
+    """
+    import cagegen
+
+    S0, F0, pre = Vn, F, {"faces_in": len(F), "faces_out": len(F), "hausdorff": 0.0}
+    audit = None
+    if not (sizing.predecimate and meshing.mesher == "tetwild"):
+        return S0, F0, pre, plan, audit
+    epsilon = meshing.epsilon
+    with timer("predecimate"):
+        E = Vn[F[:, [1, 2, 0]]] - Vn[F]
+        area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
+        h_mesh = plan.edge_length * (2.0 if refine else 1.0)  # the edge TetWild is asked for
+        if area / (np.sqrt(3) / 4 * h_mesh**2) < 0.6 * len(F):
+            Va, Fa, audit = cagegen.check_mesh(Vn, F, repair=bool(cages.repair), name="input",
+                                               return_audit=True)
+            if not (np.array_equal(Va, Vn) and np.array_equal(Fa, F)):
+                audit = None  # repaired: the audit is of other arrays than the ones meshed
+            # error bound: TetWild's envelope, or a quarter of the meshed edge if larger (detail below
+            # that is not resolved by the tets anyway, e.g. a scan's noise)
+            S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=max(epsilon, 0.25 * h_mesh))
+    if pre["faces_out"] < pre["faces_in"]:
+        stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
+                   f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
+    elif pre.get("rejected"):
+        errors = [round(r["hausdorff"], 4) for r in pre["rejected"]]
+        stage_line(f"predecimation refused (Hausdorff {errors} > {max(epsilon, 0.25 * h_mesh):.3g}); keeping "
+                   f"the {len(F):,} input faces", t0)
+        plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine, surface_faces=len(F))
+        stage_line(f"sizing (again): fine edge {plan.edge_length:.3g} ({plan.rule}), expected tets "
+                   f"{[f'{n:,}' for n in plan.expected_tets]}", t0)
+    return S0, F0, pre, plan, audit if (S0 is Vn and F0 is F) else None
+
+
+def _refined_fine_level(tets_n, Ps, reps, surfaces_n, tt, plan, timer, t0):
+    """Prepend the fine level: one red refinement of the mesh at 2 h_0 (exactly nested, exact P)."""
+    with timer("refine"):
+        tr = time.perf_counter()
+        Vr, Tr, Pr = refine_tets(*tets_n[0])
+        rep0 = ProlongationReport(n_fine=len(Vr), n_coarse=len(tets_n[0][0]), n_outside=0, n_on_boundary=0,
+                                  max_distance=0.0, max_distance_rel=0.0, extrapolation="none (refinement)",
+                                  seconds=time.perf_counter() - tr)
+    tt["edge_lengths"] = [plan.edge_length] + tt["edge_lengths"]
+    tt["tet_seconds"] = [timer.seconds["refine"]] + tt["tet_seconds"]
+    stage_line(f"fine level: red refinement of level 1, {len(Tr):,} tets / {len(Vr):,} nodes "
+               f"({timer.seconds['refine']:.1f} s)", t0)
+    return [(Vr, Tr)] + tets_n, [Pr] + Ps, [rep0] + reps, [surfaces_n[0]] + surfaces_n
 
 
 def build_hierarchy(
     V: np.ndarray,
     F: np.ndarray,
     levels: int = 3,
-    *,
     method: str = "nested",
-    face_counts: list[int] | None = None,
-    mesher: str = "tetwild",
-    edge_length_fac: float | None = None,
-    max_tets: int | None = None,
-    time_budget: float | None = DEFAULT_TIME_BUDGET,
-    coarsening: float | None = 8.0,
-    epsilon: float = 1e-3,
-    extrapolation: str = "clamped",
-    tet_retries: int | None = None,
+    *,
+    sizing: SizingOptions | None = None,
+    meshing: MeshingOptions | None = None,
+    cages: CageOptions | None = None,
     cache: bool = True,
     progress: bool | None = None,
-    cage_opts: dict | None = None,
-    same_domain_levels: int = 0,
-    tetwild_opts: dict | None = None,
-    predecimate_input: bool = True,
-    fine_level: str | None = None,
 ) -> Hierarchy:
     """Cages, tet layers and prolongations for the closed surface ``(V, F)``.
 
@@ -541,59 +630,42 @@ def build_hierarchy(
     levels : int
         Number of levels (input + ``levels - 1`` coarser layers: cages, after ``same_domain_levels``), >= 2:
         a ceiling (:func:`nestmg.sizing.plan_levels`): a small input gets the levels whose smallest cage
-        keeps >= 100 faces, with one stage line saying so (``options["sizing"]["levels"]``).
+        keeps >= 100 faces, with one stage line saying so (``options["plan"]["levels"]``).
     method : str
         Cage backend (``nested``, ``decimate``, ...; see ``cagegen.available_backends()``).
-    face_counts : list of int, optional
-        Cage face counts, finest first (default: 4x fewer faces per level).
-    mesher : {"tetwild", "tetgen"}
-        Tet mesher (TetGen is AGPL: opt-in only).
-    edge_length_fac : float, optional
-        Fine target edge length relative to the bounding-box diagonal. Default: the input's mean edge
-        length, enlarged if needed to fit ``max_tets`` and ``time_budget``.
-    max_tets : int, optional
-        Cap on the fine level's expected tets (default 1.5M when ``edge_length_fac`` is not given).
-    time_budget : float or None
-        Seconds allowed for meshing the fine level (estimate of :func:`nestmg.sizing.fine_mesh_seconds`,
-        2 cores); default :data:`nestmg.sizing.DEFAULT_TIME_BUDGET`. None: only ``max_tets`` and memory.
-    coarsening : float or None
-        Wanted tet ratio between consecutive cage levels (default 8); None: edge length doubling.
-    epsilon, extrapolation
-        See :func:`tet_hierarchy`.
-    tet_retries : int, optional
-        Default 2 for certified methods, 0 for ``decimate`` (its layers are not nested anyway).
+    sizing : SizingOptions, optional
+        Fine edge length (relative to the diagonal; default the input's mean edge, enlarged to fit
+        ``max_tets`` and ``mesh_time_budget``), tet ratio between levels, cage face counts,
+        same-domain levels, the fine-level rule (``"refine"``: with TetWild and
+        ``levels - same_domain_levels >= 3``, level 1 is the input meshed at ``2 h_0`` and the fine level
+        its red refinement, :func:`nestmg.refine.refine_tets`, ~8x cheaper to mesh, docs/scale.md;
+        ``"mesh"``: the input meshed at ``h_0``, the default with TetGen) and ``predecimate`` (with
+        TetWild, an input much finer than the tets is decimated first, :func:`predecimate`, Hausdorff
+        error below ``max(epsilon, h_mesh / 4)``; ``cage_info["predecimation"]`` records it; the cages
+        are certified around that surface).
+    meshing : MeshingOptions, optional
+        Mesher (``"tetwild"``; TetGen is AGPL: opt-in), envelope, extrapolation rule, TetWild knobs,
+        ``tet_retries`` (default 2 for certified methods, 0 for ``decimate``).
+    cages : cagegen.CageOptions, optional
+        The method's options (``cagegen.options_class(method)``, e.g. ``cagegen.NestedOptions``). With
+        TetWild and a certified method, ``min_gap`` None means ``2.5 * meshing.epsilon``
+        (:func:`cage_options_for`).
     cache : bool
-        Reuse cages and tet meshes from the on-disk cache (``$NESTMG_CACHE``).
+        Reuse cages and tet meshes from the on-disk cache (``$NESTMG_CACHE``), keyed on the options.
     progress : bool or None
         Progress bars (None: only on a terminal). One stage line per stage goes to the ``nestmg``
         logger (the CLI prints them when stderr is not a terminal).
-    cage_opts : dict, optional
-        Extra options for the cage backend. With TetWild and a certified method, ``min_gap`` defaults
-        to ``2.5 * epsilon`` (see :func:`build_cage_surfaces`).
-    same_domain_levels : int
-        Coarsen within the input surface first: levels ``1 .. same_domain_levels`` re-mesh the *input*
-        surface at 2x, 4x, ... the fine edge length (same domain; with TetGen the boundary is kept
-        exactly), and only the remaining ``levels - same_domain_levels - 1`` levels are cages.
-    tetwild_opts : dict, optional
-        TetWild knobs for every layer (``stop_energy``, ``max_opt_iter``, ``threads``).
-    fine_level : {"refine", "mesh"}, optional
-        Default: ``"refine"`` with TetWild, ``"mesh"`` with TetGen. ``"refine"`` (when
-        ``levels - same_domain_levels >= 3``): level 1 is the input meshed at
-        ``2 h_0`` and the fine level its red refinement (:func:`nestmg.refine.refine_tets`: exactly
-        nested, exact prolongation, Galerkin operator = FEM operator; ~8x cheaper to mesh than ``h_0``
-        directly, docs/scale.md); the cages are the levels below. ``"mesh"``: the input is meshed at
-        ``h_0`` and every coarser level is a cage.
-    predecimate_input : bool
-        With TetWild, decimate an input much finer than the fine tets (:func:`predecimate`, Hausdorff
-        error below ``max(epsilon, h_mesh / 4)``, ``h_mesh`` the edge TetWild is asked for) before caging and meshing it; ``surfaces[0]`` is then that surface
-        (``cage_info["predecimation"]`` records the error). The cages are certified around it.
 
     Returns
     -------
     Hierarchy
+        ``options`` holds ``sizing``, ``meshing`` and ``cages`` (``dataclasses.asdict``, with the
+        defaults resolved: ``tet_retries``, the clearance) and the size ``plan``.
 
     Raises
     ------
+    nestmg.NestmgInputError
+        Bad options (one line, naming the field), ``levels < 2``.
     nestmg.sizing.SizingError
         The sizes cannot fit the budget (raised before any cage is built).
     cagegen.MeshInputError
@@ -604,133 +676,70 @@ def build_hierarchy(
     import cagegen
 
     t0 = time.perf_counter()
+    sizing, meshing = _typed(sizing, SizingOptions, "sizing"), _typed(meshing, MeshingOptions, "meshing")
     if levels < 2:
         raise NestmgInputError(f"levels must be >= 2, got {levels}")
-    if fine_level is None:
-        # TetGen's radius-edge meshes keep slivers, and refining them keeps them too (torus: two-grid
-        # factor 0.73 refined vs 0.53 meshed directly, docs/scale.md); TetGen is fast at any size anyway
-        fine_level = "refine" if mesher == "tetwild" else "mesh"
-    if fine_level not in ("refine", "mesh"):
-        raise NestmgInputError(f"fine_level must be 'refine' or 'mesh', got {fine_level!r}")
-    # keep at least one cage level; face counts given for every coarse level mean "all cages"
-    refine = (fine_level == "refine" and levels - int(same_domain_levels) >= 3
-              and (face_counts is None or len(face_counts) != levels - int(same_domain_levels) - 1))
-    if not isinstance(same_domain_levels, (int, np.integer)) or not 0 <= same_domain_levels <= levels - 2:
-        raise NestmgInputError(
-            f"same_domain_levels must be an integer in [0, levels - 2] = [0, {levels - 2}] (at least one cage "
-            f"level), got {same_domain_levels!r}"
-        )
+    cages = cage_options_for(method, cages, meshing)
+    if meshing.tet_retries is None:
+        meshing = dataclasses.replace(meshing, tet_retries=0 if method in cagegen.UNCERTIFIED_METHODS else 2)
+    fine_level, refine = _fine_level(levels, sizing, meshing.mesher)
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     Vn, center, scale = _normalize(V)
     if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or F.min() < 0 or F.max() >= len(V):
         raise cagegen.MeshInputError(f"input: faces must be a non-empty (m,3) array of vertex indices, got {F.shape}")
     # 1. sizes first: milliseconds, before any expensive stage
-    plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
-                          time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
-                          mesh_edge_factor=2.0 if refine else 1.0, face_counts=face_counts,
-                          fixed_levels=int(same_domain_levels) + int(refine))
+    plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine)
     levels_asked, levels = levels, plan.n_levels  # --levels is a ceiling: the levels that fit the input
     if plan.levels["note"]:
         stage_line(plan.levels["note"], t0)
-    n_surf = levels - int(same_domain_levels) - int(refine)  # input + cages
+    n_same = sizing.same_domain_levels
+    n_surf = levels - n_same - int(refine)  # input + cages
     stage_line(f"sizing: fine edge {plan.edge_length:.3g} of the diagonal ({plan.rule}), expected tets "
                f"{[f'{n:,}' for n in plan.expected_tets]}, peak memory ~{plan.peak_bytes / 2**30:.1f} GB", t0)
     for note in plan.notes:
         stage_line(f"sizing note: {note}", t0)
     timer = Timer()
-    # 2. the surface actually meshed: an input much finer than the tets is decimated first (QEM, error
-    #    below half of TetWild's envelope), so neither TetWild nor the cages pay for detail no tet can see
-    S0, F0, pre = Vn, F, {"faces_in": len(F), "faces_out": len(F), "hausdorff": 0.0}
-    if predecimate_input and mesher == "tetwild":
-        with timer("predecimate"):
-            E = Vn[F[:, [1, 2, 0]]] - Vn[F]
-            area = 0.5 * float(np.linalg.norm(np.cross(E[:, 0], -E[:, 2]), axis=1).sum())
-            h_mesh = plan.edge_length * (2.0 if refine else 1.0)  # the edge TetWild is asked for
-            if area / (np.sqrt(3) / 4 * h_mesh**2) < 0.6 * len(F):
-                cagegen.check_mesh(Vn, F, repair=bool((cage_opts or {}).get("repair", False)), name="input")
-                # error bound: TetWild's envelope, or a quarter of the meshed edge if larger (detail below
-                # that is not resolved by the tets anyway, e.g. a scan's noise)
-                S0, F0, pre = predecimate(Vn, F, h_mesh, max_error=max(epsilon, 0.25 * h_mesh))
-        if pre["faces_out"] < pre["faces_in"]:
-            stage_line(f"predecimation: {pre['faces_in']:,} -> {pre['faces_out']:,} faces, Hausdorff "
-                       f"{pre['hausdorff']:.2g} of the diagonal ({timer.seconds['predecimate']:.1f} s)", t0)
-        elif pre.get("rejected"):
-            # not decimated within the error bound (e.g. a noisy scan): TetWild meshes every input face, so
-            # the time estimate is redone with them (still before any cage)
-            stage_line(f"predecimation refused (Hausdorff {[round(r['hausdorff'], 4) for r in pre['rejected']]} > "
-                       f"{max(epsilon, 0.25 * h_mesh):.3g}); keeping the {len(F):,} input faces", t0)
-            plan = plan_hierarchy(Vn, F, levels, mesher=mesher, edge_length=edge_length_fac, max_tets=max_tets,
-                                  time_budget=time_budget, meshed_fraction=0.125 if refine else 1.0,
-                                  mesh_edge_factor=2.0 if refine else 1.0, surface_faces=len(F),
-                                  face_counts=face_counts, fixed_levels=int(same_domain_levels) + int(refine))
-            stage_line(f"sizing (again): fine edge {plan.edge_length:.3g} ({plan.rule}), expected tets "
-                       f"{[f'{n:,}' for n in plan.expected_tets]}", t0)
+    # 2. the surface actually meshed
+    S0, F0, pre, plan, audit = _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0)
     # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
-        surfaces_u, info = build_cage_surfaces(
-            S0, F0, n_surf, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
-            cache=cache, progress=progress, cage_opts=cage_opts, t0=t0,
-        )
+        surfaces_u, info = build_cage_surfaces(S0, F0, n_surf, method, sizing=sizing, meshing=meshing,
+                                               cages=cages, cache=cache, progress=progress, t0=t0,
+                                               audit=audit)
     info["predecimation"] = pre
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
                f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)
-    if tet_retries is None:
-        tet_retries = 0 if method in cagegen.UNCERTIFIED_METHODS else 2
-    surfaces_n = [surfaces_u[0]] * int(same_domain_levels) + list(surfaces_u)  # same-domain layers first
+    surfaces_n = [surfaces_u[0]] * n_same + list(surfaces_u)  # same-domain layers first
     # 4. tets and prolongations
-    tets_n, Ps, reps, tt = tet_hierarchy(
-        surfaces_n,
-        mesher=mesher,
-        edge_length=plan.edge_length * (2.0 if refine else 1.0),
-        coarsening=coarsening,
-        same_domain_levels=int(same_domain_levels),
-        epsilon=epsilon,
-        extrapolation=extrapolation,
-        tet_retries=tet_retries,
-        cache=cache,
-        progress=progress,
-        tetwild_opts=tetwild_opts,
-        t0=t0,
-    )
-    if refine:
-        # the fine level: one red refinement of the mesh at 2 h_0 (exactly nested, exact P; nestmg.refine)
-        with timer("refine"):
-            tr = time.perf_counter()
-            Vr, Tr, Pr = refine_tets(*tets_n[0])
-            rep0 = ProlongationReport(n_fine=len(Vr), n_coarse=len(tets_n[0][0]), n_outside=0, n_on_boundary=0,
-                                      max_distance=0.0, max_distance_rel=0.0, extrapolation="none (refinement)",
-                                      seconds=time.perf_counter() - tr)
-        tets_n, Ps, reps = [(Vr, Tr)] + tets_n, [Pr] + Ps, [rep0] + reps
-        surfaces_n = [surfaces_n[0]] + surfaces_n
-        tt["edge_lengths"] = [plan.edge_length] + tt["edge_lengths"]
-        tt["tet_seconds"] = [timer.seconds["refine"]] + tt["tet_seconds"]
-        stage_line(f"fine level: red refinement of level 1, {len(Tr):,} tets / {len(Vr):,} nodes "
-                   f"({timer.seconds['refine']:.1f} s)", t0)
+    tets_n, Ps, reps, tt = tet_hierarchy(surfaces_n, sizing=sizing, meshing=meshing,
+                                         edge_length_abs=plan.edge_length * (2.0 if refine else 1.0),
+                                         cache=cache, progress=progress, t0=t0)
+    if refine:  # the fine level: one red refinement of the mesh at 2 h_0 (nestmg.refine)
+        tets_n, Ps, reps, surfaces_n = _refined_fine_level(tets_n, Ps, reps, surfaces_n, tt, plan, timer, t0)
     timings = {**timer.seconds, **tt, "total": time.perf_counter() - t0}
     # 5. back to the user's frame (the input layer is the caller's array itself unless decimated)
     first = (V, F) if F0 is F else (S0 * scale + center, F0)
-    n_same = 1 + int(same_domain_levels) + int(refine)  # levels whose surface is the meshed input
-    surfaces = [first] * n_same + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[n_same:]]
+    n_first = 1 + n_same + int(refine)  # levels whose surface is the meshed input
+    surfaces = [first] * n_first + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[n_first:]]
     tets = [(Vt * scale + center, T) for Vt, T in tets_n]
     info["frame"] = {"center": center.tolist(), "scale": scale}
     h = Hierarchy(
-        surfaces=surfaces,
-        tets=tets,
-        P=Ps,
-        prolongation_reports=reps,
-        method=method,
-        cage_info=info,
+        surfaces=surfaces, tets=tets, P=Ps, prolongation_reports=reps, method=method, cage_info=info,
         timings=timings,
-        options={
-            "levels": levels, "levels_requested": levels_asked, "face_counts": face_counts, "mesher": mesher,
-            "edge_length_fac": edge_length_fac,
-            "max_tets": max_tets, "time_budget": time_budget, "coarsening": coarsening,
-            "epsilon": epsilon, "extrapolation": extrapolation, "cage_opts": info.get("cage_opts", {}),
-            "same_domain_levels": int(same_domain_levels), "tetwild_opts": dict(TETWILD_DEFAULTS, **(tetwild_opts or {})),
-            "sizing": plan.to_dict(), "predecimate_input": predecimate_input, "fine_level": fine_level,
-        },
+        options={"levels": levels, "levels_requested": levels_asked, "fine_level": fine_level,
+                 "sizing": as_dict(sizing), "meshing": as_dict(meshing), "cages": as_dict(cages),
+                 "plan": plan.to_dict()},
         frame={"center": center, "scale": scale},
     )
     stage_line(f"hierarchy: tets {[len(T) for _, T in tets]}, n_outside {h.n_outside}, certified {h.certified}", t0)
     return h
+
+
+def _typed(value, cls: type, name: str):
+    """``value`` if it is a ``cls`` (None: the defaults); a one-line error otherwise."""
+    if value is None:
+        return cls()
+    if not isinstance(value, cls):
+        raise NestmgInputError(f"{name} must be a nestmg.{cls.__name__}, got {type(value).__name__}")
+    return value

@@ -90,14 +90,13 @@ def normalize(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         raise MeshInputError(f"vertices must be a non-empty (n,3) array, got shape {V.shape}")
     if not np.isfinite(V).all():
         raise MeshInputError(f"{int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
+    from cagegen import normalize as unit_box
 
     scale = bbox_diagonal(V)  # overflow-safe
     if not (np.isfinite(scale) and scale > 0):
         raise MeshInputError(f"bounding-box diagonal {scale} (all vertices coincide, or overflow)")
-    center = (lo + hi) / 2
-    return (V - center) / scale, center, scale
+    return unit_box(V, scale)
 
 
 def denormalize(Vn: np.ndarray, center: np.ndarray, scale: float) -> np.ndarray:

@@ -21,6 +21,7 @@ the hierarchy is nested).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,6 +30,9 @@ from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, ma
 from solvers.multilevel import restrict_prolongations, sparsified_galerkin_operators
 
 from .errors import NestmgInputError
+
+if TYPE_CHECKING:
+    from .options import SolverOptions
 
 __all__ = ["COARSE", "FAST_NEUMANN_SMOOTHERS", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
            "volume_fractions"]
@@ -117,28 +121,30 @@ class Problem:
     fixed_values: np.ndarray | None = None
     mesh: object | None = None
 
-    def multigrid(self, *, coarse_scaling: str | None = "auto", local: bool = True, smoothing: str = "robust",
-                  **kwargs):
+    def multigrid(self, options: SolverOptions | None = None, **kwargs):
         """The :class:`solvers.MultigridSolver` of this problem (its coarse operators and null space).
 
         Parameters
         ----------
-        coarse_scaling : None, "energy" or "auto"
-            ``"auto"`` (default): ``"energy"`` with re-discretised or weighted coarse operators (they
-            are not energy projections; docs/coarse.md), None with Galerkin ones.
-        local : bool
-            Give :attr:`local_nodes` one extra symmetric Gauss–Seidel sweep per smoothing step
-            (``MultigridSolver(local_nodes=...)``); ``local_nodes=`` in ``kwargs`` overrides it.
-        smoothing : {"robust", "fast"}
-            Preset used where ``kwargs`` give no ``presmoother``: ``"robust"`` (default) the variable
-            V-cycle of :data:`DEFAULT_SMOOTHERS` plus the boundary-layer sweeps (best factor per cycle,
-            for stationary cycling and hard Neumann problems); ``"fast"`` the textbook V(1,1) of
-            :data:`FAST_SMOOTHERS` without local sweeps (about half the cost per cycle, a few more CG
-            iterations; the faster MG-PCG in wall time), except on pure Neumann problems
-            (``nullspace="constant"``), where it is :data:`FAST_NEUMANN_SMOOTHERS` with one-way sweeps
-            over the fine boundary layer (``local=False`` drops them).
+        options : SolverOptions, optional
+            Its smoothing fields are used (``coarse``, ``lam``, ``poisson_ratio`` were the problem's,
+            :func:`setup_problem`; the solve's are :meth:`solvers.MultigridSolver.solve`'s):
+
+            * ``smoothing="robust"`` (default): ``nu`` sweeps of ``smoother`` on the fine level and
+              ``coarse_nu`` (default ``2 nu``) on the coarser ones (:func:`cycle_smoothers`; the defaults
+              are :data:`DEFAULT_SMOOTHERS`, the variable V-cycle), plus with ``local`` one extra
+              symmetric Gauss–Seidel sweep on :attr:`local_nodes` per smoothing step (best factor per
+              cycle, for stationary cycling and hard Neumann problems);
+            * ``smoothing="fast"``: the textbook V(1,1) of :data:`FAST_SMOOTHERS` without local sweeps
+              (about half the cost per cycle, a few more CG iterations; the faster MG-PCG in wall time),
+              except on pure Neumann problems (``nullspace="constant"``), where it is
+              :data:`FAST_NEUMANN_SMOOTHERS` with one-way sweeps over the fine boundary layer
+              (``local=False`` drops them);
+            * ``coarse_scaling``: ``"auto"`` is ``"energy"`` with re-discretised or weighted coarse
+              operators (they are not energy projections; docs/coarse.md), None with Galerkin ones.
         **kwargs
-            Passed on (smoothers, ``coarse_solver``, ...).
+            Passed on to :class:`solvers.MultigridSolver` (``presmoother``, ``local_nodes``,
+            ``coarse_solver``, ``block``, ...), overriding what ``options`` chose.
 
         Returns
         -------
@@ -146,18 +152,23 @@ class Problem:
         """
         from solvers import MultigridSolver
 
+        from .options import SolverOptions
+
+        o = options if options is not None else SolverOptions()
+        if not isinstance(o, SolverOptions):
+            raise NestmgInputError(f"options must be a nestmg.SolverOptions, got {type(o).__name__}")
+        coarse_scaling = o.coarse_scaling
         if coarse_scaling == "auto":
             coarse_scaling = None if isinstance(self.coarse, str) else "energy"
-        if smoothing not in SMOOTHING:
-            raise NestmgInputError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
-        fast = smoothing == "fast"
-        if fast and local and self.nullspace == "constant" and self.local_nodes is not None:
+        fast = o.smoothing == "fast"
+        if fast and o.local and self.nullspace == "constant" and self.local_nodes is not None:
             kwargs.setdefault("presmoother", FAST_NEUMANN_SMOOTHERS)
             kwargs.setdefault("local_nodes", self.local_nodes)
             kwargs.setdefault("local_sweep", "one-way")
             kwargs.setdefault("local_levels", 1)
-        kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else DEFAULT_SMOOTHERS)
-        kwargs.setdefault("local_nodes", self.local_nodes if local and not fast else None)
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
+        kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
+        kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 

@@ -8,9 +8,11 @@ from typing import Any
 
 import numpy as np
 
-from solvers import DEFAULT_MAXITER, DivergenceError, MultigridSolver, convergence_factor
+from solvers import DivergenceError, MultigridSolver, convergence_factor
 
-from .problems import cycle_smoothers, setup_problem
+from .errors import NestmgInputError
+from .options import SolverOptions
+from .problems import setup_problem
 
 __all__ = ["measure_cycle_cost", "solve_on_hierarchy"]
 
@@ -49,22 +51,11 @@ def solve_on_hierarchy(
     tets: list,
     P: list,
     problem: str = "poisson-dirichlet",
+    options: SolverOptions | None = None,
     *,
-    coarse: str = "galerkin",
-    smoother: str = "symmetric_gauss_seidel",
-    nu: int = 1,
-    cycle: str = "V",
-    accel: str | None = None,
-    tol: float = 1e-8,
-    maxiter: int = DEFAULT_MAXITER,
-    lam: float = 1e-2,
     cost: bool = True,
     return_solution: bool = False,
-    coarse_scaling: str | None = "auto",
     fractions: list | None = None,
-    coarse_nu: int | None = None,
-    local: bool = True,
-    poisson_ratio: float = 0.3,
     element: str = "P1",
     curved=None,
 ) -> dict[str, Any]:
@@ -77,21 +68,14 @@ def solve_on_hierarchy(
     ----------
     tets, P
         ``Hierarchy.tets`` and ``Hierarchy.P``.
-    problem, coarse, lam
+    problem : str
         See :func:`nestmg.problems.setup_problem`.
-    smoother : str
-        Smoother name (``solvers.SMOOTHERS``); ``nu`` sweeps before and after on the fine level:
-        V(nu, nu).
-    coarse_nu : int, optional
-        Sweeps on the coarser levels (default ``2 * nu``: the variable V-cycle of
-        :data:`nestmg.problems.DEFAULT_SMOOTHERS`; ``coarse_nu=nu`` is the plain V-cycle).
-    local : bool
-        Extra local sweeps on the boundary layer of Neumann and diffusion problems
-        (:meth:`nestmg.problems.Problem.multigrid`).
-    cycle, accel, tol, maxiter
-        See :meth:`solvers.MultigridSolver.solve`.
-    poisson_ratio : float
-        ν of the elasticity problems (:func:`nestmg.elasticity.setup_elasticity`).
+    options : SolverOptions, optional
+        Coarse operators, ``lam``, ``poisson_ratio`` (the problem); smoothing (``smoothing`` preset, or
+        ``nu`` sweeps of ``smoother`` on the fine level and ``coarse_nu`` -- default ``2 * nu`` -- on the
+        coarser ones, plus boundary-layer sweeps with ``local``; :meth:`nestmg.problems.Problem.multigrid`);
+        ``coarse_scaling``; ``cycle``, ``accel``, ``tol``, ``maxiter``
+        (:meth:`solvers.MultigridSolver.solve`).
     element, curved
         ``"P2"``: quadratic elements on ``tets[0]``, curved when ``curved`` is its
         :class:`nestmg.curved.CurvedMesh` (see :func:`nestmg.setup_problem`); the solution is then on
@@ -101,9 +85,6 @@ def solve_on_hierarchy(
     return_solution : bool
         Also return the solution on every fine node as ``solution`` ((n_0,) array, 0 on Dirichlet nodes;
         (n_0, 3) displacements for elasticity; not JSON: pop it before writing the dict).
-    coarse_scaling : None, "energy" or "auto"
-        See :class:`solvers.MultigridSolver`; ``"auto"``: ``"energy"`` for re-discretised and weighted
-        coarse operators, None for Galerkin (:meth:`nestmg.problems.Problem.multigrid`).
     fractions : list of arrays, optional
         Precomputed :func:`nestmg.problems.volume_fractions` (``coarse="weighted"``).
 
@@ -113,24 +94,27 @@ def solve_on_hierarchy(
         ``residuals``, ``factor``, ``iterations``, ``converged``, ``diverged``, ``message``,
         ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
     """
+    o = options if options is not None else SolverOptions()
+    if not isinstance(o, SolverOptions):
+        raise NestmgInputError(f"options must be a nestmg.SolverOptions, got {type(o).__name__}")
     t0 = time.perf_counter()
     extra = {"element": element, "curved": curved} if element != "P1" else {}
-    prob = setup_problem(tets, P, problem, coarse=coarse, lam=lam, fractions=fractions,
-                         poisson_ratio=poisson_ratio, **extra)
+    prob = setup_problem(tets, P, problem, coarse=o.coarse, lam=o.lam, fractions=fractions,
+                         poisson_ratio=o.poisson_ratio, **extra)
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
-    pre = cycle_smoothers(smoother, nu, coarse_nu)
-    cnu = pre[1][1]["iterations"]
-    ml = prob.multigrid(presmoother=pre, coarse_scaling=coarse_scaling, local=local)
+    ml = prob.multigrid(o)
     t_setup = time.perf_counter() - t0
+    pre = ml.levels[0].presmoother if len(ml.levels) > 1 else None
     out: dict[str, Any] = {
-        "problem": problem, "coarse": coarse, "nu": nu,
+        "problem": problem, "coarse": o.coarse, "nu": o.nu, "smoothing": o.smoothing,
         # the smoother built (elasticity turns Gauss-Seidel into nodal block Gauss-Seidel)
-        "smoother": ml.levels[0].presmoother.name if len(ml.levels) > 1 else smoother, "coarse_nu": cnu,
-        "local_nodes": 0 if not local or prob.local_nodes is None else int(prob.local_nodes.size), "cycle": cycle,
-        "accel": accel, "lam": prob.params["lam"], "element": element,
+        "smoother": pre.name if pre is not None else o.smoother,
+        "coarse_nu": 2 * o.nu if o.coarse_nu is None else o.coarse_nu,
+        "local_nodes": 0 if not o.local or prob.local_nodes is None else int(prob.local_nodes.size),
+        "cycle": o.cycle, "accel": o.accel, "lam": prob.params["lam"], "element": element,
         **({"poisson_ratio": prob.params["nu"]} if "nu" in prob.params else {}),
-        "tol": tol, "coarse_scaling": ml.coarse_scaling,
+        "tol": o.tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),
     }
@@ -138,7 +122,8 @@ def solve_on_hierarchy(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            x, info = ml.solve(prob.b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)
+            x, info = ml.solve(prob.b, tol=o.tol, maxiter=o.maxiter, cycle=o.cycle, accel=o.accel,
+                               return_info=True)
         out.update(residuals=info["residuals"], iterations=info["iterations"], converged=info["converged"],
                    diverged=False, message="")
         out["solution_norm"] = float(np.linalg.norm(x))
@@ -150,5 +135,5 @@ def solve_on_hierarchy(
     out["factor"] = convergence_factor(out["residuals"])
     out["seconds"] = {"assembly": t_asm, "setup": t_setup, "solve": t_solve}
     if cost:
-        out["cycle_cost"] = measure_cycle_cost(ml, cycle)
+        out["cycle_cost"] = measure_cycle_cost(ml, o.cycle)
     return out

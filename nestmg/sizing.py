@@ -7,8 +7,9 @@ The rule (:func:`plan_hierarchy`)
 ---------------------------------
 * Fine edge length ``h_0``: ``--edge-length`` if given; otherwise the input's mean edge length or its
   mean thickness (enclosed volume over area), whichever is smaller (:func:`_resolution_edge`: a CAD
-  export's or a low-poly model's triangles say nothing of the solid), enlarged when needed so that the estimated fine tet count stays within ``max_tets`` (default
-  1.5M) *and* the estimated fine meshing time within ``time_budget``.
+  export's or a low-poly model's triangles say nothing of the solid), enlarged when needed so that the
+  estimated fine tet count stays within ``max_tets`` (default 1.5M) *and* the estimated fine meshing time
+  within ``mesh_time_budget``.
 * Level ``k`` is meshed at ``h_0 * 2**k`` (~8x fewer tets per level, since the cages enclose a
   volume only slightly larger than the layer inside).
 * The estimated peak memory of the largest stage (mesher + FEM matrices, :mod:`nestmg.memory`) must
@@ -212,7 +213,7 @@ class SizingPlan:
         Estimated seconds of the fine tet meshing (model in :func:`fine_mesh_seconds`).
     rule : str
         Which constraint set ``h_0``: ``"user"``, ``"input resolution"``, ``"thickness"``, ``"max_tets"``,
-        ``"time_budget"``.
+        ``"mesh_time_budget"``.
     notes : list of str
     levels : dict or None
         :meth:`LevelsPlan.to_dict` of the levels granted (``levels`` <= ``requested``; ``note``: the one
@@ -293,7 +294,7 @@ def plan_hierarchy(
     mesher: str = "tetwild",
     edge_length: float | None = None,
     max_tets: int | None = None,
-    time_budget: float | None = None,
+    mesh_time_budget: float | None = None,
     memory_limit: int | str | None = None,
     min_edge_fraction: float = 1e-4,
     meshed_fraction: float = 1.0,
@@ -319,7 +320,7 @@ def plan_hierarchy(
     max_tets : int, optional
         Cap on the fine level's expected tets (default :data:`DEFAULT_MAX_TETS` when ``edge_length``
         is not given).
-    time_budget : float, optional
+    mesh_time_budget : float, optional
         Seconds allowed for meshing the fine level (estimated by :func:`fine_mesh_seconds` on the
         predecimated surface); the fine edge is enlarged to fit. None: no time constraint.
     memory_limit : int or str, optional
@@ -360,7 +361,7 @@ def plan_hierarchy(
         raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
     lp = plan_levels(len(F), levels, face_counts=face_counts, fixed_levels=fixed_levels)
     levels = lp.levels
-    from cagegen._geometry import bbox_diagonal
+    from cagegen import bbox_diagonal
 
     diag = bbox_diagonal(V)  # overflow-safe
     vol = enclosed_volume(V, F)
@@ -390,24 +391,28 @@ def plan_hierarchy(
             h, rule = h_cap, "max_tets"
         else:
             h = h_in
-        if time_budget is not None:
-            t_h = _meshing_seconds(V, F, vol, h, mesher, meshed_fraction, mesh_edge_factor, surface_faces)
-            if t_h > time_budget:
+        if mesh_time_budget is not None:
+
+            def secs(edge: float) -> float:
+                return _meshing_seconds(V, F, vol, edge, mesher, meshed_fraction, mesh_edge_factor,
+                                        surface_faces)
+
+            if secs(h) > mesh_time_budget:
                 # the estimate decreases with h: bisect for the finest edge that fits the budget
                 lo, hi = h, h * 2.0
-                while _meshing_seconds(V, F, vol, hi, mesher, meshed_fraction, mesh_edge_factor, surface_faces) > time_budget:
+                while secs(hi) > mesh_time_budget:
                     lo, hi = hi, hi * 2.0
                     if hi > diag:
                         raise SizingError(
                             f"meshing this {len(F):,}-face input is estimated above the time budget of "
-                            f"{time_budget:.0f} s at any size; raise --time-budget")
+                            f"{mesh_time_budget:.0f} s at any size; raise --mesh-time-budget")
                 for _ in range(30):
                     mid = 0.5 * (lo + hi)
-                    if _meshing_seconds(V, F, vol, mid, mesher, meshed_fraction, mesh_edge_factor, surface_faces) > time_budget:
+                    if secs(mid) > mesh_time_budget:
                         lo = mid
                     else:
                         hi = mid
-                h, rule = hi, "time_budget"
+                h, rule = hi, "mesh_time_budget"
     n0 = expected_tets(vol, h, mesher)
     hs = [h * 2.0**k for k in range(levels)]
     ns = [max(expected_tets(vol, hk, mesher), 1) for hk in hs]

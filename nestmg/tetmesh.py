@@ -1,7 +1,7 @@
 """Tet meshing of one closed surface layer (TetWild by default, TetGen optional).
 
-Sizing rule for a hierarchy: layer ``k`` is meshed with target edge length ``edge_length * 2**k``
-(``edge_length`` = ``edge_length_fac`` x the *input's* bounding-box diagonal). Halving the
+Sizing rule for a hierarchy: layer ``k`` is meshed with target edge length ``h * 2**k``
+(``h`` = ``edge_length`` x the *input's* bounding-box diagonal). Halving the
 resolution per level gives ~8x fewer tets per coarser layer when the layers enclose similar volumes;
 the cage backends use 4x fewer surface faces per level to match (``cagegen.default_face_counts``).
 
@@ -34,8 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cagegen._geometry import as_mesh_arrays, bbox_diagonal
-from cagegen._tempdir import in_temp_dir
+from cagegen import as_mesh_arrays, bbox_diagonal, in_temp_dir, normalize
 from cagegen.errors import MeshInputError, NestmgError
 
 from ._mesh_worker import run_job
@@ -463,8 +462,8 @@ def tetrahedralize(
     F: np.ndarray,
     *,
     mesher: str = "tetwild",
-    edge_length: float | None = None,
-    edge_length_fac: float = 0.05,
+    edge_length: float = 0.05,
+    edge_length_abs: float | None = None,
     epsilon: float = 1e-3,
     minratio: float = 1.5,
     threads: int = 0,
@@ -484,10 +483,11 @@ def tetrahedralize(
     mesher : {"tetwild", "tetgen"}
         ``tetwild`` (pytetwild / fTetWild, robust, boundary within ``epsilon``) or ``tetgen``
         (fast, keeps the boundary exactly; needs the ``tetgen`` extra and a clean input).
-    edge_length : float, optional
-        Absolute target edge length. Defaults to ``edge_length_fac`` x bounding-box diagonal of ``V``.
-    edge_length_fac : float
-        Target edge length relative to the bounding-box diagonal when ``edge_length`` is None.
+    edge_length : float
+        Target edge length relative to the bounding-box diagonal of ``V`` (used when ``edge_length_abs``
+        is None).
+    edge_length_abs : float, optional
+        Target edge length in the units of ``V`` (overrides ``edge_length``).
     epsilon : float
         TetWild envelope, relative to the bounding-box diagonal (ignored by tetgen).
     minratio : float
@@ -534,11 +534,10 @@ def tetrahedralize(
         raise MeshInputError(f"surface: {int((~np.isfinite(V)).any(axis=1).sum())} vertices have NaN/inf coordinates")
     if mesher not in MESHERS:
         raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {MESHERS}")
-    lo, hi = V.min(axis=0), V.max(axis=0)
     diag = bbox_diagonal(V)  # overflow-safe
     if not (np.isfinite(diag) and diag > 0):
         raise MeshInputError(f"surface: bounding-box diagonal {diag} (all vertices coincide, or overflow)")
-    h = float(edge_length) if edge_length is not None else edge_length_fac * diag
+    h = float(edge_length_abs) if edge_length_abs is not None else edge_length * diag
     if not np.isfinite(h) or h <= 0:
         raise NestmgInputError(f"edge length must be positive, got {h}")
     limit = mesh_time_limit(V, F, h, mesher) if time_limit == "auto" else time_limit
@@ -548,13 +547,13 @@ def tetrahedralize(
     try:
         if mesher == "tetwild":
             # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
-            c = (lo + hi) / 2
+            Vn, c, _ = normalize(V, diag)
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
             if outer_edge_factor > 1.0:
-                opts.update(outer_sizing_field((V - c) / diag, F, h / diag, float(outer_edge_factor)))
+                opts.update(outer_sizing_field(Vn, F, h / diag, float(outer_edge_factor)))
             try:
-                Vt, T = _mesher_call("tetwild", (V - c) / diag, F, opts, deadline)
+                Vt, T = _mesher_call("tetwild", Vn, F, opts, deadline)
             except TetMeshTimeoutError as exc:
                 raise TetMeshTimeoutError(f"{exc}; {_limit_hint(limit)}; or give a larger edge length") from None
             Vt = Vt * diag + c

@@ -25,6 +25,7 @@ from solvers.multilevel import DEFAULT_MAXITER, restrict_prolongations
 from solvers.shifted import ShiftedGalerkin
 
 from .errors import NestmgInputError
+from .options import SolverOptions
 from .problems import Problem
 
 __all__ = ["DiffusionStepper", "diffusion_stepper", "implicit_diffusion"]
@@ -70,7 +71,8 @@ class DiffusionStepper:
         tol, maxiter
             Relative residual ``||b - A u|| <= tol ||b||`` and iteration cap of CG.
         **multigrid_kwargs
-            Passed to :meth:`Problem.multigrid` (smoother options; the defaults are the project's).
+            Passed to :meth:`Problem.multigrid` (:class:`solvers.MultigridSolver` keywords; the smoothing
+            preset is the stepper's ``smoothing``).
 
         Returns
         -------
@@ -98,8 +100,7 @@ class DiffusionStepper:
         # the caller's node order: a locality permutation (MultigridSolver(ordering="auto")) would re-permute
         # the fine matrix and every coarse sum at each step; the reuse figures (docs/reuse.md) are without it
         multigrid_kwargs.setdefault("ordering", None)
-        multigrid_kwargs.setdefault("smoothing", self.smoothing)
-        ml = prob.multigrid(coarse_scaling=None, **multigrid_kwargs)
+        ml = prob.multigrid(SolverOptions(smoothing=self.smoothing, coarse_scaling=None), **multigrid_kwargs)
         t2, c2 = time.perf_counter(), time.process_time()
         u, info = ml.solve(b, x0=u_prev, tol=tol, maxiter=maxiter, accel="cg", return_info=True)
         t3, c3 = time.perf_counter(), time.process_time()

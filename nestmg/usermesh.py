@@ -4,7 +4,7 @@ Simulation code usually has its tet mesh already (gmsh, TetWild, a Medit or VTU 
 assembly. :func:`hierarchy_from_tets` keeps that mesh as level 0 *exactly* (same nodes, same order, same
 tets), so any matrix assembled on it pairs with the hierarchy's prolongations::
 
-    H = hierarchy_from_tets(V, T, levels=3)          # H.tets[0] is (V, T)
+    H = hierarchy_from_tets(V, T, 3)                 # H.tets[0] is (V, T)
     ml = solvers.MultigridSolver(A_user, H.P)        # A_user: (n, n) on the user's nodes
 
 Steps: validate the tets; extract their boundary surface (oriented outward) and audit it
@@ -40,6 +40,7 @@ from cagegen.errors import MeshInputError, NestmgError
 from .cache import arrays_digest, atomic_write_bytes
 from .errors import NestmgInputError
 from .hierarchy import Hierarchy, tet_hierarchy
+from .options import MeshingOptions, SizingOptions, as_dict
 from .progress import Timer, stage_line
 from .prolongation import ProlongationReport
 
@@ -157,18 +158,13 @@ def hierarchy_from_tets(
     V,
     T,
     levels: int = 3,
-    *,
     method: str = "nested",
-    face_counts: list[int] | None = None,
-    mesher: str = "tetwild",
-    edge_length: float | None = None,
-    coarsening: float | None = 8.0,
-    epsilon: float = 1e-3,
-    extrapolation: str = "clamped",
-    tet_retries: int | None = None,
+    *,
+    sizing: SizingOptions | None = None,
+    meshing: MeshingOptions | None = None,
+    cages=None,
     cache: bool = True,
     progress: bool | None = None,
-    cage_opts: dict | None = None,
 ) -> Hierarchy:
     """A multigrid hierarchy whose fine level is the caller's tet mesh ``(V, T)``, unchanged.
 
@@ -184,31 +180,21 @@ def hierarchy_from_tets(
         (:func:`nestmg.sizing.plan_levels`; one stage line, ``options["levels_plan"]``).
     method : str
         Cage backend (``cagegen.build_cages``); uncertified ``"decimate"`` is accepted as a baseline.
-    face_counts : list of int, optional
-        Cage face counts, finest first (default: 4x fewer faces per level than the boundary surface).
-    mesher : {"tetwild", "tetgen"}
-        Mesher of the coarse layers (``tetgen`` is the AGPL opt-in extra).
-    edge_length : float, optional
-        Edge length (in ``V``'s units) the coarse sizing starts from. Default: the mean edge length of
-        the user's tets.
-    coarsening : float or None
-        Wanted tet ratio between consecutive levels (default 8, as :func:`nestmg.build_hierarchy`); None:
-        the edge length doubles per level.
-    epsilon : float
-        TetWild envelope relative to each layer's bounding-box diagonal.
-    extrapolation : str
-        Rule for fine nodes left outside a coarse tet mesh (see :mod:`nestmg.prolongation`).
-    tet_retries : int, optional
-        Re-mesh a coarse layer with a 4x smaller envelope while fine nodes remain outside it (default 2
-        for certified methods, 0 for ``decimate``).
+    sizing : SizingOptions, optional
+        ``face_counts`` (default: 4x fewer faces per level than the boundary surface), ``edge_length``
+        (relative to the bounding-box diagonal, where the coarse sizing starts; default: the mean edge
+        length of the user's tets) and ``coarsening``. The other fields size a fine level this function
+        does not build: they must keep their defaults.
+    meshing : MeshingOptions, optional
+        Mesher of the coarse layers (``tetgen`` is the AGPL opt-in extra), envelope, extrapolation,
+        ``tet_retries`` (default 2 for certified methods, 0 for ``decimate``).
+    cages : cagegen.CageOptions, optional
+        The method's options; with TetWild and a certified method ``min_gap`` None means
+        ``2.5 * epsilon``, as in :func:`nestmg.build_hierarchy`.
     cache : bool
         Reuse cages and coarse tet meshes from ``$NESTMG_CACHE``.
     progress : bool or None
         Progress output (None: only on a terminal).
-    cage_opts : dict, optional
-        Extra options of :func:`cagegen.build_cages`. With TetWild and a certified method ``min_gap``
-        defaults to ``2.5 * epsilon`` (clearance between consecutive cages, relative to the bounding-box
-        diagonal), as in :func:`nestmg.build_hierarchy`.
 
     Returns
     -------
@@ -219,6 +205,8 @@ def hierarchy_from_tets(
 
     Raises
     ------
+    nestmg.NestmgInputError
+        Bad options, or a sizing field this function does not use set.
     cagegen.MeshInputError
         Bad tets, or a boundary that is not one closed, manifold, self-intersection-free surface
         (several solids, a cavity, touching pieces...); the message names the problem.
@@ -227,11 +215,20 @@ def hierarchy_from_tets(
     cagegen.CageError
         A cage could not be built or certified.
     """
-    from .hierarchy import _normalize, build_cage_surfaces
+    from .hierarchy import _normalize, _typed, build_cage_surfaces, cage_options_for
     from .sizing import plan_levels
 
+    sizing, meshing = _typed(sizing, SizingOptions, "sizing"), _typed(meshing, MeshingOptions, "meshing")
+    unused = [f for f in ("max_tets", "mesh_time_budget", "same_domain_levels", "fine_level", "predecimate")
+              if getattr(sizing, f) != getattr(SizingOptions(), f)]
+    if unused:
+        raise NestmgInputError(f"hierarchy_from_tets: sizing.{unused[0]} does not apply (the fine level is "
+                               "yours)")
     if levels < 2:
         raise NestmgInputError(f"levels must be >= 2, got {levels}")
+    cages = cage_options_for(method, cages, meshing)
+    if meshing.tet_retries is None:
+        meshing = dataclasses.replace(meshing, tet_retries=0 if method == "decimate" else 2)
     t0 = time.perf_counter()
     timer = Timer()
     with timer("boundary"):
@@ -240,24 +237,19 @@ def hierarchy_from_tets(
         Vs, Fs, index = boundary_surface(Vn, T)
     # `levels` is a ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps
     # >= 100 faces (one line says so); explicit face counts that cannot be met fail here, before any work
-    lp = plan_levels(len(Fs), levels, face_counts=face_counts)
+    fc = None if sizing.face_counts is None else list(sizing.face_counts)
+    lp = plan_levels(len(Fs), levels, face_counts=fc)
     if lp.note:
         stage_line(lp.note, t0)
     with timer("cages"):
         try:  # same clearance (min_gap = 2.5 epsilon under TetWild) and cache as build_hierarchy
-            surfaces_n, info = build_cage_surfaces(
-                Vs, Fs, lp.levels, method=method, face_counts=face_counts, mesher=mesher, epsilon=epsilon,
-                cache=cache, progress=progress, cage_opts=cage_opts, t0=t0,
-            )
+            surfaces_n, info = build_cage_surfaces(Vs, Fs, lp.levels, method, sizing=sizing, meshing=meshing,
+                                                   cages=cages, cache=cache, progress=progress, t0=t0)
         except MeshInputError as exc:
             raise MeshInputError(f"the boundary of the tet mesh is not a usable surface: {exc}") from exc
-    h0 = float(edge_length) / scale if edge_length is not None else _mean_edge(Vn, T)
-    if tet_retries is None:
-        tet_retries = 0 if method == "decimate" else 2
-    tets_n, Ps, reps, tt = tet_hierarchy(
-        surfaces_n, mesher=mesher, edge_length=h0, coarsening=coarsening, epsilon=epsilon,
-        extrapolation=extrapolation, tet_retries=tet_retries, cache=cache, progress=progress, fine=(Vn, T), t0=t0,
-    )
+    h0 = sizing.edge_length if sizing.edge_length is not None else _mean_edge(Vn, T)  # the unit diagonal
+    tets_n, Ps, reps, tt = tet_hierarchy(surfaces_n, sizing=sizing, meshing=meshing, edge_length_abs=h0,
+                                         cache=cache, progress=progress, fine=(Vn, T), t0=t0)
     surfaces = [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n]
     if np.array_equal(surfaces_n[0][1], Fs):  # not repaired: the boundary of the user's own nodes, exactly
         surfaces[0] = (V[index], Fs)
@@ -266,17 +258,15 @@ def hierarchy_from_tets(
     H = Hierarchy(
         surfaces=surfaces, tets=tets, P=Ps, prolongation_reports=reps, method=method, cage_info=info,
         timings={**timer.seconds, **tt, "total": time.perf_counter() - t0},
-        options={
-            "fine_level": "user", "levels": lp.levels, "levels_requested": levels, "levels_plan": lp.to_dict(),
-            "face_counts": face_counts, "mesher": mesher,
-            "edge_length": h0 * scale, "coarsening": coarsening, "epsilon": epsilon, "extrapolation": extrapolation,
-            "cage_opts": info.get("cage_opts", {}),
-        },
+        options={"fine_level": "user", "levels": lp.levels, "levels_requested": levels,
+                 "levels_plan": lp.to_dict(), "edge_length": h0, "sizing": as_dict(sizing),
+                 "meshing": as_dict(meshing), "cages": as_dict(cages)},
         frame={"center": center, "scale": scale},
     )
     if method != "decimate" and any(H.n_outside):
         warnings.warn(f"hierarchy_from_tets: fine nodes outside the coarse tet meshes per level: {H.n_outside} "
-                      f"(extrapolated by {extrapolation!r}); the hierarchy is not certified", stacklevel=2)
+                      f"(extrapolated by {meshing.extrapolation!r}); the hierarchy is not certified",
+                      stacklevel=2)
     return H
 
 

@@ -21,12 +21,14 @@ def rng():
 def torus_iso_tets():
     """A procedurally nested 4-level torus hierarchy (iso-surfaces at growing offsets), meshed by TetGen."""
     pytest.importorskip("tetgen")
-    from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions, shapes
     from nestmg.hierarchy import tet_hierarchy
 
     # default sizing (fine edge = the input's mean edge, doubling per level): 77k / 14k / 3k / 1.8k tets
     S = shapes.nested_isosurfaces("torus", [0.0, 0.06, 0.15, 0.35], [32, 20, 12, 8])
-    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"),
+                                     cache=False, progress=False)
     return S, tets, P, reps
 
 

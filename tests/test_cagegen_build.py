@@ -35,7 +35,8 @@ def _scaled_spheres(V, F, face_counts, *, scales=None, progress=None):
 
 @pytest.fixture
 def spheres_backend(monkeypatch):
-    monkeypatch.setitem(registry._BACKENDS, "spheres", _scaled_spheres)
+    monkeypatch.setitem(registry._BACKENDS, "spheres",
+                        registry.BackendSpec(_scaled_spheres, takes=frozenset({"progress"})))
     return "spheres"
 
 
@@ -101,6 +102,46 @@ def test_input_is_audited_before_the_backend(ball, monkeypatch):
     assert np.array_equal(layers[0][1], ball[1])
 
 
+def test_input_audited_once_per_run(ball, spheres_backend, monkeypatch):
+    """One exact self-intersection test of the input per run: the audit's; the verifier skips layer 0,
+    and a caller's passed audit (audit=) replaces build_cages' own. Same layers and report either way."""
+    import cagegen.audit
+    import cagegen.verify
+
+    tested = []
+    for mod in (cagegen.audit, cagegen.verify):
+        real = mod.self_intersection_pairs
+        monkeypatch.setattr(mod, "self_intersection_pairs",
+                            lambda V, F, *a, real=real: tested.append(len(F)) or real(V, F, *a))
+    layers, info = cagegen.build_cages(*ball, method="spheres", face_counts=[1280, 320], return_info=True)
+    assert tested == [5120, 1280, 320]  # the audit's, then the cages' (not the input's again)
+    assert info["verification"]["pairs"][0]["self_intersections_fine"] == 0 and info["certified"]
+
+    _, _, audit = cagegen.check_mesh(*ball, return_audit=True)
+    tested.clear()
+    monkeypatch.setattr(cagegen.build, "check_mesh", lambda *a, **k: pytest.fail("audited again"))
+    layers2, info2 = cagegen.build_cages(*ball, method="spheres", face_counts=[1280, 320], return_info=True,
+                                         audit=audit)
+    assert tested == [1280, 320]
+    assert all(np.array_equal(Va, Vb) and np.array_equal(Fa, Fb)
+               for (Va, Fa), (Vb, Fb) in zip(layers, layers2))
+
+    def figures(i):  # the verifier's figures but its seconds and igl's threaded winding sums (last bits)
+        return [{k: v for k, v in p.items() if k not in ("seconds", "min_winding")}
+                for p in i["verification"]["pairs"]]
+
+    assert figures(info2) == figures(info)
+    assert info2["verification"]["pairs"][0]["min_winding"] == pytest.approx(1.0, abs=1e-12)
+    assert info2["audit"] == info["audit"]
+    # an audit of another mesh, or without the self-intersection test, is refused in one line
+    _, _, small = cagegen.check_mesh(*_ico(2), return_audit=True)
+    with pytest.raises(cagegen.CageOptionError, match="passed audit"):
+        cagegen.build_cages(*ball, method="spheres", face_counts=[1280], audit=small)
+    no_self = cagegen.audit_mesh(*ball, self_intersections=False)
+    with pytest.raises(cagegen.CageOptionError, match="self-intersections tested"):
+        cagegen.build_cages(*ball, method="spheres", face_counts=[1280], audit=no_self)
+
+
 def test_bad_backend_output(ball, monkeypatch):
     monkeypatch.setitem(registry._BACKENDS, "short", lambda V, F, c: ([_ico(3, 1.2)], {}))
     with pytest.raises(CageError, match="returned 1 layers for 2"):
@@ -146,3 +187,43 @@ def test_public_exports():
                  "default_face_counts", "register_backend", "available_backends", "errors"]:
         assert hasattr(cagegen, name)
     assert cagegen.errors.CageError is CageError
+
+
+def test_per_layer_backend_is_looped_by_build_cages(ball, monkeypatch):
+    """A registered per-layer function gets the previous layer and the input's diagonal as ``unit``;
+    build_cages loops, reports one line per layer and writes the same info keys as for every such backend."""
+    calls = []
+
+    def grow(V, F, n_faces, *, unit, factor=1.2):
+        calls.append((len(F), n_faces, unit))
+        c = V.mean(axis=0)
+        return c + factor * (V - c), F.copy(), {"n_faces": len(F), "progress": "grown"}
+
+    monkeypatch.setitem(registry._BACKENDS, "grow", registry.BackendSpec(grow, layer=True))
+    msgs = []
+    layers, info = cagegen.build_cages(*ball, method="grow", face_counts=[1280, 320], return_info=True,
+                                       progress=msgs.append)
+    diag = cagegen._geometry.bbox_diagonal(ball[0])
+    assert calls == [(5120, 1280, diag), (5120, 320, diag)]
+    assert info["certified"] and [len(F) for _, F in layers] == [5120] * 3
+    be = info["backend"]
+    assert be["method"] == "grow" and be["nested_by_construction"] is True and be["genus_changes"] == []
+    assert [li["layer"] for li in be["layers"]] == [1, 2] and "progress" not in be["layers"][0]
+    assert be["layers"][1]["volume_ratio_to_input"] == pytest.approx(1.44**3, rel=1e-9)
+    assert be["layers"][0]["hausdorff_relative_to_input"] > 0
+    assert sum(m.startswith("grow: layer ") and ", grown, max distance" in m for m in msgs) == 2
+
+
+def test_registry_declares_what_each_backend_takes():
+    for name in ("nested", "skeleton"):
+        spec = registry.backend_spec(name)
+        assert not spec.layer and spec.own_loop  # each says why it loops itself
+    for name in ("decimate", "lazy", "sdf"):
+        assert registry.backend_spec(name).layer and not registry.backend_spec(name).own_loop
+    assert registry.get_schedule("sdf") is cagegen.sdf.sdf_schedule  # its time budget: the whole run
+    assert registry.get_schedule("decimate") is None
+    with pytest.raises(TypeError, match="takes must be a subset"):
+        registry.register_backend("x", lambda *a: None, takes=("colour",))
+    with pytest.raises(TypeError, match="CageOptions"):
+        registry.register_backend("x", lambda *a: None, options=dict)
+    assert "x" not in registry.registered_backends()

@@ -8,7 +8,8 @@ import pytest
 from cagegen import build_cages
 from cagegen._geometry import edge_stats, signed_volume
 from cagegen.audit import audit_mesh
-from cagegen.decimate import decimate_backend, decimate_surface
+from cagegen import build_cages
+from cagegen.decimate import decimate_surface
 from cagegen.sizes import default_face_counts
 
 
@@ -24,7 +25,9 @@ def test_layers_watertight_at_target_counts(genus2, algorithm):
     V, F = genus2
     V0, F0 = V.copy(), F.copy()
     targets = [2400, 600, 150]
-    layers, info = decimate_backend(V, F, targets, algorithm=algorithm)
+    layers, info = build_cages(V, F, method="decimate", face_counts=targets, algorithm=algorithm,
+                               return_info=True)
+    layers, info = layers[1:], info["backend"]  # build_cages' loop over decimate_layer
     assert np.array_equal(V, V0) and np.array_equal(F, F0)
     assert len(layers) == 3 and info["nested_by_construction"] is False
     for (U, G), t, li in zip(layers, targets, info["layers"]):
@@ -47,7 +50,7 @@ def test_layers_watertight_at_target_counts(genus2, algorithm):
 
 def test_each_layer_decimates_the_previous(genus2):
     V, F = genus2
-    layers, _ = decimate_backend(V, F, [2400, 600])
+    layers = build_cages(V, F, method="decimate", face_counts=[2400, 600])[1:]
     U1, G1 = layers[0]
     U2, G2 = decimate_surface(U1, G1, 600)[:2]
     assert np.allclose(U2, layers[1][0]) and np.array_equal(G2, layers[1][1])

@@ -16,7 +16,7 @@ from cagegen.errors import BackendUnavailableError, CageError
 
 pytest.importorskip("gpytoolbox", reason="the lazy backend needs the optional 'lazy' extra (gpytoolbox, GPL)")
 
-from cagegen.copyleft.lazy import genus, lazy_backend, lazy_cage_layer
+from cagegen.copyleft.lazy import genus, lazy_cage_layer
 from nestmg import shapes
 
 FAST = {"grid_size": 20, "max_iter": 5}
@@ -62,10 +62,12 @@ def test_lazy_layers_certified(neck_lazy):
 def test_lazy_tet_layers_have_no_fine_node_outside(neck_lazy):
     """Tet-level certification: TetGen keeps each cage's boundary, so no fine node falls outside."""
     pytest.importorskip("tetgen")
+    from nestmg import MeshingOptions, SizingOptions
     from nestmg.hierarchy import tet_hierarchy
 
     layers, _ = neck_lazy
-    tets, P, reps, _ = tet_hierarchy(layers, mesher="tetgen", edge_length_fac=0.06, cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(layers, sizing=SizingOptions(edge_length=0.06, coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     assert [r.n_outside for r in reps] == [0, 0]
     for k, Pk in enumerate(P):
         assert Pk.shape == (len(tets[k][0]), len(tets[k + 1][0]))
@@ -126,7 +128,7 @@ def test_no_certified_candidate_raises_cage_error(neck, monkeypatch):
     monkeypatch.setattr(lazy_mod, "_accept", lambda *a: "rejected by the test")
     V, F = neck
     with pytest.raises(CageError) as exc:
-        lazy_backend(V, F, [300], grid_size=12, max_iter=2)
+        cagegen.build_cages(V, F, method="lazy", face_counts=[300], grid_size=12, max_iter=2)
     assert exc.value.layer == 1 and "rejected by the test" in str(exc.value)
 
 
@@ -234,17 +236,17 @@ def test_blocked_push_out_rejects_the_candidate(neck, monkeypatch):
     monkeypatch.setattr(lazy_mod, "_distance_lower_bound", lambda *a: 0.0)  # every candidate needs the push
     V, F = neck
     with pytest.raises(CageError, match="push-out failed: blocked") as exc:
-        lazy_backend(V, F, [300], min_gap=0.01, grid_size=12, max_iter=2)
+        cagegen.build_cages(V, F, method="lazy", face_counts=[300], min_gap=0.01, grid_size=12, max_iter=2)
     assert exc.value.layer == 1
     with pytest.raises(ValueError, match="gap"):
         lazy_cage_layer(V, F, 300, gap=-1.0)
     with pytest.raises(ValueError, match="min_gap"):
-        lazy_backend(V, F, [300], min_gap=float("nan"))
+        cagegen.build_cages(V, F, method="lazy", face_counts=[300], min_gap=float("nan"))
 
 
 def test_distance_lower_bound_is_below_the_exact_distance(neck, neck_lazy):
     from cagegen.copyleft.lazy import _distance_lower_bound
-    from cagegen.nested.collision import min_distance
+    from cagegen.collision import min_distance
 
     V, F = neck
     (L1, L2) = neck_lazy[0][1:]

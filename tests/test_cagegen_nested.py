@@ -26,7 +26,7 @@ from cagegen.nested import (
     reinflate,
     triangle_rule,
 )
-from cagegen.nested.collision import PairMesh, min_distance
+from cagegen.collision import PairMesh, min_distance
 from cagegen.nested.energies import signed_volume
 from nestmg import shapes
 

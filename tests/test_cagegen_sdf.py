@@ -261,15 +261,13 @@ def test_self_intersecting_input_refused_quickly():
     import time
 
     from cagegen.intersect import self_pairs
-    from cagegen.sdf.backend import sdf_backend
-
     V, F = _pierced_sphere()
     assert len(self_pairs(V, F)) > 0
     t = time.perf_counter()
     with pytest.raises(cagegen.MeshInputError, match="self-intersect"):
         sdf_cage_layer(V, F, 2 * (len(F) // 8))
     with pytest.raises(cagegen.MeshInputError, match="self-intersect"):
-        sdf_backend(V, F, [2 * (len(F) // 8)])
+        build_cages(V, F, method="sdf", face_counts=[2 * (len(F) // 8)])
     assert time.perf_counter() - t < 10.0  # the audit, not minutes of rebuilds
 
 
@@ -432,7 +430,7 @@ def test_bridge_retry_rebuilds_at_half_the_offset_where_the_envelope_bridged():
     d_in = float(np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0].max())) / diag
     assert abs(d_in - br["input_to_cage_retry"]) < 1e-6
     # no retry when the budget left cannot hold three first builds: the first cage, and why
-    U2, G2, info2 = sdf_cage_layer(V, F, m, c=0.02, time_budget=None, deadline=time.perf_counter() + 1.0)
+    U2, G2, info2 = sdf_cage_layer(V, F, m, c=0.02, cage_time_budget=None, deadline=time.perf_counter() + 1.0)
     br2 = info2["bridge_retry"]
     assert not br2["ran"] and br2["why_not"].startswith("time") and info2["c_used"] == pytest.approx(0.02)
     assert len(G2) == m and verify_nesting([(V, F), (U2, G2)]).ok
@@ -533,28 +531,33 @@ def test_hug_brings_the_cage_closer_near_active_points_only():
 
 def test_time_budget_refuses_in_milliseconds_and_names_the_option(blobs):
     """A budget below the estimate (15 s + 5 ms per input face per layer) is refused before the audit or
-    any other work, naming ``time_budget``; the caller's arrays are untouched; the estimate grows with
+    any other work, naming ``cage_time_budget``; the caller's arrays are untouched; the estimate grows with
     the input and with the layers."""
     import time
 
-    from cagegen.sdf.backend import estimate_layer_seconds, sdf_backend
+    from cagegen.sdf.backend import estimate_layer_seconds, sdf_schedule
 
     V, F = blobs
     V0, F0 = V.copy(), F.copy()
     m = 2 * (len(F) // 8)
     t = time.perf_counter()
-    with pytest.raises(CageError, match=r"time_budget=1 s") as e1:
-        sdf_cage_layer(V, F, m, time_budget=1.0)
-    with pytest.raises(CageError, match=r"time_budget") as e2:
-        build_cages(V, F, face_counts=[m, 2 * (m // 8)], method="sdf", time_budget=40.0)
+    with pytest.raises(CageError, match=r"cage_time_budget=1 s") as e1:
+        sdf_cage_layer(V, F, m, cage_time_budget=1.0)
+    with pytest.raises(CageError, match=r"cage_time_budget") as e2:
+        build_cages(V, F, face_counts=[m, 2 * (m // 8)], method="sdf", cage_time_budget=40.0)
     assert time.perf_counter() - t < 1.0
     assert e1.value.reason == "time budget" and e2.value.reason == "time budget"
     assert np.array_equal(V, V0) and np.array_equal(F, F0)
     # one layer of this input fits 40 s, two do not: the estimate sums the layers' inputs
     assert estimate_layer_seconds(len(F)) < 40.0 < estimate_layer_seconds(len(F)) + estimate_layer_seconds(m)
     assert estimate_layer_seconds(100_000) == pytest.approx(515.0)
-    with pytest.raises(CageError, match="time_budget"):
-        sdf_backend(V, F, [m, 2 * (m // 8)], time_budget=40.0)
+    with pytest.raises(CageError, match="cage_time_budget"):
+        sdf_schedule(V, F, [m, 2 * (m // 8)], t0=t, cage_time_budget=40.0)
+    # the deadlines leave the later layers their time
+    plan = sdf_schedule(V, F, [m, 2 * (m // 8)], t0=t, cage_time_budget=1e4)
+    assert plan[1]["deadline"] == pytest.approx(t + 1e4) and plan[1]["cage_time_budget"] is None
+    assert plan[0]["deadline"] == pytest.approx(t + 1e4 - estimate_layer_seconds(m))
+    assert not any(p["check_input"] for p in plan)  # build_cages audited the input once
 
 
 def test_tightening_starts_no_round_after_its_deadline():

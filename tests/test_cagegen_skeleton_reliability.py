@@ -13,6 +13,7 @@ import pytest
 
 from cagegen._geometry import self_intersection_pairs
 from cagegen.errors import CageError
+from cagegen.failures import PairFailure
 from cagegen.skeleton import Skeleton, extract, skeleton_cage
 from cagegen.skeleton.cage import CrossSection, sections_cross, tight_cage, untangle_sections
 from nestmg.shapes import sphere, star_of_capsules, stick_figure
@@ -248,9 +249,9 @@ def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
 
     monkeypatch.setattr(nb, "flow_inside", fake_flow)
     Vs, Fs = sphere(4)
-    with pytest.raises(nb._PairFailure, match="stub"):
+    with pytest.raises(PairFailure, match="stub"):
         nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs)
-    with pytest.raises(nb._PairFailure, match="stub"):
+    with pytest.raises(PairFailure, match="stub"):
         nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs, flow_stall_iter=600, flow_expand_after=None, flow_max_expansions=3)
     defaults = {k: v.default for k, v in inspect.signature(flow_inside).parameters.items()}
     for name in ("stall_iter", "max_expansions"):
@@ -299,7 +300,7 @@ def test_late_failure_carries_the_uncertified_partial_cage(star, monkeypatch):
     from cagegen.nested import backend as nb
 
     def failing(*args, **kw):
-        raise nb._PairFailure("flow", "stub: stalled", {"seconds": {}})
+        raise PairFailure("flow", "stub: stalled", {"seconds": {}})
 
     monkeypatch.setattr(nb, "nest_pair", failing)
     V, F, S = star

@@ -52,7 +52,7 @@ def _run(cmd, tmp_path, timeout=300) -> subprocess.CompletedProcess:
 def test_ipctk_warning_goes_to_the_cagegen_logger(capfd, caplog, monkeypatch):
     pytest.importorskip("ipctk")
     import cagegen._log
-    from cagegen.nested.collision import PairMesh
+    from cagegen.collision import PairMesh
 
     monkeypatch.setattr(cagegen._log, "_seen", set())  # as in a fresh process
 
@@ -78,7 +78,7 @@ def test_ipctk_warning_goes_to_the_cagegen_logger(capfd, caplog, monkeypatch):
 def test_ipctk_outside_a_capture_is_quiet(capfd):
     """A direct ipctk call (no capture window) prints nothing either: ipctk's level is 'error' there."""
     ipctk = pytest.importorskip("ipctk")
-    import cagegen.nested.collision  # noqa: F401  (sets the level at import)
+    import cagegen.collision  # noqa: F401  (sets the level at import)
 
     Vc, Fc, Vf, Ff = _near_touch()
     X0 = np.vstack([Vc, Vf])
@@ -93,7 +93,7 @@ def test_ipctk_outside_a_capture_is_quiet(capfd):
 def test_ipctk_capture_off_when_the_logger_is_off(capfd, caplog):
     pytest.importorskip("ipctk")
     from cagegen._log import ipctk_to_log
-    from cagegen.nested.collision import PairMesh
+    from cagegen.collision import PairMesh
 
     Vc, Fc, Vf, Ff = _near_touch()
     pm = PairMesh(Vc, Fc, Vf, Ff)
@@ -116,7 +116,7 @@ import logging, sys
 logging.getLogger().addHandler(logging.FileHandler(sys.argv[1]))  # a log file: the terminal stays clean
 logging.getLogger().setLevel(logging.DEBUG)
 from cagegen import build_cages
-from cagegen.nested.collision import PairMesh
+from cagegen.collision import PairMesh
 from nestmg import shapes
 """ + _NEAR_TOUCH + """
 pm = PairMesh(Vc, Fc, Vf, Ff)
@@ -201,8 +201,8 @@ def test_cli_cages_exits_0_without_third_party_lines(tmp_path):
 
 
 @pytest.mark.parametrize("args,expect", [
-    (["--epsilon", "0"], "--epsilon must be positive"),
-    (["--epsilon", "-1"], "--epsilon must be positive"),
+    (["--epsilon", "0"], "argument --epsilon: must be > 0"),
+    (["--epsilon", "-1"], "argument --epsilon: must be > 0"),
     (["--out", "afile"], "afile: File exists"),
 ])
 def test_cli_misuse_is_one_line(tmp_path, args, expect):

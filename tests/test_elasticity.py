@@ -38,11 +38,13 @@ def _perturbed_box(rng):
 def iso_hierarchy():
     """A 3-level nested torus hierarchy (iso-surfaces at growing offsets, TetGen): 18k / 3.7k / 1.3k tets."""
     pytest.importorskip("tetgen")
-    from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions, shapes
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("torus", [0.0, 0.1, 0.3], [20, 12, 8])
-    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"),
+                                     cache=False, progress=False)
     assert [r.n_outside for r in reps] == [0, 0]  # every fine node inside a coarse tet: exact interpolation
     return tets, P
 

@@ -54,10 +54,12 @@ def test_nested_kuhn_levels_fractions_and_galerkin(rng):
 def test_cage_embedding_on_a_nested_torus():
     pytest.importorskip("tetgen")
     from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("torus", [0.0, 0.1, 0.3], [20, 12, 8])
-    tets, P, _, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
+    tets, P, _, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None),
+                                  meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     u_f = _fine_solution(tets, P)
     errs = {}
     for model in ("filled", "fraction", "galerkin"):

@@ -59,6 +59,20 @@ def test_solvers_imports_no_cage_or_pipeline_code():
     assert out.strip() == "[]", out
 
 
+def test_nestmg_imports_only_public_cagegen_names():
+    """nestmg reaches cagegen through public modules and names only (no ``cagegen._geometry``, no
+    ``from cagegen.x import _private``): what it needs is exported (``cagegen.bbox_diagonal``, ...)."""
+    private = re.compile(r"\bcagegen(\.\w+)*\._\w+|from\s+cagegen[\w.]*\s+import\s+\(?\s*_\w+"
+                         r"|from\s+cagegen[\w.]*\s+import\s+[^\n]*,\s*_\w+")
+    offenders = [f"{p.name}: {m.group(0)}" for p in (ROOT / "nestmg").rglob("*.py")
+                 for m in private.finditer(p.read_text())]
+    assert not offenders, offenders
+    assert private.search("from cagegen._geometry import bbox_diagonal")
+    assert private.search("from cagegen.nested.backend import push_out, _envelope_target")
+    for name in ("as_mesh_arrays", "bbox_diagonal", "in_temp_dir"):
+        assert name in cagegen.__all__ and getattr(cagegen, name).__doc__
+
+
 def test_solver_errors_derive_from_the_root():
     classes = _public_exceptions(solvers)
     assert solvers.SolverError in classes and solvers.errors.DivergenceError in classes
@@ -79,10 +93,16 @@ def test_nestmg_errors_derive_from_the_root():
 def test_build_hierarchy_input_errors_are_nestmg_errors():
     """Bad arguments raise NestmgInputError (a NestmgError and a ValueError) before any work."""
     V, F = shapes.sphere(res=6)
-    for kwargs, match in (({"levels": 1}, "levels must be >= 2"), ({"fine_level": "coarse"}, "fine_level"),
-                          ({"same_domain_levels": 5}, "same_domain_levels")):
+    for call, match in ((lambda: nestmg.build_hierarchy(V, F, 1), "levels must be >= 2"),
+                        (lambda: nestmg.SizingOptions(fine_level="coarse"),
+                         "SizingOptions.fine_level: must be one"),
+                        (lambda: nestmg.build_hierarchy(V, F, 3,
+                                                        sizing=nestmg.SizingOptions(same_domain_levels=5)),
+                         "same_domain_levels"),
+                        (lambda: nestmg.build_hierarchy(V, F, 3, sizing={"max_tets": 5}), "sizing must be a"),
+                        (lambda: nestmg.SolverOptions(tol=float("nan")), r"SolverOptions.tol: must be > 0")):
         with pytest.raises(nestmg.NestmgInputError, match=match) as ei:
-            nestmg.build_hierarchy(V, F, **{"levels": 3, **kwargs})
+            call()
         assert isinstance(ei.value, ValueError) and isinstance(ei.value, nestmg.NestmgError)
     with pytest.raises(nestmg.NestmgInputError, match="unknown problem"):
         nestmg.setup_problem([(V, np.zeros((0, 4), dtype=np.int64))], [], "heat")

@@ -230,13 +230,16 @@ def test_build_cages_certified_or_documented_error(case, repair, method):
 def test_build_hierarchy_certified_or_documented_error(case, repair):
     """Through the whole pipeline (cages -> TetGen layers -> prolongations)."""
     pytest.importorskip("tetgen")
-    from nestmg import build_hierarchy
+    from cagegen import CageOptions
+    from nestmg import MeshingOptions, SizingOptions, build_hierarchy
 
     shape, kind, V, F = case
     expect = _expectation(kind, V, repair)
     try:
-        h = build_hierarchy(V, F, levels=3, method="fuzz-hull", face_counts=[60, 24], mesher="tetgen",
-                            cache=False, progress=False, cage_opts={"repair": repair})
+        h = build_hierarchy(V, F, 3, "fuzz-hull", sizing=SizingOptions(face_counts=[60, 24]),
+                            meshing=MeshingOptions(mesher="tetgen"), cages=CageOptions(repair=repair),
+                            cache=False,
+                            progress=False)
     except NestmgError as exc:
         event(f"{type(exc).__name__}")
         assert expect != "pass", f"{shape}/{kind} (repair={repair}) should have been accepted: {exc}"
@@ -414,7 +417,7 @@ for bad in (np.zeros((0, 3), int), np.where(F == 0, 999, F)):
         tetrahedralize(V, bad, mesher="tetwild")
     except MeshInputError as exc:
         print("refused:", exc)
-Vt, T = tetrahedralize(V * 1e-9, F, mesher="tetwild", edge_length_fac=0.2)
+Vt, T = tetrahedralize(V * 1e-9, F, mesher="tetwild", edge_length=0.2)
 print("tiny:", len(T), float(np.ptp(Vt[:, 0])))
 """
 

@@ -57,10 +57,12 @@ def test_curved_cage_of_a_torus():
     """A marching-cubes cage around a torus, its interior meshed by TetGen (boundary on the cage)."""
     pytest.importorskip("tetgen")
     from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("torus", [0.0, 0.12], [20, 8])
-    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(coarsening=None),
+                                  meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     (cV, cF), pts = S[-1], S[0][0]
     hc = harmonic_coordinates(cV, cF, pts, tets[-1], refine=1)
     assert hc.info["n_outside"] == 0 and hc.W.shape == (len(pts), len(cV))

@@ -12,7 +12,7 @@ import pytest
 
 from cagegen.errors import LevelsError, MeshInputError
 from cagegen.sizes import MIN_FACES, default_face_counts, fitting_levels
-from nestmg import build_hierarchy, hierarchy_from_tets, shapes, tetrahedralize
+from nestmg import SizingOptions, build_hierarchy, hierarchy_from_tets, shapes, tetrahedralize
 from nestmg.sizing import plan_hierarchy, plan_levels
 from nestmg.usermesh import boundary_surface
 
@@ -45,7 +45,7 @@ def small_sphere():
 @pytest.fixture(scope="module")
 def small_tets():
     """A TetWild tet mesh of a coarse procedural sphere: 780 boundary faces (the 'user's Medit mesh')."""
-    V, T = tetrahedralize(*shapes.sphere(res=10), edge_length_fac=0.12)
+    V, T = tetrahedralize(*shapes.sphere(res=10), edge_length=0.12)
     nb = len(boundary_surface(V, T)[1])
     assert 4 * MIN_FACES <= nb < 16 * MIN_FACES, nb
     return V, T, nb
@@ -92,7 +92,8 @@ def test_too_small_input_is_audited_first_then_refused():
     with pytest.raises(MeshInputError):  # a broken small input is named as broken, not as too small
         build_cage_surfaces(V, F[:-1], 3, cache=False, progress=False)
     # an explicit small cage is the user's choice
-    layers, info = build_cage_surfaces(V, F, 2, face_counts=[80], method="decimate", cache=False,
+    layers, info = build_cage_surfaces(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[80]),
+                                       cache=False,
                                        progress=False)
     assert len(layers) == 2 and info["levels"]["face_counts"] == [80]
 
@@ -101,7 +102,8 @@ def test_impossible_face_counts_fail_in_milliseconds_naming_the_option(small_sph
     V, F = small_sphere
     t = time.perf_counter()
     with pytest.raises(LevelsError, match=r"^--face-counts 5000 100 cannot be met on an input of 776 faces"):
-        build_hierarchy(V, F, levels=3, face_counts=[5000, 100], cache=False, progress=False)
+        build_hierarchy(V, F, levels=3, sizing=SizingOptions(face_counts=[5000, 100]), cache=False,
+                        progress=False)
     with pytest.raises(LevelsError, match=r"--face-counts 300 100 gives 2 cage face counts, but --levels 2"):
         plan_levels(776, 2, face_counts=[300, 100])
     with pytest.raises(LevelsError, match=r"--face-counts 100 300 .*face_counts\[1\] = 300 >= 100"):
@@ -128,7 +130,7 @@ def test_small_surface_with_four_levels_gets_three_and_the_line(small_sphere, st
     note = f"levels: 3 of the 4 asked fit {len(F)} faces at ratio 4 (smallest cage >= 100 faces)"
     assert sum(note in line for line in stage_lines) == 1, stage_lines
     assert h.options["levels_requested"] == 4 and h.options["levels"] == 3
-    assert h.options["sizing"]["levels"]["note"] == note
+    assert h.options["plan"]["levels"]["note"] == note
     json.dumps(h.to_dict())
 
 
@@ -136,7 +138,8 @@ def test_tet_mesh_with_few_boundary_faces(small_tets, stage_lines):
     V, T, nb = small_tets
     t = time.perf_counter()
     with pytest.raises(LevelsError, match="--face-counts 2000 cannot be met"):
-        hierarchy_from_tets(V, T, levels=2, face_counts=[2000], cache=False, progress=False)
+        hierarchy_from_tets(V, T, levels=2, sizing=SizingOptions(face_counts=[2000]), cache=False,
+                            progress=False)
     assert time.perf_counter() - t < 1.0
     H = hierarchy_from_tets(V, T, levels=3, cache=False, progress=False)
     assert H.levels == 2 and H.certified and np.array_equal(H.tets[0][1], T)

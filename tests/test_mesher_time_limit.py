@@ -25,22 +25,22 @@ def test_a_mesher_past_its_limit_is_stopped_with_a_clear_error(mesher):
     h = 0.006 if mesher == "tetgen" else 0.01
     t = time.perf_counter()
     with pytest.raises(TetMeshTimeoutError) as exc:
-        tetrahedralize(V, F, mesher=mesher, edge_length_fac=h, time_limit=0.2)
+        tetrahedralize(V, F, mesher=mesher, edge_length=h, time_limit=0.2)
     elapsed = time.perf_counter() - t
     assert elapsed < 10.0, elapsed  # killed, not waited for
     msg = str(exc.value)
     assert mesher in msg and TIME_LIMIT_ENV in msg and "time_limit" in msg
     assert isinstance(exc.value, TetMeshError)
     # the killed worker is replaced: the next call meshes normally
-    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length_fac=0.08, time_limit=120)
+    Vt, T = tetrahedralize(V, F, mesher=mesher, edge_length=0.08, time_limit=120)
     assert len(T) > 100 and np.isfinite(Vt).all()
 
 
 def test_in_process_and_worker_give_the_same_tetgen_mesh():
     pytest.importorskip("tetgen")
     V, F = shapes.sphere(12)
-    a = tetrahedralize(V, F, mesher="tetgen", edge_length_fac=0.1, time_limit=None)
-    b = tetrahedralize(V, F, mesher="tetgen", edge_length_fac=0.1, time_limit=60)
+    a = tetrahedralize(V, F, mesher="tetgen", edge_length=0.1, time_limit=None)
+    b = tetrahedralize(V, F, mesher="tetgen", edge_length=0.1, time_limit=60)
     np.testing.assert_array_equal(a[1], b[1])
     np.testing.assert_array_equal(a[0], b[0])
 

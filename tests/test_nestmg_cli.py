@@ -73,7 +73,7 @@ def test_cli_cage_time_budget_refuses_at_once(tmp_path, capsys):
     rc = main(["cages", "shape:torus", "--method", "sdf", "--cage-time-budget", "1", "--out", str(tmp_path), "--quiet"])
     assert rc == 2 and time.perf_counter() - t < 5.0
     err = capsys.readouterr().err
-    assert "exceeds time_budget=1 s" in err and "--cage-time-budget" in err
+    assert "exceeds cage_time_budget=1 s" in err and "--cage-time-budget" in err
     assert not (tmp_path / "layer_1.obj").exists()
     rc = main(["cages", "shape:torus", "--method", "nested", "--cage-time-budget", "1", "--out", str(tmp_path),
                "--quiet"])

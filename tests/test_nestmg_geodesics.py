@@ -23,7 +23,7 @@ def ball():
     from nestmg.tetmesh import tetrahedralize
 
     V, F = shapes.sphere(20)
-    return tetrahedralize(V, F, mesher="tetgen", edge_length=0.14)
+    return tetrahedralize(V, F, mesher="tetgen", edge_length_abs=0.14)
 
 
 def test_gradient_operator_exact_on_linear_functions(ball):

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from nestmg import shapes
+from nestmg import MeshingOptions, SizingOptions, shapes
 from nestmg.hierarchy import build_hierarchy
 
 
@@ -16,8 +16,8 @@ def test_same_domain_levels(sphere_surface):
     pytest.importorskip("tetgen")
     V, F = sphere_surface
     V0, F0 = V.copy(), F.copy()
-    h = build_hierarchy(V, F, 3, method="decimate", mesher="tetgen", edge_length_fac=0.03,
-                        same_domain_levels=1, cache=False, progress=False)
+    h = build_hierarchy(V, F, 3, "decimate", sizing=SizingOptions(edge_length=0.03, same_domain_levels=1),
+                        meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     np.testing.assert_array_equal(V, V0)
     np.testing.assert_array_equal(F, F0)
     assert h.levels == 3 and len(h.P) == 2
@@ -33,7 +33,7 @@ def test_same_domain_levels(sphere_surface):
     a = np.array([0.7, -0.2, 1.3])
     Vf, Vc = h.tets[0][0], h.tets[1][0]
     assert np.abs(h.P[0] @ (Vc @ a) - Vf @ a).max() < 1e-8
-    assert h.options["same_domain_levels"] == 1
+    assert h.options["sizing"]["same_domain_levels"] == 1
     # the cage pair itself is not nested (decimation): extrapolated nodes only on the coarse level
     assert h.n_outside[1] > 0
 
@@ -42,4 +42,39 @@ def test_same_domain_levels(sphere_surface):
 def test_same_domain_levels_validated(sphere_surface, bad):
     V, F = sphere_surface
     with pytest.raises(ValueError, match="same_domain_levels"):
-        build_hierarchy(V, F, 3, method="decimate", mesher="tetgen", same_domain_levels=bad, cache=False)
+        build_hierarchy(V, F, 3, "decimate", sizing=SizingOptions(same_domain_levels=bad),
+                        meshing=MeshingOptions(mesher="tetgen"), cache=False)
+
+
+def test_cage_surfaces_take_the_callers_audit(sphere_surface, monkeypatch):
+    """build_cage_surfaces hands a passed audit of an already-normalised input to build_cages (not audited
+    again); an input in other coordinates is audited (its normalised copy is other arrays)."""
+    import cagegen
+    import cagegen.build
+    from nestmg.hierarchy import _normalize, build_cage_surfaces
+
+    V, F = sphere_surface
+    Vn = _normalize(np.ascontiguousarray(V, dtype=np.float64))[0]
+    _, _, audit = cagegen.check_mesh(Vn, F, return_audit=True)
+    real, calls = cagegen.build.check_mesh, []
+    monkeypatch.setattr(cagegen.build, "check_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    kw = {"sizing": SizingOptions(face_counts=[len(F) // 4]), "cache": False, "progress": False}
+    S, info = build_cage_surfaces(Vn, F, 2, "decimate", audit=audit, **kw)
+    assert not calls and info["audit"] == audit.to_dict() and len(S[1][1]) <= len(F) // 4
+    S2, _ = build_cage_surfaces(3.0 * Vn + 1.0, F, 2, "decimate", audit=audit, **kw)
+    assert calls == [1] and np.allclose(S2[1][0], 3.0 * S[1][0] + 1.0)
+
+
+def test_one_bounding_box_normalisation():
+    """nestmg's normalisations are cagegen.normalize, bit for bit: centred box, unit diagonal."""
+    import cagegen
+    from nestmg.hierarchy import _normalize
+    from nestmg.io import normalize
+
+    V = np.random.default_rng(3).normal(size=(200, 3)) * [3.0, 0.5, 1.0] + [10.0, -4.0, 0.25]
+    Vc, c, s = cagegen.normalize(V)
+    for Vn, cn, sn in (normalize(V), _normalize(V)):
+        assert np.array_equal(Vn, Vc) and np.array_equal(cn, c) and sn == s
+    assert np.allclose(Vc.max(0) + Vc.min(0), 0.0, atol=1e-15)
+    assert np.linalg.norm(Vc.max(0) - Vc.min(0)) == pytest.approx(1.0, abs=1e-15)
+    assert np.allclose(Vc * s + c, V, rtol=0, atol=1e-13)

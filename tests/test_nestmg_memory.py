@@ -25,7 +25,7 @@ def test_estimate_bounds_tetgen_count(ball):
     V, F = ball
     for h in (0.06, 0.04):
         n_est = estimate_tets(V, F, h)
-        _, T = tetrahedralize(V, F, mesher="tetgen", edge_length=h)
+        _, T = tetrahedralize(V, F, mesher="tetgen", edge_length_abs=h)
         assert len(T) <= n_est <= 3 * len(T), (h, len(T), n_est)
     # the count scales like h^-3
     assert estimate_tets(V, F, 0.01) == pytest.approx(8 * estimate_tets(V, F, 0.02), rel=0.01)
@@ -49,14 +49,14 @@ def test_refused_before_meshing(ball, monkeypatch):
 
 
 def test_pipeline_and_cli_refuse_with_artificial_limit(monkeypatch, capsys, tmp_path):
-    from nestmg import build_hierarchy, shapes
+    from nestmg import SizingOptions, build_hierarchy, shapes
     from nestmg.cli import main
 
     V, F = shapes.sphere(res=16)
     monkeypatch.setenv("NESTMG_MEMORY_LIMIT", "2M")
     t0 = time.perf_counter()
     with pytest.raises(TetMeshMemoryError, match=r"only 2\.0 MB are available \(limit: \$NESTMG_MEMORY_LIMIT\)"):
-        build_hierarchy(V, F, levels=2, method="decimate", face_counts=[100], mesher="tetwild", cache=False,
+        build_hierarchy(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[100]), cache=False,
                         progress=False)
     assert time.perf_counter() - t0 < 5.0  # refused up front, TetWild never ran
     rc = main(["solve", "shape:sphere", "--method", "decimate", "--levels", "2", "--no-cache", "--quiet",

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from nestmg import SolverOptions
 from nestmg.problems import setup_problem
 from nestmg.run import solve_on_hierarchy
 
@@ -53,7 +54,7 @@ def test_dirichlet_vcycle_factor_small_and_flat(torus_iso_tets):
 def test_neumann_and_diffusion_converge(torus_iso_tets, coarse):
     _, tets, P, _ = torus_iso_tets
     for problem in ("poisson-neumann", "diffusion-neumann"):
-        r = solve_on_hierarchy(tets, P, problem, coarse=coarse, maxiter=100, cost=False)
+        r = solve_on_hierarchy(tets, P, problem, SolverOptions(coarse=coarse, maxiter=100), cost=False)
         assert r["converged"] and not r["diverged"], (problem, coarse, r["message"])
         assert r["factor"] < 0.8, (problem, coarse, r["factor"])
 
@@ -86,7 +87,7 @@ def test_cycle_cost_reported(torus_iso_tets):
 def _mg(tets, P, problem, coarse="galerkin"):
 
     pr = setup_problem(tets, P, problem, coarse=coarse)
-    return pr, pr.multigrid(coarse_scaling=None)
+    return pr, pr.multigrid(SolverOptions(coarse_scaling=None))
 
 
 @pytest.mark.parametrize("problem, coarse", [("poisson-dirichlet", "galerkin"), ("poisson-neumann", "galerkin"),
@@ -151,17 +152,17 @@ def test_fast_preset_on_pure_neumann_uses_boundary_layer_sweeps(torus_iso_tets):
 
     _, tets, P, _ = torus_iso_tets
     pr = setup_problem(tets, P, "poisson-neumann")
-    fast = pr.multigrid(smoothing="fast")
+    fast = pr.multigrid(SolverOptions(smoothing="fast"))
     L0, L1 = fast.levels[0], fast.levels[1]
     assert L0.presmoother.params["local_sweep"] == "forward" and L0.postsmoother.params["local_sweep"] == "backward"
     assert L0.presmoother.params["local_nodes"] == len(pr.local_nodes) and L0.presmoother.params["iterations"] == 1
     assert "local_nodes" not in L1.presmoother.params and L1.presmoother.params["iterations"] == 2
     assert fast.symmetric_cycle
-    plain = pr.multigrid(smoothing="fast", presmoother=FAST_SMOOTHERS, local=False)
+    plain = pr.multigrid(SolverOptions(smoothing="fast", local=False), presmoother=FAST_SMOOTHERS)
     _, i_fast = fast.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
     _, i_plain = plain.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
     assert i_fast["converged"] and i_plain["converged"]
     assert i_fast["iterations"] <= i_plain["iterations"] - 3, (i_fast["iterations"], i_plain["iterations"])
     # Dirichlet keeps the textbook cycle (no local nodes)
     prd = setup_problem(tets, P, "poisson-dirichlet")
-    assert "local_nodes" not in prd.multigrid(smoothing="fast").levels[0].presmoother.params
+    assert "local_nodes" not in prd.multigrid(SolverOptions(smoothing="fast")).levels[0].presmoother.params

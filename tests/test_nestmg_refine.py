@@ -6,7 +6,7 @@ import igl
 import numpy as np
 import pytest
 
-from nestmg import shapes
+from nestmg import SolverOptions, shapes
 from nestmg.refine import refine_tets
 from nestmg.tetmesh import tet_quality, tet_volumes, tetrahedralize
 from solvers.fem import boundary_faces
@@ -15,7 +15,7 @@ from solvers.fem import boundary_faces
 @pytest.fixture(scope="module")
 def torus_tets():
     V, F = shapes.torus(res=16)
-    return tetrahedralize(V, F, edge_length=0.15)
+    return tetrahedralize(V, F, edge_length_abs=0.15)
 
 
 def test_refinement_is_exactly_nested(torus_tets):
@@ -63,9 +63,9 @@ def test_default_hierarchy_refines_and_converges():
     ratio = len(h.tets[1][1]) / len(h.tets[2][1])
     assert ratio > 3.0  # the cage level is coarser by a real factor (8 asked; small meshes keep more)
     tets = h.tets_in("normalized")
-    res = {p: solve_on_hierarchy(tets, h.P, p, accel=None, cost=False)
+    res = {p: solve_on_hierarchy(tets, h.P, p, cost=False)
            for p in ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")}
-    plain = {p: solve_on_hierarchy(tets, h.P, p, accel=None, cost=False, local=False, coarse_nu=1)
+    plain = {p: solve_on_hierarchy(tets, h.P, p, SolverOptions(local=False, coarse_nu=1), cost=False)
              for p in ("poisson-neumann", "diffusion-neumann")}
     # default cycle (boundary-layer sweeps + 2 coarse sweeps), measured over two TetWild runs:
     # 0.094-0.109 / 0.130-0.165 / 0.100-0.126; the plain V(1,1): 0.124-0.140 / 0.244-0.324 / 0.212-0.272
@@ -74,5 +74,5 @@ def test_default_hierarchy_refines_and_converges():
     assert res["diffusion-neumann"]["factor"] <= 0.2
     for p in plain:  # the local sweeps are what removes the Neumann boundary error
         assert res[p]["factor"] <= 0.75 * plain[p]["factor"], (p, res[p]["factor"], plain[p]["factor"])
-    pcg = solve_on_hierarchy(tets, h.P, "poisson-neumann", accel="cg", cost=False)
+    pcg = solve_on_hierarchy(tets, h.P, "poisson-neumann", SolverOptions(accel="cg"), cost=False)
     assert pcg["converged"] and pcg["iterations"] <= 9

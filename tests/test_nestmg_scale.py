@@ -11,7 +11,7 @@ import igl
 import numpy as np
 import pytest
 
-from nestmg import shapes
+from nestmg import SizingOptions, shapes
 from nestmg.sizing import (
     SizingError,
     edge_length_for_tets,
@@ -48,7 +48,7 @@ def test_plan_follows_budget(ball):
     # a tighter cap gives a coarser mesh; a time budget can only make it coarser still
     p2 = plan_hierarchy(V, F, 3, max_tets=5_000)
     assert p2.rule == "max_tets" and p2.edge_length > p.edge_length
-    p3 = plan_hierarchy(V, F, 3, max_tets=5_000, time_budget=1e-3 + 1e-3 * len(F))
+    p3 = plan_hierarchy(V, F, 3, max_tets=5_000, mesh_time_budget=1e-3 + 1e-3 * len(F))
     assert p3.edge_length >= p2.edge_length
     # the user's explicit edge wins, unless it breaks an explicit cap: then the message names both options
     assert plan_hierarchy(V, F, 2, edge_length=0.05).rule == "user"
@@ -70,9 +70,11 @@ def test_impossible_request_refused_before_any_cage(ball, monkeypatch, capsys, t
     V, F = ball
     t0 = time.perf_counter()
     with pytest.raises(TetMeshMemoryError, match="--edge-length"):
-        build_hierarchy(V, F, levels=3, edge_length_fac=1e-3, cache=False, progress=False)  # ~1e9 tets
+        build_hierarchy(V, F, levels=3, sizing=SizingOptions(edge_length=1e-3), cache=False,
+                        progress=False)  # ~1e9 tets
     with pytest.raises(SizingError, match="--max-tets"):
-        build_hierarchy(V, F, levels=3, edge_length_fac=0.01, max_tets=1000, cache=False, progress=False)
+        build_hierarchy(V, F, levels=3, sizing=SizingOptions(edge_length=0.01, max_tets=1000), cache=False,
+                        progress=False)
     assert time.perf_counter() - t0 < 2.0
     rc = main(["solve", "shape:sphere", "--edge-length", "0.0005", "--no-cache", "--quiet",
                "--json", str(tmp_path / "r.json")])
@@ -119,8 +121,9 @@ def test_hierarchy_gives_both_frames():
 
     V, F = shapes.sphere(res=12)
     Vu = 50.0 * V + 3.0
-    h = build_hierarchy(Vu, F, levels=2, method="decimate", face_counts=[100], cache=False, progress=False,
-                        max_tets=4000)
+    h = build_hierarchy(Vu, F, 2, "decimate", sizing=SizingOptions(face_counts=[100], max_tets=4000),
+                        cache=False,
+                        progress=False)
     assert h.surfaces[0][0] is Vu or np.array_equal(h.surfaces[0][0], Vu)
     Vt, _ = h.tets[0]
     # tets in the user's frame enclose the user's surface (TetWild's boundary within epsilon of it)
@@ -129,7 +132,7 @@ def test_hierarchy_gives_both_frames():
     assert np.linalg.norm(Vn.max(0) - Vn.min(0)) == pytest.approx(1.0, abs=5e-3)
     assert np.allclose(h.to_user(Vn), Vt)
     assert h.to_dict()["frame"]["scale"] == pytest.approx(np.linalg.norm(Vu.max(0) - Vu.min(0)))
-    assert h.options["sizing"]["expected_tets"][0] <= 4000 * 1.001
+    assert h.options["plan"]["expected_tets"][0] <= 4000 * 1.001
     assert len(h.tets[0][1]) < 3 * 4000  # the cap holds for the real mesh too (TetWild ratio ~1.1)
 
 
@@ -172,8 +175,9 @@ def test_input_much_finer_than_the_tets_is_decimated_first():
     from nestmg import build_hierarchy
 
     V, F = shapes.sphere(res=48)
-    h = build_hierarchy(V, F, levels=2, method="decimate", face_counts=[300], cache=False, progress=False,
-                        max_tets=20000)
+    h = build_hierarchy(V, F, 2, "decimate", sizing=SizingOptions(face_counts=[300], max_tets=20000),
+                        cache=False,
+                        progress=False)
     pre = h.cage_info["predecimation"]
     assert pre["faces_out"] < 0.5 * pre["faces_in"]
     diag = np.linalg.norm(V.max(0) - V.min(0))

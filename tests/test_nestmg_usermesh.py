@@ -35,7 +35,7 @@ def user_mesh(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:  # the session's cache folder (conftest), not the user's
         mp.setenv("NESTMG_CACHE", str(tmp_path_factory.getbasetemp() / "nestmg-cache"))
         Vs, Fs = shapes.sphere(res=16)
-        V, T = tetrahedralize(Vs, Fs, edge_length_fac=0.06)
+        V, T = tetrahedralize(Vs, Fs, edge_length=0.06)
         H = hierarchy_from_tets(V, T, levels=3, progress=False)
     return V, T, H
 
@@ -86,7 +86,7 @@ def test_bad_user_meshes_are_refused(tmp_path):
         hierarchy_from_tets(V, [[0, 1, 2, 9]])
     # two disjoint solids: the boundary has two pieces, named by the audit
     Vs, Fs = shapes.sphere(res=12)
-    V1, T1 = tetrahedralize(Vs, Fs, mesher="tetwild", edge_length_fac=0.2)
+    V1, T1 = tetrahedralize(Vs, Fs, mesher="tetwild", edge_length=0.2)
     V2 = np.vstack([V1, V1 + [3.0, 0, 0]])
     T2 = np.vstack([T1, T1 + len(V1)])
     with pytest.raises(MeshInputError, match="boundary of the tet mesh"):
@@ -197,9 +197,9 @@ import sys
 import numpy as np
 import cagegen.nested.backend as nb
 from cagegen import CageError
-from nestmg import build_hierarchy, shapes
+from nestmg import SizingOptions, build_hierarchy, shapes
 V, F = shapes.sphere(res=12)
-h = build_hierarchy(V, F, levels=2, edge_length_fac=0.15, cache=False, progress=False)
+h = build_hierarchy(V, F, levels=2, sizing=SizingOptions(edge_length=0.15), cache=False, progress=False)
 assert h.certified and h.fallbacks == [], h
 # the default nested backend, forced to fail: its default fallback is the MIT sdf cage, never the GPL
 # lazy one; without a fallback it raises

@@ -23,6 +23,7 @@ import scipy.sparse.linalg as spla
 
 pytest.importorskip("petsc4py", reason="petsc4py not installed: run scripts/install-petsc.sh")
 
+from nestmg import SolverOptions
 from solvers.errors import IncompatibleRHSError, SolverError, SolverInputError
 from solvers.multilevel import ConvergenceWarning, MultigridSolver
 from solvers.petsc import (
@@ -442,14 +443,14 @@ print("OK", info["iterations"], flush=True)
 """
 
 _TORUS_SCRIPT = """
-from nestmg import shapes
+from nestmg import MeshingOptions, SizingOptions, shapes
 from nestmg.hierarchy import build_hierarchy
 from nestmg.problems import setup_problem
 from solvers.petsc import PetscMultigrid
 
 V, F = shapes.torus(16)
-h = build_hierarchy(V, F, 3, method="nested", mesher="tetgen", edge_length_fac=0.05, cache=False,
-                    progress=False, fine_level="refine")
+h = build_hierarchy(V, F, 3, "nested", sizing=SizingOptions(edge_length=0.05, fine_level="refine"),
+                    meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
 p = setup_problem(h.tets, h.P, "poisson-neumann")
 mg = PetscMultigrid(p.A, p.P, nullspace=p.nullspace)
 x, info = mg.solve(p.b)
@@ -546,12 +547,13 @@ def test_destroy_is_idempotent_and_frees_on_collection(dirichlet):
 def sphere_cages():
     """Nested cages of a procedural sphere, TetGen layers: 29k / 3.6k / 0.7k tets, built in ~5 s."""
     pytest.importorskip("tetgen")
-    from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions, shapes
     from nestmg.hierarchy import build_hierarchy
 
     V, F = shapes.sphere(12)
-    return build_hierarchy(V, F, 3, method="nested", mesher="tetgen", edge_length_fac=0.05, cache=False,
-                           progress=False, fine_level="refine")  # TetGen's default is "mesh" (issue 14)
+    return build_hierarchy(V, F, 3, "nested", sizing=SizingOptions(edge_length=0.05, fine_level="refine"),
+                           meshing=MeshingOptions(mesher="tetgen"), cache=False,
+                           progress=False)  # TetGen's default fine level is "mesh" (issue 14)
 
 
 def _cage_problem(h, name):
@@ -566,7 +568,7 @@ def test_cage_hierarchy_one_rank_like_inprocess(sphere_cages, name):
     the same coarsest-level safeguards (in-process coarse solver), setup within 2x (+0.5 s for tiny sizes)."""
     pr = _cage_problem(sphere_cages, name)
     # the plain V(1,1) PCMG runs (the pipeline's default adds boundary-layer and coarse sweeps in-process)
-    ml = pr.multigrid(local=False, presmoother="symmetric_gauss_seidel")
+    ml = pr.multigrid(SolverOptions(local=False), presmoother="symmetric_gauss_seidel")
     x_ref, ref = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
     with PetscMultigrid(pr.A, pr.P, nullspace=pr.nullspace, coarse_solver="auto") as mg:
         x, info = mg.solve(pr.b, tol=1e-8)
@@ -587,7 +589,7 @@ def test_cage_hierarchy_two_ranks(tmp_path, sphere_cages):
         path = tmp_path / f"cage{k}.npz"
         save_operators(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
         paths.append(str(path))
-        refs.append(pr.multigrid(local=False, presmoother="symmetric_gauss_seidel").solve(
+        refs.append(pr.multigrid(SolverOptions(local=False), presmoother="symmetric_gauss_seidel").solve(
             pr.b, tol=1e-8, accel="cg", return_info=True))
     out = tmp_path / "x.npz"
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",

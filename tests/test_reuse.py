@@ -7,16 +7,19 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from nestmg import SolverOptions
+
 
 @pytest.fixture(scope="module")
 def torus3():
     """A small procedurally nested 3-level torus hierarchy (iso-surfaces at growing offsets), TetGen."""
     pytest.importorskip("tetgen")
-    from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions, shapes
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("torus", [0.0, 0.08, 0.2], [24, 14, 10])
-    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", edge_length_fac=0.04, cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(edge_length=0.04, coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     assert [r.n_outside for r in reps] == [0, 0]
     return tets, P
 
@@ -115,7 +118,7 @@ def test_stepper_with_user_matrices_and_both_cycles(torus3):
     for u in (uf, ur):
         assert np.abs(u - ref).max() <= 1e-7 * np.abs(ref).max()
     assert i_r["iterations"] <= i_f["iterations"] <= 30
-    ml = fast.problem.multigrid(smoothing="fast")
+    ml = fast.problem.multigrid(SolverOptions(smoothing="fast"))
     assert ml.levels[0].presmoother.params.get("sweep") == "forward" and "local_nodes" not in ml.levels[0].presmoother.params
     with pytest.raises(ValueError, match="smoothing"):
         diffusion_stepper(tets, P, smoothing="quick")

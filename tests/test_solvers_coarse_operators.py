@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from nestmg import SolverOptions
 from nestmg.problems import setup_problem, volume_fractions
 from solvers.gallery import kuhn_cube_mesh
 
 
 def _run(prob, scaling):
-    ml = prob.multigrid(coarse_scaling=scaling)
+    ml = prob.multigrid(SolverOptions(coarse_scaling=scaling))
     _, info = ml.solve(prob.b, tol=1e-8, maxiter=100, return_info=True)
     _, pcg = ml.solve(prob.b, tol=1e-8, maxiter=100, accel="cg", return_info=True)
     assert info["converged"] and pcg["converged"]

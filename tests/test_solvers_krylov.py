@@ -52,15 +52,16 @@ def test_one_default_maxiter():
     """Every multigrid entry point caps iterations at the same DEFAULT_MAXITER."""
     import inspect
 
+    from nestmg import SolverOptions
     from nestmg.cli import build_parser
     from nestmg.geodesics import multigrid_solve
-    from nestmg.run import solve_on_hierarchy
     from nestmg.timestepping import DiffusionStepper, implicit_diffusion
     from solvers.petsc import PetscMultigrid
 
-    for f in (MultigridSolver.solve, PetscMultigrid.solve, solve_on_hierarchy, multigrid_solve,
-              DiffusionStepper.step, implicit_diffusion):
+    for f in (MultigridSolver.solve, PetscMultigrid.solve, multigrid_solve, DiffusionStepper.step,
+              implicit_diffusion):
         assert inspect.signature(f).parameters["maxiter"].default == DEFAULT_MAXITER, f.__qualname__
+    assert SolverOptions().maxiter == DEFAULT_MAXITER  # solve_on_hierarchy's and the CLI's
     args = build_parser().parse_args(["solve", "shape:torus"])
     assert args.maxiter == DEFAULT_MAXITER
 

@@ -38,7 +38,8 @@ def test_sizing_field_is_fine_on_the_solid_and_coarse_away_from_it():
 def test_graded_mesh_has_the_uniform_meshs_solid():
     V, F = shapes.torus(res=24)
     h = 0.05 * np.linalg.norm(V.max(axis=0) - V.min(axis=0))
-    meshes = {f: tetrahedralize(V, F, edge_length=h, outer_edge_factor=f, time_limit=None) for f in (1.0, 3.0)}
+    meshes = {f: tetrahedralize(V, F, edge_length_abs=h, outer_edge_factor=f, time_limit=None)
+              for f in (1.0, 3.0)}
     vols = {}
     for f, (Vt, T) in meshes.items():
         P = Vt[T]

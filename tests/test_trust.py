@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from nestmg import MeshingOptions, SizingOptions, SolverOptions
 from solvers import DivergenceError, IncompatibleRHSError, MultigridSolver
 from solvers.fem import stiffness_matrix
 
@@ -17,11 +18,12 @@ from solvers.fem import stiffness_matrix
 def ball_hierarchy():
     """A 3-level procedurally nested sphere hierarchy (TetGen), ~5k / 3k / 3k tets."""
     pytest.importorskip("tetgen")
-    from nestmg import shapes
+    from nestmg import MeshingOptions, SizingOptions, shapes
     from nestmg.hierarchy import tet_hierarchy
 
     S = shapes.nested_isosurfaces("sphere", [0.0, 0.15, 0.4], [14, 10, 8])
-    tets, P, reps, _ = tet_hierarchy(S, mesher="tetgen", edge_length_fac=0.08, cache=False, progress=False)
+    tets, P, reps, _ = tet_hierarchy(S, sizing=SizingOptions(edge_length=0.08, coarsening=None),
+                                     meshing=MeshingOptions(mesher="tetgen"), cache=False, progress=False)
     assert [r.n_outside for r in reps] == [0, 0]
     return tets, P
 
@@ -46,7 +48,8 @@ def test_rerun_hits_the_cache_and_is_bitwise_identical(tmp_path, monkeypatch):
     monkeypatch.setenv("NESTMG_CACHE", str(tmp_path / "cache"))
     V, F = shapes.sphere(res=16)
     V0, F0 = V.copy(), F.copy()
-    kw = {"levels": 3, "method": "decimate", "face_counts": [200, 60], "mesher": "tetgen", "progress": False}
+    kw = {"levels": 3, "method": "decimate", "sizing": SizingOptions(face_counts=[200, 60]),
+          "meshing": MeshingOptions(mesher="tetgen"), "progress": False}
     h1 = build_hierarchy(V, F, **kw)
     entries = sorted(p.name for p in (tmp_path / "cache").iterdir())
     assert len(entries) == 2 * 4  # cages + 3 tet layers, .npz + .json each
@@ -72,7 +75,8 @@ def test_rerun_without_cache_is_deterministic(monkeypatch, tmp_path):
     from nestmg import build_hierarchy, shapes
 
     V, F = shapes.sphere(res=16)
-    kw = {"levels": 3, "method": "decimate", "face_counts": [200, 60], "mesher": "tetgen", "progress": False, "cache": False}
+    kw = {"levels": 3, "method": "decimate", "sizing": SizingOptions(face_counts=[200, 60]),
+          "meshing": MeshingOptions(mesher="tetgen"), "progress": False, "cache": False}
     _same_arrays(build_hierarchy(V, F, **kw), build_hierarchy(V, F, **kw))
 
 
@@ -81,18 +85,21 @@ def test_divergence_is_reported_with_cycle_through_nestmg(ball_hierarchy):
     from nestmg.run import solve_on_hierarchy
 
     tets, P = ball_hierarchy
-    ok = solve_on_hierarchy(tets, P, "poisson-dirichlet", coarse="rediscretized", cost=False)
+    red = SolverOptions(coarse="rediscretized")
+    ok = solve_on_hierarchy(tets, P, "poisson-dirichlet", red, cost=False)
     assert ok["converged"] and not ok["diverged"]
     bad = [tets[0], tets[1], (tets[2][0] * 1e-3, tets[2][1])]
     # the energy-optimal scaling of re-discretised corrections (issue 15, default "auto") would absorb
     # the 1000x; without it the divergence must be detected and reported
-    r = solve_on_hierarchy(bad, P, "poisson-dirichlet", coarse="rediscretized", coarse_scaling=None, cost=False)
+    r = solve_on_hierarchy(bad, P, "poisson-dirichlet", SolverOptions(coarse="rediscretized",
+                                                                      coarse_scaling=None),
+                           cost=False)
     assert r["diverged"] and not r["converged"]
     assert 1 <= r["iterations"] <= 5
     assert f"V-cycle {r['iterations']} diverges" in r["message"]
     assert r["residuals"][-1] > 1e5 * r["residuals"][0]
     # ... and with the default energy scaling the same wrongly scaled coarse level is harmless
-    r2 = solve_on_hierarchy(bad, P, "poisson-dirichlet", coarse="rediscretized", cost=False)
+    r2 = solve_on_hierarchy(bad, P, "poisson-dirichlet", red, cost=False)
     assert r2["converged"] and not r2["diverged"]
 
 
@@ -193,7 +200,8 @@ def test_pipeline_rebuilds_an_altered_cage_entry(tmp_path, monkeypatch):
 
     monkeypatch.setenv("NESTMG_CACHE", str(tmp_path))
     V, F = shapes.sphere(res=16)
-    kw = {"levels": 2, "method": "decimate", "face_counts": [60], "mesher": "tetgen", "progress": False}
+    kw = {"levels": 2, "method": "decimate", "sizing": SizingOptions(face_counts=[60]),
+          "meshing": MeshingOptions(mesher="tetgen"), "progress": False}
     h1 = build_hierarchy(V, F, **kw)
     # the cage entry (keyed on the normalised input since issue 14): found by its metadata
     keys = [p.stem for p in tmp_path.glob("*.json") if '"audit"' in p.read_text()]  # cages carry the audit

@@ -55,12 +55,12 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from nestmg.timestepping import diffusion_stepper
 
-    h, _ = load_hierarchy(a.mesh, edge_length_fac=a.edge_length)
+    h, _ = load_hierarchy(a.mesh, edge_length=a.edge_length)
     V0 = h.tets[0][0]
     diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
     st = diffusion_stepper(h.tets, h.P)
     ops = st.family.operators(1.0, 1e-3 * diag**2)
-    doc: dict = {"benchmark": "coarse_factor", "mesh": a.mesh.name, "edge_length_fac": a.edge_length,
+    doc: dict = {"benchmark": "coarse_factor", "mesh": a.mesh.name, "edge_length": a.edge_length,
                  "tets": [len(T) for _, T in h.tets], "environment": environment(),
                  "command": " ".join(["benchmarks/archive/coarse_factor.py"] + (argv if argv is not None else sys.argv[1:])),
                  "levels": []}

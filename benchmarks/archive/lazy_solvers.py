@@ -79,7 +79,7 @@ def mesh_to_nodes(V, F, n_target, h_start, tol, max_tries=6):
     h = h_start
     best = None
     for _ in range(max_tries):
-        Vt, T = tetrahedralize(V, F, mesher="tetgen", edge_length=h)
+        Vt, T = tetrahedralize(V, F, mesher="tetgen", edge_length_abs=h)
         err = len(Vt) / n_target - 1
         if best is None or abs(err) < abs(best[2]):
             best = (Vt, T, err, h)
@@ -108,9 +108,9 @@ def run_mesh(name, path, args, out_dir) -> dict:
     say(f"{name}: cages {label} {t_tight:.1f} s, lazy {t_loose:.1f} s")
 
     t0 = time.perf_counter()
-    fine = tetrahedralize(V, F, mesher="tetgen", edge_length=h0)
+    fine = tetrahedralize(V, F, mesher="tetgen", edge_length_abs=h0)
     say(f"{name}: fine tets {len(fine[1])} / {len(fine[0])} nodes ({time.perf_counter() - t0:.1f} s)")
-    tets_tight = [fine] + [tetrahedralize(*tight[k], mesher="tetgen", edge_length=h0 * 2**k)
+    tets_tight = [fine] + [tetrahedralize(*tight[k], mesher="tetgen", edge_length_abs=h0 * 2**k)
                            for k in range(1, len(tight))]
     tets_loose = [fine]
     for k in range(1, len(loose)):

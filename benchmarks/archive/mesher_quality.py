@@ -43,7 +43,7 @@ def mesh_one(V, F, mesher: str, opts: dict, h: float):
     from nestmg.tetmesh import orient_tets, tetrahedralize
 
     if mesher == "tetwild":
-        return tetrahedralize(V, F, mesher="tetwild", edge_length=h)
+        return tetrahedralize(V, F, mesher="tetwild", edge_length_abs=h)
     import tetgen  # AGPL, opt-in: this benchmark is the explicit request
 
     Vt, T, _, _ = tetgen.TetGen(V, F.astype(np.int32)).tetrahedralize(

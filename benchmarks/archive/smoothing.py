@@ -67,12 +67,12 @@ def error_location(tets, P) -> dict:
 
 
 def run(mesh: str, max_tets: int | None) -> dict:
-    from nestmg import build_hierarchy
+    from nestmg import SizingOptions, build_hierarchy
     from nestmg.io import load_mesh
 
     V, F = load_mesh(mesh)
-    kw = {} if max_tets is None else {"max_tets": max_tets, "time_budget": None}
-    h = build_hierarchy(V, F, levels=3, method="nested", cache=True, progress=False, **kw)
+    sizing = SizingOptions() if max_tets is None else SizingOptions(max_tets=max_tets, mesh_time_budget=None)
+    h = build_hierarchy(V, F, 3, "nested", sizing=sizing, cache=True, progress=False)
     tets = h.tets_in("normalized")
     out = {"mesh": Path(mesh).name, "faces": len(F), "tets": [len(T) for _, T in h.tets],
            "n_outside": h.n_outside, "error_location": error_location(tets, h.P), "problems": {}}

@@ -53,7 +53,7 @@ if cfg.pop("predecimate", False):  # decimate the input to ~the target edge firs
     from nestmg.hierarchy import predecimate
     V, F = predecimate(V, F, h, max_error=0.5 * cfg.get("epsilon", 1e-3))[:2]
 t0 = time.perf_counter()
-Vt, T = tetrahedralize(V, F, mesher="tetwild", edge_length=h, **cfg)
+Vt, T = tetrahedralize(V, F, mesher="tetwild", edge_length_abs=h, **cfg)
 sec = time.perf_counter() - t0
 q = tet_quality(Vt, T)
 B, _ = boundary_faces(T)

@@ -42,7 +42,6 @@ License: gpytoolbox's ``copyleft`` module is GPL-3; this module imports it and i
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 
@@ -69,7 +68,7 @@ except ImportError as _exc:  # pragma: no cover - exercised by a test that hides
         f" [import failed: {_exc}]"
     ) from _exc
 
-__all__ = ["genus", "lazy_backend", "lazy_cage_layer"]
+__all__ = ["genus", "lazy_layer", "lazy_cage_layer"]
 
 #: how many times ``d`` is doubled beyond ``d_max`` when no step of the binary search is accepted
 _MAX_GROW = 3
@@ -343,98 +342,56 @@ def lazy_cage_layer(
     return U, G, info
 
 
-def lazy_backend(
+def lazy_layer(
     V: np.ndarray,
     F: np.ndarray,
-    face_counts,
+    n_faces: int,
     *,
+    unit: float,
+    min_gap: float = 0.0,
     grid_size: int = 50,
     max_iter: int = 10,
     decimation: str = "shortest_edge",
     self_union: bool = True,
-    min_gap: float = 0.0,
-    min_gap_abs: float | None = None,
-    progress: Callable[[str], None] | None = None,
-) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
-    """Cage backend ``"lazy"``: layer ``k+1`` is a lazy cage of layer ``k`` (nested, loose).
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per-layer function of the ``"lazy"`` backend: a lazy cage of ``(V, F)`` (nested, loose).
+
+    :func:`cagegen.build_cages` loops over the layers (registry contract, :mod:`cagegen.registry`).
 
     Parameters
     ----------
     V : (n,3) float array
     F : (m,3) int array
-        The audited input surface (layer 0; not modified).
-    face_counts : sequence of int
-        Target face counts of the cages, finest first.
+        The previous layer (the audited input for the first cage).
+    n_faces : int
+        Target face count.
+    unit : float
+        The input's bounding-box diagonal: ``min_gap`` is relative to it on every layer.
+    min_gap : float
+        Clearance from ``(V, F)`` relative to ``unit`` (the unit of :func:`cagegen.verify_nesting`'s
+        ``min_gap``, which :func:`cagegen.build_cages` passes here): the cage keeps ``min_gap * unit``.
     grid_size, max_iter, decimation, self_union
         See :func:`lazy_cage_layer`.
-    min_gap : float
-        Clearance between consecutive layers relative to the bounding-box diagonal of the input (the
-        unit of :func:`cagegen.verify_nesting`'s ``min_gap``, which :func:`cagegen.build_cages` passes
-        here): every layer keeps ``min_gap * diag(V)`` from the layer inside it.
-    min_gap_abs : float, optional
-        The same clearance in absolute units (overrides ``min_gap``).
-    progress : callable, optional
-        Called with a one-line message per layer (genus changes included).
 
     Returns
     -------
-    layers : list of (U_k, G_k)
-        The cages only, finest first; ``U_k`` (p_k,3) float64, ``G_k`` (q_k,3) int64.
+    U, G : arrays
+        The cage, ``U`` (p,3) float64, ``G`` (q,3) int64.
     info : dict
-        ``method``, ``nested_by_construction`` (True: each layer passed the verifier inside the
-        search), ``genus_changes`` (list of ``{"layer", "from", "to"}``), ``seconds``,
-        ``min_gap_requested`` (``relative``, ``absolute``), and ``layers``:
-        per layer the :func:`lazy_cage_layer` info plus ``layer``, ``hausdorff_relative`` (to the
-        input, over the input's bounding-box diagonal) and ``volume_ratio_to_input``.
-
-    Raises
-    ------
-    cagegen.CageError
-        With ``layer`` set (1 = first cage) when no certified cage was found for a layer.
+        :func:`lazy_cage_layer`'s info plus ``progress`` (the detail of the layer's progress line).
     """
-    import igl
-
-    t0 = time.perf_counter()
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
-    diag0 = bbox_diagonal(V)
-    gap = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag0
+    gap = float(min_gap) * float(unit)
     if not (np.isfinite(gap) and gap >= 0):
-        raise CageOptionError(f"min_gap must be a finite number >= 0, got {min_gap!r} "
-                         f"(min_gap_abs {min_gap_abs!r})")
-    vol0 = _signed_volume(V, F)
-    layers, per_layer, changes = [], [], []
-    Vp, Fp = V, F
-    for k, m in enumerate(face_counts, start=1):
-        try:
-            U, G, li = lazy_cage_layer(Vp, Fp, int(m), gap=gap, grid_size=grid_size, max_iter=max_iter,
-                                       decimation=decimation, self_union=self_union)
-        except CageError as exc:
-            raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
-        li["layer"] = k
-        li["hausdorff_relative"] = float(igl.hausdorff(U, G, V, F)) / diag0
-        li["volume_ratio_to_input"] = _signed_volume(U, G) / vol0
-        if li["genus_changed"]:
-            changes.append({"layer": k, "from": li["genus_fine"], "to": li["genus"]})
-        per_layer.append(li)
-        layers.append((U, G))
-        if progress is not None:
-            g = f", genus {li['genus_fine']} -> {li['genus']}" if li["genus_changed"] else ""
-            c = ""
-            if gap > 0:
-                got = (f"{li['distance'] / diag0:.3g}" if li["distance"] is not None
-                       else f"> {li['distance_lower_bound'] / diag0:.3g}")
-                c = (f", gap {got} >= min_gap {gap / diag0:.3g}"
-                     + (f" (pushed out, {li['pushed']} passes)" if li["pushed"] else ""))
-            progress(f"lazy: layer {k}: {len(G)} faces (target {m}), offset {li['offset_relative']:.3g} of the "
-                     f"diagonal{c}, {li['seconds']:.2f} s{g}")
-        Vp, Fp = U, G
-    info = {
-        "method": "lazy",
-        "nested_by_construction": True,
-        "genus_changes": changes,
-        "min_gap_requested": {"relative": gap / diag0, "absolute": gap},
-        "seconds": time.perf_counter() - t0,
-        "layers": per_layer,
-    }
-    return layers, info
+        raise CageOptionError(f"min_gap must be a finite number >= 0, got {min_gap!r}")
+    U, G, li = lazy_cage_layer(V, F, int(n_faces), gap=gap, grid_size=grid_size, max_iter=max_iter,
+                               decimation=decimation, self_union=self_union)
+    c = ""
+    if gap > 0:
+        got = (f"{li['distance'] / unit:.3g}" if li["distance"] is not None
+               else f"> {li['distance_lower_bound'] / unit:.3g}")
+        pushed = f" (pushed out, {li['pushed']} passes)" if li["pushed"] else ""
+        c = f", gap {got} >= min_gap {gap / unit:.3g}{pushed}"
+    li["progress"] = f"offset {li['offset_relative']:.3g} of the diagonal{c}"
+    return U, G, li

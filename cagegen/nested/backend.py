@@ -27,17 +27,20 @@ from collections.abc import Callable
 import igl
 import numpy as np
 
+from .._geometry import normalize
+from ..collision import PairMesh, min_distance, self_collision_free_step
 from ..decimate import decimate_surface
 from ..envelope import build_envelope
 from ..errors import CageError, CageOptionError
+from ..failures import PairFailure
+from ..fallbacks import FALLBACKS
 from ..split_edges import split_long_edges
 from ..verify import verify_nesting
-from .collision import PairMesh, min_distance, self_collision_free_step
 from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signed_volume
 from .flow import flow_inside
 from .reinflate import reinflate
 
-__all__ = ["nest_pair", "nested_backend", "offset_surface", "push_out"]
+__all__ = ["complete_clearance", "nest_pair", "nested_backend", "offset_surface", "push_out"]
 
 _DEFAULTS = {
     "energy": "volume",
@@ -52,14 +55,6 @@ _DEFAULTS = {
     "final_iters": 60,
     "clearance": "reinflate",
 }
-
-
-class _PairFailure(Exception):
-    """A pair (flow, re-inflation or certification) failed; ``stage`` says where."""
-
-    def __init__(self, stage: str, reason: str, info: dict):
-        super().__init__(f"{stage}: {reason}")
-        self.stage, self.reason, self.info = stage, reason, info
 
 
 class _Reporter:
@@ -286,7 +281,7 @@ def nest_pair(
 
     Raises
     ------
-    _PairFailure
+    PairFailure
         The flow or the re-inflation failed (internal; the backend recovers or raises CageError).
     """
     rep = reporter or _Reporter(False)
@@ -335,7 +330,7 @@ def nest_pair(
     info["seconds"]["flow"] = time.perf_counter() - t
     info["flow"] = fl.to_dict()
     if not fl.success:
-        raise _PairFailure("flow", fl.reason, info)
+        raise PairFailure("flow", fl.reason, info)
 
     t = time.perf_counter()
     upd = rep.phase("re-inflation", None)
@@ -353,7 +348,7 @@ def nest_pair(
     info["seconds"]["final_energy"] = rr.stats.get("t_final", 0.0)
     info["reinflate"] = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in rr.stats.items()}
     if not rr.success:
-        raise _PairFailure("reinflate", rr.reason, info)
+        raise PairFailure("reinflate", rr.reason, info)
     # the re-inflation ends with the fine surface exactly at its rest pose
     info["reinflate"]["fine_at_rest"] = bool(np.array_equal(rr.fine, target))
     return rr.cage, info
@@ -463,13 +458,35 @@ def _envelope_target(Vf, Ff, n_faces, offset):
                   "seconds": time.perf_counter() - t}
 
 
-def _complete_clearance(C, G, Vf, Ff, gap):
+def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,
+                       gap: float) -> tuple[np.ndarray, float, dict | None]:
     """The re-inflated cage, pushed out (:func:`push_out`) where it is closer than ``gap / GAP_AIM``.
 
     The re-inflation keeps the cage outside the fine surface's offset (:func:`offset_surface`), which
     is ``gap`` from it on face planes but not at spikes, where the offset factor is clamped, nor in
     sharp creases, where the offset crosses the surface: decimated-knight.off (0.00184 for 0.0025)
-    and 42400-IDGH.stl (0.00096) fell short there. Returns the cage, its distance and a record.
+    and 42400-IDGH.stl (0.00096) fell short there. Used by nested's recovery and skeleton's clearance.
+
+    Parameters
+    ----------
+    C : (n,3) float array
+        Cage vertices (outside the fine surface).
+    G : (m,3) int array
+        Cage faces.
+    Vf : (k,3) float array
+    Ff : (l,3) int array
+        The fine surface the cage must clear.
+    gap : float
+        Wanted clearance, in the units of ``C``.
+
+    Returns
+    -------
+    C : (n,3) float array
+        The cage, pushed out where needed (unchanged when already clear or when ``push_out`` is blocked).
+    distance : float
+        Its smallest distance to the fine surface.
+    record : dict or None
+        ``push_out``'s record (None: nothing to do).
     """
     d = min_distance(C, G, Vf, Ff)
     if d >= gap / GAP_AIM:
@@ -518,13 +535,13 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             flow_opts["flow_max_iter"] = min(flow_opts["flow_max_iter"], quick)
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
-        except _PairFailure as exc:
+        except PairFailure as exc:
             failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
                              "stage": exc.stage, "reason": exc.reason})
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue
-        C, d, pinfo["clearance_completion"] = _complete_clearance(C, G, Vf, Ff, gap)
+        C, d, pinfo["clearance_completion"] = complete_clearance(C, G, Vf, Ff, gap)
         if d < gap / GAP_AIM:
             failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
                              "stage": "clearance", "reason": f"gap {d:.3g} < {gap / GAP_AIM:.3g}"})
@@ -609,7 +626,8 @@ def nested_backend(
         Verify every pair with :func:`cagegen.verify_nesting` (the layer is recomputed through the
         recovery path, or :class:`CageError` is raised, when it fails).
     fallback : str or None
-        Last resort, by name (:data:`FALLBACKS`), when the flow fails and intermediate layers do not
+        Last resort, by name (:data:`cagegen.fallbacks.FALLBACKS`), when the flow fails and intermediate
+        layers do not
         help either; the layer it builds is certified like every other, recorded in ``info["recovery"]``
         and in the layer's ``fallback`` entry (``Hierarchy.fallbacks`` reports it). ``"sdf"`` (default):
         :func:`cagegen.sdf.sdf_cage_layer` around the previous layer (tight, exact face count, MIT;
@@ -660,9 +678,8 @@ def nested_backend(
 
     # work at unit bounding-box diagonal (the paper's relative step sizes)
     lo, hi = V.min(0), V.max(0)
-    center = 0.5 * (lo + hi)
-    diag = float(np.linalg.norm(hi - lo))
-    Vn = (V - center) / diag
+    diag = float(np.linalg.norm(hi - lo))  # this backend's own measure (its cages depend on its bits)
+    Vn, center, _ = normalize(V, diag)
     gap_abs = float(min_gap_abs) if min_gap_abs is not None else float(min_gap) * diag
     gap_n = gap_abs / diag
     # aim a little beyond the requested clearance (the offset is measured on face planes)
@@ -741,7 +758,7 @@ def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):
     U, G, dinfo = _decimate(Vsrc, Fsrc, m, params.get("decimator", "qslim"))
     try:
         C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{kk: params[kk] for kk in _DEFAULTS})
-    except _PairFailure as exc:
+    except PairFailure as exc:
         log.append({"layer": k, "action": "decimation of the input failed; decimating the previous layer",
                     "stage": exc.stage, "reason": exc.reason})
         return _build_layer(Vf, Ff, m, params, gap, rep, 0, 2, log, k)
@@ -758,41 +775,6 @@ def _fallback(Vf, Ff, m, exc, fallback, rep, log, k, gap):
     if fallback is None:
         raise exc
     return FALLBACKS[fallback](Vf, Ff, m, exc, rep, log, k, gap)
-
-
-def _lazy_fallback(Vf, Ff, m, exc, rep, log, k, gap):
-    """Fallback ``"lazy"``: a lazy cage (GPL ``gpytoolbox.copyleft``, loaded only here)."""
-    try:
-        from ..copyleft.lazy import lazy_cage_layer
-    except ImportError as imp:  # BackendUnavailableError: the GPL extra is not installed
-        raise CageError(f"{exc} (lazy fallback unavailable: {imp})", layer=k, reason=exc.reason) from exc
-    rep.say(f"layer {k}: flow and intermediate layers failed; falling back to a lazy cage")
-    try:
-        C, G, info = lazy_cage_layer(Vf, Ff, m)
-    except CageError as exc2:
-        raise CageError(f"{exc}; the lazy fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
-    pinfo = None
-    if gap > 0:  # a lazy cage is loose, but may come closer than the clearance somewhere
-        C2, pinfo = push_out(C, G, Vf, Ff, gap)
-        if C2 is None:
-            raise CageError(f"{exc}; the lazy fallback's cage could not keep the clearance {gap:.3g}: "
-                            f"{pinfo['reason']}", layer=k, reason=exc.reason)
-        C = C2
-    log.append({"layer": k, "action": f"fall back to a lazy cage of {len(G)} faces (cagegen.copyleft.lazy)",
-                "stage": "fallback", "reason": str(exc)})
-    return C, G, {"fallback": "lazy", "lazy": info, "clearance": pinfo, "seconds": {"lazy": info["seconds"]}}
-
-
-def _sdf_fallback(Vf, Ff, m, exc, rep, log, k, gap):
-    """Fallback ``"sdf"``: an sdf cage keeping ``gap`` (:func:`cagegen.sdf.backend.nested_fallback`; MIT)."""
-    from ..sdf.backend import nested_fallback
-
-    return nested_fallback(Vf, Ff, m, exc, rep, log, k, gap=gap)
-
-
-#: Fallback name -> ``f(Vf, Ff, m, exc, rep, log, k, gap) -> (C, G, layer_info)`` (unit-diagonal coordinates;
-#: ``layer_info["fallback"]`` names it). ``nested_backend``'s default is ``"sdf"`` (MIT); ``"lazy"`` (GPL) only by name.
-FALLBACKS = {"lazy": _lazy_fallback, "sdf": _sdf_fallback}
 
 
 def _diag(V: np.ndarray) -> float:

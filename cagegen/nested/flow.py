@@ -22,7 +22,7 @@ import igl
 import numpy as np
 
 from .._geometry import cross_intersection_pairs
-from .collision import PairMesh, self_collision_free_step
+from ..collision import PairMesh, self_collision_free_step
 from .quadrature import quadrature_matrix, triangle_areas
 
 __all__ = ["FlowResult", "flow_inside"]

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .collision import PairMesh
+from ..collision import PairMesh
 from .energies import make_energy, signed_volume
 
 _log = logging.getLogger(__name__)

@@ -29,7 +29,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .._geometry import as_mesh_arrays, bbox_diagonal, cross_intersection_pairs, edge_stats, n_components
+from .._geometry import (as_mesh_arrays, bbox_diagonal, cross_intersection_pairs, edge_stats, n_components,
+                         normalize)
 from .._geometry import signed_volume as _signed_volume
 from ..audit import check_mesh
 from ..decimate import decimate_surface
@@ -40,7 +41,7 @@ from .optimize import _min_angles, mips, optimize_cage
 from .simplify import SimplifyStuck, constrained_simplify
 from .tighten import tighten_cage
 
-__all__ = ["estimate_layer_seconds", "genus", "sdf_backend", "sdf_cage_layer"]
+__all__ = ["estimate_layer_seconds", "genus", "sdf_cage_layer", "sdf_schedule"]
 
 #: paper defaults (Sec. 4), lengths relative to the unit bounding-box diagonal
 DEFAULTS = {"c": 0.01, "r": 0.025, "l": 0.15, "alpha": 3.0, "beta": 8.0}
@@ -83,7 +84,7 @@ def _prepass(U, G, Vf, Ff, n_faces, mults=(32, 16, 8, 4, 2), clear: float = 0.0,
     import igl
     from scipy.spatial import cKDTree
 
-    from ..nested.collision import min_distance
+    from ..collision import min_distance
     from .simplify import too_close
 
     tree = cKDTree(Vf) if clear > 0 else None
@@ -149,7 +150,7 @@ def _pick_envelope(tried: list[dict], g_fine: int | None) -> int | None:
 #: the envelope is built (``h`` not given) with at least this many times the target's faces
 ENVELOPE_OVER_TARGET = 4.0
 
-#: default wall-clock budget (seconds) of one sdf_backend / sdf_cage_layer call; None = no limit
+#: default wall-clock budget (seconds) of one sdf run (all its layers) or sdf_cage_layer call; None = no limit
 DEFAULT_TIME_BUDGET = 900.0
 
 
@@ -167,16 +168,17 @@ def estimate_layer_seconds(n_input_faces: int) -> float:
     return 15.0 + 5e-3 * float(n_input_faces)
 
 
-def _budget_check(n_input: list[int], time_budget: float | None, what: str) -> float:
+def _budget_check(n_input: list[int], cage_time_budget: float | None, what: str) -> float:
     """Raise :class:`CageError` (in milliseconds, before any work) when the estimate exceeds the budget."""
     est = float(sum(estimate_layer_seconds(n) for n in n_input))
-    if time_budget is not None and est > float(time_budget):
+    if cage_time_budget is not None and est > float(cage_time_budget):
         raise CageError(
             f"{what}: estimated {est:.0f} s for a {n_input[0]:,}-face input ({len(n_input)} layer(s), "
-            f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds time_budget="
-            f"{float(time_budget):.0f} s; pass a larger time_budget (None: no limit; nestmg CLI: "
+            f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds cage_time_budget="
+            f"{float(cage_time_budget):.0f} s; pass a larger cage_time_budget (None: no limit; nestmg CLI: "
             f"--cage-time-budget, 0: no limit), or decimate the input "
-            f"first (nestmg.build_hierarchy does: predecimate_input=True)", layer=1, reason="time budget")
+            f"first (nestmg.build_hierarchy does: SizingOptions(predecimate=True))", layer=1,
+            reason="time budget")
     return est
 
 
@@ -220,7 +222,7 @@ def sdf_cage_layer(
     tighten: float = 1.5,
     tighten_rounds: int = 3,
     bridge_retry: float = 0.5,
-    time_budget: float | None = DEFAULT_TIME_BUDGET,
+    cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
     deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
@@ -308,18 +310,18 @@ def sdf_cage_layer(
         above), the layer is built once more at ``c * bridge_retry`` and that cage is kept if it is
         certified, has the first one's genus and is tighter (input-to-cage and symmetric Hausdorff
         distances both smaller). It runs only if three times the first
-        build's seconds fit in what is left of ``time_budget`` / ``deadline``, and only if
+        build's seconds fit in what is left of ``cage_time_budget`` / ``deadline``, and only if
         ``c * bridge_retry >= 4 min_gap`` (the clearance leaves room to simplify). ``info["bridge_retry"]``
         records the trigger, the distances and what was kept. Measured: ``docs/sdf.md``.
-    time_budget : float or None
+    cage_time_budget : float or None
         Wall-clock seconds this call may take (None: no limit). Checked first, in milliseconds: when
         :func:`estimate_layer_seconds` of the input exceeds it, :class:`CageError` (``reason="time
         budget"``) names the option before the audit or any other work. During the run, a tightening
         round is started only if the time already spent plus the last round's time fits the budget (the
         pass is an improvement of an already certified cage; ``info["tighten"]["stopped"]`` records it).
     deadline : float, optional
-        A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_backend`
-        sets it from its own ``time_budget`` and calls this with ``time_budget=None``).
+        A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_schedule`
+        sets it from the run's ``cage_time_budget`` and calls this with ``cage_time_budget=None``).
 
     Returns
     -------
@@ -341,17 +343,17 @@ def sdf_cage_layer(
         Bad option values (odd or too small ``n_faces``, ...).
     cagegen.CageError
         No certified cage after ``max_retries`` rebuilds (the message gives each attempt's reason), or
-        the estimated time exceeds ``time_budget`` (raised before any work).
+        the estimated time exceeds ``cage_time_budget`` (raised before any work).
     """
     call = dict(locals())  # this call's arguments (first statement: nothing else is local yet), for the retry
     opts = SimpleNamespace(**call)
     t0 = time.perf_counter()
     V, F = as_mesh_arrays(V, F, "fine layer")
     n_faces = _check_target(n_faces)
-    _budget_check([len(F)], time_budget, f"sdf cage with {n_faces} faces")
+    _budget_check([len(F)], cage_time_budget, f"sdf cage with {n_faces} faces")
     tight_deadline = deadline
-    if time_budget is not None:
-        tight_deadline = min(t0 + float(time_budget), np.inf if deadline is None else deadline)
+    if cage_time_budget is not None:
+        tight_deadline = min(t0 + float(cage_time_budget), np.inf if deadline is None else deadline)
     if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0 or not pull >= 0:
         raise CageOptionError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
     t_check = None
@@ -359,10 +361,7 @@ def sdf_cage_layer(
         t = time.perf_counter()
         check_mesh(V, F, name="sdf input")  # MeshInputError naming every problem (self-intersections, ...)
         t_check = time.perf_counter() - t
-    unit = float(bbox_diagonal(V) if unit is None else unit)
-    lo, hi = V.min(0), V.max(0)
-    center = 0.5 * (lo + hi)
-    Vn = (V - center) / unit
+    Vn, center, unit = normalize(V, unit)
     g_fine = genus(Vn, F)
     gap_rel = float(min_gap) / bbox_diagonal(Vn)  # verify_nesting's min_gap is relative to layer 0
     attempts = []
@@ -614,7 +613,8 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
     rec["c_retry"] = c2
     # c is relative to `unit`: pass the same unit (the first call's default is V's own diagonal)
     unit = call["unit"] if call["unit"] is not None else bbox_diagonal(np.asarray(call["V"], float))
-    args = {**call, "c": c2, "unit": unit, "bridge_retry": 0.0, "check_input": False, "time_budget": None,
+    args = {**call, "c": c2, "unit": unit, "bridge_retry": 0.0, "check_input": False,
+            "cage_time_budget": None,
             "deadline": deadline, "max_retries": 0}
     try:
         U2o, G2, info2 = sdf_cage_layer(**args)
@@ -641,117 +641,40 @@ def _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, target, t0, deadline):
     return Uo, G, info
 
 
-def sdf_backend(
-    V: np.ndarray,
-    F: np.ndarray,
-    face_counts,
-    *,
-    progress: Callable[[str], None] | None = None,
-    certify: bool = True,
-    **opts,
-) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
-    """Cage backend ``"sdf"``: layer ``k+1`` is :func:`sdf_cage_layer` of layer ``k`` (nested, exact sizes).
+def sdf_schedule(V: np.ndarray, F: np.ndarray, face_counts, *, t0: float,
+                 cage_time_budget: float | None = DEFAULT_TIME_BUDGET, **layer_opts) -> list[dict]:
+    """The ``"sdf"`` backend's run plan (registry ``schedule``): checked before any layer is built.
+
+    The face counts must be even; the whole run's estimate (:func:`estimate_layer_seconds` of each layer's
+    input) must fit ``cage_time_budget`` (else :class:`CageError`, ``reason="time budget"``, in milliseconds).
+    Each layer then runs without a budget of its own but with a deadline after which no tightening round
+    starts: the run's budget less the estimates of the layers after it (the layers themselves always
+    run: the budget was checked first).
 
     Parameters
     ----------
     V : (n,3) float array
     F : (m,3) int array
-        The audited input surface (layer 0; not modified).
+        The audited input.
     face_counts : sequence of int
         Exact (even) face counts of the cages, finest first.
-    progress : callable, optional
-        Called with a one-line message per layer.
-    certify : bool
-        Accepted for the registry's protocol; every layer is certified inside :func:`sdf_cage_layer`
-        regardless (the certificate decides between the optimised cage, the simplified one and a
-        rebuild), so False changes nothing.
-    **opts
-        Passed to :func:`sdf_cage_layer` (``c``, ``amplify``, ``optimize``, ``min_gap``, ...). Lengths
-        are relative to the *input's* bounding-box diagonal on every layer. ``check_input`` (default
-        True) audits the input (layer 0) only: the coarser layers' inputs are certified cages.
+    t0 : float
+        ``time.perf_counter()`` at the start of the run.
+    cage_time_budget : float or None
+        Wall-clock seconds for all the layers (None: no limit).
+    **layer_opts
+        The other options (each layer's; unused here).
 
     Returns
     -------
-    layers : list of (U_k, G_k)
-        The cages only, finest first.
-    info : dict
-        ``method``, ``nested_by_construction`` (True: each layer was certified against the previous
-        one), ``genus_changes``, ``seconds``, ``layers`` (per layer the :func:`sdf_cage_layer` info
-        plus ``layer``, ``hausdorff_relative_to_input`` and ``volume_ratio_to_input``).
-
-    Raises
-    ------
-    cagegen.MeshInputError
-        The input fails the audit (``check_input``), before any cage is built.
-    cagegen.CageError
-        With ``layer`` set (1 = first cage) when a layer could not be built and certified.
+    list of dict
+        Per layer, the keywords of :func:`sdf_cage_layer` the run sets (``deadline``, ``cage_time_budget``,
+        ``check_input``).
     """
-    import inspect
-
-    import igl
-
-    allowed = set(list(inspect.signature(sdf_cage_layer).parameters)[3:]) - {"unit", "deadline"}
-    unknown = set(opts) - allowed
-    if unknown:
-        raise CageOptionError(f"unknown option(s) for the sdf backend: {sorted(unknown)}")
-    t0 = time.perf_counter()
-    V = np.array(V, dtype=np.float64)
-    F = np.array(F, dtype=np.int64)
     counts = [_check_target(m) for m in face_counts]
-    budget = opts.pop("time_budget", DEFAULT_TIME_BUDGET)
-    _budget_check([len(F)] + counts[:-1], budget, f"sdf cages {counts}")
-    check0 = bool(opts.pop("check_input", True))
-    diag0 = bbox_diagonal(V)
-    vol0 = _signed_volume(V, F)
-    layers, per_layer, changes = [], [], []
-    Vp, Fp = V, F
-    for k, m in enumerate(counts, start=1):
-        try:
-            # no tightening round after the budget less the estimate of the layers after this one (the
-            # layers themselves always run: the budget was checked before any work)
-            dl = None if budget is None else (t0 + float(budget)
-                                              - sum(estimate_layer_seconds(n) for n in counts[k - 1:-1]))
-            U, G, li = sdf_cage_layer(Vp, Fp, m, unit=diag0, check_input=check0 and k == 1,
-                                      time_budget=None, deadline=dl, **opts)
-        except CageError as exc:
-            raise CageError(f"layer {k}: {exc}", layer=k, reason=exc.reason) from exc
-        li["layer"] = k
-        li["hausdorff_relative_to_input"] = float(igl.hausdorff(U, G, V, F)) / diag0
-        li["volume_ratio_to_input"] = _signed_volume(U, G) / vol0
-        if li["genus_changed"]:
-            changes.append({"layer": k, "from": li["genus_fine"], "to": li["genus"]})
-        per_layer.append(li)
-        layers.append((U, G))
-        if progress is not None:
-            progress(f"sdf: layer {k}: {len(G)} faces, max distance {li['hausdorff_relative_to_input']:.4f} of the "
-                     f"diagonal, {li['seconds']['total']:.2f} s")
-        Vp, Fp = U, G
-    info = {
-        "method": "sdf",
-        "nested_by_construction": True,
-        "genus_changes": changes,
-        "seconds": time.perf_counter() - t0,
-        "layers": per_layer,
-    }
-    return layers, info
-
-
-def nested_fallback(Vf, Ff, m, exc, rep, log, k, gap=0.0):
-    """Fallback ``"sdf"`` of the ``nested`` backend (``nested_backend(..., fallback="sdf")``): an sdf cage.
-
-    Same signature as the other entries of :data:`cagegen.nested.backend.FALLBACKS`: fine layer
-    ``(Vf, Ff)`` in the input's unit-diagonal coordinates, target ``m`` faces (rounded up to even), the
-    flow's error ``exc``, a reporter, the recovery log, the layer number and the clearance ``gap``
-    (absolute in that frame, so relative to the input's diagonal: ``unit=1``), which the sdf cage keeps
-    and certifies. MIT, no copyleft import.
-    """
-    m = int(m) + int(m) % 2
-    rep.say(f"layer {k}: flow and intermediate layers failed; falling back to an sdf cage")
-    try:
-        # audited input or a certified layer; lengths relative to the input's diagonal (1 here)
-        C, G, info = sdf_cage_layer(Vf, Ff, m, check_input=False, unit=1.0, min_gap=float(gap))
-    except (CageError, ValueError) as exc2:
-        raise CageError(f"{exc}; the sdf fallback failed too: {exc2}", layer=k, reason=exc.reason) from exc2
-    log.append({"layer": k, "action": f"fall back to an sdf cage of {len(G)} faces (cagegen.sdf)",
-                "stage": "fallback", "reason": str(exc)})
-    return C, G, {"fallback": "sdf", "sdf": info, "seconds": {"sdf": info["seconds"]["total"]}}
+    _budget_check([len(F)] + counts[:-1], cage_time_budget, f"sdf cages {counts}")
+    later = [sum(estimate_layer_seconds(n) for n in counts[k:-1]) for k in range(len(counts))]
+    # check_input False: build_cages audited the input once, the later layers are certified cages
+    return [{"cage_time_budget": None, "check_input": False,
+             "deadline": None if cage_time_budget is None else t0 + float(cage_time_budget) - rest}
+            for rest in later]

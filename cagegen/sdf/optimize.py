@@ -30,7 +30,7 @@ import numpy as np
 from .._geometry import segment_segment_sqdist
 from ..errors import CageOptionError
 from ..intersect import cross_pairs, self_pairs
-from ..nested.collision import PairMesh
+from ..collision import PairMesh
 from .simplify import too_close
 
 __all__ = ["mips", "optimize_cage"]

@@ -31,6 +31,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._geometry import normalize
 from ..errors import CageError, CageOptionError, MeshInputError
 from ..verify import verify_nesting
 from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage,
@@ -293,9 +294,8 @@ def skeleton_cage(
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     lo, hi = V.min(0), V.max(0)
-    center = 0.5 * (lo + hi)
-    diag = float(np.linalg.norm(hi - lo))
-    Vn = (V - center) / diag
+    diag = float(np.linalg.norm(hi - lo))  # this backend's own measure (its cages depend on its bits)
+    Vn, center, _ = normalize(V, diag)
     info: dict = {"method": "skeleton"}
 
     t = time.perf_counter()
@@ -724,7 +724,8 @@ def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say, push
 
 def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     """Step 7: the Nested Cages flow + re-inflation of the pre-inflated cage around M (or ``inner``)."""
-    from ..nested.backend import _PairFailure, nest_pair
+    from ..failures import PairFailure
+    from ..nested.backend import nest_pair
 
     diag, center, Vp, Ft = parts["diag"], parts["center"], parts["Vp"], parts["Ft"]
     if inner is not None:
@@ -743,7 +744,7 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     nested_opts.setdefault("flow_active_depth", 0.01)
     try:
         C, ninfo = nest_pair(Vi, Fi, Vp, Ft, gap=gap, **nested_opts)
-    except _PairFailure as exc:
+    except PairFailure as exc:
         hint = ""
         if exc.stage == "flow":
             n_out = int(np.sum(_winding(Vp, Ft, Vi) < 0.5))
@@ -766,7 +767,7 @@ _CONTAINMENTS = ("mesh", "flow")
 def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     """Step 7 (default): re-inflate a target swept down the guiding field's level sets, pushing the
     tight cage out (:mod:`cagegen.skeleton.contain`), then complete the clearance."""
-    from ..nested.backend import _complete_clearance
+    from ..nested.backend import complete_clearance
     from ..nested.reinflate import reinflate
     from .contain import collapse_inside, start_level, sweep_history
 
@@ -809,7 +810,7 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
     C = rr.cage
     Vi, Fi = inner if inner is not None else (Vn, F)
     if gap > 0:
-        C, d, rec["clearance_completion"] = _complete_clearance(C, Fc, Vi, Fi, gap)
+        C, d, rec["clearance_completion"] = complete_clearance(C, Fc, Vi, Fi, gap)
         if d < float(min_gap):  # push_out blocked: carry M out to its offset, pushing the cage (a short
             C, d = _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say)  # re-inflation, nest_pair's way)
         rec["distance"] = float(d)
@@ -823,7 +824,7 @@ def _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say):
 def _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say):
     """The contained cage ``C`` pushed out by re-inflating the inner surface from rest to its offset by
     ``gap`` (:func:`cagegen.nested.backend.offset_surface`), then :func:`push_out` again."""
-    from ..nested.backend import _complete_clearance, offset_surface
+    from ..nested.backend import complete_clearance, offset_surface
     from ..nested.reinflate import reinflate
 
     say("clearance: push_out blocked, re-inflating the input to its offset")
@@ -833,7 +834,7 @@ def _clearance_by_reinflation(C, Fc, Vi, Fi, gap, rec, say):
     rec["clearance_reinflation"] = {"success": bool(rr.success), "reason": rr.reason}
     if not rr.success:
         return C, 0.0
-    C2, d, rec["clearance_completion_2"] = _complete_clearance(rr.cage, Fc, Vi, Fi, gap)
+    C2, d, rec["clearance_completion_2"] = complete_clearance(rr.cage, Fc, Vi, Fi, gap)
     return C2, d
 
 

@@ -151,7 +151,7 @@ def start_level(history: list, FT: np.ndarray, Vc: np.ndarray, Fc: np.ndarray) -
     """Index of the shallowest entry of ``history`` such that it and every deeper entry lie strictly
     inside the cage ``(Vc, Fc)`` (no cage-target intersection, every target vertex inside by winding
     number), checked from the deepest entry outwards; -1 when the deepest is not inside."""
-    from ..nested.collision import PairMesh
+    from ..collision import PairMesh
 
     best = -1
     for j in range(len(history) - 1, 0, -1):

@@ -8,13 +8,14 @@ keeps the six rigid-body modes out of every level. Run: ``python docs/examples/e
 
 import numpy as np
 
-from nestmg import build_hierarchy, shapes
+from nestmg import MeshingOptions, SizingOptions, build_hierarchy, shapes
 from nestmg.elasticity import setup_elasticity
 
 
 def main(max_tets: int = 200_000, mesher: str = "tetwild", nu: float = 0.3):
     V, F = shapes.torus(res=24)
-    h = build_hierarchy(V, F, levels=3, method="nested", mesher=mesher, max_tets=max_tets)
+    h = build_hierarchy(V, F, 3, "nested", sizing=SizingOptions(max_tets=max_tets),
+                        meshing=MeshingOptions(mesher=mesher))
     tets = h.tets_in("normalized")  # unit bounding-box diagonal, as the command line poses its problems
     out = {}
     for name in ("elasticity-clamped", "elasticity-free"):

@@ -36,19 +36,20 @@ def source(X: np.ndarray) -> np.ndarray:
     return 1.0 + np.sin(3 * X[:, 0]) * np.cos(2 * X[:, 1]) + X[:, 2]
 
 
-def coarse_levels(mesh: str | None, levels: int, edge_length_fac: float = 0.08) -> dict:
+def coarse_levels(mesh: str | None, levels: int, edge_length: float = 0.08) -> dict:
     """Rank 0: the user's tet mesh and its coarse levels as plain arrays (first coarse mesh = the mesh).
 
-    Without ``mesh``, a TetWild mesh of a procedural torus with edge factor ``edge_length_fac``.
+    Without ``mesh``, a TetWild mesh of a procedural torus with edge length ``edge_length`` (relative to
+    its bounding-box diagonal).
     """
     from nestmg import hierarchy_from_tets, load_tet_mesh, shapes, tetrahedralize
 
     if mesh is None:
         Vs, Fs = shapes.torus(res=16)
-        V, T = tetrahedralize(Vs, Fs, edge_length_fac=edge_length_fac)  # stands in for the user's own mesh
+        V, T = tetrahedralize(Vs, Fs, edge_length=edge_length)  # stands in for the user's own mesh
     else:
         V, T = load_tet_mesh(mesh)
-    H = hierarchy_from_tets(V, T, levels=levels, progress=False)
+    H = hierarchy_from_tets(V, T, levels, progress=False)
     if not H.certified:
         raise SystemExit("the coarse levels are not certified nested (n_outside > 0 on some level)")
     out = {"V": V, "T": T, "n_coarse": np.array(len(H.P))}

@@ -57,8 +57,8 @@ def main(V=None, T=None, levels: int = 3, tol: float = 1e-8, p2: bool = True, ve
     """
     if V is None:
         Vs, Fs = shapes.sphere(res=16)
-        V, T = tetrahedralize(Vs, Fs, edge_length_fac=0.06)     # stands in for the user's own mesh
-    H = hierarchy_from_tets(V, T, levels=levels)                  # H.tets[0] is (V, T), node for node
+        V, T = tetrahedralize(Vs, Fs, edge_length=0.06)     # stands in for the user's own mesh
+    H = hierarchy_from_tets(V, T, levels)                         # H.tets[0] is (V, T), node for node
 
     mesh = MeshTet(np.asarray(V, float).T, np.asarray(T).T)       # scikit-fem: (3, n) nodes, (4, t) tets
     basis = Basis(mesh, ElementTetP1())                           # P1 dof i = node i

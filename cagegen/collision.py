@@ -1,4 +1,5 @@
-"""ipctk helpers shared by the flow and the re-inflation: one CollisionMesh holding both surfaces.
+"""ipctk helpers shared by the backends (nested's flow and re-inflation, sdf's optimisation): one
+CollisionMesh holding both surfaces.
 
 The coarse cage C comes first (vertices ``0..nc-1``), the fine surface F after it. The fine surface
 may self-intersect while it is flowed (paper Sec. 3.1: "we do not care ... whether it self-
@@ -15,7 +16,7 @@ from __future__ import annotations
 import ipctk
 import numpy as np
 
-from .._log import ipctk_to_log, setup_ipctk
+from ._log import ipctk_to_log, setup_ipctk
 
 __all__ = ["PairMesh", "ipctk_to_log", "min_distance", "self_collision_free_step"]
 

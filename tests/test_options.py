@@ -1,0 +1,182 @@
+"""Typed options per stage (issue 28): validation, defaults that match the code they configure, the command
+line generated from the same fields, and ``Hierarchy.options`` / the cache keyed on them."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+
+import numpy as np
+import pytest
+
+import cagegen
+from cagegen import (
+    CageOptionError,
+    CageOptions,
+    DecimateOptions,
+    LazyOptions,
+    NestedOptions,
+    SdfOptions,
+    SkeletonOptions,
+    build_cages,
+    options_class,
+)
+from nestmg import (
+    MeshingOptions,
+    NestmgInputError,
+    OptionError,
+    SizingOptions,
+    SolverOptions,
+    build_hierarchy,
+    shapes,
+)
+
+# backend keywords that build_cages passes itself (not options) or that only the backend's own callers use
+_NOT_OPTIONS = {"progress", "certify", "min_gap", "unit", "deadline", "check_input", "inner"}
+
+
+def _keyword_defaults(fn) -> dict:
+    return {p.name: p.default for p in inspect.signature(fn).parameters.values()
+            if p.default is not inspect.Parameter.empty and p.name not in _NOT_OPTIONS}
+
+
+def _fields(cls) -> dict:
+    return {f.name: f.default for f in dataclasses.fields(cls) if f.name not in CageOptions.COMMON}
+
+
+def test_cage_options_match_the_backends_keywords():
+    """Every backend keyword is a field with the same default, and no field is unknown to the backend."""
+    from cagegen.decimate import decimate_layer
+    from cagegen.nested.backend import _DEFAULTS, nested_backend
+    from cagegen.sdf.backend import sdf_cage_layer
+    from cagegen.skeleton.backend import skeleton_backend, skeleton_cage
+
+    assert _fields(DecimateOptions) == _keyword_defaults(decimate_layer)
+    assert _fields(NestedOptions) == {**_keyword_defaults(nested_backend), **_DEFAULTS}
+    assert _fields(SdfOptions) == _keyword_defaults(sdf_cage_layer)
+    assert _fields(SkeletonOptions) == {**_keyword_defaults(skeleton_cage),
+                                        **_keyword_defaults(skeleton_backend)}
+    lazy = pytest.importorskip("cagegen.copyleft.lazy")
+    assert _fields(LazyOptions) == _keyword_defaults(lazy.lazy_layer)
+
+
+def test_registry_gives_each_method_its_class():
+    for name, cls in (("decimate", DecimateOptions), ("nested", NestedOptions), ("sdf", SdfOptions),
+                      ("skeleton", SkeletonOptions), ("lazy", LazyOptions)):
+        assert options_class(name) is cls
+    with pytest.raises(cagegen.UnknownMethodError):
+        options_class("magic")
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: NestedOptions(energy="rubber"), "NestedOptions.energy: must be one of"),
+    (lambda: SdfOptions(c=0.0), "SdfOptions.c: must be > 0, got 0.0"),
+    (lambda: SdfOptions(opt_iters=2.5), "SdfOptions.opt_iters: must be an integer"),
+    (lambda: CageOptions(min_gap=-1e-3), "CageOptions.min_gap: must be >= 0"),
+    (lambda: DecimateOptions(check_self="yes"), "DecimateOptions.check_self: must be True or False"),
+    (lambda: SizingOptions(edge_length=float("inf")), "SizingOptions.edge_length: must be > 0, got inf"),
+    (lambda: SizingOptions(face_counts=[100, 2]), "SizingOptions.face_counts: must be integers >= 4"),
+    (lambda: SizingOptions(max_tets=0), "SizingOptions.max_tets: must be >= 1"),
+    (lambda: MeshingOptions(epsilon=1.5), "MeshingOptions.epsilon: must be < 1"),
+    (lambda: MeshingOptions(mesher="gmsh"), "MeshingOptions.mesher: must be one of ['tetwild', 'tetgen']"),
+    (lambda: SolverOptions(nu=0), "SolverOptions.nu: must be >= 1, got 0"),
+    (lambda: SolverOptions(poisson_ratio=0.5), "SolverOptions.poisson_ratio: must be < 0.5"),
+    (lambda: SolverOptions(smoother="magic"), "SolverOptions.smoother: must be one of"),
+])
+def test_bad_fields_are_one_line_errors_naming_the_field(make, message):
+    with pytest.raises((CageOptionError, OptionError)) as ei:
+        make()
+    assert message in str(ei.value) and "\n" not in str(ei.value)
+    assert isinstance(ei.value, ValueError) and isinstance(ei.value, cagegen.NestmgError)
+    if isinstance(ei.value, OptionError):
+        assert isinstance(ei.value, NestmgInputError) and ei.value.field in message
+
+
+def test_options_are_frozen_and_serialisable():
+    o = SizingOptions(face_counts=[300, 80])
+    assert o.face_counts == (300, 80)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        o.max_tets = 5  # type: ignore[misc]
+    for obj in (o, MeshingOptions(), SolverOptions(), NestedOptions(), SdfOptions()):
+        d = dataclasses.asdict(obj)
+        assert type(obj)(**d) == obj
+        json.dumps(d)
+
+
+def test_build_cages_takes_the_class_or_its_fields_by_name():
+    V, F = shapes.sphere(res=10)
+    a = build_cages(V, F, 2, "decimate", face_counts=[100], algorithm="decimate")
+    b = build_cages(V, F, 2, "decimate", face_counts=[100], options=DecimateOptions(algorithm="decimate"))
+    for (Va, Fa), (Vb, Fb) in zip(a, b, strict=True):
+        assert np.array_equal(Va, Vb) and np.array_equal(Fa, Fb)
+    with pytest.raises(CageOptionError, match=r"unknown option\(s\) for the decimate backend: \['c'\]"):
+        build_cages(V, F, 2, "decimate", c=0.01)
+    with pytest.raises(CageOptionError, match="takes DecimateOptions, got SdfOptions"):
+        build_cages(V, F, 2, "decimate", options=SdfOptions())
+    with pytest.raises(CageOptionError, match="not both"):
+        build_cages(V, F, 2, "decimate", options=DecimateOptions(), algorithm="qslim")
+
+
+def _flags(parser_name: str) -> dict:
+    from nestmg.cli import build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices[parser_name]
+    return {a.dest: a for a in sub._actions if a.option_strings}
+
+
+def test_cli_flags_are_the_option_fields():
+    """Each field of the sizing, meshing, common cage and solver options is one flag of ``nestmg solve``
+    with the field's default; every other flag of those groups is listed here."""
+    from nestmg.cli import CAGE_FLAGS
+    from nestmg.options import flag
+
+    actions = _flags("solve")
+    for cls in (SizingOptions, MeshingOptions, CageOptions, SolverOptions):
+        for f in dataclasses.fields(cls):
+            a = actions.pop(f.name)
+            want = f"--no-{f.name.replace('_', '-')}" if f.default is True else flag(f.name)
+            assert a.option_strings == [want], (f.name, a.option_strings)
+            assert a.default == f.default, (f.name, a.default, f.default)
+    owner, field = CAGE_FLAGS["--cage-time-budget"]
+    assert field in {f.name for f in dataclasses.fields(getattr(cagegen, owner))}
+    others = {"help", "problem", "method", "element", "quality", "json", "png", "out", "levels",
+              "cage_time_budget", "no_cache", "quiet"}
+    assert set(actions) == others, set(actions) ^ others
+
+
+def test_cli_builds_the_same_objects():
+    from nestmg.cli import _cage_options, _typed_options, build_parser
+
+    args = build_parser().parse_args(["solve", "shape:torus", "--mesher", "tetgen", "--face-counts", "300",
+                                      "80",
+                                      "--mesh-time-budget", "0", "--accel", "cg", "--no-local", "--repair",
+                                      "--method", "sdf", "--cage-time-budget", "60"])
+    _typed_options(args)
+    assert args.sizing == SizingOptions(face_counts=(300, 80), mesh_time_budget=None)
+    assert args.meshing == MeshingOptions(mesher="tetgen")
+    assert args.solver == SolverOptions(accel="cg", local=False)
+    assert _cage_options(args, "sdf") == SdfOptions(repair=True, cage_time_budget=60.0)
+
+
+def test_hierarchy_records_its_options_and_keys_the_cache_on_them(tmp_path, monkeypatch):
+    pytest.importorskip("tetgen")
+    monkeypatch.setenv("NESTMG_CACHE", str(tmp_path))
+    V, F = shapes.sphere(res=12)
+    sizing, meshing = SizingOptions(face_counts=[150], edge_length=0.1), MeshingOptions(mesher="tetgen")
+    h = build_hierarchy(V, F, 2, "decimate", sizing=sizing, meshing=meshing, progress=False)
+    assert SizingOptions(**h.options["sizing"]) == sizing
+    assert MeshingOptions(**h.options["meshing"]) == dataclasses.replace(meshing, tet_retries=0)  # resolved
+    assert DecimateOptions(**h.options["cages"]) == DecimateOptions()
+    json.dumps(h.to_dict())
+    n_entries = len(list(tmp_path.glob("*.json")))
+    h2 = build_hierarchy(V, F, 2, "decimate", sizing=sizing, meshing=meshing, progress=False)
+    assert h2.cage_info.get("cached") and len(list(tmp_path.glob("*.json"))) == n_entries
+    # another cage option: a new cage entry (the tet layers of the same surfaces may be reused)
+    h3 = build_hierarchy(V, F, 2, "decimate", sizing=sizing, meshing=meshing, progress=False,
+                         cages=DecimateOptions(algorithm="decimate"))
+    assert not h3.cage_info.get("cached") and len(list(tmp_path.glob("*.json"))) > n_entries
+    with pytest.raises(CageOptionError, match="takes cagegen.DecimateOptions, got NestedOptions"):
+        build_hierarchy(V, F, 2, "decimate", cages=NestedOptions(), progress=False)
+    with pytest.raises(NestmgInputError, match="meshing must be a nestmg.MeshingOptions"):
+        build_hierarchy(V, F, 2, "decimate", meshing={"mesher": "tetgen"}, progress=False)

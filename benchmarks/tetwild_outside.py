@@ -1,0 +1,89 @@
+"""fTetWild's cost against the box it meshes: a uniform box, or a coarse outside (``outer_edge_factor``).
+
+fTetWild meshes and optimises the whole bounding box at the target edge and drops the outside at the end,
+so its time follows the box's volume rather than the solid's. For each mesh this script does what
+``build_hierarchy`` does before its fine tet mesh (normalise, plan the sizes with the defaults,
+predecimate) and meshes the same surface at the same edge twice, in the same process, with one thread
+and no time limit: uniform (``outer_edge_factor=1``) and graded (``outer_edge_factor=F``). CPU seconds,
+tets and the box / solid volume ratio go to the JSON (``benchmarks/results/tetwild/``).
+
+    python benchmarks/tetwild_outside.py ZOO_DIR/homer.obj ZOO_DIR/bunny.off ... --out OUT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from exp_common import environment, git_commit, read_mesh, write_json
+
+
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _meshed_surface(path: Path) -> tuple[np.ndarray, np.ndarray, float, dict]:
+    """The surface and edge the pipeline's fine TetWild call gets with the defaults (normalised frame)."""
+    from cagegen import normalize
+    from nestmg import SizingOptions
+    from nestmg.hierarchy import _plan, predecimate
+
+    V, F = read_mesh(path)
+    Vn = normalize(V)[0]
+    plan = _plan(Vn, F, 3, SizingOptions(), "tetwild", True)
+    h = 2.0 * plan.edge_length  # the default fine level is one red refinement of the mesh at 2h
+    S, G, pre = predecimate(Vn, F, h, max_error=max(1e-3, 0.25 * h))
+    return S, G, h, {"faces_in": len(F), "faces_meshed": len(G), "edge": h, "rule": plan.rule}
+
+
+def _box_ratio(V: np.ndarray, F: np.ndarray) -> float:
+    """fTetWild's box (the bounding box grown by 1/15 of the diagonal per side) over the solid's volume."""
+    from nestmg.memory import enclosed_volume
+
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    grow = np.linalg.norm(hi - lo) / 15.0
+    return float(np.prod(hi - lo + 2 * grow) / enclosed_volume(V, F))
+
+
+def measure(path: Path, factor: float) -> dict:
+    from nestmg.memory import enclosed_volume
+    from nestmg.sizing import expected_tets
+    from nestmg.tetmesh import tetrahedralize, tet_quality
+
+    S, G, h, row = _meshed_surface(path)
+    row.update(mesh=path.name, box_ratio=_box_ratio(S, G),
+               expected_solid_tets=expected_tets(enclosed_volume(S, G), h))
+    for f in (1.0, factor):
+        c, t = _cpu(), time.perf_counter()
+        Vt, T = tetrahedralize(S, G, edge_length_abs=h, threads=1, time_limit=None, outer_edge_factor=f)
+        q = tet_quality(Vt, T)
+        key = "uniform" if f == 1.0 else "graded"
+        row[key] = {"factor": f, "cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t,
+                    "tets": int(len(T)), "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
+        print(f"{path.name}: {key} {row[key]['cpu_seconds']:.1f} CPU s, {len(T):,} tets", flush=True)
+    row["cpu_ratio_graded_over_uniform"] = row["graded"]["cpu_seconds"] / row["uniform"]["cpu_seconds"]
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("meshes", nargs="+", type=Path, help="closed surface files")
+    ap.add_argument("--factor", type=float, default=3.0, help="outer_edge_factor of the graded run")
+    ap.add_argument("--out", type=Path, required=True, help="JSON to write (rewritten after each mesh)")
+    a = ap.parse_args(argv)
+    out = {"command": "python benchmarks/tetwild_outside.py " + " ".join(
+        ["MESHES..."] + [f"--factor {a.factor}"]), "meshes_given": [p.name for p in a.meshes],
+        "commit": git_commit(), "environment": environment(), "rows": []}
+    for p in a.meshes:
+        out["rows"].append(measure(p, a.factor))
+        write_json(out, a.out)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

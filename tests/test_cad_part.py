@@ -38,12 +38,15 @@ def test_plate_with_holes_is_a_closed_cad_like_mesh(holes):
 
 def test_nested_flow_cages_a_cad_plate_without_fallback():
     """2 holes, 32-gons, 284 faces -> 80: the flow failed here before the long edges were split for it
-    (measured at 3075c35: "flow no convergence after 1000 iterations"); now certified by the flow itself."""
+    (measured at 3075c35: "flow no convergence after 1000 iterations"); now certified by the flow itself,
+    into the decimated layer or into the decimated envelope (with Ĉ expanded after 5 idle iterations the
+    flow into the layer stalls after 200 iterations and the envelope's takes 7; after 50, 563 iterations)."""
     V, F = plate_with_holes(holes=2, segments=32)
     layers, info = nested_backend(V, F, [80], min_gap=GAP, fallback=None, max_recovery_depth=0)
     (C, G), = layers
     lay = info["layers"][0]
-    assert len(G) == 80 and "fallback" not in lay and lay["recovery"] == []
+    assert len(G) == 80 and "fallback" not in lay and "intermediate" not in lay
+    assert lay["decimation"]["source"] in ("layer", "envelope") and lay["flow"]["success"]
     assert lay["split"]["faces_out"] > len(F)  # the flow ran on the split copy ...
     rep = verify_nesting([(V, F), (C, G)], min_gap=GAP)  # ... the cage nests the caller's surface
     assert rep.ok, rep.pairs[0].reason

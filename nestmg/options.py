@@ -92,8 +92,8 @@ class MeshingOptions:
     stop_energy: float = field_spec(10.0, "TetWild's stop energy", low=0.0, strict=True)
     max_opt_iter: int = field_spec(80, "TetWild's optimisation passes at most", low=1)
     outer_edge_factor: float = field_spec(
-        OUTER_EDGE_FACTOR, "TetWild's edge outside the solid / the target edge (1: off, fTetWild's uniform "
-                           "sizing; opt-in 3 saved time on slender shapes only)", low=1.0)
+        OUTER_EDGE_FACTOR, "TetWild's edge outside the solid / the target edge, where its box is >= 8x the "
+                           "solid's volume (1: off, fTetWild's uniform sizing)", low=1.0)
     threads: int | None = field_spec(None, "TetWild threads (default: its own)", low=0, kind=int)
     coarsen_coarse: bool = field_spec(True, "TetWild's coarsen on the coarse levels")
 

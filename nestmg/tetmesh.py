@@ -331,16 +331,29 @@ def _limit_hint(limit: float | None) -> str:
             "tetrahedralize(time_limit=SECONDS) ('none': no limit)")
 
 
-#: fTetWild's edge outside the solid, relative to the target edge (:func:`outer_sizing_field`);
-#: 1 (off) by default. One thread, CPU seconds, outside at 3x / uniform, at the pipeline's meshed edge,
-#: against the ratio of fTetWild's box volume to the solid's: homer.obj (10.1) 50.7 / 178.5 and
-#: 51.8 / 124.3, elephant.obj (8.8) 66.6 / 102.2, but bunny.off (5.8) 59.5 / 51.1 and angle_block.stl
-#: (2.4) 24.7 / 15.7 and 20.9 / 15.5 (the sizing-field passes cost more than the outside saves); a torus
-#: meshed at about its minor radius got 1.9x the tets (2026-12-03, loaded machine: to be re-measured
-#: on a quiet one before it becomes a default, e.g. above a box / solid ratio of 8)
-OUTER_EDGE_FACTOR = 1.0
+#: fTetWild's edge outside the solid, relative to the target edge (:func:`outer_sizing_field`), used when
+#: fTetWild's box is at least :data:`OUTER_BOX_RATIO` times the solid's volume (1: never). Measured by
+#: ``benchmarks/tetwild_outside.py`` (one thread, CPU seconds, the pipeline's fine surface and edge,
+#: graded / uniform, box / solid ratio in brackets; ``benchmarks/results/tetwild/``): lucy.ply (21.3)
+#: 211 / 409, homer.obj (11.3) 54 / 137, elephant.obj (10.7) 67 / 89, bunny.off (7.3) 68 / 90,
+#: angle_block.stl (3.0) 17.9 / 18.4. Same tets within 8%. An earlier loaded run had bunny 59.5 / 51.1 and
+#: angle_block 24.7 / 15.7: below a ratio of 8 the sign of the gain is not settled, so it stays off there.
+OUTER_EDGE_FACTOR = 3.0
+#: box / solid volume ratio from which :data:`OUTER_EDGE_FACTOR` applies (see :func:`box_ratio`)
+OUTER_BOX_RATIO = 8.0
 #: most background-grid nodes of :func:`outer_sizing_field` (the spacing grows past it)
 SIZING_GRID_NODES = 1_000_000
+
+
+def box_ratio(V: np.ndarray, F: np.ndarray) -> float:
+    """Volume of fTetWild's working box (the bounding box grown by 1/15 of its diagonal on every side)
+    over the solid's enclosed volume: how much of fTetWild's work a uniform box spends outside."""
+    from .memory import enclosed_volume  # nestmg.memory imports this module
+
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    grow = float(np.linalg.norm(hi - lo)) / 15.0
+    vol = enclosed_volume(V, F)
+    return float(np.prod(hi - lo + 2 * grow) / vol) if vol > 0 else float("inf")
 
 
 def outer_sizing_field(V: np.ndarray, F: np.ndarray, h: float, factor: float) -> dict:
@@ -503,9 +516,10 @@ def tetrahedralize(
         cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
     outer_edge_factor : float
         TetWild: target edge of its working mesh *outside* the solid, relative to the edge length
-        (:func:`outer_sizing_field`; 1, the default: fTetWild's uniform sizing). fTetWild optimises a
-        mesh of the whole bounding box and discards the outside at the end; a coarse outside cuts that
-        work on slender shapes (homer.obj: 3.5x fewer CPU seconds) and adds to it on compact ones.
+        (:func:`outer_sizing_field`), applied when fTetWild's box is at least :data:`OUTER_BOX_RATIO`
+        times the solid (:func:`box_ratio`); 1: fTetWild's uniform sizing. fTetWild optimises a mesh of
+        the whole bounding box and discards the outside at the end; a coarse outside cuts that work on
+        slender shapes (homer.obj: 2.5x fewer CPU seconds, lucy.ply 1.9x).
     time_limit : float, "auto" or None
         Seconds the mesher may run (in a worker process, killed when over). ``"auto"``:
         :func:`mesh_time_limit` (``$NESTMG_MESH_TIME_LIMIT``, else 10x the sizing estimate, at least
@@ -550,7 +564,7 @@ def tetrahedralize(
             Vn, c, _ = normalize(V, diag)
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
-            if outer_edge_factor > 1.0:
+            if outer_edge_factor > 1.0 and box_ratio(Vn, F) >= OUTER_BOX_RATIO:
                 opts.update(outer_sizing_field(Vn, F, h / diag, float(outer_edge_factor)))
             try:
                 Vt, T = _mesher_call("tetwild", Vn, F, opts, deadline)

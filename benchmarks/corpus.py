@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 import time
 import traceback
 from pathlib import Path
@@ -68,10 +69,12 @@ def _peak_mb() -> float:
 
 # ------------------------------------------------------------------------------------ cases (child)
 def _cli_args(command: str, mesh: Path, extra: list[str]):
-    from nestmg.cli import build_parser
+    from nestmg.cli import _typed_options, build_parser
 
     out = ["--out", tempfile.mkdtemp(prefix="corpus-")] if command == "cages" else []
-    return build_parser().parse_args([command, str(mesh), "--levels", "3", "--no-cache", "--quiet", *out, *extra])
+    args = build_parser().parse_args([command, str(mesh), "--levels", "3", "--no-cache", "--quiet", *out, *extra])
+    _typed_options(args)  # args.sizing / .meshing / .solver, as `nestmg` builds them
+    return args
 
 
 def case_solve(mesh: Path) -> dict:
@@ -92,11 +95,12 @@ def case_solve(mesh: Path) -> dict:
                  "predecimation": {k: h.cage_info.get("predecimation", {}).get(k)
                                    for k in ("faces_in", "faces_out", "hausdorff")},
                  "sizing_rule": h.options.get("plan", {}).get("rule"), "problems": {}}
+    solver = args.solver
     for problem in PROBLEMS:
         args.problem = problem
-        args.accel = None
+        args.solver = replace(solver, accel=None)
         r = _solve(h, args)
-        args.accel = "cg"
+        args.solver = replace(solver, accel="cg")
         c = _solve(h, args)
         rec["problems"][problem] = {
             "factor": r["factor"], "cycles": r["iterations"], "converged": r["converged"],

@@ -334,10 +334,11 @@ def _limit_hint(limit: float | None) -> str:
 #: fTetWild's edge outside the solid, relative to the target edge (:func:`outer_sizing_field`), used when
 #: fTetWild's box is at least :data:`OUTER_BOX_RATIO` times the solid's volume (1: never). Measured by
 #: ``benchmarks/tetwild_outside.py`` (one thread, CPU seconds, the pipeline's fine surface and edge,
-#: graded / uniform, box / solid ratio in brackets; ``benchmarks/results/tetwild/``): lucy.ply (21.3)
-#: 211 / 409, homer.obj (11.3) 54 / 137, elephant.obj (10.7) 67 / 89, bunny.off (7.3) 68 / 90,
-#: angle_block.stl (3.0) 17.9 / 18.4. Same tets within 8%. An earlier loaded run had bunny 59.5 / 51.1 and
-#: angle_block 24.7 / 15.7: below a ratio of 8 the sign of the gain is not settled, so it stays off there.
+#: graded / uniform, box / solid ratio in brackets; ``benchmarks/results/tetwild/tetwild_outside.json``
+#: and ``_v0.json``): lucy.ply (21.3) 211.2 / 409.2, homer.obj (11.3) 57.1 / 133.7 and 54.4 / 136.9,
+#: elephant.obj (10.7) 66.6 / 88.5, bunny.off (7.3) 67.6 / 89.7, angle_block.stl (3.0) 17.9 / 18.4;
+#: tets within 9%. An earlier loaded run (no JSON) had bunny 59.5 / 51.1 and angle_block 24.7 / 15.7:
+#: below a ratio of 8 the sign of the gain is not settled, so the uniform box stays there.
 OUTER_EDGE_FACTOR = 3.0
 #: box / solid volume ratio from which :data:`OUTER_EDGE_FACTOR` applies (see :func:`box_ratio`)
 OUTER_BOX_RATIO = 8.0

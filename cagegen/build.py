@@ -15,7 +15,7 @@ import numpy as np
 
 from ._geometry import as_mesh_arrays, bbox_diagonal, signed_volume
 from .audit import MeshAudit, check_mesh
-from .errors import CageError, CageOptionError, LevelsError, MeshInputError
+from .errors import CageError, CageOptionError, CageTypeError, LevelsError, MeshInputError
 from .options import CageOptions, cage_options
 from .registry import backend_spec, get_backend, get_schedule, options_class
 from .sizes import check_face_counts, default_face_counts
@@ -259,7 +259,7 @@ def _reporter(progress) -> Callable[[str], None] | None:
         return lambda msg: print(f"[cagegen] {msg}", file=sys.stderr, flush=True)
     if callable(progress):
         return progress
-    raise TypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
+    raise CageTypeError(f"progress must be a bool or a callable, got {type(progress).__name__}")
 
 
 def _face_counts(face_counts, levels: int | None, n_faces: int) -> list[int]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from solvers.errors import NestmgError
 
-__all__ = ["BackendUnavailableError", "CageError", "CageOptionError", "LevelsError", "MeshInputError", "NestmgError",
+__all__ = ["BackendUnavailableError", "CageError", "CageOptionError", "CageTypeError", "LevelsError", "MeshInputError", "NestmgError",
            "UnknownMethodError"]
 
 
@@ -48,3 +48,7 @@ class LevelsError(NestmgError, ValueError):
 
 class CageOptionError(NestmgError, ValueError):
     """An option of a cage backend, the verifier or a geometry helper has an invalid value (raised before any work)."""
+
+
+class CageTypeError(CageOptionError, TypeError):
+    """An argument of a cagegen function has the wrong type (also a ``TypeError``, as Python's own)."""

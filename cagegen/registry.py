@@ -36,7 +36,7 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .errors import BackendUnavailableError, UnknownMethodError
+from .errors import BackendUnavailableError, CageTypeError, UnknownMethodError
 from .options import CageOptions, DecimateOptions, LazyOptions, NestedOptions, SdfOptions, SkeletonOptions
 
 #: the keywords :func:`cagegen.build_cages` may pass besides the options
@@ -74,9 +74,9 @@ class BackendSpec:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.options, type) and issubclass(self.options, CageOptions)):
-            raise TypeError(f"options must be a subclass of cagegen.CageOptions, got {self.options!r}")
+            raise CageTypeError(f"options must be a subclass of cagegen.CageOptions, got {self.options!r}")
         if not set(self.takes) <= TAKES:
-            raise TypeError(f"takes must be a subset of {sorted(TAKES)}, got {sorted(self.takes)}")
+            raise CageTypeError(f"takes must be a subset of {sorted(TAKES)}, got {sorted(self.takes)}")
 
 
 _BACKENDS: dict[str, BackendSpec | str | Callable] = {

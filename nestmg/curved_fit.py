@@ -22,6 +22,7 @@ from scipy.optimize import minimize
 from solvers.fem_p2 import det3, p2_basis, p2_jacobians, tet_quadrature
 
 from .curved import jacobian_bernstein
+from .errors import NestmgInputError
 
 __all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy"]
 
@@ -38,7 +39,7 @@ def reference_inverse(V: np.ndarray, T: np.ndarray, reference: str = "straight")
     if reference == "regular":
         s = np.cbrt(np.linalg.det(Js) / np.linalg.det(A_TET))
         return np.linalg.inv(s[:, None, None] * A_TET[None])
-    raise ValueError(f"reference must be 'straight' or 'regular', got {reference!r}")
+    raise NestmgInputError(f"reference must be 'straight' or 'regular', got {reference!r}")
 
 
 def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: int = 3,
@@ -89,7 +90,7 @@ def _quadrature_weights(w: np.ndarray, vol: np.ndarray, weighting: str) -> np.nd
         return w[None, :] * vol[:, None] / (vol.sum() / 6.0)
     if weighting == "element":
         return np.broadcast_to(6.0 * w[None, :] / len(vol), (len(vol), len(w)))
-    raise ValueError(f"weighting must be 'volume' or 'element', got {weighting!r}")
+    raise NestmgInputError(f"weighting must be 'volume' or 'element', got {weighting!r}")
 
 
 class FitResult(dict):

@@ -40,7 +40,7 @@ class _DenseFactor:
             else:
                 self.c = sla.lu_factor(Ad, check_finite=False)
         except (sla.LinAlgError, ValueError) as e:
-            raise RuntimeError(str(e)) from None
+            raise SolverError(str(e)) from None  # a RuntimeError: caught by the callers below
         n = Ad.shape[0]
         self.L = self.U = sp.csr_matrix((n, n))
         self.nnz = n * (n + 1)

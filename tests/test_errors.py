@@ -121,3 +121,58 @@ def test_one_root_across_the_three_packages():
         solvers.MultigridSolver(np.eye(3), [], nullspace="affine")
     except cagegen.NestmgError as exc:  # one except clause for every package
         assert isinstance(exc, solvers.SolverInputError)
+
+
+def _all_exception_classes(package) -> list[type]:
+    """Every exception class defined in ``package``'s importable modules, private ones included."""
+    found = []
+    for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+        try:
+            mod = importlib.import_module(info.name)
+        except ImportError:
+            continue
+        found += [obj for obj in vars(mod).values() if inspect.isclass(obj) and issubclass(obj, Exception)
+                  and not issubclass(obj, Warning) and obj.__module__ == mod.__name__]
+    return found
+
+
+def test_every_exception_class_of_the_three_packages_derives_from_the_root():
+    """Walk the three packages' exception classes: each derives from ``NestmgError``, except a private
+    control-flow signal that its own module raises and catches (it never reaches a caller)."""
+    classes = [c for pkg in (cagegen, nestmg, solvers) for c in _all_exception_classes(pkg)]
+    names = {f"{c.__module__}.{c.__name__}" for c in classes}
+    assert {"cagegen.errors.CageTypeError", "solvers.errors.SolverError", "nestmg.errors.NestmgInputError",
+            "nestmg.options.OptionError", "cagegen.options.OptionFieldError"} <= names
+    assert issubclass(nestmg.OptionError, nestmg.NestmgError) and issubclass(cagegen.CageOptionError,
+                                                                                solvers.NestmgError)
+    outside = []
+    for c in classes:
+        if issubclass(c, solvers.errors.NestmgError):
+            continue
+        src = Path(inspect.getsourcefile(c)).read_text()
+        if not (c.__name__.startswith("_") and re.search(rf"except\s*\(?[^:]*\b{c.__name__}\b", src)):
+            outside.append(f"{c.__module__}.{c.__name__}")
+    assert not outside, f"exceptions outside the root NestmgError: {outside}"
+
+
+def test_no_bare_builtin_exception_is_raised_on_purpose():
+    """A deliberate ``raise`` uses a class of the root (``NestmgInputError``, ``CageError``,
+    ``SolverError``...), never a bare ``ValueError`` / ``RuntimeError`` / ``TypeError``."""
+    builtin = re.compile(r"\braise\s+(ValueError|RuntimeError|TypeError|KeyError|IndexError|Exception|OSError"
+                         r"|NotImplementedError|FileNotFoundError|ImportError|MemoryError|LookupError)\b")
+    offenders = [f"{p.relative_to(ROOT)}:{i}" for pkg in ("cagegen", "nestmg", "solvers")
+                 for p in sorted((ROOT / pkg).rglob("*.py"))
+                 for i, line in enumerate(p.read_text().splitlines(), 1) if builtin.search(line.split("#")[0])]
+    assert not offenders, offenders
+    assert builtin.search("        raise RuntimeError(str(e)) from None")
+
+
+def test_the_former_bare_raises_are_errors_of_the_root():
+    with pytest.raises(cagegen.CageTypeError, match="progress must be") as ei:
+        cagegen.build_cages(*shapes.sphere(res=6), 3, method="decimate", progress=3)
+    assert isinstance(ei.value, TypeError) and isinstance(ei.value, cagegen.NestmgError)
+    from nestmg.curved_fit import reference_inverse  # noqa: PLC0415
+    V, T = np.vstack([np.zeros(3), np.eye(3)]), np.array([[0, 1, 2, 3]])
+    assert reference_inverse(V, T, "straight").shape == (1, 3, 3)
+    with pytest.raises(nestmg.NestmgInputError, match="reference must be"):
+        reference_inverse(V, T, "curved")

@@ -105,10 +105,10 @@ def genus(V: np.ndarray, F: np.ndarray) -> int | None:
 
 
 def _candidate(V, F32, d, n_faces, grid_size, decimation, self_union):
-    """Offset by ``d``, decimate to ``n_faces``, self-union. Returns (U, G) or raises RuntimeError."""
+    """Offset by ``d``, decimate to ``n_faces``, self-union. Returns (U, G) or raises CageError (a RuntimeError)."""
     Uo, Go = _gp_offset_surface(V, F32, float(d), int(grid_size))
     if len(Go) == 0:
-        raise RuntimeError("empty offset surface")
+        raise CageError("empty offset surface")
     if len(Go) > n_faces:
         U, G, _, _ = _gp_decimate(np.asarray(Uo, float), np.asarray(Go, np.int32), num_faces=int(n_faces),
                                   method=decimation)
@@ -120,7 +120,7 @@ def _candidate(V, F32, d, n_faces, grid_size, decimation, self_union):
     U = np.ascontiguousarray(U, dtype=np.float64)
     G = np.ascontiguousarray(G, dtype=np.int64)
     if len(G) == 0:
-        raise RuntimeError("empty cage after decimation / self-union")
+        raise CageError("empty cage after decimation / self-union")
     used = np.unique(G)  # drop unreferenced vertices left by the collapses or the boolean
     if used.size != len(U):
         remap = np.full(len(U), -1, dtype=np.int64)

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg  # noqa: F401  (sp.linalg.splu)
 
-from ..errors import CageOptionError
+from ..errors import CageError, CageOptionError
 
 __all__ = [
     "COPYLEFT_ENERGIES",
@@ -198,7 +198,7 @@ class VolumetricARAPEnergy(SurfaceARAPEnergy):
         nodes, T = tetgen.TetGen(R0, np.asarray(Fc, dtype=np.int64)).tetrahedralize(switches="pYq1.5Q")[:2]
         nodes = np.asarray(nodes, dtype=float)
         if not np.array_equal(nodes[: len(R0)], R0):
-            raise RuntimeError("TetGen reordered or moved the cage vertices")
+            raise CageError("TetGen reordered or moved the cage vertices")
         self.nb = len(R0)
         self.n = len(nodes)
         self.T = np.asarray(T, dtype=np.int64)

@@ -28,7 +28,7 @@ import ipctk
 import numpy as np
 
 from .._geometry import segment_segment_sqdist
-from ..errors import CageOptionError
+from ..errors import CageError, CageOptionError
 from ..intersect import cross_pairs, self_pairs
 from ..collision import PairMesh
 from .simplify import too_close
@@ -409,7 +409,7 @@ def optimize_cage(
         Xf = np.asarray(Vin, dtype=float)
         X = pm.stack(C, Xf)
         if pm.intersects(X):
-            raise RuntimeError("optimize_cage: the start cage intersects")
+            raise CageError("optimize_cage: the start cage intersects")
         f, g = total(pm, X, C, grad=True)
         if E0 is None:
             E0 = f

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._geometry import normalize
-from ..errors import CageError, CageOptionError, MeshInputError
+from ..errors import CageError, CageOptionError, CageTypeError, MeshInputError
 from ..verify import verify_nesting
 from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_radius, tight_cage,
                    untangle_sections)
@@ -98,7 +98,7 @@ def _as_skeleton(skeleton) -> Skeleton:
         return read_skeleton(skeleton)
     if isinstance(skeleton, (tuple, list)) and len(skeleton) in (2, 3):
         return Skeleton(*skeleton)
-    raise TypeError("skeleton must be a Skeleton, a path to a .skel file, or (nodes, edges[, bending])")
+    raise CageTypeError("skeleton must be a Skeleton, a path to a .skel file, or (nodes, edges[, bending])")
 
 
 def _tangent(S: Skeleton, chain, i: int, reach: float) -> np.ndarray:

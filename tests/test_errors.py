@@ -162,7 +162,8 @@ def test_no_bare_builtin_exception_is_raised_on_purpose():
                          r"|NotImplementedError|FileNotFoundError|ImportError|MemoryError|LookupError)\b")
     offenders = [f"{p.relative_to(ROOT)}:{i}" for pkg in ("cagegen", "nestmg", "solvers")
                  for p in sorted((ROOT / pkg).rglob("*.py"))
-                 for i, line in enumerate(p.read_text().splitlines(), 1) if builtin.search(line.split("#")[0])]
+                 for i, line in enumerate(p.read_text().splitlines(), 1)
+                 if builtin.search(line.split("#")[0])]
     assert not offenders, offenders
     assert builtin.search("        raise RuntimeError(str(e)) from None")
 

@@ -171,8 +171,6 @@ class NestedOptions(CageOptions):
     max_move: float = field_spec(5e-3, "largest vertex move per re-inflation step / diagonal", low=0.0,
                                  strict=True)
     final_iters: int = field_spec(60, "iterations of the final energy", low=0)
-    clearance: str = field_spec("reinflate", "how the clearance is built",
-                                choices=("reinflate", "offset", "flow"))
 
 
 @dataclass(frozen=True)

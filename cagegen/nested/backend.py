@@ -53,7 +53,6 @@ _DEFAULTS = {
     "kappa_final": 1e3,
     "max_move": 5e-3,
     "final_iters": 60,
-    "clearance": "reinflate",
 }
 
 
@@ -222,7 +221,6 @@ def nest_pair(
     max_move: float = 5e-3,
     final_iters: int = 60,
     gap: float = 0.0,
-    clearance: str = "reinflate",
     reporter: _Reporter | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Deform the target Ĉ = ``(Vc, Fc)`` into a cage that nests the fine surface ``(Vf, Ff)``.
@@ -259,16 +257,12 @@ def nest_pair(
         Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
     gap : float
         Absolute clearance to keep between the cage and the fine surface (0: any positive gap).
-    clearance : {"offset", "reinflate", "flow"}
-        How the clearance is built (docs/scale.md compares them). ``"reinflate"`` (default): the fine
-        surface itself is flowed and re-inflated, and one last reverse step moves it from its rest pose
-        to its offset surface (:func:`offset_surface`), pushing the cage out by the gap. ``"offset"``:
-        a tight cage is built first, then pushed out along its normals by the gap (:func:`push_out`,
-        CCD-bounded so it never meets itself or the fine surface), with ``"reinflate"`` when blocked
-        (it was, in concave creases, on the gargoyle).
-        ``"flow"``: the offset surface is flowed and re-inflated instead (the original way; it took 15x
-        the no-clearance time on an 86k-face scan, where flowing the offset took 15 min; on the inputs
-        of docs/scale.md it cost 1.2-1.4x, ``"reinflate"`` 1.35-1.6x).
+        The clearance is built into the re-inflation: the fine surface itself is flowed and
+        re-inflated, and one last reverse step moves it from its rest pose to its offset surface
+        (:func:`offset_surface`), pushing the cage out by the gap. (Two other ways were measured and
+        deleted, docs/history/scale.md: the tight cage pushed out along its normals, blocked in concave
+        creases on the gargoyle; the offset surface flowed instead, 15x the no-clearance time on an
+        86k-face scan.)
     reporter : optional
         Progress reporter (internal).
 
@@ -286,40 +280,10 @@ def nest_pair(
     """
     rep = reporter or _Reporter(False)
     info: dict = {"seconds": {}}
-    if clearance not in ("offset", "reinflate", "flow"):
-        raise CageOptionError(f"clearance must be 'offset', 'reinflate' or 'flow', got {clearance!r}")
-    if gap > 0 and clearance == "offset":
-        # tight cage first (no clearance: the fast path), then the cage itself is pushed out by the gap
-        C, info = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
-                            flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window,
-                            flow_stall_iter=flow_stall_iter, flow_expand_after=flow_expand_after,
-                            flow_max_expansions=flow_max_expansions, dhat=dhat,
-                            kappa=kappa, dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
-                            final_iters=final_iters, gap=0.0,
-                            reporter=rep)
-        t = time.perf_counter()
-        rep.phase("clearance (cage offset)", None)
-        C2, oinfo = push_out(C, Fc, Vf, Ff, gap)
-        info["seconds"]["clearance"] = time.perf_counter() - t
-        info["clearance"] = oinfo
-        if C2 is not None:
-            return C2, info
-        # blocked (the cage would meet itself, e.g. between close parts): build the clearance into the
-        # re-inflation instead, with the fine surface's offset as its rest pose
-        rep.say(f"cage offset blocked ({oinfo['reason']}); building the clearance by re-inflation")
-        C, info2 = nest_pair(Vf, Ff, Vc, Fc, energy=energy, quad_order=quad_order, flow_step=flow_step,
-                             flow_max_iter=flow_max_iter, flow_stall_window=flow_stall_window,
-                             flow_stall_iter=flow_stall_iter, flow_expand_after=flow_expand_after,
-                             flow_max_expansions=flow_max_expansions, dhat=dhat,
-                             kappa=kappa, dhat_final=dhat_final, kappa_final=kappa_final, max_move=max_move,
-                             final_iters=final_iters, gap=gap,
-                             clearance="reinflate", reporter=rep)
-        info2["clearance"] = dict(oinfo, fallback="reinflate")
-        return C, info2
     Vf, Ff, info["split"] = _split_for_flow(Vf, Ff, Vc, Fc)
     Vc, info["dilation"] = _dilate_target(Vc, Fc, 2.0 * gap if gap > 0 else flow_step)
     target = offset_surface(Vf, Ff, gap) if gap > 0 else np.array(Vf, dtype=float)
-    flowed = target if clearance == "flow" else np.array(Vf, dtype=float)
+    flowed = np.array(Vf, dtype=float)
 
     t = time.perf_counter()
     upd = rep.phase("flow", flow_max_iter)
@@ -337,7 +301,7 @@ def nest_pair(
     if fl.expansions:
         Vc = fl.target  # the flow expanded Ĉ where it got stuck
     history = fl.history
-    if gap > 0 and clearance == "reinflate":
+    if gap > 0:
         # the offset surface becomes the rest pose: the last reverse steps carry the fine surface from
         # its own rest pose out to the offset, and the barrier pushes the cage ahead of it
         history = [target, *history]

@@ -200,7 +200,6 @@ class SdfOptions(CageOptions):
     flip_rounds: int = field_spec(1, "rounds of edge flips", low=0)
     opt_time_limit: float = field_spec(30.0, "CPU seconds of the descent", low=0.0)
     pull: float = field_spec(50.0, "weight of the input-to-cage pull (0: off)", low=0.0)
-    concave: float = field_spec(0.0, "concavity amplification threshold, in units of c (0: off)", low=0.0)
     prepass: bool = field_spec(True, "allow the plain-QEM pre-pass")
     max_retries: int = field_spec(3, "rebuilds with c doubled", low=0)
     hug: float = field_spec(0.1, "spacing target near active points, in units of c (0: off)", low=0.0)

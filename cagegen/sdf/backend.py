@@ -211,7 +211,6 @@ def sdf_cage_layer(
     flip_rounds: int = 1,
     opt_time_limit: float = 30.0,
     pull: float = 50.0,
-    concave: float = 0.0,
     prepass: bool = True,
     max_retries: int = 3,
     min_gap: float = 0.0,
@@ -264,9 +263,6 @@ def sdf_cage_layer(
         Weight of the input-to-cage pull in the optimisation (not in the paper; 0 = off): input
         vertices farther than ``c`` from the cage (concavities the envelope bridged) pull the cage
         toward them, under the same barrier and CCD (:func:`cagegen.sdf.optimize.optimize_cage`, ``w_p``).
-    concave : float
-        Not in the paper (0 = off): input vertices farther than ``concave * c`` from a first envelope
-        (concavities it bridges) also amplify the field, locally (:func:`cagegen.envelope.build_envelope`).
     prepass : bool
         Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
     max_retries : int
@@ -413,7 +409,7 @@ def _first_envelope(opts, Vn, F, n_faces, ck, attempt, g_fine):
     """Step 1a: the envelope at offset ``ck``, on a finer grid when it has too few faces to simplify."""
     h = opts.h
     env = build_envelope(Vn, F, c=ck, h=ck if h is None else h * 2.0 ** attempt, amplify=opts.amplify,
-                         r=opts.r, l=opts.l, alpha=opts.alpha, beta=opts.beta, concave=opts.concave)
+                         r=opts.r, l=opts.l, alpha=opts.alpha, beta=opts.beta)
     # the envelope must contain the fine layer: marching cubes on a grid of spacing ~c can cut
     # through sharp features of a coarse input; and it should have the fine layer's genus (paper
     # Sec. 3.1: the amplified field separates nearly-touching parts only where the grid resolves
@@ -427,7 +423,7 @@ def _first_envelope(opts, Vn, F, n_faces, ck, attempt, g_fine):
         # (faces ~ 1 / h^2), at most 4x finer
         h2 = hk * max(0.25, float(np.sqrt(len(env.F) / (ENVELOPE_OVER_TARGET * n_faces))))
         env2 = build_envelope(Vn, F, c=ck, h=h2, amplify=opts.amplify, r=opts.r, l=opts.l, alpha=opts.alpha,
-                              beta=opts.beta, concave=opts.concave)
+                              beta=opts.beta)
         # ... unless the finer grid resolves a merge of two parts the coarse one did not (a handle:
         # gargo subdivided twice, genus 0 at h = c, 1 at 0.59 c): the genus comes first
         g0 = genus(env.V, env.F)
@@ -451,7 +447,7 @@ def _envelope_step(opts, Vn, F, n_faces, ck, attempt, g_fine):
         hk *= 0.5
         refine += 1
         env = build_envelope(Vn, F, c=ck, h=hk, amplify=opts.amplify, r=opts.r, l=opts.l, alpha=opts.alpha,
-                             beta=opts.beta, concave=opts.concave)
+                             beta=opts.beta)
         k_cross = len(cross_intersection_pairs(env.V, env.F, Vn, F))
         g_env = genus(env.V, env.F)
         tried_env.append({"h": hk, "crossings": k_cross, "genus": g_env})

@@ -230,9 +230,6 @@ class SkeletonOptions(CageOptions):
                                     low=0.0, strict=True)
     tet_edge_length: float | None = field_spec(None, "field tet edge / diagonal (default from the radii)",
                                                low=0.0, strict=True, kind=float)
-    tet_epsilon: float = field_spec(1e-3, "TetWild envelope of the field's mesh / diagonal", low=0.0,
-                                    strict=True)
-    mesher: str = field_spec("delaunay", "tet mesh of the guiding field", choices=("delaunay", "tetwild"))
     preinflate_rounds: int = field_spec(3, "pre-inflation rounds", low=0)
     drop_bad_sections: bool = field_spec(True, "drop a bending node whose section breaks the junction hull")
     relocate_sections: bool = field_spec(True, "move sections that few integral lines reach")

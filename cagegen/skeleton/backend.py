@@ -161,8 +161,6 @@ def skeleton_cage(
     n_seeds: int = 20,
     seed_radius: float = 0.2,
     tet_edge_length: float | None = None,
-    tet_epsilon: float = 1e-3,
-    mesher: str = "delaunay",
     preinflate_rounds: int = 3,
     drop_bad_sections: bool = True,
     relocate_sections: bool = True,
@@ -195,14 +193,8 @@ def skeleton_cage(
     n_seeds, seed_radius : int, float
         Seeds per section and their circle radius as a fraction of the inscribed radius (paper: 20, 0.2).
     tet_edge_length : float, optional
-        TetWild target edge length, fraction of the bounding-box diagonal (default: half the smallest
+        Edge length of the guiding field's tet mesh, fraction of the bounding-box diagonal (default: half the smallest
         inscribed radius at a control node, clamped to [0.015, 0.03]).
-    tet_epsilon : float
-        TetWild envelope (fraction of the diagonal).
-    mesher : {"delaunay", "tetwild"}
-        Tet mesh of the guiding field: ``"delaunay"`` (default; scipy's Qhull on the surface vertices,
-        an interior grid and the skeleton samples, tets kept by winding number: seconds) or
-        ``"tetwild"`` (pytetwild, conforming, minutes on a loaded 2-core machine).
     preinflate_rounds : int
         Pre-inflation rounds (paper: 1).
     drop_bad_sections : bool
@@ -307,7 +299,7 @@ def skeleton_cage(
     sec["bending"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    field, rad_of = _field_step(S, chain_controls, Vn, F, tet_edge_length, tet_epsilon, mesher, info, say)
+    field, rad_of = _field_step(S, chain_controls, Vn, F, tet_edge_length, info, say)
     sec["field"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -424,16 +416,16 @@ def _bending_step(S, Vn, F, bending, info, say):
     return S, chain_controls, spacing
 
 
-def _field_step(S, chain_controls, Vn, F, tet_edge_length, tet_epsilon, mesher, info, say):
+def _field_step(S, chain_controls, Vn, F, tet_edge_length, info, say):
     """Step 3: inscribed radii at the control nodes, the tet mesh and the harmonic guiding field."""
     ctrl_nodes = sorted({n for _, c in chain_controls for n in c})
     radii = inscribed_radius(S.nodes[ctrl_nodes], Vn, F)
     rad_of = dict(zip(ctrl_nodes, radii))
     h = tet_edge_length if tet_edge_length is not None else float(np.clip(0.5 * radii.min(), 0.015, 0.03))
     samples = S.resampled(h / 2).nodes
-    say(f"field: {mesher} tets (edge {h:.3g}) + harmonic solve")
-    field = GuidingField(Vn, F, samples, edge_length=h, epsilon=tet_epsilon, mesher=mesher)
-    info["field"] = {"mesher": mesher, "edge_length": h, "n_tets": field.n_tets, "n_nodes": field.n_nodes,
+    say(f"field: delaunay tets (edge {h:.3g}) + harmonic solve")
+    field = GuidingField(Vn, F, samples, edge_length=h)
+    info["field"] = {"edge_length": h, "n_tets": field.n_tets, "n_nodes": field.n_nodes,
                      "skeleton_offset": field.skeleton_offset, "seconds": field.seconds}
     return field, rad_of
 

@@ -1,14 +1,10 @@
 """The guiding harmonic field of Casti et al. (2019), Sec. 3.1, and its integral lines.
 
-Tet mesh of the interior of M, two choices:
-
-* ``"delaunay"`` (default): scipy's Qhull Delaunay tetrahedralisation of the surface vertices, a
-  body-centred lattice of spacing h inside M and the skeleton samples; tets whose centroid has
-  winding number > 1/2 are kept. The skeleton samples are tet nodes, so f = 0 is imposed exactly on
-  points of S (the paper embeds S as chains of tet edges). Seconds; the boundary approximates M.
-* ``"tetwild"``: pytetwild (MPL-2.0), conforming to M within ``epsilon``; f = 0 on the tet nodes
-  nearest to dense samples of S (their distance to S is :attr:`GuidingField.skeleton_offset`).
-  Minutes on a loaded 2-core machine, hence not the default. TetGen (AGPL) is not used.
+Tet mesh of the interior of M: scipy's Qhull Delaunay tetrahedralisation of the surface vertices, a
+body-centred lattice of spacing h inside M and the skeleton samples; tets whose centroid has winding
+number > 1/2 are kept. The skeleton samples are tet nodes, so f = 0 is imposed exactly on points of S
+(the paper embeds S as chains of tet edges). Seconds; the boundary approximates M. (A conforming TetWild
+mesh was tried and deleted: minutes on a loaded 2-core machine, docs/history/skeleton.md.)
 
 With f = 1 on the boundary nodes, f solves the cotangent-Laplace problem ``Δf = 0`` (libigl
 ``cotmatrix``, scipy direct solve). f is linear per tet, so ∇f is piecewise constant and its exact
@@ -26,8 +22,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
-from .._tempdir import in_temp_dir
-from ..errors import CageError, CageOptionError
+from ..errors import CageError
 
 __all__ = ["GuidingField", "guiding_field"]
 
@@ -69,32 +64,17 @@ class GuidingField:
         ``tetmesh`` and ``solve`` timings.
     """
 
-    def __init__(self, V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, edge_length: float,
-                 epsilon: float = 1e-3, mesher: str = "delaunay"):
+    def __init__(self, V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, edge_length: float):
         self.V, self.F = V, F
         self.edge_length = float(edge_length)
         self.seconds = {}
-        self.mesher = mesher
         t0 = time.perf_counter()
-        n_skel = 0
-        if mesher == "tetwild":
-            try:
-                import pytetwild
-
-                with in_temp_dir("cagegen-tetwild-"):
-                    TV, TT = pytetwild.tetrahedralize(V, F.astype(np.int32), edge_length_abs=float(edge_length),
-                                                      epsilon=float(epsilon), quiet=True)
-            except Exception as exc:  # pytetwild raises RuntimeError on bad input
-                raise CageError(f"skeleton cage, guiding field: TetWild failed: {exc}", layer=1) from exc
-        elif mesher == "delaunay":
-            TV, TT = _delaunay_tets(V, F, skel_points, float(edge_length))
-            n_skel = len(skel_points)
-        else:
-            raise CageOptionError(f"mesher must be 'delaunay' or 'tetwild', got {mesher!r}")
+        TV, TT = _delaunay_tets(V, F, skel_points, float(edge_length))
+        n_skel = len(skel_points)
         TV = np.asarray(TV, dtype=np.float64)
         TT = np.asarray(TT, dtype=np.int64)
         if len(TT) == 0:
-            raise CageError(f"skeleton cage, guiding field: {mesher} produced no tets", layer=1)
+            raise CageError("skeleton cage, guiding field: the Delaunay mesh has no tet inside", layer=1)
         used = np.unique(TT)
         remap = np.full(len(TV), -1)
         remap[used] = np.arange(len(used))
@@ -332,7 +312,6 @@ def _delaunay_tets(V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, h: flo
     return P, T
 
 
-def guiding_field(V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, edge_length: float,
-                  epsilon: float = 1e-3, mesher: str = "delaunay") -> GuidingField:
+def guiding_field(V: np.ndarray, F: np.ndarray, skel_points: np.ndarray, edge_length: float) -> GuidingField:
     """Build the :class:`GuidingField` of the surface ``(V, F)`` and skeleton samples ``skel_points``."""
-    return GuidingField(V, F, skel_points, edge_length, epsilon, mesher)
+    return GuidingField(V, F, skel_points, edge_length)

@@ -21,7 +21,7 @@ Usage::
         --out benchmarks/results/skeleton/cages_skeleton.json --png docs/images/skeleton
 
 ``--opt KEY=VALUE`` (repeatable): extra :func:`cagegen.skeleton.skeleton_cage` keywords for every case,
-e.g. ``--opt refine_levels=1 --opt face_neighbours=4.0`` (recorded under ``options``).
+e.g. ``--opt min_gap=0.0025 --opt containment='flow'`` (recorded under ``options``).
 
 ``--min-nested``: per certified case, the smallest ``nested`` face count whose max distance is at most
 the skeleton cage's (:func:`smallest_nested`), instead of the one nested cage at equal face count.
@@ -303,7 +303,7 @@ def main(argv=None) -> dict:
                     help="only hierarchies (skeleton cage coarsest) beside nested-only, V-cycles: the stick "
                          "figure (no CASE) or zoo file names (with --zoo)")
     ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
-                    help="extra skeleton_cage keyword (Python literal value), e.g. --opt refine_levels=1")
+                    help="extra skeleton_cage keyword (Python literal value), e.g. --opt min_gap=0.0025")
     args = ap.parse_args(argv)
     import ast
 

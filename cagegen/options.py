@@ -237,11 +237,6 @@ class SkeletonOptions(CageOptions):
     skeleton_cache: Any = field_spec(None, "None ($NESTMG_CACHE/skeleton), False or a path", kind=object,
                                      cli=False)
     untangle: bool = field_spec(True, "flatten degenerate or crossing sections before each assembly")
-    face_neighbours: float | None = field_spec(None, "turn sections to face a limb closer than this many "
-                                                     "inscribed radii", low=0.0, kind=float)
-    refine_levels: int = field_spec(0, "refinement levels of the polish", low=0)
-    recentre: float = field_spec(0.0, "recentre nodes below this fraction of the chain's median radius",
-                                 low=0.0)
     containment: str = field_spec("mesh", "how the cage comes to contain M: mesh (M swept down the guiding "
                                           "field, re-inflated) or flow (the Nested Cages flow)",
                                   choices=("mesh", "flow"))

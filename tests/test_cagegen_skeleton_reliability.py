@@ -261,34 +261,6 @@ def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
 
 
 # ----------------------------------------------------------------------------- recentring nodes on M
-def test_recentre_moves_nodes_on_the_surface_back_to_the_medial_axis(star):
-    """A skeleton elbow and the junction deliberately put on M (inscribed radius 0) are moved back
-    near the capsule's axis / into the ball (radius close to the shape's), the tips (leaves, away from
-    M) and the other nodes stay bit-identical, the edges are unchanged; the cleaning applies it only
-    when asked (``recentre > 0``)."""
-    V, F, S = star
-    P = S.nodes.copy()
-    _, _, C = igl.point_mesh_squared_distance(np.array([[0.6, 0.25, 0.0], [0.0, 0.0, 0.45]]), V, F)
-    P[1], P[0] = C[0], C[1]  # elbow of the +x arm (capsule radius 0.2), junction (ball radius 0.4)
-    r0 = np.sqrt(igl.point_mesh_squared_distance(P, V, F)[0])
-    assert r0[0] < 1e-9 and r0[1] < 1e-9
-    bad = Skeleton(P, S.edges.copy())
-    Q, log = extract.recentre_nodes(bad, V, F, 0.25)
-    assert sorted(e["node"] for e in log) == [0, 1]
-    r = np.sqrt(igl.point_mesh_squared_distance(Q, V, F)[0])
-    assert r[1] > 0.17 and np.hypot(Q[1, 1], Q[1, 2]) < 0.03 and abs(Q[1, 0] - 0.6) < 0.03
-    assert r[0] > 0.3
-    np.testing.assert_array_equal(Q[2:], P[2:])
-    assert np.all(igl.winding_number(V, F, Q) > 0.5)
-    # through the cleaning: off by default, on with recentre > 0 (same edges)
-    S0, info0 = extract._clean(P, S.edges, V, F, 2.0, 0.0)
-    S1, info1 = extract._clean(P, S.edges, V, F, 2.0, 0.0, recentre=0.25)
-    # (the junction exactly on M may count as outside and be moved by the cleaning's own step)
-    assert "recentred" not in info0 and 1 in [e["node"] for e in info1["recentred"]]
-    assert np.sqrt(igl.point_mesh_squared_distance(S0.nodes, V, F)[0]).min() < 1e-3
-    np.testing.assert_array_equal(S0.edges, S1.edges)
-    r1 = np.sqrt(igl.point_mesh_squared_distance(S1.nodes, V, F)[0])
-    assert r1.min() > 0.1
 
 
 # ----------------------------------------------------------------------------- failures keep what was built

@@ -38,7 +38,7 @@ from .cage import (JunctionError, auto_bending_nodes, cross_section, inscribed_r
                    untangle_sections)
 from .field import GuidingField
 from .graph import Skeleton, read_skeleton
-from .inflate import pre_inflate, refine_polish
+from .inflate import pre_inflate
 
 __all__ = ["SkeletonCage", "skeleton_backend", "skeleton_cage"]
 
@@ -111,22 +111,6 @@ def _tangent(S: Skeleton, chain, i: int, reach: float) -> np.ndarray:
     return t / np.linalg.norm(t)
 
 
-def _neighbour_direction(S: Skeleton, chain, m: int, V: np.ndarray, F: np.ndarray):
-    """Vector from skeleton node ``m`` of ``chain`` to the closest node of another limb, or None.
-
-    Nodes of the chain itself and nodes within 1.5 inscribed radii of the chain's branching end(s) (the
-    junction, where limbs meet anyway) do not count."""
-    others = np.setdiff1d(np.arange(len(S.nodes)), np.asarray(chain.nodes))
-    for e in (chain.nodes[0], chain.nodes[-1]):
-        if S.degree[e] >= 3:
-            re = float(inscribed_radius(S.nodes[e], V, F)[0])
-            others = others[np.linalg.norm(S.nodes[others] - S.nodes[e], axis=1) > 1.5 * re]
-    if len(others) == 0:
-        return None
-    D = S.nodes[others] - S.nodes[m]
-    return D[int(np.argmin(np.linalg.norm(D, axis=1)))]
-
-
 def _section_positions(S: Skeleton, chain, i: int, radius: float, leaf):
     """Chain indices to try for the section of the chain's i-th node: i first, then (``leaf`` False)
     alternately farther on both sides up to ``radius`` of arc length, or (``leaf`` True) inwards up to
@@ -171,9 +155,6 @@ def skeleton_cage(
     progress=None,
     skeleton_cache=None,
     untangle: bool = True,
-    face_neighbours: float | None = None,
-    refine_levels: int = 0,
-    recentre: float = 0.0,
     containment: str = "mesh",
     **nested_opts,
 ) -> SkeletonCage:
@@ -233,23 +214,6 @@ def skeleton_cage(
         orthogonal to the skeleton (:func:`cagegen.skeleton.cage.untangle_sections`; recorded in
         ``info["sections_flattened"]``). False: leave such folds to the recoveries (dropping bending
         nodes).
-    face_neighbours : float, optional
-        Turn nearly round sections so that a face, not a corner, faces the closest other limb when that
-        limb's skeleton is closer than ``face_neighbours`` x the section's inscribed radius (nodes
-        near the chain's own junction excluded); ``info["sections_faced"]`` lists the sections with such a
-        limb (the quad turns only where the section is nearly round,
-        :func:`cagegen.skeleton.cage.best_quad`). None: the
-        previous section's axis along the chain (default).
-    refine_levels : int
-        When vertices of M are still outside the pre-inflated cage after the polish: levels of
-        :func:`cagegen.skeleton.inflate.refine_polish` (split the cage faces there 1-to-4, push again;
-        the split faces leave ``quads`` for ``tris``); ``info["pre_inflation"]["refine"]``. 0: none
-        (default).
-    recentre : float
-        Automatic skeletons only: after the cleaning, move the nodes whose inscribed radius is below
-        ``recentre`` x their chain's median radius (or below 2e-3 of the diagonal) towards the local
-        medial axis (:func:`cagegen.skeleton.extract.recentre_nodes`; ``info["extraction"]["recentred"]``).
-        0: off (default).
     containment : {"mesh", "flow"}
         How the cage is made to contain M (step 7). ``"mesh"`` (default): M swept down the guiding
         field's level sets and collapsed onto the skeleton nodes inside the pre-inflated cage, then
@@ -291,7 +255,7 @@ def skeleton_cage(
     info: dict = {"method": "skeleton"}
 
     t = time.perf_counter()
-    S, S_in = _skeleton_step(Vn, F, skeleton, bending, diag, center, skeleton_cache, recentre, info, say)
+    S, S_in = _skeleton_step(Vn, F, skeleton, bending, diag, center, skeleton_cache, info, say)
     sec["skeleton"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -304,8 +268,8 @@ def skeleton_cage(
 
     t = time.perf_counter()
     kit = _SectionKit(S, S.degree, Vn, F, field, rad_of, spacing, n_seeds, seed_radius, say)
-    sections, chain_controls = _sections_step(kit, chain_controls, relocate_sections, face_neighbours,
-                                              symmetry, center, diag, info)
+    sections, chain_controls = _sections_step(kit, chain_controls, relocate_sections, symmetry, center, diag,
+                                              info)
     sec["sections"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -313,8 +277,7 @@ def skeleton_cage(
     sec["assembly"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds,
-                                                          refine_levels, info, say,
+    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds, info, say,
                                                           pushes=containment == "flow")
     sec["pre_inflation"] = time.perf_counter() - t
     # what was built, for the result and for the ``exc.partial`` of a later failure
@@ -360,13 +323,13 @@ class _SectionKit(NamedTuple):
     say: Callable
 
 
-def _skeleton_step(Vn, F, skeleton, bending, diag, center, cache, recentre, info, say):
+def _skeleton_step(Vn, F, skeleton, bending, diag, center, cache, info, say):
     """Step 1: the given skeleton (normalised) or an extracted one; its nodes must lie inside M."""
     if skeleton is None:
         from .extract import extract_skeleton
 
         say("skeleton: automatic extraction (pygel3d)")
-        S, xinfo = extract_skeleton(Vn, F, cache=cache, recentre=recentre)
+        S, xinfo = extract_skeleton(Vn, F, cache=cache)
         say(f"skeleton: cache {xinfo['cache']}, digest {xinfo['skeleton_digest'][:12]}")
         info["extraction"] = xinfo
         S_in = S
@@ -430,19 +393,18 @@ def _field_step(S, chain_controls, Vn, F, tet_edge_length, info, say):
     return field, rad_of
 
 
-def _sections_step(kit, chain_controls, relocate_sections, face_neighbours, symmetry, center, diag, info):
+def _sections_step(kit, chain_controls, relocate_sections, symmetry, center, diag, info):
     """Step 4: one quad section per control node, moved or dropped where its integral lines fail."""
     sections = {}
     moved: list = []
     sec_dropped: list = []
-    faced: list = []
     for ch, ctrl in chain_controls:
         ref = None  # first axis of the previous section along the chain (untwisted round sections)
         for n in ctrl:
             if n in sections:
                 ref = sections[n].axis
                 continue
-            cs, first_error = _section_at(kit, ch, n, ref, relocate_sections, face_neighbours, moved, faced)
+            cs, first_error = _section_at(kit, ch, n, ref, relocate_sections, moved)
             if cs is None:
                 others = [c for c in ctrl if c != n]
                 if relocate_sections and kit.deg[n] == 2 and others:
@@ -457,13 +419,10 @@ def _sections_step(kit, chain_controls, relocate_sections, face_neighbours, symm
     if symmetry is not None:  # paper Sec. 3.4: mirror-symmetric sections
         info["symmetry"] = _symmetry_step(sections, symmetry, kit.Vn, kit.F, center, diag, kit.say)
     info["sections_moved"], info["sections_dropped"] = moved, sec_dropped
-    info["sections_faced"] = faced
-    if faced:
-        kit.say(f"sections: {len(faced)} turned to face a neighbouring limb (nodes {faced})")
     return sections, chain_controls
 
 
-def _section_at(kit, ch, n, ref, relocate_sections, face_neighbours, moved, faced):
+def _section_at(kit, ch, n, ref, relocate_sections, moved):
     """The section of control node ``n`` at the first position along its chain where it can be built."""
     S, rad_of = kit.S, kit.rad_of
     i = ch.nodes.index(n)
@@ -472,16 +431,9 @@ def _section_at(kit, ch, n, ref, relocate_sections, face_neighbours, moved, face
         m = ch.nodes[j]
         tan = _tangent(S, ch, j, reach=max(rad_of[n], 2 * kit.spacing))
         rm = rad_of[n] if j == i else float(inscribed_radius(S.nodes[m], kit.Vn, kit.F)[0])
-        ref_m = ref
-        if face_neighbours:
-            d_nb = _neighbour_direction(S, ch, m, kit.Vn, kit.F)
-            if d_nb is not None and np.linalg.norm(d_nb) < face_neighbours * rm:
-                ref_m = d_nb
         try:
             cs = cross_section(kit.field, n, S.nodes[m], tan, rm, n_seeds=kit.n_seeds,
-                               seed_radius=kit.seed_radius, ref=ref_m)
-            if ref_m is not ref:
-                faced.append(int(n))
+                               seed_radius=kit.seed_radius, ref=ref)
         except CageError as exc:
             first_error = exc if j == i else first_error
             continue
@@ -692,24 +644,15 @@ def _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_b
     kit.say(f"assembly: tight cage self-intersects ({len(pairs0)} face pairs), dropping bending node {nd}")
 
 
-def _pre_inflation_step(field, tc, Vn, F, rounds, refine_levels, info, say, pushes=True):
-    """Step 6: pull the tight cage out to M along the integral lines (optionally splitting faces there).
+def _pre_inflation_step(field, tc, Vn, F, rounds, info, say, pushes=True):
+    """Step 6: pull the tight cage out to M along the integral lines.
 
     ``pushes`` False: the paper's step only (no containment, crease or polish pushes: the sweep
     containment does not need M inside the cage, only the skeleton)."""
-    from .._geometry import self_intersection_pairs
-
     Vt, Ft = tc["V"], tc["F"]
     extra = {} if pushes else {"crease_rounds": 0, "polish_rounds": 0}
     Vp, pinfo = pre_inflate(field, Vt, Ft, Vn, F, rounds=rounds, **extra)
     quads_out, tris_out = tc["quads"], tc["tris"]
-    if refine_levels and pinfo.get("polish", {}).get("outside", 0) > 0:
-        Vp, Ft, pinfo["refine"] = refine_polish(Vp, Ft, Vn, F, levels=refine_levels)
-        quads_out, tris_out = _quads_kept(tc["quads"], Ft)
-        for a, b in pinfo["refine"].pop("midpoint_of"):  # the tight cage in the split cage's vertices
-            Vt = np.vstack([Vt, 0.5 * (Vt[a] + Vt[b])])
-        pinfo["self_intersections"] = len(self_intersection_pairs(Vp, Ft))
-        say(f"pre-inflation: faces split where M is outside: {pinfo['refine']['levels']}")
     info["pre_inflation"] = pinfo
     return Vp, Ft, Vt, quads_out, tris_out
 
@@ -865,20 +808,6 @@ def _failure(msg, parts, **kw) -> CageError:
     exc = CageError(msg, layer=1, **kw)
     exc.partial = _cage_result(parts["Vp"] * parts["diag"] + parts["center"], False, parts)
     return exc
-
-
-def _quads_kept(quads: np.ndarray, F: np.ndarray):
-    """Quads whose two triangles are still faces of ``F`` (after :func:`refine_faces`), and the other
-    faces of ``F`` (the split ones and the junction triangles)."""
-    key = {tuple(sorted(f)): i for i, f in enumerate(np.asarray(F).tolist())}
-    keep, used = [], np.zeros(len(F), dtype=bool)
-    for q in np.asarray(quads).tolist():
-        hit = [key[t] for t in (tuple(sorted(c)) for c in ((q[0], q[1], q[2]), (q[0], q[2], q[3]),
-                                                          (q[0], q[1], q[3]), (q[1], q[2], q[3]))) if t in key]
-        if len(hit) == 2:
-            keep.append(q)
-            used[hit] = True
-    return np.asarray(keep, dtype=np.int64).reshape(-1, 4), np.asarray(F, dtype=np.int64)[~used]
 
 
 def _winding(V, F, P):

@@ -44,7 +44,7 @@ import numpy as np
 from ..errors import BackendUnavailableError, CageError, MeshInputError
 from .graph import Skeleton
 
-__all__ = ["extract_skeleton", "recentre_nodes", "skeleton_cache_dir"]
+__all__ = ["extract_skeleton", "skeleton_cache_dir"]
 
 
 def _pygel_version() -> str:
@@ -261,74 +261,8 @@ def _merge_close_branching(P: np.ndarray, E: np.ndarray, V: np.ndarray, F: np.nd
         P, E = P[keep], new[E2]
 
 
-def recentre_nodes(S: Skeleton, V: np.ndarray, F: np.ndarray, frac: float, floor: float = 2e-3,
-                   rounds: int = 3, samples: int = 40) -> tuple[np.ndarray, list]:
-    """Move skeleton nodes that lie on or too near M inward, towards the local medial axis.
-
-    A node is *too near* when its inscribed radius (distance to M) is below ``max(frac x m, floor)``,
-    with ``m`` the largest median inscribed radius of the chains through it (``floor`` in the units
-    of ``V``; the backend works on a unit-diagonal copy); a leaf only when below ``floor``. Such a node is moved along the line through
-    it and its closest point on M (the closest face's normal when it is on M; both senses tried) to
-    the sample, within ``2 m`` of it and inside M (winding number > 0.5), that is farthest from M:
-    a line search for the local medial axis, ``rounds`` times. A node moves only when its distance
-    to M grows; edges are unchanged (the tree is kept).
-
-    Returns (new node positions, list of {"node", "radius_before", "radius_after", "moved"}).
-    """
-    P = np.array(S.nodes, dtype=np.float64, copy=True)
-    d2, _, _ = igl.point_mesh_squared_distance(P, V, F)
-    r = np.sqrt(d2)
-    med = np.zeros(len(P))
-    chains = S.chains()
-    for ch in chains:
-        m = float(np.median(r[ch.nodes]))
-        med[ch.nodes] = np.maximum(med[ch.nodes], m)
-    if len(chains) == 0:
-        med[:] = float(np.median(r))
-    # leaves end a limb near its tip, where M is close by nature (and a leaf's chain median says
-    # little when the chain has two nodes): they move only below the absolute floor
-    thr = np.where(S.degree == 1, floor, np.maximum(frac * med, floor))
-    todo = np.flatnonzero(r < thr)
-    if len(todo) == 0:
-        return P, []
-    nb = [np.array(n, dtype=np.int64) for n in S.neighbors()]
-    FN = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
-    s = np.linspace(0.0, 1.0, samples + 1)[1:]
-    log = []
-    for i in todo:
-        p0 = P[i].copy()
-        r0 = float(r[i])
-        p, rp = p0, r0
-        reach = 2.0 * max(med[i], float(r[nb[i]].max(initial=0.0)), floor)
-        for _ in range(rounds):
-            dd, fi, c = igl.point_mesh_squared_distance(p[None], V, F)
-            dist = float(np.sqrt(dd[0]))
-            d = (p - c[0]) / dist if dist > 1e-9 * reach else FN[int(fi[0])]
-            Q = np.concatenate([p + reach * s[:, None] * d, p - reach * s[:, None] * d])
-            qd2, _, _ = igl.point_mesh_squared_distance(Q, V, F)
-            qd = np.sqrt(qd2)
-            qd[igl.winding_number(V, F, Q) < 0.5] = -1.0
-            # the first local maximum in each sense (the nearest medial sheet, not the far side of
-            # a thick part), then the better of the two senses
-            best = []
-            for h in (qd[:samples], qd[samples:]):
-                j = 0
-                while j + 1 < samples and h[j + 1] > h[j]:
-                    j += 1
-                best.append(j)
-            k = best[0] if qd[best[0]] >= qd[samples + best[1]] else samples + best[1]
-            if qd[k] <= rp * (1.0 + 1e-6):
-                break
-            p, rp = Q[k], float(qd[k])
-        if rp > r0:
-            P[i] = p
-        log.append({"node": int(i), "radius_before": r0, "radius_after": rp,
-                    "moved": float(np.linalg.norm(P[i] - p0))})
-    return P, log
-
-
 def _clean(P: np.ndarray, E: np.ndarray, V: np.ndarray, F: np.ndarray, prune: float,
-           merge: float, recentre: float = 0.0) -> tuple[Skeleton, dict]:
+           merge: float) -> tuple[Skeleton, dict]:
     """The raw graph (P, E) cleaned into a tree inside (V, F) (module docstring); CageError when impossible."""
     P, E, n_nonfinite = _finite_only(np.asarray(P, float), np.asarray(E, np.int64).reshape(-1, 2))
     info = {"raw_nodes": len(P), "raw_edges": len(E), "raw_nonfinite_nodes": n_nonfinite}
@@ -405,9 +339,6 @@ def _clean(P: np.ndarray, E: np.ndarray, V: np.ndarray, F: np.ndarray, prune: fl
                         f"({n_pruned} spurs pruned, {len(junctions_merged)} junctions merged); the shape has no "
                         "limbs for a skeleton cage: give a skeleton or use another method", layer=1)
     S = Skeleton(P, E)
-    if recentre > 0:
-        P, info["recentred"] = recentre_nodes(S, V, F, recentre)
-        S = Skeleton(P, E)
     info.update({"n_nodes": len(P), "n_edges": len(E), "spurs_pruned": n_pruned,
                  "leaves_outside_dropped": dropped, "outside_node_moves": moved, "outside_nodes_merged": merged,
                  "junctions_merged": junctions_merged, "n_leaves": len(S.leaves), "n_branching": len(S.branching)})
@@ -415,8 +346,7 @@ def _clean(P: np.ndarray, E: np.ndarray, V: np.ndarray, F: np.ndarray, prune: fl
 
 
 def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune: float = 2.0,
-                     merge: float = 2.0, cache=None, attempts: int = 3,
-                     recentre: float = 0.0) -> tuple[Skeleton, dict]:
+                     merge: float = 2.0, cache=None, attempts: int = 3) -> tuple[Skeleton, dict]:
     """Curve skeleton of a closed surface (PyGEL3D multi-scale local separators), cleaned to a tree.
 
     Parameters
@@ -438,10 +368,6 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
         always gets the same raw skeleton, hence the same cleaned skeleton (the cleaning is
         deterministic). The raw graph is stored, not the cleaned tree, so changes to the cleaning
         apply to cached entries; an entry whose cleaning fails is extracted again.
-    recentre : float
-        After the cleaning, nodes whose inscribed radius is below ``recentre`` x the median radius of
-        their chain (or below 2e-3) are moved inward towards the local medial axis
-        (:func:`recentre_nodes`; ``info["recentred"]``). 0: off (default).
     attempts : int
         Extractions tried when the cleaned skeleton is unusable (a ``CageError`` of the cleaning: one
         node left, nodes outside M, empty); only a usable raw skeleton is cached.
@@ -477,7 +403,7 @@ def extract_skeleton(V: np.ndarray, F: np.ndarray, grow_thresh: int = 64, prune:
         else:
             P, E = _pygel_graph(V, F, grow_thresh)
         try:
-            S, info = _clean(P, E, V, F, prune, merge, recentre)
+            S, info = _clean(P, E, V, F, prune, merge)
         except (CageError, MeshInputError) as exc:
             failures.append(str(exc))
             if k == 0 and cached is not None:

@@ -17,7 +17,7 @@ import numpy as np
 from .._geometry import self_intersection_pairs
 from .field import GuidingField
 
-__all__ = ["crease_push", "polish", "pre_inflate", "refine_faces", "refine_polish", "unfold"]
+__all__ = ["crease_push", "polish", "pre_inflate", "unfold"]
 
 # barycentric sample pattern per triangle (vertices excluded: they are on M already)
 _B = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4], [2, 2, 1], [2, 1, 2], [1, 2, 2],
@@ -336,92 +336,3 @@ def crease_push(V, F, Vm, rounds: int = 20, clearance: float = 2e-3, fold_cos: f
     folds = int((_fold_cosines(V, F) < fold_cos).any(axis=1).sum())
     return V, {"outside_per_round": log, "outside_input": out_in, "fins_input": fins_in, "best_round": r,
                "outside": n_out, "folds": folds, "fins": int(_fin_mask(V, F, fin_cos).sum())}
-
-
-def refine_faces(V: np.ndarray, F: np.ndarray, mask: np.ndarray):
-    """Split the faces in ``mask`` 1-to-4 at their edge midpoints; a neighbour with one or two split
-    edges is split into 2 or 3 triangles, so the mesh stays conforming (and the surface is unchanged).
-
-    Returns ``(V2, F2, parent, ends)``: ``V2`` starts with ``V``, ``parent[i]`` is the face of ``F``
-    that face i of ``F2`` comes from (orientations kept), ``ends[k]`` the edge whose midpoint is the new
-    vertex ``len(V) + k``.
-    """
-    V = np.asarray(V, dtype=float)
-    F = np.asarray(F, dtype=np.int64)
-    mid: dict = {}
-    new, ends = [], []
-    for f in np.flatnonzero(mask):
-        for k in range(3):
-            a, b = int(F[f, k]), int(F[f, (k + 1) % 3])
-            key = (min(a, b), max(a, b))
-            if key not in mid:
-                mid[key] = len(V) + len(new)
-                new.append(0.5 * (V[a] + V[b]))
-                ends.append(key)
-    out, parent = [], []
-    for f, tri in enumerate(F.tolist()):
-        m = [mid.get((min(x, y), max(x, y))) for x, y in zip(tri, tri[1:] + tri[:1])]
-        cnt = sum(x is not None for x in m)
-        if cnt == 0:
-            pieces = [tri]
-        elif cnt == 3:
-            (a, b, c), (ab, bc, ca) = tri, m
-            pieces = [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
-        else:  # rotate so that edge (a, b) is split, and (b, c) too when two are
-            r = next(r for r in range(3) if m[r] is not None and (cnt == 1 or m[(r + 1) % 3] is not None))
-            a, b, c = tri[r:] + tri[:r]
-            mab, mbc = m[r], m[(r + 1) % 3]
-            pieces = [[a, mab, c], [mab, b, c]] if cnt == 1 else [[mab, b, mbc], [a, mab, mbc], [a, mbc, c]]
-        out += pieces
-        parent += [f] * len(pieces)
-    V2 = np.vstack([V, np.asarray(new).reshape(-1, 3)])
-    return (V2, np.asarray(out, dtype=np.int64), np.asarray(parent, dtype=np.int64),
-            np.asarray(ends, dtype=np.int64).reshape(-1, 2))
-
-
-def refine_polish(V, F, Vm, Fm, levels: int = 1, clearance: float = 2e-3, rounds: int = 12,
-                  backoff: float = 0.1, max_backoff: int = 40, fin_cos: float = -0.9, vertex_rounds: int = 2):
-    """Split the cage faces where M is still outside, then push again (our addition, issue 18).
-
-    Per level: the closest cage face of every vertex, edge midpoint and face centroid of M outside the
-    cage or less than ``clearance`` inside it, and the faces around the cage vertices inside M or less
-    than ``clearance`` outside it, are split 1-to-4 (:func:`refine_faces`; more vertices where the
-    whole faces could not move without meeting a neighbour); then the fin-guarded containment push of
-    :func:`polish` with those samples of M (not only its vertices: the flow fails on M's triangles
-    that a cage corner cuts), and ``vertex_rounds`` rounds moving cage vertices out of M, each followed
-    by that push.
-
-    Returns ``(V, F, info)``: ``info["levels"]`` per level: ``marked`` faces, ``faces`` after the
-    split, vertices of M ``outside`` and ``samples_outside`` the cage, ``cage_vertices_near`` (inside M
-    or within ``clearance``); ``info["midpoint_of"]`` (k,2): the edge (of the cage at that level) whose
-    midpoint each added vertex was, in order.
-    """
-    Vm = np.asarray(Vm, dtype=float)
-    E = igl.edges(Fm)
-    P = np.vstack([Vm, 0.5 * (Vm[E[:, 0]] + Vm[E[:, 1]]), Vm[Fm].mean(axis=1)])
-    V, F = np.array(V, dtype=float), np.asarray(F, dtype=np.int64)
-    sd = igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
-    log, ends = [], []
-    for _ in range(levels):
-        s, I, _, _ = igl.signed_distance(P, V, F, sign_type=sd)
-        sc, _, _, _ = igl.signed_distance(V, Vm, Fm, sign_type=sd)
-        mask = np.zeros(len(F), dtype=bool)
-        mask[I[s > -clearance]] = True
-        mask |= np.isin(F, np.flatnonzero(sc < clearance)).any(axis=1)
-        if not mask.any():
-            break
-        V, F, _, e = refine_faces(V, F, mask)
-        ends.append(e)
-        V, _ = _contain(V, F, P, None, rounds, clearance, backoff, max_backoff, fin_cos)
-        for _ in range(vertex_rounds):
-            V, n_near = _vertices_out_of(V, F, Vm, Fm, clearance, backoff, max_backoff, fin_cos)
-            if n_near == 0:
-                break
-            V, _ = _contain(V, F, P, None, rounds, clearance, backoff, max_backoff, fin_cos)
-        s, _, _, _ = igl.signed_distance(P, V, F, sign_type=sd)
-        sc, _, _, _ = igl.signed_distance(V, Vm, Fm, sign_type=sd)
-        log.append({"marked": int(mask.sum()), "faces": len(F), "outside": int((s[:len(Vm)] > 0).sum()),
-                    "samples_outside": int((s > 0).sum()), "max_signed_distance": float(s.max()),
-                    "cage_vertices_near": int((sc < clearance).sum()), "fins": int(_fin_mask(V, F, fin_cos).sum())})
-    ends = np.vstack(ends) if ends else np.zeros((0, 2), dtype=np.int64)
-    return V, F, {"levels": log, "midpoint_of": ends}

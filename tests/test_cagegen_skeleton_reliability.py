@@ -231,11 +231,10 @@ def test_flow_stall_window_stops_a_flow_that_cannot_finish_in_time():
 
 
 
-def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
-    """``nest_pair`` passes ``flow_stall_iter`` / ``flow_expand_after`` / ``flow_max_expansions`` to
-    the flow as ``stall_iter`` / ``expand_after`` / ``max_expansions`` (so the skeleton backend can
-    pass them through its options); its defaults are the flow's own, except ``expand_after`` (5: the
-    nested backend expands Ĉ sooner than the flow's own 50)."""
+def test_nest_pair_expands_sooner_than_the_flow_and_has_no_stall_switches(monkeypatch):
+    """``nest_pair`` runs the flow with its own ``stall_iter`` / ``max_expansions`` and ``expand_after = 5``
+    (``FLOW_EXPAND_AFTER``: the nested backend expands Ĉ sooner than the flow's own 50); the switches
+    ``flow_stall_iter`` / ``flow_expand_after`` / ``flow_max_expansions`` were deleted (issue 28)."""
     import inspect
 
     from cagegen.nested import backend as nb
@@ -251,13 +250,13 @@ def test_nest_pair_forwards_the_flow_stall_and_expansion_options(monkeypatch):
     Vs, Fs = sphere(4)
     with pytest.raises(PairFailure, match="stub"):
         nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs)
-    with pytest.raises(PairFailure, match="stub"):
-        nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs, flow_stall_iter=600, flow_expand_after=None, flow_max_expansions=3)
+    for name in ("flow_stall_iter", "flow_expand_after", "flow_max_expansions"):
+        with pytest.raises(TypeError, match=name):
+            nb.nest_pair(Vs, Fs, 2.0 * Vs, Fs, **{name: 3})
     defaults = {k: v.default for k, v in inspect.signature(flow_inside).parameters.items()}
-    for name in ("stall_iter", "max_expansions"):
-        assert seen[0][name] == defaults[name]
-    assert seen[0]["expand_after"] == 5 != defaults["expand_after"]
-    assert (seen[1]["stall_iter"], seen[1]["expand_after"], seen[1]["max_expansions"]) == (600, None, 3)
+    assert len(seen) == 1 and "stall_iter" not in seen[0] and "max_expansions" not in seen[0]
+    assert (defaults["stall_iter"], defaults["max_expansions"]) == (150, 20)
+    assert seen[0]["expand_after"] == nb.FLOW_EXPAND_AFTER == 5 != defaults["expand_after"]
 
 
 # ----------------------------------------------------------------------------- recentring nodes on M

@@ -199,6 +199,14 @@ def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap:
     return (C, info) if d >= gap else (None, info)
 
 
+#: The flow expands Ĉ where points stay outside for this many iterations (:func:`flow_inside`'s
+#: ``expand_after``; its own default is 50): decimated-knight.off's layer 1 came inside in 133 iterations
+#: instead of 497 (8.8 s against 25.5 s), angle_block.stl's in 88 instead of 156. The flow's other stall
+#: and expansion settings are its defaults (the switches ``flow_stall_iter`` / ``flow_max_expansions``
+#: were tried on the skeleton cages and deleted, docs/history/skeleton.md).
+FLOW_EXPAND_AFTER = 5
+
+
 def nest_pair(
     Vf: np.ndarray,
     Ff: np.ndarray,
@@ -211,9 +219,6 @@ def nest_pair(
     flow_max_iter: int = 1000,
     flow_active_depth: float | None = None,
     flow_stall_window: int | None = 100,
-    flow_stall_iter: int = 150,
-    flow_expand_after: int | None = 5,
-    flow_max_expansions: int = 20,
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
@@ -245,14 +250,6 @@ def nest_pair(
     flow_stall_window : int, optional
         :func:`cagegen.nested.flow.flow_inside`'s ``stall_window`` (fail fast when the flow cannot
         finish within ``flow_max_iter`` at its current rate; None: run to the cap).
-    flow_stall_iter, flow_expand_after, flow_max_expansions
-        :func:`cagegen.nested.flow.flow_inside`'s ``stall_iter`` (give up after this many iterations
-        with every quadrature point inside Ĉ but intersections left; a quarter of it also times the
-        switch to the denser quadrature and the first expansion around crossing faces),
-        ``expand_after`` (expand Ĉ where points stay outside for this many iterations; None: never)
-        and ``max_expansions`` (cap on expansions of Ĉ). Defaults 150, 5, 20: expanding after 5 idle
-        iterations instead of the flow's 50 took decimated-knight.off's layer 1 inside in 133 iterations
-        instead of 497 (8.8 s against 25.5 s), angle_block.stl's in 88 instead of 156.
     dhat, kappa, dhat_final, kappa_final, max_move, final_iters
         Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
     gap : float
@@ -289,8 +286,7 @@ def nest_pair(
     upd = rep.phase("flow", flow_max_iter)
     fl = flow_inside(flowed, Ff, Vc, Fc, quad_order=quad_order, step=flow_step,
                      max_iter=flow_max_iter, active_depth=flow_active_depth, stall_window=flow_stall_window,
-                     stall_iter=flow_stall_iter, expand_after=flow_expand_after,
-                     max_expansions=flow_max_expansions, callback=lambda it: upd(it))
+                     expand_after=FLOW_EXPAND_AFTER, callback=lambda it: upd(it))
     info["seconds"]["flow"] = time.perf_counter() - t
     info["flow"] = fl.to_dict()
     if not fl.success:

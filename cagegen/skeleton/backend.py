@@ -225,10 +225,7 @@ def skeleton_cage(
         ``containment="flow"`` only: passed to
         :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
         here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
-        flow; ``None``: the paper's flow). ``flow_stall_iter``, ``flow_expand_after`` and
-        ``flow_max_expansions`` (the flow's own defaults: 150, 50, 20) set how long the flow waits with
-        every point of M inside but intersections left, and the expansions of the cage around stuck
-        points or crossing faces (docs/skeleton.md).
+        flow; ``None``: the paper's flow).
 
     Returns
     -------

@@ -45,7 +45,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("bench_out/cycle_cost_scale"))
     ap.add_argument("--edge-length", type=float, default=None,
-                    help="use the 3-level TetWild hierarchy of the reuse benchmarks (exp_common.load_hierarchy, "
+                    help="use the 3-level TetWild hierarchy of the reuse benchmarks (exp_common.cached_hierarchy, "
                          "this fine edge / diagonal) instead of the 4-level TetGen one")
     ap.add_argument("--presets", action="store_true",
                     help="compare Problem.multigrid(smoothing='robust'|'fast') (Galerkin only) instead of the smoothers")
@@ -64,9 +64,9 @@ def main(argv=None):
     V, _, _ = normalize(V)
     t0 = time.perf_counter()
     if args.edge_length is not None:
-        from exp_common import load_hierarchy
+        from exp_common import cached_hierarchy
 
-        h, _ = load_hierarchy(args.mesh, edge_length=args.edge_length)
+        h, _ = cached_hierarchy(args.mesh, edge_length=args.edge_length)
     else:
         h = build_hierarchy(V, F, 4, "nested", meshing=MeshingOptions(mesher="tetgen"), progress=False,
                             sizing=SizingOptions(edge_length=edge_for_tets(V, F, args.fine_tets),

@@ -376,7 +376,7 @@ def tightness(Vc: np.ndarray, Fc: np.ndarray, V0: np.ndarray, F0: np.ndarray, n_
 
 
 # ------------------------------------------------------------------ reuse benchmarks (issue 15 item 5)
-def load_hierarchy(path: Path, *, levels: int = 3, max_tets: int = 1_200_000, method: str = "nested",
+def cached_hierarchy(path: Path, *, levels: int = 3, max_tets: int = 1_200_000, method: str = "nested",
                    edge_length: float | None = None):
     """``nestmg.build_hierarchy`` of a mesh file with the project defaults, through the on-disk cache
     (``edge_length``: fine edge / bounding-box diagonal, default the input's mean edge).

@@ -3,7 +3,7 @@
     OPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/petsc_scale.py ZOO_DIR/gargo.off \
         --edge-length 0.0065 --out benchmarks/results/petsc
 
-The hierarchy is the reuse benchmarks' one (``exp_common.load_hierarchy``: TetWild, refined fine level,
+The hierarchy is the reuse benchmarks' one (``exp_common.cached_hierarchy``: TetWild, refined fine level,
 one nested cage; cached). For Dirichlet and Neumann Poisson (``setup_problem``, Galerkin), both solvers get
 the same matrix and prolongations and the same cycle (one symmetric Gauss–Seidel sweep before and after on
 every level = PCMG's default ``smoother="sor"``, local-symmetric SOR) under CG to 1e-8, one rank. PETSc is initialised once
@@ -31,18 +31,18 @@ SGS = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("mesh", type=Path)
-    ap.add_argument("--edge-length", type=float, required=True, help="fine edge / diagonal (exp_common.load_hierarchy)")
+    ap.add_argument("--edge-length", type=float, required=True, help="fine edge / diagonal (exp_common.cached_hierarchy)")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("bench_out/petsc"))
     args = ap.parse_args(argv)
 
-    from exp_common import load_hierarchy
+    from exp_common import cached_hierarchy
 
     from nestmg.io import json_default
     from nestmg.problems import setup_problem
     from solvers.petsc import PetscMultigrid
 
-    h, t_h = load_hierarchy(args.mesh, edge_length=args.edge_length)
+    h, t_h = cached_hierarchy(args.mesh, edge_length=args.edge_length)
     doc: dict = {"benchmark": "petsc_scale", "mesh": args.mesh.name, "edge_length": args.edge_length,
                  "tets": [len(T) for _, T in h.tets], "hierarchy_load_seconds": t_h, "runs": []}
     for name in ("poisson-dirichlet", "poisson-neumann"):

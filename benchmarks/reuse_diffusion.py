@@ -43,9 +43,9 @@ from exp_common import (
     add_hierarchy_arguments,
     available_methods,
     blas_info,
+    cached_hierarchy,
     environment,
     hierarchies_from_args,
-    load_hierarchy,
     pyamg_sa_solve,
     relres,
     save_figure,
@@ -67,7 +67,7 @@ def run_mesh(path: Path, edge: float | None, methods, steps: int, dt_min: float,
              tol: float, steps_for: dict | None = None, states_dir: Path | None = None) -> dict:
     from nestmg.timestepping import diffusion_stepper
 
-    h, load_s = load_hierarchy(path, edge_length=edge)
+    h, load_s = cached_hierarchy(path, edge_length=edge)
     V0 = h.tets[0][0]
     diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
     rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],

@@ -39,9 +39,9 @@ from exp_common import (
     add_hierarchy_arguments,
     available_methods,
     blas_info,
+    cached_hierarchy,
     environment,
     hierarchies_from_args,
-    load_hierarchy,
     pyamg_sa_solve,
     relres,
     save_figure,
@@ -134,7 +134,7 @@ TOL = 1e-8
 def run_mesh(path: Path, edge, methods, n_sources: int, seed: int, states_dir: Path | None = None) -> dict:
     from nestmg.geodesics import heat_geodesic, heat_precompute
 
-    h, _ = load_hierarchy(path, edge_length=edge)
+    h, _ = cached_hierarchy(path, edge_length=edge)
     V0, T0 = h.tets[0]
     rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(V) for V, _ in h.tets], "hierarchy_seconds": h.timings}

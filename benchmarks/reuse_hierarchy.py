@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 
-from exp_common import add_hierarchy_arguments, environment, hierarchies_from_args, load_hierarchy
+from exp_common import add_hierarchy_arguments, cached_hierarchy, environment, hierarchies_from_args
 
 
 def main(argv=None) -> int:
@@ -21,7 +21,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     out = []
     for p, edge in hierarchies_from_args(a):
-        h, s = load_hierarchy(p, edge_length=edge)
+        h, s = cached_hierarchy(p, edge_length=edge)
         out.append({"mesh": p.name, "edge_length": edge, "seconds": s, "tets": [len(T) for _, T in h.tets],
                     "nodes": [len(V) for V, _ in h.tets], "timings": h.timings, "environment": environment()})
     print(json.dumps(out, indent=1, default=float))

@@ -41,9 +41,9 @@ from exp_common import (
     add_hierarchy_arguments,
     available_methods,
     blas_info,
+    cached_hierarchy,
     environment,
     hierarchies_from_args,
-    load_hierarchy,
     pyamg_sa_solve,
     relres,
     save_figure,
@@ -130,7 +130,7 @@ def run_once(m: str, h, name: str, tol: float) -> tuple[dict, np.ndarray, object
 
 
 def run_mesh(path: Path, edge, methods, tol: float, repeat: int) -> dict:
-    h, load_s = load_hierarchy(path, edge_length=edge)
+    h, load_s = cached_hierarchy(path, edge_length=edge)
     rec: dict = {"mesh": path.name, "edge_length": edge, "tets": [len(T) for _, T in h.tets],
                  "nodes": [len(V) for V, _ in h.tets], "hierarchy_seconds": h.timings,
                  "hierarchy_load_seconds": load_s, "problems": {}}

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # archived: exp_common.py is in benchmarks/
-from exp_common import environment, load_hierarchy  # noqa: E402
+from exp_common import cached_hierarchy, environment  # noqa: E402
 
 SETTINGS = ("scipy_default", "mmd_pivot", "symmetric")
 
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from nestmg.timestepping import diffusion_stepper
 
-    h, _ = load_hierarchy(a.mesh, edge_length=a.edge_length)
+    h, _ = cached_hierarchy(a.mesh, edge_length=a.edge_length)
     V0 = h.tets[0][0]
     diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
     st = diffusion_stepper(h.tets, h.P)

@@ -108,12 +108,21 @@ def _pyamg_run(name, builder, A, b, tol, maxiter, accel, nullspace, **kw):
     t1 = time.perf_counter()
     res: list[float] = []
     x = ml.solve(b, tol=tol, maxiter=maxiter, accel=accel, residuals=res)
-    t2 = time.perf_counter()
     if nullspace == "constant":
         x = x - x.mean()
+    final = _rel(A, b, x)
+    for _ in range(2):  # pyamg's CG stops on its own residual norm, which can sit below the true one:
+        if final <= tol or len(res) > maxiter:  # restart from x until the true residual meets tol
+            break
+        more: list[float] = []
+        x = ml.solve(b, x0=x, tol=tol, maxiter=maxiter, accel=accel, residuals=more)
+        res += more[1:]
+        if nullspace == "constant":
+            x = x - x.mean()
+        final = _rel(A, b, x)
+    t2 = time.perf_counter()
     nb = np.linalg.norm(b)
     rel = [float(r) / nb for r in res] if nb else [0.0]
-    final = _rel(A, b, x)
     return BaselineResult(
         name, x, len(rel) - 1, t1 - t0, t2 - t1, rel, final <= tol * 1.01,
         {"levels": len(ml.levels), "operator_complexity": float(ml.operator_complexity()),

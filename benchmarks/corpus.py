@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import signal
@@ -243,7 +244,7 @@ def cages_row(entry: dict, backends: list[str]) -> str:
             cells.append(f"**fails** {_f(r.get('wall_seconds'), '{:.0f}')} s: {_err(r)[:160]}")
     w, n = entry.get("wheel") or {}, entry.get("cages:nested") or {}
     if w.get("ok") and n.get("ok"):
-        ratio = f"{w['seconds'] / n['seconds']:.1f}x ({w['seconds']:.0f} s)"
+        ratio = f"{math.floor(10 * w['seconds'] / n['seconds']) / 10:.1f}x ({w['seconds']:.0f} s)"  # rounded down
     elif w:
         ratio = f"wheel fails ({_f(w.get('wall_seconds'), '{:.0f}')} s): {w.get('error', '')[:80]}"
     else:

@@ -13,7 +13,7 @@ import os
 import re
 import tempfile
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +89,15 @@ def third_party_to_log() -> Iterator[None]:
 _COLORS = ["#d9d9d9", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
 
 
+def _write_png(path: Path, save: Callable[[str], None]) -> Path:
+    """``save(tmp)`` writes the picture beside ``path``, then one rename puts it in place (never a torn PNG)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    save(str(tmp))
+    os.replace(tmp, path)
+    return path
+
+
 def _polydata(V: np.ndarray, F: np.ndarray):
     import pyvista as pv
 
@@ -147,11 +156,8 @@ def _render_layers(surfaces, path: Path, title, window_size) -> Path:
     if title and len(surfaces) > 1:
         pl.subplot(0, 0)
         pl.add_text(title, position="lower_left", font_size=9)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    pl.screenshot(str(tmp))
+    _write_png(path, pl.screenshot)
     pl.close()
-    os.replace(tmp, path)
     return path
 
 
@@ -199,11 +205,8 @@ def _plot_convergence(histories, path: Path, title: str, xlabel: str) -> Path:
         ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp)
+    _write_png(path, fig.savefig)
     plt.close(fig)
-    os.replace(tmp, path)
     return path
 
 
@@ -254,10 +257,6 @@ def render_curved(X: np.ndarray, F6: np.ndarray, Xs: np.ndarray, path: str | os.
             pl.add_text(title, font_size=12)
             pl.view_xy()
         pl.link_views()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.tmp.png")
-        pl.screenshot(str(tmp))
+        _write_png(Path(path), pl.screenshot)
         pl.close()
-        os.replace(tmp, path)
-    return path
+    return Path(path)

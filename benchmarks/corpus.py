@@ -31,9 +31,9 @@ import signal
 import subprocess
 import sys
 import tempfile
-from dataclasses import replace
 import time
 import traceback
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -42,22 +42,13 @@ def _meshed_surface(path: Path) -> tuple[np.ndarray, np.ndarray, float, dict]:
     return S, G, h, {"faces_in": len(F), "faces_meshed": len(G), "edge": h, "rule": plan.rule}
 
 
-def _box_ratio(V: np.ndarray, F: np.ndarray) -> float:
-    """fTetWild's box (the bounding box grown by 1/15 of the diagonal per side) over the solid's volume."""
-    from nestmg.memory import enclosed_volume
-
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    grow = np.linalg.norm(hi - lo) / 15.0
-    return float(np.prod(hi - lo + 2 * grow) / enclosed_volume(V, F))
-
-
 def measure(path: Path, factor: float) -> dict:
     from nestmg.memory import enclosed_volume
     from nestmg.sizing import expected_tets
-    from nestmg.tetmesh import tetrahedralize, tet_quality
+    from nestmg.tetmesh import box_ratio, tet_quality, tetrahedralize
 
     S, G, h, row = _meshed_surface(path)
-    row.update(mesh=path.name, box_ratio=_box_ratio(S, G),
+    row.update(mesh=path.name, box_ratio=box_ratio(S, G),
                expected_solid_tets=expected_tets(enclosed_volume(S, G), h))
     for f in (1.0, factor):
         c, t = _cpu(), time.perf_counter()

@@ -142,6 +142,8 @@ class Problem:
               (``local=False`` drops them);
             * ``coarse_scaling``: ``"auto"`` is ``"energy"`` with re-discretised or weighted coarse
               operators (they are not energy projections; docs/coarse.md), None with Galerkin ones.
+            * every level, the finest included (``probe_finest=True``), is probed for a few slow modes,
+              which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off).
         **kwargs
             Passed on to :class:`solvers.MultigridSolver` (``presmoother``, ``local_nodes``,
             ``coarse_solver``, ``block``, ...), overriding what ``options`` chose.
@@ -169,6 +171,7 @@ class Problem:
         robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
+        kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 

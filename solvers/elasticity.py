@@ -306,7 +306,8 @@ class NullspaceMultigridSolver(MultigridSolver):
         As :class:`solvers.MultigridSolver`; default ``"regularized"`` (the coarsest operator is singular).
     **kwargs
         Passed to :class:`solvers.MultigridSolver` (smoothers, ``coarse``, ...); ``nullspace`` is not
-        accepted.
+        accepted. ``deflate`` defaults to 0 here: the probe of :mod:`solvers.deflation` keeps only a
+        constant null space out of its Krylov vectors.
 
     Attributes
     ----------
@@ -323,6 +324,8 @@ class NullspaceMultigridSolver(MultigridSolver):
             raise SolverInputError(
                 f"nullspaces needs {len(Ps) + 1} bases (one per level), got {len(nullspaces)}")
         kwargs.setdefault("ordering", None)  # the null-space bases are given in the caller's order
+        # the probe of solvers.deflation knows only the constant null space, not the rigid-body modes
+        kwargs.setdefault("deflate", 0)
         super().__init__(A, Ps, coarse_solver=coarse_solver, **kwargs)
         if len(self.levels) != len(nullspaces):
             raise SolverInputError("the hierarchy was changed at set-up (unreached coarse unknowns dropped): "

@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
+from .deflation import slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, index_spread, locality_order, permute_prolongation,
                        permute_symmetric)
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
@@ -43,6 +44,7 @@ from .transfer import (
 )
 
 __all__ = [
+    "DEFAULT_DEFLATE",
     "DEFAULT_MAXITER",
     "DEFAULT_SMOOTHER",
     "DENSE_LEVEL_ROWS",
@@ -77,6 +79,9 @@ DENSE_LEVEL_ROWS = 2.0
 #: :meth:`MultigridSolver.solve`, :meth:`solvers.petsc.PetscMultigrid.solve`,
 #: :func:`nestmg.solve_on_hierarchy`, the time stepper, the geodesics and ``nestmg solve --maxiter``.
 DEFAULT_MAXITER = 100
+
+#: Default cap on the slow modes deflated per intermediate level (``MultigridSolver(deflate=)``).
+DEFAULT_DEFLATE = 8
 
 
 class ConvergenceWarning(UserWarning):
@@ -211,6 +216,17 @@ class MultigridSolver:
         sums of :class:`solvers.shifted.ShiftedGalerkin`, symmetric by construction), which skips the
         symmetry tests (~40 ms per level visit of a 2.5M-nonzero operator, a third of a time step's
         set-up in ``benchmarks/reuse_diffusion.py``). ``None`` (default): tested (relative 1e-10).
+    deflate : int
+        At most this many slow modes deflated per level (0: off). Every level between the finest and the
+        coarsest is probed at setup with :data:`solvers.deflation.PROBE_CYCLES` cycles of its own (about
+        one fine cycle in all on a hierarchy coarsening 8x per level); where the error survives them
+        (factor above :data:`solvers.deflation.DEFLATION_GOAL`), the slowest modes are found by a few more
+        Lanczos steps and corrected exactly inside the cycle (:mod:`solvers.deflation`). Only linear
+        symmetric cycles are probed (not with ``coarse_scaling``).
+    probe_finest : bool
+        Probe (and deflate) the finest level too: its probe costs about as much as one solve, so it is
+        off by default here and on in ``nestmg``'s problems (:meth:`nestmg.problems.Problem.multigrid`),
+        whose setup is a small part of a run.
 
     Attributes
     ----------
@@ -218,6 +234,8 @@ class MultigridSolver:
         Level 0 in the internal order ``perm`` (``levels[0].A == A[perm][:, perm]``).
     perm : (n_0,) int64 array or None
         The finest level's internal order (None: the caller's).
+    deflation : list of dict
+        Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors``.
     setup_seconds : float
 
     Examples
@@ -254,6 +272,8 @@ class MultigridSolver:
         local_sweep: str = "symmetric",
         ordering: str | None = "auto",
         symmetric: bool | None = None,
+        deflate: int = DEFAULT_DEFLATE,
+        probe_finest: bool = False,
     ):
         t0 = time.perf_counter()
         if nullspace not in (None, "constant"):
@@ -368,7 +388,41 @@ class MultigridSolver:
             len(self.levels) == 1
             or all(_smoothers_adjoint(L.presmoother, L.postsmoother) for L in self.levels[:-1])
         )
+        self.deflation = self._deflate(deflate, probe_finest)
         self.setup_seconds = time.perf_counter() - t0
+
+    def _deflate(self, max_vectors: int, probe_finest: bool) -> list[dict]:
+        """Probe levels ``L-2 .. 1`` (and 0 with ``probe_finest``), coarse first so that each probe sees the
+        corrections below it, and deflate their slow modes (:func:`solvers.deflation.slow_modes`)."""
+        if isinstance(max_vectors, bool) or int(max_vectors) != max_vectors or max_vectors < 0:
+            raise SolverInputError(f"deflate must be a non-negative integer, got {max_vectors!r}")
+        report = []
+        last = 0 if probe_finest else 1
+        linear = self.symmetric_cycle and self.coarse_scaling is None  # Lanczos needs a linear symmetric cycle
+        probed = range(len(self.levels) - 2, last - 1, -1) if max_vectors and linear else ()
+        for k in probed:
+            L = self.levels[k]
+            zero = np.zeros(L.A.shape[0])
+
+            def cycle(x, k=k, zero=zero):
+                self._cycle(k, x, zero, "V")
+
+            neumann = self.nullspace == "constant"
+            Z, info = slow_modes(cycle, L.A, constant_nullspace=neumann, max_vectors=int(max_vectors))
+            info["level"] = k
+            if Z.shape[1]:
+                pre, post = L.presmoother, L.postsmoother
+                L.presmoother = with_deflation(pre, L.A, Z)
+                L.postsmoother = with_deflation(post, L.A, Z, first=True)
+                # a projection inside a product of smoothers is not sure to help: keep it only if the
+                # probe (same start, same steps) says it does
+                after = slow_modes(cycle, L.A, constant_nullspace=neumann, max_vectors=0)[1]["probe_factor"]
+                info["probe_after"] = after
+                if after >= info["probe_factor"]:
+                    L.presmoother, L.postsmoother = pre, post
+                    info.update(vectors=0, factors=[], reverted=True)
+            report.append(info)
+        return report[::-1]
 
     def _reorder(self, A, Ps, Rs, ordering, given, symmetric):
         """Apply the internal orders of every level (see ``ordering``) to ``A``, ``Ps``, ``Rs`` and the given
@@ -417,6 +471,7 @@ class MultigridSolver:
             ("Operator complexity", f"{self.operator_complexity():.3f}"),
             ("Grid complexity", f"{self.grid_complexity():.3f}"),
             ("Cycle complexity (V)", f"{self.cycle_complexity('V'):.3f} fine SpMVs"),
+            ("Deflation", self._deflation_desc()),
         ]
         lines = ["MultigridSolver"] + [f"{k + ':':22s}{v}" for k, v in rows]
         lines.append("  level   unknowns     nonzeros   nnz/row     nnz(P)")
@@ -425,6 +480,14 @@ class MultigridSolver:
             nnzp = "" if L.P is None else f"{L.P.nnz:10d}"
             lines.append(f"{k:7d} {n:10d} {L.A.nnz:12d} {L.A.nnz / n:9.1f} {nnzp:>10}")
         return "\n".join(lines)
+
+    def _deflation_desc(self) -> str:
+        used = [f"level {d['level']}: {d['vectors']} modes (probe {d['probe_factor']:.2f})"
+                for d in self.deflation if d["vectors"]]
+        if used:
+            return "; ".join(used)
+        return "none" + (f" (probe factors <= {max(d['probe_factor'] for d in self.deflation):.2f})"
+                         if self.deflation else "")
 
     def _smoother_desc(self) -> str:
         if len(self.levels) < 2:

@@ -84,10 +84,10 @@ def test_cycle_cost_reported(torus_iso_tets):
 
 
 # ----------------------------------------------------------------------------- issue 5: cycles and levels
-def _mg(tets, P, problem, coarse="galerkin"):
-
+def _mg(tets, P, problem, coarse="galerkin", deflate=0):
+    """The problem and its cycle (no deflation unless asked: the tests here compare cycles and levels)."""
     pr = setup_problem(tets, P, problem, coarse=coarse)
-    return pr, pr.multigrid(SolverOptions(coarse_scaling=None))
+    return pr, pr.multigrid(SolverOptions(coarse_scaling=None), deflate=deflate)
 
 
 @pytest.mark.parametrize("problem, coarse", [("poisson-dirichlet", "galerkin"), ("poisson-neumann", "galerkin"),
@@ -166,3 +166,11 @@ def test_fast_preset_on_pure_neumann_uses_boundary_layer_sweeps(torus_iso_tets):
     # Dirichlet keeps the textbook cycle (no local nodes)
     prd = setup_problem(tets, P, "poisson-dirichlet")
     assert "local_nodes" not in prd.multigrid(SolverOptions(smoothing="fast")).levels[0].presmoother.params
+
+
+def test_pipeline_cycle_probes_every_level(torus_iso_tets):
+    """Problem.multigrid() probes the finest level too (probe_finest=True), and the report says so."""
+    _, tets, P, _ = torus_iso_tets
+    ml = setup_problem(tets, P, "poisson-neumann").multigrid()
+    assert [d["level"] for d in ml.deflation] == list(range(len(ml.levels) - 1))
+    assert all(0.0 < d["probe_factor"] < 1.0 for d in ml.deflation)

@@ -1,0 +1,169 @@
+"""Coarse-level deflation: find the error components a cycle barely reduces and correct them exactly.
+
+A geometric coarse space can miss a few low-energy modes of the finer operator: on a scan with thin,
+weakly attached pieces (a wing tip joined to the body by a narrow neck) the cage level's basis functions
+span the piece and its neighbour at once, so "the piece moves, the rest does not" is neither smoothed
+nor corrected. Such modes are few and local, and an adaptive coarse space catches them the way
+adaptive / bootstrap AMG does (Brezina et al. 2004, "Adaptive smoothed aggregation"): run the cycle on
+the homogeneous problem ``A x = 0`` and look at what survives.
+
+For a symmetric cycle the error propagation ``E = I - B A`` is self-adjoint in the A-inner product, so
+the cycles of one random vector form a Krylov sequence and the Lanczos process (full
+re-orthogonalisation, A-inner product) gives Ritz pairs ``(θ, z)`` of ``E``: ``θ`` is the factor by
+which one cycle reduces ``z``. :func:`slow_modes` runs :data:`PROBE_CYCLES` steps; if the largest Ritz
+value meets :data:`DEFLATION_GOAL` nothing more is done, otherwise it continues to
+:data:`LANCZOS_CYCLES` steps and returns the Ritz vectors above the goal as ``Z`` (``Zᵀ A Z = I``).
+:func:`with_deflation` adds the exact correction ``x += Z Zᵀ (b - A x)`` (the A-orthogonal projection
+onto span Z) after pre-smoothing and before post-smoothing: the cycle stays symmetric.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from .smoothing import Smoother
+
+__all__ = ["DEFLATION_GOAL", "LANCZOS_CYCLES", "PROBE_CYCLES", "slow_modes", "with_deflation"]
+
+#: Lanczos steps (cycles) of the probe.
+PROBE_CYCLES = 8
+#: Lanczos steps (cycles) in all when the probe finds modes slower than the goal.
+LANCZOS_CYCLES = 24
+#: Per-cycle factor above which a level's slow modes are deflated: the V-cycle factor the defaults aim at.
+DEFLATION_GOAL = 0.3
+
+
+def _ritz(H: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ritz values (descending) and vectors of the leading ``m x m`` block of the Lanczos matrix."""
+    T = H[:m, :m]
+    theta, U = np.linalg.eigh((T + T.T) / 2)
+    return theta[::-1], U[:, ::-1]
+
+
+def slow_modes(
+    cycle: Callable[[np.ndarray], None],
+    A: sp.csr_matrix,
+    *,
+    constant_nullspace: bool = False,
+    max_vectors: int = 8,
+    goal: float = DEFLATION_GOAL,
+    seed: int = 0,
+    probe_cycles: int = PROBE_CYCLES,
+) -> tuple[np.ndarray, dict]:
+    """The error components that a symmetric ``cycle`` reduces by less than ``goal`` per application.
+
+    Parameters
+    ----------
+    cycle : callable
+        ``cycle(x)`` applies one cycle to ``A x = 0`` in place (so ``x`` becomes ``E x``); the cycle must
+        be symmetric (post-smoother the adjoint of the pre-smoother).
+    A : (n, n) csr_matrix
+        The level operator (symmetric positive semi-definite).
+    constant_nullspace : bool
+        Pure Neumann operator: the Krylov vectors are kept at zero mean.
+    max_vectors : int
+        At most this many vectors are returned.
+    goal : float
+        Per-cycle factor above which a mode is returned.
+    seed : int
+        Seed of the random start vector (the result is deterministic).
+    probe_cycles : int
+        Lanczos steps before the probe's verdict (at most :data:`LANCZOS_CYCLES`); with
+        ``max_vectors=0`` only the largest Ritz value after these steps is wanted.
+
+    Returns
+    -------
+    Z : (n, m) float array
+        A-orthonormal slow modes, slowest first. ``m = 0`` when the probe met the goal, or when more than
+        ``max_vectors`` modes are slower than it (then the cycle is slow on the bulk of the spectrum, which
+        deflation is not meant to fix).
+    info : dict
+        ``probe_factor`` (largest Ritz value after the probe), ``cycles`` run, ``vectors`` (m) and
+        ``factors`` (the Ritz values of the kept vectors).
+    """
+    n = A.shape[0]
+    steps = LANCZOS_CYCLES
+    Q = np.zeros((n, steps + 1))
+    AQ = np.zeros_like(Q)
+    H = np.zeros((steps + 1, steps))
+    info = {"probe_factor": 0.0, "cycles": 0, "vectors": 0, "factors": []}
+    q = np.random.default_rng(seed).standard_normal(n)
+    if constant_nullspace:
+        q -= q.mean()
+    Aq = A @ q
+    norm = float(np.sqrt(max(q @ Aq, 0.0)))
+    if norm == 0.0:
+        return np.zeros((n, 0)), info
+    Q[:, 0], AQ[:, 0] = q / norm, Aq / norm
+    for j in range(steps):
+        w = Q[:, j].copy()
+        cycle(w)  # w = E q_j
+        if constant_nullspace:
+            w -= w.mean()
+        for _ in range(2):  # full re-orthogonalisation, twice: the Krylov vectors align with the slowest mode
+            c = AQ[:, : j + 1].T @ w
+            w -= Q[:, : j + 1] @ c
+            H[: j + 1, j] += c
+        Aw = A @ w
+        beta = float(np.sqrt(max(w @ Aw, 0.0)))
+        H[j + 1, j] = beta
+        info["cycles"] = j + 1
+        if j + 1 == min(probe_cycles, steps):
+            info["probe_factor"] = float(_ritz(H, j + 1)[0][0])
+            if info["probe_factor"] <= goal or max_vectors <= 0:
+                return np.zeros((n, 0)), info
+        if beta <= 1e-10 * max(float(np.abs(H[: j + 1, j]).max()), 1e-300):
+            break  # an invariant subspace: the Ritz pairs are exact
+        Q[:, j + 1], AQ[:, j + 1] = w / beta, Aw / beta
+    k = info["cycles"]
+    theta, U = _ritz(H, k)
+    if k < min(probe_cycles, steps):
+        info["probe_factor"] = float(theta[0])
+    slow = int(np.count_nonzero(theta > goal))
+    if slow > max_vectors:  # not a few outliers but the bulk of the spectrum: a smoother / coarse space matter
+        info["slow_modes_found"] = slow
+        return np.zeros((n, 0)), info
+    Z = Q[:, :k] @ U[:, :slow]
+    info.update(vectors=slow, factors=[float(t) for t in theta[:slow]])
+    return Z, info
+
+
+def with_deflation(base: Smoother, A: sp.csr_matrix, Z: np.ndarray, first: bool = False) -> Smoother:
+    """``base`` plus the exact correction ``x += Z Zᵀ (b - A x)`` on the A-orthonormal modes ``Z``.
+
+    With ``first=False`` the correction follows ``base`` (pre-smoother), with ``first=True`` it precedes
+    it (post-smoother): the pair stays adjoint, so the cycle stays symmetric and preconditions CG.
+
+    Parameters
+    ----------
+    base : Smoother
+    A : (n, n) csr_matrix
+        The level operator.
+    Z : (n, m) float array
+        ``Zᵀ A Z = I`` (:func:`slow_modes`).
+    first : bool
+
+    Returns
+    -------
+    Smoother
+        Its ``work`` adds one SpMV and ``2 n m`` multiply-adds (in SpMV units) to ``base.work``.
+    """
+    Z = np.ascontiguousarray(Z, dtype=np.float64)
+    ZT = np.ascontiguousarray(Z.T)
+
+    def correct(A_, x, b):
+        x += Z @ (ZT @ (b - A_ @ x))
+
+    def apply(A_, x, b):
+        if first:
+            correct(A_, x, b)
+            base(A_, x, b)
+        else:
+            base(A_, x, b)
+            correct(A_, x, b)
+
+    work = base.work + 1.0 + 2.0 * Z.size / max(A.nnz, 1)
+    return Smoother(base.name, apply, work, dict(base.params, deflation=int(Z.shape[1])))

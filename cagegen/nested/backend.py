@@ -389,8 +389,11 @@ MIN_TARGET_OFFSET = 0.01
 #: 0-12 iterations; decimated-knight.off and angle_block.stl (~1,000 faces) need 133 and 88 iterations
 #: with expansions (cap: 1,000 iterations); on lucy.ply's predecimated 16k faces the flow into the
 #: decimated layer plateaus 0.0002-0.0006 of the diagonal outside, with or without expansions, and
-#: stopped after 225 iterations (61 s) before the envelope target certified in 6 iterations (cap: 60).
-QUICK_FLOW_WORK = 1_000_000
+#: stopped after 225 iterations (61 s) before the envelope target certified in 6 iterations. Halved from
+#: 1,000,000 (2026-12-03, second round): lucy's plateaued flow still used its whole cap of 62 iterations
+#: (~0.57 CPU s each), featuretype.stl's first target its 287 before failing; 500,000 keeps every cap
+#: measured above the iterations a successful first flow needed (knight: cap 500 for 133).
+QUICK_FLOW_WORK = 500_000
 QUICK_FLOW_MIN_ITER = 30
 
 

@@ -480,11 +480,11 @@ def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio:
             break
         # QEM with libigl's intersection-blocking collapses: plain qslim leaves self-intersections on
         # detailed scans and the fallback (shortest-edge midpoints) errs 10x more (docs/scale.md)
-        U, G, dinfo = decimate_surface(V, F, target, algorithm="qslim", block_intersections=True)
+        U, G, dinfo = decimate_surface(V, F, target, decimator="qslim", block_intersections=True)
         err = float(igl.hausdorff(V, F, U, G))
         if max_error is None or err <= max_error:
             info.update(faces_out=len(G), seconds=_time.perf_counter() - t, hausdorff=err,
-                        algorithm=dinfo.get("algorithm"))
+                        decimator=dinfo.get("decimator"))
             return U, G, info
         info.setdefault("rejected", []).append({"faces": len(G), "hausdorff": err})
         target *= 2

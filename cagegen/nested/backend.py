@@ -367,9 +367,9 @@ def _dilate_target(Vc, Fc, delta):
     return Vc + alpha * (target - Vc), {"delta": float(delta), "fraction": alpha}
 
 
-def _decimate(V, F, n_faces, algorithm):
-    U, G, dinfo = decimate_surface(V, F, int(n_faces), algorithm=algorithm)
-    return U, G, {"algorithm": dinfo["algorithm"], "block_intersections": dinfo["block_intersections"],
+def _decimate(V, F, n_faces, decimator):
+    U, G, dinfo = decimate_surface(V, F, int(n_faces), decimator=decimator)
+    return U, G, {"decimator": dinfo["decimator"], "block_intersections": dinfo["block_intersections"],
                   "n_faces": int(G.shape[0]), "seconds": dinfo["seconds"]}
 
 
@@ -412,8 +412,8 @@ def _envelope_target(Vf, Ff, n_faces, offset):
     env = build_envelope(Vf, Ff, c=float(offset), h=float(offset), band=4.0 * float(offset))
     if len(env.F) <= n_faces:
         raise CageError(f"envelope at {offset:.3g} has {len(env.F)} faces, not more than the target")
-    U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), algorithm="qslim", other_algorithm=False)
-    return U, G, {"algorithm": dinfo["algorithm"], "block_intersections": dinfo["block_intersections"],
+    U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), decimator="qslim", other_decimator=False)
+    return U, G, {"decimator": dinfo["decimator"], "block_intersections": dinfo["block_intersections"],
                   "n_faces": int(G.shape[0]), "offset": float(offset), "envelope_faces": len(env.F),
                   "seconds": time.perf_counter() - t}
 
@@ -467,7 +467,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     against 0.33, corpus at c9049ce), then the layer by the other decimator.
     """
     first_alg = opts.get("decimator", "qslim")
-    other_alg = "decimate" if first_alg == "qslim" else "qslim"
+    other_alg = "shortest_edge" if first_alg == "qslim" else "qslim"
     sources = [("layer", first_alg)]
     sources += [("envelope", first_alg)] if opts.get("target_offset") else []
     sources += [("layer", other_alg)]
@@ -484,7 +484,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             failures.append({"action": f"decimate the {src} with {alg}", "stage": "decimate", "reason": str(exc)})
             log.append({"layer": layer_no, **failures[-1]})
             continue
-        key = (src, dinfo["algorithm"], dinfo["block_intersections"])
+        key = (src, dinfo["decimator"], dinfo["block_intersections"])
         if key in tried:  # the decimator fell back to a result already tried: same flow, skip it
             continue
         tried.add(key)
@@ -496,14 +496,14 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
         except PairFailure as exc:
-            failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+            failures.append({"action": f"decimate the {src} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
                              "stage": exc.stage, "reason": exc.reason})
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue
         C, d, pinfo["clearance_completion"] = complete_clearance(C, G, Vf, Ff, gap)
         if d < gap / GAP_AIM:
-            failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+            failures.append({"action": f"decimate the {src} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
                              "stage": "clearance", "reason": f"gap {d:.3g} < {gap / GAP_AIM:.3g}"})
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: clearance {d:.3g} too small")
@@ -575,7 +575,7 @@ def nested_backend(
         The same clearance in absolute units (overrides ``min_gap``).
     decimate_from : {"previous", "input"}
         Decimate the previous layer (default) or the input for each target.
-    decimator : {"qslim", "decimate"}
+    decimator : {"qslim", "shortest_edge"}
         Decimator tried first (the other one is the first recovery).
     max_recovery_depth : int
         How many intermediate layers may be nested into each other when recovering.

@@ -181,7 +181,7 @@ class SdfOptions(CageOptions):
 
     ``c``, ``h``, ``r``, ``l`` and ``1/beta`` are relative to the input's diagonal; ``margin``,
     ``spacing``, ``dhat``, ``hug``, ``hug_dhat``, ``tighten`` are in units of ``c``; ``hug_radius`` in
-    units of ``r`` (:func:`cagegen.sdf.sdf_cage_layer` documents each).
+    units of ``r`` (the module :mod:`cagegen.sdf.backend` explains those beyond the paper).
     """
 
     c: float = field_spec(0.01, "envelope iso-value / diagonal", low=0.0, strict=True)

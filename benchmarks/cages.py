@@ -33,11 +33,11 @@ import json
 import os
 import sys
 import time
-import traceback
 from pathlib import Path
 
 import numpy as np
-from exp_common import in_subprocess, is_closed, layer_figures, read_mesh, run_wheel, verify_layers
+from exp_common import (in_subprocess, is_closed, layer_figures, put_layers, read_mesh, run_wheel,
+                        verify_layers)
 
 MESH_EXT = (".off", ".obj", ".ply", ".stl")
 
@@ -59,67 +59,59 @@ def _tightness(V, F, layers) -> list[dict]:
     return out
 
 
+def _nested_details(info: dict) -> dict:
+    """Per-phase and per-layer seconds, recovery and clearance of a ``nested`` run."""
+    phases: dict = {}
+    for li in info["layers"]:
+        for k, v in li["seconds"].items():
+            if k != "total":
+                phases[k] = phases.get(k, 0.0) + float(v)
+    return {"per_layer_seconds": [li["seconds"].get("total") for li in info["layers"]],
+            "seconds_per_phase": phases, "recovery": info["recovery"],
+            "min_gap_relative": [li["min_gap_relative"] for li in info["layers"]]}
+
+
 def _run_ours(path: str, counts: list[int], q) -> None:
-    t = time.perf_counter()
-    try:
+    """Runner of ``nested`` (:func:`cagegen.nested.nested_backend`) for :func:`in_subprocess`."""
+    def build(V, F):
         from cagegen.nested import nested_backend
 
-        V, F = read_mesh(Path(path))
-        t = time.perf_counter()
-        c0 = time.process_time()
-        layers, info = nested_backend(V, F, counts, progress=False)
-        sec = time.perf_counter() - t
-        phases: dict = {}
-        for li in info["layers"]:
-            for k, v in li["seconds"].items():
-                if k != "total":
-                    phases[k] = phases.get(k, 0.0) + float(v)
-        q.put({
-            "ok": True,
-            "seconds": sec,
-            "cpu_seconds": time.process_time() - c0,
-            "per_layer_seconds": [li["seconds"].get("total") for li in info["layers"]],
-            "seconds_per_phase": phases,
-            "recovery": info["recovery"],
-            "min_gap_relative": [li["min_gap_relative"] for li in info["layers"]],
-            "layers": [(np.asarray(a), np.asarray(b)) for a, b in layers],
-        })
-    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
-        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
-               "traceback": traceback.format_exc()[-2000:]})
+        return nested_backend(V, F, counts, progress=False)
+
+    put_layers(q, path, build, _nested_details)
+
+
+def _backend_details(method: str, info: dict) -> dict:
+    """Per-layer seconds (and the sdf phases) of a registered backend's run."""
+    per = info.get("layers", [])
+    res = {"per_layer_seconds": [li["seconds"]["total"] if isinstance(li.get("seconds"), dict)
+                                 else li.get("seconds") for li in per]}
+    if method == "sdf":
+        res["genus_changes"] = info.get("genus_changes", [])
+        res["per_layer"] = [{
+            "seconds": li["seconds"], "c_used": li["c_used"], "attempts": li["attempts"],
+            "grids_tried": li["envelope"].get("grids_tried"), "n_active": li["envelope"]["n_active"],
+            "envelope_faces": li["envelope"]["n_faces"], "genus_envelope": li["genus_envelope"],
+            "prepass": li["prepass"], "simplify": li["simplify"],
+            "optimized_cage_kept": li["optimize"].get("certified", False),
+            "optimize_steps": li["optimize"].get("steps"),
+            "bridge_retry": li.get("bridge_retry")} for li in per]
+    return res
 
 
 def _run_backend(method: str):
     """Runner of a registered cage backend (``sdf``, ``lazy``, ...) for :func:`in_subprocess`."""
     def run(path: str, counts: list[int], q) -> None:
-        t = time.perf_counter()
-        c0 = time.process_time()
-        try:
-            from cagegen import get_backend
+        def build(V, F):
+            from cagegen import build_cages
 
-            V, F = read_mesh(Path(path))
-            t = time.perf_counter()
-            c0 = time.process_time()
-            layers, info = get_backend(method)(V, F, counts, progress=None)
-            res = {"ok": True, "seconds": time.perf_counter() - t, "cpu_seconds": time.process_time() - c0,
-                   "layers": [(np.asarray(a, float), np.asarray(b, np.int64)) for a, b in layers]}
-            per = info.get("layers", [])
-            res["per_layer_seconds"] = [li["seconds"]["total"] if isinstance(li.get("seconds"), dict)
-                                        else li.get("seconds") for li in per]
-            if method == "sdf":
-                res["genus_changes"] = info.get("genus_changes", [])
-                res["per_layer"] = [{
-                    "seconds": li["seconds"], "c_used": li["c_used"], "attempts": li["attempts"],
-                    "grids_tried": li["envelope"].get("grids_tried"), "n_active": li["envelope"]["n_active"],
-                    "envelope_faces": li["envelope"]["n_faces"], "genus_envelope": li["genus_envelope"],
-                    "prepass": li["prepass"], "simplify": li["simplify"],
-                    "optimized_cage_kept": li["optimize"].get("certified", False),
-                    "optimize_steps": li["optimize"].get("steps"),
-                    "bridge_retry": li.get("bridge_retry")} for li in per]
-            q.put(res)
-        except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
-            q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
-                   "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
+            # build_cages loops over the layers of a per-layer backend (sdf, lazy, decimate); the layers
+            # are verified afterwards (_summarise), not by it
+            layers, info = build_cages(V, F, method=method, face_counts=counts, verify=False,
+                                       return_info=True)
+            return layers[1:], info["backend"]
+
+        put_layers(q, path, build, lambda info: _backend_details(method, info))
     return run
 
 

@@ -25,51 +25,49 @@ import argparse
 import json
 import os
 import sys
-import time
-import traceback
 from pathlib import Path
 
-import numpy as np
-from exp_common import in_subprocess, is_closed, layer_figures, read_mesh, run_wheel, verify_layers
+from exp_common import (in_subprocess, is_closed, layer_figures, put_layers, read_mesh, run_wheel,
+                        verify_layers)
 
 MESH_EXT = (".off", ".obj", ".ply", ".stl")
 SDF_OPTS: dict = {}
 
 
-def _run(method: str):
-    def run(path: str, counts: list[int], q) -> None:
-        t = time.perf_counter()
-        c0 = time.process_time()
-        try:
-            from cagegen import get_backend
+def _details(method: str, info: dict) -> dict:
+    """Per-layer phases of an ``sdf`` run, recovery of a ``nested`` one, per-layer seconds."""
+    if method == "sdf":
+        return {"per_layer": [{
+            "seconds": li["seconds"], "c_used": li["c_used"], "attempts": li["attempts"],
+            "prepass": li["prepass"], "simplify": li["simplify"],
+            "optimize": {k: v for k, v in li["optimize"].items() if k != "rejected_reason"},
+            "optimized_cage_kept": li["optimize"].get("certified", False),
+            "genus_envelope": li["genus_envelope"], "envelope_faces": li["envelope"]["n_faces"],
+            "n_active": li["envelope"]["n_active"],
+            "tighten": li.get("tighten", {"ran": False}),
+            "bridge_retry": li.get("bridge_retry")} for li in info["layers"]]}
+    if method == "nested":
+        return {"recovery": info.get("recovery", []),
+                "per_layer_seconds": [li["seconds"].get("total") for li in info["layers"]]}
+    if method == "lazy":
+        return {"per_layer_seconds": [li["seconds"] for li in info["layers"]]}
+    return {}
 
-            V, F = read_mesh(Path(path))
-            backend = get_backend(method)
-            t = time.perf_counter()
-            c0 = time.process_time()
+
+def _run(method: str):
+    """Runner of a registered cage backend (``SDF_OPTS`` for sdf) for :func:`in_subprocess`."""
+    def run(path: str, counts: list[int], q) -> None:
+        def build(V, F):
+            from cagegen import build_cages
+
             opts = dict(SDF_OPTS) if method == "sdf" else {}
-            layers, info = backend(V, F, counts, progress=None, **opts)
-            res = {"ok": True, "seconds": time.perf_counter() - t, "cpu_seconds": time.process_time() - c0,
-                   "layers": [(np.asarray(a, float), np.asarray(b, np.int64)) for a, b in layers]}
-            if method == "sdf":
-                res["per_layer"] = [{
-                    "seconds": li["seconds"], "c_used": li["c_used"], "attempts": li["attempts"],
-                    "prepass": li["prepass"], "simplify": li["simplify"],
-                    "optimize": {k: v for k, v in li["optimize"].items() if k != "rejected_reason"},
-                    "optimized_cage_kept": li["optimize"].get("certified", False),
-                    "genus_envelope": li["genus_envelope"], "envelope_faces": li["envelope"]["n_faces"],
-                    "n_active": li["envelope"]["n_active"],
-                    "tighten": li.get("tighten", {"ran": False}),
-                    "bridge_retry": li.get("bridge_retry")} for li in info["layers"]]
-            elif method == "nested":
-                res["recovery"] = info.get("recovery", [])
-                res["per_layer_seconds"] = [li["seconds"].get("total") for li in info["layers"]]
-            elif method == "lazy":
-                res["per_layer_seconds"] = [li["seconds"] for li in info["layers"]]
-            q.put(res)
-        except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
-            q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
-                   "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
+            # build_cages loops over the layers of a per-layer backend (sdf, lazy, decimate); the layers
+            # are verified afterwards (verify_layers), not by it
+            layers, info = build_cages(V, F, method=method, face_counts=counts, verify=False,
+                                       return_info=True, **opts)
+            return layers[1:], info["backend"]
+
+        put_layers(q, path, build, lambda info: _details(method, info))
     return run
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nestmg import MeshingOptions, SizingOptions, SolverOptions
+from nestmg import SolverOptions
 
 VARIANTS = (  # (coarse, coarse_scaling)
     ("galerkin", None),
@@ -65,9 +65,8 @@ def _solve(prob, scaling, maxiter):
 
 
 def run_mesh(path: Path, methods, levels, fine_tets, mesher, maxiter, edge_length=None):
-    from exp_common import edge_for_tets
+    from exp_common import edge_for_tets, try_hierarchy
 
-    from nestmg.hierarchy import build_hierarchy
     from nestmg.io import load_mesh, normalize
     from nestmg.problems import setup_problem, volume_fractions
 
@@ -78,12 +77,8 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, maxiter, edge_lengt
     for m in methods:
         rec: dict = {}
         t0 = time.perf_counter()
-        try:
-            h = build_hierarchy(V, F, levels, m, sizing=SizingOptions(edge_length=h0),
-                                meshing=MeshingOptions(mesher=mesher), progress=False)
-        except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure and goes on
-            rec["error"] = f"{type(exc).__name__}: {exc}"
-            print(f"  {path.name:<12} {m:<9} ERROR {rec['error']}", flush=True)
+        h = try_hierarchy(rec, f"  {path.name:<12} {m:<9}", V, F, levels, m, h0, mesher)
+        if h is None:
             out["methods"][m] = rec
             continue
         rec["build_seconds"] = time.perf_counter() - t0

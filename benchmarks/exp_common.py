@@ -199,6 +199,16 @@ STYLES = {"nested": ("k", "o", "-"), "naive-clamped": ("tab:blue", "s", "--"),
           "naive-nearest_vertex": ("tab:orange", "D", "--")}
 
 
+def figure(rows: int, cols: int, **kwargs):
+    """``(fig, axes)`` of ``matplotlib.pyplot.subplots(rows, cols, **kwargs)`` drawn off-screen (Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(rows, cols, **kwargs)
+
+
 def save_figure(fig, path: Path, dpi: int = 70) -> None:
     """Lay out, write (creating the folder) and close a matplotlib figure."""
     import matplotlib.pyplot as plt
@@ -307,25 +317,39 @@ def verify_layers(V, F, layers) -> dict:
     }
 
 
+def put_layers(q, path: str, build, details=None) -> None:
+    """The child's side of :func:`in_subprocess`: time a cage builder on a mesh file, put the record on ``q``.
+
+    ``layers, info = build(V, F)`` runs on the mesh read from ``path`` (the reading is not timed). The record:
+    ``ok``, ``seconds``, ``cpu_seconds``, ``layers`` (float64 / int64 arrays) and the keys of
+    ``details(info)``; on any failure ``ok=False``, the ``error``, the times so far and the traceback's end.
+    """
+    import traceback
+
+    t, c0 = time.perf_counter(), time.process_time()
+    try:
+        V, F = read_mesh(Path(path))
+        t, c0 = time.perf_counter(), time.process_time()
+        layers, info = build(V, F)
+        res = {"ok": True, "seconds": time.perf_counter() - t, "cpu_seconds": time.process_time() - c0,
+               "layers": [(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.int64))
+                          for a, b in layers]}
+        q.put({**res, **(details(info) if details else {})})
+    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
+        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t,
+               "cpu_seconds": time.process_time() - c0, "traceback": traceback.format_exc()[-2000:]})
+
+
 def run_wheel(path: str, counts: list[int], q) -> None:
     """Runner of the reference ``nested_cages`` wheel for :func:`in_subprocess` (puts its result on ``q``)."""
-    t = time.perf_counter()
-    c0 = time.process_time()
-    try:
+    def build(V, F):
         import nested_cages
 
-        V, F = read_mesh(Path(path))
-        t = time.perf_counter()
-        c0 = time.process_time()
-        out = nested_cages.nested_cages(
+        return nested_cages.nested_cages(
             np.asfortranarray(V), np.asfortranarray(F, dtype=np.int32), num_faces=list(counts), quad_order=2,
-            energy_expansion="None", energy_final="Volume", regular=[True] * len(counts))
-        sec = time.perf_counter() - t
-        q.put({"ok": True, "seconds": sec, "cpu_seconds": time.process_time() - c0,
-               "layers": [(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.int64))
-                          for a, b in out]})
-    except Exception as exc:  # noqa: BLE001 -- any failure is reported in the JSON
-        q.put({"ok": False, "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t})
+            energy_expansion="None", energy_final="Volume", regular=[True] * len(counts)), None
+
+    put_layers(q, path, build)
 
 
 def in_subprocess(fn, path: Path, counts: list[int], timeout: float) -> dict:
@@ -376,6 +400,23 @@ def tightness(Vc: np.ndarray, Fc: np.ndarray, V0: np.ndarray, F0: np.ndarray, n_
 
 
 # ------------------------------------------------------------------ reuse benchmarks (issue 15 item 5)
+def try_hierarchy(rec: dict, label: str, V, F, levels: int, method: str, edge_length: float | None,
+                  mesher: str):
+    """:func:`nestmg.build_hierarchy` of ``(V, F)`` at a fine ``edge_length`` with ``mesher``, or None.
+
+    A failure is recorded in ``rec["error"]`` and printed after ``label``: a benchmark reports it and goes on.
+    """
+    from nestmg import MeshingOptions, SizingOptions, build_hierarchy
+
+    try:
+        return build_hierarchy(V, F, levels, method, sizing=SizingOptions(edge_length=edge_length),
+                               meshing=MeshingOptions(mesher=mesher), progress=False)
+    except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure and goes on
+        rec["error"] = f"{type(exc).__name__}: {exc}"
+        print(f"{label} ERROR {rec['error']}", flush=True)
+        return None
+
+
 def cached_hierarchy(path: Path, *, levels: int = 3, max_tets: int = 1_200_000, method: str = "nested",
                    edge_length: float | None = None):
     """``nestmg.build_hierarchy`` of a mesh file with the project defaults, through the on-disk cache
@@ -598,6 +639,34 @@ class Cholmod:
         x = np.zeros(len(b))
         x[keep] = self.factor_(b[keep])
         return x - x.mean()
+
+
+def join_runs(files: list[Path], same: tuple[str, ...], joined: tuple[str, ...]) -> dict:
+    """One result from the JSON of runs of the same meshes with other ``--methods`` (separate processes).
+
+    The first file gives the frame (plus ``merged_from`` and every file's ``commands``); a mesh met again
+    must agree on the ``same`` keys (else ``SystemExit``), and its ``runs`` and ``joined`` per-method dicts
+    take the entries of that file's own runs.
+    """
+    import json
+
+    res = None
+    for f in files:
+        r = json.loads(Path(f).read_text())
+        if res is None:
+            res = dict(r, merged_from=[str(x) for x in files], commands=[], meshes=[])
+        res["commands"].append(r["params"]["command"])
+        for rec in r["meshes"]:
+            tgt = next((x for x in res["meshes"] if x["mesh"] == rec["mesh"]), None)
+            if tgt is None:
+                res["meshes"].append(rec)
+                continue
+            differ = [k for k in same if tgt[k] != rec[k]]
+            if differ:
+                raise SystemExit(f"{f}: {rec['mesh']} has other {' / '.join(differ)} than {files[0]}")
+            for key in ("runs", *joined):
+                tgt[key].update({m: v for m, v in rec[key].items() if m in rec["runs"]})
+    return res
 
 
 def add_hierarchy_arguments(ap) -> None:

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
+from exp_common import STYLES, build_pair, environment, figure, load_zoo, save_figure, write_json
 from nestmg import SolverOptions
 
 
@@ -58,14 +58,9 @@ def run(meshes, fine_tets, lams, levels, maxiter, nu):
 
 
 def plot(results, path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     meshes = list(results["meshes"])
     lams = results["params"]["lams"]
-    fig, axes = plt.subplots(len(meshes), 3, figsize=(15, 4.2 * len(meshes)), squeeze=False)
+    fig, axes = figure(len(meshes), 3, figsize=(15, 4.2 * len(meshes)), squeeze=False)
     styles = STYLES
     for i, mesh in enumerate(meshes):
         runs = results["meshes"][mesh]["runs"]

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
+from exp_common import STYLES, build_pair, environment, figure, load_zoo, save_figure, write_json
 
 
 def run(meshes, fine_tets, levels, nus, maxiter, tol, hierarchies):
@@ -81,14 +81,9 @@ def run(meshes, fine_tets, levels, nus, maxiter, tol, hierarchies):
 
 
 def plot(results, path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     meshes = list(results["meshes"])
     maxiter = results["params"]["maxiter"]
-    fig, axes = plt.subplots(len(meshes), 2, figsize=(11, 4.0 * len(meshes)), squeeze=False)
+    fig, axes = figure(len(meshes), 2, figsize=(11, 4.0 * len(meshes)), squeeze=False)
     styles = STYLES
     for i, mesh in enumerate(meshes):
         runs = results["meshes"][mesh]["runs"]

@@ -27,7 +27,7 @@ import time
 import warnings
 from pathlib import Path
 
-from exp_common import STYLES, build_pair, environment, load_zoo, save_figure, write_json
+from exp_common import STYLES, build_pair, environment, figure, load_zoo, save_figure, write_json
 from nestmg import SolverOptions
 
 HIERARCHIES = ("nested", "naive-linear", "naive-closest_point")
@@ -112,13 +112,8 @@ def size_sweep(mesh, sizes, maxiter, hierarchies=DEFAULT_HIERARCHIES):
 
 
 def plot(results, path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     styles = {k: STYLES[k] for k in ("nested", "naive-linear", "naive-closest_point")}
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    fig, axes = figure(2, 2, figsize=(11, 8))
     for col, (key, xkey, xlabel) in enumerate((("levels", "levels", "number of levels"),
                                                ("sizes", "fine_tets", "fine tets"))):
         for rec in results[key]:

@@ -29,7 +29,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import cages, edge_for_tets, environment, load_zoo, save_figure, write_json
+from exp_common import cages, edge_for_tets, environment, figure, load_zoo, save_figure, write_json
 from nestmg import MeshingOptions, SizingOptions, SolverOptions
 
 
@@ -170,15 +170,10 @@ def _report(mesh, target, name, r):
 
 
 def plot(results, path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     names = ["nestmg_galerkin", "nestmg_rediscretized", "pyamg_sa", "pyamg_sa_energy", "pyamg_rs", "cholmod",
              "scipy_splu"]
     colors = ["k", "0.4", "tab:blue", "tab:cyan", "tab:green", "tab:red", "tab:orange"]
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    fig, axes = figure(1, 3, figsize=(16, 4.5))
     recs = results["runs"]
     x = np.arange(len(recs))
     w = 0.8 / len(names)

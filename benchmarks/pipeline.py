@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nestmg import MeshingOptions, SizingOptions, SolverOptions
+from nestmg import SolverOptions
 
 
 def _edge_for_tets(V, F, target: int) -> float:
@@ -28,7 +28,8 @@ def _edge_for_tets(V, F, target: int) -> float:
 
 
 def run_mesh(path: Path, methods, levels, fine_tets, mesher, problems, coarse_list, smoother):
-    from nestmg.hierarchy import build_hierarchy
+    from exp_common import try_hierarchy
+
     from nestmg.io import load_mesh, normalize
     from nestmg.run import solve_on_hierarchy
 
@@ -39,12 +40,8 @@ def run_mesh(path: Path, methods, levels, fine_tets, mesher, problems, coarse_li
     for m in methods:
         rec: dict = {}
         t0 = time.perf_counter()
-        try:
-            h = build_hierarchy(V, F, levels, m, sizing=SizingOptions(edge_length=h0),
-                                meshing=MeshingOptions(mesher=mesher), progress=False)
-        except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure and goes on
-            rec["error"] = f"{type(exc).__name__}: {exc}"
-            print(f"  {path.name:<14} {m:<9} ERROR {rec['error']}", flush=True)
+        h = try_hierarchy(rec, f"  {path.name:<14} {m:<9}", V, F, levels, m, h0, mesher)
+        if h is None:
             out["methods"][m] = rec
             continue
         rec["hierarchy"] = h.to_dict()

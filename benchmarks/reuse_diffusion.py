@@ -45,7 +45,9 @@ from exp_common import (
     blas_info,
     cached_hierarchy,
     environment,
+    figure,
     hierarchies_from_args,
+    join_runs,
     pyamg_sa_solve,
     relres,
     save_figure,
@@ -205,23 +207,7 @@ def summarize(rec: dict) -> None:
 def merge(files: list[Path], states_dir: Path | None) -> dict:
     """One result from runs of the same meshes with different ``--methods`` (separate processes): runs are
     joined per mesh, the states compared with the reference's (CHOLMOD, else nestmg) step by step."""
-    res = None
-    for f in files:
-        r = json.loads(Path(f).read_text())
-        if res is None:
-            res = dict(r, merged_from=[str(f) for f in files], commands=[])
-            res["meshes"] = []
-        res["commands"].append(r["params"]["command"])
-        for rec in r["meshes"]:
-            tgt = next((x for x in res["meshes"] if x["mesh"] == rec["mesh"]), None)
-            if tgt is None:
-                res["meshes"].append(rec)
-                continue
-            if tgt["dts"] != rec["dts"] or tgt["tets"] != rec["tets"]:
-                raise SystemExit(f"{f}: {rec['mesh']} has other time steps or another hierarchy")
-            tgt["runs"].update(rec["runs"])
-            tgt["once"].update({k: v for k, v in rec["once"].items() if k in rec["runs"]})
-            tgt["once_cpu"].update({k: v for k, v in rec["once_cpu"].items() if k in rec["runs"]})
+    res = join_runs(files, ("dts", "tets"), ("once", "once_cpu"))
     for rec in res["meshes"]:
         ref = "cholmod" if "cholmod" in rec["runs"] else "nestmg"
         rec["reference"] = ref
@@ -240,13 +226,8 @@ def merge(files: list[Path], states_dir: Path | None) -> dict:
 
 
 def plot(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     meshes = res["meshes"]
-    fig, axes = plt.subplots(1, 2 * len(meshes), figsize=(7 * len(meshes), 4.2), squeeze=False)
+    fig, axes = figure(1, 2 * len(meshes), figsize=(7 * len(meshes), 4.2), squeeze=False)
     for j, rec in enumerate(meshes):
         ax = axes[0, 2 * j]
         sm = rec["summary"]

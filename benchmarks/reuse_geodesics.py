@@ -41,7 +41,9 @@ from exp_common import (
     blas_info,
     cached_hierarchy,
     environment,
+    figure,
     hierarchies_from_args,
+    join_runs,
     pyamg_sa_solve,
     relres,
     save_figure,
@@ -214,21 +216,7 @@ def summarize(rec: dict) -> None:
 def merge(files: list[Path], states_dir: Path | None) -> dict:
     """One result from runs of the same mesh and sources with different ``--methods`` (separate processes);
     distances compared with CHOLMOD's (else nestmg's) from the saved states."""
-    res = None
-    for f in files:
-        r = json.loads(Path(f).read_text())
-        if res is None:
-            res = dict(r, merged_from=[str(x) for x in files], commands=[], meshes=[])
-        res["commands"].append(r["params"]["command"])
-        for rec in r["meshes"]:
-            tgt = next((x for x in res["meshes"] if x["mesh"] == rec["mesh"]), None)
-            if tgt is None:
-                res["meshes"].append(rec)
-                continue
-            if tgt["sources"] != rec["sources"] or tgt["tets"] != rec["tets"]:
-                raise SystemExit(f"{f}: {rec['mesh']} has other sources or another hierarchy")
-            tgt["runs"].update(rec["runs"])
-            tgt["setups"].update(rec["setups"])
+    res = join_runs(files, ("sources", "tets"), ("setups",))
     for rec in res["meshes"]:
         ref = "cholmod" if "cholmod" in rec["runs"] else "nestmg"
         rec["reference"] = ref
@@ -245,13 +233,8 @@ def merge(files: list[Path], states_dir: Path | None) -> dict:
 
 
 def plot(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     meshes = res["meshes"]
-    fig, axes = plt.subplots(1, len(meshes), figsize=(6.5 * len(meshes), 4.2), squeeze=False)
+    fig, axes = figure(1, len(meshes), figsize=(6.5 * len(meshes), 4.2), squeeze=False)
     for j, rec in enumerate(meshes):
         ax = axes[0, j]
         for m, s in rec["summary"].items():

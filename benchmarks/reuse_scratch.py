@@ -43,6 +43,7 @@ from exp_common import (
     blas_info,
     cached_hierarchy,
     environment,
+    figure,
     hierarchies_from_args,
     pyamg_sa_solve,
     relres,
@@ -176,13 +177,8 @@ def run_mesh(path: Path, edge, methods, tol: float, repeat: int) -> dict:
 
 
 def plot(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     meshes = res["meshes"]
-    fig, axes = plt.subplots(1, 2 * len(meshes), figsize=(6 * len(meshes), 4.0), squeeze=False)
+    fig, axes = figure(1, 2 * len(meshes), figsize=(6 * len(meshes), 4.0), squeeze=False)
     for j, rec in enumerate(meshes):
         for i, (name, pr) in enumerate(rec["problems"].items()):
             ax = axes[0, 2 * j + i]

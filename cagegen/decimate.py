@@ -10,6 +10,9 @@ Two libigl decimators are used:
 * ``igl.qslim`` -- quadric error metric collapses (Garland & Heckbert), the default;
 * ``igl.decimate`` -- shortest-edge collapses to the edge midpoint (faster, rounder, less faithful).
 
+``decimator`` names them ``"qslim"`` and ``"shortest_edge"`` (the names gpytoolbox gives the same two
+libigl functions, used by the ``lazy`` backend).
+
 Both keep a closed manifold closed, but the result is checked anyway (closed, manifold, consistent
 orientation, positive volume, same genus and, by default, free of self-intersections); on failure the
 other decimator is tried, then both again with libigl's intersection-blocking collapses.
@@ -27,7 +30,7 @@ from .errors import CageError, CageOptionError
 
 __all__ = ["decimate_layer", "decimate_surface"]
 
-_ALGORITHMS = ("qslim", "decimate")
+_DECIMATORS = ("qslim", "shortest_edge")
 
 
 def _surface_problem(V: np.ndarray, F: np.ndarray, genus: int | None, check_self: bool) -> str:
@@ -71,11 +74,11 @@ def decimate_surface(
     F: np.ndarray,
     n_faces: int,
     *,
-    algorithm: str = "qslim",
+    decimator: str = "qslim",
     block_intersections: bool = False,
     check_self: bool = True,
     keep_genus: bool = True,
-    other_algorithm: bool = True,
+    other_decimator: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Decimate a closed surface to about ``n_faces`` faces, checking the result is still a solid.
 
@@ -87,7 +90,7 @@ def decimate_surface(
     n_faces : int
         Target face count (an edge collapse removes two faces, so the result is within 2 of it unless
         the decimator gets stuck).
-    algorithm : {"qslim", "decimate"}
+    decimator : {"qslim", "shortest_edge"}
         Decimator tried first (``igl.qslim``: quadric error; ``igl.decimate``: shortest edge).
     block_intersections : bool
         Start with libigl's intersection-blocking collapses (slower, ~3x).
@@ -95,9 +98,9 @@ def decimate_surface(
         Reject (and retry) results with self-intersections (exact test, :mod:`cagegen.intersect`).
     keep_genus : bool
         Reject (and retry) results whose genus differs from the input's.
-    other_algorithm : bool
+    other_decimator : bool
         Retry with the other decimator (True, default) or only with the intersection-blocking variant
-        of ``algorithm`` (False: shortest-edge collapses with midpoint placement cut deep into sharp
+        of ``decimator`` (False: shortest-edge collapses with midpoint placement cut deep into sharp
         CAD features, where QEM with blocking keeps them).
 
     Returns
@@ -105,7 +108,7 @@ def decimate_surface(
     U : (n',3) float64 array
     G : (m',3) int64 array
     info : dict
-        ``algorithm``, ``block_intersections``, ``attempts`` (list of ``[algorithm, blocking, problem]``),
+        ``decimator``, ``block_intersections``, ``attempts`` (list of ``[decimator, blocking, problem]``),
         ``seconds``, ``n_faces`` (achieved).
 
     Raises
@@ -115,18 +118,18 @@ def decimate_surface(
     """
     import igl
 
-    if algorithm not in _ALGORITHMS:
-        raise CageOptionError(f"algorithm must be one of {_ALGORITHMS}, got {algorithm!r}")
+    if decimator not in _DECIMATORS:
+        raise CageOptionError(f"decimator must be one of {_DECIMATORS}, got {decimator!r}")
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
     genus = _genus(V, F) if keep_genus else None
-    other = _ALGORITHMS[1 - _ALGORITHMS.index(algorithm)]
-    if other_algorithm:
-        plan = [(algorithm, block_intersections), (other, block_intersections)]
+    other = _DECIMATORS[1 - _DECIMATORS.index(decimator)]
+    if other_decimator:
+        plan = [(decimator, block_intersections), (other, block_intersections)]
         if not block_intersections:
-            plan += [(algorithm, True), (other, True)]
+            plan += [(decimator, True), (other, True)]
     else:
-        plan = [(algorithm, block_intersections)] + ([] if block_intersections else [(algorithm, True)])
+        plan = [(decimator, block_intersections)] + ([] if block_intersections else [(decimator, True)])
     attempts = []
     t0 = time.perf_counter()
     for alg, block in plan:
@@ -146,7 +149,7 @@ def decimate_surface(
         attempts.append([alg, block, problem])
         if not problem:
             info = {
-                "algorithm": alg,
+                "decimator": alg,
                 "block_intersections": block,
                 "attempts": attempts,
                 "seconds": time.perf_counter() - t0,
@@ -163,7 +166,7 @@ def decimate_layer(
     n_faces: int,
     *,
     unit: float | None = None,
-    algorithm: str = "qslim",
+    decimator: str = "qslim",
     block_intersections: bool = False,
     check_self: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -180,7 +183,7 @@ def decimate_layer(
         Target face count.
     unit : float, optional
         The input's bounding-box diagonal (unused: no option of this backend is a length).
-    algorithm, block_intersections, check_self
+    decimator, block_intersections, check_self
         See :func:`decimate_surface`.
 
     Returns
@@ -190,7 +193,7 @@ def decimate_layer(
     info : dict
         :func:`decimate_surface`'s info plus ``target`` and ``n_vertices``.
     """
-    U, G, li = decimate_surface(V, F, int(n_faces), algorithm=algorithm,
+    U, G, li = decimate_surface(V, F, int(n_faces), decimator=decimator,
                                 block_intersections=block_intersections, check_self=check_self)
     li.update(target=int(n_faces), n_vertices=int(U.shape[0]))
     return U, G, li

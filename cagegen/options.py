@@ -141,7 +141,8 @@ class CageOptions:
 class DecimateOptions(CageOptions):
     """``"decimate"``: the naive baseline (:func:`cagegen.decimate.decimate_layer`)."""
 
-    algorithm: str = field_spec("qslim", "decimator", choices=("qslim", "decimate"))
+    decimator: str = field_spec("qslim", "decimator tried first (libigl's qslim or decimate)",
+                                choices=("qslim", "shortest_edge"))
     block_intersections: bool = field_spec(False, "refuse collapses that create self-intersections")
     check_self: bool = field_spec(True, "check each layer for self-intersections")
 
@@ -157,7 +158,8 @@ class NestedOptions(CageOptions):
                                            kind=float)
     decimate_from: str = field_spec("previous", "decimate the previous layer or the input",
                                     choices=("previous", "input"))
-    decimator: str = field_spec("qslim", "decimator tried first", choices=("qslim", "decimate"))
+    decimator: str = field_spec("qslim", "decimator tried first (libigl's qslim or decimate)",
+                                choices=("qslim", "shortest_edge"))
     max_recovery_depth: int = field_spec(2, "intermediate layers allowed when recovering", low=0)
     fallback: str | None = field_spec("sdf", "last resort when the flow fails", choices=("sdf", "lazy", None))
     target_offset: float | None = field_spec(None, "offset of the second target's envelope / diagonal "
@@ -179,7 +181,7 @@ class SdfOptions(CageOptions):
 
     ``c``, ``h``, ``r``, ``l`` and ``1/beta`` are relative to the input's diagonal; ``margin``,
     ``spacing``, ``dhat``, ``hug``, ``hug_dhat``, ``tighten`` are in units of ``c``; ``hug_radius`` in
-    units of ``r`` (:func:`cagegen.sdf.sdf_cage_layer` documents each).
+    units of ``r`` (the module :mod:`cagegen.sdf.backend` explains those beyond the paper).
     """
 
     c: float = field_spec(0.01, "envelope iso-value / diagonal", low=0.0, strict=True)
@@ -249,7 +251,8 @@ class LazyOptions(CageOptions):
 
     grid_size: int = field_spec(50, "SDF grid cells per side", low=4)
     max_iter: int = field_spec(10, "binary-search steps", low=1)
-    decimation: str = field_spec("shortest_edge", "gpytoolbox decimation", choices=("shortest_edge", "qslim"))
+    decimator: str = field_spec("shortest_edge", "gpytoolbox's decimator (libigl's decimate or qslim)",
+                                choices=("shortest_edge", "qslim"))
     self_union: bool = field_spec(True, "union the offset with itself (removes self-intersections)")
 
 

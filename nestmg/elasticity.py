@@ -148,12 +148,10 @@ class ElasticityProblem(Problem):
         """
         from solvers import MultigridSolver
 
-        from .options import SolverOptions
+        from .options import SolverOptions, typed
         from .problems import cycle_smoothers
 
-        o = options if options is not None else SolverOptions()
-        if not isinstance(o, SolverOptions):
-            raise NestmgInputError(f"options must be a nestmg.SolverOptions, got {type(o).__name__}")
+        o = typed(options, SolverOptions, "options")
         coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
         robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS with the defaults
         pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)

@@ -30,7 +30,7 @@ from .memory import check_tet_memory
 from .progress import Timer, stage_line, stages
 from .prolongation import ProlongationReport, prolongation
 from .refine import refine_tets
-from .options import MeshingOptions, SizingOptions, as_dict
+from .options import MeshingOptions, SizingOptions, as_dict, typed
 from .sizing import edge_length_for_tets, plan_hierarchy
 from .tetmesh import tetrahedralize
 
@@ -84,21 +84,20 @@ class Hierarchy:
         """Points ``Vn`` (n,3) of the normalised frame in the user's frame."""
         return np.asarray(Vn, dtype=np.float64) * float(self.frame["scale"]) + np.asarray(self.frame["center"])
 
+    def _in_frame(self, layers: list, frame: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        if frame == "user":
+            return list(layers)
+        if frame == "normalized":
+            return [(self.to_normalized(V), E) for V, E in layers]
+        raise NestmgInputError(f"frame must be 'user' or 'normalized', got {frame!r}")
+
     def tets_in(self, frame: str = "user") -> list[tuple[np.ndarray, np.ndarray]]:
         """Tet layers in the ``"user"`` (input's) or ``"normalized"`` frame (same ``T`` arrays)."""
-        if frame == "user":
-            return list(self.tets)
-        if frame == "normalized":
-            return [(self.to_normalized(V), T) for V, T in self.tets]
-        raise NestmgInputError(f"frame must be 'user' or 'normalized', got {frame!r}")
+        return self._in_frame(self.tets, frame)
 
     def surfaces_in(self, frame: str = "user") -> list[tuple[np.ndarray, np.ndarray]]:
         """Surface layers in the ``"user"`` or ``"normalized"`` frame."""
-        if frame == "user":
-            return list(self.surfaces)
-        if frame == "normalized":
-            return [(self.to_normalized(V), F) for V, F in self.surfaces]
-        raise NestmgInputError(f"frame must be 'user' or 'normalized', got {frame!r}")
+        return self._in_frame(self.surfaces, frame)
 
     @property
     def levels(self) -> int:
@@ -480,11 +479,11 @@ def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio:
             break
         # QEM with libigl's intersection-blocking collapses: plain qslim leaves self-intersections on
         # detailed scans and the fallback (shortest-edge midpoints) errs 10x more (docs/scale.md)
-        U, G, dinfo = decimate_surface(V, F, target, algorithm="qslim", block_intersections=True)
+        U, G, dinfo = decimate_surface(V, F, target, decimator="qslim", block_intersections=True)
         err = float(igl.hausdorff(V, F, U, G))
         if max_error is None or err <= max_error:
             info.update(faces_out=len(G), seconds=_time.perf_counter() - t, hausdorff=err,
-                        algorithm=dinfo.get("algorithm"))
+                        decimator=dinfo.get("decimator"))
             return U, G, info
         info.setdefault("rejected", []).append({"faces": len(G), "hausdorff": err})
         target *= 2
@@ -676,7 +675,7 @@ def build_hierarchy(
     import cagegen
 
     t0 = time.perf_counter()
-    sizing, meshing = _typed(sizing, SizingOptions, "sizing"), _typed(meshing, MeshingOptions, "meshing")
+    sizing, meshing = typed(sizing, SizingOptions, "sizing"), typed(meshing, MeshingOptions, "meshing")
     if levels < 2:
         raise NestmgInputError(f"levels must be >= 2, got {levels}")
     cages = cage_options_for(method, cages, meshing)
@@ -734,12 +733,3 @@ def build_hierarchy(
     )
     stage_line(f"hierarchy: tets {[len(T) for _, T in tets]}, n_outside {h.n_outside}, certified {h.certified}", t0)
     return h
-
-
-def _typed(value, cls: type, name: str):
-    """``value`` if it is a ``cls`` (None: the defaults); a one-line error otherwise."""
-    if value is None:
-        return cls()
-    if not isinstance(value, cls):
-        raise NestmgInputError(f"{name} must be a nestmg.{cls.__name__}, got {type(value).__name__}")
-    return value

@@ -148,6 +148,21 @@ def _check(obj: Any) -> None:
         raise OptionError(exc.owner, exc.field, exc.problem) from None
 
 
+def typed(value: Any, cls: type, name: str) -> Any:
+    """``value`` if it is a ``cls``, ``cls()`` (the defaults) for None; a one-line error otherwise.
+
+    Raises
+    ------
+    NestmgInputError
+        ``"{name} must be a nestmg.{cls}, got {type}"``.
+    """
+    if value is None:
+        return cls()
+    if not isinstance(value, cls):
+        raise NestmgInputError(f"{name} must be a nestmg.{cls.__name__}, got {type(value).__name__}")
+    return value
+
+
 def as_dict(obj: Any) -> dict[str, Any]:
     """``dataclasses.asdict(obj)`` with tuples as lists (the JSON of ``Hierarchy.options``)."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(obj).items()}

@@ -154,11 +154,9 @@ class Problem:
         """
         from solvers import MultigridSolver
 
-        from .options import SolverOptions
+        from .options import SolverOptions, typed
 
-        o = options if options is not None else SolverOptions()
-        if not isinstance(o, SolverOptions):
-            raise NestmgInputError(f"options must be a nestmg.SolverOptions, got {type(o).__name__}")
+        o = typed(options, SolverOptions, "options")
         coarse_scaling = o.coarse_scaling
         if coarse_scaling == "auto":
             coarse_scaling = None if isinstance(self.coarse, str) else "energy"

@@ -107,6 +107,14 @@ def prolongation(
     report : ProlongationReport
         ``n_outside`` and the largest distance of an outside node, among others.
 
+    Raises
+    ------
+    NestmgInputError
+        For an unknown ``extrapolation``.
+    solvers.SolverInputError
+        For arrays of the wrong shape, NaN/inf coordinates or tets indexing missing nodes (checked by
+        :func:`solvers.locate.locate_in_tets`; both errors are ``NestmgError`` and ``ValueError``).
+
     Examples
     --------
     >>> import numpy as np
@@ -122,18 +130,11 @@ def prolongation(
         raise NestmgInputError(f"unknown extrapolation {extrapolation!r}; choose from {EXTRAPOLATIONS}")
     Vf = np.ascontiguousarray(Vf, dtype=np.float64)
     Vc = np.ascontiguousarray(Vc, dtype=np.float64)
-    Tc = np.ascontiguousarray(Tc, dtype=np.int64)
-    if Vf.ndim != 2 or Vf.shape[1] != 3 or Vc.ndim != 2 or Vc.shape[1] != 3:
-        raise NestmgInputError("Vf and Vc must be (n,3) arrays")
-    if Tc.ndim != 2 or Tc.shape[1] != 4 or len(Tc) == 0:
-        raise NestmgInputError("Tc must be a non-empty (t,4) array of tets")
-    if not (np.isfinite(Vf).all() and np.isfinite(Vc).all()):
-        raise NestmgInputError("node coordinates contain NaN or inf")
-    if Tc.min() < 0 or Tc.max() >= len(Vc):
-        raise NestmgInputError("Tc indexes nodes outside Vc")
+    # the shapes, finiteness and indices of Vf, Vc, Tc are checked by locate_in_tets (SolverInputError);
+    # the tolerance's diagonal is Vf's, its default
+    loc = locate_in_tets(Vf, Vc, Tc, on_boundary_tol=on_boundary_tol)
     nf, nc = len(Vf), len(Vc)
     diag = float(np.linalg.norm(Vf.max(axis=0) - Vf.min(axis=0))) if nf else 1.0
-    loc = locate_in_tets(Vf, Vc, Tc, on_boundary_tol=on_boundary_tol, diag=diag)
     rows = np.repeat(np.arange(nf), 4).reshape(nf, 4)
     cols, W, out = loc.cols, loc.weights, loc.outside
     n_on = loc.n_on_boundary

@@ -10,8 +10,7 @@ import numpy as np
 
 from solvers import DivergenceError, MultigridSolver, convergence_factor
 
-from .errors import NestmgInputError
-from .options import SolverOptions
+from .options import SolverOptions, typed
 from .problems import setup_problem
 
 __all__ = ["measure_cycle_cost", "solve_on_hierarchy"]
@@ -94,9 +93,7 @@ def solve_on_hierarchy(
         ``residuals``, ``factor``, ``iterations``, ``converged``, ``diverged``, ``message``,
         ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
     """
-    o = options if options is not None else SolverOptions()
-    if not isinstance(o, SolverOptions):
-        raise NestmgInputError(f"options must be a nestmg.SolverOptions, got {type(o).__name__}")
+    o = typed(options, SolverOptions, "options")
     t0 = time.perf_counter()
     extra = {"element": element, "curved": curved} if element != "P1" else {}
     prob = setup_problem(tets, P, problem, coarse=o.coarse, lam=o.lam, fractions=fractions,

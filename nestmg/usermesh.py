@@ -40,7 +40,7 @@ from cagegen.errors import MeshInputError, NestmgError
 from .cache import arrays_digest, atomic_write_bytes
 from .errors import NestmgInputError
 from .hierarchy import Hierarchy, tet_hierarchy
-from .options import MeshingOptions, SizingOptions, as_dict
+from .options import MeshingOptions, SizingOptions, as_dict, typed
 from .progress import Timer, stage_line
 from .prolongation import ProlongationReport
 
@@ -215,10 +215,10 @@ def hierarchy_from_tets(
     cagegen.CageError
         A cage could not be built or certified.
     """
-    from .hierarchy import _normalize, _typed, build_cage_surfaces, cage_options_for
+    from .hierarchy import _normalize, build_cage_surfaces, cage_options_for
     from .sizing import plan_levels
 
-    sizing, meshing = _typed(sizing, SizingOptions, "sizing"), _typed(meshing, MeshingOptions, "meshing")
+    sizing, meshing = typed(sizing, SizingOptions, "sizing"), typed(meshing, MeshingOptions, "meshing")
     unused = [f for f in ("max_tets", "mesh_time_budget", "same_domain_levels", "fine_level", "predecimate")
               if getattr(sizing, f) != getattr(SizingOptions(), f)]
     if unused:

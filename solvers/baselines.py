@@ -161,6 +161,17 @@ def _pinned(A, nullspace):
     return A, None
 
 
+def _unpinned(xk: np.ndarray, keep: np.ndarray | None, n: int) -> np.ndarray:
+    """The solution of the whole singular system from that of the pinned one (:func:`_pinned`): the
+    pinned node set to 0, then the constant removed (mean zero)."""
+    if keep is None:
+        return xk
+    x = np.zeros(n)
+    x[keep] = xk
+    x -= x.mean()
+    return x
+
+
 def scipy_direct(A, b, *, method: str = "splu", nullspace: str | None = None) -> BaselineResult:
     """SuperLU (``method="splu"``: factorise then solve, timed separately) or ``spsolve`` (one call).
 
@@ -186,10 +197,7 @@ def scipy_direct(A, b, *, method: str = "splu", nullspace: str | None = None) ->
     except RuntimeError as e:
         raise SolverError(f"scipy {method} failed (singular matrix?): {e}") from None
     t2 = time.perf_counter()
-    x = xk if keep is None else np.zeros(A.shape[0])
-    if keep is not None:
-        x[keep] = xk
-        x -= x.mean()
+    x = _unpinned(xk, keep, A.shape[0])
     final = _rel(A, b, x)
     info["final_true_residual"] = final
     return BaselineResult(f"scipy_{method}", x, 0, t1 - t0, t2 - t1, [final], bool(np.isfinite(final)), info)
@@ -221,10 +229,7 @@ def cholmod(A, b, *, nullspace: str | None = None) -> BaselineResult:
     t1 = time.perf_counter()
     xk = factor(bk)
     t2 = time.perf_counter()
-    x = xk if keep is None else np.zeros(A.shape[0])
-    if keep is not None:
-        x[keep] = xk
-        x -= x.mean()
+    x = _unpinned(xk, keep, A.shape[0])
     final = _rel(A, b, x)
     return BaselineResult("cholmod", x, 0, t1 - t0, t2 - t1, [final], bool(np.isfinite(final)),
                           {"final_true_residual": final})

@@ -99,13 +99,15 @@ def locate_in_tets(Q, Vc, Tc, *, on_boundary_tol: float = 1e-12, diag: float | N
     Vc = np.ascontiguousarray(Vc, dtype=np.float64)
     Tc = np.ascontiguousarray(Tc, dtype=np.int64)
     if Q.ndim != 2 or Q.shape[1] != 3 or Vc.ndim != 2 or Vc.shape[1] != 3:
-        raise SolverInputError("points and coarse nodes must be (n,3) arrays")
+        raise SolverInputError(f"the points (fine nodes) and the coarse nodes must be (n,3) arrays, got "
+                               f"shapes {Q.shape} and {Vc.shape}")
     if Tc.ndim != 2 or Tc.shape[1] != 4 or len(Tc) == 0:
-        raise SolverInputError("the coarse tets must be a non-empty (t,4) array")
+        raise SolverInputError(f"the coarse tets must be a non-empty (t,4) array, got shape {Tc.shape}")
     if not (np.isfinite(Q).all() and np.isfinite(Vc).all()):
         raise SolverInputError("node coordinates contain NaN or inf")
     if Tc.min() < 0 or Tc.max() >= len(Vc):
-        raise SolverInputError("the coarse tets index nodes outside the coarse node array")
+        raise SolverInputError(f"the coarse tets index nodes outside the {len(Vc)} coarse nodes "
+                               f"(indices {Tc.min()} to {Tc.max()})")
     n = len(Q)
     cols = np.zeros((n, 4), dtype=np.int64)
     W = np.zeros((n, 4))

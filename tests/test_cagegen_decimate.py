@@ -20,12 +20,12 @@ def genus2():
     return shapes.genus2()  # ~10k faces, genus 2
 
 
-@pytest.mark.parametrize("algorithm", ["qslim", "decimate"])
-def test_layers_watertight_at_target_counts(genus2, algorithm):
+@pytest.mark.parametrize("decimator", ["qslim", "shortest_edge"])
+def test_layers_watertight_at_target_counts(genus2, decimator):
     V, F = genus2
     V0, F0 = V.copy(), F.copy()
     targets = [2400, 600, 150]
-    layers, info = build_cages(V, F, method="decimate", face_counts=targets, algorithm=algorithm,
+    layers, info = build_cages(V, F, method="decimate", face_counts=targets, decimator=decimator,
                                return_info=True)
     layers, info = layers[1:], info["backend"]  # build_cages' loop over decimate_layer
     assert np.array_equal(V, V0) and np.array_equal(F, F0)
@@ -42,7 +42,7 @@ def test_layers_watertight_at_target_counts(genus2, algorithm):
     # QEM keeps the volume of this smooth shape within 2% at 600 faces (measured 0.986); shortest-edge
     # collapses to midpoints shrink it (measured 0.875)
     ratio = signed_volume(*layers[1]) / signed_volume(V, F)
-    if algorithm == "qslim":
+    if decimator == "qslim":
         assert ratio == pytest.approx(1.0, abs=0.02)
     else:
         assert 0.8 < ratio < 0.95
@@ -70,6 +70,6 @@ def test_build_cages_decimate_reports_but_does_not_gate(genus2):
     assert info["backend"]["method"] == "decimate"
 
 
-def test_bad_algorithm(genus2):
-    with pytest.raises(ValueError, match="algorithm"):
-        decimate_surface(*genus2, 500, algorithm="fqmr")
+def test_bad_decimator(genus2):
+    with pytest.raises(ValueError, match="decimator must be one of"):
+        decimate_surface(*genus2, 500, decimator="fqmr")

@@ -114,7 +114,7 @@ def test_layer_hook_does_not_modify_input_and_rejects_bad_options(neck):
     assert np.array_equal(V, V0) and np.array_equal(F, F0)
     assert U.dtype == np.float64 and G.dtype == np.int64 and G.shape[1] == 3
     assert cagegen.verify_nesting([(V, F), (U, G)]).ok
-    for bad in ({"n_faces": 2}, {"n_faces": 10.5}, {"grid_size": 4}, {"max_iter": 0}, {"decimation": "x"}):
+    for bad in ({"n_faces": 2}, {"n_faces": 10.5}, {"grid_size": 4}, {"max_iter": 0}, {"decimator": "x"}):
         kw = {"n_faces": 200, "grid_size": 16, "max_iter": 4, **bad}
         with pytest.raises(ValueError):
             lazy_cage_layer(V, F, **kw)

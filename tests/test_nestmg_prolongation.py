@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
+from nestmg.errors import NestmgError, NestmgInputError
 from nestmg.prolongation import EXTRAPOLATIONS, prolongation
+from solvers.errors import SolverInputError
 
 
 def _cube_tets(n=4, scale=1.0):
@@ -47,13 +49,23 @@ def test_outside_nodes_counted_and_extrapolated(rule, rng):
 
 
 def test_bad_input_is_rejected():
+    """The extrapolation is prolongation's own check; the arrays are checked once, by locate_in_tets."""
     Vc, Tc = _cube_tets(2)
-    with pytest.raises(ValueError, match="NaN"):
-        prolongation(np.array([[np.nan, 0, 0]]), Vc, Tc)
-    with pytest.raises(ValueError, match="extrapolation"):
+    with pytest.raises(NestmgInputError, match="^unknown extrapolation 'magic'; choose from"):
         prolongation(np.zeros((1, 3)), Vc, Tc, extrapolation="magic")
-    with pytest.raises(ValueError, match="outside Vc"):
-        prolongation(np.zeros((1, 3)), Vc, Tc + 1000)
+    n, m = len(Vc), Tc.max() + 1000
+    bad = [((np.array([[np.nan, 0, 0]]), Vc, Tc), "^node coordinates contain NaN or inf$"),
+           ((np.zeros((1, 3)), Vc, Tc + 1000),
+            rf"^the coarse tets index nodes outside the {n} coarse nodes \(indices 1000 to {m}\)$"),
+           ((np.zeros((4, 2)), Vc, Tc), r"must be \(n,3\) arrays, got shapes \(4, 2\) and"),
+           ((np.zeros((1, 3)), Vc, Tc[:, :3]),
+            r"^the coarse tets must be a non-empty \(t,4\) array, got shape"),
+           ((np.zeros((1, 3)), Vc, Tc[:0]), r"non-empty \(t,4\) array, got shape \(0, 4\)$")]
+    for args, message in bad:
+        with pytest.raises(SolverInputError, match=message) as exc:
+            prolongation(*args)
+        assert isinstance(exc.value, NestmgError) and isinstance(exc.value, ValueError)
+        assert "\n" not in str(exc.value)
 
 
 def test_million_nodes_in_seconds(rng):

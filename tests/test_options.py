@@ -106,8 +106,8 @@ def test_options_are_frozen_and_serialisable():
 
 def test_build_cages_takes_the_class_or_its_fields_by_name():
     V, F = shapes.sphere(res=10)
-    a = build_cages(V, F, 2, "decimate", face_counts=[100], algorithm="decimate")
-    b = build_cages(V, F, 2, "decimate", face_counts=[100], options=DecimateOptions(algorithm="decimate"))
+    a = build_cages(V, F, 2, "decimate", face_counts=[100], decimator="shortest_edge")
+    b = build_cages(V, F, 2, "decimate", face_counts=[100], options=DecimateOptions(decimator="shortest_edge"))
     for (Va, Fa), (Vb, Fb) in zip(a, b, strict=True):
         assert np.array_equal(Va, Vb) and np.array_equal(Fa, Fb)
     with pytest.raises(CageOptionError, match=r"unknown option\(s\) for the decimate backend: \['c'\]"):
@@ -115,7 +115,7 @@ def test_build_cages_takes_the_class_or_its_fields_by_name():
     with pytest.raises(CageOptionError, match="takes DecimateOptions, got SdfOptions"):
         build_cages(V, F, 2, "decimate", options=SdfOptions())
     with pytest.raises(CageOptionError, match="not both"):
-        build_cages(V, F, 2, "decimate", options=DecimateOptions(), algorithm="qslim")
+        build_cages(V, F, 2, "decimate", options=DecimateOptions(), decimator="qslim")
 
 
 def _flags(parser_name: str) -> dict:
@@ -174,7 +174,7 @@ def test_hierarchy_records_its_options_and_keys_the_cache_on_them(tmp_path, monk
     assert h2.cage_info.get("cached") and len(list(tmp_path.glob("*.json"))) == n_entries
     # another cage option: a new cage entry (the tet layers of the same surfaces may be reused)
     h3 = build_hierarchy(V, F, 2, "decimate", sizing=sizing, meshing=meshing, progress=False,
-                         cages=DecimateOptions(algorithm="decimate"))
+                         cages=DecimateOptions(decimator="shortest_edge"))
     assert not h3.cage_info.get("cached") and len(list(tmp_path.glob("*.json"))) > n_entries
     with pytest.raises(CageOptionError, match="takes cagegen.DecimateOptions, got NestedOptions"):
         build_hierarchy(V, F, 2, "decimate", cages=NestedOptions(), progress=False)

@@ -104,14 +104,14 @@ def genus(V: np.ndarray, F: np.ndarray) -> int | None:
     return int((2 * c - chi) // 2)
 
 
-def _candidate(V, F32, d, n_faces, grid_size, decimation, self_union):
+def _candidate(V, F32, d, n_faces, grid_size, decimator, self_union):
     """Offset by ``d``, decimate to ``n_faces``, self-union. Returns (U, G) or raises CageError (a RuntimeError)."""
     Uo, Go = _gp_offset_surface(V, F32, float(d), int(grid_size))
     if len(Go) == 0:
         raise CageError("empty offset surface")
     if len(Go) > n_faces:
         U, G, _, _ = _gp_decimate(np.asarray(Uo, float), np.asarray(Go, np.int32), num_faces=int(n_faces),
-                                  method=decimation)
+                                  method=decimator)
     else:  # the offset surface is already coarser than the target (tiny grid)
         U, G = Uo, Go
     if self_union:
@@ -204,7 +204,7 @@ def lazy_cage_layer(
     gap: float = 0.0,
     grid_size: int = 50,
     max_iter: int = 10,
-    decimation: str = "shortest_edge",
+    decimator: str = "shortest_edge",
     self_union: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified enclosing cage of about ``n_faces`` faces around the closed surface ``(V, F)``.
@@ -224,8 +224,8 @@ def lazy_cage_layer(
         cages (the offset cannot be much thinner than one cell) at a cubic cost.
     max_iter : int
         Binary-search steps on the offset distance (>= 1); each halves the uncertainty on ``d``.
-    decimation : {"shortest_edge", "qslim"}
-        gpytoolbox's decimator.
+    decimator : {"shortest_edge", "qslim"}
+        gpytoolbox's decimator (libigl's ``decimate`` or ``qslim``).
     self_union : bool
         Resolve self-intersections of the decimated offset with a CGAL self-union (GPL). Without it,
         self-intersecting candidates are simply rejected by the acceptance test.
@@ -269,8 +269,8 @@ def lazy_cage_layer(
         raise CageOptionError(f"grid_size must be an integer >= 8, got {grid_size!r}")
     if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter or int(max_iter) < 1:
         raise CageOptionError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-    if decimation not in ("shortest_edge", "qslim"):
-        raise CageOptionError(f"decimation must be 'shortest_edge' or 'qslim', got {decimation!r}")
+    if decimator not in ("shortest_edge", "qslim"):
+        raise CageOptionError(f"decimator must be 'shortest_edge' or 'qslim', got {decimator!r}")
     if isinstance(gap, (bool, np.bool_)) or not (np.isfinite(gap) and gap >= 0):
         raise CageOptionError(f"gap must be a finite number >= 0, got {gap!r}")
     n_faces, gap = int(n_faces), float(gap)
@@ -286,7 +286,7 @@ def lazy_cage_layer(
         t = time.perf_counter()
         clear: dict = {}
         try:
-            U, G = _candidate(V, F32, d, n_faces, grid_size, decimation, self_union)
+            U, G = _candidate(V, F32, d, n_faces, grid_size, decimator, self_union)
             reason = _accept(V, F, U, G)
             if not reason and gap > 0:
                 U, reason, clear = _keep_clearance(V, F, U, G, gap)
@@ -326,7 +326,7 @@ def lazy_cage_layer(
         "offset_relative": float(d / diag),
         "grid_size": int(grid_size),
         "max_iter": int(max_iter),
-        "decimation": decimation,
+        "decimator": decimator,
         "self_union": bool(self_union),
         "genus_fine": g_fine,
         "genus": g_cage,
@@ -351,7 +351,7 @@ def lazy_layer(
     min_gap: float = 0.0,
     grid_size: int = 50,
     max_iter: int = 10,
-    decimation: str = "shortest_edge",
+    decimator: str = "shortest_edge",
     self_union: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Per-layer function of the ``"lazy"`` backend: a lazy cage of ``(V, F)`` (nested, loose).
@@ -370,7 +370,7 @@ def lazy_layer(
     min_gap : float
         Clearance from ``(V, F)`` relative to ``unit`` (the unit of :func:`cagegen.verify_nesting`'s
         ``min_gap``, which :func:`cagegen.build_cages` passes here): the cage keeps ``min_gap * unit``.
-    grid_size, max_iter, decimation, self_union
+    grid_size, max_iter, decimator, self_union
         See :func:`lazy_cage_layer`.
 
     Returns
@@ -386,7 +386,7 @@ def lazy_layer(
     if not (np.isfinite(gap) and gap >= 0):
         raise CageOptionError(f"min_gap must be a finite number >= 0, got {min_gap!r}")
     U, G, li = lazy_cage_layer(V, F, int(n_faces), gap=gap, grid_size=grid_size, max_iter=max_iter,
-                               decimation=decimation, self_union=self_union)
+                               decimator=decimator, self_union=self_union)
     c = ""
     if gap > 0:
         got = (f"{li['distance'] / unit:.3g}" if li["distance"] is not None

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import NamedTuple
 
 import igl
 import numpy as np
@@ -367,9 +368,9 @@ def _dilate_target(Vc, Fc, delta):
     return Vc + alpha * (target - Vc), {"delta": float(delta), "fraction": alpha}
 
 
-def _decimate(V, F, n_faces, algorithm):
-    U, G, dinfo = decimate_surface(V, F, int(n_faces), algorithm=algorithm)
-    return U, G, {"algorithm": dinfo["algorithm"], "block_intersections": dinfo["block_intersections"],
+def _decimate(V, F, n_faces, decimator):
+    U, G, dinfo = decimate_surface(V, F, int(n_faces), decimator=decimator)
+    return U, G, {"decimator": dinfo["decimator"], "block_intersections": dinfo["block_intersections"],
                   "n_faces": int(G.shape[0]), "seconds": dinfo["seconds"]}
 
 
@@ -415,8 +416,8 @@ def _envelope_target(Vf, Ff, n_faces, offset):
     env = build_envelope(Vf, Ff, c=float(offset), h=float(offset), band=4.0 * float(offset))
     if len(env.F) <= n_faces:
         raise CageError(f"envelope at {offset:.3g} has {len(env.F)} faces, not more than the target")
-    U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), algorithm="qslim", other_algorithm=False)
-    return U, G, {"algorithm": dinfo["algorithm"], "block_intersections": dinfo["block_intersections"],
+    U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), decimator="qslim", other_decimator=False)
+    return U, G, {"decimator": dinfo["decimator"], "block_intersections": dinfo["block_intersections"],
                   "n_faces": int(G.shape[0]), "offset": float(offset), "envelope_faces": len(env.F),
                   "seconds": time.perf_counter() - t}
 
@@ -470,7 +471,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     against 0.33, corpus at c9049ce), then the layer by the other decimator.
     """
     first_alg = opts.get("decimator", "qslim")
-    other_alg = "decimate" if first_alg == "qslim" else "qslim"
+    other_alg = "shortest_edge" if first_alg == "qslim" else "qslim"
     sources = [("layer", first_alg)]
     sources += [("envelope", first_alg)] if opts.get("target_offset") else []
     sources += [("layer", other_alg)]
@@ -487,7 +488,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             failures.append({"action": f"decimate the {src} with {alg}", "stage": "decimate", "reason": str(exc)})
             log.append({"layer": layer_no, **failures[-1]})
             continue
-        key = (src, dinfo["algorithm"], dinfo["block_intersections"])
+        key = (src, dinfo["decimator"], dinfo["block_intersections"])
         if key in tried:  # the decimator fell back to a result already tried: same flow, skip it
             continue
         tried.add(key)
@@ -499,14 +500,14 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
         except PairFailure as exc:
-            failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+            failures.append({"action": f"decimate the {src} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
                              "stage": exc.stage, "reason": exc.reason})
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue
         C, d, pinfo["clearance_completion"] = complete_clearance(C, G, Vf, Ff, gap)
         if d < gap / GAP_AIM:
-            failures.append({"action": f"decimate the {src} with {dinfo['algorithm']} to {dinfo['n_faces']} faces",
+            failures.append({"action": f"decimate the {src} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
                              "stage": "clearance", "reason": f"gap {d:.3g} < {gap / GAP_AIM:.3g}"})
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: clearance {d:.3g} too small")
@@ -578,7 +579,7 @@ def nested_backend(
         The same clearance in absolute units (overrides ``min_gap``).
     decimate_from : {"previous", "input"}
         Decimate the previous layer (default) or the input for each target.
-    decimator : {"qslim", "decimate"}
+    decimator : {"qslim", "shortest_edge"}
         Decimator tried first (the other one is the first recovery).
     max_recovery_depth : int
         How many intermediate layers may be nested into each other when recovering.
@@ -624,16 +625,7 @@ def nested_backend(
         Unknown option or energy.
     """
     t_all = time.perf_counter()
-    if energy not in ENERGIES:
-        raise CageOptionError(f"unknown energy {energy!r}; choose one of {sorted(ENERGIES)}")
-    if decimate_from not in ("previous", "input"):
-        raise CageOptionError(f"decimate_from must be 'previous' or 'input', got {decimate_from!r}")
-    unknown = set(opts) - set(_DEFAULTS)
-    if unknown:
-        raise CageOptionError(f"unknown option(s) for the nested backend: {sorted(unknown)}")
-    if fallback is not None and fallback not in FALLBACKS:
-        raise CageOptionError(f"unknown fallback {fallback!r}; choose one of {sorted(FALLBACKS)} or None")
-    check_energy_available(energy)  # a copyleft energy's package, before the flow runs
+    _check_options(energy, decimate_from, opts, fallback)
     V = np.array(V, dtype=np.float64)  # private copies
     F = np.array(F, dtype=np.int64)
     face_counts = [int(c) for c in face_counts]
@@ -652,7 +644,6 @@ def nested_backend(
     if not target_offset >= 0:
         raise CageOptionError(f"target_offset must be >= 0, got {target_offset!r}")
     params["target_offset"] = float(target_offset)
-
     info: dict = {
         "method": "nested",
         "options": {k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in params.items()},
@@ -663,6 +654,8 @@ def nested_backend(
         "layers": [],
         "recovery": [],
     }
+    run = _Run(V, F, Vn, diag, center, params, gap_target, gap_abs, decimate_from, int(max_recovery_depth),
+               fallback, certify)
     layers = []
     prev_n, prev_F = Vn, F
     prev_orig = (V, F)
@@ -671,40 +664,9 @@ def nested_backend(
         for k, m in enumerate(face_counts, start=1):
             t_layer = time.perf_counter()
             rep.say(f"layer {k}: target {m} faces")
-            src_V, src_F = (prev_n, prev_F) if decimate_from == "previous" else (Vn, F)
             log: list = []
-            try:
-                if decimate_from == "input" and k > 1:
-                    # the target is a decimation of the input, but it must nest the previous layer
-                    C, G, linfo = _layer_from_target(prev_n, prev_F, Vn, F, m, params, gap_target, rep, log, k)
-                else:
-                    C, G, linfo = _build_layer(src_V, src_F, m, params, gap_target, rep, 0,
-                                               int(max_recovery_depth), log, k)
-            except CageError as exc:
-                C, G, linfo = _fallback(prev_n, prev_F, m, exc, fallback, rep, log, k, gap_target)
-            Vk = C * diag + center
-            Gk = np.ascontiguousarray(G, dtype=np.int64)
-            t = time.perf_counter()
-            if certify:
-                report = verify_nesting([prev_orig, (Vk, Gk)], min_gap=gap_abs / _diag(prev_orig[0]))
-                linfo["verification"] = report.to_dict()
-                if not report.ok:
-                    raise CageError(f"layer {k} failed certification: {report.pairs[0].reason}",
-                                    layer=k, reason=str(report.pairs[0].reason))
-            linfo.setdefault("seconds", {})["verify"] = time.perf_counter() - t
-            gap_k = min_distance(Vk, Gk, *prev_orig)
-            linfo.update({
-                "layer": k,
-                "target": m,
-                "n_faces": len(Gk),
-                "n_vertices": len(Vk),
-                "min_gap_absolute": gap_k,
-                "min_gap_relative": gap_k / diag,
-                "volume_ratio": signed_volume(Vk, Gk) / signed_volume(*prev_orig),
-                "volume_ratio_to_input": signed_volume(Vk, Gk) / signed_volume(V, F),
-                "hausdorff_relative": float(igl.hausdorff(Vk, Gk, V, F)) / diag,
-                "recovery": log,
-            })
+            C, G, linfo = _cage_layer(run, k, m, prev_n, prev_F, rep, log)
+            Vk, Gk = _finish_layer(run, k, m, C, G, linfo, log, prev_orig)
             linfo["seconds"]["total"] = time.perf_counter() - t_layer
             info["layers"].append(_jsonable(linfo))
             info["recovery"].extend(log)
@@ -714,6 +676,78 @@ def nested_backend(
             rep.layer_done()
     info["seconds"] = time.perf_counter() - t_all
     return layers, info
+
+
+def _check_options(energy: str, decimate_from: str, opts: dict, fallback: str | None) -> None:
+    """One-line :class:`CageOptionError` for an unknown energy, source, option or fallback."""
+    if energy not in ENERGIES:
+        raise CageOptionError(f"unknown energy {energy!r}; choose one of {sorted(ENERGIES)}")
+    if decimate_from not in ("previous", "input"):
+        raise CageOptionError(f"decimate_from must be 'previous' or 'input', got {decimate_from!r}")
+    unknown = set(opts) - set(_DEFAULTS)
+    if unknown:
+        raise CageOptionError(f"unknown option(s) for the nested backend: {sorted(unknown)}")
+    if fallback is not None and fallback not in FALLBACKS:
+        raise CageOptionError(f"unknown fallback {fallback!r}; choose one of {sorted(FALLBACKS)} or None")
+    check_energy_available(energy)  # a copyleft energy's package, before the flow runs
+
+
+class _Run(NamedTuple):
+    """What every layer of one :func:`nested_backend` run shares (``Vn``: the input at unit diagonal)."""
+
+    V: np.ndarray
+    F: np.ndarray
+    Vn: np.ndarray
+    diag: float
+    center: np.ndarray
+    params: dict
+    gap_target: float
+    gap_abs: float
+    decimate_from: str
+    max_depth: int
+    fallback: str | None
+    certify: bool
+
+
+def _cage_layer(run: _Run, k: int, m: int, prev_n, prev_F, rep, log: list) -> tuple:
+    """Layer ``k`` (``m`` faces) around the previous one, at unit diagonal: recovery, then the fallback."""
+    src_V, src_F = (prev_n, prev_F) if run.decimate_from == "previous" else (run.Vn, run.F)
+    try:
+        if run.decimate_from == "input" and k > 1:
+            # the target is a decimation of the input, but it must nest the previous layer
+            return _layer_from_target(prev_n, prev_F, run.Vn, run.F, m, run.params, run.gap_target, rep, log,
+                                      k)
+        return _build_layer(src_V, src_F, m, run.params, run.gap_target, rep, 0, run.max_depth, log, k)
+    except CageError as exc:
+        return _fallback(prev_n, prev_F, m, exc, run.fallback, rep, log, k, run.gap_target)
+
+
+def _finish_layer(run: _Run, k: int, m: int, C, G, linfo: dict, log: list, prev_orig) -> tuple:
+    """Layer ``k`` in the caller's coordinates, certified against the previous one; figures in ``linfo``."""
+    Vk = C * run.diag + run.center
+    Gk = np.ascontiguousarray(G, dtype=np.int64)
+    t = time.perf_counter()
+    if run.certify:
+        report = verify_nesting([prev_orig, (Vk, Gk)], min_gap=run.gap_abs / _diag(prev_orig[0]))
+        linfo["verification"] = report.to_dict()
+        if not report.ok:
+            raise CageError(f"layer {k} failed certification: {report.pairs[0].reason}",
+                            layer=k, reason=str(report.pairs[0].reason))
+    linfo.setdefault("seconds", {})["verify"] = time.perf_counter() - t
+    gap_k = min_distance(Vk, Gk, *prev_orig)
+    linfo.update({
+        "layer": k,
+        "target": m,
+        "n_faces": len(Gk),
+        "n_vertices": len(Vk),
+        "min_gap_absolute": gap_k,
+        "min_gap_relative": gap_k / run.diag,
+        "volume_ratio": signed_volume(Vk, Gk) / signed_volume(*prev_orig),
+        "volume_ratio_to_input": signed_volume(Vk, Gk) / signed_volume(run.V, run.F),
+        "hausdorff_relative": float(igl.hausdorff(Vk, Gk, run.V, run.F)) / run.diag,
+        "recovery": log,
+    })
+    return Vk, Gk
 
 
 def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):

@@ -160,9 +160,9 @@ def flow_inside(
     stall_window : int, optional
         Fail fast (None: never): every ``min(25, stall_window)`` iterations after ``2 * stall_window``,
         while quadrature points are still outside Ĉ (or within the margin), the decrease of the largest
-        signed distance over the last ``stall_window`` iterations is extrapolated linearly; if reaching the margin at that rate
-        needs more iterations than ``max_iter`` leaves, the flow stops with a "stalled ... outside"
-        reason (it cannot succeed within the cap unless it speeds up).
+        signed distance over the last ``stall_window`` iterations is extrapolated linearly; if reaching
+        the margin at that rate needs more iterations than ``max_iter`` leaves, the flow stops with a
+        "stalled ... outside" reason (it cannot succeed within the cap unless it speeds up).
     callback : callable, optional
         Called with the iteration number after each step (progress bars).
 
@@ -170,122 +170,167 @@ def flow_inside(
     -------
     FlowResult
     """
-    Vf0 = np.array(Vf, dtype=float)  # private copy: the caller's array is never touched
-    Ff = np.asarray(Ff, dtype=np.int64)
-    Vc = np.array(Vc, dtype=float)  # private copy (may be expanded)
-    Fc = np.asarray(Fc, dtype=np.int64)
-    diag = float(np.linalg.norm(Vf0.max(0) - Vf0.min(0)))
+    fl = _Flow(Vf, Ff, Vc, Fc, quad_order, active_depth)
+    diag = fl.diag
     h, h_max, h_min = step * diag, max_step * diag, step * diag / 64
     eps_abs, margin_abs, keep_abs = eps * diag, margin * diag, keep_every * diag
-
-    B, w = quadrature_matrix(Ff, len(Vf0), quad_order)
-    q = len(w)
-    pair = PairMesh(Vc, Fc, Vf0, Ff)
-
-    def evaluate(V):
-        P = B @ V
-        S, I, Q, N = _signed_distance(P, Vc, Fc)
-        evaluate.I = I
-        W = np.outer(triangle_areas(V, Ff), w).ravel()  # area × rule weight per point
-        return P, S, Q, N, W
-
-    def phi(S, W):
-        if active_depth is not None:
-            S = np.maximum(S, -active_depth * diag)
-        return float(W @ S)
-
-    V = Vf0.copy()
-    P, S, Q, N, W = evaluate(V)
-    history = [Vf0.copy()]
-    last_kept = V.copy()
-    n_checks, inside_iters, it = 0, 0, 0
+    history = [fl.Vf0.copy()]
+    last_kept = fl.V.copy()
     reason = f"no convergence after {max_iter} iterations"
     success = False
     steps = []
-    best, since_best, n_expand = float(S.max()), 0, 0
-    smax_log = [float(S.max())]  # largest signed distance after each iteration (stall_window)
+    best, since_best = float(fl.S.max()), 0
+    smax_log = [float(fl.S.max())]  # largest signed distance after each iteration (stall_window)
     while True:
-        if S.max() < best - 0.02 * max(abs(best), 1e-4 * diag):
-            best, since_best = float(S.max()), 0
+        if fl.S.max() < best - 0.02 * max(abs(best), 1e-4 * diag):
+            best, since_best = float(fl.S.max()), 0
         else:
             since_best += 1
-        if (expand_after is not None and S.max() > -margin_abs and since_best >= expand_after
-                and n_expand < max_expansions):
+        if (expand_after is not None and fl.S.max() > -margin_abs and since_best >= expand_after
+                and fl.n_expand < max_expansions):
             # points stuck outside (or within the margin): push their closest faces out by sd + margin
             m_e = max(margin_abs, 1e-3 * diag)
-            stuck = S > -m_e
-            Vc, _ = _expand_target(Vc, Fc, evaluate.I[stuck], S[stuck] + m_e)
-            n_expand += 1
+            stuck = fl.S > -m_e
+            fl.expand(fl.I[stuck], fl.S[stuck] + m_e)
             since_best, best = 0, np.inf
-            pair = PairMesh(Vc, Fc, Vf0, Ff)
-            P, S, Q, N, W = evaluate(V)
             continue
-        if S.max() < -margin_abs:
-            n_checks += 1
-            if not pair.intersects(pair.stack(Vc, V)):
+        if fl.S.max() < -margin_abs:
+            action = _when_inside(fl, stall_iter, expand_after, max_expansions)
+            if action == "inside":
                 success, reason = True, "inside"
                 break
-            inside_iters += 1
-            if inside_iters == stall_iter // 4 and q < 7:
-                # every quadrature point is inside but triangles still cut Ĉ (they stretch around
-                # Ĉ's corners, the paper's "invalid F̄"): sample each triangle more densely
-                B, w = quadrature_matrix(Ff, len(Vf0), 5)
-                q = len(w)
-                P, S, Q, N, W = evaluate(V)
+            if action == "again":
                 continue
-            if (expand_after is not None and inside_iters > stall_iter // 4 and inside_iters % 25 == 0
-                    and n_expand < max_expansions):
-                # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface
-                pairs = cross_intersection_pairs(Vc, Fc, V, Ff)
-                if len(pairs):
-                    Vc, _ = _expand_target(Vc, Fc, pairs[:, 0], np.full(len(pairs), 2e-3 * diag))
-                    n_expand += 1
-                    pair = PairMesh(Vc, Fc, Vf0, Ff)
-                    P, S, Q, N, W = evaluate(V)
-                    continue
-            if inside_iters >= stall_iter:
-                reason = f"stalled: quadrature points inside but intersections remain after {it} iterations"
+            if action == "stalled":
+                reason = (f"stalled: quadrature points inside but intersections remain after {fl.it} "
+                          f"iterations")
                 break
-        if it >= max_iter:
+        if fl.it >= max_iter:
             break
-        # Eq. 6: unit direction of increasing signed distance, pseudonormal when too close
-        D = P - Q
-        dist = np.abs(S)
-        G = np.where((dist > eps_abs)[:, None], np.sign(S)[:, None] * D / np.maximum(dist, 1e-300)[:, None], N)
-        if active_depth is not None:
-            G[S < -active_depth * diag] = 0.0
-        # Eq. 5: gather at vertices (weights: area × rule weight × barycentric coordinate)
-        grad = B.T @ (W[:, None] * G)
-        mass = B.T @ W
-        vel = -grad / np.maximum(mass, 1e-300)[:, None]
-        phi0 = phi(S, W)
-        # backtracking line search on Φ (closest points are recomputed at the trial positions)
-        while True:
-            Vt = V + h * vel
-            Pt, St, Qt, Nt, Wt = evaluate(Vt)
-            if phi(St, Wt) < phi0 or h <= h_min:
-                break
-            h *= 0.5
-        V, P, S, Q, N, W = Vt, Pt, St, Qt, Nt, Wt
+        h = _descent_step(fl, h, h_min, eps_abs)
         steps.append(h / diag)
         h = min(h * 1.25, h_max)
-        it += 1
+        fl.it += 1
         if stall_window:
-            smax_log.append(float(S.max()))
-            if it >= 2 * stall_window and it % min(25, stall_window) == 0 and smax_log[-1] > -margin_abs:
-                drop = smax_log[-1 - stall_window] - smax_log[-1]
-                need = np.inf if drop <= 0 else (smax_log[-1] + margin_abs) / drop * stall_window
-                if need > max_iter - it:
-                    reason = (f"stalled: points outside after {it} iterations (largest signed distance "
-                              f"{smax_log[-1] / diag:.3g} of the diagonal, down {max(drop, 0.0) / diag:.2g} in the "
-                              f"last {stall_window}; about {need:.0f} more iterations needed at that rate, "
-                              f"{max_iter - it} left)")
-                    break
-        if np.abs(V - last_kept).max() >= keep_abs:
-            history.append(V.copy())
-            last_kept = V.copy()
+            smax_log.append(float(fl.S.max()))
+            stalled = _stalled_outside(smax_log, fl.it, stall_window, margin_abs, max_iter, diag)
+            if stalled:
+                reason = stalled
+                break
+        if np.abs(fl.V - last_kept).max() >= keep_abs:
+            history.append(fl.V.copy())
+            last_kept = fl.V.copy()
         if callback is not None:
-            callback(it)
-    if history[-1] is not V and not np.array_equal(history[-1], V):
-        history.append(V.copy())
-    return FlowResult(history, success, it, reason, float(S.max()), n_checks, steps, Vc, n_expand)
+            callback(fl.it)
+    if history[-1] is not fl.V and not np.array_equal(history[-1], fl.V):
+        history.append(fl.V.copy())
+    return FlowResult(history, success, fl.it, reason, float(fl.S.max()), fl.n_checks, steps, fl.Vc,
+                      fl.n_expand)
+
+
+class _Flow:
+    """State of one :func:`flow_inside` run: the iterate F̄, its quadrature, the target Ĉ, counters."""
+
+    def __init__(self, Vf, Ff, Vc, Fc, quad_order: int, active_depth: float | None):
+        self.Vf0 = np.array(Vf, dtype=float)  # private copy: the caller's array is never touched
+        self.Ff = np.asarray(Ff, dtype=np.int64)
+        self.Vc = np.array(Vc, dtype=float)  # private copy (may be expanded)
+        self.Fc = np.asarray(Fc, dtype=np.int64)
+        self.diag = float(np.linalg.norm(self.Vf0.max(0) - self.Vf0.min(0)))
+        self.active_depth = active_depth
+        self.B, self.w = quadrature_matrix(self.Ff, len(self.Vf0), quad_order)
+        self.pair = PairMesh(self.Vc, self.Fc, self.Vf0, self.Ff)
+        self.it = self.n_checks = self.inside_iters = self.n_expand = 0
+        self.V = self.Vf0.copy()
+        self.evaluate_here()
+
+    def evaluate(self, V: np.ndarray) -> tuple:
+        """Quadrature points ``P`` of ``V``, their signed distances, closest points and pseudonormals on Ĉ
+        and weights (area × rule weight); ``self.I``: their closest faces of Ĉ."""
+        P = self.B @ V
+        S, self.I, Q, N = _signed_distance(P, self.Vc, self.Fc)
+        W = np.outer(triangle_areas(V, self.Ff), self.w).ravel()  # area × rule weight per point
+        return P, S, Q, N, W
+
+    def evaluate_here(self) -> None:
+        self.P, self.S, self.Q, self.N, self.W = self.evaluate(self.V)
+
+    def phi(self, S: np.ndarray, W: np.ndarray) -> float:
+        """Φ (Eq. 1) by quadrature; the local flow ignores points deeper than ``active_depth``."""
+        if self.active_depth is not None:
+            S = np.maximum(S, -self.active_depth * self.diag)
+        return float(W @ S)
+
+    def refine_quadrature(self, order: int) -> None:
+        self.B, self.w = quadrature_matrix(self.Ff, len(self.Vf0), order)
+        self.evaluate_here()
+
+    def expand(self, faces: np.ndarray, amount: np.ndarray) -> None:
+        """Expand Ĉ around ``faces`` (:func:`_expand_target`) and evaluate again."""
+        self.Vc, _ = _expand_target(self.Vc, self.Fc, faces, amount)
+        self.n_expand += 1
+        self.pair = PairMesh(self.Vc, self.Fc, self.Vf0, self.Ff)
+        self.evaluate_here()
+
+
+def _when_inside(fl: _Flow, stall_iter: int, expand_after: int | None, max_expansions: int) -> str:
+    """Every quadrature point is inside Ĉ: ``"inside"`` (no intersection left), ``"again"`` (denser
+    quadrature or Ĉ expanded: evaluate again), ``"stalled"``, or ``""`` (keep flowing)."""
+    fl.n_checks += 1
+    if not fl.pair.intersects(fl.pair.stack(fl.Vc, fl.V)):
+        return "inside"
+    fl.inside_iters += 1
+    if fl.inside_iters == stall_iter // 4 and len(fl.w) < 7:
+        # every quadrature point is inside but triangles still cut Ĉ (they stretch around
+        # Ĉ's corners, the paper's "invalid F̄"): sample each triangle more densely
+        fl.refine_quadrature(5)
+        return "again"
+    if (expand_after is not None and fl.inside_iters > stall_iter // 4 and fl.inside_iters % 25 == 0
+            and fl.n_expand < max_expansions):
+        # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface
+        pairs = cross_intersection_pairs(fl.Vc, fl.Fc, fl.V, fl.Ff)
+        if len(pairs):
+            fl.expand(pairs[:, 0], np.full(len(pairs), 2e-3 * fl.diag))
+            return "again"
+    return "stalled" if fl.inside_iters >= stall_iter else ""
+
+
+def _descent_step(fl: _Flow, h: float, h_min: float, eps_abs: float) -> float:
+    """One step of the flow (Eqs. 5-6) with a backtracking line search on Φ; returns the step taken."""
+    S, W = fl.S, fl.W
+    # Eq. 6: unit direction of increasing signed distance, pseudonormal when too close
+    D = fl.P - fl.Q
+    dist = np.abs(S)
+    G = np.where((dist > eps_abs)[:, None], np.sign(S)[:, None] * D / np.maximum(dist, 1e-300)[:, None], fl.N)
+    if fl.active_depth is not None:
+        G[S < -fl.active_depth * fl.diag] = 0.0
+    # Eq. 5: gather at vertices (weights: area × rule weight × barycentric coordinate)
+    grad = fl.B.T @ (W[:, None] * G)
+    mass = fl.B.T @ W
+    vel = -grad / np.maximum(mass, 1e-300)[:, None]
+    phi0 = fl.phi(S, W)
+    # backtracking line search on Φ (closest points are recomputed at the trial positions)
+    while True:
+        Vt = fl.V + h * vel
+        Pt, St, Qt, Nt, Wt = fl.evaluate(Vt)
+        if fl.phi(St, Wt) < phi0 or h <= h_min:
+            break
+        h *= 0.5
+    fl.V, fl.P, fl.S, fl.Q, fl.N, fl.W = Vt, Pt, St, Qt, Nt, Wt
+    return h
+
+
+def _stalled_outside(smax_log: list, it: int, stall_window: int, margin_abs: float, max_iter: int,
+                     diag: float) -> str:
+    """The ``stall_window`` reason when the largest signed distance, falling at its recent rate, cannot
+    reach the margin within ``max_iter`` (``""`` otherwise or when it is not time to check)."""
+    if not (it >= 2 * stall_window and it % min(25, stall_window) == 0 and smax_log[-1] > -margin_abs):
+        return ""
+    drop = smax_log[-1 - stall_window] - smax_log[-1]
+    need = np.inf if drop <= 0 else (smax_log[-1] + margin_abs) / drop * stall_window
+    if need <= max_iter - it:
+        return ""
+    return (f"stalled: points outside after {it} iterations (largest signed distance "
+            f"{smax_log[-1] / diag:.3g} of the diagonal, down {max(drop, 0.0) / diag:.2g} in the "
+            f"last {stall_window}; about {need:.0f} more iterations needed at that rate, "
+            f"{max_iter - it} left)")

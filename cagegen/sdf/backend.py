@@ -19,6 +19,53 @@ One layer (:func:`sdf_cage_layer`), in coordinates normalised to a unit bounding
 
 ``build_cages(V, F, levels=K, method="sdf")`` runs :func:`sdf_cage_layer` on the previous layer for
 each coarser layer. License: MIT (numpy, scipy, scikit-image, libigl's MIT core, ipctk).
+
+Options beyond the paper (units and defaults: :class:`cagegen.SdfOptions`):
+
+* ``h``: the grid spacing defaults to ``c`` but is made finer (at most 4x) when the envelope would have
+  fewer than ``ENVELOPE_OVER_TARGET = 4`` times ``n_faces`` faces, so the cage is a simplification of
+  it and not the marching-cubes surface itself (``info["envelope"]["refined_for_target"]``).
+* ``opt_time_limit`` is CPU seconds, not wall, so a loaded machine gives the same cage.
+* ``pull`` (0 = off): input vertices farther than ``c`` from the cage (concavities the envelope
+  bridged) pull the cage toward them, under the same barrier and CCD
+  (:func:`cagegen.sdf.optimize.optimize_cage`, ``w_p``).
+* ``check_input``: audit ``(V, F)`` first (:func:`cagegen.check_mesh`: closed, manifold, oriented,
+  exact self-intersection test; measured 46 CPU s on an 85k-face input) and refuse a bad surface at
+  once with :class:`cagegen.MeshInputError` (a self-intersecting input has no cage that contains it
+  strictly; without the check the backend spends minutes of rebuilds before giving up). False: the
+  caller guarantees an audited input (``build_cages`` does, and every layer it returns is certified).
+* ``hug`` (0 = off; default 0.1 since the zoo runs ``zoo_sdf_hug01.json`` /
+  ``zoo4_tighten_hug01.json``): spacing target of the optimisation near the input's active points
+  (where two parts nearly touch), in units of ``c``, so the cage hugs the input there and a coarser
+  layer built on it can still separate the parts (homer's second layer: genus 0 instead of 1);
+  elsewhere ``spacing``. Inputs without active points are unaffected. ``hug_radius`` is its falloff
+  radius around the active points, in units of ``r``.
+* ``hug_dhat``: with ``hug`` and active points found, the barrier activation distance becomes
+  ``min(dhat, hug_dhat)`` (units of ``c``; everywhere, ipctk's barrier has one ``dhat``): the descent
+  holds the cage vertices in barrier pairs when the CCD blocks a step, so with ``dhat = 0.25 c`` the
+  cage cannot come closer than ~0.25 ``c`` (homer: the lower target alone and the lower barrier alone
+  both leave the second layer at genus 1, together genus 0).
+* ``tighten`` (0 = off), ``tighten_rounds``: when an input vertex is farther than ``tighten * c`` from
+  the optimised cage (a concavity the envelope bridged), :func:`cagegen.sdf.tighten.tighten_cage`
+  inserts a cage vertex above each such point, lowers it with the pull under a ``0.05 c`` barrier,
+  collapses as many edges elsewhere (the inserted vertices frozen) and keeps the round only if it is
+  certified and tighter.
+* ``bridge_retry`` (0 = off): when the finished cage is still farther than ``tighten * c`` from the
+  fine layer *and* the envelope itself was (the offset bridged a concavity: an eye socket, a slot
+  between two parts, which neither the optimisation nor the tightening pass can enter from above),
+  the layer is built once more at ``c * bridge_retry`` and that cage is kept if it is certified, has
+  the first one's genus and is tighter (input-to-cage and symmetric Hausdorff distances both
+  smaller). It runs only if three times the first build's seconds fit in what is left of
+  ``cage_time_budget`` / ``deadline``, and only if ``c * bridge_retry >= 4 min_gap`` (the clearance
+  leaves room to simplify). ``info["bridge_retry"]`` records the trigger, the distances and what was
+  kept. Measured: ``docs/sdf.md``.
+* ``cage_time_budget``: wall-clock seconds a call may take (None: no limit). Checked first, in
+  milliseconds: when :func:`estimate_layer_seconds` of the input exceeds it, :class:`CageError`
+  (``reason="time budget"``) names the option before the audit or any other work. During the run, a
+  tightening round is started only if the time already spent plus the last round's time fits the
+  budget (the pass is an improvement of an already certified cage; ``info["tighten"]["stopped"]``
+  records it). ``deadline`` (a ``time.perf_counter()`` value; :func:`sdf_schedule` sets it from the
+  run's budget) stops tightening rounds the same way.
 """
 
 from __future__ import annotations
@@ -191,40 +238,20 @@ def _check_target(n_faces) -> int:
 
 
 def sdf_cage_layer(
-    V,
-    F,
-    n_faces: int,
-    *,
-    unit: float | None = None,
-    c: float = DEFAULTS["c"],
-    h: float | None = None,
-    amplify: bool = True,
-    r: float = DEFAULTS["r"],
-    l: float = DEFAULTS["l"],
-    alpha: float = DEFAULTS["alpha"],
-    beta: float = DEFAULTS["beta"],
-    margin: float = 0.3,
-    optimize: bool = True,
-    spacing: float = 0.5,
-    dhat: float = 0.25,
-    opt_iters: int = 15,
-    flip_rounds: int = 1,
-    opt_time_limit: float = 30.0,
-    pull: float = 50.0,
-    prepass: bool = True,
-    max_retries: int = 3,
-    min_gap: float = 0.0,
-    check_input: bool = True,
-    hug: float = 0.1,
-    hug_radius: float = 1.0,
-    hug_dhat: float = 0.05,
-    tighten: float = 1.5,
-    tighten_rounds: int = 3,
-    bridge_retry: float = 0.5,
-    cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
+    V, F, n_faces: int, *, unit: float | None = None,
+    c: float = DEFAULTS["c"], h: float | None = None, amplify: bool = True, r: float = DEFAULTS["r"],
+    l: float = DEFAULTS["l"], alpha: float = DEFAULTS["alpha"], beta: float = DEFAULTS["beta"],  # noqa: E741
+    margin: float = 0.3, optimize: bool = True, spacing: float = 0.5, dhat: float = 0.25, opt_iters: int = 15,
+    flip_rounds: int = 1, opt_time_limit: float = 30.0, pull: float = 50.0, prepass: bool = True,
+    max_retries: int = 3, min_gap: float = 0.0, check_input: bool = True, hug: float = 0.1,
+    hug_radius: float = 1.0, hug_dhat: float = 0.05, tighten: float = 1.5, tighten_rounds: int = 3,
+    bridge_retry: float = 0.5, cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
     deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One certified cage with exactly ``n_faces`` faces strictly containing the closed surface ``(V, F)``.
+
+    The options are the fields of :class:`cagegen.SdfOptions` (units and defaults there); those beyond
+    the paper are described in this module's docstring.
 
     Parameters
     ----------
@@ -236,88 +263,26 @@ def sdf_cage_layer(
     unit : float, optional
         Length that ``c``, ``h``, ``r``, ``l`` and ``1/beta`` are relative to (default: the bounding-box
         diagonal of ``(V, F)``; the backend passes the input's, so all layers share one scale).
-    c : float
-        Iso-value of the envelope (paper: 0.01).
-    h : float, optional
-        Grid spacing (default ``c``, made finer -- at most 4x -- when the envelope would have fewer than
-        ``ENVELOPE_OVER_TARGET = 4`` times ``n_faces`` faces, so the cage is a simplification of it and
-        not the marching-cubes surface itself; ``info["envelope"]["refined_for_target"]``).
-    amplify : bool
-        Local amplification near nearly-touching parts (paper eqs. 2-3).
-    r, l, alpha, beta : float
-        Amplification parameters (paper: 0.025, 0.15, 3, 8).
-    margin : float
-        Clearance (in units of ``c``) the simplification keeps on the distance grid.
-    optimize : bool
-        Run the barrier-protected optimisation (vertex relocation + flips).
-    spacing : float
-        Target cage spacing ``h`` of the optimisation, in units of ``c``.
-    dhat : float
-        Barrier activation distance, in units of ``c``.
-    opt_iters, flip_rounds : int
-        Descent steps per round, rounds of edge flips.
-    opt_time_limit : float
-        CPU seconds after which the descent stops (the cage so far is kept; CPU, not wall, so a loaded
-        machine gives the same cage).
-    pull : float
-        Weight of the input-to-cage pull in the optimisation (not in the paper; 0 = off): input
-        vertices farther than ``c`` from the cage (concavities the envelope bridged) pull the cage
-        toward them, under the same barrier and CCD (:func:`cagegen.sdf.optimize.optimize_cage`, ``w_p``).
-    prepass : bool
-        Allow the plain-QEM pre-pass (accepted only if it satisfies the constraints).
-    max_retries : int
-        Rebuilds with ``c`` doubled when a layer cannot be finished or certified.
+    c, h, amplify, r, l, alpha, beta
+        Envelope (step 1): iso-value (paper: 0.01), grid spacing (default ``c``), local amplification
+        near nearly-touching parts and its parameters (paper eqs. 2-3: 0.025, 0.15, 3, 8).
+    margin, prepass, max_retries
+        Simplification (step 2): clearance on the distance grid (units of ``c``), the plain-QEM
+        pre-pass, rebuilds with ``c`` doubled when a layer cannot be finished or certified.
+    optimize, spacing, dhat, opt_iters, flip_rounds, opt_time_limit, pull
+        Optimisation (step 3): on/off, target spacing and barrier distance (units of ``c``), descent
+        steps per round, rounds of edge flips, CPU seconds of the descent, weight of the input pull.
+    hug, hug_radius, hug_dhat, tighten, tighten_rounds, bridge_retry
+        Beyond the paper (module docstring); 0 turns ``hug``, ``tighten``, ``bridge_retry`` off.
     min_gap : float
         Clearance the cage must keep from ``(V, F)``, relative to ``unit`` (certified exactly; the
         simplification keeps twice that on its distance grid).
     check_input : bool
-        Audit ``(V, F)`` first (:func:`cagegen.check_mesh`: closed, manifold, oriented, exact
-        self-intersection test; measured 46 CPU s on an 85k-face input) and refuse a bad surface at once with
-        :class:`cagegen.MeshInputError` (a self-intersecting input has no cage that contains it
-        strictly; without the check the backend spends minutes of rebuilds before giving up). False:
-        the caller guarantees an audited input (``build_cages`` does, and every layer it returns is
-        certified).
-    hug : float
-        Not in the paper (0 = off; default 0.1 since the zoo runs ``zoo_sdf_hug01.json`` /
-        ``zoo4_tighten_hug01.json``): spacing target of the optimisation near the input's active points
-        (where two parts nearly touch), in units of ``c``, so the cage hugs the input there and a coarser
-        layer built on it can still separate the parts (homer's second layer: genus 0 instead of 1);
-        elsewhere ``spacing``. Inputs without active points are unaffected.
-    hug_radius : float
-        Falloff radius of ``hug`` around the active points, in units of ``r``.
-    hug_dhat : float
-        With ``hug`` and active points found: the barrier activation distance becomes
-        ``min(dhat, hug_dhat)`` (units of ``c``; everywhere, ipctk's barrier has one ``dhat``): the
-        descent holds the cage vertices in barrier pairs when the CCD blocks a step, so with
-        ``dhat = 0.25 c`` the cage cannot come closer than ~0.25 ``c`` (homer: the lower target alone
-        and the lower barrier alone both leave the second layer at genus 1, together genus 0).
-    tighten : float
-        Not in the paper (0 = off): target of the tightening pass, in units of ``c``. When an input
-        vertex is farther than ``tighten * c`` from the optimised cage (a concavity the envelope
-        bridged), :func:`cagegen.sdf.tighten.tighten_cage` inserts a cage vertex above each such point,
-        lowers it with the pull under a ``0.05 c`` barrier, collapses as many edges elsewhere (the
-        inserted vertices frozen) and keeps the round only if it is certified and tighter.
-    tighten_rounds : int
-        Rounds of the tightening pass at most.
-    bridge_retry : float
-        Not in the paper (0 = off). When the finished cage is still farther than ``tighten * c`` from
-        the fine layer *and* the envelope itself was (the offset bridged a concavity: an eye socket, a
-        slot between two parts, which neither the optimisation nor the tightening pass can enter from
-        above), the layer is built once more at ``c * bridge_retry`` and that cage is kept if it is
-        certified, has the first one's genus and is tighter (input-to-cage and symmetric Hausdorff
-        distances both smaller). It runs only if three times the first
-        build's seconds fit in what is left of ``cage_time_budget`` / ``deadline``, and only if
-        ``c * bridge_retry >= 4 min_gap`` (the clearance leaves room to simplify). ``info["bridge_retry"]``
-        records the trigger, the distances and what was kept. Measured: ``docs/sdf.md``.
+        Audit ``(V, F)`` first (False: the caller guarantees an audited input, as ``build_cages``).
     cage_time_budget : float or None
-        Wall-clock seconds this call may take (None: no limit). Checked first, in milliseconds: when
-        :func:`estimate_layer_seconds` of the input exceeds it, :class:`CageError` (``reason="time
-        budget"``) names the option before the audit or any other work. During the run, a tightening
-        round is started only if the time already spent plus the last round's time fits the budget (the
-        pass is an improvement of an already certified cage; ``info["tighten"]["stopped"]`` records it).
+        Wall-clock seconds this call may take, estimated before any work (None: no limit).
     deadline : float, optional
-        A ``time.perf_counter()`` value after which no tightening round starts (:func:`sdf_schedule`
-        sets it from the run's ``cage_time_budget`` and calls this with ``cage_time_budget=None``).
+        A ``time.perf_counter()`` value after which no tightening round starts.
 
     Returns
     -------
@@ -344,38 +309,12 @@ def sdf_cage_layer(
     call = dict(locals())  # this call's arguments (first statement: nothing else is local yet), for the retry
     opts = SimpleNamespace(**call)
     t0 = time.perf_counter()
-    V, F = as_mesh_arrays(V, F, "fine layer")
-    n_faces = _check_target(n_faces)
-    _budget_check([len(F)], cage_time_budget, f"sdf cage with {n_faces} faces")
-    tight_deadline = deadline
-    if cage_time_budget is not None:
-        tight_deadline = min(t0 + float(cage_time_budget), np.inf if deadline is None else deadline)
-    if not c > 0 or not margin >= 0 or not spacing >= 0 or not dhat > 0 or not min_gap >= 0 or not pull >= 0:
-        raise CageOptionError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
-    t_check = None
-    if check_input:
-        t = time.perf_counter()
-        check_mesh(V, F, name="sdf input")  # MeshInputError naming every problem (self-intersections, ...)
-        t_check = time.perf_counter() - t
+    V, F, n_faces, tight_deadline, t_check = _layer_inputs(opts, t0)
     Vn, center, unit = normalize(V, unit)
     g_fine = genus(Vn, F)
     gap_rel = float(min_gap) / bbox_diagonal(Vn)  # verify_nesting's min_gap is relative to layer 0
-    attempts = []
-    hug_cache: dict = {}  # the input's active points, found once
-    for attempt in range(int(max_retries) + 1):
-        ck = c * 2.0 ** attempt
-        sec: dict = {}
-        try:
-            env, U, G, rep, steps = _layer_attempt(opts, Vn, F, n_faces, ck, attempt, g_fine, gap_rel,
-                                                   hug_cache, tight_deadline, sec)
-            break
-        except SimplifyStuck as exc:
-            attempts.append({"c": ck, "reason": str(exc)})
-            continue
-    else:
-        detail = "; ".join(f"c={a['c']:.3g}: {a['reason']}" for a in attempts)
-        raise CageError(f"sdf cage with {n_faces} faces: no certified cage in {len(attempts)} attempts ({detail})",
-                        reason=attempts[-1]["reason"])
+    ck, attempts, (env, U, G, rep, steps), sec = _certified_attempt(opts, Vn, F, n_faces, g_fine, gap_rel,
+                                                                     tight_deadline)
     if len(G) != n_faces:  # every collapse removes two faces; flips keep the count
         raise CageError(f"sdf cage has {len(G)} faces, {n_faces} requested", reason="face count")
     Uo = U * unit + center
@@ -387,6 +326,50 @@ def sdf_cage_layer(
     if bridge_retry > 0 and tighten > 0:
         Uo, G, info = _bridge_retry(call, Uo, G, info, Vn, F, U, env, ck, tighten * ck, t0, tight_deadline)
     return Uo, G, info
+
+
+def _layer_inputs(opts, t0: float) -> tuple:
+    """Arrays, face count, time budget, option values and (``check_input``) the audit of a layer's input.
+
+    Returns ``(V, F, n_faces, tightening deadline, audit seconds or None)``.
+    """
+    V, F = as_mesh_arrays(opts.V, opts.F, "fine layer")
+    n_faces = _check_target(opts.n_faces)
+    _budget_check([len(F)], opts.cage_time_budget, f"sdf cage with {n_faces} faces")
+    o = opts
+    tight_deadline = o.deadline
+    if o.cage_time_budget is not None:
+        tight_deadline = min(t0 + float(o.cage_time_budget), np.inf if o.deadline is None else o.deadline)
+    if not o.c > 0 or not o.margin >= 0 or not o.spacing >= 0 or not o.dhat > 0 or not o.min_gap >= 0 \
+            or not o.pull >= 0:
+        raise CageOptionError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")
+    t_check = None
+    if opts.check_input:
+        t = time.perf_counter()
+        check_mesh(V, F, name="sdf input")  # MeshInputError naming every problem (self-intersections, ...)
+        t_check = time.perf_counter() - t
+    return V, F, n_faces, tight_deadline, t_check
+
+
+def _certified_attempt(opts, Vn, F, n_faces, g_fine, gap_rel, deadline) -> tuple:
+    """Attempts at ``c``, ``2c``, ``4c``, ... (step 4) until one is certified.
+
+    Returns ``(c used, failed attempts, _layer_attempt's result, seconds per phase)``.
+    """
+    attempts = []
+    hug_cache: dict = {}  # the input's active points, found once
+    for attempt in range(int(opts.max_retries) + 1):
+        ck = opts.c * 2.0 ** attempt
+        sec: dict = {}
+        try:
+            result = _layer_attempt(opts, Vn, F, n_faces, ck, attempt, g_fine, gap_rel, hug_cache, deadline,
+                                    sec)
+            return ck, attempts, result, sec
+        except SimplifyStuck as exc:
+            attempts.append({"c": ck, "reason": str(exc)})
+    detail = "; ".join(f"c={a['c']:.3g}: {a['reason']}" for a in attempts)
+    raise CageError(f"sdf cage with {n_faces} faces: no certified cage in {len(attempts)} attempts "
+                    f"({detail})", reason=attempts[-1]["reason"])
 
 
 def _layer_attempt(opts, Vn, F, n_faces, ck, attempt, g_fine, gap_rel, hug_cache, deadline, sec):

@@ -20,6 +20,40 @@ Steps (each timed in ``info["seconds"]``, each failure raised as a :class:`CageE
 
 Everything runs on a copy scaled to a unit bounding-box diagonal; the cage is returned in the
 caller's coordinates.
+
+What the options of :func:`skeleton_cage` do when a step meets a hard case (ours, not the paper's;
+defaults in :class:`cagegen.SkeletonOptions`):
+
+* ``drop_bad_sections``: when a junction's convex hull misses an edge of an incident bending section
+  (the paper fixes this with Steiner vertices, not implemented), drop that bending node and use the
+  next section along its chain (``info["junction_recovery"]``); also, when the tight cage intersects
+  itself and shrinking the offending sections does not help, drop the bending node with most
+  intersecting faces and rebuild (``info["assembly_dropped"]``). False: raise.
+* ``relocate_sections``: when fewer than 4 integral lines of a section reach M (thin parts), move the
+  section along its chain (bending nodes: up to one inscribed radius either way; leaves: inwards, up
+  to half the chain), then drop a bending node whose chain keeps another section
+  (``info["sections_moved"]``, ``info["sections_dropped"]``). False: raise.
+* ``symmetry`` (paper Sec. 3.4): ``"auto"`` detects a mirror plane
+  (:func:`cagegen.skeleton.symmetry.detect_mirror_plane`) and, if found, symmetrises the sections
+  (:func:`~cagegen.skeleton.symmetry.symmetrize_sections`); a (point, normal) pair (caller's
+  coordinates) imposes that plane. The tight cage is then symmetric unless the assembly had to shrink
+  or drop sections; the final inflation does not enforce it (``info["symmetry"]``).
+* ``untangle``: before each assembly, flatten a degenerate section (two corners closer than 0.25 x its
+  inscribed radius) or a section that crosses its neighbour along the chain onto the plane orthogonal
+  to the skeleton (:func:`cagegen.skeleton.cage.untangle_sections`; ``info["sections_flattened"]``).
+  False: leave such folds to the recoveries (dropping bending nodes).
+* ``containment`` (step 7): ``"mesh"`` (default) sweeps M down the guiding field's level sets,
+  collapses it onto the skeleton nodes inside the pre-inflated cage and re-inflates it to rest pushing
+  the cage out (IPC barrier + CCD; :mod:`cagegen.skeleton.contain`), then makes the clearance by
+  :func:`cagegen.nested.backend.push_out` (or, when blocked, a re-inflation of M to its offset); no
+  flow, so no stall. ``"flow"``: the paper's route, the Nested Cages flow + re-inflation after the full
+  pre-inflation (stalls on most zoo characters); ``**nested_opts`` then go to
+  :func:`cagegen.nested.backend.nest_pair` (defaults here: ``flow_max_iter=2000``,
+  ``flow_stall_window=200``, ``flow_active_depth=0.01``, the local flow; ``None``: the paper's flow).
+* ``skeleton_cache``: cache of automatically extracted skeletons
+  (:func:`cagegen.skeleton.extract.extract_skeleton`'s ``cache``): None, ``$NESTMG_CACHE/skeleton``;
+  False, none (then PyGEL3D's extraction may give a different skeleton, hence a different cage, on
+  every call). Unused with a given skeleton.
 """
 
 from __future__ import annotations
@@ -137,28 +171,17 @@ def _section_positions(S: Skeleton, chain, i: int, radius: float, leaf):
 
 
 def skeleton_cage(
-    V: np.ndarray,
-    F: np.ndarray,
-    skeleton=None,
-    *,
-    bending="auto",
-    n_seeds: int = 20,
-    seed_radius: float = 0.2,
-    tet_edge_length: float | None = None,
-    preinflate_rounds: int = 3,
+    V: np.ndarray, F: np.ndarray, skeleton=None, *, bending="auto", n_seeds: int = 20,
+    seed_radius: float = 0.2, tet_edge_length: float | None = None, preinflate_rounds: int = 3,
     drop_bad_sections: bool = True,
-    relocate_sections: bool = True,
-    symmetry=None,
-    min_gap: float = 0.0,
-    certify: bool = True,
-    inner: tuple | None = None,
-    progress=None,
-    skeleton_cache=None,
-    untangle: bool = True,
-    containment: str = "mesh",
-    **nested_opts,
+    relocate_sections: bool = True, symmetry=None, min_gap: float = 0.0, certify: bool = True,
+    inner: tuple | None = None, progress=None, skeleton_cache=None, untangle: bool = True,
+    containment: str = "mesh", **nested_opts,
 ) -> SkeletonCage:
     """Build a certified skeleton cage around the closed surface ``(V, F)`` (Casti et al. 2019).
+
+    The steps, and what ``drop_bad_sections``, ``relocate_sections``, ``symmetry``, ``untangle``,
+    ``containment`` and ``skeleton_cache`` do, are described in this module's docstring.
 
     Parameters
     ----------
@@ -174,27 +197,14 @@ def skeleton_cage(
     n_seeds, seed_radius : int, float
         Seeds per section and their circle radius as a fraction of the inscribed radius (paper: 20, 0.2).
     tet_edge_length : float, optional
-        Edge length of the guiding field's tet mesh, fraction of the bounding-box diagonal (default: half the smallest
-        inscribed radius at a control node, clamped to [0.015, 0.03]).
+        Edge length of the guiding field's tet mesh, fraction of the bounding-box diagonal (default:
+        half the smallest inscribed radius at a control node, clamped to [0.015, 0.03]).
     preinflate_rounds : int
         Pre-inflation rounds (paper: 1).
-    drop_bad_sections : bool
-        When a junction's convex hull misses an edge of an incident bending section (the paper fixes
-        this with Steiner vertices, not implemented), drop that bending node and use the next section
-        along its chain (recorded in ``info["junction_recovery"]``); False: raise. Also: when the tight
-        cage intersects itself and shrinking the offending sections does not help, drop the bending
-        node with most intersecting faces and rebuild (``info["assembly_dropped"]``).
-    relocate_sections : bool
-        When fewer than 4 integral lines of a section reach M (thin parts), move the section along its
-        chain (bending nodes: up to one inscribed radius either way; leaves: inwards, up to half the
-        chain), then drop a bending node whose chain keeps another section (``info["sections_moved"]``,
-        ``info["sections_dropped"]``); False: raise.
+    drop_bad_sections, relocate_sections, untangle : bool
+        Recoveries of the sections and the assembly (False: raise, or leave folds to the recoveries).
     symmetry : None, "auto" or (point, normal)
-        Mirror symmetry of the sections (paper Sec. 3.4): ``"auto"`` detects a plane
-        (:func:`cagegen.skeleton.symmetry.detect_mirror_plane`) and, if found, symmetrises the sections
-        (:func:`~cagegen.skeleton.symmetry.symmetrize_sections`); a (point, normal) pair (caller's
-        coordinates) imposes that plane. The tight cage is then symmetric unless the assembly had to
-        shrink or drop sections; the final inflation does not enforce it (``info["symmetry"]``).
+        Mirror symmetry of the sections (paper Sec. 3.4).
     min_gap : float
         Clearance demanded between M and the cage, relative to M's bounding-box diagonal.
     certify : bool
@@ -205,27 +215,10 @@ def skeleton_cage(
     progress : callable, optional
         ``progress(message)`` at each step.
     skeleton_cache : None, False or path
-        Cache of automatically extracted skeletons (:func:`cagegen.skeleton.extract.extract_skeleton`'s
-        ``cache``): None, ``$NESTMG_CACHE/skeleton``; False, none (then PyGEL3D's extraction may give
-        a different skeleton, hence a different cage, on every call). Unused with a given skeleton.
-    untangle : bool
-        Before each assembly, flatten a degenerate section (two corners closer than 0.25 x its
-        inscribed radius) or a section that crosses its neighbour along the chain onto the plane
-        orthogonal to the skeleton (:func:`cagegen.skeleton.cage.untangle_sections`; recorded in
-        ``info["sections_flattened"]``). False: leave such folds to the recoveries (dropping bending
-        nodes).
+        Cache of automatically extracted skeletons (None: ``$NESTMG_CACHE/skeleton``; False: none).
     containment : {"mesh", "flow"}
-        How the cage is made to contain M (step 7). ``"mesh"`` (default): M swept down the guiding
-        field's level sets and collapsed onto the skeleton nodes inside the pre-inflated cage, then
-        re-inflated to rest pushing the cage out (IPC barrier + CCD; :mod:`cagegen.skeleton.contain`),
-        then the clearance by :func:`cagegen.nested.backend.push_out` (or, when blocked, a re-inflation
-        of M to its offset); no flow, so no stall. ``"flow"``: the paper's route, the Nested Cages flow +
-        re-inflation after the full pre-inflation (stalls on most zoo characters).
-    **nested_opts
-        ``containment="flow"`` only: passed to
-        :func:`cagegen.nested.backend.nest_pair` (``energy``, ``flow_max_iter``, ...). Defaults
-        here: ``flow_max_iter=2000``, ``flow_stall_window=200``, ``flow_active_depth=0.01`` (local
-        flow; ``None``: the paper's flow).
+        How the cage is made to contain M (step 7): M swept down the guiding field and re-inflated, or
+        the Nested Cages flow (``**nested_opts`` go to :func:`cagegen.nested.backend.nest_pair`).
 
     Returns
     -------
@@ -236,8 +229,8 @@ def skeleton_cage(
     MeshInputError
         Bad skeleton (not a tree, nodes outside M, ...).
     CageError
-        A step failed; the message starts with the step's name. From the pre-inflation on, ``exc.partial``
-        holds what was built (:class:`SkeletonCage`, ``certified=False``).
+        A step failed; the message starts with the step's name. From the pre-inflation on,
+        ``exc.partial`` holds what was built (:class:`SkeletonCage`, ``certified=False``).
     """
     say = progress if callable(progress) else (lambda msg: None)
     t_all = time.perf_counter()
@@ -250,33 +243,19 @@ def skeleton_cage(
     diag = float(np.linalg.norm(hi - lo))  # this backend's own measure (its cages depend on its bits)
     Vn, center, _ = normalize(V, diag)
     info: dict = {"method": "skeleton"}
-
-    t = time.perf_counter()
-    S, S_in = _skeleton_step(Vn, F, skeleton, bending, diag, center, skeleton_cache, info, say)
-    sec["skeleton"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    S, chain_controls, spacing = _bending_step(S, Vn, F, bending, info, say)
-    sec["bending"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    field, rad_of = _field_step(S, chain_controls, Vn, F, tet_edge_length, info, say)
-    sec["field"] = time.perf_counter() - t
-
+    S, S_in = _timed(sec, "skeleton", _skeleton_step, Vn, F, skeleton, bending, diag, center, skeleton_cache,
+                     info, say)
+    S, chain_controls, spacing = _timed(sec, "bending", _bending_step, S, Vn, F, bending, info, say)
+    field, rad_of = _timed(sec, "field", _field_step, S, chain_controls, Vn, F, tet_edge_length, info, say)
     t = time.perf_counter()
     kit = _SectionKit(S, S.degree, Vn, F, field, rad_of, spacing, n_seeds, seed_radius, say)
     sections, chain_controls = _sections_step(kit, chain_controls, relocate_sections, symmetry, center, diag,
                                               info)
     sec["sections"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    tc = _assembly_step(kit, sections, chain_controls, drop_bad_sections, untangle, info)
-    sec["assembly"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    Vp, Ft, Vt, quads_out, tris_out = _pre_inflation_step(field, tc, Vn, F, preinflate_rounds, info, say,
-                                                          pushes=containment == "flow")
-    sec["pre_inflation"] = time.perf_counter() - t
+    tc = _timed(sec, "assembly", _assembly_step, kit, sections, chain_controls, drop_bad_sections, untangle,
+                info)
+    Vp, Ft, Vt, quads_out, tris_out = _timed(sec, "pre_inflation", _pre_inflation_step, field, tc, Vn, F,
+                                             preinflate_rounds, info, say, pushes=containment == "flow")
     # what was built, for the result and for the ``exc.partial`` of a later failure
     parts = {"S": S, "S_in": S_in, "sections": sections, "tc": tc, "Ft": Ft, "quads": quads_out,
              "tris": tris_out, "Vt": Vt, "Vp": Vp, "diag": diag, "center": center, "info": info, "sec": sec,
@@ -285,13 +264,10 @@ def skeleton_cage(
         n_pairs = info["pre_inflation"]["self_intersections"]
         raise _failure(f"skeleton cage, pre-inflation: the cage intersects itself ({n_pairs} face pairs); "
                        "add bending nodes", parts)
-
-    t = time.perf_counter()
     if containment == "flow":
-        C = _inflation_step(parts, inner, Vn, F, min_gap, nested_opts)
+        C = _timed(sec, "inflation", _inflation_step, parts, inner, Vn, F, min_gap, nested_opts)
     else:
-        C = _sweep_step(parts, field, inner, Vn, F, min_gap, containment, say)
-    sec["inflation"] = time.perf_counter() - t
+        C = _timed(sec, "inflation", _sweep_step, parts, field, inner, Vn, F, min_gap, containment, say)
     Vc = C * diag + center
     Fc = np.ascontiguousarray(Ft, dtype=np.int64)
     t = time.perf_counter()
@@ -303,6 +279,14 @@ def skeleton_cage(
     info["n_vertices"], info["n_faces"] = len(Vc), len(Fc)
     info["n_quads"], info["n_junction_triangles"] = len(quads_out), len(tris_out)
     return _cage_result(Vc, True, parts)
+
+
+def _timed(sec: dict, step: str, fn: Callable, *args, **kwargs):
+    """``fn(*args, **kwargs)``, its wall seconds stored in ``sec[step]``."""
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    sec[step] = time.perf_counter() - t
+    return out
 
 
 class _SectionKit(NamedTuple):

@@ -255,6 +255,48 @@ def cages_row(entry: dict, backends: list[str]) -> str:
     return f"| {entry['mesh']} | {entry['faces']:,} | {faces or '–'} | " + " | ".join(cells) + f" | {ratio} |"
 
 
+def _is_column(key: str) -> bool:
+    return key in ("solve", "wheel") or key.startswith("cages:")
+
+
+def merge_runs(docs: list[dict]) -> dict:
+    """One corpus from runs over parts of a folder or over some of its columns, column by column.
+
+    A later run's column (``solve``, ``cages:<method>``, ``wheel``) replaces the same column of an earlier
+    run and keeps the others (a re-run of ``solve`` after a solver change keeps the older cage columns);
+    ``commits`` records each column's commit, and ``commit`` the row's when all its columns share one.
+    """
+    rows: dict = {}
+    for d in docs:
+        for e in d["meshes"]:
+            r = rows.setdefault(e["mesh"], {"commits": {}})
+            given = e.get("commits") or {}
+            for k, v in e.items():
+                if k in ("commit", "commits"):
+                    continue
+                r[k] = v
+                if _is_column(k):
+                    r["commits"][k] = given.get(k) or e.get("commit") or d.get("commit")
+    for r in rows.values():
+        distinct = set(map(str, r["commits"].values()))
+        r["commit"] = distinct.pop() if len(distinct) == 1 else None
+    # the latest run's commit first: the table marks the columns run at other commits
+    return dict(docs[0], command=" ; ".join(d["command"] for d in docs),
+                commit=" / ".join(dict.fromkeys(str(d.get("commit")) for d in reversed(docs))),
+                date=docs[-1].get("date", docs[0].get("date")), meshes=[rows[k] for k in sorted(rows)])
+
+
+def _at(entry: dict, columns, main: str) -> dict:
+    """The row with its mesh name marked "(at X)" when the shown columns were run at another commit."""
+    commits = entry.get("commits") or {}
+    seen = {str(commits.get(c, entry.get("commit"))) for c in columns if c in entry}
+    seen.discard("None")
+    other = sorted(c for c in seen if c != main)
+    if not other or "(at " in entry["mesh"]:
+        return entry
+    return dict(entry, mesh=f"{entry['mesh']} (at {', '.join(other)})")
+
+
 def write_markdown(doc: dict, path: Path, source: Path) -> None:
     """The corpus tables (solve; cages per backend) as a markdown file, generated from the JSON."""
     b = doc["backends"]
@@ -278,8 +320,7 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
     skipped = []
     main = str(doc.get("commit")).split(" / ")[0]
     for e in doc["meshes"]:  # rows re-run at another commit say so
-        if e.get("commit") and str(e["commit"]) != main and "(at " not in e["mesh"]:
-            e = dict(e, mesh=f"{e['mesh']} (at {e['commit']})")
+        e = _at(e, ["solve"], main)
         if not e["closed"]:
             skipped.append(f"{e['mesh']} ({e['skipped']})")
         elif "solve" in e:
@@ -290,8 +331,7 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
                   "at the nested face counts, its seconds over ours.", "",
                   "| mesh | faces | nested faces | " + " | ".join(b) + " | wheel |",
                   "|---|---|---|" + "---|" * len(b) + "---|"]
-        lines += [cages_row(dict(e, mesh=f"{e['mesh']} (at {e['commit']})") if e.get("commit") and
-                            str(e["commit"]) != main else e, b) for e in doc["meshes"] if e["closed"]]
+        lines += [cages_row(_at(e, [f"cages:{m}" for m in b], main), b) for e in doc["meshes"] if e["closed"]]
     if skipped:
         lines += ["", "Not closed (skipped): " + "; ".join(skipped) + "."]
     failures = [f"- {e['mesh']} `{k}`: {_err(r)}" + (f" (last stage: {r['last_stage_lines'][-1]})"
@@ -364,14 +404,7 @@ def main(argv: list[str] | None = None) -> int:
         _child(args.case[0], Path(args.case[1]), args.case[2], Path(args.case[3]))
         return 0
     if args.merge:
-        docs = [json.loads(p.read_text()) for p in args.merge]
-        rows: dict = {}
-        for d in docs:  # a mesh run again in a later file (e.g. after a fix) replaces the earlier row
-            for e in d["meshes"]:
-                rows[e["mesh"]] = dict(e, commit=d.get("commit"))
-        doc = dict(docs[0], command=" ; ".join(d["command"] for d in docs),
-                   commit=" / ".join(dict.fromkeys(str(d.get("commit")) for d in docs)),
-                   meshes=[rows[k] for k in sorted(rows)])
+        doc = merge_runs([json.loads(p.read_text()) for p in args.merge])
         args.out.write_text(json.dumps(doc, indent=1, default=float))
         args.table = args.out
     if args.table:

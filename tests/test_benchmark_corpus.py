@@ -34,3 +34,26 @@ def test_cages_case_runs_and_certifies(torus_file):
     rec = corpus.case_cages(torus_file, "decimate")  # the fast backend: the same code path as nested
     assert rec["faces"][0] == len(shapes.torus(res=24)[1]) and len(rec["faces"]) == 3
     assert rec["faces"][1] < rec["faces"][0] and rec["seconds"] > 0
+
+
+def test_merge_replaces_columns_not_rows(tmp_path):
+    """A later run of one column (solve) keeps the earlier run's other columns and says which commit made each."""
+    old = {"command": "run A", "commit": "aaa", "date": "d1", "timeout": 600, "backends": ["nested", "decimate"],
+           "goals": corpus.GOALS,
+           "meshes": [{"mesh": "m.off", "faces": 10, "closed": True, "skipped": None, "solve": {"ok": True, "x": 1},
+                       "cages:nested": {"ok": True, "seconds": 5.0}, "cages:decimate": {"ok": True, "seconds": 1.0}},
+                      {"mesh": "n.off", "faces": 20, "closed": True, "skipped": None, "solve": {"ok": False}}]}
+    new = dict(old, command="run B", commit="bbb", date="d2",
+               meshes=[{"mesh": "m.off", "faces": 10, "closed": True, "skipped": None, "solve": {"ok": True, "x": 2},
+                        "cages:nested": {"ok": True, "seconds": 4.0}}])
+    doc = corpus.merge_runs([old, new])
+    m, n = doc["meshes"]
+    assert m["solve"]["x"] == 2 and m["cages:nested"]["seconds"] == 4.0 and m["cages:decimate"]["seconds"] == 1.0
+    assert m["commits"] == {"solve": "bbb", "cages:nested": "bbb", "cages:decimate": "aaa"} and m["commit"] is None
+    assert n["commits"] == {"solve": "aaa"} and n["commit"] == "aaa"
+    assert doc["commit"] == "bbb / aaa" and doc["command"] == "run A ; run B"
+    # merging the merged document again keeps the per-column commits
+    assert corpus.merge_runs([doc])["meshes"][0]["commits"] == m["commits"]
+    # the table marks only the columns run elsewhere than the first commit
+    assert corpus._at(m, ["solve"], "bbb")["mesh"] == "m.off"
+    assert corpus._at(m, ["cages:nested", "cages:decimate"], "bbb")["mesh"] == "m.off (at aaa)"

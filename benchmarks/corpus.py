@@ -107,7 +107,7 @@ def case_solve(mesh: Path) -> dict:
             "factor": r["factor"], "cycles": r["iterations"], "converged": r["converged"],
             "pcg_iterations": c["iterations"], "pcg_converged": c["converged"],
             "operator_complexity": r.get("operator_complexity"), "solve_seconds": r["seconds"],
-            "pcg_seconds": c["seconds"],
+            "pcg_seconds": c["seconds"], "deflation": r.get("deflation"),
         }
     return rec
 

@@ -114,6 +114,9 @@ def solve_on_hierarchy(
         "tol": o.tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),
+        # slow modes deflated per level (solvers.deflation): level, probe factor, modes kept
+        "deflation": [{"level": d["level"], "probe_factor": d["probe_factor"], "modes": d["vectors"]}
+                      for d in getattr(ml, "deflation", [])],
     }
     t0 = time.perf_counter()
     try:

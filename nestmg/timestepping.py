@@ -100,6 +100,9 @@ class DiffusionStepper:
         # the caller's node order: a locality permutation (MultigridSolver(ordering="auto")) would re-permute
         # the fine matrix and every coarse sum at each step; the reuse figures (docs/reuse.md) are without it
         multigrid_kwargs.setdefault("ordering", None)
+        # no deflation probe: it would cost about one solve at every step, and a step's operator M + dt K is
+        # better conditioned than the Neumann Laplacian the probe is for
+        multigrid_kwargs.setdefault("deflate", 0)
         ml = prob.multigrid(SolverOptions(smoothing=self.smoothing, coarse_scaling=None), **multigrid_kwargs)
         t2, c2 = time.perf_counter(), time.process_time()
         u, info = ml.solve(b, x0=u_prev, tol=tol, maxiter=maxiter, accel="cg", return_info=True)

@@ -214,9 +214,17 @@ def picture(V, F, c, path: Path, title: str) -> None:
         faces = [np.r_[4, q] for q in c.quads] + [np.r_[3, t] for t in c.tris]
         return pv.PolyData(VV, np.concatenate(faces))
 
-    for k, (name, VV) in enumerate([("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
-                                    (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
-                                     else f"start cage, NOT certified ({len(c.F)} triangles)", c.V)]):
+    if c.V is None:  # an assembly failure before any tight cage: skeleton and sections only
+        panels = [("skeleton, bending nodes, sections", None), ("no tight cage", None), ("no cage", None)]
+    elif "assembly_crossing_pairs" in c.info:
+        # an assembly failure: the partial's cage is the self-intersecting tight cage
+        panels = [("skeleton, bending nodes, sections", None),
+                  (f"tight cage, self-intersecting ({len(c.F)} triangles)", c.tight_V), ("no cage", None)]
+    else:
+        panels = [("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
+                  (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
+                   else f"start cage, NOT certified ({len(c.F)} triangles)", c.V)]
+    for k, (name, VV) in enumerate(panels):
         p.subplot(0, k)
         p.add_mesh(mesh, color="tan", opacity=0.35 if k else 0.25)
         p.add_mesh(bones, color="red", line_width=4)
@@ -226,7 +234,7 @@ def picture(V, F, c, path: Path, title: str) -> None:
                 p.add_points(s["hits"], color="green", point_size=5, render_points_as_spheres=True)
                 q = np.vstack([s["quad"], s["quad"][:1]])
                 p.add_mesh(pv.lines_from_points(q), color="blue", line_width=3)
-        else:
+        elif VV is not None:
             p.add_mesh(cage_mesh(VV), style="wireframe", color="navy", line_width=2)
         p.add_text(f"{title}: {name}", font_size=9)
         p.view_isometric()

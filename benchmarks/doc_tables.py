@@ -677,6 +677,27 @@ def skeleton_containment() -> str:
     return table(["mesh", *(f"{k}: faces, max dist, containment s" for k in SKEL_CMP)], rows)
 
 
+SKEL_TIGHT = ("skeleton/zoo_tighten_a.json", "skeleton/zoo_tighten_b.json")
+
+
+@generator("skeleton.tighten", *SKEL_TIGHT)
+def skeleton_tighten() -> str:
+    by = {r["case"].rsplit(".", 1)[0]: r for f in SKEL_TIGHT for r in load(f)["results"]}
+    rows = []
+    for c in SKEL_ZOO_ORDER:
+        r = by.get(c)
+        if r is None or not r.get("certified"):
+            continue
+        t, a = r["tightness"], r["tighten"]
+        rows.append([c, f"{100 * t['max_dist_rel']:.1f} -> {100 * a['tightness']['max_dist_rel']:.1f}",
+                     f"{100 * t['mean_dist_rel']:.2f} -> {100 * a['tightness']['mean_dist_rel']:.2f}",
+                     f"{t['volume_ratio']:.2f} -> {a['tightness']['volume_ratio']:.2f}",
+                     "yes" if a["certified"] else "no", f"{a['gap_rel']:.4f}", a["info"]["rounds"],
+                     f"{a['info']['seconds']:.1f}"])
+    return table(["mesh", "max distance, % of diag", "mean distance, % of diag", "volume ratio",
+                  "certified after", "gap / diag after", "rounds", "seconds"], rows)
+
+
 SKEL_HZ = "skeleton/hierarchy_zoo.json"
 
 

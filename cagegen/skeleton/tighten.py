@@ -10,6 +10,10 @@ move is blocked does not block the others: the moving set is split in halves unt
 freely or is one vertex, which then takes its own collision-free fraction (one broad phase per
 round, :meth:`cagegen.collision.PairMesh.candidates`). The connectivity is unchanged (every quad
 kept). The caller certifies the result (:func:`cagegen.verify_nesting`).
+
+Measured on the zoo's skeleton cages (docs/skeleton.md, "A tightening post-step"): every result
+certifies, but the max distance does not move (the farthest corners' fans of faces would sweep into M),
+so :func:`cagegen.skeleton.skeleton_cage` does not call it.
 """
 
 from __future__ import annotations

@@ -624,7 +624,8 @@ def skeleton_zoo() -> str:
         s = r.get("seconds") or {}
         steps = " / ".join(f"{s[k]:.0f}" if k in s else "-" for k in _SKEL_STEPS)
         if not r.get("certified"):
-            rows.append([name, f"not certified: `CageError` at step `{_failed_step(r)}`", r.get("sections", ""),
+            failed = f"not certified: `CageError` at step `{_failed_step(r)}`"
+            rows.append([name, failed, r.get("sections", ""),
                          "", "", "", "", "", "", f"{steps} / {s.get('total', r.get('wall_seconds', 0)):.0f}"])
             continue
         t, n = r["tightness"], r["smallest_nested_at_same_distance"]
@@ -716,7 +717,8 @@ def skeleton_hierarchy_zoo() -> str:
                          " / ".join(f"{x:,}" for x in r["tets"]), f"{r['build_seconds']:.0f}",
                          f"{r['poisson-dirichlet']['cycles']}, {r['poisson-dirichlet']['mean_factor']:.3f}",
                          f"{r['poisson-neumann']['cycles']}, {r['poisson-neumann']['mean_factor']:.3f}"])
-    return table(["hierarchy", "certified", "nodes outside the coarser tet mesh, per prolongation", "cage faces",
+    return table(["hierarchy", "certified", "nodes outside the coarser tet mesh, per prolongation",
+                  "cage faces",
                   "tets per level", "build s", "Dirichlet: cycles, factor", "Neumann: cycles, factor"], rows)
 
 

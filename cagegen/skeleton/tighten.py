@@ -65,7 +65,8 @@ def tighten_cage(C: np.ndarray, Fc: np.ndarray, V: np.ndarray, F: np.ndarray, ga
     V = np.asarray(V, dtype=float)
     pair = PairMesh(C, Fc, V, np.asarray(F, dtype=np.int64))
     dist0 = np.sqrt(igl.point_mesh_squared_distance(C, V, F)[0])
-    info: dict = {"ccd_calls": 0, "rounds": 0, "vertex_distance_before": [float(dist0.mean()), float(dist0.max())]}
+    info: dict = {"ccd_calls": 0, "rounds": 0,
+                  "vertex_distance_before": [float(dist0.mean()), float(dist0.max())]}
     for r in range(rounds):
         d2, _, P = igl.point_mesh_squared_distance(C, V, F)
         dist = np.sqrt(d2)

@@ -23,6 +23,9 @@ Usage::
 ``--opt KEY=VALUE`` (repeatable): extra :func:`cagegen.skeleton.skeleton_cage` keywords for every case,
 e.g. ``--opt min_gap=0.0025 --opt containment='flow'`` (recorded under ``options``).
 
+``--tighten``: per certified case, the cage after :func:`cagegen.skeleton.tighten.tighten_cage` (certified
+or not, tightness), recorded under ``tighten``; the case's own figures stay those of the returned cage.
+
 ``--min-nested``: per certified case, the smallest ``nested`` face count whose max distance is at most
 the skeleton cage's (:func:`smallest_nested`), instead of the one nested cage at equal face count.
 """
@@ -41,6 +44,7 @@ import numpy as np
 
 ZOO = ("homer.obj", "cheburashka.obj", "elephant.obj", "spot.obj")
 _OPTS: dict = {}  # extra skeleton_cage keywords (--opt KEY=VALUE), inherited by the forked children
+_TIGHTEN = False  # --tighten: measure cagegen.skeleton.tighten on each certified cage (forked children)
 
 
 # ----------------------------------------------------------------------------- one case
@@ -190,11 +194,29 @@ def run_case(case: str, zoo: Path | None, png: Path | None, compare_nested: bool
     if min_nested:
         out["smallest_nested_at_same_distance"] = smallest_nested(V, F, len(c.F),
                                                                   out["tightness"]["max_dist_rel"])
+    if _TIGHTEN:
+        out["tighten"] = tighten_measure(V, F, c, gap)
     if png is not None:
         png.mkdir(parents=True, exist_ok=True)
         picture(V, F, c, png / f"skeleton_{Path(case).stem}.png", title=case)
         out["png"] = str(png / f"skeleton_{Path(case).stem}.png")
     return out
+
+
+def tighten_measure(V, F, c, gap: float) -> dict:
+    """:func:`cagegen.skeleton.tighten.tighten_cage` applied to the certified cage ``c`` (CCD
+    ``min_distance`` 1.05 x the clearance): its record, the verifier at the clearance, and the tightness
+    after (the cage in the result is the untightened one)."""
+    from exp_common import tightness
+
+    from cagegen import verify_nesting
+    from cagegen.skeleton.tighten import tighten_cage
+
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    C2, info = tighten_cage(c.V, c.F, V, F, 1.05 * max(gap, 1e-4) * diag)
+    rep = verify_nesting([(V, F), (C2, c.F)], min_gap=gap)
+    return {"info": info, "certified": bool(rep.ok), "gap_rel": float(rep.pairs[0].min_gap_rel),
+            "tightness": tightness(C2, c.F, V, F, 20000)}
 
 
 def picture(V, F, c, path: Path, title: str) -> None:
@@ -214,9 +236,17 @@ def picture(V, F, c, path: Path, title: str) -> None:
         faces = [np.r_[4, q] for q in c.quads] + [np.r_[3, t] for t in c.tris]
         return pv.PolyData(VV, np.concatenate(faces))
 
-    for k, (name, VV) in enumerate([("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
-                                    (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
-                                     else f"start cage, NOT certified ({len(c.F)} triangles)", c.V)]):
+    if c.V is None:  # an assembly failure before any tight cage: skeleton and sections only
+        panels = [("skeleton, bending nodes, sections", None), ("no tight cage", None), ("no cage", None)]
+    elif "assembly_crossing_pairs" in c.info:
+        # an assembly failure: the partial's cage is the self-intersecting tight cage
+        panels = [("skeleton, bending nodes, sections", None),
+                  (f"tight cage, self-intersecting ({len(c.F)} triangles)", c.tight_V), ("no cage", None)]
+    else:
+        panels = [("skeleton, bending nodes, sections", None), ("tight cage", c.tight_V),
+                  (f"certified cage ({len(c.F)} triangles)" if getattr(c, "certified", True)
+                   else f"start cage, NOT certified ({len(c.F)} triangles)", c.V)]
+    for k, (name, VV) in enumerate(panels):
         p.subplot(0, k)
         p.add_mesh(mesh, color="tan", opacity=0.35 if k else 0.25)
         p.add_mesh(bones, color="red", line_width=4)
@@ -226,7 +256,7 @@ def picture(V, F, c, path: Path, title: str) -> None:
                 p.add_points(s["hits"], color="green", point_size=5, render_points_as_spheres=True)
                 q = np.vstack([s["quad"], s["quad"][:1]])
                 p.add_mesh(pv.lines_from_points(q), color="blue", line_width=3)
-        else:
+        elif VV is not None:
             p.add_mesh(cage_mesh(VV), style="wireframe", color="navy", line_width=2)
         p.add_text(f"{title}: {name}", font_size=9)
         p.view_isometric()
@@ -302,12 +332,16 @@ def main(argv=None) -> dict:
     ap.add_argument("--hierarchy", nargs="*", default=None, metavar="CASE",
                     help="only hierarchies (skeleton cage coarsest) beside nested-only, V-cycles: the stick "
                          "figure (no CASE) or zoo file names (with --zoo)")
+    ap.add_argument("--tighten", action="store_true",
+                    help="per certified case, measure the tightening post-step (cagegen.skeleton.tighten)")
     ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                     help="extra skeleton_cage keyword (Python literal value), e.g. --opt min_gap=0.0025")
     args = ap.parse_args(argv)
     import ast
 
     _OPTS.update({k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in args.opt)})
+    global _TIGHTEN
+    _TIGHTEN = args.tighten
     if args.hierarchy is not None:
         from nestmg.io import json_default
 

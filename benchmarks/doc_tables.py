@@ -579,9 +579,11 @@ def sdf_summary() -> str:
 
 
 SKEL = "skeleton/min_nested.json"
+#: the containment comparison's run (M, offset envelope, nested proxy; commit 97f2724)
 SKEL_ZOO = "skeleton/zoo_sweep.json"
-#: the knight re-run after the clearance fallback (re-inflation to the offset when push_out is blocked)
-SKEL_ZOO_RERUN = "skeleton/zoo_sweep_knight.json"
+#: the zoo re-run at the current code, two meshes at a time (two commands, one file each)
+SKEL_ZOO_NOW = ("skeleton/zoo_sweep_a.json", "skeleton/zoo_sweep_b.json")
+SKEL_ZOO_ORDER = ("homer", "cheburashka", "elephant", "spot", "bunny", "gargo", "decimated-knight")
 SKEL_H = "skeleton/hierarchy_stick_61b5d66.json"
 
 
@@ -606,33 +608,47 @@ def _failed_step(r: dict) -> str:
     return err.split(":")[1].strip().split(" ")[-1] if ":" in err else "?"
 
 
-def _skel_zoo_results() -> list:
-    rerun = {r["case"]: r for r in load(SKEL_ZOO_RERUN)["results"]}
-    return [rerun.get(r["case"], r) for r in load(SKEL_ZOO)["results"]]
+_SKEL_STEPS = ("skeleton", "field", "sections", "assembly", "pre_inflation", "inflation", "verify")
 
 
-@generator("skeleton.zoo", SKEL_ZOO, SKEL_ZOO_RERUN)
+def _skel_now_results() -> list:
+    by = {r["case"].rsplit(".", 1)[0]: r for f in SKEL_ZOO_NOW for r in load(f)["results"]}
+    return [by[c] for c in SKEL_ZOO_ORDER if c in by]
+
+
+@generator("skeleton.zoo", *SKEL_ZOO_NOW)
 def skeleton_zoo() -> str:
     rows = []
-    for r in _skel_zoo_results():
+    for r in _skel_now_results():
         name = f"{r['case'].split('.')[0]} ({r.get('input_faces', 0):,})"
+        s = r.get("seconds") or {}
+        steps = " / ".join(f"{s[k]:.0f}" if k in s else "-" for k in _SKEL_STEPS)
         if not r.get("certified"):
-            step = _failed_step(r)
-            rows.append([name, f"not certified: `CageError` at step `{step}`", r.get("sections", ""),
-                         "", "", "", "", f"{r.get('wall_seconds', 0):.0f}"])
+            failed = f"not certified: `CageError` at step `{_failed_step(r)}`"
+            rows.append([name, failed, r.get("sections", ""),
+                         "", "", "", "", "", "", f"{steps} / {s.get('total', r.get('wall_seconds', 0)):.0f}"])
             continue
-        s, t = r["seconds"], r["tightness"]
-        steps = " / ".join(f"{s.get(k, 0):.0f}" for k in ("skeleton", "field", "sections", "assembly",
-                                                         "pre_inflation", "inflation", "verify"))
+        t, n = r["tightness"], r["smallest_nested_at_same_distance"]
+        ratio = n.get("face_ratio_nested_over_skeleton")
         rows.append([name, "certified", r["sections"],
                      f"{r['cage_faces']} ({r['cage_quads']} + {r['cage_junction_triangles']})",
-                     f"{r['cage_quads']} of {r['tight_cage_quads']}", f"{100 * t['max_dist_rel']:.1f}",
-                     f"{r['gap_rel']:.4f}", f"{steps} / {s['total']:.0f}"])
+                     f"{r['cage_quads']} of {r['tight_cage_quads']} ({r['quad_share']:.2f})",
+                     f"{100 * t['max_dist_rel']:.1f}", f"{r['gap_rel']:.4f}",
+                     n["smallest_faces"] if n["smallest_faces"] is not None else "none tried",
+                     f"{ratio:.2f}" if ratio is not None else "-", f"{steps} / {s['total']:.0f}"])
     return table(["mesh (faces)", "result", "sections", "cage triangles (quads + junction tris)",
-                  "quads kept", "max distance, % of diag", "gap / diag",
+                  "quads kept (share of triangles in quads)", "max distance, % of diag", "gap / diag",
+                  "smallest `nested` cage as close (faces)", "nested / skeleton faces",
                   "seconds: skeleton / field / sections / assembly / pre-inflation / containment / verify / "
                   "total"],
                  rows)
+
+
+@generator("skeleton.zoo_summary", *SKEL_ZOO_NOW)
+def skeleton_zoo_summary() -> str:
+    res = _skel_now_results()
+    ok = [r for r in res if r.get("certified")]
+    return f"{len(ok)} of {len(res)} certified"
 
 
 SKEL_CMP = {"M (default)": SKEL_ZOO, "offset envelope": "skeleton/zoo_envelope.json",
@@ -641,8 +657,7 @@ SKEL_CMP = {"M (default)": SKEL_ZOO, "offset envelope": "skeleton/zoo_envelope.j
 
 @generator("skeleton.containment", *SKEL_CMP.values())
 def skeleton_containment() -> str:
-    by = {k: {r["case"]: r for r in (_skel_zoo_results() if v == SKEL_ZOO else load(v)["results"])}
-          for k, v in SKEL_CMP.items()}
+    by = {k: {r["case"]: r for r in load(v)["results"]} for k, v in SKEL_CMP.items()}
     cases = [c for c in by["offset envelope"] if c in by["nested proxy"]]
     rows = []
     for c in cases:
@@ -663,22 +678,25 @@ def skeleton_containment() -> str:
     return table(["mesh", *(f"{k}: faces, max dist, containment s" for k in SKEL_CMP)], rows)
 
 
-SKEL_MN = "skeleton/zoo_min_nested.json"
+SKEL_TIGHT = ("skeleton/zoo_tighten_a.json", "skeleton/zoo_tighten_b.json")
 
 
-@generator("skeleton.zoo_min_nested", SKEL_MN)
-def skeleton_zoo_min_nested() -> str:
+@generator("skeleton.tighten", *SKEL_TIGHT)
+def skeleton_tighten() -> str:
+    by = {r["case"].rsplit(".", 1)[0]: r for f in SKEL_TIGHT for r in load(f)["results"]}
     rows = []
-    for r in load(SKEL_MN)["results"]:
-        if not r.get("certified"):
+    for c in SKEL_ZOO_ORDER:
+        r = by.get(c)
+        if r is None or not r.get("certified"):
             continue
-        n = r["smallest_nested_at_same_distance"]
-        rows.append([r["case"].split(".")[0], r["cage_faces"], f"{100 * r['tightness']['max_dist_rel']:.1f}",
-                     f"{2 * r['cage_quads'] / r['cage_faces']:.2f}", n["smallest_faces"],
-                     f"{n['face_ratio_nested_over_skeleton']:.2f}" if n.get("face_ratio_nested_over_skeleton")
-                     else "-"])
-    return table(["mesh", "skeleton cage triangles", "max distance, % of diag", "share of triangles in quads",
-                  "smallest `nested` cage as close (faces)", "nested / skeleton faces"], rows)
+        t, a = r["tightness"], r["tighten"]
+        rows.append([c, f"{100 * t['max_dist_rel']:.1f} -> {100 * a['tightness']['max_dist_rel']:.1f}",
+                     f"{100 * t['mean_dist_rel']:.2f} -> {100 * a['tightness']['mean_dist_rel']:.2f}",
+                     f"{t['volume_ratio']:.2f} -> {a['tightness']['volume_ratio']:.2f}",
+                     "yes" if a["certified"] else "no", f"{a['gap_rel']:.4f}", a["info"]["rounds"],
+                     f"{a['info']['seconds']:.1f}"])
+    return table(["mesh", "max distance, % of diag", "mean distance, % of diag", "volume ratio",
+                  "certified after", "gap / diag after", "rounds", "seconds"], rows)
 
 
 SKEL_HZ = "skeleton/hierarchy_zoo.json"
@@ -692,15 +710,16 @@ def skeleton_hierarchy_zoo() -> str:
             r = d[key]
             label = f"{d['shape']}: {'skeleton cage' if key == 'skeleton' else '`nested` only'}"
             if "error" in r:
-                rows.append([label, f"fails: {r['error'][:80]}", "", "", "", "", ""])
+                rows.append([label, f"fails: {r['error'][:80]}", "", "", "", "", "", ""])
                 continue
-            rows.append([label, "yes" if r["certified"] else "no",
+            rows.append([label, "yes" if r["certified"] else "no", " / ".join(map(str, r["n_outside"])),
                          " / ".join(f"{x:,}" for x in r["cage_faces"] or []),
                          " / ".join(f"{x:,}" for x in r["tets"]), f"{r['build_seconds']:.0f}",
                          f"{r['poisson-dirichlet']['cycles']}, {r['poisson-dirichlet']['mean_factor']:.3f}",
                          f"{r['poisson-neumann']['cycles']}, {r['poisson-neumann']['mean_factor']:.3f}"])
-    return table(["hierarchy", "certified", "cage faces", "tets per level", "build s",
-                  "Dirichlet: cycles, factor", "Neumann: cycles, factor"], rows)
+    return table(["hierarchy", "certified", "nodes outside the coarser tet mesh, per prolongation",
+                  "cage faces",
+                  "tets per level", "build s", "Dirichlet: cycles, factor", "Neumann: cycles, factor"], rows)
 
 
 @generator("skeleton.hierarchy", SKEL_H)

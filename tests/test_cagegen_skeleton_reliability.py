@@ -285,3 +285,46 @@ def test_late_failure_carries_the_uncertified_partial_cage(star, monkeypatch):
     # the pre-inflated cage is outside the tight one (vertices on M): it grew, in the caller's coordinates
     assert np.linalg.norm(p.V - V.mean(0), axis=1).mean() > np.linalg.norm(p.tight_V - V.mean(0), axis=1).mean()
     assert p.info["seconds"]["pre_inflation"] > 0 and p.info["seconds"]["total"] >= p.info["seconds"]["pre_inflation"]
+
+
+def test_assembly_failure_names_the_step_and_carries_the_tight_cage(star, monkeypatch):
+    """A tight cage that still intersects itself after the shrink steps and the dropped bending nodes
+    (gargo's wings, docs/skeleton.md Limits; here every assembly is reported crossing at faces 0 and 1)
+    raises a CageError naming the assembly step, with the skeleton, the sections and that tight cage
+    (``certified=False``) in ``exc.partial``."""
+    import cagegen._geometry as geo
+
+    monkeypatch.setattr(geo, "self_intersection_pairs", lambda V, F: np.array([[0, 1]]))
+    V, F, S = star
+    with pytest.raises(CageError, match=r"^skeleton cage, assembly: the tight cage intersects itself") as ei:
+        skeleton_cage(V, F, S, bending="given")
+    p = ei.value.partial
+    assert p.certified is False and p.info["assembly_crossing_pairs"] == [[0, 1]]
+    # the recoveries ran and are recorded: the bending nodes owning faces 0 and 1 dropped, in turn
+    assert [d["bending_node_dropped"] for d in p.info["assembly_dropped"]] == [1, 3]
+    assert p.F.shape[1] == 3 and p.F.max() == len(p.V) - 1 and np.array_equal(p.V, p.tight_V)
+    # one quad section per control node left (8 - 2), whose corners are the tight cage's vertices, on M
+    assert len(p.sections) == 6 and len(p.V) == 4 * len(p.sections)
+    corners = np.vstack([s["quad"] for s in p.sections])
+    d = np.sqrt(igl.point_mesh_squared_distance(corners, V, F)[0])
+    assert d.max() < 1e-9 * np.linalg.norm(np.ptp(V, axis=0))
+    assert p.info["seconds"]["assembly"] > 0 and p.info["seconds"]["total"] >= p.info["seconds"]["assembly"]
+
+
+def test_junction_failure_is_an_assembly_error_with_skeleton_and_sections(star, monkeypatch):
+    """A junction hull that cannot be built even after the recoveries: a JunctionError naming the
+    assembly step; ``exc.partial`` holds the skeleton and the sections, and no cage."""
+    from cagegen.skeleton import backend as sb
+    from cagegen.skeleton.cage import JunctionError
+
+    def no_hull(S, sections, chain_controls, **kw):
+        raise JunctionError("skeleton cage, junction at node 0: stub", 0, chain_controls[0][1][0])
+
+    monkeypatch.setattr(sb, "tight_cage", no_hull)
+    V, F, S = star
+    with pytest.raises(JunctionError, match=r"^skeleton cage, assembly: junction at node 0: stub") as ei:
+        skeleton_cage(V, F, S, bending="given")
+    p = ei.value.partial
+    assert p.certified is False and p.V is None and p.tight_V is None
+    assert len(p.sections) >= 4 and all(s["quad"].shape == (4, 3) for s in p.sections)
+    assert len(p.skeleton.nodes) >= len(S.nodes) and ei.value.junction == 0

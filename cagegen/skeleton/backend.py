@@ -99,9 +99,11 @@ class SkeletonCage:
     info : dict
         JSON-serialisable figures (seconds per step, counts, verification).
     certified : bool
-        True for a returned cage. A :class:`CageError` of the pre-inflation, inflation or certification
-        step carries what was built as ``exc.partial``: ``certified=False`` and ``V`` the pre-inflated
-        cage (it does *not* contain the mesh), with the skeleton, sections and tight cage, for pictures.
+        True for a returned cage. A :class:`CageError` of the assembly step or a later one carries what
+        was built as ``exc.partial``: ``certified=False`` and ``V`` the pre-inflated cage (it does *not*
+        contain the mesh), with the skeleton, sections and tight cage, for pictures; from the assembly,
+        ``V`` is the self-intersecting tight cage, or None (skeleton and sections only) when a junction
+        hull could not be built.
     """
 
     def __init__(self, **kw):
@@ -229,8 +231,8 @@ def skeleton_cage(
     MeshInputError
         Bad skeleton (not a tree, nodes outside M, ...).
     CageError
-        A step failed; the message starts with the step's name. From the pre-inflation on,
-        ``exc.partial`` holds what was built (:class:`SkeletonCage`, ``certified=False``).
+        A step failed; the message starts with the step's name. From the assembly on, ``exc.partial``
+        holds what was built (:class:`SkeletonCage`, ``certified=False``).
     """
     say = progress if callable(progress) else (lambda msg: None)
     t_all = time.perf_counter()
@@ -252,8 +254,14 @@ def skeleton_cage(
     sections, chain_controls = _sections_step(kit, chain_controls, relocate_sections, symmetry, center, diag,
                                               info)
     sec["sections"] = time.perf_counter() - t
-    tc = _timed(sec, "assembly", _assembly_step, kit, sections, chain_controls, drop_bad_sections, untangle,
-                info)
+    t = time.perf_counter()
+    try:
+        tc = _assembly_step(kit, sections, chain_controls, drop_bad_sections, untangle, info)
+    except CageError as exc:
+        sec["assembly"] = time.perf_counter() - t
+        raise _assembly_failure(exc, {"S": S, "S_in": S_in, "sections": sections, "diag": diag,
+                                      "center": center, "info": info, "sec": sec, "t_all": t_all}) from exc
+    sec["assembly"] = time.perf_counter() - t
     Vp, Ft, Vt, quads_out, tris_out = _timed(sec, "pre_inflation", _pre_inflation_step, field, tc, Vn, F,
                                              preinflate_rounds, info, say, pushes=containment == "flow")
     # what was built, for the result and for the ``exc.partial`` of a later failure
@@ -453,6 +461,25 @@ def _symmetry_step(sections, symmetry, Vn, F, center, diag, say) -> dict:
 def _assembly_step(kit, sections, chain_controls, drop_bad_sections, untangle, info) -> dict:
     """Step 5: the tight cage from the sections, with the recoveries when it cannot be built cleanly."""
     rec = {"dropped": [], "asm_dropped": [], "shrunk": {}, "moved_away": {}, "away_log": [], "flattened": []}
+    try:
+        tc, shrink_steps = _assemble(kit, sections, chain_controls, drop_bad_sections, untangle, rec)
+    finally:  # the recoveries tried, also for a failure's ``exc.partial``
+        info["junction_recovery"] = rec["dropped"]
+        info["sections_flattened"] = rec["flattened"]
+        info["assembly_dropped"] = rec["asm_dropped"]
+        info["junction_sections_shrunk"] = {int(k): v for k, v in rec["shrunk"].items()}
+        info["junction_sections_moved_away"] = rec["away_log"]
+    info["steiner_vertices"] = tc["n_steiner"]
+    info["steiner_per_junction"] = tc["n_steiner_per_junction"]
+    info["tight_cage_shrink_steps"] = shrink_steps
+    info["tight_cage"] = {"n_vertices": len(tc["V"]), "n_faces": len(tc["F"]), "n_quads": len(tc["quads"]),
+                          "n_junction_triangles": len(tc["tris"])}
+    kit.say(f"tight cage: {len(tc['V'])} vertices, {len(tc['quads'])} quads + {len(tc['tris'])} triangles")
+    return tc
+
+
+def _assemble(kit, sections, chain_controls, drop_bad_sections, untangle, rec) -> tuple[dict, int]:
+    """Step 5's loop: untangle, build the tight cage, recover from junction misses and crossings."""
     while True:
         # degenerate sections, and sections that cross their neighbour along the chain (the tube between
         # them folds): flatten them onto the plane orthogonal to the skeleton (ours; idempotent, so every
@@ -474,20 +501,12 @@ def _assembly_step(kit, sections, chain_controls, drop_bad_sections, untangle, i
         # (ours; the paper has no such case)
         owner, pairs0, pairs, shrink_steps = _shrink_crossing_sections(kit.S, tc)
         if not len(pairs):
-            break
-        _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_bad_sections, rec)
-    info["junction_recovery"] = rec["dropped"]
-    info["sections_flattened"] = rec["flattened"]
-    info["assembly_dropped"] = rec["asm_dropped"]
-    info["junction_sections_shrunk"] = {int(k): v for k, v in rec["shrunk"].items()}
-    info["junction_sections_moved_away"] = rec["away_log"]
-    info["steiner_vertices"] = tc["n_steiner"]
-    info["steiner_per_junction"] = tc["n_steiner_per_junction"]
-    info["tight_cage_shrink_steps"] = shrink_steps
-    info["tight_cage"] = {"n_vertices": len(tc["V"]), "n_faces": len(tc["F"]), "n_quads": len(tc["quads"]),
-                          "n_junction_triangles": len(tc["tris"])}
-    kit.say(f"tight cage: {len(tc['V'])} vertices, {len(tc['quads'])} quads + {len(tc['tris'])} triangles")
-    return tc
+            return tc, shrink_steps
+        try:
+            _drop_crossing_section(kit, tc, owner, pairs0, pairs, chain_controls, drop_bad_sections, rec)
+        except CageError as exc:
+            exc.tight_cage, exc.crossing_pairs = tc, np.asarray(pairs)  # for the step's ``exc.partial``
+            raise
 
 
 def _junction_recovery(kit, exc, sections, chain_controls, drop_bad_sections, rec) -> bool:
@@ -789,6 +808,37 @@ def _failure(msg, parts, **kw) -> CageError:
     exc = CageError(msg, layer=1, **kw)
     exc.partial = _cage_result(parts["Vp"] * parts["diag"] + parts["center"], False, parts)
     return exc
+
+
+def _assembly_failure(exc: CageError, parts: dict) -> CageError:
+    """The assembly step's :class:`CageError`, named ``assembly``, with ``exc.partial``.
+
+    A self-intersecting tight cage (``exc.tight_cage``, set by :func:`_assembly_step`) is the partial's
+    ``V`` = ``tight_V`` (``certified=False``, ``info["assembly_crossing_pairs"]`` the face pairs still
+    crossing); a junction hull that could not be built leaves no cage (``V``, ``F``, ``quads``, ``tris``,
+    ``tight_V`` None): the skeleton and the sections only.
+    """
+    msg = str(exc)
+    if not msg.startswith("skeleton cage, assembly"):
+        msg = "skeleton cage, assembly: " + msg.removeprefix("skeleton cage, ")
+    new = (JunctionError(msg, exc.junction, exc.section) if isinstance(exc, JunctionError)
+           else CageError(msg, layer=1))
+    sec, info = parts["sec"], parts["info"]
+    sec["total"] = time.perf_counter() - parts["t_all"]
+    info["seconds"] = sec
+    tc = getattr(exc, "tight_cage", None)
+    if tc is not None:
+        info["assembly_crossing_pairs"] = np.asarray(exc.crossing_pairs).tolist()
+        parts.update(tc=tc, Ft=tc["F"], quads=tc["quads"], tris=tc["tris"], Vt=tc["V"], Vp=tc["V"])
+        new.partial = _cage_result(tc["V"] * parts["diag"] + parts["center"], False, parts)
+        return new
+    diag, center, S = parts["diag"], parts["center"], parts["S"]
+    sections = [{"node": int(n), "center": s_.center * diag + center, "quad": s_.quad * diag + center,
+                 "hits": s_.hits * diag + center} for n, s_ in sorted(parts["sections"].items())]
+    new.partial = SkeletonCage(V=None, F=None, quads=None, tris=None, tight_V=None, preinflated_V=None,
+                               skeleton=Skeleton(S.nodes * diag + center, S.edges, list(S.bending)),
+                               input_skeleton=parts["S_in"], sections=sections, info=info, certified=False)
+    return new
 
 
 def _winding(V, F, P):

@@ -199,81 +199,110 @@ def audit_mesh(
         shapes or dtypes, empty arrays, face indices out of range.
     """
     V, F = as_mesh_arrays(V, F, name)
-    n, m = V.shape[0], F.shape[0]
-    a = MeshAudit(name=name, n_vertices=n, n_faces=m)
-    P = a.problems
-
+    m = F.shape[0]
+    a = MeshAudit(name=name, n_vertices=V.shape[0], n_faces=m)
     if m < 4:
-        P.append(f"too few faces: {m} (a closed triangle mesh has at least 4)")
+        a.problems.append(f"too few faces: {m} (a closed triangle mesh has at least 4)")
     if m > max_faces:
-        P.append(f"absurd size: {m} faces > max_faces={max_faces}; decimate the input first")
+        a.problems.append(f"absurd size: {m} faces > max_faces={max_faces}; decimate the input first")
+    d = _audit_scale(a, V)
+    _audit_faces(a, V, F, d, area_tol=area_tol, merge_tol=merge_tol)
+    referenced = _audit_vertices(a, V, F, d, merge_tol=merge_tol)
+    es = _audit_topology(a, F, referenced)
+    _audit_volume_genus(a, V, F, d, es, referenced)
+    if not self_intersections:
+        a.skipped.append("self-intersections (switched off)")
+    elif d is None or a.n_degenerate_faces:
+        a.skipped.append("self-intersections (non-finite coordinates or degenerate faces)")
+    else:
+        pairs = self_intersection_pairs(V, F)
+        a.n_self_intersections = len(pairs)
+        if len(pairs):
+            a.problems.append(
+                f"self-intersections: {len(pairs)} intersecting face pairs (first: {pairs[0].tolist()})"
+            )
+    return a
 
+
+def _audit_scale(a: MeshAudit, V: np.ndarray) -> float | None:
+    """Non-finite coordinates and absurd scales; the bounding-box diagonal where the geometric checks make
+    sense (finite coordinates, diagonal in ``[MIN_DIAG, MAX_DIAG]``: beyond it their tolerances over- or
+    underflow), else None."""
+    P = a.problems
     finite_rows = np.isfinite(V).all(axis=1)
-    a.n_nonfinite_vertices = int(n - np.count_nonzero(finite_rows))
-    finite = a.n_nonfinite_vertices == 0
-    if not finite:
+    a.n_nonfinite_vertices = int(V.shape[0] - np.count_nonzero(finite_rows))
+    if a.n_nonfinite_vertices:
         bad = np.flatnonzero(~finite_rows)[:5].tolist()
         P.append(f"NaN or infinite coordinates in {a.n_nonfinite_vertices} vertices (first: {bad})")
         a.skipped.append("geometric checks (non-finite coordinates)")
-
-    # --- scale
-    d = None
-    if finite:
-        d = bbox_diagonal(V)
-        a.bbox_diagonal = d
-        offset = float(np.abs(V).max())
-        if d == 0.0:
-            P.append("absurd size: all vertices coincide (zero bounding box)")
-        elif not (MIN_DIAG <= d <= MAX_DIAG):
-            P.append(f"absurd size: bounding-box diagonal {d:.3g} outside [{MIN_DIAG:g}, {MAX_DIAG:g}]; rescale")
-        elif offset > MAX_OFFSET * d:
-            P.append(
-                f"absurd size: mesh of diagonal {d:.3g} sits {offset:.3g} from the origin "
-                "(float64 precision lost); translate it"
-            )
-    # geometric checks only at a sane scale: at absurd ones their tolerances over/underflow
-    geometric = finite and d is not None and MIN_DIAG <= d <= MAX_DIAG
-    if finite and not geometric:
+        return None
+    d = bbox_diagonal(V)
+    a.bbox_diagonal = d
+    offset = float(np.abs(V).max())
+    if d == 0.0:
+        P.append("absurd size: all vertices coincide (zero bounding box)")
+    elif not (MIN_DIAG <= d <= MAX_DIAG):
+        P.append(f"absurd size: bounding-box diagonal {d:.3g} outside [{MIN_DIAG:g}, {MAX_DIAG:g}]; rescale")
+    elif offset > MAX_OFFSET * d:
+        P.append(
+            f"absurd size: mesh of diagonal {d:.3g} sits {offset:.3g} from the origin "
+            "(float64 precision lost); translate it"
+        )
+    if not MIN_DIAG <= d <= MAX_DIAG:
         a.skipped.append("geometric checks (absurd size)")
+        return None
+    return d
 
-    # --- faces
-    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
-    if geometric:
+
+def _audit_faces(a: MeshAudit, V: np.ndarray, F: np.ndarray, d: float | None, *, area_tol: float,
+                 merge_tol: float) -> None:
+    """Degenerate faces: a repeated index and, at a sane scale ``d``, (near-)zero area or all corners
+    within ``merge_tol * d``."""
+    degenerate = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
+    if d is not None:
         E = V[F[:, [1, 2, 0]]] - V[F]  # (m,3,3) edge vectors
         longest2 = np.einsum("ijk,ijk->ij", E, E).max(axis=1)
         degenerate = (
-            repeated
+            degenerate
             | (double_areas(V, F) < area_tol * longest2)
             | (longest2 <= (merge_tol * d) ** 2)
         )
-        a.n_degenerate_faces = int(np.count_nonzero(degenerate))
-    else:
-        degenerate = repeated
-        a.n_degenerate_faces = int(np.count_nonzero(repeated))
+    a.n_degenerate_faces = int(np.count_nonzero(degenerate))
     if a.n_degenerate_faces:
         first = np.flatnonzero(degenerate)[:5].tolist()
-        P.append(f"degenerate (zero-area) faces: {a.n_degenerate_faces} (first: {first}; repair=True / --repair "
-                 "flips the caps of STL exports)")
+        a.problems.append(f"degenerate (zero-area) faces: {a.n_degenerate_faces} (first: {first}; "
+                          "repair=True / --repair flips the caps of STL exports)")
 
-    # --- vertices
+
+def _audit_vertices(a: MeshAudit, V: np.ndarray, F: np.ndarray, d: float | None, *,
+                    merge_tol: float) -> np.ndarray:
+    """Unreferenced vertices and, at a sane scale ``d``, duplicates; returns the (n,) referenced mask."""
+    n = V.shape[0]
     referenced = np.zeros(n, dtype=bool)
     referenced[F.ravel()] = True
     a.n_unreferenced_vertices = int(n - np.count_nonzero(referenced))
     if a.n_unreferenced_vertices:
-        P.append(
+        a.problems.append(
             f"unreferenced vertices: {a.n_unreferenced_vertices} used by no face "
             "(repair=True drops them)"
         )
-    if geometric:
+    if d is not None:
         labels = _duplicate_labels(V, merge_tol * d)
         a.n_duplicate_vertices = int(n - np.unique(labels).size)
         if a.n_duplicate_vertices:
-            P.append(
+            a.problems.append(
                 f"duplicate vertices: {a.n_duplicate_vertices} vertices coincide with another "
                 "(repair=True merges them)"
             )
+    return referenced
 
-    # --- edges, orientation, manifoldness, components
+
+def _audit_topology(a: MeshAudit, F: np.ndarray, referenced: np.ndarray):
+    """Boundary, non-manifold and inconsistently oriented edges, non-manifold vertices, components;
+    returns the edge statistics (:func:`cagegen._geometry.edge_stats`)."""
+    import igl
+
+    P, n = a.problems, referenced.size
     es = edge_stats(F, n)
     a.n_boundary_edges = es.n_boundary_edges
     a.n_nonmanifold_edges = es.n_nonmanifold_edges
@@ -287,8 +316,6 @@ def audit_mesh(
             f"inconsistent orientation: {es.n_inconsistent_edges} edges traversed twice in the same "
             "direction (repair=True re-orients)"
         )
-    import igl
-
     manifold_v = np.ones(n, dtype=bool)
     mv = np.asarray(igl.is_vertex_manifold(F), dtype=bool)  # length max(F)+1
     manifold_v[: mv.size] = mv
@@ -301,37 +328,28 @@ def audit_mesh(
             f"several connected components: {a.n_components} (a single closed piece is required; "
             "build_cages(..., components='separate') builds one hierarchy per piece)"
         )
+    return es
 
-    # --- volume and genus (closed, consistently oriented meshes only)
-    if es.closed_manifold and a.n_nonmanifold_vertices == 0:
-        if geometric:
-            a.volume = signed_volume(V, F)
-            if abs(a.volume) <= VOLUME_TOL * d**3:
-                P.append(f"zero volume: enclosed volume {a.volume:.3g} (flat or collapsed surface)")
-            elif a.volume < 0:
-                P.append(
-                    f"inside-out: negative volume {a.volume:.6g}, the faces point inward "
-                    "(repair=True flips them)"
-                )
-        if a.n_components == 1:
-            chi = int(np.count_nonzero(referenced)) - es.n_edges + m
-            a.genus = (2 - chi) // 2
-    else:
+
+def _audit_volume_genus(a: MeshAudit, V: np.ndarray, F: np.ndarray, d: float | None, es,
+                        referenced: np.ndarray) -> None:
+    """Signed volume (at a sane scale ``d``) and genus (one component), for closed, manifold and
+    consistently oriented surfaces only; genus from the Euler characteristic ``V - E + F = 2 - 2g``."""
+    if not (es.closed_manifold and a.n_nonmanifold_vertices == 0):
         a.skipped.append("volume and genus (surface not closed, manifold and consistently oriented)")
-
-    # --- self-intersections (exact)
-    if not self_intersections:
-        a.skipped.append("self-intersections (switched off)")
-    elif not geometric or a.n_degenerate_faces:
-        a.skipped.append("self-intersections (non-finite coordinates or degenerate faces)")
-    else:
-        pairs = self_intersection_pairs(V, F)
-        a.n_self_intersections = len(pairs)
-        if len(pairs):
-            P.append(
-                f"self-intersections: {len(pairs)} intersecting face pairs (first: {pairs[0].tolist()})"
+        return
+    if d is not None:
+        a.volume = signed_volume(V, F)
+        if abs(a.volume) <= VOLUME_TOL * d**3:
+            a.problems.append(f"zero volume: enclosed volume {a.volume:.3g} (flat or collapsed surface)")
+        elif a.volume < 0:
+            a.problems.append(
+                f"inside-out: negative volume {a.volume:.6g}, the faces point inward "
+                "(repair=True flips them)"
             )
-    return a
+    if a.n_components == 1:
+        chi = int(np.count_nonzero(referenced)) - es.n_edges + F.shape[0]
+        a.genus = (2 - chi) // 2
 
 
 def repair_mesh(

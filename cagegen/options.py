@@ -47,7 +47,7 @@ class OptionFieldError(CageOptionError):
 
 def field_spec(default: Any, help: str, *, low: float | None = None, strict: bool = False,
                high: float | None = None, choices: tuple | None = None, kind: type | None = None,
-               optional: bool = False, cli: bool = True) -> Any:
+               optional: bool = False, cli: bool = True, expert: bool = False) -> Any:
     """A dataclass field with its validation rule and help text in ``metadata``.
 
     Parameters
@@ -66,11 +66,13 @@ def field_spec(default: Any, help: str, *, low: float | None = None, strict: boo
         None is allowed (always when the default is None or None is among ``choices``).
     cli : bool
         Whether the command line offers it (:func:`nestmg.options.add_arguments`).
+    expert : bool
+        A tuning knob: its flag is listed by ``--help-all`` only, not by ``--help``.
     """
     kind = kind or (type(default) if default is not None else None)
     optional = optional or default is None or (choices is not None and None in choices)
     meta = {"help": help, "low": low, "strict": strict, "high": high, "choices": choices, "kind": kind,
-            "cli": cli, "optional": optional}
+            "cli": cli, "optional": optional, "expert": expert}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -124,7 +126,8 @@ class CageOptions:
     repair: bool = field_spec(False, "merge duplicate vertices, drop unreferenced ones and orient outward "
                                      "before the audit")
     min_gap: float | None = field_spec(None, "clearance between consecutive layers / bbox diagonal (default "
-                                             "0; nestmg: 2.5 epsilon under TetWild)", low=0.0, kind=float)
+                                             "0; nestmg: 2.5 epsilon under TetWild)", low=0.0, kind=float,
+                                       expert=True)
 
     #: fields build_cages consumes itself (not passed to the backend)
     COMMON = ("repair", "min_gap")

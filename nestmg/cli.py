@@ -274,10 +274,51 @@ def cmd_compare(args) -> int:
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose usage errors are one line (the usage of ``solve`` alone is 14 lines)."""
+    """An argument parser whose usage errors are one line (the usage of ``solve`` alone is 14 lines) and
+    whose ``--help`` lists the everyday flags; ``--help-all`` lists every flag, the expert ones too (the
+    actions with ``expert = True``: options fields marked ``expert``, :func:`nestmg.options.add_arguments`).
+    """
+
+    show_expert = False
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def expert_actions(self) -> list[argparse.Action]:
+        """The flags ``--help`` leaves out."""
+        return [a for a in self._actions if getattr(a, "expert", False)]
+
+    def format_help(self) -> str:
+        expert = self.expert_actions()
+        if self.show_expert or not expert:
+            return super().format_help()
+        saved = [a.help for a in expert]
+        for a in expert:  # argparse leaves SUPPRESSed actions out of the usage and the groups
+            a.help = argparse.SUPPRESS
+        try:
+            text = super().format_help()
+        finally:
+            for a, h in zip(expert, saved, strict=True):
+                a.help = h
+        return text + f"\n{len(expert)} expert flags not shown: {self.prog} --help-all lists every flag.\n"
+
+
+class _HelpAll(argparse.Action):
+    """``--help-all``: print the help with the expert flags and exit."""
+
+    def __init__(self, option_strings, dest="help_all", default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.show_expert = True
+        parser.print_help()
+        parser.exit()
+
+
+def _expert(action: argparse.Action) -> argparse.Action:
+    """Mark a flag that is not an options field as expert (``--help-all`` only)."""
+    action.expert = True
+    return action
 
 
 def _number(kind, low, *, strict: bool = False, what: str = ""):
@@ -301,22 +342,27 @@ CAGE_FLAGS = {"--cage-time-budget": ("SdfOptions", "cage_time_budget")}
 
 
 def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
-    """The hierarchy's flags: ``--levels``, one per field of the sizing, meshing and common cage options."""
+    """The hierarchy's flags, one group per stage: sizing (``--levels`` and :class:`nestmg.SizingOptions`),
+    meshing (:class:`nestmg.MeshingOptions`), cages (:class:`cagegen.CageOptions`, ``--cage-time-budget``);
+    ``--no-cache``, ``--quiet`` and ``--help-all`` beside the command's own flags."""
     from cagegen import CageOptions
 
     from .options import MeshingOptions, SizingOptions, add_arguments
 
-    g = p.add_argument_group("hierarchy")
+    p.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--help-all", action=_HelpAll, help="show every flag, the expert ones too, and exit")
+    g = p.add_argument_group("sizing")
     g.add_argument("--levels", type=_number(int, 2), default=levels,
                    help="levels incl. the input, >= 2 (default %(default)s)")
     add_arguments(g, SizingOptions)
-    add_arguments(g, MeshingOptions)
+    add_arguments(p.add_argument_group("meshing"), MeshingOptions)
+    g = p.add_argument_group("cages")
     add_arguments(g, CageOptions)
-    g.add_argument("--cage-time-budget", type=_number(float, 0), default=None,
-                   help="seconds the sdf cage backend may take, estimated before any work (15 s + 5 ms per "
-                        "input face per layer); refused at once above it (default 900; 0: no limit)")
-    g.add_argument("--no-cache", action="store_true", help="ignore and do not fill the cache ($NESTMG_CACHE)")
-    g.add_argument("--quiet", action="store_true", help="no progress bars")
+    _expert(g.add_argument(
+        "--cage-time-budget", type=_number(float, 0), default=None,
+        help="seconds the sdf cage backend may take, estimated before any work (15 s + 5 ms per input face "
+             "per layer); refused at once above it (default 900; 0: no limit)"))
 
 
 def _solver_opts(p: argparse.ArgumentParser) -> None:
@@ -355,8 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("cages", help="build and certify a cage hierarchy")
     c.add_argument("mesh")
-    c.add_argument("--method", default="nested")
-    c.add_argument("--out", required=True)
+    c.add_argument("--method", default="nested", help="cage backend (default %(default)s)")
+    c.add_argument("--out", required=True, help="folder for layer_k.obj and report.json")
     c.add_argument("--png", action="store_true", help="render the layers to OUT/layers.png")
     _common(c)
     c.set_defaults(func=cmd_cages)
@@ -368,14 +414,14 @@ def build_parser() -> argparse.ArgumentParser:
                             "elasticity-free"],
                    help="elasticity-*: linear elasticity (E = 1, --poisson-ratio), clamped at the lowest x "
                         "under gravity -z, or free under a balanced body force; u is the displacement")
-    s.add_argument("--method", default="nested")
+    s.add_argument("--method", default="nested", help="cage backend (default %(default)s)")
     s.add_argument("--element", choices=["P1", "P2"], default="P1",
                    help="P2: quadratic tets curved onto the input surface (certified valid), on the level "
                         "refined into level 0 (the same unknowns) or on level 0; p-multigrid to the P1 levels; "
                         "--out writes p2.vtu (tetra10)")
-    s.add_argument("--quality", type=float, default=None,
-                   help="with --element P2: quality pass on the curved tets whose scaled Jacobian (min / max "
-                        "det J) is below this, e.g. 0.96")
+    _expert(s.add_argument("--quality", type=float, default=None,
+                           help="with --element P2: quality pass on the curved tets whose scaled Jacobian "
+                                "(min / max det J) is below this, e.g. 0.96"))
     s.add_argument("--json", default=None, help="write the report here")
     s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")
     s.add_argument("--out", default=None,

@@ -52,17 +52,17 @@ class SizingOptions:
                              "fit (None: no limit)", low=0.0, kind=float, optional=True)
     coarsening: float | None = field_spec(8.0, "wanted tet ratio between consecutive cage levels (None: the "
                                                "edge length doubles)", low=1.0, strict=True, kind=float,
-                                          optional=True)
+                                          optional=True, expert=True)
     face_counts: tuple[int, ...] | None = field_spec(
-        None, "cage face counts, finest first (default: 4x fewer per level)", kind=tuple)
+        None, "cage face counts, finest first (default: 4x fewer per level)", kind=tuple, expert=True)
     same_domain_levels: int = field_spec(0, "levels that re-mesh the input at 2x, 4x... the fine edge before "
-                                            "the cages", low=0)
+                                            "the cages", low=0, expert=True)
     fine_level: str | None = field_spec(
         None, "refine: the fine level is a red refinement of the input meshed at twice the edge (default "
               "with TetWild); mesh: the input meshed at the fine edge (default with TetGen)",
-        choices=("refine", "mesh", None))
+        choices=("refine", "mesh", None), expert=True)
     predecimate: bool = field_spec(True, "with TetWild, decimate an input much finer than the fine tets "
-                                         "first")
+                                         "first", expert=True)
 
     def __post_init__(self) -> None:
         fc = self.face_counts
@@ -83,19 +83,21 @@ class MeshingOptions:
     """How every layer is tet-meshed and prolonged (:func:`nestmg.tetmesh.tetrahedralize`)."""
 
     mesher: str = field_spec("tetwild", "tet mesher (TetGen is AGPL: opt-in)", choices=("tetwild", "tetgen"))
-    epsilon: float = field_spec(1e-3, "TetWild envelope / bbox diagonal", low=0.0, strict=True, high=1.0)
+    epsilon: float = field_spec(1e-3, "TetWild envelope / bbox diagonal", low=0.0, strict=True, high=1.0,
+                                expert=True)
     extrapolation: str = field_spec("clamped", "rule for fine nodes outside the coarse tets",
-                                    choices=("clamped", "linear", "closest_point", "nearest_vertex"))
+                                    choices=("clamped", "linear", "closest_point", "nearest_vertex"),
+                                    expert=True)
     tet_retries: int | None = field_spec(
         None, "re-mesh a coarse TetWild layer with a 4x smaller envelope while fine nodes are outside it "
-              "(default 2; 0 for decimate)", low=0, kind=int)
-    stop_energy: float = field_spec(10.0, "TetWild's stop energy", low=0.0, strict=True)
-    max_opt_iter: int = field_spec(80, "TetWild's optimisation passes at most", low=1)
+              "(default 2; 0 for decimate)", low=0, kind=int, expert=True)
+    stop_energy: float = field_spec(10.0, "TetWild's stop energy", low=0.0, strict=True, expert=True)
+    max_opt_iter: int = field_spec(80, "TetWild's optimisation passes at most", low=1, expert=True)
     outer_edge_factor: float = field_spec(
         OUTER_EDGE_FACTOR, "TetWild's edge outside the solid / the target edge, where its box is >= 8x the "
-                           "solid's volume (1: off, fTetWild's uniform sizing)", low=1.0)
-    threads: int | None = field_spec(None, "TetWild threads (default: its own)", low=0, kind=int)
-    coarsen_coarse: bool = field_spec(True, "TetWild's coarsen on the coarse levels")
+                           "solid's volume (1: off, fTetWild's uniform sizing)", low=1.0, expert=True)
+    threads: int | None = field_spec(None, "TetWild threads (default: its own)", low=0, kind=int, expert=True)
+    coarsen_coarse: bool = field_spec(True, "TetWild's coarsen on the coarse levels", expert=True)
 
     def __post_init__(self) -> None:
         _check(self)
@@ -115,17 +117,19 @@ class SolverOptions:
     smoothing fields build the :class:`solvers.MultigridSolver`; ``cycle`` ... ``maxiter`` are the solve's.
     """
 
-    coarse: str = field_spec("galerkin", "coarse operators", choices=tuple(COARSE))
+    coarse: str = field_spec("galerkin", "coarse operators", choices=tuple(COARSE), expert=True)
     smoothing: str = field_spec("robust", "preset: robust (smoother / nu / coarse_nu below, boundary-layer "
-                                          "sweeps) or fast (textbook V(1,1))", choices=SMOOTHING)
+                                          "sweeps) or fast (textbook V(1,1))", choices=SMOOTHING, expert=True)
     smoother: str = field_spec("symmetric_gauss_seidel", "smoother (robust preset)",
-                               choices=tuple(sorted(SMOOTHERS)))
-    nu: int = field_spec(1, "pre/post smoothing sweeps on the fine level (robust preset)", low=1)
-    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu)", low=1, kind=int)
-    local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems")
+                               choices=tuple(sorted(SMOOTHERS)), expert=True)
+    nu: int = field_spec(1, "pre/post smoothing sweeps on the fine level (robust preset)", low=1, expert=True)
+    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu)", low=1, kind=int,
+                                       expert=True)
+    local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems",
+                             expert=True)
     coarse_scaling: str | None = field_spec("auto", "auto: energy for re-discretised and weighted operators",
-                                            choices=("auto", "energy", None))
-    cycle: str = field_spec("V", "multigrid cycle", choices=("V", "W", "F"))
+                                            choices=("auto", "energy", None), expert=True)
+    cycle: str = field_spec("V", "multigrid cycle", choices=("V", "W", "F"), expert=True)
     accel: str | None = field_spec(None, "cg: MG-preconditioned CG", choices=("cg", None))
     tol: float = field_spec(1e-8, "relative residual to reach", low=0.0, strict=True)
     maxiter: int = field_spec(DEFAULT_MAXITER, "cap on cycles (or CG iterations)", low=1)
@@ -181,6 +185,8 @@ def add_arguments(group: Any, cls: type, *, skip: tuple = (), defaults: dict | N
 
     Booleans that default to True become ``--no-NAME``; ``None`` defaults are written ``none``; a
     tuple field takes several values. Values are checked by ``cls`` itself (:func:`from_arguments`).
+    Each flag's action carries the field's ``expert`` marker (``action.expert``: listed by ``--help-all``
+    only, see :mod:`nestmg.cli`).
     """
     for f in fields(cls):
         meta = f.metadata
@@ -190,20 +196,21 @@ def add_arguments(group: Any, cls: type, *, skip: tuple = (), defaults: dict | N
         helptext = meta["help"] + ("" if default is None else f" (default {default})")
         if meta["kind"] is bool:
             if default:
-                group.add_argument(f"--no-{f.name.replace('_', '-')}", dest=f.name, action="store_false",
-                                   help=f"do not: {meta['help']}")
+                action = group.add_argument(f"--no-{f.name.replace('_', '-')}", dest=f.name,
+                                            action="store_false", help=f"do not: {meta['help']}")
             else:
-                group.add_argument(flag(f.name), dest=f.name, action="store_true", help=meta["help"])
-            continue
-        kw: dict[str, Any] = {"dest": f.name, "default": default, "help": helptext}
-        if meta["kind"] is tuple:
-            kw.update(type=_parse(int), nargs="+")
-        elif meta["choices"] is not None:
-            kw.update(type=_parse(str), choices=meta["choices"],
-                      metavar="{" + ",".join(str(c).lower() for c in meta["choices"]) + "}")
+                action = group.add_argument(flag(f.name), dest=f.name, action="store_true", help=meta["help"])
         else:
-            kw["type"] = _parse(meta["kind"])
-        group.add_argument(flag(f.name), **kw)
+            kw: dict[str, Any] = {"dest": f.name, "default": default, "help": helptext}
+            if meta["kind"] is tuple:
+                kw.update(type=_parse(int), nargs="+")
+            elif meta["choices"] is not None:
+                kw.update(type=_parse(str), choices=meta["choices"],
+                          metavar="{" + ",".join(str(c).lower() for c in meta["choices"]) + "}")
+            else:
+                kw["type"] = _parse(meta["kind"])
+            action = group.add_argument(flag(f.name), **kw)
+        action.expert = bool(meta.get("expert", False))
 
 
 def _parse(kind: type):

@@ -140,9 +140,52 @@ def test_cli_flags_are_the_option_fields():
             assert a.default == f.default, (f.name, a.default, f.default)
     owner, field = CAGE_FLAGS["--cage-time-budget"]
     assert field in {f.name for f in dataclasses.fields(getattr(cagegen, owner))}
-    others = {"help", "problem", "method", "element", "quality", "json", "png", "out", "levels",
+    others = {"help", "help_all", "problem", "method", "element", "quality", "json", "png", "out", "levels",
               "cage_time_budget", "no_cache", "quiet"}
     assert set(actions) == others, set(actions) ^ others
+
+
+#: what ``nestmg solve --help`` lists (besides -h and --help-all); every other flag is expert
+EVERYDAY = {"--problem", "--method", "--element", "--json", "--png", "--out", "--levels", "--edge-length",
+            "--max-tets", "--mesh-time-budget", "--mesher", "--repair", "--no-cache", "--quiet", "--accel",
+            "--tol", "--maxiter", "--lam", "--poisson-ratio"}
+
+
+def _listed(command: str, option: str, capsys) -> tuple[set[str], str]:
+    """The flags ``nestmg COMMAND OPTION`` lists, and its whole text."""
+    from nestmg.cli import build_parser
+
+    with pytest.raises(SystemExit) as ei:
+        build_parser().parse_args([command, option])
+    assert ei.value.code == 0
+    text = capsys.readouterr().out
+    body = text[text.index("\noptions:"):]  # the groups, not the usage lines
+    return {line.split()[0].rstrip(",") for line in body.splitlines() if line.startswith("  -")}, text
+
+
+@pytest.mark.parametrize("command", ["solve", "cages", "demo", "compare"])
+def test_help_lists_everyday_flags_and_help_all_every_flag(command, capsys):
+    """``--help`` lists the everyday flags, ``--help-all`` every flag grouped by stage; the expert ones are
+    the options fields marked ``expert`` (and ``--quality``, ``--cage-time-budget``)."""
+    actions = _flags(command)
+    every = {a.option_strings[0] for a in actions.values()}
+    expert = {a.option_strings[0] for a in actions.values() if getattr(a, "expert", False)}
+    short, text = _listed(command, "--help", capsys)
+    assert short == every - expert and f"{len(expert)} expert flags not shown" in text
+    assert not expert & set(text.split("\noptions:")[0].replace("[", " ").split())  # nor in the usage
+    full, text = _listed(command, "--help-all", capsys)
+    assert full == every and "expert flags not shown" not in text
+    assert all(f"\n{stage}:\n" in text for stage in ("sizing", "meshing", "cages"))
+    for cls in (SizingOptions, MeshingOptions, CageOptions, SolverOptions):
+        for f in dataclasses.fields(cls):
+            if f.name in actions:
+                assert actions[f.name].expert is f.metadata["expert"], f.name
+    if command == "solve":
+        assert short - {"-h", "--help-all"} == EVERYDAY
+        assert len(every - {"-h", "--help-all"}) == 43 and len(expert) == 24
+    if command == "cages":
+        assert short - {"-h", "--help-all"} == EVERYDAY & every
+        assert len(every - {"-h", "--help-all"}) == 26 and len(expert) == 15
 
 
 def test_cli_builds_the_same_objects():

@@ -381,105 +381,140 @@ def optimize_cage(
     Fc = np.array(Fc, dtype=np.int64)
     h_ref = max(h, dhat)
     step = 2 * dhat if step is None else float(step)
-    energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=w_p, t_pull=2 * h if pull_target is None else pull_target,
-                     h_local=h_local, pull_mask=pull_mask)
-    barrier = ipctk.BarrierPotential(dhat, kappa)
-    info = {"steps": 0, "flips": 0, "ccd_limited": 0}
+    t_pull = 2 * h if pull_target is None else pull_target
+    energy = _Energy(Fc, Vin, Fin, h, w_s, w_q, h_ref, w_p=w_p, t_pull=t_pull, h_local=h_local,
+                     pull_mask=pull_mask)
     nc = len(C)
     if free is not None:
         free = np.asarray(free, dtype=bool)
         if free.shape != (nc,):
             raise CageOptionError(f"free must be a boolean mask of the {nc} cage vertices")
-
-    active = np.zeros(nc, dtype=bool)  # cage vertices in barrier pairs at the last gradient
-
-    def total(pm, X, Cc, grad=False, cand=None):
-        col = pm.collisions(X, dhat, cand)
-        if grad:
-            e, g = energy(Cc, grad=True)
-            gb = barrier.gradient(col, pm.mesh, X)[: 3 * nc].reshape(-1, 3)
-            active[:] = np.abs(gb).max(axis=1) > 0
-            return e + float(barrier(col, pm.mesh, X)), g + gb
-        return energy(Cc) + float(barrier(col, pm.mesh, X))
-
+    run = _Descent(energy, dhat, kappa, nc, free=free, step=step, cpu_start=c0, cpu_limit=time_limit)
+    info = run.info
     E0 = None
     for rnd in range(flip_rounds + 1):
-        energy.Fc = Fc
-        pm = PairMesh(C, Fc, Vin, Fin)
-        Xf = np.asarray(Vin, dtype=float)
+        X, f, g = run.start_round(C, Fc, Vin, Fin, min_distance)
+        if E0 is None:
+            E0 = f
+        C = run.descend(C, X, f, g, iters)
+        if rnd < flip_rounds:  # flips between the descent rounds (paper: where they lower the energy)
+            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=max(run.min_dist, run.mdf),
+                                 tri_energy=energy.triangles(C))
+            info["flips"] += nfl
+            if nfl == 0 and rnd > 0:
+                break
+    energy.Fc = Fc
+    run.pm = PairMesh(C, Fc, Vin, Fin)
+    if w_p > 0:
+        info["pull_after"] = energy.pull(C)
+    info.update({"energy_before": E0, "energy_after": run.total(run.pm.stack(C, Vin), C),
+                 "seconds": time.perf_counter() - t0})
+    return C, Fc, info
+
+
+class _Descent:
+    """What the descent rounds of :func:`optimize_cage` share: the energy ``E`` + barrier ``B`` (eq. 7),
+    the collision meshes of the current connectivity, the clearances the CCDs keep, and the counters."""
+
+    def __init__(self, energy: _Energy, dhat: float, kappa: float, nc: int, *, free: np.ndarray | None,
+                 step: float, cpu_start: float, cpu_limit: float):
+        self.energy, self.dhat, self.nc = energy, dhat, nc
+        self.barrier = ipctk.BarrierPotential(dhat, kappa)
+        self.free, self.step, self.cpu_start, self.cpu_limit = free, step, cpu_start, cpu_limit
+        self.info: dict = {"steps": 0, "flips": 0, "ccd_limited": 0}
+        self.active = np.zeros(nc, dtype=bool)  # cage vertices in barrier pairs at the last gradient
+        self.pm: PairMesh | None = None  # all pairs (cage-cage and cage-input)
+        self.pmf: PairMesh | None = None  # cage-input pairs, for the caller's min_distance
+        self.Xf = None
+        self.min_dist, self.mdf = 0.0, 0.0
+
+    def total(self, X: np.ndarray, Cc: np.ndarray, grad: bool = False, cand=None):
+        """``E(Cc) + B(X)`` (and its (nc,3) gradient in the cage vertices, marking :attr:`active`)."""
+        pm = self.pm
+        col = pm.collisions(X, self.dhat, cand)
+        if grad:
+            e, g = self.energy(Cc, grad=True)
+            gb = self.barrier.gradient(col, pm.mesh, X)[: 3 * self.nc].reshape(-1, 3)
+            self.active[:] = np.abs(gb).max(axis=1) > 0
+            return e + float(self.barrier(col, pm.mesh, X)), g + gb
+        return self.energy(Cc) + float(self.barrier(col, pm.mesh, X))
+
+    def start_round(self, C: np.ndarray, Fc: np.ndarray, Vin: np.ndarray, Fin: np.ndarray,
+                    min_distance: float):
+        """Collision meshes of the connectivity ``Fc`` and the CCD clearances; returns ``X, E + B, grad``."""
+        self.energy.Fc = Fc
+        pm = self.pm = PairMesh(C, Fc, Vin, Fin)
+        Xf = self.Xf = np.asarray(Vin, dtype=float)
         X = pm.stack(C, Xf)
         if pm.intersects(X):
             raise CageError("optimize_cage: the start cage intersects")
-        f, g = total(pm, X, C, grad=True)
-        if E0 is None:
-            E0 = f
+        f, g = self.total(X, C, grad=True)
         # minimum distance kept by the CCD (a fraction of the current gap, at most dhat / 10)
-        col = pm.collisions(X, dhat)
-        d0 = float(np.sqrt(col.compute_minimum_distance(pm.mesh, X))) if len(col) else dhat
-        min_dist = min(0.1 * dhat, 0.5 * d0)
-        info.setdefault("min_distance_start", d0)
-        pmf, mdf = None, 0.0
+        col = pm.collisions(X, self.dhat)
+        d0 = float(np.sqrt(col.compute_minimum_distance(pm.mesh, X))) if len(col) else self.dhat
+        self.min_dist = min(0.1 * self.dhat, 0.5 * d0)
+        self.info.setdefault("min_distance_start", d0)
+        self.pmf, self.mdf = None, 0.0
         if min_distance > 0:  # the caller's min_gap between cage and input: a second CCD on those pairs
-            pmf = PairMesh(C, Fc, Vin, Fin, cage_fine_only=True)
-            colf = pmf.collisions(pmf.stack(C, Xf), 2 * float(min_distance))
-            d0f = float(np.sqrt(colf.compute_minimum_distance(pmf.mesh, pmf.stack(C, Xf)))) if len(colf) else np.inf
-            mdf = min(float(min_distance), 0.999 * d0f)
+            pmf = self.pmf = PairMesh(C, Fc, Vin, Fin, cage_fine_only=True)
+            Xs = pmf.stack(C, Xf)
+            colf = pmf.collisions(Xs, 2 * float(min_distance))
+            d0f = float(np.sqrt(colf.compute_minimum_distance(pmf.mesh, Xs))) if len(colf) else np.inf
+            self.mdf = min(float(min_distance), 0.999 * d0f)
+        return X, f, g
 
-        def ccd(Ca, Cb, cand=None):
-            a_ = pm.stepsize(pm.stack(Ca, Xf), pm.stack(Cb, Xf), min_dist, cand)
-            if pmf is not None and a_ > 0:
-                a_ = min(a_, pmf.stepsize(pmf.stack(Ca, Xf), pmf.stack(Cb, Xf), mdf))
-            return a_
+    def ccd(self, Ca: np.ndarray, Cb: np.ndarray, cand=None) -> float:
+        """The collision-free fraction of the motion ``Ca -> Cb`` (both CCDs)."""
+        pm, pmf, Xf = self.pm, self.pmf, self.Xf
+        a_ = pm.stepsize(pm.stack(Ca, Xf), pm.stack(Cb, Xf), self.min_dist, cand)
+        if pmf is not None and a_ > 0:
+            a_ = min(a_, pmf.stepsize(pmf.stack(Ca, Xf), pmf.stack(Cb, Xf), self.mdf))
+        return a_
 
+    def descend(self, C: np.ndarray, X: np.ndarray, f: float, g: np.ndarray, iters: int) -> np.ndarray:
+        """Up to ``iters`` accepted gradient steps from ``C``; returns the last accepted cage."""
         for _ in range(iters):
-            if time.process_time() - c0 > time_limit:  # CPU time: a loaded machine does not cut it short
+            # CPU time: a loaded machine does not cut it short
+            if time.process_time() - self.cpu_start > self.cpu_limit:
                 break
             gn = np.linalg.norm(g, axis=1)
             if float(gn.max()) < 1e-12:
                 break
             # per-vertex normalised gradient (a positive diagonal scaling: still a descent direction)
             gref = float(np.quantile(gn, 0.9))
-            d = -g * (step / np.maximum(gn, gref if gref > 0 else float(gn.max())))[:, None]
-            if free is not None:
-                d[~free] = 0.0
-            # one broad phase per step: the CCD, the held variant, the line search and the next
-            # gradient all lie on the motion C -> C + d (boxes inflated by dhat cover the barrier)
-            cand = pm.candidates(X, pm.stack(C + d, Xf), dhat)
-            amax = ccd(C, C + d, cand)
-            if amax < 0.3 and active.any():
-                # a pair in contact range blocks the step: hold its cage vertices, move the others
-                d2_ = np.where(active[:, None], 0.0, d)
-                amax2 = ccd(C, C + d2_, cand)
-                if amax2 > amax:
-                    d, amax = d2_, amax2
-                    info["held"] = info.get("held", 0) + 1
-            if amax < 1.0:
-                info["ccd_limited"] += 1
-            a = 0.9 * amax
-            accepted = False
-            while a > 1e-3:
-                Cn = C + a * d
-                Xn = pm.stack(Cn, Xf)
-                fn = total(pm, Xn, Cn, cand=cand)
-                if fn < f:
-                    accepted = True
-                    break
-                a *= 0.5
-            if not accepted:
+            d = -g * (self.step / np.maximum(gn, gref if gref > 0 else float(gn.max())))[:, None]
+            if self.free is not None:
+                d[~self.free] = 0.0
+            moved = self._line_search(C, X, f, d)
+            if moved is None:
                 break
-            C, X = Cn, Xn
-            f, g = total(pm, X, C, grad=True, cand=cand)
-            info["steps"] += 1
-        if rnd < flip_rounds:
-            Fc, nfl = _flip_pass(C, Fc, Vin, Fin, max_flips=len(Fc), clear=max(min_dist, mdf),
-                                 tri_energy=energy.triangles(C))
-            info["flips"] += nfl
-            if nfl == 0 and rnd > 0:
-                break
-    energy.Fc = Fc
-    pm = PairMesh(C, Fc, Vin, Fin)
-    if w_p > 0:
-        info["pull_after"] = energy.pull(C)
-    info.update({"energy_before": E0, "energy_after": total(pm, pm.stack(C, Vin), C),
-                 "seconds": time.perf_counter() - t0})
-    return C, Fc, info
+            C, X, cand = moved
+            f, g = self.total(X, C, grad=True, cand=cand)
+            self.info["steps"] += 1
+        return C
+
+    def _line_search(self, C: np.ndarray, X: np.ndarray, f: float, d: np.ndarray):
+        """``(C + a d, X(a), cand)`` for the largest ``a = 0.9 amax / 2^k > 1e-3`` that lowers ``E + B``
+        (``amax``: the CCD's collision-free fraction; ``cand``: the step's broad phase), or None."""
+        pm, info = self.pm, self.info
+        # one broad phase per step: the CCD, the held variant, the line search and the next
+        # gradient all lie on the motion C -> C + d (boxes inflated by dhat cover the barrier)
+        cand = pm.candidates(X, pm.stack(C + d, self.Xf), self.dhat)
+        amax = self.ccd(C, C + d, cand)
+        if amax < 0.3 and self.active.any():
+            # a pair in contact range blocks the step: hold its cage vertices, move the others
+            d2_ = np.where(self.active[:, None], 0.0, d)
+            amax2 = self.ccd(C, C + d2_, cand)
+            if amax2 > amax:
+                d, amax = d2_, amax2
+                info["held"] = info.get("held", 0) + 1
+        if amax < 1.0:
+            info["ccd_limited"] += 1
+        a = 0.9 * amax
+        while a > 1e-3:
+            Cn = C + a * d
+            Xn = pm.stack(Cn, self.Xf)
+            if self.total(Xn, Cn, cand=cand) < f:
+                return Cn, Xn, cand
+            a *= 0.5
+        return None

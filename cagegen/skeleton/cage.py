@@ -407,10 +407,33 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
     CageError
         A junction hull misses a section edge, or the assembled surface is not closed and manifold.
     """
+    verts, sec_vid = _section_corners(sections, chain_controls)
+    extra: dict = {}  # (node, k) -> Steiner vertices on edge k (corner k -> k+1) of that section, in order
+    incident = _incident_sections(skel, chain_controls)
+    junction_tris, n_steiner, steiner_at = _junctions(skel, verts, sec_vid, extra, incident,
+                                                      max_steiner_rounds, max_steiner_per_junction)
+    V = np.asarray(verts, dtype=float)
+    quads, tris = _tubes_and_caps(V, skel, chain_controls, sec_vid, extra)
+    for b in skel.branching:
+        tris.extend(junction_tris[b].tolist())
+    quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
+    tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+    F = np.vstack([_split_quads(V, quads), tris])
+    F = _orient_outward(V, F)
+    _check_closed(V, F)
+    # orient the quads like the triangles
+    quads = _orient_quads(quads, F)
+    return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid,
+            "section_rings": {nd: _ring(sec_vid, extra, nd) for nd in sec_vid}, "n_steiner": n_steiner,
+            "n_steiner_per_junction": {int(k): int(v) for k, v in steiner_at.items()}}
+
+
+def _section_corners(sections: dict, chain_controls: list) -> tuple[list, dict]:
+    """The sections' corners as cage vertices, in a consistent order along each chain: ``(verts, sec_vid)``,
+    ``sec_vid`` node -> its 4 vertex ids (a section shared by two chains keeps its first order)."""
     verts: list = []
     sec_vid: dict = {}
-    # consistent corner order along each chain, then vertex ids
-    for ch, ctrl in chain_controls:
+    for _ch, ctrl in chain_controls:
         prev = None
         for nd in ctrl:
             q = sections[nd].quad
@@ -422,19 +445,21 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
             sec_vid[nd] = list(range(len(verts), len(verts) + 4))
             verts.extend(q)
             prev = q
-    extra: dict = {}  # (node, k) -> Steiner vertices on edge k (corner k -> k+1) of that section, in order
+    return verts, sec_vid
 
-    def ring(nd):
-        out = []
-        for k in range(4):
-            out.append(sec_vid[nd][k])
-            out.extend(extra.get((nd, k), []))
-        return out
 
-    deg = skel.degree
-    # junctions: convex hull of the incident sections projected on a sphere (paper Sec. 3.3, Fig. 5);
-    # a hull that misses a section edge gets a Steiner vertex at the edge's midpoint, iterated until all
-    # section edges are hull edges (paper Sec. 3.3, "pathological cases")
+def _ring(sec_vid: dict, extra: dict, nd) -> list:
+    """The vertices of section ``nd`` in ring order: its corners and the Steiner vertices on its edges."""
+    out = []
+    for k in range(4):
+        out.append(sec_vid[nd][k])
+        out.extend(extra.get((nd, k), []))
+    return out
+
+
+def _incident_sections(skel: Skeleton, chain_controls: list) -> dict:
+    """Branching node -> the end sections of the chains that meet there (a section incident twice is a
+    :class:`CageError`)."""
     incident = {}
     for b in skel.branching:
         inc = []
@@ -447,58 +472,88 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
             raise CageError(f"skeleton cage, junction at node {b}: a section is incident twice (a chain "
                             "from this node back to it); add bending nodes", layer=1)
         incident[b] = inc
+    return incident
+
+
+def _junctions(skel: Skeleton, verts: list, sec_vid: dict, extra: dict, incident: dict, max_rounds: int,
+               max_per_junction: int) -> tuple[dict, int, dict]:
+    """Junction triangles: the convex hull of the incident sections projected on a sphere (paper Sec. 3.3,
+    Fig. 5); a hull that misses a section edge gets a Steiner vertex at the edge's midpoint (appended to
+    ``verts`` and ``extra``), iterated until all section edges are hull edges (paper Sec. 3.3,
+    "pathological cases"). Returns ``(junction -> (t,3) triangles, n_steiner, junction -> its Steiner
+    vertices)``; :class:`JunctionError` when the rounds or the cap run out."""
     n_steiner = 0
     steiner_at: dict = {}  # junction -> Steiner vertices added for it
     junction_tris: dict = {}
-    for rnd in range(max_steiner_rounds + 1):
+    for rnd in range(max_rounds + 1):
         added = False
         junction_tris = {}
         for b, inc in incident.items():
-            rings = [ring(nd) for nd in inc]
-            ids = np.array([i for r in rings for i in r])
-            Vc = np.asarray(verts, dtype=float)
-            best = None
-            # sphere centre: the sections' centroid (paper), else the node; last, the plain hull (no sphere)
-            for c in (Vc[ids].mean(axis=0), skel.nodes[b], None):
-                H, keep, missing, bad_sec = _junction_hull(Vc, ids, c, rings)
-                if bad_sec is None:
-                    best = None
-                    junction_tris[b] = H[keep]
-                    break
-                if c is None and not missing:
-                    continue
-                if best is None or len(missing) < len(best[0]):
-                    best = (missing, bad_sec)
-            if best is None:
+            rings = [_ring(sec_vid, extra, nd) for nd in inc]
+            tris, best = _junction_triangles(skel, np.asarray(verts, dtype=float), rings, b)
+            if tris is not None:
+                junction_tris[b] = tris
                 continue
             missing, bad_sec = best
-            if not missing or rnd == max_steiner_rounds:
+            if not missing or rnd == max_rounds:
                 raise JunctionError(f"skeleton cage, junction at node {b}: the convex hull misses an edge of the "
                                     f"section at node {inc[bad_sec]} (after {n_steiner} Steiner vertices); "
                                     "move or add bending nodes near this junction", b, inc[bad_sec])
-            if steiner_at.get(b, 0) + len(missing) > max_steiner_per_junction:
+            if steiner_at.get(b, 0) + len(missing) > max_per_junction:
                 raise JunctionError(f"skeleton cage, junction at node {b}: Steiner-vertex cap reached "
                                     f"({steiner_at.get(b, 0)} added, {len(missing)} more needed, cap "
-                                    f"{max_steiner_per_junction} per junction); the convex hull misses an edge "
+                                    f"{max_per_junction} per junction); the convex hull misses an edge "
                                     f"of the section at node {inc[bad_sec]}; move or add bending nodes near "
                                     "this junction", b, inc[bad_sec])
             steiner_at[b] = steiner_at.get(b, 0) + len(missing)
-            for k_sec, u, v in missing:  # Steiner vertex at the middle of each missed edge
-                nd = inc[k_sec]
-                corners = sec_vid[nd]
-                for k in range(4):  # the corner edge k holding (u, v)
-                    seg = [corners[k]] + extra.get((nd, k), []) + [corners[(k + 1) % 4]]
-                    pos = next((j for j in range(len(seg) - 1) if {seg[j], seg[j + 1]} == {u, v}), None)
-                    if pos is not None:
-                        verts.append(0.5 * (np.asarray(verts[u]) + np.asarray(verts[v])))
-                        lst = extra.setdefault((nd, k), [])
-                        lst.insert(pos, len(verts) - 1)
-                        n_steiner += 1
-                        added = True
-                        break
+            n_new = _add_steiner(verts, sec_vid, extra, inc, missing)
+            n_steiner += n_new
+            added = added or n_new > 0
         if not added:
             break
-    V = np.asarray(verts, dtype=float)
+    return junction_tris, n_steiner, steiner_at
+
+
+def _junction_triangles(skel: Skeleton, Vc: np.ndarray, rings: list, b) -> tuple:
+    """``(triangles, None)`` of junction ``b``'s hull, or ``(None, (missed edges, failing section))`` of the
+    attempt that missed the fewest edges. Sphere centre: the sections' centroid (paper), else the node;
+    last, the plain hull (no sphere)."""
+    ids = np.array([i for r in rings for i in r])
+    best = None
+    for c in (Vc[ids].mean(axis=0), skel.nodes[b], None):
+        H, keep, missing, bad_sec = _junction_hull(Vc, ids, c, rings)
+        if bad_sec is None:
+            return H[keep], None
+        if c is None and not missing:
+            continue
+        if best is None or len(missing) < len(best[0]):
+            best = (missing, bad_sec)
+    return None, best
+
+
+def _add_steiner(verts: list, sec_vid: dict, extra: dict, inc: list, missing: list) -> int:
+    """A Steiner vertex at the middle of each missed edge ``(section index, u, v)``; returns how many."""
+    n_new = 0
+    for k_sec, u, v in missing:
+        nd = inc[k_sec]
+        corners = sec_vid[nd]
+        for k in range(4):  # the corner edge k holding (u, v)
+            seg = [corners[k]] + extra.get((nd, k), []) + [corners[(k + 1) % 4]]
+            pos = next((j for j in range(len(seg) - 1) if {seg[j], seg[j + 1]} == {u, v}), None)
+            if pos is not None:
+                verts.append(0.5 * (np.asarray(verts[u]) + np.asarray(verts[v])))
+                lst = extra.setdefault((nd, k), [])
+                lst.insert(pos, len(verts) - 1)
+                n_new += 1
+                break
+    return n_new
+
+
+def _tubes_and_caps(V: np.ndarray, skel: Skeleton, chain_controls: list, sec_vid: dict,
+                    extra: dict) -> tuple[list, list]:
+    """Tube sides between consecutive sections of each chain (quads; strips of triangles along edges that
+    hold Steiner vertices) and the leaves' caps (a quad, or a fan with Steiner vertices)."""
+    deg = skel.degree
     quads, tris = [], []
     for ch, ctrl in chain_controls:
         for a, b in itertools.pairwise(ctrl):
@@ -512,23 +567,12 @@ def tight_cage(skel: Skeleton, sections: dict, chain_controls: list, max_steiner
                     tris.extend(_zip_strip(V, sa, sb))
         for end in (ch.start, ch.end):
             if deg[end] == 1:  # leaf: cap quad (a fan when it holds Steiner vertices)
-                r = ring(end)
+                r = _ring(sec_vid, extra, end)
                 if len(r) == 4:
                     quads.append(list(r))
                 else:
                     tris.extend([r[0], r[j], r[j + 1]] for j in range(1, len(r) - 1))
-    for b in skel.branching:
-        tris.extend(junction_tris[b].tolist())
-    quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
-    tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
-    F = np.vstack([_split_quads(V, quads), tris])
-    F = _orient_outward(V, F)
-    _check_closed(V, F)
-    # orient the quads like the triangles
-    quads = _orient_quads(quads, F)
-    return {"V": V, "quads": quads, "tris": _match_orientation(tris, F), "F": F, "section_vertices": sec_vid,
-            "section_rings": {nd: ring(nd) for nd in sec_vid}, "n_steiner": n_steiner,
-            "n_steiner_per_junction": {int(k): int(v) for k, v in steiner_at.items()}}
+    return quads, tris
 
 
 def _zip_strip(V: np.ndarray, sa: list, sb: list) -> list:

@@ -249,8 +249,11 @@ def cages_row(entry: dict, backends: list[str]) -> str:
         ratio = f"wheel fails ({_f(w.get('wall_seconds'), '{:.0f}')} s): {w.get('error', '')[:80]}"
     else:
         ratio = "–"
+    commits = entry.get("commits") or {}
     if w.get("reused_from"):
         ratio += f" (wheel run at {str(w['reused_from'])[:7]})"
+    elif w and commits.get("wheel") and commits.get("wheel") != commits.get("cages:nested"):
+        ratio += f" (wheel run at {str(commits['wheel'])[:7]}: not the same run)"
     faces = (entry.get("cages:nested") or {}).get("faces")
     return f"| {entry['mesh']} | {entry['faces']:,} | {faces or '–'} | " + " | ".join(cells) + f" | {ratio} |"
 
@@ -283,7 +286,8 @@ def merge_runs(docs: list[dict]) -> dict:
     # the latest run's commit first: the table marks the columns run at other commits
     return dict(docs[0], command=" ; ".join(d["command"] for d in docs),
                 commit=" / ".join(dict.fromkeys(str(d.get("commit")) for d in reversed(docs))),
-                date=docs[-1].get("date", docs[0].get("date")), meshes=[rows[k] for k in sorted(rows)])
+                date=docs[-1].get("date", docs[0].get("date")), timeout=docs[-1].get("timeout", docs[0].get("timeout")),
+                meshes=[rows[k] for k in sorted(rows)])
 
 
 def _at(entry: dict, columns, main: str) -> dict:

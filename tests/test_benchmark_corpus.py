@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import igl
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -57,3 +58,21 @@ def test_merge_replaces_columns_not_rows(tmp_path):
     # the table marks only the columns run elsewhere than the first commit
     assert corpus._at(m, ["solve"], "bbb")["mesh"] == "m.off"
     assert corpus._at(m, ["cages:nested", "cages:decimate"], "bbb")["mesh"] == "m.off (at aaa)"
+
+
+def test_derived_inputs_recipe():
+    """benchmarks/derived_inputs.py: loop subdivision multiplies the faces by 4 per round; the noise moves
+    vertices along their normals by at most the given fraction of the mean edge, reproducibly (seed)."""
+    import derived_inputs
+
+    V, F = shapes.sphere(8)
+    V1, F1 = derived_inputs.derive(V, F, 2, 0.0)
+    assert len(F1) == 16 * len(F)
+    Vn, Fn = derived_inputs.derive(V, F, 1, 0.25)
+    Vs, _ = derived_inputs.derive(V, F, 1, 0.0)
+    E = Vs[Fn[:, [1, 2, 0]]] - Vs[Fn]
+    mean_edge = float(np.linalg.norm(E, axis=2).mean())
+    move = np.linalg.norm(Vn - Vs, axis=1)
+    assert 0.1 * mean_edge < move.max() <= 0.25 * mean_edge + 1e-12
+    assert np.array_equal(Vn, derived_inputs.derive(V, F, 1, 0.25)[0])
+    assert set(derived_inputs.DERIVED) == {"gargo_21k.obj", "gargo_342k.obj", "bunny_111k.obj", "gargo_86k_noisy.obj"}

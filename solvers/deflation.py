@@ -24,7 +24,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from .smoothing import Smoother
+from .smoothing import Smoother, chained
 
 __all__ = ["DEFLATION_GOAL", "LANCZOS_CYCLES", "PROBE_CYCLES", "slow_modes", "with_deflation"]
 
@@ -157,13 +157,6 @@ def with_deflation(base: Smoother, A: sp.csr_matrix, Z: np.ndarray, first: bool 
     def correct(A_, x, b):
         x += Z @ (ZT @ (b - A_ @ x))
 
-    def apply(A_, x, b):
-        if first:
-            correct(A_, x, b)
-            base(A_, x, b)
-        else:
-            base(A_, x, b)
-            correct(A_, x, b)
-
+    apply = chained(base, correct, first)
     work = base.work + 1.0 + 2.0 * Z.size / max(A.nnz, 1)
     return Smoother(base.name, apply, work, dict(base.params, deflation=int(Z.shape[1])))

@@ -229,6 +229,21 @@ def local_rows(A: sp.csr_matrix, nodes) -> sp.csr_matrix:
     return sp.csr_matrix((sub.data, sub.indices, indptr), shape=A.shape)
 
 
+def chained(base: Smoother, extra: Callable, first: bool) -> Callable:
+    """``apply(A, x, b)``: ``extra`` after ``base`` (a pre-smoother), or before it with ``first=True`` (the
+    adjoint post-smoother of a pair)."""
+
+    def apply(A, x, b):
+        if first:
+            extra(A, x, b)
+            base(A, x, b)
+        else:
+            base(A, x, b)
+            extra(A, x, b)
+
+    return apply
+
+
 def with_local_sweeps(base: Smoother, A: sp.csr_matrix, nodes, sweeps: int = 1, first: bool = False,
                       sweep: str = "symmetric", rows: sp.csr_matrix | None = None) -> Smoother:
     """``base`` plus ``sweeps`` extra symmetric Gauss–Seidel sweeps restricted to the rows ``nodes``.
@@ -283,15 +298,8 @@ def with_local_sweeps(base: Smoother, A: sp.csr_matrix, nodes, sweeps: int = 1, 
         # ``A`` (the level operator passed at call time) has the same rows: A_loc is a copy of them
         relaxation.gauss_seidel_indexed(A_loc, x, b, idx, iterations=it, sweep=sweep)
 
-    def apply(A, x, b):
-        if first:
-            local(A, x, b)
-            base(A, x, b)
-        else:
-            base(A, x, b)
-            local(A, x, b)
-
     work = base.work + (2.0 if sweep == "symmetric" else 1.0) * it * A_loc.nnz / max(A.nnz, 1)
+    apply = chained(base, local, first)
     params = dict(base.params, local_nodes=int(idx.size), local_sweeps=it, local_sweep=sweep)
     return Smoother(base.name, apply, work, params)
 

@@ -82,7 +82,8 @@ def slow_modes(
         deflation is not meant to fix).
     info : dict
         ``probe_factor`` (largest Ritz value after the probe), ``cycles`` run, ``vectors`` (m) and
-        ``factors`` (the Ritz values of the kept vectors).
+        ``factors`` (the Ritz values of the kept vectors); ``non_finite`` when a cycle gave NaN/inf (nothing
+        is deflated then: the setup never fails because of the probe).
     """
     n = A.shape[0]
     steps = LANCZOS_CYCLES
@@ -100,7 +101,11 @@ def slow_modes(
     Q[:, 0], AQ[:, 0] = q / norm, Aq / norm
     for j in range(steps):
         w = Q[:, j].copy()
-        cycle(w)  # w = E q_j
+        with np.errstate(all="ignore"):
+            cycle(w)  # w = E q_j
+        if not np.all(np.isfinite(w)):  # a broken level: nothing to deflate; solve() will locate the NaN
+            info["non_finite"] = True
+            return np.zeros((n, 0)), info
         if constant_nullspace:
             w -= w.mean()
         for _ in range(2):  # full re-orthogonalisation, twice: the Krylov vectors align with the slowest mode

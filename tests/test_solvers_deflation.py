@@ -106,3 +106,12 @@ def test_deflate_must_be_a_count(pieces, bad):
     K, Ps = pieces
     with pytest.raises(SolverInputError, match="deflate"):
         MultigridSolver(K, Ps, nullspace="constant", deflate=bad)
+
+
+def test_a_broken_cycle_is_not_probed_into_an_error():
+    """A cycle producing NaN/inf leaves nothing deflated and no exception at setup (solve() reports it)."""
+    def broken(x):
+        x[:] = np.nan
+
+    Z, info = slow_modes(broken, sp.identity(50, format="csr"))
+    assert Z.shape == (50, 0) and info["non_finite"]

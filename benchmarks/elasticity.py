@@ -13,6 +13,11 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 ``nestmg_point``  (not run by default) the same configuration as ``nestmg``; in
                   ``elasticity_300k.json`` it ran beside it (a measure of run-to-run spread) and ``--table``
                   leaves it out.
+``nestmg_no_deflation``, ``nestmg_deflate_all``, ``nestmg_deflate_all16``  (not run by default) ``nestmg``
+                  with ``deflate=0`` (no deflation probe), and with every level probed, the finest
+                  included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
+                  :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
+                  ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -51,8 +56,12 @@ from pathlib import Path
 import numpy as np
 from exp_common import environment, git_commit, peak_rss_mb, relres, write_json
 
-METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr",
-           "hypre_nodal")
+#: multigrid() keywords of the deflation variants of ``nestmg`` (issue 32)
+DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
+                      "nestmg_deflate_all": {"deflate": 8, "probe_finest": True},
+                      "nestmg_deflate_all16": {"deflate": 16, "probe_finest": True}}
+METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, "pyamg_sa_rbm", "pyamg_sa",
+           "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
 #: references run once (first repeat only): they are far from the others and slow
 ONCE = ("pyamg_sa",)
@@ -80,20 +89,43 @@ def _projector(Z: np.ndarray | None):
     return lambda v: v - Q @ (Q.T @ v)
 
 
-def run_nestmg(pr, h_P, block: bool, tol: float) -> dict:
-    """Setup (restriction + ``P ⊗ I₃`` + ``multigrid()``) and MG-PCG of the assembled problem ``pr``."""
+def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False) -> dict:
+    """Setup (restriction + ``P ⊗ I₃`` + ``multigrid(**mg_kwargs)``) and MG-PCG of the assembled problem
+    ``pr``; with ``factor`` also the stationary V-cycle factor (:func:`vcycle_factor`, not timed)."""
     from solvers import block_prolongation, restrict_prolongations
 
     t0 = time.perf_counter()
     Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
-    ml = pr.multigrid(block=block)
+    ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t1 = time.perf_counter()
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, accel="cg", return_info=True)
     t2 = time.perf_counter()
-    return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
-            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
-            "smoother": ml.levels[0].presmoother.params}
+    out = {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
+           "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
+           "smoother": ml.levels[0].presmoother.params,
+           "deflation": [{k: d[k] for k in ("level", "probe_factor", "vectors", "factors", "cycles")}
+                         | {k: d[k] for k in ("probe_after", "slow_modes_found", "reverted") if k in d}
+                         for d in ml.deflation]}
+    if factor:
+        out["vcycle_factor"] = vcycle_factor(ml)
+    return out
+
+
+def vcycle_factor(ml, cycles: int = 20, last: int = 5) -> float:
+    """Stationary V-cycle factor: energy-norm error reduction per cycle on ``A e = 0`` from a random start,
+    geometric mean of the ``last`` of ``cycles`` cycles (kernel of a free problem projected out)."""
+    A = ml.levels[0].A
+    Q = getattr(ml, "nullspace_bases", [None])[0]
+    e = np.random.default_rng(0).standard_normal(A.shape[0])
+    zero = np.zeros_like(e)
+    norms = []
+    for _ in range(cycles):
+        if Q is not None:
+            e -= Q @ (Q.T @ e)
+        ml._cycle(0, e, zero, "V")
+        norms.append(float(np.sqrt(max(e @ (A @ e), 0.0))))
+    return float((norms[-1] / norms[-1 - last]) ** (1.0 / last))
 
 
 def run_pyamg(A, b, B: np.ndarray | None, Z: np.ndarray | None, tol: float) -> dict:
@@ -182,7 +214,7 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
 _RUN_KEYS = ("setup", "solve", "iterations", "final_residual", "converged")
 
 
-def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
+def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False) -> dict:
     """All methods on one assembled problem, ``repeat`` interleaved runs each."""
     from solvers import rigid_body_modes
 
@@ -199,7 +231,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 if m.startswith("nestmg"):
-                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol)
+                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol, DEFLATION_VARIANTS.get(m),
+                                     factor=factor and r == 0)
                 elif m in ("pyamg_sa_rbm", "pyamg_sa"):
                     out = run_pyamg(pr.A, pr.b, B if m == "pyamg_sa_rbm" else None, Z, tol)
                 else:
@@ -211,7 +244,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
             runs[m].append(out)
             sols[m] = x
             print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s, solve {out['solve']:.2f} s, "
-                  f"{out['iterations']} it, residual {out['final_residual']:.1e}",
+                  f"{out['iterations']} it, residual {out['final_residual']:.1e}"
+                  + (f", V-cycle factor {out['vcycle_factor']:.3f}" if "vcycle_factor" in out else ""),
                   file=sys.stderr, flush=True)
     ref = sols[methods[0]]
     res = {}
@@ -230,7 +264,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
 
 
 def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, problems, methods, tol: float,
-             repeat: int) -> dict:
+             repeat: int, factor: bool = False) -> dict:
     import nestmg
     from nestmg.elasticity import setup_elasticity
 
@@ -257,7 +291,7 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]),
                                  "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
-                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat),
+                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat, factor),
                                  "peak_rss_mb_so_far": peak_rss_mb()})
     return rec
 
@@ -310,6 +344,8 @@ def main(argv=None) -> int:
                     help="fine edge / bounding-box diagonal, one per mesh (overrides --max-tets' sizing)")
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--factor", action="store_true",
+                    help="also the nestmg variants' stationary V-cycle factor")
     ap.add_argument("--out", type=Path, default=None, help="JSON file (required unless --table)")
     a = ap.parse_args(argv)
     if a.table is not None:
@@ -334,7 +370,8 @@ def main(argv=None) -> int:
     mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets
     edges = a.edge_length or [None] * len(a.meshes)
     for spec, n, edge in zip(a.meshes, mt, edges):
-        res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat))
+        res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat,
+                                      a.factor))
         write_json(res, a.out)  # after every mesh: a cut-off run keeps what it measured
     res["environment_end"] = environment()
     res["table"] = table(res)

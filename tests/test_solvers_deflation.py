@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from solvers import MultigridSolver, NullspaceMultigridSolver, block_prolongation, elasticity_matrix, rigid_body_modes
+from solvers import (MultigridSolver, NullspaceMultigridSolver, block_prolongation, elasticity_matrix,
+                     rigid_body_modes)
 from solvers.deflation import DEFLATION_GOAL, slow_modes
 from solvers.errors import SolverInputError
 from solvers.fem import stiffness_matrix

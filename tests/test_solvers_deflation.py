@@ -175,6 +175,7 @@ def test_elasticity_deflation_cuts_mg_pcg_iterations(elastic_piece):
     fine = ml.deflation[0]
     assert fine["level"] == 0 and 6 <= fine["vectors"] <= 16 and fine["probe_factor"] > 0.85
     assert fine["probe_after"] < 0.6 and not fine.get("reverted")
+    assert "level 0:" in repr(ml) and "6 vectors per level (projected)" in repr(ml)
     assert its[0] >= 19 and its[1] <= 14, its
     Q = ml.nullspace_bases[0]
     bp = b - Q @ (Q.T @ b)

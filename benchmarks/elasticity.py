@@ -54,7 +54,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, git_commit, peak_rss_mb, relres, write_json
 
 #: multigrid() keywords of the deflation variants of ``nestmg`` (issue 32)
 DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
@@ -216,6 +215,8 @@ _RUN_KEYS = ("setup", "solve", "iterations", "final_residual", "converged")
 
 def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False) -> dict:
     """All methods on one assembled problem, ``repeat`` interleaved runs each."""
+    from exp_common import relres  # benchmarks/ is sys.path[0]; imported late so doc_tables can load this file
+
     from solvers import rigid_body_modes
 
     free_problem = pr.modes is not None
@@ -266,6 +267,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
 
 def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, problems, methods, tol: float,
              repeat: int, factor: bool = False) -> dict:
+    from exp_common import peak_rss_mb
+
     import nestmg
     from nestmg.elasticity import setup_elasticity
 
@@ -384,6 +387,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--max-tets needs one value or one per mesh ({len(a.meshes)})")
     if a.edge_length is not None and len(a.edge_length) != len(a.meshes):
         raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)})")
+    from exp_common import environment, git_commit, write_json
+
     from solvers.petsc_common import petsc_available
 
     methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]

@@ -491,6 +491,14 @@ def petsc_estimate() -> str:
 
 
 # ----------------------------------------------------------------------------------------- cage uses
+ELASTICITY_DEFLATION = "elasticity/deflation_300k.json"
+
+
+@generator("elasticity.deflation", ELASTICITY_DEFLATION)
+def elasticity_deflation() -> str:
+    return sibling("elasticity").deflation_table(load(ELASTICITY_DEFLATION))
+
+
 CAGE_USES = "cage_uses/cage_uses.json"
 CAGE_CULLING = "cage_uses/cage_uses_culling.json"
 CAGE_R3 = "cage_uses/cage_uses_refine3.json"

@@ -13,6 +13,11 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 ``nestmg_point``  (not run by default) the same configuration as ``nestmg``; in
                   ``elasticity_300k.json`` it ran beside it (a measure of run-to-run spread) and ``--table``
                   leaves it out.
+``nestmg_no_deflation``, ``nestmg_deflate_all``, ``nestmg_deflate_all16``  (not run by default) ``nestmg``
+                  with ``deflate=0`` (no deflation probe), and with every level probed, the finest
+                  included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
+                  :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
+                  ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -49,10 +54,13 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, git_commit, peak_rss_mb, relres, write_json
 
-METHODS = ("nestmg", "nestmg_block", "nestmg_point", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr",
-           "hypre_nodal")
+#: multigrid() keywords of the deflation variants of ``nestmg`` (issue 32)
+DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
+                      "nestmg_deflate_all": {"deflate": 8, "probe_finest": True},
+                      "nestmg_deflate_all16": {"deflate": 16, "probe_finest": True}}
+METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, "pyamg_sa_rbm", "pyamg_sa",
+           "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
 #: references run once (first repeat only): they are far from the others and slow
 ONCE = ("pyamg_sa",)
@@ -80,20 +88,43 @@ def _projector(Z: np.ndarray | None):
     return lambda v: v - Q @ (Q.T @ v)
 
 
-def run_nestmg(pr, h_P, block: bool, tol: float) -> dict:
-    """Setup (restriction + ``P ⊗ I₃`` + ``multigrid()``) and MG-PCG of the assembled problem ``pr``."""
+def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False) -> dict:
+    """Setup (restriction + ``P ⊗ I₃`` + ``multigrid(**mg_kwargs)``) and MG-PCG of the assembled problem
+    ``pr``; with ``factor`` also the stationary V-cycle factor (:func:`vcycle_factor`, not timed)."""
     from solvers import block_prolongation, restrict_prolongations
 
     t0 = time.perf_counter()
     Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
-    ml = pr.multigrid(block=block)
+    ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t1 = time.perf_counter()
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, accel="cg", return_info=True)
     t2 = time.perf_counter()
-    return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
-            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
-            "smoother": ml.levels[0].presmoother.params}
+    out = {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
+           "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
+           "smoother": ml.levels[0].presmoother.params,
+           "deflation": [{k: d[k] for k in ("level", "probe_factor", "vectors", "factors", "cycles")}
+                         | {k: d[k] for k in ("probe_after", "slow_modes_found", "reverted") if k in d}
+                         for d in ml.deflation]}
+    if factor:
+        out["vcycle_factor"] = vcycle_factor(ml)
+    return out
+
+
+def vcycle_factor(ml, cycles: int = 20, last: int = 5) -> float:
+    """Stationary V-cycle factor: energy-norm error reduction per cycle on ``A e = 0`` from a random start,
+    geometric mean of the ``last`` of ``cycles`` cycles (kernel of a free problem projected out)."""
+    A = ml.levels[0].A
+    Q = getattr(ml, "nullspace_bases", [None])[0]
+    e = np.random.default_rng(0).standard_normal(A.shape[0])
+    zero = np.zeros_like(e)
+    norms = []
+    for _ in range(cycles):
+        if Q is not None:
+            e -= Q @ (Q.T @ e)
+        ml._cycle(0, e, zero, "V")
+        norms.append(float(np.sqrt(max(e @ (A @ e), 0.0))))
+    return float((norms[-1] / norms[-1 - last]) ** (1.0 / last))
 
 
 def run_pyamg(A, b, B: np.ndarray | None, Z: np.ndarray | None, tol: float) -> dict:
@@ -182,8 +213,10 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
 _RUN_KEYS = ("setup", "solve", "iterations", "final_residual", "converged")
 
 
-def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
+def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False) -> dict:
     """All methods on one assembled problem, ``repeat`` interleaved runs each."""
+    from exp_common import relres  # benchmarks/ is sys.path[0]; imported late so doc_tables can load this file
+
     from solvers import rigid_body_modes
 
     free_problem = pr.modes is not None
@@ -199,7 +232,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 if m.startswith("nestmg"):
-                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol)
+                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol, DEFLATION_VARIANTS.get(m),
+                                     factor=factor and r == 0)
                 elif m in ("pyamg_sa_rbm", "pyamg_sa"):
                     out = run_pyamg(pr.A, pr.b, B if m == "pyamg_sa_rbm" else None, Z, tol)
                 else:
@@ -211,7 +245,8 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
             runs[m].append(out)
             sols[m] = x
             print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s, solve {out['solve']:.2f} s, "
-                  f"{out['iterations']} it, residual {out['final_residual']:.1e}",
+                  f"{out['iterations']} it, residual {out['final_residual']:.1e}"
+                  + (f", V-cycle factor {out['vcycle_factor']:.3f}" if "vcycle_factor" in out else ""),
                   file=sys.stderr, flush=True)
     ref = sols[methods[0]]
     res = {}
@@ -225,12 +260,15 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int) -> dict:
                   "iterations": last["iterations"], "final_residual": last["final_residual"],
                   "converged": all(o["converged"] for o in runs[m]),
                   "max_diff_vs_first_rel": float(np.abs(sols[m] - ref).max() / np.abs(ref).max()),
-                  **{k: v for k, v in last.items() if k not in _RUN_KEYS}}
+                  **{k: v for k, v in last.items() if k not in _RUN_KEYS},
+                  **{k: runs[m][0][k] for k in ("vcycle_factor",) if k in runs[m][0]}}  # first repeat only
     return res
 
 
 def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, problems, methods, tol: float,
-             repeat: int) -> dict:
+             repeat: int, factor: bool = False) -> dict:
+    from exp_common import peak_rss_mb
+
     import nestmg
     from nestmg.elasticity import setup_elasticity
 
@@ -257,7 +295,7 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]),
                                  "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
-                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat),
+                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat, factor),
                                  "peak_rss_mb_so_far": peak_rss_mb()})
     return rec
 
@@ -292,6 +330,30 @@ def table(res: dict) -> str:
     return "\n".join(lines)
 
 
+def deflation_table(res: dict) -> str:
+    """Markdown table of the deflation variants (``--methods nestmg nestmg_no_deflation nestmg_deflate_all
+    ...`` with ``--factor``): per case and variant, median setup + solve seconds (MG-PCG iterations), the
+    stationary V-cycle factor, modes deflated per probed level (finest first; ``–``: not probed) and the
+    total against ``nestmg_no_deflation`` (same run)."""
+    variants = [m for m in res["params"]["methods"] if m == "nestmg" or m in DEFLATION_VARIANTS]
+    head = ("| mesh | fine tets | problem | ν | variant | setup + solve s (it) | V-cycle factor "
+            "| modes deflated per level | total / no deflation |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for rec in res["meshes"]:
+        for c in rec["cases"]:
+            ms = c["methods"]
+            base = ms["nestmg_no_deflation"]["median_total"]
+            for m in variants:
+                o = ms[m]
+                per = {d["level"]: d["vectors"] for d in o["deflation"]}
+                modes = " / ".join(str(per[k]) if k in per else "–" for k in range(len(o["levels"]) - 1))
+                lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['problem'][11:]} | {c['nu']} | {m} | "
+                             f"{o['median_setup']:.2f} + {o['median_solve']:.2f} ({o['iterations']})"
+                             f"{_mark(o['final_residual'], res['params']['tol'])} | "
+                             f"{o['vcycle_factor']:.3f} | {modes} | {o['median_total'] / base:.2f} |")
+    return "\n".join(lines)
+
+
 def _mark(residual: float, tol: float) -> str:
     return "" if residual <= 1.01 * tol else (" *" if residual <= 10 * tol else " ✗")
 
@@ -310,6 +372,8 @@ def main(argv=None) -> int:
                     help="fine edge / bounding-box diagonal, one per mesh (overrides --max-tets' sizing)")
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--factor", action="store_true",
+                    help="also the nestmg variants' stationary V-cycle factor")
     ap.add_argument("--out", type=Path, default=None, help="JSON file (required unless --table)")
     a = ap.parse_args(argv)
     if a.table is not None:
@@ -323,6 +387,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--max-tets needs one value or one per mesh ({len(a.meshes)})")
     if a.edge_length is not None and len(a.edge_length) != len(a.meshes):
         raise SystemExit(f"--edge-length needs one value per mesh ({len(a.meshes)})")
+    from exp_common import environment, git_commit, write_json
+
     from solvers.petsc_common import petsc_available
 
     methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]
@@ -334,7 +400,8 @@ def main(argv=None) -> int:
     mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets
     edges = a.edge_length or [None] * len(a.meshes)
     for spec, n, edge in zip(a.meshes, mt, edges):
-        res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat))
+        res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat,
+                                      a.factor))
         write_json(res, a.out)  # after every mesh: a cut-off run keeps what it measured
     res["environment_end"] = environment()
     res["table"] = table(res)

@@ -140,7 +140,10 @@ class ElasticityProblem(Problem):
             (docs/elasticity.md).
         **kwargs
             Passed to :class:`solvers.MultigridSolver` (or
-            :class:`solvers.elasticity.NullspaceMultigridSolver` for ``elasticity-free``).
+            :class:`solvers.elasticity.NullspaceMultigridSolver` for ``elasticity-free``). ``deflate``
+            defaults to 0 for both problems: the elasticity cycle is slow on the bulk of its spectrum, not on
+            a few modes, and on 390k / 350k-tet bunny and spot the deflation probe cost more setup than it
+            saved (``benchmarks/elasticity.py``, docs/elasticity.md#deflation).
 
         Returns
         -------
@@ -156,6 +159,7 @@ class ElasticityProblem(Problem):
         robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS with the defaults
         pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)
         kwargs["presmoother"] = _as_block_specs(pre) if block else pre
+        kwargs.setdefault("deflate", 0)  # measured: the probe does not pay for elasticity (docs/elasticity.md)
         if self.modes is None:
             return MultigridSolver(self.A, self.P, coarse_scaling=coarse_scaling, **kwargs)
         return NullspaceMultigridSolver(self.A, self.P, self.modes, coarse_scaling=coarse_scaling, **kwargs)

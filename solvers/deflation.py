@@ -24,6 +24,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from .errors import SolverInputError
 from .smoothing import Smoother, chained
 
 __all__ = ["DEFLATION_GOAL", "LANCZOS_CYCLES", "PROBE_CYCLES", "slow_modes", "with_deflation"]
@@ -43,11 +44,24 @@ def _ritz(H: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     return theta[::-1], U[:, ::-1]
 
 
+def _kernel_projector(constant: bool, Q: np.ndarray | None) -> Callable[[np.ndarray], None]:
+    """In-place removal of the known kernel from a Krylov vector: its mean, and/or its part along ``Q``."""
+
+    def project(w: np.ndarray) -> None:
+        if constant:
+            w -= w.mean()
+        if Q is not None:
+            w -= Q @ (Q.T @ w)
+
+    return project
+
+
 def slow_modes(
     cycle: Callable[[np.ndarray], None],
     A: sp.csr_matrix,
     *,
     constant_nullspace: bool = False,
+    nullspace_basis: np.ndarray | None = None,
     max_vectors: int = 8,
     goal: float = DEFLATION_GOAL,
     seed: int = 0,
@@ -64,6 +78,10 @@ def slow_modes(
         The level operator (symmetric positive semi-definite).
     constant_nullspace : bool
         Pure Neumann operator: the Krylov vectors are kept at zero mean.
+    nullspace_basis : (n, m) float array, optional
+        An orthonormal basis ``Q`` of ``ker A`` (e.g. the rigid-body modes of pure-traction elasticity):
+        the Krylov vectors are kept orthogonal to it, ``w -= Q (Qᵀ w)``. The cycle leaves a kernel vector
+        unchanged (``E z = z``), so without this the probe would report the kernel as a factor-1 mode.
     max_vectors : int
         At most this many vectors are returned.
     goal : float
@@ -86,14 +104,18 @@ def slow_modes(
         is deflated then: the setup never fails because of the probe).
     """
     n = A.shape[0]
+    if nullspace_basis is not None:
+        nullspace_basis = np.asarray(nullspace_basis, dtype=np.float64)
+        if nullspace_basis.ndim != 2 or nullspace_basis.shape[0] != n:
+            raise SolverInputError(f"nullspace_basis must have shape ({n}, m), got {nullspace_basis.shape}")
+    project = _kernel_projector(constant_nullspace, nullspace_basis)
     steps = LANCZOS_CYCLES
     Q = np.zeros((n, steps + 1))
     AQ = np.zeros_like(Q)
     H = np.zeros((steps + 1, steps))
     info = {"probe_factor": 0.0, "cycles": 0, "vectors": 0, "factors": []}
     q = np.random.default_rng(seed).standard_normal(n)
-    if constant_nullspace:
-        q -= q.mean()
+    project(q)
     Aq = A @ q
     norm = float(np.sqrt(max(q @ Aq, 0.0)))
     if norm == 0.0:
@@ -106,8 +128,7 @@ def slow_modes(
         if not np.all(np.isfinite(w)):  # a broken level: nothing to deflate; solve() will locate the NaN
             info["non_finite"] = True
             return np.zeros((n, 0)), info
-        if constant_nullspace:
-            w -= w.mean()
+        project(w)
         for _ in range(2):  # full re-orthogonalisation, twice: the Krylov vectors align with the slowest mode
             c = AQ[:, : j + 1].T @ w
             w -= Q[:, : j + 1] @ c

@@ -26,6 +26,8 @@ per-level null-space bases, and factorises the singular coarsest operator with t
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -306,8 +308,13 @@ class NullspaceMultigridSolver(MultigridSolver):
         As :class:`solvers.MultigridSolver`; default ``"regularized"`` (the coarsest operator is singular).
     **kwargs
         Passed to :class:`solvers.MultigridSolver` (smoothers, ``coarse``, ...); ``nullspace`` is not
-        accepted. ``deflate`` defaults to 0 here: the probe of :mod:`solvers.deflation` keeps only a
-        constant null space out of its Krylov vectors.
+        accepted.
+    deflate : int
+        As :class:`solvers.MultigridSolver` (slow modes deflated per probed level), default 0 here. The
+        probe runs once the projected coarsest solve is installed, with its Krylov vectors kept orthogonal
+        to each probed level's kernel basis (:func:`solvers.deflation.slow_modes`, ``nullspace_basis``).
+    probe_finest : bool
+        As :class:`solvers.MultigridSolver`.
 
     Attributes
     ----------
@@ -315,7 +322,9 @@ class NullspaceMultigridSolver(MultigridSolver):
         Orthonormal bases of the kernels, finest first.
     """
 
-    def __init__(self, A, Ps, nullspaces, *, coarse_solver: str = "regularized", **kwargs):
+    def __init__(self, A, Ps, nullspaces, *, coarse_solver: str = "regularized", deflate: int = 0,
+                 probe_finest: bool = False, **kwargs):
+        t0 = time.perf_counter()
         if "nullspace" in kwargs:
             raise SolverInputError(
                 "NullspaceMultigridSolver takes its null space from nullspaces=, not nullspace=")
@@ -324,9 +333,8 @@ class NullspaceMultigridSolver(MultigridSolver):
             raise SolverInputError(
                 f"nullspaces needs {len(Ps) + 1} bases (one per level), got {len(nullspaces)}")
         kwargs.setdefault("ordering", None)  # the null-space bases are given in the caller's order
-        # the probe of solvers.deflation knows only the constant null space, not the rigid-body modes
-        kwargs.setdefault("deflate", 0)
-        super().__init__(A, Ps, coarse_solver=coarse_solver, **kwargs)
+        # no probe yet: it must run the real cycles, with the projected coarse solve installed below
+        super().__init__(A, Ps, coarse_solver=coarse_solver, deflate=0, **kwargs)
         if len(self.levels) != len(nullspaces):
             raise SolverInputError("the hierarchy was changed at set-up (unreached coarse unknowns dropped): "
                                    "restrict the prolongations first (solvers.restrict_prolongations)")
@@ -343,6 +351,11 @@ class NullspaceMultigridSolver(MultigridSolver):
                                   f"(max |A_{k} Z_{k}| = {res:.3e}, ||A_{k}|| = {scale:.3e})")
             self.nullspace_bases.append(Q)
         self._coarse_solver = _ProjectedCoarseSolve(self._coarse_solver, self.nullspace_bases[-1])
+        self.deflation = self._deflate(deflate, probe_finest)  # Krylov vectors kept off nullspace_bases[k]
+        self.setup_seconds = time.perf_counter() - t0
+
+    def _level_kernel(self, k: int) -> np.ndarray:
+        return self.nullspace_bases[k]
 
     def __repr__(self) -> str:
         m = self.nullspace_bases[0].shape[1]

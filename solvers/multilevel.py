@@ -408,7 +408,9 @@ class MultigridSolver:
                 self._cycle(k, x, zero, "V")
 
             neumann = self.nullspace == "constant"
-            Z, info = slow_modes(cycle, L.A, constant_nullspace=neumann, max_vectors=int(max_vectors))
+            kernel = self._level_kernel(k)
+            Z, info = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
+                                 max_vectors=int(max_vectors))
             info["level"] = k
             if Z.shape[1]:
                 pre, post = L.presmoother, L.postsmoother
@@ -416,13 +418,20 @@ class MultigridSolver:
                 L.postsmoother = with_deflation(post, L.A, Z, first=True)
                 # a projection inside a product of smoothers is not sure to help: keep it only if the
                 # probe (same start, same steps) says it does
-                after = slow_modes(cycle, L.A, constant_nullspace=neumann, max_vectors=0)[1]["probe_factor"]
+                after = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
+                                   max_vectors=0)[1]["probe_factor"]
                 info["probe_after"] = after
                 if after >= info["probe_factor"]:
                     L.presmoother, L.postsmoother = pre, post
                     info.update(vectors=0, factors=[], reverted=True)
             report.append(info)
         return report[::-1]
+
+    def _level_kernel(self, k: int) -> np.ndarray | None:
+        """Orthonormal basis of level ``k``'s kernel kept out of the deflation probe (beyond the constant of
+        ``nullspace="constant"``): none here, the rigid-body modes in
+        :class:`solvers.elasticity.NullspaceMultigridSolver`."""
+        return None
 
     def _reorder(self, A, Ps, Rs, ordering, given, symmetric):
         """Apply the internal orders of every level (see ``ordering``) to ``A``, ``Ps``, ``Rs`` and the given

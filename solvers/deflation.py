@@ -99,7 +99,7 @@ def slow_modes(
         ``max_vectors`` modes are slower than it (then the cycle is slow on the bulk of the spectrum, which
         deflation is not meant to fix).
     info : dict
-        ``probe_factor`` (largest Ritz value after the probe), ``cycles`` run, ``vectors`` (m) and
+        ``probe_factor`` (largest Ritz value after the probe), ``probe_min`` (the smallest), ``cycles`` run, ``vectors`` (m) and
         ``factors`` (the Ritz values of the kept vectors); ``non_finite`` when a cycle gave NaN/inf (nothing
         is deflated then: the setup never fails because of the probe).
     """
@@ -138,7 +138,10 @@ def slow_modes(
         H[j + 1, j] = beta
         info["cycles"] = j + 1
         if j + 1 == min(probe_cycles, steps):
-            info["probe_factor"] = float(_ritz(H, j + 1)[0][0])
+            theta = _ritz(H, j + 1)[0]
+            # the extreme Ritz values of E: the slowest mode, and the most negative one (E must stay > -1 for
+            # the cycle to be a positive definite preconditioner)
+            info["probe_factor"], info["probe_min"] = float(theta[0]), float(theta[-1])
             if info["probe_factor"] <= goal or max_vectors <= 0:
                 return np.zeros((n, 0)), info
         if beta <= 1e-10 * max(float(np.abs(H[: j + 1, j]).max()), 1e-300):

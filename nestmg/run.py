@@ -116,7 +116,7 @@ def solve_on_hierarchy(
         "operator_complexity": ml.operator_complexity(),
         # slow modes deflated per level (solvers.deflation): level, probe factor, modes kept
         "deflation": [{"level": d["level"], "probe_factor": d["probe_factor"], "modes": d["vectors"]}
-                      for d in getattr(ml, "deflation", [])],
+                      for d in ml.deflation],
     }
     t0 = time.perf_counter()
     try:

@@ -65,7 +65,6 @@ def slow_modes(
     max_vectors: int = 8,
     goal: float = DEFLATION_GOAL,
     seed: int = 0,
-    probe_cycles: int = PROBE_CYCLES,
 ) -> tuple[np.ndarray, dict]:
     """The error components that a symmetric ``cycle`` reduces by less than ``goal`` per application.
 
@@ -88,9 +87,6 @@ def slow_modes(
         Per-cycle factor above which a mode is returned.
     seed : int
         Seed of the random start vector (the result is deterministic).
-    probe_cycles : int
-        Lanczos steps before the probe's verdict (at most :data:`LANCZOS_CYCLES`); with
-        ``max_vectors=0`` only the largest Ritz value after these steps is wanted.
 
     Returns
     -------
@@ -99,8 +95,8 @@ def slow_modes(
         ``max_vectors`` modes are slower than it (then the cycle is slow on the bulk of the spectrum, which
         deflation is not meant to fix).
     info : dict
-        ``probe_factor`` (largest Ritz value after the probe), ``probe_min`` (the smallest), ``cycles`` run, ``vectors`` (m) and
-        ``factors`` (the Ritz values of the kept vectors); ``non_finite`` when a cycle gave NaN/inf (nothing
+        ``probe_factor`` (largest Ritz value after the probe), ``probe_min`` (the smallest), ``cycles`` run,
+        ``vectors`` (m) and ``factors`` (the Ritz values of the kept vectors); ``non_finite`` when a cycle gave NaN/inf (nothing
         is deflated then: the setup never fails because of the probe).
     """
     n = A.shape[0]
@@ -137,7 +133,7 @@ def slow_modes(
         beta = float(np.sqrt(max(w @ Aw, 0.0)))
         H[j + 1, j] = beta
         info["cycles"] = j + 1
-        if j + 1 == min(probe_cycles, steps):
+        if j + 1 == PROBE_CYCLES:
             theta = _ritz(H, j + 1)[0]
             # the extreme Ritz values of E: the slowest mode, and the most negative one (E must stay > -1 for
             # the cycle to be a positive definite preconditioner)
@@ -149,10 +145,10 @@ def slow_modes(
         Q[:, j + 1], AQ[:, j + 1] = w / beta, Aw / beta
     k = info["cycles"]
     theta, U = _ritz(H, k)
-    if k < min(probe_cycles, steps):
+    if k < PROBE_CYCLES:  # an invariant subspace before the probe's verdict
         info["probe_factor"] = float(theta[0])
     slow = int(np.count_nonzero(theta > goal))
-    if slow > max_vectors:  # not a few outliers but the bulk of the spectrum: a smoother / coarse space matter
+    if slow > max_vectors:  # the bulk of the spectrum, not a few outliers: a smoother / coarse space matter
         info["slow_modes_found"] = slow
         return np.zeros((n, 0)), info
     Z = Q[:, :k] @ U[:, :slow]

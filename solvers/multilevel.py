@@ -418,7 +418,8 @@ class MultigridSolver:
                 L.postsmoother = with_deflation(post, L.A, Z, first=True)
                 # a projection inside a product of smoothers is not sure to help: keep it only if the
                 # probe (same start, same steps) says it does, and the cycle still contracts both ways
-                check = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel, max_vectors=0)[1]
+                check = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
+                                   max_vectors=0)[1]
                 after = check["probe_factor"]
                 info["probe_after"] = after
                 if after >= info["probe_factor"] or check.get("probe_min", 0.0) <= -0.95:

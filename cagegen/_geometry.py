@@ -348,8 +348,13 @@ def min_edge_edge_distance(
         if lens.sum():
             ia = np.repeat(np.arange(start, stop), lens)
             ib = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
-            d2 = segment_segment_sqdist(A0[ia], A1[ia], B0[ib], B1[ib])
-            best = min(best, float(d2.min()))
+            # the same lower bound per pair, against the best distance so far: most pairs go here
+            dm = np.linalg.norm(mA[ia] - mB[ib], axis=1)
+            near = dm < np.sqrt(best) + hA[ia] + hB[ib]
+            ia, ib = ia[near], ib[near]
+            if len(ia):
+                d2 = segment_segment_sqdist(A0[ia], A1[ia], B0[ib], B1[ib])
+                best = min(best, float(d2.min()))
         start = stop
     return float(np.sqrt(best))
 

@@ -501,7 +501,9 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
         except PairFailure as exc:
             failures.append({"action": f"decimate the {src} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
-                             "stage": exc.stage, "reason": exc.reason})
+                             "stage": exc.stage, "reason": exc.reason,
+                             "seconds": time.perf_counter() - t,
+                             "flow_iterations": exc.info.get("flow", {}).get("iterations")})
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue

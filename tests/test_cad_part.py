@@ -111,3 +111,26 @@ def test_envelope_target_is_the_recovery_when_the_papers_flow_fails(monkeypatch,
     assert lay["flow"]["iterations"] <= 50
     assert verify_nesting([(V, F), layers[0]], min_gap=GAP).ok
     assert lay["min_gap_relative"] >= GAP
+
+
+def test_later_layers_try_the_envelope_first_once_a_layer_needed_it(monkeypatch, failing_flow):
+    """Layer 1's flow into its decimated layer fails, the envelope target certifies it; layer 2 then starts
+    with the envelope target (``FOLLOW_PREVIOUS_SOURCE``: lucy.ply's second layer spent 37 s in a failed
+    flow before the envelope certified it), so no flow of layer 2 fails."""
+    import cagegen.nested.backend as nb
+
+    real, calls = nb.flow_inside, []
+
+    def first_fails(*args, **kwargs):
+        calls.append(1)
+        return failing_flow(*args, **kwargs) if len(calls) == 1 else real(*args, **kwargs)
+
+    monkeypatch.setattr(nb, "flow_inside", first_fails)
+    V, F = plate_with_holes(holes=4, segments=48)
+    layers, info = nested_backend(V, F, [300, 100], min_gap=GAP, fallback=None, max_recovery_depth=0)
+    one, two = info["layers"]
+    assert one["decimation"]["source"] == "envelope" and len(one["failed_attempts"]) == 1
+    assert one["failed_attempts"][0]["flow_iterations"] == 0 and one["failed_attempts"][0]["seconds"] >= 0
+    assert two["decimation"]["source"] == "envelope" and two["failed_attempts"] == []
+    assert len(calls) == 3
+    assert verify_nesting([(V, F), *layers], min_gap=GAP).ok

@@ -397,6 +397,13 @@ MIN_TARGET_OFFSET = 0.01
 QUICK_FLOW_WORK = 500_000
 QUICK_FLOW_MIN_ITER = 30
 
+#: Once a layer certified only with the envelope target, the run's later layers try the envelope
+#: first (their inputs are that layer's cage, smoother but of the same shape): on lucy.ply's
+#: predecimated 16k faces the flow into layer 2's decimated layer failed after its 122-iteration cap
+#: (37 of the cages' 124 s, 2026-12-04) before the envelope target certified in 0 iterations, as on
+#: layer 1. A layer whose first target certifies changes nothing.
+FOLLOW_PREVIOUS_SOURCE = True
+
 
 def _envelope_target(Vf, Ff, n_faces, offset):
     """Ĉ decimated from the envelope ``{d = offset}`` of the fine layer, not from the layer itself.
@@ -461,19 +468,23 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
     return C2, min_distance(C2, G, Vf, Ff), oinfo
 
 
-def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_no):
+def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_no, first="layer"):
     """Cage with ~n_faces faces nesting (Vf, Ff), with recovery. Returns (C, G, info).
 
     Targets Ĉ tried in turn: the layer decimated by the first decimator (the paper's Ĉ: the tightest
     cages), the decimated offset envelope (:func:`_envelope_target`, unless ``target_offset`` is 0;
     it certified the CAD parts and scans on which the paper's flow stalls, but first on every input
     it gave looser cages and slower Neumann cycles: decimated-knight 0.49 against 0.24, homer 0.40
-    against 0.33, corpus at c9049ce), then the layer by the other decimator.
+    against 0.33, corpus at c9049ce), then the layer by the other decimator. ``first="envelope"`` tries
+    the envelope before the layer: the backend asks for it when the previous layer of the run certified
+    only with the envelope (:data:`FOLLOW_PREVIOUS_SOURCE`).
     """
     first_alg = opts.get("decimator", "qslim")
     other_alg = "shortest_edge" if first_alg == "qslim" else "qslim"
     sources = [("layer", first_alg)]
-    sources += [("envelope", first_alg)] if opts.get("target_offset") else []
+    if opts.get("target_offset"):
+        env = ("envelope", first_alg)
+        sources = [env, *sources] if first == "envelope" else [*sources, env]
     sources += [("layer", other_alg)]
     failures = []
     tried = set()
@@ -531,8 +542,8 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     log.append({"layer": layer_no, "action": f"insert intermediate layer of {mid} faces", "stage": "recovery",
                 "reason": failures[-1]["reason"] if failures else ""})
     rep.say(f"layer {layer_no}: recovering with an intermediate layer of {mid} faces")
-    Ci, Gi, iinfo = _build_layer(Vf, Ff, mid, opts, gap, rep, depth + 1, max_depth, log, layer_no)
-    C, G, pinfo = _build_layer(Ci, Gi, n_faces, opts, gap, rep, depth + 1, max_depth, log, layer_no)
+    Ci, Gi, iinfo = _build_layer(Vf, Ff, mid, opts, gap, rep, depth + 1, max_depth, log, layer_no, first)
+    C, G, pinfo = _build_layer(Ci, Gi, n_faces, opts, gap, rep, depth + 1, max_depth, log, layer_no, first)
     pinfo["intermediate"] = {"n_faces": len(Gi), "info": iinfo}
     pinfo["failed_attempts"] = failures + pinfo.get("failed_attempts", [])
     return C, G, pinfo
@@ -657,7 +668,7 @@ def nested_backend(
         "recovery": [],
     }
     run = _Run(V, F, Vn, diag, center, params, gap_target, gap_abs, decimate_from, int(max_recovery_depth),
-               fallback, certify)
+               fallback, certify, {"first": "layer"})
     layers = []
     prev_n, prev_F = Vn, F
     prev_orig = (V, F)
@@ -673,6 +684,8 @@ def nested_backend(
             info["layers"].append(_jsonable(linfo))
             info["recovery"].extend(log)
             layers.append((Vk, Gk))
+            if FOLLOW_PREVIOUS_SOURCE and linfo.get("decimation", {}).get("source") == "envelope":
+                run.state["first"] = "envelope"
             prev_n, prev_F = C, Gk
             prev_orig = (Vk, Gk)
             rep.layer_done()
@@ -709,6 +722,7 @@ class _Run(NamedTuple):
     max_depth: int
     fallback: str | None
     certify: bool
+    state: dict  # "first": the target source the next layer tries first (:data:`FOLLOW_PREVIOUS_SOURCE`)
 
 
 def _cage_layer(run: _Run, k: int, m: int, prev_n, prev_F, rep, log: list) -> tuple:
@@ -719,7 +733,8 @@ def _cage_layer(run: _Run, k: int, m: int, prev_n, prev_F, rep, log: list) -> tu
             # the target is a decimation of the input, but it must nest the previous layer
             return _layer_from_target(prev_n, prev_F, run.Vn, run.F, m, run.params, run.gap_target, rep, log,
                                       k)
-        return _build_layer(src_V, src_F, m, run.params, run.gap_target, rep, 0, run.max_depth, log, k)
+        return _build_layer(src_V, src_F, m, run.params, run.gap_target, rep, 0, run.max_depth, log, k,
+                            run.state["first"])
     except CageError as exc:
         return _fallback(prev_n, prev_F, m, exc, run.fallback, rep, log, k, run.gap_target)
 

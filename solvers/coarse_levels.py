@@ -137,8 +137,9 @@ class CoarseLevels:
             shape, _, _ = _read_header(f)
         return shape
 
-    def _chunks(self, name: str, rows: int = CHUNK_ROWS):
-        """Yield consecutive blocks of ``rows`` rows of array ``name`` (C order) from the file."""
+    def _chunks(self, name: str):
+        """Yield consecutive blocks of :data:`CHUNK_ROWS` rows of array ``name`` (C order) from the file."""
+        rows = CHUNK_ROWS
         with zipfile.ZipFile(self._path) as z, z.open(f"{name}.npy") as f:
             shape, fortran, dtype = _read_header(f)
             if fortran and len(shape) > 1:

@@ -68,14 +68,35 @@ def _mat_bytes(PETSc, M) -> int:
     return int(info["nz_allocated"] * (8 + np.dtype(PETSc.IntType).itemsize) + 4 * M.getLocalSize()[0])
 
 
+def _reset_peak() -> None:
+    """Start a new peak (``VmHWM`` and getrusage's maxrss) at the current resident memory (Linux)."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+
+
 def _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points) -> dict:
     """Bytes of this rank's fine-level objects."""
-    dmplex = rss["mesh distributed and refined"] - rss["coarse levels"]
+    dmplex = rss["mesh distributed and refined"] - rss["input mesh"]
     arrays = int(X.nbytes + tets.nbytes + ldof.nbytes + gidx.nbytes + owned.nbytes + bnd.nbytes)
     return {"DMPlex (rss delta of distribute + refine)": dmplex,
             "local mesh arrays (X, tets, dof maps)": arrays,
             "A (MPIAIJ, local)": _mat_bytes(PETSc, A), "P0 (MPIAIJ, local)": _mat_bytes(PETSc, P0),
             "points + b + x (local)": int(points.nbytes + 2 * 8 * len(points))}
+
+
+def _coarse_objects(PETSc, mg) -> dict:
+    """Bytes of this rank's coarse-level objects: its rows of P_1.., of the coarse operators, the coarsest."""
+    pc = mg.ksp.getPC()
+    nlev = len(mg.levels)
+    interp = sum(_mat_bytes(PETSc, pc.getMGInterpolation(lev)) for lev in range(1, nlev - 1))
+    ops = sum(_mat_bytes(PETSc, (pc.getMGCoarseSolve() if lev == 0 else pc.getMGSmootherDown(lev))
+                         .getOperators()[0]) for lev in range(nlev - 1))
+    coarsest = mg.levels[-1]
+    return {"coarse prolongations (local rows)": interp, "coarse operators (local rows)": ops,
+            "coarsest operator (gathered on every rank)": 12 * coarsest["nnz"] + 4 * coarsest["n"],
+            # V (24 B), global ids (8 B) per node, T (32 B) per tet: held while locating
+            "crop of the first coarse mesh (transient)":
+                32 * (mg.location["crop_tets"] + mg.location["crop_nodes"])}
 
 
 def worker(args) -> None:
@@ -91,14 +112,15 @@ def worker(args) -> None:
     PETSc.Log.begin()
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
-    rss = {"start": _rss()}
-    with np.load(args.worker) as z:  # the coarse levels, loaded by every rank
-        arrays = {k: z[k] for k in z.files}
-    (V1, T1), coarse_Ps = drv._broadcast_coarse(PETSc, arrays if rank == 0 else None)
-    rss["coarse levels"] = _rss()
-    V0, T0 = (V1, T1) if rank == 0 else (np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64))
+    rss, peaks = {"start": _rss()}, {}
+    V0, T0 = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
+    if rank == 0:  # the input mesh (= the first coarse level), on rank 0 only, to start the DMPlex
+        with np.load(args.worker) as z:
+            V0, T0 = z["V1"], z["T1"]
+    rss["input mesh"] = _rss()
     t = time.perf_counter()
     dm = drv.distribute(PETSc, V0, T0, args.refine)
+    del V0, T0
     rss["mesh distributed and refined"] = _rss()
     X, tets, bnd = drv.local_mesh(dm)
     ldof, gidx, owned = drv.dof_numbering(PETSc, dm, bnd)
@@ -106,10 +128,14 @@ def worker(args) -> None:
     A, b, points = drv.assemble(PETSc, dm, X, tets, ldof, owned, gidx)
     t_mesh = time.perf_counter() - t
     rss["assembled"] = _rss()
+    peaks["fine level"] = _peak()
+    _reset_peak()
     setup_events = ["MatPtAPSymbolic", "MatPtAPNumeric", "PCSetUp"]
     ptap0 = _events(PETSc, setup_events)
-    mg = PetscMultigrid.from_distributed(A, points, (V1, T1), coarse_Ps)
+    mg = PetscMultigrid.from_distributed(A, points, args.worker)  # this rank's pieces of the coarse levels
     rss["hierarchy"] = _rss()
+    peaks["hierarchy setup"] = _peak()
+    _reset_peak()
     ptap1 = _events(PETSc, setup_events)
     ptap = {e: {q: ptap1[e][q] - ptap0[e][q] for q in ptap1[e]} for e in setup_events}
     pc = mg.ksp.getPC()
@@ -119,14 +145,11 @@ def worker(args) -> None:
     solve1 = _events(PETSc, ["KSPSolve", "PCApply", "MatMult"])
     rss["solved"] = _rss()
     xt, info_t = mg.solve(b.getArray(), tol=TIGHT)
-    peak = _peak()
+    peaks["solve"] = _peak()
     objects = _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points)
-    coarse_ops = 0
-    for lev in range(len(mg.levels) - 1):
-        op = (pc.getMGCoarseSolve() if lev == 0 else pc.getMGSmootherDown(lev)).getOperators()[0]
-        coarse_ops += _mat_bytes(PETSc, op)
+    coarse = _coarse_objects(PETSc, mg)
     rec = {"rank": rank, "ranks": comm.getSize(), "rows": len(points), "tets": len(tets), "rss": rss,
-           "peak": peak, "fine_objects": objects, "coarse_operators_bytes": coarse_ops,
+           "peaks": peaks, "peak": max(peaks.values()), "fine_objects": objects, "coarse_objects": coarse,
            "ptap": ptap, "solve": {k: {q: solve1[k][q] - solve0[k][q] for q in solve1[k]} for k in solve1},
            "iterations": info["iterations"], "final_residual": info["final_residual"],
            "iterations_tight": info_t["iterations"], "final_residual_tight": info_t["final_residual"],
@@ -192,6 +215,8 @@ def _inprocess(path: Path, tol: float) -> dict:
 
 
 def launcher(args) -> int:
+    from solvers.petsc import save_coarse_levels
+
     drv = _driver()
     doc = {"benchmark": "petsc_distributed", "command": " ".join(["python", "benchmarks/petsc_distributed.py",
                                                                    *sys.argv[1:]]),
@@ -199,11 +224,12 @@ def launcher(args) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         t = time.perf_counter()
-        arrays = drv.coarse_levels(args.mesh, args.levels, edge_length=args.edge_length)
-        doc["input_mesh"] = {"nodes": len(arrays["V"]), "tets": len(arrays["T"]),
+        V, T, Ps = drv.coarse_levels(args.mesh, args.levels, edge_length=args.edge_length)
+        doc["input_mesh"] = {"nodes": len(V), "tets": len(T),
                              "source": args.mesh and Path(args.mesh).name or "procedural torus"}
         doc["coarse_levels_seconds"] = time.perf_counter() - t
-        np.savez(tmp / "coarse.npz", **arrays)
+        save_coarse_levels(tmp / "coarse.npz", V, T, Ps)
+        del V, T, Ps
         ref = None
         for p in args.ranks:
             d = tmp / f"p{p}"
@@ -242,27 +268,44 @@ MIB = 2.0**20
 
 
 def _fine_bytes(rec: dict) -> int:
-    """A rank's fine-level memory: its peak minus its resident memory before the fine mesh existed."""
-    return rec["peak"] - rec["rss"]["coarse levels"]
+    """A rank's fine-level memory: the peak of its mesh + assembly steps over its memory before the mesh."""
+    return rec["peaks"]["fine level"] - rec["rss"]["input mesh"]
+
+
+def _setup_bytes(rec: dict) -> int:
+    """A rank's hierarchy set-up memory (P₀, its crop of the coarse mesh, its coarse rows, PtAP, coarsest
+    solve): the peak during ``from_distributed`` over the resident memory before it."""
+    return rec["peaks"]["hierarchy setup"] - rec["rss"]["assembled"]
+
+
+def _coarse_kib(rec: dict) -> float:
+    """KiB of a rank's coarse-level objects after set-up (its rows of P_1.., of A_1.., the coarsest)."""
+    c = rec["coarse_objects"]
+    return sum(v for k, v in c.items() if "transient" not in k) / 1024
 
 
 def memory_table(doc: dict) -> tuple[list[str], list[list]]:
-    """Per rank count: tets and peak per rank, fine-level memory and its breakdown (max over ranks)."""
+    """Per rank count: tets and peak per rank, fine-level and set-up memory, coarse pieces (max over
+    ranks)."""
     base = doc["runs"][0]
     f1 = max(_fine_bytes(r) for r in base["per_rank"]) * base["ranks"]
+    t1 = doc["input_mesh"]["tets"]
     rows = []
     for run in doc["runs"]:
         recs, p = run["per_rank"], run["ranks"]
         fine = max(_fine_bytes(r) for r in recs)
         obj = {k: max(r["fine_objects"][k] for r in recs) for k in recs[0]["fine_objects"]}
+        crop = max(r["location"]["crop_tets"] for r in recs)
         rows.append([p, f"{max(r['tets'] for r in recs):,}", f"{max(r['peak'] for r in recs) / MIB:.0f}",
                      f"{fine / MIB:.0f}", f"{fine * p / f1:.2f}",
                      f"{obj['DMPlex (rss delta of distribute + refine)'] / MIB:.0f}",
                      f"{obj['A (MPIAIJ, local)'] / MIB:.1f}", f"{obj['P0 (MPIAIJ, local)'] / MIB:.1f}",
-                     f"{obj['local mesh arrays (X, tets, dof maps)'] / MIB:.1f}",
+                     f"{max(_setup_bytes(r) for r in recs) / MIB:.1f}",
+                     f"{crop:,} ({crop / t1:.2f})", f"{max(_coarse_kib(r) for r in recs):,.0f}",
                      f"{recs[0]['iterations']}", f"{run['solution_vs_first_run']:.0e}"])
     head = ["ranks", "fine tets per rank (max)", "peak MiB per rank (max)", "fine-level MiB per rank (max)",
-            "fine-level memory x p / 1-rank", "DMPlex MiB", "A MiB", "P₀ MiB", "mesh arrays MiB",
+            "fine-level memory x p / 1-rank", "DMPlex MiB", "A MiB", "P₀ MiB", "hierarchy set-up MiB",
+            f"coarse tets kept per rank (of {t1:,})", "coarse-level KiB per rank",
             "CG iterations (1e-8)", "solution vs 1 rank (1e-12 solves)"]
     return head, rows
 
@@ -283,27 +326,45 @@ def comm_rows(doc: dict) -> list[dict]:
     return out
 
 
+# Arrays of a coarse level's size (n_k entries) that from_distributed holds on every rank while it sets up
+# (solvers/petsc_distributed.py), bytes per coarse node: the weights (8), the scatter's two vectors (16),
+# the gathered owners and their copies (24), the numbering (free, owners of free, perm, inv, new ids: 40),
+# the owner test (1), level 1's outcodes (1). Counted, not measured: a sum, so an upper bound of what is
+# alive at once.
+GLOBAL_BYTES_PER_COARSE_NODE = 90
+
+
 def estimate(doc: dict, tets: float = 1e8, ranks: int = 64) -> dict:
     """Measured-model estimate of a ``tets``-tet solve on ``ranks`` ranks (the refinement ratio kept).
 
-    Memory per rank = start-up (measured) + the global coarse levels (their measured memory scaled by the
-    first coarse level's tet count, which grows with the fine one) + fine-level bytes per tet (the largest
-    rank-count run's) x tets per rank. Communication per rank: halo volume scales with the surface of a
-    rank's part, ``(tets per rank)^(2/3)``, from the largest rank-count run.
+    Memory per rank = start-up (measured) + fine-level bytes per tet x tets per rank + hierarchy set-up
+    bytes per tet x tets per rank (P₀, the rank's crop of the first coarse mesh and its coarse rows all
+    grow with its share; both per-tet figures from the largest rank-count run) + the arrays of coarse-level
+    size every rank holds during set-up (:data:`GLOBAL_BYTES_PER_COARSE_NODE` x all coarse nodes, the first
+    coarse level grown with the fine one) + the coarsest operator (gathered on every rank, as measured).
+    Communication per rank: halo volume scales with the surface of a rank's part,
+    ``(tets per rank)^(2/3)``, from the largest rank-count run.
     """
     last = doc["runs"][-1]
     recs, p = last["per_rank"], last["ranks"]
     per_tet = max(_fine_bytes(r) / r["tets"] for r in recs)
+    setup_per_tet = max(_setup_bytes(r) / r["tets"] for r in recs)
     start = max(r["rss"]["start"] for r in recs)
-    coarse_now = max(r["rss"]["coarse levels"] - r["rss"]["start"] for r in recs)
     ratio = tets / sum(r["tets"] for r in recs)  # the input (first coarse) mesh grows with the fine one
-    coarse = coarse_now * ratio
+    levels = recs[0]["levels"]
+    coarse_nodes = levels[1]["n"] * ratio + sum(L["n"] for L in levels[2:])  # deeper (cage) levels kept
+    global_bytes = GLOBAL_BYTES_PER_COARSE_NODE * coarse_nodes
+    coarsest = max(r["coarse_objects"]["coarsest operator (gathered on every rank)"] for r in recs)
     tpr = tets / ranks
     c = comm_rows(doc)[-1]
     scale = (tpr / c["tets_per_rank"]) ** (2.0 / 3.0)
+    coarse = setup_per_tet * tpr + global_bytes + coarsest
     return {"tets": tets, "ranks": ranks, "tets_per_rank": tpr, "fine_bytes_per_tet": per_tet,
-            "start_bytes": start, "coarse_bytes": coarse,
-            "first_coarse_tets": doc["input_mesh"]["tets"] * ratio,
+            "setup_bytes_per_tet": setup_per_tet, "start_bytes": start, "coarse_bytes": coarse,
+            "setup_bytes": setup_per_tet * tpr, "global_bytes": global_bytes, "coarsest_bytes": coarsest,
+            "first_coarse_tets": doc["input_mesh"]["tets"] * ratio, "coarse_nodes": coarse_nodes,
+            "crop_tets_per_rank": doc["input_mesh"]["tets"] * ratio / ranks
+            * max(r["location"]["crop_tets"] for r in recs) * p / doc["input_mesh"]["tets"],
             "fine_bytes": per_tet * tpr, "memory_per_rank": start + coarse + per_tet * tpr,
             "ptap_bytes_per_rank": c["ptap_bytes"] * scale, "cycle_bytes_per_rank": c["cycle_bytes"] * scale,
             "from_ranks": p, "surface_scale": scale}

@@ -1,4 +1,4 @@
-"""Coarse levels read piecewise: the first coarse tet mesh cropped to a box, and rows of the coarse prolongations.
+"""Coarse levels read piecewise: the first coarse tet mesh cropped to a box, rows of the coarse prolongations.
 
 :meth:`solvers.petsc.PetscMultigrid.from_distributed` needs, on each MPI rank, only the coarse tets that can
 contain the rank's own fine nodes and only the rows of ``P_1, P_2, ...`` that the rank owns. A
@@ -56,7 +56,7 @@ def save_coarse_levels(path, V1, T1, coarse_Ps=()) -> None:
 
 
 def _outcodes(V: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """6-bit outcode per point of ``V`` (n,3) against ``box`` = (lo (3,), hi (3,)): bit 2a below, 2a+1 above."""
+    """6-bit outcode of every point of ``V`` (n,3) against ``box`` = (lo, hi): bit 2a below, 2a+1 above."""
     code = np.zeros(len(V), dtype=np.uint8)
     for a in range(3):
         code |= (V[:, a] < box[0][a]).astype(np.uint8) << (2 * a)
@@ -95,7 +95,8 @@ class CoarseLevels:
         self._V, self._T = np.ascontiguousarray(V), np.ascontiguousarray(T, dtype=np.int64)
         for k, P in enumerate(coarse_Ps):
             if not sp.issparse(P):
-                raise SolverInputError(f"coarse_Ps[{k}] must be a scipy sparse matrix, got {type(P).__name__}")
+                raise SolverInputError(f"coarse_Ps[{k}] must be a scipy sparse matrix, got "
+                                       f"{type(P).__name__}")
             self._Ps.append(sp.csr_matrix(P, dtype=np.float64))
         self._set_shapes(len(V), len(T), [P.shape for P in self._Ps])
         return self
@@ -111,10 +112,12 @@ class CoarseLevels:
             with zipfile.ZipFile(self._path) as z:
                 names = set(z.namelist())
         except zipfile.BadZipFile:
-            raise SolverInputError(f"{str(path)!r} is not an .npz file (save_coarse_levels writes one)") from None
+            raise SolverInputError(f"{str(path)!r} is not an .npz file (save_coarse_levels writes one)") \
+                from None
         need = {"V1.npy", "T1.npy", "n_coarse.npy"}
         if not need <= names:
-            raise SolverInputError(f"{str(path)!r} lacks {sorted(need - names)}: not a save_coarse_levels file")
+            raise SolverInputError(f"{str(path)!r} lacks {sorted(need - names)}: not a save_coarse_levels "
+                                   "file")
         nv = self._header("V1")[0]
         nt = self._header("T1")[0]
         n_coarse = int(next(self._chunks("n_coarse"))[0])

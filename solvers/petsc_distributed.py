@@ -118,8 +118,8 @@ def _certify(PETSc, comm, loc) -> dict:
     return {"n_outside": 0, "n_on_boundary": int(n_on.sum())}
 
 
-def _locate_local(pts, src: CoarseLevels, diag: float, tol: float) -> tuple[Location, np.ndarray, int]:
-    """This rank's points located in its crop of the first coarse mesh; (location, global cols, crop tets).
+def _locate_local(pts, src: CoarseLevels, diag: float, tol: float) -> tuple[Location, np.ndarray, tuple]:
+    """This rank's points located in its crop of the first coarse mesh; (location, global cols, crop size).
 
     The crop keeps the tets whose bounding box meets the points' box enlarged by ``1e-6 diag`` (more than
     the on-boundary tolerance): every containing tet, and every coarse boundary face that can decide the
@@ -130,15 +130,15 @@ def _locate_local(pts, src: CoarseLevels, diag: float, tol: float) -> tuple[Loca
     empty = Location(np.zeros((n, 4), dtype=np.int64), np.zeros((n, 4)), np.zeros(0, dtype=np.int64), 0,
                      np.zeros(0), np.zeros((0, 3)))
     if n == 0:
-        return empty, empty.cols, 0
+        return empty, empty.cols, (0, 0)
     margin = max(1e-6, 10 * tol) * diag
     V, T, gid = src.crop((pts.min(axis=0) - margin, pts.max(axis=0) + margin))
     if len(T) == 0:  # no coarse tet near any of this rank's points: all outside, by more than the margin
         empty.outside = np.arange(n)
         empty.distance2 = np.full(n, margin**2)
-        return empty, empty.cols, 0
+        return empty, empty.cols, (0, 0)
     loc = locate_in_tets(pts, V, T, on_boundary_tol=tol, diag=diag)
-    return loc, gid[loc.cols], len(T)
+    return loc, gid[loc.cols], (len(T), len(V))
 
 
 def _local_csr(PETSc, M, newcol: np.ndarray, rows: tuple[int, int], cols: tuple[int, int], comm):
@@ -177,7 +177,8 @@ def distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, on_bound
     location : dict
         ``n_outside`` (0), ``n_on_boundary`` (summed over ranks), ``coarse_sizes`` (unknowns of every
         coarse level after dropping the nodes no fine unknown reaches), ``crop_tets`` (this rank's coarse
-        tets), ``coarse_rows`` (this rank's rows of each coarse prolongation), ``seconds``.
+        tets and nodes), ``crop_nodes``, ``coarse_rows`` (this rank's rows of each coarse prolongation),
+        ``seconds``.
     """
     t0 = time.perf_counter()
     comm = A.getComm()
@@ -187,7 +188,7 @@ def distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, on_bound
     box = np.concatenate([pts.min(axis=0), -pts.max(axis=0)]) if nloc else np.full(6, np.inf)
     box = _allgather_array(PETSc, comm, box).reshape(size, 6).min(axis=0)
     diag = float(np.linalg.norm(-box[3:] - box[:3]))  # the whole fine level's, as in the serial prolongation
-    loc, cols, crop_tets = _locate_local(pts, src, diag, on_boundary_tol)
+    loc, cols, crop = _locate_local(pts, src, diag, on_boundary_tol)
     location = _certify(PETSc, comm, loc)
     W = clean_weights(loc.weights) if nloc else loc.weights
     P0 = sp.csr_matrix((W.ravel(), (np.repeat(np.arange(nloc), 4), cols.ravel())), shape=(nloc, src.n_nodes))
@@ -204,7 +205,7 @@ def distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, on_bound
     sizes = [(nloc, N)] + [(lay.nlocal(rank), lay.n) for lay, _ in numbered]
     interp = [_local_csr(PETSc, P, numbered[k][1], sizes[k], sizes[k + 1], comm)
               for k, P in enumerate([P0] + pieces)]
-    location.update(coarse_sizes=[lay.n for lay, _ in numbered], crop_tets=crop_tets,
+    location.update(coarse_sizes=[lay.n for lay, _ in numbered], crop_tets=crop[0], crop_nodes=crop[1],
                     coarse_rows=[P.shape[0] for P in pieces], seconds=time.perf_counter() - t0)
     return interp, location
 

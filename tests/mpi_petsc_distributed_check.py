@@ -8,7 +8,8 @@ Every rank builds the Kuhn cube's interior-node Dirichlet problem (tests/mpi_pet
 its own block of rows of ``A`` (a deliberately uneven split: rank r owns a share proportional to r+1), the
 coordinates of those unknowns, the first coarse tet mesh and the coarser prolongations, and solves with
 MG-PCG, once with the coarse levels as arrays and once streamed from a ``save_coarse_levels`` file
-(each rank reading its crop and its rows only). Then rank 1 moves one of its points out of the coarse mesh: every rank must raise
+(each rank reading its crop and its rows only).
+Then rank 1 moves one of its points out of the coarse mesh: every rank must raise
 ``OutsideCoarseMeshError``. Each rank writes ``OUT/rank<r>.json`` (rows, iterations, the error it saw)
 and ``OUT/rank<r>.npy``, ``OUT/rank<r>_file.npy`` (its part of the two solutions).
 """

@@ -459,7 +459,23 @@ def petsc_dist_summary() -> str:
             f"hierarchy and cycle {ip['iterations']} (solutions {ip['solution_vs_petsc_1rank']:.0e} apart); on "
             f"{', '.join(str(r['ranks']) for r in d['runs'][1:])} ranks {', '.join(str(i) for i in its[1:])} "
             f"{'(the same, despite' if len(set(its)) == 1 else '(with'} processor-local SOR). Solved to 1e-12, every run's solution matches the 1-rank one (by node "
-            f"coordinates) to {diff:.0e}.")
+            f"coordinates) to {diff:.0e}. {_dist_coarse(d)}")
+
+
+def _dist_coarse(d: dict) -> str:
+    """One sentence on the coarse levels per rank: set-up memory, crop, coarse objects, the coarsest."""
+    mod = sibling("petsc_distributed")
+    t1 = d["input_mesh"]["tets"]
+    runs = d["runs"]
+    setup = " / ".join(f"{max(mod._setup_bytes(r) for r in run['per_rank']) / 2**20:.1f}" for run in runs)
+    crop = " / ".join(f"{max(r['location']['crop_tets'] for r in run['per_rank']) / t1:.2f}" for run in runs)
+    kib = " / ".join(f"{max(mod._coarse_kib(r) for r in run['per_rank']):,.0f}" for run in runs)
+    last = runs[-1]["per_rank"][0]
+    coarsest = last["coarse_objects"]["coarsest operator (gathered on every rank)"] / 1024
+    return (f"Coarse levels per rank on {' / '.join(str(run['ranks']) for run in runs)} ranks: hierarchy "
+            f"set-up {setup} MiB; the crop keeps {crop} of the {t1:,} first-coarse tets; coarse objects "
+            f"after set-up {kib} KiB, of which the coarsest operator ({last['levels'][-1]['n']} unknowns, "
+            f"gathered on every rank) is {coarsest:,.0f} KiB.")
 
 
 @generator("petsc.distributed_comm", DIST)

@@ -203,13 +203,14 @@ def _sorted_solution(d: Path, ranks: int, key: str) -> tuple[np.ndarray, np.ndar
 
 
 def _inprocess(path: Path, tol: float) -> dict:
-    """The in-process MultigridSolver on the dumped hierarchy, PCMG's cycle (symmetric GS, V(1,1), CG)."""
+    """The in-process MultigridSolver on the dumped hierarchy, PCMG's cycle (symmetric GS, V(1,1), CG; no
+    deflation, which PCMG does not have)."""
     from solvers.multilevel import MultigridSolver
     from solvers.petsc import load_operators
 
     h = load_operators(path)
     sgs = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
-    ml = MultigridSolver(h["A"], h["Ps"], presmoother=sgs, postsmoother=sgs)
+    ml = MultigridSolver(h["A"], h["Ps"], presmoother=sgs, postsmoother=sgs, deflate=0)
     x, info = ml.solve(h["b"], tol=tol, accel="cg", return_info=True)
     return {"iterations": int(info["iterations"]), "x": x}
 

@@ -113,6 +113,11 @@ def worker(args) -> None:
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
     rss, peaks = {"start": _rss()}, {}
+    coarse = args.worker  # the file: each rank reads its pieces
+    if args.arrays:  # the previous way: the whole coarse levels on every rank, as global arrays
+        h = _load_global(args.worker)
+        coarse = ((h["V1"], h["T1"]), h["Ps"])
+    rss["coarse arrays"] = _rss()
     V0, T0 = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
     if rank == 0:  # the input mesh (= the first coarse level), on rank 0 only, to start the DMPlex
         with np.load(args.worker) as z:
@@ -132,7 +137,7 @@ def worker(args) -> None:
     _reset_peak()
     setup_events = ["MatPtAPSymbolic", "MatPtAPNumeric", "PCSetUp"]
     ptap0 = _events(PETSc, setup_events)
-    mg = PetscMultigrid.from_distributed(A, points, args.worker)  # this rank's pieces of the coarse levels
+    mg = PetscMultigrid.from_distributed(A, points, *((coarse,) if isinstance(coarse, str) else coarse))
     rss["hierarchy"] = _rss()
     peaks["hierarchy setup"] = _peak()
     _reset_peak()
@@ -148,7 +153,7 @@ def worker(args) -> None:
     peaks["solve"] = _peak()
     objects = _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points)
     coarse = _coarse_objects(PETSc, mg)
-    rec = {"rank": rank, "ranks": comm.getSize(), "rows": len(points), "tets": len(tets), "rss": rss,
+    rec = {"rank": rank, "ranks": comm.getSize(), "mode": "arrays" if args.arrays else "file", "rows": len(points), "tets": len(tets), "rss": rss,
            "peaks": peaks, "peak": max(peaks.values()), "fine_objects": objects, "coarse_objects": coarse,
            "ptap": ptap, "solve": {k: {q: solve1[k][q] - solve0[k][q] for q in solve1[k]} for k in solve1},
            "iterations": info["iterations"], "final_residual": info["final_residual"],
@@ -163,6 +168,17 @@ def worker(args) -> None:
     mg.destroy()
     for obj in (A, b, dm):
         obj.destroy()
+
+
+def _load_global(path) -> dict:
+    """The whole coarse levels of a save_coarse_levels file, as global arrays (what --compare-arrays runs)."""
+    import scipy.sparse as sp
+
+    with np.load(path) as z:
+        h = {k: z[k] for k in z.files}
+    Ps = [sp.csr_matrix((h[f"P{k}_data"], h[f"P{k}_indices"], h[f"P{k}_indptr"]), shape=tuple(h[f"P{k}_shape"]))
+          for k in range(int(h["n_coarse"]))]
+    return {"V1": h["V1"], "T1": h["T1"], "Ps": Ps}
 
 
 def _csr(M):
@@ -204,13 +220,13 @@ def _sorted_solution(d: Path, ranks: int, key: str) -> tuple[np.ndarray, np.ndar
 
 def _inprocess(path: Path, tol: float) -> dict:
     """The in-process MultigridSolver on the dumped hierarchy, PCMG's cycle (symmetric GS, V(1,1), CG; no
-    deflation, which PCMG does not have)."""
+    deflation and in the given order, as PCMG: the defaults since issue 31 reorder and deflate)."""
     from solvers.multilevel import MultigridSolver
     from solvers.petsc import load_operators
 
     h = load_operators(path)
     sgs = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
-    ml = MultigridSolver(h["A"], h["Ps"], presmoother=sgs, postsmoother=sgs, deflate=0)
+    ml = MultigridSolver(h["A"], h["Ps"], presmoother=sgs, postsmoother=sgs, deflate=0, ordering=None)
     x, info = ml.solve(h["b"], tol=tol, accel="cg", return_info=True)
     return {"iterations": int(info["iterations"]), "x": x}
 
@@ -232,22 +248,26 @@ def launcher(args) -> int:
         save_coarse_levels(tmp / "coarse.npz", V, T, Ps)
         del V, T, Ps
         ref = None
+        modes = ["file"] + (["arrays"] if args.compare_arrays else [])
         for p in args.ranks:
-            d = tmp / f"p{p}"
-            d.mkdir()
-            wall = _mpirun(p, ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine",
-                               str(args.refine), "--tol", str(args.tol)], d / "log.txt")
-            recs = [json.loads((d / f"rank{r}.json").read_text()) for r in range(p)]
-            run = {"ranks": p, "wall_seconds": wall, "per_rank": recs}
-            pts, x = _sorted_solution(d, p, "xt")
-            if ref is None:
-                ref = (pts, x)
-            if not np.array_equal(pts, ref[0]):
-                raise SystemExit(f"{p} ranks: the fine nodes differ from the first run's")
-            run["solution_vs_first_run"] = float(np.linalg.norm(x - ref[1]) / np.linalg.norm(ref[1]))
-            doc["runs"].append(run)
-            print(f"{p} ranks: {wall:.1f} s, peak per rank {[r['peak'] >> 20 for r in recs]} MiB, "
-                  f"iterations {recs[0]['iterations']}", flush=True)
+            for mode in modes:
+                d = tmp / f"p{p}_{mode}"
+                d.mkdir()
+                wall = _mpirun(p, ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine",
+                                   str(args.refine), "--tol", str(args.tol)] + (["--arrays"] if mode == "arrays"
+                                                                                 else []), d / "log.txt")
+                recs = [json.loads((d / f"rank{r}.json").read_text()) for r in range(p)]
+                run = {"ranks": p, "wall_seconds": wall, "per_rank": recs}
+                pts, x = _sorted_solution(d, p, "xt")
+                if ref is None:
+                    ref = (pts, x)
+                if not np.array_equal(pts, ref[0]):
+                    raise SystemExit(f"{p} ranks: the fine nodes differ from the first run's")
+                run["solution_vs_first_run"] = float(np.linalg.norm(x - ref[1]) / np.linalg.norm(ref[1]))
+                doc["runs" if mode == "file" else "runs_arrays"] = doc.get(
+                    "runs" if mode == "file" else "runs_arrays", []) + [run]
+                print(f"{p} ranks ({mode}): {wall:.1f} s, peak per rank {[r['peak'] >> 20 for r in recs]} MiB, "
+                      f"iterations {recs[0]['iterations']}", flush=True)
         d = tmp / "dump"
         d.mkdir()
         _mpirun(1, ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine", str(args.refine),
@@ -308,6 +328,28 @@ def memory_table(doc: dict) -> tuple[list[str], list[list]]:
             "fine-level memory x p / 1-rank", "DMPlex MiB", "A MiB", "P₀ MiB", "hierarchy set-up MiB",
             f"coarse tets kept per rank (of {t1:,})", "coarse-level KiB per rank",
             "CG iterations (1e-8)", "solution vs 1 rank (1e-12 solves)"]
+    return head, rows
+
+
+def coarse_table(doc: dict) -> tuple[list[str], list[list]]:
+    """Per rank count (max over ranks): the coarse levels read per rank from the file vs held whole on
+    every rank as arrays (``--compare-arrays``): first-coarse tets kept, memory, peak, solutions."""
+    t1 = doc["input_mesh"]["tets"]
+    rows = []
+    for run, old in zip(doc["runs"], doc["runs_arrays"]):
+        recs, olds = run["per_rank"], old["per_rank"]
+        crop = max(r["location"]["crop_tets"] for r in recs)
+        held = max(r["rss"]["coarse arrays"] - r["rss"]["start"] for r in olds)
+        rows.append([run["ranks"], f"{max(r['tets'] for r in recs):,}", f"{crop:,} ({crop / t1:.2f})",
+                     f"{max(_setup_bytes(r) for r in recs) / MIB:.1f}",
+                     f"{held / MIB:.1f} + {max(_setup_bytes(r) for r in olds) / MIB:.1f}",
+                     f"{max(r['peak'] for r in recs) / MIB:.0f} / {max(r['peak'] for r in olds) / MIB:.0f}",
+                     f"{recs[0]['iterations']} / {olds[0]['iterations']}",
+                     f"{old['solution_vs_first_run']:.0e}"])
+    head = ["ranks", "fine tets per rank (max)", f"first-coarse tets kept per rank (of {t1:,})",
+            "coarse from the file: set-up MiB per rank", "coarse as arrays on every rank: held + set-up MiB",
+            "peak MiB per rank, file / arrays", "CG iterations, file / arrays",
+            "arrays' solution vs the file's 1-rank (1e-12 solves)"]
     return head, rows
 
 
@@ -381,7 +423,10 @@ def main(argv=None) -> int:
     ap.add_argument("--refine", type=int, default=2, help="parallel refinements of the input mesh")
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--out", default="bench_out/petsc_distributed.json")
+    ap.add_argument("--compare-arrays", action="store_true",
+                    help="also run every rank count with the whole coarse levels as arrays on every rank")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--arrays", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--outdir", help=argparse.SUPPRESS)
     ap.add_argument("--dump", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

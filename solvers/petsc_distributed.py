@@ -176,9 +176,9 @@ def distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, on_bound
     interp : list of PETSc AIJ matrices, finest first (``P₀`` rows follow ``A``'s ownership)
     location : dict
         ``n_outside`` (0), ``n_on_boundary`` (summed over ranks), ``coarse_sizes`` (unknowns of every
-        coarse level after dropping the nodes no fine unknown reaches), ``crop_tets`` (this rank's coarse
-        tets and nodes), ``crop_nodes``, ``coarse_rows`` (this rank's rows of each coarse prolongation),
-        ``seconds``.
+        coarse level after dropping the nodes no fine unknown reaches), ``crop_tets`` / ``crop_nodes``
+        (this rank's kept coarse tets and their nodes), ``coarse_rows`` (this rank's rows of each coarse
+        prolongation), ``seconds``.
     """
     t0 = time.perf_counter()
     comm = A.getComm()

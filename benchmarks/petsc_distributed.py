@@ -113,10 +113,12 @@ def worker(args) -> None:
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
     rss, peaks = {"start": _rss()}, {}
-    coarse = args.worker  # the file: each rank reads its pieces
+    coarse, held = args.worker, 0  # the file: each rank reads its pieces
     if args.arrays:  # the previous way: the whole coarse levels on every rank, as global arrays
         h = _load_global(args.worker)
         coarse = ((h["V1"], h["T1"]), h["Ps"])
+        held = int(h["V1"].nbytes + h["T1"].nbytes
+                   + sum(P.data.nbytes + P.indices.nbytes + P.indptr.nbytes for P in h["Ps"]))
     rss["coarse arrays"] = _rss()
     V0, T0 = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
     if rank == 0:  # the input mesh (= the first coarse level), on rank 0 only, to start the DMPlex
@@ -154,7 +156,7 @@ def worker(args) -> None:
     objects = _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points)
     coarse = _coarse_objects(PETSc, mg)
     rec = {"rank": rank, "ranks": comm.getSize(), "mode": "arrays" if args.arrays else "file", "rows": len(points), "tets": len(tets), "rss": rss,
-           "peaks": peaks, "peak": max(peaks.values()), "fine_objects": objects, "coarse_objects": coarse,
+           "peaks": peaks, "peak": max(peaks.values()), "coarse_arrays_bytes": held, "fine_objects": objects, "coarse_objects": coarse,
            "ptap": ptap, "solve": {k: {q: solve1[k][q] - solve0[k][q] for q in solve1[k]} for k in solve1},
            "iterations": info["iterations"], "final_residual": info["final_residual"],
            "iterations_tight": info_t["iterations"], "final_residual_tight": info_t["final_residual"],
@@ -333,21 +335,24 @@ def memory_table(doc: dict) -> tuple[list[str], list[list]]:
 
 def coarse_table(doc: dict) -> tuple[list[str], list[list]]:
     """Per rank count (max over ranks): the coarse levels read per rank from the file vs held whole on
-    every rank as arrays (``--compare-arrays``): first-coarse tets kept, memory, peak, solutions."""
+    every rank as arrays (``--compare-arrays``): first-coarse tets kept, bytes, set-up memory, answers."""
     t1 = doc["input_mesh"]["tets"]
     rows = []
     for run, old in zip(doc["runs"], doc["runs_arrays"]):
         recs, olds = run["per_rank"], old["per_rank"]
         crop = max(r["location"]["crop_tets"] for r in recs)
-        held = max(r["rss"]["coarse arrays"] - r["rss"]["start"] for r in olds)
+        crop_kib = max(r["coarse_objects"]["crop of the first coarse mesh (transient)"] for r in recs) / 1024
+        held = max(r["coarse_arrays_bytes"] for r in olds) / 1024
         rows.append([run["ranks"], f"{max(r['tets'] for r in recs):,}", f"{crop:,} ({crop / t1:.2f})",
-                     f"{max(_setup_bytes(r) for r in recs) / MIB:.1f}",
-                     f"{held / MIB:.1f} + {max(_setup_bytes(r) for r in olds) / MIB:.1f}",
+                     f"{crop_kib:,.0f}", f"{max(_coarse_kib(r) for r in recs):,.0f}", f"{held:,.0f}",
+                     f"{max(_setup_bytes(r) for r in recs) / MIB:.1f} / "
+                     f"{max(_setup_bytes(r) for r in olds) / MIB:.1f}",
                      f"{max(r['peak'] for r in recs) / MIB:.0f} / {max(r['peak'] for r in olds) / MIB:.0f}",
                      f"{recs[0]['iterations']} / {olds[0]['iterations']}",
                      f"{old['solution_vs_first_run']:.0e}"])
     head = ["ranks", "fine tets per rank (max)", f"first-coarse tets kept per rank (of {t1:,})",
-            "coarse from the file: set-up MiB per rank", "coarse as arrays on every rank: held + set-up MiB",
+            "file: crop KiB per rank (while locating)", "file: coarse objects KiB per rank (after set-up)",
+            "arrays: coarse levels KiB held on every rank", "set-up MiB per rank, file / arrays",
             "peak MiB per rank, file / arrays", "CG iterations, file / arrays",
             "arrays' solution vs the file's 1-rank (1e-12 solves)"]
     return head, rows

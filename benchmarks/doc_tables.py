@@ -478,6 +478,15 @@ def _dist_coarse(d: dict) -> str:
             f"gathered on every rank) is {coarsest:,.0f} KiB.")
 
 
+DIST_COARSE = "petsc/petsc_distributed_coarse.json"
+
+
+@generator("petsc.distributed_coarse", DIST_COARSE)
+def petsc_distributed_coarse() -> str:
+    head, rows = sibling("petsc_distributed").coarse_table(load(DIST_COARSE))
+    return table(head, rows)
+
+
 @generator("petsc.distributed_comm", DIST)
 def petsc_distributed_comm() -> str:
     rows = [[c["ranks"], f"{c['tets_per_rank']:,.0f}", f"{c['ptap_bytes'] / 2**20:.2f}",

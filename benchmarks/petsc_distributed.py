@@ -99,6 +99,37 @@ def _coarse_objects(PETSc, mg) -> dict:
                 32 * (mg.location["crop_tets"] + mg.location["crop_nodes"])}
 
 
+def _coarse_input(args) -> tuple:
+    """What this rank passes to ``from_distributed`` and the bytes it holds for it beforehand."""
+    if not args.arrays:
+        return (args.worker,), 0  # the file: each rank reads its pieces
+    h = _load_global(args.worker)  # the previous way: the whole coarse levels on every rank, as global arrays
+    held = h["V1"].nbytes + h["T1"].nbytes
+    held += sum(P.data.nbytes + P.indices.nbytes + P.indptr.nbytes for P in h["Ps"])
+    return ((h["V1"], h["T1"]), h["Ps"]), int(held)
+
+
+def _fine_level(PETSc, drv, args, rank: int, rss: dict) -> dict:
+    """The driver's fine-level steps (DMPlex from rank 0, distribute, refine, assemble), memory recorded."""
+    V0, T0 = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
+    if rank == 0:  # the input mesh (= the first coarse level), on rank 0 only, to start the DMPlex
+        with np.load(args.worker) as z:
+            V0, T0 = z["V1"], z["T1"]
+    rss["input mesh"] = _rss()
+    t = time.perf_counter()
+    f = {"dm": drv.distribute(PETSc, V0, T0, args.refine)}
+    del V0, T0
+    rss["mesh distributed and refined"] = _rss()
+    f["X"], f["tets"], f["bnd"] = drv.local_mesh(f["dm"])
+    f["ldof"], f["gidx"], f["owned"] = drv.dof_numbering(PETSc, f["dm"], f["bnd"])
+    rss["local mesh arrays"] = _rss()
+    f["A"], f["b"], f["points"] = drv.assemble(PETSc, f["dm"], f["X"], f["tets"], f["ldof"], f["owned"],
+                                               f["gidx"])
+    f["seconds"] = time.perf_counter() - t
+    rss["assembled"] = _rss()
+    return f
+
+
 def worker(args) -> None:
     """One MPI rank: the driver's steps with memory and communication recorded; writes rank<r>.json/.npz."""
     import petsc4py
@@ -108,67 +139,49 @@ def worker(args) -> None:
 
     from solvers.petsc import PetscMultigrid
 
-    drv = _driver()
     PETSc.Log.begin()
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
     rss, peaks = {"start": _rss()}, {}
-    coarse, held = args.worker, 0  # the file: each rank reads its pieces
-    if args.arrays:  # the previous way: the whole coarse levels on every rank, as global arrays
-        h = _load_global(args.worker)
-        coarse = ((h["V1"], h["T1"]), h["Ps"])
-        held = int(h["V1"].nbytes + h["T1"].nbytes
-                   + sum(P.data.nbytes + P.indices.nbytes + P.indptr.nbytes for P in h["Ps"]))
+    coarse, held = _coarse_input(args)
     rss["coarse arrays"] = _rss()
-    V0, T0 = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
-    if rank == 0:  # the input mesh (= the first coarse level), on rank 0 only, to start the DMPlex
-        with np.load(args.worker) as z:
-            V0, T0 = z["V1"], z["T1"]
-    rss["input mesh"] = _rss()
-    t = time.perf_counter()
-    dm = drv.distribute(PETSc, V0, T0, args.refine)
-    del V0, T0
-    rss["mesh distributed and refined"] = _rss()
-    X, tets, bnd = drv.local_mesh(dm)
-    ldof, gidx, owned = drv.dof_numbering(PETSc, dm, bnd)
-    rss["local mesh arrays"] = _rss()
-    A, b, points = drv.assemble(PETSc, dm, X, tets, ldof, owned, gidx)
-    t_mesh = time.perf_counter() - t
-    rss["assembled"] = _rss()
+    f = _fine_level(PETSc, _driver(), args, rank, rss)
+    A, b, points = f["A"], f["b"], f["points"]
     peaks["fine level"] = _peak()
-    _reset_peak()
+    _reset_peak()  # the set-up's own peak from here
     setup_events = ["MatPtAPSymbolic", "MatPtAPNumeric", "PCSetUp"]
     ptap0 = _events(PETSc, setup_events)
-    mg = PetscMultigrid.from_distributed(A, points, *((coarse,) if isinstance(coarse, str) else coarse))
+    mg = PetscMultigrid.from_distributed(A, points, *coarse)
     rss["hierarchy"] = _rss()
     peaks["hierarchy setup"] = _peak()
     _reset_peak()
     ptap1 = _events(PETSc, setup_events)
     ptap = {e: {q: ptap1[e][q] - ptap0[e][q] for q in ptap1[e]} for e in setup_events}
-    pc = mg.ksp.getPC()
-    P0 = pc.getMGInterpolation(len(mg.levels) - 1)
+    P0 = mg.ksp.getPC().getMGInterpolation(len(mg.levels) - 1)
     solve0 = _events(PETSc, ["KSPSolve", "PCApply", "MatMult"])
     x, info = mg.solve(b.getArray(), tol=args.tol)
     solve1 = _events(PETSc, ["KSPSolve", "PCApply", "MatMult"])
     rss["solved"] = _rss()
     xt, info_t = mg.solve(b.getArray(), tol=TIGHT)
     peaks["solve"] = _peak()
-    objects = _fine_objects(PETSc, rss, X, tets, ldof, gidx, owned, bnd, A, P0, points)
-    coarse = _coarse_objects(PETSc, mg)
-    rec = {"rank": rank, "ranks": comm.getSize(), "mode": "arrays" if args.arrays else "file", "rows": len(points), "tets": len(tets), "rss": rss,
-           "peaks": peaks, "peak": max(peaks.values()), "coarse_arrays_bytes": held, "fine_objects": objects, "coarse_objects": coarse,
+    objects = _fine_objects(PETSc, rss, f["X"], f["tets"], f["ldof"], f["gidx"], f["owned"], f["bnd"], A, P0,
+                            points)
+    rec = {"rank": rank, "ranks": comm.getSize(), "mode": "arrays" if args.arrays else "file",
+           "rows": len(points), "tets": len(f["tets"]), "rss": rss, "peaks": peaks,
+           "peak": max(peaks.values()),
+           "coarse_arrays_bytes": held, "fine_objects": objects, "coarse_objects": _coarse_objects(PETSc, mg),
            "ptap": ptap, "solve": {k: {q: solve1[k][q] - solve0[k][q] for q in solve1[k]} for k in solve1},
            "iterations": info["iterations"], "final_residual": info["final_residual"],
            "iterations_tight": info_t["iterations"], "final_residual_tight": info_t["final_residual"],
            "levels": info["levels"], "location": mg.location, "setup_seconds": mg.setup_seconds,
-           "solve_seconds": info["solve_seconds"], "mesh_and_assembly_seconds": t_mesh}
+           "solve_seconds": info["solve_seconds"], "mesh_and_assembly_seconds": f["seconds"]}
     out = Path(args.outdir)
     (out / f"rank{rank}.json").write_text(json.dumps(rec))
     np.savez(out / f"rank{rank}.npz", points=points, x=x, xt=xt)
     if args.dump:  # 1 rank only: the whole hierarchy as scipy matrices, for the in-process solver
         _dump(PETSc, mg, A, b, out / "hierarchy.npz")
     mg.destroy()
-    for obj in (A, b, dm):
+    for obj in (A, b, f["dm"]):
         obj.destroy()
 
 
@@ -178,8 +191,8 @@ def _load_global(path) -> dict:
 
     with np.load(path) as z:
         h = {k: z[k] for k in z.files}
-    Ps = [sp.csr_matrix((h[f"P{k}_data"], h[f"P{k}_indices"], h[f"P{k}_indptr"]), shape=tuple(h[f"P{k}_shape"]))
-          for k in range(int(h["n_coarse"]))]
+    Ps = [sp.csr_matrix((h[f"P{k}_data"], h[f"P{k}_indices"], h[f"P{k}_indptr"]),
+                        shape=tuple(h[f"P{k}_shape"])) for k in range(int(h["n_coarse"]))]
     return {"V1": h["V1"], "T1": h["T1"], "Ps": Ps}
 
 
@@ -255,9 +268,9 @@ def launcher(args) -> int:
             for mode in modes:
                 d = tmp / f"p{p}_{mode}"
                 d.mkdir()
-                wall = _mpirun(p, ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine",
-                                   str(args.refine), "--tol", str(args.tol)] + (["--arrays"] if mode == "arrays"
-                                                                                 else []), d / "log.txt")
+                argv = ["--worker", str(tmp / "coarse.npz"), "--outdir", str(d), "--refine", str(args.refine),
+                        "--tol", str(args.tol)] + (["--arrays"] if mode == "arrays" else [])
+                wall = _mpirun(p, argv, d / "log.txt")
                 recs = [json.loads((d / f"rank{r}.json").read_text()) for r in range(p)]
                 run = {"ranks": p, "wall_seconds": wall, "per_rank": recs}
                 pts, x = _sorted_solution(d, p, "xt")
@@ -268,7 +281,8 @@ def launcher(args) -> int:
                 run["solution_vs_first_run"] = float(np.linalg.norm(x - ref[1]) / np.linalg.norm(ref[1]))
                 doc["runs" if mode == "file" else "runs_arrays"] = doc.get(
                     "runs" if mode == "file" else "runs_arrays", []) + [run]
-                print(f"{p} ranks ({mode}): {wall:.1f} s, peak per rank {[r['peak'] >> 20 for r in recs]} MiB, "
+                peak = [r["peak"] >> 20 for r in recs]
+                print(f"{p} ranks ({mode}): {wall:.1f} s, peak per rank {peak} MiB, "
                       f"iterations {recs[0]['iterations']}", flush=True)
         d = tmp / "dump"
         d.mkdir()

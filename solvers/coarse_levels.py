@@ -81,7 +81,14 @@ class CoarseLevels:
     # ------------------------------------------------------------------------------ construction
     @classmethod
     def from_arrays(cls, V1, T1, coarse_Ps=()) -> CoarseLevels:
-        """From in-memory arrays (validated: shapes, finite nodes, tets indexing the nodes, P chain)."""
+        """From in-memory arrays (validated: shapes, finite nodes, tets indexing the nodes, P chain).
+
+        Parameters
+        ----------
+        V1 : (n_1,3) float
+        T1 : (t_1,4) int
+        coarse_Ps : list of sparse, ``coarse_Ps[k-1]`` of shape ``(n_k, n_{k+1})``
+        """
         self = cls()
         V = np.asarray(V1, dtype=np.float64)
         T = np.asarray(T1)
@@ -103,7 +110,13 @@ class CoarseLevels:
 
     @classmethod
     def from_file(cls, path) -> CoarseLevels:
-        """From an ``.npz`` written by :func:`save_coarse_levels`; reads only the array headers now."""
+        """From an ``.npz`` written by :func:`save_coarse_levels`; reads only the array headers now.
+
+        Parameters
+        ----------
+        path : str or path-like
+            Readable by every rank that uses it (a shared file system under MPI).
+        """
         self = cls()
         self._path = Path(path)
         if not self._path.is_file():
@@ -205,7 +218,19 @@ class CoarseLevels:
         return V, T, gid
 
     def rows(self, k: int, rows: np.ndarray) -> sp.csr_matrix:
-        """Rows ``rows`` (increasing level-k indices) of ``P_k`` (level k+1 -> k, k >= 1), global columns."""
+        """Rows ``rows`` of ``P_k`` (level k+1 -> k, k >= 1), with global column indices.
+
+        Parameters
+        ----------
+        k : int
+            Level of the rows, 1 for the first coarse level (``coarse_Ps[k-1]``).
+        rows : (m,) int, increasing
+            Level-k node indices.
+
+        Returns
+        -------
+        (m, n_{k+1}) csr_matrix
+        """
         rows = np.asarray(rows, dtype=np.int64)
         shape = self.shapes[k - 1]
         if self._path is None:

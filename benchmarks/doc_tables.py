@@ -459,7 +459,32 @@ def petsc_dist_summary() -> str:
             f"hierarchy and cycle {ip['iterations']} (solutions {ip['solution_vs_petsc_1rank']:.0e} apart); on "
             f"{', '.join(str(r['ranks']) for r in d['runs'][1:])} ranks {', '.join(str(i) for i in its[1:])} "
             f"{'(the same, despite' if len(set(its)) == 1 else '(with'} processor-local SOR). Solved to 1e-12, every run's solution matches the 1-rank one (by node "
-            f"coordinates) to {diff:.0e}.")
+            f"coordinates) to {diff:.0e}. {_dist_coarse(d)}")
+
+
+def _dist_coarse(d: dict) -> str:
+    """One sentence on the coarse levels per rank: set-up memory, crop, coarse objects, the coarsest."""
+    mod = sibling("petsc_distributed")
+    t1 = d["input_mesh"]["tets"]
+    runs = d["runs"]
+    setup = " / ".join(f"{max(mod._setup_bytes(r) for r in run['per_rank']) / 2**20:.1f}" for run in runs)
+    crop = " / ".join(f"{max(r['location']['crop_tets'] for r in run['per_rank']) / t1:.2f}" for run in runs)
+    kib = " / ".join(f"{max(mod._coarse_kib(r) for r in run['per_rank']):,.0f}" for run in runs)
+    last = runs[-1]["per_rank"][0]
+    coarsest = last["coarse_objects"]["coarsest operator (gathered on every rank)"] / 1024
+    return (f"Coarse levels per rank on {' / '.join(str(run['ranks']) for run in runs)} ranks: hierarchy "
+            f"set-up {setup} MiB; the crop keeps {crop} of the {t1:,} first-coarse tets; coarse objects "
+            f"after set-up {kib} KiB, of which the coarsest operator ({last['levels'][-1]['n']} unknowns, "
+            f"gathered on every rank) is {coarsest:,.0f} KiB.")
+
+
+DIST_COARSE = "petsc/petsc_distributed_coarse.json"
+
+
+@generator("petsc.distributed_coarse", DIST_COARSE)
+def petsc_distributed_coarse() -> str:
+    head, rows = sibling("petsc_distributed").coarse_table(load(DIST_COARSE))
+    return table(head, rows)
 
 
 @generator("petsc.distributed_comm", DIST)
@@ -480,9 +505,17 @@ def petsc_estimate() -> str:
     rows = [["fine tets per rank", f"{e['tets_per_rank']:,.0f}"],
             ["fine-level bytes per tet (measured, largest run)", f"{e['fine_bytes_per_tet']:.0f}"],
             ["fine level per rank", f"{e['fine_bytes'] / mib:,.0f} MiB"],
-            ["start-up (Python, PETSc, libigl) per rank", f"{e['start_bytes'] / mib:,.0f} MiB"],
-            [f"global coarse levels per rank (first coarse level {e['first_coarse_tets']:,.0f} tets)",
-             f"{e['coarse_bytes'] / mib:,.0f} MiB"],
+            ["start-up (Python, PETSc) per rank", f"{e['start_bytes'] / mib:,.0f} MiB"],
+            ["hierarchy set-up bytes per fine tet (measured, largest run)",
+             f"{e['setup_bytes_per_tet']:.0f}"],
+            [f"coarse levels per rank: set-up share (P₀, a crop of ~{e['crop_tets_per_rank']:,.0f} of the "
+             f"{e['first_coarse_tets']:,.0f} first-coarse tets, own coarse rows)",
+             f"{e['setup_bytes'] / mib:,.0f} MiB"],
+            [f"coarse levels per rank: coarse-sized arrays during set-up ({e['coarse_nodes']:,.0f} "
+             "coarse nodes)",
+             f"{e['global_bytes'] / mib:,.0f} MiB"],
+            ["coarse levels per rank: coarsest operator, gathered on every rank",
+             f"{e['coarsest_bytes'] / mib:.2f} MiB"],
             ["**memory per rank**", f"**{e['memory_per_rank'] / mib:,.0f} MiB**"],
             [f"MatPtAP bytes sent per rank (x{e['surface_scale']:.1f}, from {e['from_ranks']} ranks)",
              f"{e['ptap_bytes_per_rank'] / mib:.1f} MiB"],

@@ -9,8 +9,9 @@ copies only its own rows into PETSc::
 
 When the fine level is too large for one rank, :meth:`PetscMultigrid.from_distributed` takes the caller's
 distributed PETSc matrix and the coordinates of each rank's unknowns instead, and builds each rank's rows
-of ``P₀`` by point location in the (small, global) first coarse tet mesh: no rank holds a global
-fine-level object (issue 33; ``docs/examples/petsc_distributed.py``).
+of ``P₀`` by point location in its crop of the first coarse tet mesh and reads only its rows of the
+coarse prolongations (from a :func:`save_coarse_levels` file): no rank holds a global fine-level or
+coarse-level object, only the coarsest operator (issue 33; ``docs/examples/petsc_distributed.py``).
 
 Level numbering follows :class:`solvers.MultigridSolver` (level 0 finest, ``Ps[k]`` of shape
 ``(n_k, n_{k+1})`` maps level ``k+1`` to level ``k``). PETSc numbers the other way (its level 0 is the
@@ -76,10 +77,12 @@ from .petsc_common import (
     petsc_available,
     row_partition,
 )
+from .coarse_levels import CoarseLevels, save_coarse_levels
 from .petsc_distributed import broadcast_arrays
 from .petsc_io import load_operators, save_operators
 
 __all__ = [
+    "CoarseLevels",
     "PetscMultigrid",
     "broadcast_arrays",
     "PetscUnavailableError",
@@ -87,6 +90,7 @@ __all__ = [
     "petsc_amg_solve",
     "petsc_available",
     "row_partition",
+    "save_coarse_levels",
     "save_operators",
 ]
 
@@ -286,13 +290,18 @@ class PetscMultigrid:
 
     @classmethod
     def from_distributed(cls, A, points, coarse_mesh, coarse_Ps=(), **kwargs) -> PetscMultigrid:
-        """PCMG on the caller's distributed fine matrix; each rank builds only its own rows of ``P₀``.
+        """PCMG on the caller's distributed fine matrix; each rank builds only its own rows of every ``P``.
 
         No rank ever holds a global fine-level object: the caller's ``A`` stays as it is (any row
-        ownership), each rank locates its own fine nodes in the first coarse tet mesh
-        (:func:`solvers.locate.locate_in_tets`) and assembles its rows of ``P₀`` directly as an MPI AIJ
-        matrix, and PETSc forms the Galerkin operators ``P_kᵀ A_k P_k`` by its parallel ``MatPtAP``. The
-        coarse levels (small: cage tet meshes) are the same global arrays on every rank. Collective.
+        ownership), each rank locates its own fine nodes in its crop of the first coarse tet mesh (the
+        tets whose bounding box meets its points' box; :func:`solvers.locate.locate_in_tets`) and
+        assembles its rows of ``P₀`` directly as an MPI AIJ matrix. Coarse nodes go to the rank holding
+        most of their interpolation weight, which reads only those rows of ``P_1, P_2, ...``; PETSc forms
+        the Galerkin operators ``P_kᵀ A_k P_k`` by its parallel ``MatPtAP``. Given a file (``coarse_mesh``
+        a path written by :func:`save_coarse_levels`), each rank streams it and keeps only its pieces, so
+        no rank holds the coarse levels in full either; given arrays, the caller holds them and the
+        solver keeps only the pieces. Only the coarsest operator is gathered on every rank (its exact
+        solve). Collective.
 
         Parameters
         ----------
@@ -302,11 +311,13 @@ class PetscMultigrid:
             space is attached to it).
         points : (n_local,3) float array
             Coordinates of this rank's fine unknowns, in the order of its owned rows.
-        coarse_mesh : tuple ``(V_1, T_1)``
-            First coarse tet mesh, ``V_1`` (n_1,3) float, ``T_1`` (t_1,4) int; identical on every rank.
+        coarse_mesh : str or path-like, :class:`CoarseLevels`, or tuple ``(V_1, T_1)``
+            The coarse levels: the path of a :func:`save_coarse_levels` file (read piecewise, the
+            scalable choice), or the first coarse tet mesh ``V_1`` (n_1,3) float, ``T_1`` (t_1,4) int,
+            identical on every rank (then with ``coarse_Ps``).
         coarse_Ps : list of sparse
-            Prolongations between the coarse levels, ``coarse_Ps[k-1]`` of shape ``(n_k, n_{k+1})``, k >= 1
-            (identical on every rank; may be empty: two levels).
+            With ``(V_1, T_1)`` only: prolongations between the coarse levels, ``coarse_Ps[k-1]`` of shape
+            ``(n_k, n_{k+1})``, k >= 1 (identical on every rank; may be empty: two levels).
         **kwargs
             ``on_boundary_tol`` (default 1e-12, relative to the global fine bounding-box diagonal, as
             :func:`nestmg.prolongation.prolongation`) and every keyword of :class:`PetscMultigrid` except
@@ -317,7 +328,8 @@ class PetscMultigrid:
         -------
         PetscMultigrid
             ``solve(b)`` then takes and returns this rank's entries only. ``location`` holds the
-            certification reduced over ranks: ``n_outside`` (0), ``n_on_boundary``, ``seconds``.
+            certification reduced over ranks: ``n_outside`` (0), ``n_on_boundary``; ``coarse_sizes``;
+            this rank's ``crop_tets`` and ``coarse_rows`` (rows of each coarse prolongation); ``seconds``.
 
         Raises
         ------

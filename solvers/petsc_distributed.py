@@ -1,24 +1,27 @@
-"""Distributed fine level for :meth:`solvers.petsc.PetscMultigrid.from_distributed` (issue 33).
+"""Distributed levels for :meth:`solvers.petsc.PetscMultigrid.from_distributed` (issue 33).
 
 Each rank turns the coordinates of *its* fine unknowns into *its* rows of ``P₀`` (barycentric
-coordinates in the first coarse tet mesh, :func:`solvers.locate.locate_in_tets`); nothing of size
-``n_0`` is ever gathered. What is reduced over ranks is of coarse size: the bounding box (6 numbers), the
-certification counts, and, per coarse node, the rank holding most of its interpolation weight (which
-then owns the node's row of the coarse levels) — a transpose by one ``VecScatter`` with ``O(n_1)`` entries
-per rank.
+coordinates in its crop of the first coarse tet mesh, :func:`solvers.locate.locate_in_tets`), and reads
+only *its* rows of the coarse prolongations ``P_1, P_2, ...`` (:class:`solvers.coarse_levels.CoarseLevels`:
+from arrays, or streamed from a file): no rank holds the fine level, the first coarse mesh or a coarse
+matrix in full. What is reduced over ranks: the bounding box (6 numbers), the certification counts, and
+per coarse node the rank holding most of its interpolation weight (which then owns the node's row on
+its level) — a transpose by one ``VecScatter`` with ``O(n_k)`` entries per rank, leaving an ``(n_k,)``
+owner array on every rank during setup (8 bytes per coarse node).
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
 import scipy.sparse as sp
 
+from .coarse_levels import CoarseLevels
 from .errors import OutsideCoarseMeshError, SolverInputError
-from .locate import clean_weights, locate_in_tets
-from .petsc_common import _allgather, _as_csr, _coarse_owner, _gather, _Layout, _to_petsc, row_partition
-from .transfer import restrict_prolongations
+from .locate import Location, clean_weights, locate_in_tets
+from .petsc_common import _allgather, _gather, _Layout, row_partition
 
 
 def _allgather_array(PETSc, comm, values) -> np.ndarray:
@@ -56,8 +59,25 @@ def _heaviest_rank(PETSc, comm, weight: np.ndarray) -> np.ndarray:
     return _allgather_array(PETSc, comm, best).astype(np.int64)
 
 
+def _coarse_source(coarse_mesh, coarse_Ps) -> CoarseLevels:
+    """A :class:`CoarseLevels` from a ``(V_1, T_1)`` pair (+ ``coarse_Ps``), a file path, or one as is."""
+    if isinstance(coarse_mesh, (CoarseLevels, str, os.PathLike)):
+        if len(coarse_Ps):
+            raise SolverInputError("coarse_Ps must be empty when coarse_mesh is a file or a CoarseLevels: "
+                                   "the prolongations are read from it")
+        if isinstance(coarse_mesh, CoarseLevels):
+            return coarse_mesh
+        return CoarseLevels.from_file(coarse_mesh)
+    try:
+        V1, T1 = coarse_mesh
+    except (TypeError, ValueError):
+        raise SolverInputError("coarse_mesh must be a pair (V_1, T_1) of the first coarse tet mesh, a "
+                               "CoarseLevels or the path of a save_coarse_levels file") from None
+    return CoarseLevels.from_arrays(V1, T1, coarse_Ps)
+
+
 def _check_inputs(PETSc, A, points, coarse_mesh, coarse_Ps):
-    """Validated (points, V_1, T_1, coarse Ps); collective checks raise on every rank."""
+    """Validated (points, coarse levels); collective checks raise on every rank."""
     N, M = A.getSize()
     nloc = A.getLocalSize()[0]
     if N != M:
@@ -72,29 +92,16 @@ def _check_inputs(PETSc, A, points, coarse_mesh, coarse_Ps):
         bad = int(np.flatnonzero(counts)[0])
         raise SolverInputError(f"rank {bad}: points must hold one finite (x,y,z) per owned row of A "
                                f"(this rank: {len(pts)} points, {nloc} rows)")
-    try:
-        V1, T1 = coarse_mesh
-    except (TypeError, ValueError):
-        raise SolverInputError("coarse_mesh must be a pair (V_1, T_1) of the first coarse tet mesh") from None
-    V1 = np.asarray(V1, dtype=np.float64)
-    T1 = np.asarray(T1)
-    if V1.ndim != 2 or V1.shape[1] != 3 or not 0 < len(V1) < N:
-        raise SolverInputError(f"coarse_mesh nodes must be (n_1,3) with 0 < n_1 < n_0 = {N}, got {V1.shape}")
-    Ps, rows = [], len(V1)
-    for k, P in enumerate(coarse_Ps):
-        P = _as_csr(P, f"coarse_Ps[{k}]")
-        if P.shape[0] != rows or not 0 < P.shape[1] < P.shape[0]:
-            raise SolverInputError(
-                f"coarse_Ps[{k}] has shape {P.shape}; expected ({rows}, n) with 0 < n < {rows}")
-        Ps.append(P)
-        rows = P.shape[1]
+    src = _coarse_source(coarse_mesh, coarse_Ps)
+    if not src.n_nodes < N:
+        raise SolverInputError(f"the first coarse mesh has {src.n_nodes} nodes, not fewer than n_0 = {N}")
     d = A.getDiagonal()
     dmin = d.min()[1]
     d.destroy()
     if not dmin > 0:
         raise SolverInputError(
             f"A has a non-positive diagonal entry ({dmin:g}); the smoothers need an SPD operator")
-    return pts, V1, T1, Ps
+    return pts, src
 
 
 def _certify(PETSc, comm, loc) -> dict:
@@ -111,51 +118,95 @@ def _certify(PETSc, comm, loc) -> dict:
     return {"n_outside": 0, "n_on_boundary": int(n_on.sum())}
 
 
+def _locate_local(pts, src: CoarseLevels, diag: float, tol: float) -> tuple[Location, np.ndarray, tuple]:
+    """This rank's points located in its crop of the first coarse mesh; (location, global cols, crop size).
+
+    The crop keeps the tets whose bounding box meets the points' box enlarged by ``1e-6 diag`` (more than
+    the on-boundary tolerance): every containing tet, and every coarse boundary face that can decide the
+    on-boundary test (:mod:`solvers.coarse_levels`). If no tet is kept, every point is outside and its
+    distance is reported as the margin (a lower bound).
+    """
+    n = len(pts)
+    empty = Location(np.zeros((n, 4), dtype=np.int64), np.zeros((n, 4)), np.zeros(0, dtype=np.int64), 0,
+                     np.zeros(0), np.zeros((0, 3)))
+    if n == 0:
+        return empty, empty.cols, (0, 0)
+    margin = max(1e-6, 10 * tol) * diag
+    V, T, gid = src.crop((pts.min(axis=0) - margin, pts.max(axis=0) + margin))
+    if len(T) == 0:  # no coarse tet near any of this rank's points: all outside, by more than the margin
+        empty.outside = np.arange(n)
+        empty.distance2 = np.full(n, margin**2)
+        return empty, empty.cols, (0, 0)
+    loc = locate_in_tets(pts, V, T, on_boundary_tol=tol, diag=diag)
+    return loc, gid[loc.cols], (len(T), len(V))
+
+
+def _local_csr(PETSc, M, newcol: np.ndarray, rows: tuple[int, int], cols: tuple[int, int], comm):
+    """This rank's rows ``M`` (global old column ids) as an MPI AIJ matrix with columns renumbered."""
+    M = sp.csr_matrix((M.data, newcol[M.indices], M.indptr), shape=(M.shape[0], cols[1]))
+    M.sort_indices()
+    it = PETSc.IntType
+    mat = PETSc.Mat().createAIJ(size=(rows, cols), comm=comm,
+                                csr=(M.indptr.astype(it), M.indices.astype(it), M.data))
+    mat.assemble()
+    return mat
+
+
+def _numbering(owner: np.ndarray, size: int, level: int) -> tuple[_Layout, np.ndarray]:
+    """Layout of one coarse level (nodes no one reaches dropped) and the new index of every old node."""
+    free = np.flatnonzero(owner >= 0)
+    if free.size == 0:
+        raise SolverInputError(f"level {level}: no coarse node touches a node of level {level - 1}")
+    lay = _Layout(owner[free], len(free), size)
+    newid = np.full(len(owner), -1, dtype=np.int64)
+    newid[free] = lay.to_new(np.arange(len(free)))
+    return lay, newid
+
+
 def distributed_prolongations(PETSc, A, points, coarse_mesh, coarse_Ps, on_boundary_tol: float):
-    """PETSc interpolations ``[P₀ (this rank's rows), P₁, ...]`` for the caller's distributed ``A``.
+    """PETSc interpolations ``[P₀, P₁, ...]``, each rank holding only its own rows of every one.
+
+    Rank r locates its points in its crop of the first coarse mesh, owns the level-1 nodes where it holds
+    most interpolation weight (:func:`_heaviest_rank`), reads the rows of ``P_1`` of those nodes only
+    (:meth:`CoarseLevels.rows`), and so on down the levels. Coarse nodes no finer node reaches are dropped
+    on every level (the "support" rule of :func:`solvers.restrict_prolongations`, reduced over ranks).
 
     Returns
     -------
     interp : list of PETSc AIJ matrices, finest first (``P₀`` rows follow ``A``'s ownership)
     location : dict
         ``n_outside`` (0), ``n_on_boundary`` (summed over ranks), ``coarse_sizes`` (unknowns of every
-        coarse level after dropping the nodes no fine unknown reaches), ``seconds`` (this rank's time).
+        coarse level after dropping the nodes no fine unknown reaches), ``crop_tets`` / ``crop_nodes``
+        (this rank's kept coarse tets and their nodes), ``coarse_rows`` (this rank's rows of each coarse
+        prolongation), ``seconds``.
     """
     t0 = time.perf_counter()
     comm = A.getComm()
     size, rank = comm.getSize(), comm.getRank()
-    pts, V1, T1, Ps = _check_inputs(PETSc, A, points, coarse_mesh, coarse_Ps)
+    pts, src = _check_inputs(PETSc, A, points, coarse_mesh, coarse_Ps)
     nloc, N = A.getLocalSize()[0], A.getSize()[0]
     box = np.concatenate([pts.min(axis=0), -pts.max(axis=0)]) if nloc else np.full(6, np.inf)
     box = _allgather_array(PETSc, comm, box).reshape(size, 6).min(axis=0)
     diag = float(np.linalg.norm(-box[3:] - box[:3]))  # the whole fine level's, as in the serial prolongation
-    loc = locate_in_tets(pts, V1, T1, on_boundary_tol=on_boundary_tol, diag=diag)
+    loc, cols, crop = _locate_local(pts, src, diag, on_boundary_tol)
     location = _certify(PETSc, comm, loc)
-    W = clean_weights(loc.weights)
-    P0 = sp.csr_matrix((W.ravel(), (np.repeat(np.arange(nloc), 4), loc.cols.ravel())), shape=(nloc, len(V1)))
+    W = clean_weights(loc.weights) if nloc else loc.weights
+    P0 = sp.csr_matrix((W.ravel(), (np.repeat(np.arange(nloc), 4), cols.ravel())), shape=(nloc, src.n_nodes))
     P0.eliminate_zeros()
-    del loc, W
-    # coarse nodes reached by no fine unknown would give zero rows in P^T A P: drop them on every level
-    # (solvers.restrict_prolongations' "support" rule, here with the support reduced over ranks)
-    owner1 = _heaviest_rank(PETSc, comm, np.asarray(abs(P0).sum(axis=0)).ravel())
-    free1 = np.flatnonzero(owner1 >= 0)
-    Ps = restrict_prolongations(Ps, free1)[0] if Ps else []
-    owners = [owner1[free1]]
-    for P in Ps:  # coarser levels: every rank computes the same owners from the same global arrays
-        owners.append(_coarse_owner(P, owners[-1], size))
-    layouts = [_Layout(o, len(o), size) for o in owners]
-    newcol = np.full(len(V1), -1, dtype=np.int64)
-    newcol[free1] = layouts[0].to_new(np.arange(len(free1)))
-    P0 = sp.csr_matrix((P0.data, newcol[P0.indices], P0.indptr), shape=(nloc, len(free1)))
-    P0.sort_indices()
-    it = PETSc.IntType
-    interp = [PETSc.Mat().createAIJ(size=((nloc, N), (layouts[0].nlocal(rank), len(free1))),
-                                    csr=(P0.indptr.astype(it), P0.indices.astype(it), P0.data), comm=comm)]
-    interp[0].assemble()
-    del P0
-    interp += [_to_petsc(PETSc, P, layouts[k], layouts[k + 1], comm) for k, P in enumerate(Ps)]
-    location["coarse_sizes"] = [len(o) for o in owners]
-    location["seconds"] = time.perf_counter() - t0
+    del loc, W, cols
+    owners, pieces = [_heaviest_rank(PETSc, comm, np.asarray(abs(P0).sum(axis=0)).ravel())], []
+    for k in range(1, len(src.shapes) + 1):  # level k's owned rows of P_k, then level k+1's owners
+        Pk = src.rows(k, np.flatnonzero(owners[-1] == rank))
+        Pk.eliminate_zeros()
+        pieces.append(Pk)
+        owners.append(_heaviest_rank(PETSc, comm, np.asarray(abs(Pk).sum(axis=0)).ravel()))
+    numbered = [_numbering(o, size, k + 1) for k, o in enumerate(owners)]
+    del owners
+    sizes = [(nloc, N)] + [(lay.nlocal(rank), lay.n) for lay, _ in numbered]
+    interp = [_local_csr(PETSc, P, numbered[k][1], sizes[k], sizes[k + 1], comm)
+              for k, P in enumerate([P0] + pieces)]
+    location.update(coarse_sizes=[lay.n for lay, _ in numbered], crop_tets=crop[0], crop_nodes=crop[1],
+                    coarse_rows=[P.shape[0] for P in pieces], seconds=time.perf_counter() - t0)
     return interp, location
 
 

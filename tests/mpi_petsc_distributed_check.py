@@ -7,9 +7,11 @@ Usage (from the repository root, ``PYTHONPATH=.``)::
 Every rank builds the Kuhn cube's interior-node Dirichlet problem (tests/mpi_petsc_check.py), keeps only
 its own block of rows of ``A`` (a deliberately uneven split: rank r owns a share proportional to r+1), the
 coordinates of those unknowns, the first coarse tet mesh and the coarser prolongations, and solves with
-MG-PCG. Then rank 1 moves one of its points out of the coarse mesh: every rank must raise
+MG-PCG, once with the coarse levels as arrays and once streamed from a ``save_coarse_levels`` file
+(each rank reading its crop and its rows only).
+Then rank 1 moves one of its points out of the coarse mesh: every rank must raise
 ``OutsideCoarseMeshError``. Each rank writes ``OUT/rank<r>.json`` (rows, iterations, the error it saw)
-and ``OUT/rank<r>.npy`` (its part of the solution).
+and ``OUT/rank<r>.npy``, ``OUT/rank<r>_file.npy`` (its part of the two solutions).
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ def main(argv=None) -> int:
     from petsc4py import PETSc
 
     from solvers.errors import OutsideCoarseMeshError
-    from solvers.petsc import PetscMultigrid
+    from solvers.petsc import PetscMultigrid, save_coarse_levels
 
     comm = PETSc.COMM_WORLD
     rank, size = comm.getRank(), comm.getSize()
@@ -83,6 +85,15 @@ def main(argv=None) -> int:
         rec.update(iterations=info["iterations"], converged=info["converged"], levels=info["levels"],
                    location=mg.location, rows_per_rank=mg.rows_per_rank)
     np.save(Path(args.out) / f"rank{rank}.npy", x)
+    # the same solve with the coarse levels streamed from a file: each rank reads its crop and its rows
+    path = Path(args.out) / "coarse.npz"
+    if rank == 0:
+        save_coarse_levels(path, *prob["coarse_mesh"], prob["coarse_Ps"])
+    comm.barrier()
+    with PetscMultigrid.from_distributed(A, points, path, krylov="cg") as mg:
+        xf, info = mg.solve(prob["b"][lo:hi], tol=1e-8)
+        rec.update(file_iterations=info["iterations"], file_location=mg.location)
+    np.save(Path(args.out) / f"rank{rank}_file.npy", xf)
     bad = points.copy()
     if rank == min(1, size - 1):
         bad[0] = [2.0, 2.0, 2.0]  # outside the unit cube

@@ -97,6 +97,28 @@ def test_one_rank_is_the_inprocess_solver(prob):
     assert np.linalg.norm(prob["A"] @ x - prob["b"]) <= 1e-8 * np.linalg.norm(prob["b"])
 
 
+def test_file_is_the_arrays(prob, tmp_path):
+    """Coarse levels streamed from a save_coarse_levels file: the same solver as from the arrays."""
+    from solvers.petsc import CoarseLevels, save_coarse_levels
+
+    path = tmp_path / "coarse.npz"
+    save_coarse_levels(path, *prob["coarse_mesh"], prob["coarse_Ps"])
+    A = _petsc_mat(prob["A"])
+    out = []
+    for coarse, Ps in ((prob["coarse_mesh"], prob["coarse_Ps"]), (path, ()),
+                       (CoarseLevels.from_file(path), ())):
+        with PetscMultigrid.from_distributed(A, prob["xyz"], coarse, Ps, krylov="richardson") as mg:
+            x, info = mg.solve(prob["b"], tol=1e-8, maxiter=100)
+            out.append((x, info["residuals"], dict(mg.location)))
+    with pytest.raises(SolverInputError, match="coarse_Ps must be empty"):
+        PetscMultigrid.from_distributed(A, prob["xyz"], path, prob["coarse_Ps"])
+    A.destroy()
+    for x, res, loc in out[1:]:
+        assert res == out[0][1] and np.array_equal(x, out[0][0])
+        assert loc["crop_tets"] == len(prob["coarse_mesh"][1])  # one rank: the whole mesh
+        assert loc["coarse_sizes"] == out[0][2]["coarse_sizes"]
+
+
 def test_outside_node_is_refused(prob):
     A = _petsc_mat(prob["A"])
     pts = prob["xyz"].copy()
@@ -191,6 +213,16 @@ def test_two_ranks_uneven_rows(tmp_path, prob):
         assert err is not None and err["n_outside"] == 1 and "rank 1: 1" in err["message"]
     assert np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)
     assert np.linalg.norm(prob["A"] @ x - prob["b"]) <= 1e-8 * np.linalg.norm(prob["b"])
+    # coarse levels streamed from a file: each rank a strict crop of the 1296 coarse tets, the same answer
+    xf = np.concatenate([np.load(tmp_path / f"rank{r}_file.npy") for r in range(2)])
+    t1 = len(prob["coarse_mesh"][1])
+    for rec in recs:
+        loc, ref_loc = rec["file_location"], rec["location"]
+        assert rec["file_iterations"] == rec["iterations"] and loc["coarse_sizes"] == ref_loc["coarse_sizes"]
+        assert 0 < loc["crop_tets"] < t1 and loc["crop_tets"] == ref_loc["crop_tets"]
+    assert sum(r["file_location"]["crop_tets"] for r in recs) < 1.4 * t1  # 2 * t1 without cropping
+    assert sum(r["file_location"]["coarse_rows"][0] for r in recs) == ref_loc["coarse_sizes"][0]
+    assert np.linalg.norm(xf - x) <= 1e-12 * np.linalg.norm(x)
 
 
 @pytest.mark.mpi

@@ -6,14 +6,16 @@ Run it under MPI (as root add ``--allow-run-as-root``)::
 
 1. Rank 0 reads your tet mesh (any format :func:`nestmg.load_tet_mesh` reads; default a TetWild mesh of a
    procedural torus) and builds the coarse levels once with :func:`nestmg.hierarchy_from_tets`: cages of
-   the mesh's boundary, tet-meshed, certified nested. Only the coarse levels (small) are broadcast.
+   the mesh's boundary, tet-meshed, certified nested, and writes them to one file (``--coarse``,
+   :func:`solvers.petsc.save_coarse_levels`) on a file system every rank sees.
 2. PETSc's DMPlex takes the mesh from rank 0 and distributes it with its partitioner (PT-Scotch here;
    ``-petscpartitioner_type parmetis`` etc. from the command line), then refines it ``--refine`` times *in
    parallel* (each rank splits its own tets): the fine level exists only in pieces.
 3. Each rank assembles its tets' P1 stiffness and lumped load for ``-Δu = f``, ``u = 0`` on the boundary
    (boundary vertices carry no unknown) into one MPI matrix, and passes the coordinates of its owned
-   unknowns to :meth:`solvers.petsc.PetscMultigrid.from_distributed`, which builds the rank's rows of
-   ``P₀`` in the first coarse tet mesh (here the input mesh itself), and PCMG-CG solves.
+   unknowns and the coarse levels' file to :meth:`solvers.petsc.PetscMultigrid.from_distributed`, which
+   reads the rank's crop of the first coarse tet mesh (here the input mesh itself) and its rows of the
+   coarse prolongations, builds the rank's rows of ``P₀``, and PCMG-CG solves.
 
 ``main()`` returns a dict with the iteration count, residual and level sizes; ``--out DIR`` writes each
 rank's owned coordinates and solution to ``DIR/rank<r>.npz``, for comparing runs on different rank counts.
@@ -36,8 +38,8 @@ def source(X: np.ndarray) -> np.ndarray:
     return 1.0 + np.sin(3 * X[:, 0]) * np.cos(2 * X[:, 1]) + X[:, 2]
 
 
-def coarse_levels(mesh: str | None, levels: int, edge_length: float = 0.08) -> dict:
-    """Rank 0: the user's tet mesh and its coarse levels as plain arrays (first coarse mesh = the mesh).
+def coarse_levels(mesh: str | None, levels: int, edge_length: float = 0.08) -> tuple:
+    """Rank 0: the user's tet mesh and its coarse levels ``(V, T, [P_1, ...])``; the mesh is level 1.
 
     Without ``mesh``, a TetWild mesh of a procedural torus with edge length ``edge_length`` (relative to
     its bounding-box diagonal).
@@ -52,12 +54,7 @@ def coarse_levels(mesh: str | None, levels: int, edge_length: float = 0.08) -> d
     H = hierarchy_from_tets(V, T, levels, progress=False)
     if not H.certified:
         raise SystemExit("the coarse levels are not certified nested (n_outside > 0 on some level)")
-    out = {"V": V, "T": T, "n_coarse": np.array(len(H.P))}
-    for k, P in enumerate(H.P):  # H.P[k] maps level k+1 to level k of the user's mesh's hierarchy
-        P = P.tocsr()
-        out[f"P{k}_data"], out[f"P{k}_indices"], out[f"P{k}_indptr"] = P.data, P.indices, P.indptr
-        out[f"P{k}_shape"] = np.array(P.shape)
-    return out
+    return V, T, [P.tocsr() for P in H.P]  # H.P[k] maps level k+1 to level k of the user's mesh's hierarchy
 
 
 def distribute(PETSc, V: np.ndarray, T: np.ndarray, refine: int):
@@ -168,18 +165,6 @@ def assemble(PETSc, dm, X, tets, ldof, owned, gidx):
     return A, b, X[mine]
 
 
-def _broadcast_coarse(PETSc, arrays: dict | None) -> tuple[tuple, list]:
-    """The coarse levels on every rank: ``((V_1, T_1), [P_1, ...])``."""
-    import scipy.sparse as sp
-
-    from solvers.petsc import broadcast_arrays
-
-    arrays = broadcast_arrays(PETSc.COMM_WORLD, arrays)
-    Ps = [sp.csr_matrix((arrays[f"P{k}_data"], arrays[f"P{k}_indices"], arrays[f"P{k}_indptr"]),
-                        shape=tuple(arrays[f"P{k}_shape"])) for k in range(int(arrays["n_coarse"]))]
-    return (arrays["V"], arrays["T"].astype(np.int64)), Ps
-
-
 def main(argv=None) -> dict:
     """Partition, refine, assemble and solve; returns iterations, residual and sizes (on every rank)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -188,6 +173,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--refine", type=int, default=1, help="parallel uniform refinements of the mesh")
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--out", help="directory for rank<r>.npz (owned coordinates and solution)")
+    ap.add_argument("--coarse", default="coarse_levels.npz",
+                    help="file for the coarse levels, on a file system every rank sees")
     args, petsc_args = ap.parse_known_args(argv)
     if args.refine < 1:
         ap.error("--refine must be >= 1: the input mesh is the first coarse level")
@@ -196,19 +183,23 @@ def main(argv=None) -> dict:
     petsc4py.init([sys.argv[0], *petsc_args])
     from petsc4py import PETSc
 
-    from solvers.petsc import PetscMultigrid
+    from solvers.petsc import PetscMultigrid, save_coarse_levels
 
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
-    arrays = coarse_levels(args.mesh, args.levels) if rank == 0 else None
-    (V1, T1), coarse_Ps = _broadcast_coarse(PETSc, arrays)
     # the DMPlex starts from rank 0's copy of the (coarse) input mesh; other ranks start empty
-    V0, T0 = (V1, T1) if rank == 0 else (np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64))
+    V0, T0 = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
+    if rank == 0:
+        V0, T0, coarse_Ps = coarse_levels(args.mesh, args.levels)
+        save_coarse_levels(args.coarse, V0, T0, coarse_Ps)  # every rank reads only its pieces of it
+        del coarse_Ps
+    comm.barrier()
     dm = distribute(PETSc, V0, T0, args.refine)
+    del V0, T0
     X, tets, bnd = local_mesh(dm)
     ldof, gidx, owned = dof_numbering(PETSc, dm, bnd)
     A, b, points = assemble(PETSc, dm, X, tets, ldof, owned, gidx)
-    with PetscMultigrid.from_distributed(A, points, (V1, T1), coarse_Ps) as mg:
+    with PetscMultigrid.from_distributed(A, points, args.coarse) as mg:
         x, info = mg.solve(b.getArray(), tol=args.tol)
         text = repr(mg)
         location = dict(mg.location)

@@ -80,7 +80,10 @@ DENSE_LEVEL_ROWS = 2.0
 #: :func:`nestmg.solve_on_hierarchy`, the time stepper, the geodesics and ``nestmg solve --maxiter``.
 DEFAULT_MAXITER = 100
 
-#: Default cap on the slow modes deflated per intermediate level (``MultigridSolver(deflate=)``).
+#: Cap on the slow modes deflated per level that :meth:`nestmg.problems.Problem.multigrid` passes as
+#: ``MultigridSolver(deflate=)``. The bare constructor's default is 0 (no probe): on the 1M-tet user
+#: hierarchies of docs/usermesh.md the probe found the bulk of each coarse level's spectrum above the goal,
+#: deflated nothing and doubled the set-up (``nestmg_deflate8`` in ``benchmarks/results/user_mesh/``).
 DEFAULT_DEFLATE = 8
 
 
@@ -217,7 +220,8 @@ class MultigridSolver:
         symmetry tests (~40 ms per level visit of a 2.5M-nonzero operator, a third of a time step's
         set-up in ``benchmarks/reuse_diffusion.py``). ``None`` (default): tested (relative 1e-10).
     deflate : int
-        At most this many slow modes deflated per level (0: off). Every level between the finest and the
+        At most this many slow modes deflated per level (default 0: off; ``nestmg``'s problems pass
+        :data:`DEFAULT_DEFLATE`). Every level between the finest and the
         coarsest is probed at setup with :data:`solvers.deflation.PROBE_CYCLES` cycles of its own (about
         one fine cycle in all on a hierarchy coarsening 8x per level); where the error survives them
         (factor above :data:`solvers.deflation.DEFLATION_GOAL`), the slowest modes are found by a few more
@@ -272,7 +276,7 @@ class MultigridSolver:
         local_sweep: str = "symmetric",
         ordering: str | None = "auto",
         symmetric: bool | None = None,
-        deflate: int = DEFAULT_DEFLATE,
+        deflate: int = 0,
         probe_finest: bool = False,
     ):
         t0 = time.perf_counter()

@@ -387,6 +387,31 @@ def restrict_prolongations(Ps, free, coarse_free="support", *, min_column_sum: f
     return out, frees
 
 
+def _drop_unreached_columns(Ps) -> list[sp.csr_matrix]:
+    """``Ps`` without the coarse nodes that no finer node reaches (columns without a stored entry).
+
+    The same matrices as ``restrict_prolongations(Ps, np.arange(n_0))[0]`` (explicit zeros dropped, then
+    every level's columns restricted to its support and the next level's rows to the kept nodes), in
+    O(nnz) per level: a column count and a monotone relabelling, which keeps the rows' index order. ``Ps``
+    is returned as it is when every column has an entry (the common case: one count per level).
+    """
+    if all(np.bincount(P.indices, minlength=P.shape[1]).all() for P in Ps):
+        return list(Ps)
+    out, rows = [], None
+    for P in Ps:
+        P = sp.csr_matrix(P[rows] if rows is not None else P, copy=True)
+        P.eliminate_zeros()
+        reached = np.bincount(P.indices, minlength=P.shape[1]) > 0
+        if not reached.any():
+            raise SolverInputError(f"level {len(out) + 1}: no coarse node touches a node of level {len(out)}")
+        new = (np.cumsum(reached) - 1).astype(P.indices.dtype)
+        P = sp.csr_matrix((P.data, new[P.indices], P.indptr), shape=(P.shape[0], int(reached.sum())))
+        P.sort_indices()  # a no-op flag check when the rows were sorted (the relabelling is monotone)
+        out.append(P)
+        rows = np.flatnonzero(reached)
+    return out
+
+
 def prune_prolongations(Ps, min_column_sum: float = 0.2, renormalize: bool = True):
     """Drop coarse nodes that carry almost no interpolation weight.
 

@@ -284,6 +284,24 @@ def test_keeping_every_coarse_node_is_caught(cube):
         MultigridSolver(ds.A, [Ps[0][ds.free]], coarse=[bad])
 
 
+def test_dropping_unreached_columns_equals_restricting_to_every_node(cube):
+    """The constructor's O(nnz) column drop gives restrict_prolongations' matrices (every fine node free)
+    bit for bit, down the levels, with explicit zeros; a hierarchy without unreached columns is kept."""
+    ds, _Pf, _ = _dirichlet(cube, 3)
+    _meshes, Ps, _K, _M = cube
+    raw = [sp.csr_matrix(Ps[0][ds.free])] + [sp.csr_matrix(P) for P in Ps[1:3]]
+    raw[0].data[::7] = 0.0  # explicit zeros: restrict_prolongations drops them before taking the support
+    want, _ = restrict_prolongations(raw, np.arange(raw[0].shape[0]))
+    got = transfer._drop_unreached_columns(raw)
+    assert [P.shape for P in got] == [P.shape for P in want]
+    assert got[0].shape[1] < raw[0].shape[1] and got[1].shape[0] < raw[1].shape[0]
+    for g, w in zip(got, want):
+        assert np.array_equal(g.indptr, w.indptr) and np.array_equal(g.indices, w.indices)
+        assert np.array_equal(g.data, w.data) and g.has_sorted_indices
+    kept = transfer._drop_unreached_columns(want)
+    assert all(a is b for a, b in zip(kept, want))
+
+
 def test_inputs_untouched_and_x0(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     A0, P0, b0 = ds.A.copy(), Pf[0].copy(), ds.b.copy()

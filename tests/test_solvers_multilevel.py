@@ -302,6 +302,31 @@ def test_dropping_unreached_columns_equals_restricting_to_every_node(cube):
     assert all(a is b for a, b in zip(kept, want))
 
 
+@pytest.mark.parametrize("cap", [transfer.ONE_PASS_MAX_ENTRIES, 11950, 0])  # 11950: the per-row bound
+def test_one_pass_product_is_scipys_product(cube, monkeypatch, cap):
+    """The Galerkin products' one-pass kernel gives scipy's A @ B bit for bit (empty rows, a row bound that
+    exceeds the column count, the per-row bound, the fallback), and the Galerkin chain with it equals
+    R (A P) symmetrised."""
+    monkeypatch.setattr(transfer, "ONE_PASS_MAX_ENTRIES", cap)
+    rng = np.random.default_rng(3)
+    A = sp.random(300, 200, density=0.05, format="csr", random_state=rng)
+    A.data[A.indptr[5]:A.indptr[6]] = 0.0  # an empty row
+    A.eliminate_zeros()
+    B = sp.random(200, 40, density=0.3, format="csr", random_state=rng)
+    for X, Y in ((A, B), (B.T.tocsr(), A.T.tocsr()), (A[:, :0].tocsr(), B[:0].tocsr())):
+        want, got = sp.csr_matrix(X @ Y), transfer._one_pass_product(X, Y)
+        assert got.shape == want.shape
+        assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data)
+    _meshes, Ps, K, _M = cube
+    ops = transfer.galerkin_operators(K, Ps[:2])
+    for k, P in enumerate(Ps[:2]):
+        P = sp.csr_matrix(P)
+        ref = sp.csr_matrix(P.T @ (ops[k] @ P))
+        ref = sp.csr_matrix(0.5 * (ref + ref.T))
+        assert abs(ops[k + 1] - ref).max() <= 1e-14 * abs(ref).max()
+
+
 def test_inputs_untouched_and_x0(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     A0, P0, b0 = ds.A.copy(), Pf[0].copy(), ds.b.copy()

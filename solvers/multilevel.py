@@ -83,8 +83,8 @@ DEFAULT_MAXITER = 100
 
 #: Cap on the slow modes deflated per level that :meth:`nestmg.problems.Problem.multigrid` passes as
 #: ``MultigridSolver(deflate=)``. The bare constructor's default is 0 (no probe): on the 1M-tet user
-#: hierarchies of docs/usermesh.md the probe found the bulk of each coarse level's spectrum above the goal,
-#: deflated nothing and doubled the set-up (``nestmg_deflate8`` in ``benchmarks/results/user_mesh/``).
+#: hierarchies of docs/usermesh.md the probe saved no CG iteration and only added set-up time
+#: (``nestmg_deflate8`` in ``benchmarks/results/user_mesh/solvers.json``).
 DEFAULT_DEFLATE = 8
 
 

@@ -37,7 +37,7 @@ def test_constructor_defaults_are_the_documented_fast_path():
     assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
     assert params["ordering"].default == "auto" and params["coarse_solver"].default == "auto"
     assert params["coarse"].default == "galerkin" and params["coarse_scaling"].default is None
-    assert solvers.coarse.DENSE_MAX == 1500
+    assert solvers.coarse.DENSE_MAX == 2000
     meshes, Ps = kuhn_cube_hierarchy(8, 3)
     V, T = meshes[0]
     ml = MultigridSolver(fem.stiffness_matrix(V, T), Ps, nullspace="constant")

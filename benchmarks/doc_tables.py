@@ -273,8 +273,14 @@ def usermesh_tets() -> str:
 
 USER_SOLVERS = "user_mesh/solvers.json"
 USER_PROFILE = ("user_mesh/setup_profile_before.json", "user_mesh/setup_profile_after.json")
-_USER_LABELS = {"nestmg": "`MultigridSolver(A, P)`, defaults", "pyamg_sa": "pyamg SA + CG",
+_USER_LABELS = {"nestmg": "`MultigridSolver(A, P)`, defaults",
+                "problem_multigrid": "`Problem.multigrid()` (pipeline default)", "pyamg_sa": "pyamg SA + CG",
                 "petsc_gamg": "PETSc GAMG + CG, 1 rank"}
+_USER_PROBLEMS = ("dirichlet", "neumann", "diffusion")
+
+
+def _user_problems(d: dict) -> list:
+    return [p for p in _USER_PROBLEMS if p in d["cases"][0]["problems"]]
 
 
 def _user_cell(r: dict, spmv: bool, tol: float) -> str:
@@ -286,33 +292,75 @@ def _user_cell(r: dict, spmv: bool, tol: float) -> str:
 @generator("usermesh.solvers", USER_SOLVERS)
 def usermesh_solvers() -> str:
     d = load(USER_SOLVERS)
+    probs = _user_problems(d)
     rows = []
     for c in d["cases"]:
         pr = c["problems"]
         label = f"{c['label']} ({c['tets']:,})"
-        for sname in ("nestmg", "pyamg_sa", "petsc_gamg"):
-            rows.append([label, _USER_LABELS.get(sname, sname)]
-                        + [_user_cell(pr[p]["solvers"][sname], sname.startswith("nestmg"), d["tol"])
-                           for p in ("dirichlet", "neumann")])
-        rows.append([label, "**nestmg speed-up** (setup + solve) vs SA / vs GAMG"]
+        for sname in ("nestmg", "problem_multigrid", "pyamg_sa", "petsc_gamg"):
+            if sname in pr[probs[0]]["solvers"]:
+                rows.append([label, _USER_LABELS.get(sname, sname)]
+                            + [_user_cell(pr[p]["solvers"][sname], sname in ("nestmg", "problem_multigrid"),
+                                          d["tol"]) for p in probs])
+        rows.append([label, "**`MultigridSolver(A, P)` speed-up** (setup + solve) vs SA / vs GAMG"]
                     + [f"**{pr[p]['speedup_vs_pyamg_sa']:.2f}x / {pr[p]['speedup_vs_petsc_gamg']:.2f}x**"
-                       for p in ("dirichlet", "neumann")])
-    return table(["user mesh (fine tets)", "solver", "Dirichlet: setup + solve (CG it)",
-                  "Neumann: setup + solve (CG it)"], rows)
+                       for p in probs])
+    heads = [f"{p.capitalize()}: setup + solve (CG it)" for p in probs]
+    return table(["user mesh (fine tets)", "solver"] + heads, rows)
 
 
 @generator("usermesh.setup", USER_SOLVERS)
 def usermesh_setup() -> str:
     d = load(USER_SOLVERS)
-    r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
-    return rng(r, ".2f") + "x"
+    probs = _user_problems(d)
+    r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in probs]
+    cpu = [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in probs]
+    return f"{rng(r, '.2f')}x in wall time, {rng(cpu, '.2f')}x in CPU time"
+
+
+@generator("usermesh.deflate", USER_SOLVERS)
+def usermesh_deflate() -> str:
+    d = load(USER_SOLVERS)
+    probs = _user_problems(d)
+    cells = [c["problems"][p]["solvers"] for c in d["cases"] for p in probs]
+    ratio = [s["nestmg_deflate8"]["setup_ratio_vs_first"] for s in cells]
+    its = [s["nestmg_deflate8"]["iterations"] - s["nestmg"]["iterations"] for s in cells]
+    modes = [max(sum(r["deflated"]) for r in s["nestmg_deflate8"]["runs"]) for s in cells]
+    used = [m for m in modes if m]
+    return (f"set-up x{rng(ratio, '.2f')} (wall, median of per-repeat ratios), CG iterations "
+            f"{rng(its, '+d')} against the default; modes deflated in {len(used)} of {len(cells)} cases"
+            + (f" ({rng(used, 'd')} modes)" if used else ""))
+
+
+@generator("usermesh.fine3", USER_SOLVERS)
+def usermesh_fine3() -> str:
+    d = load(USER_SOLVERS)
+    parts = []
+    for p in _user_problems(d):
+        s = [c["problems"][p]["solvers"] for c in d["cases"]]
+        parts.append(f"{p} {rng([x['nestmg_fine3']['iterations'] for x in s], 'd')} iterations against "
+                     f"{rng([x['nestmg']['iterations'] for x in s], 'd')}, solve time "
+                     f"x{rng([x['nestmg_fine3']['solve_ratio_vs_first'] for x in s], '.2f')}")
+    return "; ".join(parts)
+
+
+@generator("usermesh.goal", USER_SOLVERS)
+def usermesh_goal() -> str:
+    d = load(USER_SOLVERS)
+    parts = []
+    for p in _user_problems(d):
+        s = [c["problems"][p]["solvers"]["nestmg"] for c in d["cases"]]
+        parts.append(f"{p} {rng([x['iterations'] for x in s], 'd')} iterations and "
+                     f"{rng([x['solve_spmv'] for x in s], '.0f')} fine SpMV")
+    return "; ".join(parts)
 
 
 @generator("usermesh.speedup", USER_SOLVERS)
 def usermesh_speedup() -> str:
     d = load(USER_SOLVERS)
-    sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in ("dirichlet", "neumann")]
-    gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in ("dirichlet", "neumann")]
+    probs = _user_problems(d)
+    sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in probs]
+    gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in probs]
     tets = [c["tets"] for c in d["cases"]]
     return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than "
             f"PETSc GAMG "
@@ -410,14 +458,16 @@ def usermesh_profile() -> str:
     rows = []
     for rel, when in zip(USER_PROFILE, ("before (base commit)", "after")):
         d = load(rel)
+        when = d.get("code", when)
         for p, r in d["problems"].items():
             top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}"
                             for t in r["top_tottime"][:5])
+            cpu = r.get("setup_cpu_ratio_vs_sa_median")
             rows.append([when, p, f"{r['setup_seconds_median']:.2f}",
                          f"{r['pyamg_sa_setup_seconds_median']:.2f}",
-                         f"{r['setup_ratio_vs_sa_median']:.2f}", top])
-    return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio",
-                  "top 5 by own time under cProfile (s)"], rows)
+                         f"{r['setup_ratio_vs_sa_median']:.2f}", "–" if cpu is None else f"{cpu:.2f}", top])
+    return table(["code", "problem", "MultigridSolver setup s", "pyamg SA setup s", "ratio (wall)",
+                  "ratio (CPU)", "top 5 by own time under cProfile (s)"], rows)
 
 
 # ----------------------------------------------------------------------------------------- PETSc

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from solvers.ordering import index_spread
+
 
 def build(args) -> dict:
     """Mesh the surface (the user's mesher), write + read the file, build and save the hierarchy."""
@@ -84,11 +86,22 @@ VARIANTS = {
     "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
     "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
                                            ("gauss_seidel", {"sweep": "forward", "iterations": 2})]},
+    # three forward / backward sweeps on the fine level, one on the (dense) coarse levels
+    "fine3": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 3}),
+                              ("gauss_seidel", {"sweep": "forward", "iterations": 1})]},
+    # the coarse-level deflation probe (solvers.deflation) that was the constructor's default before
+    "deflate8": {"deflate": 8},
 }
 
+#: ``nestmg.setup_problem`` names of the benchmark's problems (``problem_multigrid``: ``Problem.multigrid()``)
+PROBLEM_NAMES = {"dirichlet": "poisson-dirichlet", "neumann": "poisson-neumann",
+                 "diffusion": "diffusion-neumann"}
 
-def load_case(work: Path) -> dict:
-    """The user's mesh (read back from its file), the saved hierarchy, the matrices and right-hand sides."""
+
+def load_case(work: Path, problems=()) -> dict:
+    """The user's mesh (read back from its file), the saved hierarchy, the matrices and right-hand sides;
+    for each name in ``problems`` also the pipeline's :class:`nestmg.problems.Problem` (under the key
+    ``"problem:" + name``) holding the same matrix and right-hand side."""
     from nestmg import load_hierarchy, load_tet_mesh
     from solvers import restrict_prolongations
     from solvers.fem import boundary_layer_nodes, boundary_nodes, mass_matrix, stiffness_matrix
@@ -109,7 +122,7 @@ def load_case(work: Path) -> dict:
     mesher = {"tetgen": "TetGen", "tetwild": "TetWild"}[info["mesher"]]
     if info.get("refined"):
         mesher += f" {info.get('mesher_tets', 0) / 1e3:.0f}k tets, red-refined x{info['refined']}"
-    return {
+    case = {
         "name": work.name, "label": f"{info['surface']}, {mesher}", "tets": len(T), "nodes": len(V),
         "build": info,
         "level_tets": [len(t) for _, t in H.tets],
@@ -120,6 +133,23 @@ def load_case(work: Path) -> dict:
         "diffusion": (sp_csr((d / 10) ** 2 * K + M), b, list(H.P), None),
         "boundary_layer": boundary_layer_nodes(T, 1),
     }
+    for prob in problems:
+        case["problem:" + prob] = pipeline_problem(H, case[prob], prob, (d / 10) ** 2)
+    return case
+
+
+def pipeline_problem(H, system, prob: str, lam: float):
+    """``nestmg.setup_problem`` on the hierarchy (its pruned prolongations, boundary layer, defaults) with the
+    benchmark's matrix and right-hand side put in (the assembly is the same: checked)."""
+    import dataclasses
+
+    from nestmg import setup_problem
+
+    A, b, _Ps, _ns = system
+    pr = setup_problem(H.tets, H.P, PROBLEM_NAMES[prob], lam=lam)
+    if pr.A.shape != A.shape or abs(pr.A - A).max() > 1e-10 * abs(A).max():
+        raise SystemExit(f"{prob}: setup_problem's matrix is not the benchmark's")
+    return dataclasses.replace(pr, A=A, b=b)
 
 
 def sp_csr(A):
@@ -130,15 +160,18 @@ def sp_csr(A):
     return A
 
 
-def run_nestmg(A, b, Ps, nullspace, tol, opts) -> dict:
+def run_nestmg(A, b, Ps, nullspace, tol, opts, problem=None) -> dict:
+    """``MultigridSolver(A, Ps, **opts)`` (or ``problem.multigrid()``) + MG-PCG; set-up wall and CPU time."""
     from solvers import MultigridSolver
 
-    t = time.perf_counter()
-    ml = MultigridSolver(A, Ps, nullspace=nullspace, **opts)
-    setup = time.perf_counter() - t
+    t, c = time.perf_counter(), time.process_time()
+    ml = problem.multigrid() if problem is not None else MultigridSolver(A, Ps, nullspace=nullspace, **opts)
+    setup, setup_cpu = time.perf_counter() - t, time.process_time() - c
     _, r = ml.solve(b, tol=tol, accel="cg", return_info=True)
-    return {"setup_seconds": setup, "solve_seconds": r["seconds"], "iterations": r["iterations"],
+    return {"setup_seconds": setup, "setup_cpu_seconds": setup_cpu, "solve_seconds": r["seconds"],
+            "iterations": r["iterations"],
             "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
+            "deflated": [d["vectors"] for d in ml.deflation],
             "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
             "level_unknowns": [L.A.shape[0] for L in ml.levels],
             "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels],
@@ -155,18 +188,26 @@ def run_sa(A, b, nullspace, tol) -> dict:
     import pyamg
     import scipy.sparse.linalg as spla
 
-    from solvers.baselines import pyamg_sa
+    from solvers.baselines import _pyamg_run  # pyamg_sa's runner (CG restarts on the true residual)
     from solvers.krylov import pcg
 
     if nullspace is None:
-        r = pyamg_sa(A, b, tol=tol, nullspace=nullspace)
-        return {"setup_seconds": r.setup_seconds, "solve_seconds": r.solve_seconds,
-                "iterations": r.iterations,
+        cpu = {}
+
+        def builder(A, **kw):  # pyamg_sa's own builder, with its CPU time kept
+            c = time.process_time()
+            ml = pyamg.smoothed_aggregation_solver(A, **kw)
+            cpu["setup"] = time.process_time() - c
+            return ml
+
+        r = _pyamg_run("pyamg_sa", builder, A, b, tol, 500, "cg", nullspace)
+        return {"setup_seconds": r.setup_seconds, "setup_cpu_seconds": cpu["setup"],
+                "solve_seconds": r.solve_seconds, "iterations": r.iterations,
                 "final_residual": r.info["final_true_residual"],
                 "operator_complexity": r.info["operator_complexity"]}
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     ml = pyamg.smoothed_aggregation_solver(A)
-    setup = time.perf_counter() - t
+    setup, setup_cpu = time.perf_counter() - t, time.process_time() - c
     M0 = ml.aspreconditioner(cycle="V")
 
     def mv(r):
@@ -175,7 +216,8 @@ def run_sa(A, b, nullspace, tol) -> dict:
 
     M = spla.LinearOperator(A.shape, matvec=mv, dtype=np.float64)
     res = pcg(A, b, M=M, tol=tol, maxiter=500, nullspace="constant")
-    return {"setup_seconds": setup, "solve_seconds": res.seconds, "iterations": res.iterations,
+    return {"setup_seconds": setup, "setup_cpu_seconds": setup_cpu, "solve_seconds": res.seconds,
+            "iterations": res.iterations,
             "final_residual": float(np.linalg.norm(b - A @ res.x) / np.linalg.norm(b)),
             "operator_complexity": float(ml.operator_complexity())}
 
@@ -200,74 +242,87 @@ def spmv_seconds(A, repeats: int = 30) -> float:
     return best
 
 
+def run_one(c: dict, prob: str, sname: str, tol: float) -> dict:
+    """One solver on one case and problem (``sname``: a baseline, ``problem_multigrid`` or
+    ``nestmg[_VARIANT]``)."""
+    A, b, Ps, ns = c[prob]
+    if sname == "pyamg_sa":
+        return run_sa(A, b, ns, tol)
+    if sname == "petsc_gamg":
+        return run_gamg(A, b, ns, tol)
+    if sname == "problem_multigrid":
+        return run_nestmg(A, b, Ps, ns, tol, {}, problem=c["problem:" + prob])
+    v = sname[len("nestmg_"):] if sname != "nestmg" else "default"
+    opts = dict(VARIANTS[v])
+    if v == "boundary_layer":
+        opts["local_nodes"] = c["boundary_layer"]
+    return run_nestmg(A, b, Ps, ns, tol, opts)
+
+
+def _median_of_ratios(raw: dict, case: str, prob: str, num: str, den: str, key: str) -> float:
+    pairs = zip(raw[(case, prob, num)], raw[(case, prob, den)])
+    return float(np.median([rn[key] / rd[key] for rn, rd in pairs]))
+
+
+def summarize(c: dict, prob: str, solvers: list, raw: dict) -> dict:
+    """Medians per solver, fine-SpMV counts and within-run ratios against the first solver."""
+    A = c[prob][0]
+    t_spmv = spmv_seconds(A)
+    pd: dict = {"unknowns": A.shape[0], "nnz": A.nnz, "spmv_seconds": t_spmv, "solvers": {},
+                "index_spread": index_spread(A)}
+    for sname in solvers:
+        runs = raw.get((c["name"], prob, sname))
+        if not runs:
+            continue
+        med = {k: float(np.median([r[k] for r in runs])) for k in
+               ("setup_seconds", "setup_cpu_seconds", "solve_seconds", "total_seconds") if k in runs[0]}
+        med.update(iterations=int(np.median([r["iterations"] for r in runs])),
+                   max_final_residual=max(r["final_residual"] for r in runs),
+                   solve_spmv=med["solve_seconds"] / t_spmv, runs=runs)
+        if "spmv_internal_seconds" in runs[0]:
+            med["spmv_internal_seconds"] = float(np.median([r["spmv_internal_seconds"] for r in runs]))
+            med["spmv_speedup_internal_order"] = t_spmv / med["spmv_internal_seconds"]
+        for key in ("solve", "setup") if sname != solvers[0] else ():
+            med[f"{key}_ratio_vs_first"] = _median_of_ratios(raw, c["name"], prob, sname, solvers[0],
+                                                             f"{key}_seconds")
+        pd["solvers"][sname] = med
+    for base in ("pyamg_sa", "petsc_gamg"):
+        if base in pd["solvers"]:
+            pd[f"speedup_vs_{base}"] = _median_of_ratios(raw, c["name"], prob, base, solvers[0],
+                                                         "total_seconds")
+            pd[f"setup_ratio_vs_{base}"] = _median_of_ratios(raw, c["name"], prob, solvers[0], base,
+                                                             "setup_seconds")
+    if "pyamg_sa" in pd["solvers"]:
+        pd["setup_cpu_ratio_vs_pyamg_sa"] = _median_of_ratios(raw, c["name"], prob, solvers[0], "pyamg_sa",
+                                                              "setup_cpu_seconds")
+    return pd
+
+
 def run(args) -> dict:
     """Interleaved repeats over cases x problems x solvers; medians and within-run ratios."""
-    from solvers.ordering import index_spread
-
-    solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants] + list(args.baselines)
-    cases = [load_case(Path(w)) for w in args.cases]
+    solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants]
+    solvers += ["problem_multigrid"] * args.problem_multigrid + list(args.baselines)
+    cases = [load_case(Path(w), args.problems if args.problem_multigrid else ()) for w in args.cases]
     raw: dict = {}
     for rep in range(args.repeats):
         for c in cases:
             for prob in args.problems:
-                A, b, Ps, ns = c[prob]
                 for sname in solvers:
                     if sname == "nestmg_boundary_layer" and prob != "neumann":
                         continue
-                    if sname == "pyamg_sa":
-                        r = run_sa(A, b, ns, args.tol)
-                    elif sname == "petsc_gamg":
-                        r = run_gamg(A, b, ns, args.tol)
-                    else:
-                        v = sname[len("nestmg_"):] if sname != "nestmg" else "default"
-                        opts = dict(VARIANTS[v])
-                        if v == "boundary_layer":
-                            opts["local_nodes"] = c["boundary_layer"]
-                        r = run_nestmg(A, b, Ps, ns, args.tol, opts)
+                    r = run_one(c, prob, sname, args.tol)
                     r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
                     raw.setdefault((c["name"], prob, sname), []).append(r)
                     print(f"[{rep}] {c['name']:>14s} {prob:9s} {sname:28s} "
                           f"setup {r['setup_seconds']:.3f} solve "
                           f"{r['solve_seconds']:.3f} it {r['iterations']}", flush=True)
     out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-           "cases": []}
+           "solvers": solvers, "cases": []}
     for c in cases:
         cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside", "build")}
-        cd["problems"] = {}
-        for prob in args.problems:
-            A = c[prob][0]
-            t_spmv = spmv_seconds(A)
-            pd: dict = {"unknowns": A.shape[0], "nnz": A.nnz, "spmv_seconds": t_spmv, "solvers": {},
-                        "index_spread": index_spread(A)}
-            for sname in solvers:
-                if (c["name"], prob, sname) not in raw:
-                    continue
-                runs = raw[(c["name"], prob, sname)]
-                med = {k: float(np.median([r[k] for r in runs])) for k in
-                       ("setup_seconds", "solve_seconds", "total_seconds")}
-                med.update(iterations=int(np.median([r["iterations"] for r in runs])),
-                           max_final_residual=max(r["final_residual"] for r in runs),
-                           solve_spmv=med["solve_seconds"] / t_spmv, runs=runs)
-                if "spmv_internal_seconds" in runs[0]:
-                    med["spmv_internal_seconds"] = float(
-                        np.median([r["spmv_internal_seconds"] for r in runs]))
-                    med["spmv_speedup_internal_order"] = t_spmv / med["spmv_internal_seconds"]
-                pd["solvers"][sname] = med
+        cd["problems"] = {prob: summarize(c, prob, solvers, raw) for prob in args.problems}
+        for prob, pd in cd["problems"].items():
             ref = pd["solvers"][solvers[0]]
-            for sname, med in pd["solvers"].items():
-                if sname != solvers[0]:
-                    med["solve_ratio_vs_first"] = float(np.median(
-                        [rs["solve_seconds"] / r0["solve_seconds"] for rs, r0 in
-                         zip(raw[(c["name"], prob, sname)], raw[(c["name"], prob, solvers[0])])]))
-            for base in ("pyamg_sa", "petsc_gamg"):
-                if base in pd["solvers"]:
-                    pd[f"speedup_vs_{base}"] = float(np.median(
-                        [rb["total_seconds"] / rn["total_seconds"] for rb, rn in
-                         zip(raw[(c["name"], prob, base)], raw[(c["name"], prob, solvers[0])])]))
-                    pd[f"setup_ratio_vs_{base}"] = float(np.median(
-                        [rn["setup_seconds"] / rb["setup_seconds"] for rb, rn in
-                         zip(raw[(c["name"], prob, base)], raw[(c["name"], prob, solvers[0])])]))
-            cd["problems"][prob] = pd
             print(f"{c['name']} {prob}: {solvers[0]} {ref['setup_seconds']:.3f}+{ref['solve_seconds']:.3f} s "
                   f"({ref['iterations']} it, {ref['solve_spmv']:.0f} SpMV); "
                   + "; ".join(f"x{pd[k]:.2f} {k[11:]}" for k in pd if k.startswith("speedup")), flush=True)
@@ -293,14 +348,16 @@ def profile(args) -> dict:
                  "problems": {}}
     for prob in args.problems:
         A, b, Ps, ns = c[prob]
-        t_mg, t_sa = [], []
+        t_mg, t_sa, c_mg, c_sa = [], [], [], []
         for _ in range(args.repeats):  # interleaved
-            t = time.perf_counter()
+            t, c0 = time.perf_counter(), time.process_time()
             MultigridSolver(A, Ps, nullspace=ns)
             t_mg.append(time.perf_counter() - t)
-            t = time.perf_counter()
+            c_mg.append(time.process_time() - c0)
+            t, c0 = time.perf_counter(), time.process_time()
             pyamg.smoothed_aggregation_solver(A)
             t_sa.append(time.perf_counter() - t)
+            c_sa.append(time.process_time() - c0)
         pr = cProfile.Profile()
         pr.enable()
         MultigridSolver(A, Ps, nullspace=ns)
@@ -312,10 +369,14 @@ def profile(args) -> dict:
             "setup_seconds_median": float(np.median(t_mg)),
             "pyamg_sa_setup_seconds_median": float(np.median(t_sa)),
             "setup_ratio_vs_sa_median": float(np.median(np.array(t_mg) / np.array(t_sa))),
+            "setup_cpu_seconds_median": float(np.median(c_mg)),
+            "pyamg_sa_setup_cpu_seconds_median": float(np.median(c_sa)),
+            "setup_cpu_ratio_vs_sa_median": float(np.median(np.array(c_mg) / np.array(c_sa))),
             "profile_seconds": float(st.total_tt),
             "top_tottime": [{"function": f, "tottime": tt, "cumtime": ct} for tt, ct, f in rows[:12]],
         }
-        print(f"{prob}: setup {np.median(t_mg):.3f} s vs SA {np.median(t_sa):.3f} s; top: "
+        print(f"{prob}: setup {np.median(t_mg):.3f} s vs SA {np.median(t_sa):.3f} s (CPU ratio "
+              f"{np.median(np.array(c_mg) / np.array(c_sa)):.2f}); top: "
               + ", ".join(f"{f} {tt:.3f}" for tt, _, f in rows[:5]), flush=True)
     return out
 
@@ -340,6 +401,9 @@ def main(argv=None):
                    help="nestmg cycles; the first one is the reference of the ratios")
     r.add_argument("--baselines", nargs="*", default=["pyamg_sa", "petsc_gamg"],
                    choices=("pyamg_sa", "petsc_gamg"))
+    r.add_argument("--problem-multigrid", action="store_true",
+                   help="also nestmg.setup_problem(...).multigrid() (the pipeline's default cycle) on the "
+                        "same matrix and right-hand side")
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
     r.add_argument("--json", type=Path, default=None)

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from solvers.fem import check_tet_mesh, mass_matrix, stiffness_matrix
-from solvers.multilevel import DEFAULT_MAXITER
+from solvers.multilevel import DEFAULT_DEFLATE, DEFAULT_MAXITER
 
 from .errors import NestmgInputError
 
@@ -250,7 +250,7 @@ def multigrid_solve(
             raise GeodesicInputError("the hierarchy's finest tet mesh is not the mesh of the problem")
         ml = MultigridSolver(A, prob.P, coarse=prob.coarse,
                              presmoother=cycle_smoothers(nu=nu),
-                             local_nodes=prob.local_nodes,
+                             local_nodes=prob.local_nodes, deflate=DEFAULT_DEFLATE,
                              nullspace="constant" if kind == "poisson" else None)
         solvers_by_kind[kind] = (A, ml)
         x, info = ml.solve(b, tol=tol, maxiter=maxiter, cycle=cycle, accel=accel, return_info=True)

@@ -176,10 +176,11 @@ def _block_solver(A, Ps, interior, solver: str, tol: float, maxiter: int, chunk:
     t0 = time.perf_counter()
     if solver == "multigrid":
         from solvers import MultigridSolver, SolverError, restrict_prolongations
+        from solvers.multilevel import DEFAULT_DEFLATE
         from solvers.multirhs import MULTI_RHS_SMOOTHER, solve_many
 
         Pf, _ = restrict_prolongations(Ps, interior)
-        ml = MultigridSolver(A, Pf, presmoother=MULTI_RHS_SMOOTHER)
+        ml = MultigridSolver(A, Pf, presmoother=MULTI_RHS_SMOOTHER, deflate=DEFAULT_DEFLATE)
         its: list = []
 
         def solve(R):

@@ -153,6 +153,7 @@ class Problem:
         solvers.MultigridSolver
         """
         from solvers import MultigridSolver
+        from solvers.multilevel import DEFAULT_DEFLATE
 
         from .options import SolverOptions, typed
 
@@ -169,6 +170,7 @@ class Problem:
         robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
+        kwargs.setdefault("deflate", DEFAULT_DEFLATE)  # the bare MultigridSolver's default is 0
         kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)

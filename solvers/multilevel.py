@@ -36,6 +36,7 @@ from .transfer import (
     _as_csr,
     _galerkin_chain,
     _is_symmetric,
+    _drop_unreached_columns,
     galerkin_operators,
     prune_prolongations,
     reroute_to_pattern,
@@ -80,7 +81,10 @@ DENSE_LEVEL_ROWS = 2.0
 #: :func:`nestmg.solve_on_hierarchy`, the time stepper, the geodesics and ``nestmg solve --maxiter``.
 DEFAULT_MAXITER = 100
 
-#: Default cap on the slow modes deflated per intermediate level (``MultigridSolver(deflate=)``).
+#: Cap on the slow modes deflated per level that :meth:`nestmg.problems.Problem.multigrid` passes as
+#: ``MultigridSolver(deflate=)``. The bare constructor's default is 0 (no probe): on the 1M-tet user
+#: hierarchies of docs/usermesh.md the probe saved no CG iteration and only added set-up time
+#: (``nestmg_deflate8`` in ``benchmarks/results/user_mesh/solvers.json``).
 DEFAULT_DEFLATE = 8
 
 
@@ -217,7 +221,8 @@ class MultigridSolver:
         symmetry tests (~40 ms per level visit of a 2.5M-nonzero operator, a third of a time step's
         set-up in ``benchmarks/reuse_diffusion.py``). ``None`` (default): tested (relative 1e-10).
     deflate : int
-        At most this many slow modes deflated per level (0: off). Every level between the finest and the
+        At most this many slow modes deflated per level (default 0: off; ``nestmg``'s problems pass
+        :data:`DEFAULT_DEFLATE`). Every level between the finest and the
         coarsest is probed at setup with :data:`solvers.deflation.PROBE_CYCLES` cycles of its own (about
         one fine cycle in all on a hierarchy coarsening 8x per level); where the error survives them
         (factor above :data:`solvers.deflation.DEFLATION_GOAL`), the slowest modes are found by a few more
@@ -272,7 +277,7 @@ class MultigridSolver:
         local_sweep: str = "symmetric",
         ordering: str | None = "auto",
         symmetric: bool | None = None,
-        deflate: int = DEFAULT_DEFLATE,
+        deflate: int = 0,
         probe_finest: bool = False,
     ):
         t0 = time.perf_counter()
@@ -307,13 +312,10 @@ class MultigridSolver:
                 raise SolverInputError(
                     f"coarse must be 'galerkin' or a list of coarse operators, got {coarse!r} (named coarse "
                     "operators such as 'weighted' are built by nestmg.problems.setup_problem)")
-            Rs = [sp.csr_matrix(P.T) for P in Ps]  # one transpose per level, reused by the cycle
-            if any((np.diff(R.indptr) == 0).any() for R in Rs):
-                # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
-                # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
-                Ps, _ = restrict_prolongations(Ps, np.arange(A.shape[0]))
-                Rs = [sp.csr_matrix(P.T) for P in Ps]
-            A, Ps, Rs, _, sym0 = self._reorder(A, Ps, Rs, ordering, [], symmetric)
+            # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
+            # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
+            Ps = _drop_unreached_columns(Ps)
+            A, Ps, Rs, _, sym0 = self._reorder(A, Ps, ordering, [], symmetric)
             ops = _galerkin_chain(A, Ps, sym0, Rs)  # A was validated above: no second copy and check
             self.coarse = "galerkin"
         else:
@@ -327,8 +329,7 @@ class MultigridSolver:
                         f"coarse[{k}] has shape {Ac.shape}, expected {(P.shape[1], P.shape[1])}"
                     )
             self.coarse = "given"
-            Rs = [sp.csr_matrix(P.T) for P in Ps]
-            A, Ps, Rs, given, _ = self._reorder(A, Ps, Rs, ordering, ops[1:], False)
+            A, Ps, Rs, given, _ = self._reorder(A, Ps, ordering, ops[1:], False)
             ops = [A] + given
         for k, Ak in enumerate(ops):
             d = Ak.diagonal()
@@ -341,8 +342,9 @@ class MultigridSolver:
                 )
             if nullspace == "constant":
                 r = np.abs(Ak @ np.ones(Ak.shape[0])).max()
-                # relative to ||A_k||_inf (no empty rows: the diagonal is positive)
-                if r > 1e-9 * np.add.reduceat(np.abs(Ak.data), Ak.indptr[:-1]).max():
+                # relative to ||A_k||_inf (no empty rows: the diagonal is positive), which is >= max(d): the
+                # row sums are formed only when that cheaper bound does not already pass
+                if r > 1e-9 * d.max() and r > 1e-9 * np.add.reduceat(np.abs(Ak.data), Ak.indptr[:-1]).max():
                     raise SolverError(
                         f"nullspace='constant' but the level {k} operator does not annihilate constants "
                         f"(max |A_{k} 1| = {r:.3e})"
@@ -434,17 +436,19 @@ class MultigridSolver:
         :class:`solvers.elasticity.NullspaceMultigridSolver`."""
         return None
 
-    def _reorder(self, A, Ps, Rs, ordering, given, symmetric):
-        """Apply the internal orders of every level (see ``ordering``) to ``A``, ``Ps``, ``Rs`` and the given
-        coarse operators; set ``self.perm``. Returns them and whether ``A`` is symmetric (``symmetric`` if
-        not None, else tested: on the permuted copy's by-product transpose when reordering)."""
+    def _reorder(self, A, Ps, ordering, given, symmetric):
+        """Apply the internal orders of every level (see ``ordering``) to ``A``, ``Ps`` and the given coarse
+        operators; set ``self.perm``. Returns them, the restrictions ``Rs`` (``Pᵀ`` in CSR, one transpose per
+        level, reused by the cycle) and whether ``A`` is symmetric (``symmetric`` if not None, else tested:
+        on the permuted copy's by-product transpose when reordering)."""
         if ordering not in ("auto", "locality", None):
             raise SolverInputError(f"ordering must be 'auto', 'locality' or None, got {ordering!r}")
         self.perm = None
         keep = (not Ps or ordering is None or any((np.diff(P.indptr) == 0).any() for P in Ps)  # unreached row
                 or (ordering == "auto" and (A.shape[0] < ORDER_MIN_N or index_spread(A) <= ORDER_MIN_SPREAD)))
         if keep:
-            return A, Ps, Rs, list(given), (_is_symmetric(A) if symmetric is None else bool(symmetric))
+            return (A, Ps, [sp.csr_matrix(P.T) for P in Ps], list(given),
+                    _is_symmetric(A) if symmetric is None else bool(symmetric))
         orders = locality_order(Ps)
         self.perm = orders[0]
         Ap, At = permute_symmetric(A, orders[0], with_transpose=True)

@@ -284,6 +284,49 @@ def test_keeping_every_coarse_node_is_caught(cube):
         MultigridSolver(ds.A, [Ps[0][ds.free]], coarse=[bad])
 
 
+def test_dropping_unreached_columns_equals_restricting_to_every_node(cube):
+    """The constructor's O(nnz) column drop gives restrict_prolongations' matrices (every fine node free)
+    bit for bit, down the levels, with explicit zeros; a hierarchy without unreached columns is kept."""
+    ds, _Pf, _ = _dirichlet(cube, 3)
+    _meshes, Ps, _K, _M = cube
+    raw = [sp.csr_matrix(Ps[0][ds.free])] + [sp.csr_matrix(P) for P in Ps[1:3]]
+    raw[0].data[::7] = 0.0  # explicit zeros: restrict_prolongations drops them before taking the support
+    want, _ = restrict_prolongations(raw, np.arange(raw[0].shape[0]))
+    got = transfer._drop_unreached_columns(raw)
+    assert [P.shape for P in got] == [P.shape for P in want]
+    assert got[0].shape[1] < raw[0].shape[1] and got[1].shape[0] < raw[1].shape[0]
+    for g, w in zip(got, want):
+        assert np.array_equal(g.indptr, w.indptr) and np.array_equal(g.indices, w.indices)
+        assert np.array_equal(g.data, w.data) and g.has_sorted_indices
+    kept = transfer._drop_unreached_columns(want)
+    assert all(a is b for a, b in zip(kept, want))
+
+
+@pytest.mark.parametrize("cap", [transfer.ONE_PASS_MAX_ENTRIES, 11950, 0])  # 11950: the per-row bound
+def test_one_pass_product_is_scipys_product(cube, monkeypatch, cap):
+    """The Galerkin products' one-pass kernel gives scipy's A @ B bit for bit (empty rows, a row bound that
+    exceeds the column count, the per-row bound, the fallback), and the Galerkin chain with it equals
+    R (A P) symmetrised."""
+    monkeypatch.setattr(transfer, "ONE_PASS_MAX_ENTRIES", cap)
+    rng = np.random.default_rng(3)
+    A = sp.random(300, 200, density=0.05, format="csr", random_state=rng)
+    A.data[A.indptr[5]:A.indptr[6]] = 0.0  # an empty row
+    A.eliminate_zeros()
+    B = sp.random(200, 40, density=0.3, format="csr", random_state=rng)
+    for X, Y in ((A, B), (B.T.tocsr(), A.T.tocsr()), (A[:, :0].tocsr(), B[:0].tocsr())):
+        want, got = sp.csr_matrix(X @ Y), transfer._one_pass_product(X, Y)
+        assert got.shape == want.shape
+        assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data)
+    _meshes, Ps, K, _M = cube
+    ops = transfer.galerkin_operators(K, Ps[:2])
+    for k, P in enumerate(Ps[:2]):
+        P = sp.csr_matrix(P)
+        ref = sp.csr_matrix(P.T @ (ops[k] @ P))
+        ref = sp.csr_matrix(0.5 * (ref + ref.T))
+        assert abs(ops[k + 1] - ref).max() <= 1e-14 * abs(ref).max()
+
+
 def test_inputs_untouched_and_x0(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     A0, P0, b0 = ds.A.copy(), Pf[0].copy(), ds.b.copy()

@@ -30,13 +30,14 @@ def scattered():
 def test_constructor_defaults_are_the_documented_fast_path():
     """MultigridSolver(A, P) with no options is the cycle docs/usermesh.md measured fastest under CG:
     forward Gauss-Seidel x2 before, backward x2 after (x1 on dense coarse levels), locality ordering,
-    dense coarsest solve."""
+    dense coarsest solve, no deflation probe."""
     params = inspect.signature(MultigridSolver).parameters
+    assert params["deflate"].default == 0 and params["probe_finest"].default is False
     assert DEFAULT_SMOOTHER == ("gauss_seidel", {"sweep": "forward", "iterations": 2})
     assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
     assert params["ordering"].default == "auto" and params["coarse_solver"].default == "auto"
     assert params["coarse"].default == "galerkin" and params["coarse_scaling"].default is None
-    assert solvers.coarse.DENSE_MAX == 1500
+    assert solvers.coarse.DENSE_MAX == 2000
     meshes, Ps = kuhn_cube_hierarchy(8, 3)
     V, T = meshes[0]
     ml = MultigridSolver(fem.stiffness_matrix(V, T), Ps, nullspace="constant")
@@ -48,6 +49,7 @@ def test_constructor_defaults_are_the_documented_fast_path():
         assert (pre["sweep"], pre["iterations"]) == ("forward", 2)
         assert (post["sweep"], post["iterations"]) == ("backward", 2)
     assert ml.symmetric_cycle and ml._coarse_solver.dense and ml.perm is None  # small: caller's order kept
+    assert ml.deflation == []
     # a dense coarse level (more than DENSE_LEVEL_ROWS times the fine nonzeros per row) gets one sweep
     assert DENSE_LEVEL_ROWS == 2.0
     P0 = sp.csr_matrix(Ps[0])

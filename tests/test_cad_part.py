@@ -91,9 +91,9 @@ def test_envelope_target_contains_what_the_decimated_part_cuts_away():
     assert (S2 > 0).mean() < 0.05 and S2.max() < GAP
 
 
-def test_envelope_target_is_the_recovery_when_the_papers_flow_fails(monkeypatch, failing_flow):
-    """The paper's target first (tightest cages); when its flow fails, Ĉ decimated from the offset envelope
-    (CAD parts, scans: featuretype, cheburashka, homer, lucy in the dev zoo) certifies with a short flow."""
+def _first_flow_fails(monkeypatch, failing_flow) -> list:
+    """Make the first flow of the run fail (the stand-in ``failing_flow``), the others real; returns the
+    list that counts the flows."""
     import cagegen.nested.backend as nb
 
     real, calls = nb.flow_inside, []
@@ -103,6 +103,13 @@ def test_envelope_target_is_the_recovery_when_the_papers_flow_fails(monkeypatch,
         return failing_flow(*args, **kwargs) if len(calls) == 1 else real(*args, **kwargs)
 
     monkeypatch.setattr(nb, "flow_inside", first_fails)
+    return calls
+
+
+def test_envelope_target_is_the_recovery_when_the_papers_flow_fails(monkeypatch, failing_flow):
+    """The paper's target first (tightest cages); when its flow fails, Ĉ decimated from the offset envelope
+    (CAD parts, scans: featuretype, cheburashka, homer, lucy in the dev zoo) certifies with a short flow."""
+    calls = _first_flow_fails(monkeypatch, failing_flow)
     V, F = plate_with_holes(holes=4, segments=24)
     layers, info = nested_backend(V, F, [100], min_gap=GAP, fallback=None, max_recovery_depth=0)
     lay = info["layers"][0]
@@ -113,19 +120,24 @@ def test_envelope_target_is_the_recovery_when_the_papers_flow_fails(monkeypatch,
     assert lay["min_gap_relative"] >= GAP
 
 
-def test_later_layers_try_the_envelope_first_once_a_layer_needed_it(monkeypatch, failing_flow):
+@pytest.fixture
+def one_ipctk_thread():
+    """ipctk on one thread: its parallel reductions make flows differ run to run, and this small plate's
+    second layer then sometimes needs the fallback (minutes); on one thread it certifies in seconds."""
+    import ipctk
+
+    n = ipctk.get_num_threads()
+    ipctk.set_num_threads(1)
+    yield
+    ipctk.set_num_threads(n)
+
+
+def test_later_layers_try_the_envelope_first_once_a_layer_needed_it(monkeypatch, failing_flow,
+                                                                    one_ipctk_thread):
     """Layer 1's flow into its decimated layer fails, the envelope target certifies it; layer 2 then starts
     with the envelope target (``FOLLOW_PREVIOUS_SOURCE``: lucy.ply's second layer spent 37 s in a failed
     flow before the envelope certified it), so no flow of layer 2 fails."""
-    import cagegen.nested.backend as nb
-
-    real, calls = nb.flow_inside, []
-
-    def first_fails(*args, **kwargs):
-        calls.append(1)
-        return failing_flow(*args, **kwargs) if len(calls) == 1 else real(*args, **kwargs)
-
-    monkeypatch.setattr(nb, "flow_inside", first_fails)
+    calls = _first_flow_fails(monkeypatch, failing_flow)
     V, F = plate_with_holes(holes=4, segments=48)
     layers, info = nested_backend(V, F, [300, 100], min_gap=GAP, fallback=None, max_recovery_depth=0)
     one, two = info["layers"]

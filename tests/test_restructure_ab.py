@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "archive" / "restructure_ab.py"
 _spec = importlib.util.spec_from_file_location("_restructure_ab", SCRIPT)
@@ -24,7 +25,8 @@ def _run(commit: str) -> dict:
             "hierarchy_tetgen": {"P": "b2", "certified": True,
                                  "solves": {"poisson-neumann/cg": {"factor": 0.1234, "iterations": 7}}},
             "seconds": 3.0}
-    return {"commit": commit, "cases": {"bunny.off/nested": case, "spot.obj/nested": copy.deepcopy(case)}}
+    return {"commit": commit, "command": "python benchmarks/archive/restructure_ab.py run ZOO_DIR",
+            "cases": {"bunny.off/nested": case, "spot.obj/nested": copy.deepcopy(case)}}
 
 
 def test_digest_sees_values_dtype_and_shape():
@@ -64,3 +66,15 @@ def test_a_recorded_failure_is_compared_like_a_hash():
     rec = ab._guarded(fails)
     assert rec == {"error": "RuntimeError: Internal TetGen error within `split_subface`."}
     assert ab._differences({"h": rec}, {"h": {"P": "b2"}}) == ["h/P", "h/error"]
+
+
+def test_runs_of_one_commit_merge_and_of_two_are_refused(tmp_path):
+    a, b = _run("1111111aaaa"), _run("1111111aaaa")
+    b["cases"] = {"bunny.off/decimate": b["cases"]["bunny.off/nested"]}
+    c = _run("2222222bbbb")
+    for name, r in (("a", a), ("b", b), ("c", c)):
+        (tmp_path / f"{name}.json").write_text(json.dumps(r))
+    merged = ab.merge_runs(f"{tmp_path / 'a.json'},{tmp_path / 'b.json'}")
+    assert sorted(merged["cases"]) == ["bunny.off/decimate", "bunny.off/nested", "spot.obj/nested"]
+    with pytest.raises(SystemExit, match="different commits"):
+        ab.merge_runs(f"{tmp_path / 'a.json'},{tmp_path / 'c.json'}")

@@ -22,7 +22,8 @@ clock) and one ipctk thread (its parallel reductions are not bitwise reproducibl
     export NESTMG_MESH_TIME_LIMIT=none OMP_NUM_THREADS=1
     PYTHONPATH=CHECKOUT python benchmarks/archive/restructure_ab.py run ZOO_DIR \\
         --meshes bunny.off spot.obj gargo_1000.off plate_holes.stl fandisk.obj --out BEFORE.json
-    python benchmarks/archive/restructure_ab.py compare BEFORE.json AFTER.json --step SHA --out ab_SHA.json
+    python benchmarks/archive/restructure_ab.py compare BEFORE.json[,MORE.json] AFTER.json[,MORE.json] \\
+        --step SHA --out ab_SHA.json
     python benchmarks/archive/restructure_ab.py table ab_*.json    # the docs' step x input table
 """
 
@@ -180,9 +181,20 @@ def _differences(a, b, prefix: str = "") -> list[str]:
     return [] if a == b else [prefix]
 
 
+def merge_runs(paths: str) -> dict:
+    """Runs of one commit (comma-separated files, e.g. one per cage method) as one run."""
+    runs = [json.loads(Path(p).read_text()) for p in paths.split(",")]
+    if len({r["commit"] for r in runs}) != 1:
+        raise SystemExit(f"runs of different commits cannot be merged: {paths}")
+    out = dict(runs[0], command=[r["command"] for r in runs], cases={})
+    for r in runs:
+        out["cases"].update(r["cases"])
+    return out
+
+
 def compare(args: argparse.Namespace) -> dict:
     """Case by case verdict of two runs: 'identical' or the differing fields."""
-    before, after = (json.loads(Path(p).read_text()) for p in (args.before, args.after))
+    before, after = merge_runs(args.before), merge_runs(args.after)
     verdict = {}
     for case in sorted(set(before["cases"]) | set(after["cases"])):
         diff = _differences(before["cases"].get(case), after["cases"].get(case))
@@ -204,9 +216,16 @@ def _mesh_verdict(verdict: dict, mesh: str) -> str:
     return "different (" + ", ".join(fields) + ")"
 
 
-def table(paths: list[Path]) -> str:
-    """Markdown table step x input -> identical / different (what), from ``compare`` outputs."""
+def table(paths: list[Path], method: str | None = None) -> str:
+    """Markdown table step x input -> identical / different (what), from ``compare`` outputs.
+
+    With ``method`` only that cage method's cases count; a step without them is left out.
+    """
     runs = [json.loads(Path(p).read_text()) for p in paths]
+    if method:
+        runs = [dict(r, verdict={k: v for k, v in r["verdict"].items() if k.endswith(f"/{method}")})
+                for r in runs]
+        runs = [r for r in runs if r["verdict"]]
     meshes = list(dict.fromkeys(k.rsplit("/", 1)[0] for r in runs for k in r["verdict"]))
     rows = ["| step | before -> after | " + " | ".join(meshes) + " |", "|---" * (len(meshes) + 2) + "|"]
     for r in runs:
@@ -228,19 +247,20 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--levels", type=int, default=3)
     r.add_argument("--out", type=Path, required=True)
     c = sub.add_parser("compare", help="A/B verdict of two runs")
-    c.add_argument("before", type=Path)
-    c.add_argument("after", type=Path)
+    c.add_argument("before", help="run JSON of the commit before (several: comma-separated)")
+    c.add_argument("after", help="run JSON of the commit after (several: comma-separated)")
     c.add_argument("--step", required=True, help="the step's name, e.g. the merge commit")
     c.add_argument("--out", type=Path, required=True)
     t = sub.add_parser("table", help="Markdown table of compare outputs")
     t.add_argument("verdicts", type=Path, nargs="+")
+    t.add_argument("--method", help="only this cage method's cases")
     args = ap.parse_args(argv)
     if args.cmd == "run":
         run(args)
     elif args.cmd == "compare":
         compare(args)
     else:
-        print(table(args.verdicts))
+        print(table(args.verdicts, args.method))
 
 
 if __name__ == "__main__":

@@ -159,7 +159,8 @@ def run_mesh(path: str, args) -> dict:
     print(f"{Path(path).name}: scaled Jacobian min / mean {rep0['scaled_jacobian']['min']:.3f} / "
           f"{rep0['scaled_jacobian']['mean_all']:.3f} -> floor {args.sj_floor}: "
           f"{repf['scaled_jacobian']['min']:.3f} / {repf['scaled_jacobian']['mean_all']:.3f}, "
-          f"{repf['sj_floor']['backed_off']} of {repf['sj_floor']['curved_edge_nodes']} edge nodes backed off",
+          f"{repf['sj_floor']['backed_off']} of {repf['sj_floor']['curved_edge_nodes']} edge nodes backed "
+          "off",
           flush=True)
     # P1 on level 0 with its boundary vertices on the input: the nodes of the curving without quality pass
     V0 = h.tets_in("normalized")[0][0]

@@ -560,13 +560,15 @@ def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, lam: float
 
 
 
-def _sj_floor(X, Xs, T10, floor: float, *, halvings: int = 4) -> tuple[np.ndarray, dict]:
+def _sj_floor(X, Xs, T10, floor: float, *, factor: float = 0.75, steps: int = 8) -> tuple[np.ndarray, dict]:
     """Partial curving: back off edge nodes until every tet's certified scaled Jacobian is >= ``floor``.
 
     Each edge node sits at ``Xs + t (X - Xs)``, ``t = 1`` at first. While a tet's certified lower bound
     (:func:`scaled_jacobians` with ``bound=True``) is below ``floor``, the ``t`` of its curved edge nodes
-    is halved (``halvings`` times, then 0: straight) and the tets around those nodes are re-checked. A
-    straight tet has a scaled Jacobian of 1, so the loop ends; ``floor > 0`` also certifies every tet.
+    is multiplied by ``factor`` (``steps`` times, then 0: straight) and the tets around those nodes are
+    re-checked. A straight tet has a scaled Jacobian of 1, so the loop ends; ``floor > 0`` also certifies
+    every tet (all Bernstein coefficients of ``det J`` positive). ``factor`` 0.75 rather than 0.5 kept
+    about twice as much curving at floor 0.8 on the procedural ball and torus (facet distance).
     """
     t0 = time.perf_counter()
     X = X.copy()
@@ -580,7 +582,7 @@ def _sj_floor(X, Xs, T10, floor: float, *, halvings: int = 4) -> tuple[np.ndarra
         nodes = nodes[t[nodes] > 0]
         if nodes.size == 0:  # only straight tets left below: rounding of a bound ~1 (floor < 1)
             break
-        t[nodes] = np.where(t[nodes] > 0.5 ** (halvings - 1), 0.5 * t[nodes], 0.0)
+        t[nodes] = np.where(t[nodes] > factor ** (steps - 1), factor * t[nodes], 0.0)
         X[nodes] = Xs[nodes] + t[nodes, None] * D[nodes]
         check, rounds = _tets_with_nodes(T10, nodes, len(X)), rounds + 1
     curved = np.flatnonzero(np.any(D != 0, axis=1))
@@ -607,8 +609,8 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
        and the Hencky energy, every tet weighted alike), every iterate certified, up to
        ``quality_passes`` times (``report["quality"]``).
     5. Scaled-Jacobian floor (``sj_floor`` not None): partial curving; the curving displacement of the
-       edge nodes of every tet whose certified scaled Jacobian is below ``sj_floor`` is halved, up to 4
-       times, then removed, until every tet meets the floor (``report["sj_floor"]``).
+       edge nodes of every tet whose certified scaled Jacobian is below ``sj_floor`` is scaled by 0.75, up
+       to 8 times, then removed, until every tet meets the floor (``report["sj_floor"]``).
 
     Parameters
     ----------

@@ -973,10 +973,39 @@ def curved_floor_rates() -> str:
                      f"{c0['backed_off']:,} / {c1['backed_off']:,}",
                      f"{c0['facet_distance_max']:.1e} / {c1['facet_distance_max']:.1e}",
                      " / ".join(str(i) for i in x["iterations"])])
-    t = [c["tets"] for c in load(CURVED_FLOOR)["results"][0]["curving"]]
+    tets = {x["shape"]: " / ".join(f"{c['tets']:,}" for c in x["curving"])
+            for x in load(CURVED_FLOOR)["results"]}
     return table(["shape", "problem", "floor", "L2 curved P2", "rate", "P1 / curved P2 (equal unknowns)",
                   "scaled Jacobian min", "edge nodes backed off", "facet distance max", "MG-PCG it"], rows) \
-        + f"\n\n(each pair: ball {t[0]:,} / {t[1]:,} tets; torus 1,728 / 13,824 tets)"
+        + "\n\n(each pair: the coarser / finer level, " \
+        + "; ".join(f"{k} {v} tets" for k, v in tets.items()) + ")"
+
+
+@generator("curved.floor_min_2", CURVED)
+def curved_floor_min_2() -> str:
+    return curved_floor_min()
+
+
+@generator("curved.floor_cost_2", CURVED)
+def curved_floor_cost_2() -> str:
+    return curved_floor_cost()
+
+
+@generator("curved.floor07_cost", CURVED)
+def curved_floor07_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P2_curved_floor_0.7"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p],
+               ".2f", "x")
+
+
+@generator("curved.floor07_torus", CURVED_FLOOR)
+def curved_floor07_torus() -> str:
+    rows = [x for x in load(CURVED_FLOOR)["results"] if x["shape"] == "torus"]
+    base = {x["problem"]: x["l2_error"][0] for x in rows if x["sj_floor"] is None}
+    cost = [x["l2_error"][0] / base[x["problem"]] for x in rows if x["sj_floor"] == 0.7]
+    sj = [x["curving"][0]["sj_min"] for x in rows if x["sj_floor"] is None]
+    n = rows[0]["curving"][0]["tets"]
+    return f"{rng(cost, '.1f', 'x')} on the {n:,}-tet torus (its own minimum is {min(sj):.3f})"
 
 
 @generator("curved.floor_min", CURVED)

@@ -358,5 +358,11 @@ def test_cli_solve_element_p2_writes_tetra10(tmp_path):
     m = meshio.read(tmp_path / "vtu" / "p2.vtu")
     assert m.cells[0].type == "tetra10" and len(m.cells[0].data) == r["curved"]["tets"]
     assert np.isfinite(m.point_data["u"]).all() and np.abs(m.point_data["u"]).max() > 0
+    assert "sj_floor" not in r["curved"]  # off by default; --sj-floor reaches curve_mesh:
+    rc = main(["solve", "shape:sphere", "--method", "decimate", "--levels", "2", "--mesher", "tetgen",
+               "--max-tets", "8000", "--element", "P2", "--sj-floor", "0.955", "--json", str(out), "--quiet"])
+    r = json.loads(out.read_text())["solve"]
+    assert rc == 0 and r["converged"] and r["curved"]["certified"]
+    assert r["curved"]["sj_floor"]["floor"] == 0.955 and r["curved"]["scaled_jacobian"]["bound_min"] >= 0.955
     assert main(["solve", "shape:sphere", "--element", "P2", "--problem", "elasticity-free", "--levels", "2",
                  "--mesher", "tetgen", "--max-tets", "8000", "--quiet"]) == 2

@@ -16,13 +16,15 @@ unknowns of P1 on level 0. Recorded per mesh:
   corner normals interpolated on the closest triangle; ``neumann_face``: the closest triangle's own
   normal, discontinuous across the input's edges): L2 errors against ``u`` by quadrature over each
   discrete domain of P1 on level 0 (boundary vertices projected onto the input), straight P2 and
-  curved P2 on level 1 (with and without the quality pass); MG-PCG iterations to 1e-8 (default
+  curved P2 on level 1 (with and without the quality pass, and partially curved up to the
+  scaled-Jacobian floor ``--sj-floor`` without quality pass); MG-PCG iterations to 1e-8 (default
   cycle), seconds.
 
 Run from the repository root::
 
     OMP_NUM_THREADS=1 python benchmarks/curved.py ZOO_DIR/bunny.off ZOO_DIR/gargo.off ZOO_DIR/fandisk.obj \\
-        --edge-length 0.015 --json benchmarks/results/curved/curved.json
+        --edge-length 0.015 --quality 0.96 --quality-lam 1.0 --sj-floor 0.955 0.7 \\
+        --json benchmarks/results/curved/curved.json
 """
 
 from __future__ import annotations
@@ -128,10 +130,10 @@ def _hierarchy(path: str, args):
     return h, len(F), t_h
 
 
-def _curve(h, proj, args, quality):
+def _curve(h, proj, args, quality, sj_floor=None):
     t0 = time.perf_counter()
     cm = curve_mesh(*h.tets_in("normalized")[1], proj, lam=args.lam, quality=quality,
-                    quality_lam=args.quality_lam)
+                    quality_lam=args.quality_lam, sj_floor=sj_floor)
     return cm, cm.report | {"seconds_total": time.perf_counter() - t0}
 
 
@@ -142,6 +144,8 @@ def _problem_row(h, Vp, cms, name, proj, tol) -> dict:
         r[key] = p2_case(h, cm, name, proj, tol)
     r["p1_over_curved"] = r["P1"]["l2_error"] / r["P2_curved"]["l2_error"]
     r["straight_over_curved"] = r["P2_straight"]["l2_error"] / r["P2_curved"]["l2_error"]
+    for key in [k for k in r if k.startswith("P2_curved_floor_")]:
+        r["p1_over_" + key[3:]] = r["P1"]["l2_error"] / r[key]["l2_error"]
     return r
 
 
@@ -151,6 +155,15 @@ def run_mesh(path: str, args) -> dict:
     proj = surface_projector(Vs, Fs, normals="smooth")
     cm, rep = _curve(h, proj, args, args.quality)
     cm0, rep0 = _curve(h, proj, args, None)  # the same without the quality pass
+    floors = {}  # partial curving up to each floor instead of the quality pass
+    for fl in args.sj_floor:
+        cmf, repf = _curve(h, proj, args, None, fl)
+        floors[f"{fl:g}"] = (cmf, repf)
+        print(f"{Path(path).name}: scaled Jacobian min / mean {rep0['scaled_jacobian']['min']:.3f} / "
+              f"{rep0['scaled_jacobian']['mean_all']:.3f} -> floor {fl:g}: "
+              f"{repf['scaled_jacobian']['min']:.3f} / {repf['scaled_jacobian']['mean_all']:.3f}, "
+              f"{repf['sj_floor']['backed_off']} of {repf['sj_floor']['curved_edge_nodes']} edge nodes "
+              "backed off", flush=True)
     # P1 on level 0 with its boundary vertices on the input: the nodes of the curving without quality pass
     V0 = h.tets_in("normalized")[0][0]
     assert len(V0) == len(cm0.X)
@@ -159,9 +172,12 @@ def run_mesh(path: str, args) -> dict:
         Vp = V0  # a projected vertex would invert a P1 tet: keep TetWild's boundary
     out = {"mesh": Path(path).name, "input_faces": n_faces, "hierarchy": {
         "tets": [len(T) for _, T in h.tets], "nodes": [len(Vk) for Vk, _ in h.tets], "certified": h.certified,
-        "seconds": t_h}, "curving": rep, "curving_no_quality": rep0, "p1_vertices_projected": Vp is not V0,
+        "seconds": t_h}, "curving": rep, "curving_no_quality": rep0,
+        "curving_floor": {k: rep_f for k, (_, rep_f) in floors.items()},
+        "p1_vertices_projected": Vp is not V0,
         "problems": {}}
-    cms = {"P2_curved": cm, "P2_curved_no_quality": cm0}
+    cms = {"P2_curved": cm, "P2_curved_no_quality": cm0} | {f"P2_curved_floor_{k}": c for k, (c, _) in
+                                                             floors.items()}
     face = surface_projector(Vs, Fs, normals="face")
     for name, pr, key in (("poisson-dirichlet", proj, "poisson-dirichlet"),
                           ("poisson-neumann", proj, "poisson-neumann"),
@@ -170,7 +186,9 @@ def run_mesh(path: str, args) -> dict:
         out["problems"][key] = r
         print(f"{out['mesh']} {key}: L2 P1 {r['P1']['l2_error']:.3e} ({r['P1']['iterations']} it), "
               f"P2 straight {r['P2_straight']['l2_error']:.3e} ({r['P2_straight']['iterations']} it), "
-              f"P2 curved {r['P2_curved']['l2_error']:.3e} ({r['P2_curved']['iterations']} it)", flush=True)
+              f"P2 curved {r['P2_curved']['l2_error']:.3e} ({r['P2_curved']['iterations']} it)"
+              + "".join(f", {k[3:]} {v['l2_error']:.3e} ({v['iterations']} it)" for k, v in r.items()
+                        if k.startswith("P2_curved_floor_")), flush=True)
     return out
 
 
@@ -211,6 +229,8 @@ def main(argv=None) -> int:
     p.add_argument("--quality", type=float, default=0.96,
                    help="scaled-Jacobian threshold of the quality pass")
     p.add_argument("--quality-lam", type=float, default=1.0, help="λ of the quality pass")
+    p.add_argument("--sj-floor", type=float, nargs="+", default=[0.955, 0.7],
+                   help="scaled-Jacobian floors of the partial curving (a curving each, no quality pass)")
     p.add_argument("--tol", type=float, default=1e-8)
     p.add_argument("--png", default=None, help="also draw a coarse curved mesh of --png-mesh here")
     p.add_argument("--png-mesh", default=None, help="surface for the picture (default: the first MESH; "
@@ -232,7 +252,8 @@ def main(argv=None) -> int:
     zoo = " ".join(f"ZOO_DIR/{Path(m).name}" for m in args.meshes)
     res = {"command": f"python benchmarks/curved.py {zoo} --levels {args.levels} --method {args.method}"
            + f" --edge-length {args.edge_length} --lam {args.lam}"
-           + f" --quality {args.quality} --quality-lam {args.quality_lam}",
+           + f" --quality {args.quality} --quality-lam {args.quality_lam} --sj-floor "
+           + " ".join(f"{f:g}" for f in args.sj_floor),
            "commit": commit, "machine": platform.machine(), "solution": "sin(6x) exp(2y) cos(4z)",
            "results": [run_mesh(m, args) for m in args.meshes], "picture": pic if args.png else None}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

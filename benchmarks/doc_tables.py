@@ -980,6 +980,96 @@ def curved_dirichlet_gain() -> str:
     return rng([r["problems"]["poisson-dirichlet"]["p1_over_curved"] for r in _curved()], ".0f", "x")
 
 
+CURVED_FLOOR = "curved/floor_rates.json"
+
+
+def _floor_variants(r: dict) -> list:
+    """(label, curving report, problem key) of the curvings without quality pass, floors ascending."""
+    out = [("no floor", r["curving_no_quality"], "P2_curved_no_quality")]
+    for k in sorted(r["curving_floor"], key=float):
+        out.append((f"floor {k}", r["curving_floor"][k], f"P2_curved_floor_{k}"))
+    return out
+
+
+@generator("curved.floor", CURVED)
+def curved_floor() -> str:
+    rows = []
+    for r in _curved():
+        pd, pn = r["problems"]["poisson-dirichlet"], r["problems"]["poisson-neumann"]
+        for label, c, key in _floor_variants(r):
+            sj, d, fl = c["scaled_jacobian"], c["surface_distance"], c.get("sj_floor")
+            rows.append([r["mesh"], label, f"**{sj['min']:.3f}** / {sj['mean']:.3f} / {sj['mean_all']:.3f}",
+                         f"{sj['bound_min']:.3f}",
+                         f"{fl['backed_off']:,} ({fl['straightened']:,}) of {fl['curved_edge_nodes']:,}"
+                         if fl else "", f"{c['curved_tets']:,}",
+                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}", f"{pd[key]['l2_error']:.2e}",
+                         f"{pd['P1']['l2_error'] / pd[key]['l2_error']:.1f}", f"{pn[key]['l2_error']:.2e}",
+                         f"{pd[key]['iterations']} / {pn[key]['iterations']}"])
+    return table(["mesh", "curving", "scaled Jacobian min / mean (curved tets) / mean (all tets)",
+                  "certified bound on the min", "edge nodes backed off (straightened) of the curved ones",
+                  "curved tets", "facet distance max / mean", "L2 Dirichlet, curved P2", "P1 / curved P2",
+                  "L2 Neumann (smooth normals)", "MG-PCG it Dirichlet / Neumann"], rows)
+
+
+@generator("curved.floor_rates", CURVED_FLOOR)
+def curved_floor_rates() -> str:
+    rows = []
+    for x in load(CURVED_FLOOR)["results"]:
+        c0, c1 = x["curving"]
+        fl = "none" if x["sj_floor"] is None else f"{x['sj_floor']:g}"
+        rows.append([x["shape"], x["problem"].replace("poisson-", ""), fl,
+                     f"{x['l2_error'][0]:.2e} → {x['l2_error'][1]:.2e}", f"**{x['rate']:.2f}**",
+                     f"**{x['p1_over_curved']:.1f}**", f"{c0['sj_min']:.3f} / {c1['sj_min']:.3f}",
+                     f"{c0['backed_off']:,} / {c1['backed_off']:,}",
+                     f"{c0['facet_distance_max']:.1e} / {c1['facet_distance_max']:.1e}",
+                     " / ".join(str(i) for i in x["iterations"])])
+    tets = {x["shape"]: " / ".join(f"{c['tets']:,}" for c in x["curving"])
+            for x in load(CURVED_FLOOR)["results"]}
+    return table(["shape", "problem", "floor", "L2 curved P2", "rate", "P1 / curved P2 (equal unknowns)",
+                  "scaled Jacobian min", "edge nodes backed off", "facet distance max", "MG-PCG it"], rows) \
+        + "\n\n(each pair: the coarser / finer level, " \
+        + "; ".join(f"{k} {v} tets" for k, v in tets.items()) + ")"
+
+
+@generator("curved.floor_min_2", CURVED)
+def curved_floor_min_2() -> str:
+    return curved_floor_min()
+
+
+@generator("curved.floor_cost_2", CURVED)
+def curved_floor_cost_2() -> str:
+    return curved_floor_cost()
+
+
+@generator("curved.floor07_cost", CURVED)
+def curved_floor07_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P2_curved_floor_0.7"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p],
+               ".2f", "x")
+
+
+@generator("curved.floor07_torus", CURVED_FLOOR)
+def curved_floor07_torus() -> str:
+    rows = [x for x in load(CURVED_FLOOR)["results"] if x["shape"] == "torus"]
+    base = {x["problem"]: x["l2_error"][0] for x in rows if x["sj_floor"] is None}
+    cost = [x["l2_error"][0] / base[x["problem"]] for x in rows if x["sj_floor"] == 0.7]
+    sj = [x["curving"][0]["sj_min"] for x in rows if x["sj_floor"] is None]
+    n = rows[0]["curving"][0]["tets"]
+    return f"{rng(cost, '.1f', 'x')} on the {n:,}-tet torus (its own minimum is {min(sj):.3f})"
+
+
+@generator("curved.floor_min", CURVED)
+def curved_floor_min() -> str:
+    return rng([r["curving_floor"]["0.955"]["scaled_jacobian"]["min"] for r in _curved()], ".3f")
+
+
+@generator("curved.floor_cost", CURVED)
+def curved_floor_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
+    return rng([x["P2_curved_floor_0.955"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p],
+               ".1f", "x")
+
+
 # ----------------------------------------------------------------------------------------- corpus views
 def _corpus() -> dict:
     return load(CORPUS)

@@ -97,12 +97,13 @@ def _p2_level(h) -> int:
     return 1 if rep is not None and str(rep.extrapolation).startswith("none (refinement)") else 0
 
 
-def _curve(h, base: int, quality: float | None = None):
+def _curve(h, base: int, quality: float | None = None, sj_floor: float | None = None):
     """Level ``base`` of ``h`` curved onto the input surface (normalised frame), certified."""
     from .curved import curve_mesh, surface_projector
 
     Vs, Fs = h.surfaces_in("normalized")[0]
-    return curve_mesh(*h.tets_in("normalized")[base], surface_projector(Vs, Fs), quality=quality)
+    return curve_mesh(*h.tets_in("normalized")[base], surface_projector(Vs, Fs), quality=quality,
+                      sj_floor=sj_floor)
 
 
 def _solve(h, args, solution: bool = False) -> dict:
@@ -115,7 +116,7 @@ def _solve(h, args, solution: bool = False) -> dict:
         if args.problem.startswith("elasticity"):
             raise NestmgError("--element P2 supports the scalar problems only (not elasticity)")
         base = _p2_level(h)
-        cm = _curve(h, base, getattr(args, "quality", None))
+        cm = _curve(h, base, getattr(args, "quality", None), getattr(args, "sj_floor", None))
         tets, P, extra = tets[base:], P[base:], {"element": "P2", "curved": cm}
     r = solve_on_hierarchy(tets, P, args.problem, args.solver, return_solution=solution, **extra)
     if extra:
@@ -425,6 +426,9 @@ def build_parser() -> argparse.ArgumentParser:
     _expert(s.add_argument("--quality", type=float, default=None,
                            help="with --element P2: quality pass on the curved tets whose scaled Jacobian "
                                 "(min / max det J) is below this, e.g. 0.96"))
+    _expert(s.add_argument("--sj-floor", type=float, default=None,
+                           help="with --element P2: back off the curving until every tet's certified scaled "
+                                "Jacobian is at least this, e.g. 0.955 (costs accuracy: docs/curved.md)"))
     s.add_argument("--json", default=None, help="write the report here")
     s.add_argument("--png", default=None, help="folder for layers.png and convergence.png")
     s.add_argument("--out", default=None,

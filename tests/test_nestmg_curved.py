@@ -136,6 +136,38 @@ def test_quality_pass_raises_the_scaled_jacobian_at_a_fit_cost_set_by_lambda(bal
     assert cm.report["linear_scaled_jacobian"]["min"] == pytest.approx(lin.min()) and 0 < lin.max() <= 1.5
 
 
+@pytest.mark.parametrize("shape", ["ball", "torus"])
+def test_sj_floor_lifts_every_tet_to_the_floor_by_partial_curving(ball, torus, shape):
+    (tets, _), proj = (ball, sphere_projector()) if shape == "ball" else (torus, torus_projector())
+    V, T = tets[2]  # 1280 / 1728 tets: their curved tets go down to 0.80 / 0.63
+    free = curve_mesh(V, T, proj)
+    assert free.report["scaled_jacobian"]["min"] < 0.9 and "sj_floor" not in free.report
+    cm = curve_mesh(V, T, proj, sj_floor=0.955)
+    sj, lb = scaled_jacobians(cm.X, cm.T10, order=12), scaled_jacobians(cm.X, cm.T10, bound=True)
+    assert lb.min() >= 0.955 and sj.min() >= lb.min() - 1e-12  # certified: the Bernstein bound meets it
+    assert cm.report["scaled_jacobian"]["bound_min"] >= 0.955 and cm.report["certified"]
+    assert (certify_tets(cm.X, cm.T10) == 1).all()
+    fl = cm.report["sj_floor"]
+    assert fl["tets_below_before"] == int((scaled_jacobians(free.X, free.T10, bound=True) < 0.955).sum()) > 0
+    assert 0 < fl["backed_off"] <= fl["curved_edge_nodes"] and fl["rounds"] >= 1
+    # only backed off, never pushed further: every node between its straight and its curved position
+    Xs = free.straight().X
+    D, Dc = cm.X - Xs, free.X - Xs
+    t = np.einsum("ij,ij->i", D, Dc) / np.maximum(np.einsum("ij,ij->i", Dc, Dc), 1e-300)
+    np.testing.assert_allclose(D, t[:, None] * Dc, atol=1e-14)
+    assert t.min() >= 0 and t.max() <= 1 and (t[np.any(Dc != 0, axis=1)] < 1).sum() == fl["backed_off"]
+    # the cost: the facets lie between straight and curved (some edges of the torus are straightened)
+    d, d0 = cm.report["surface_distance"], free.report["surface_distance"]
+    assert d0["curved_max"] < d["curved_max"] <= d["straight_max"]
+    assert d0["curved_mean"] < d["curved_mean"] < d["straight_mean"]
+    # a floor the mesh already meets changes nothing
+    low = curve_mesh(V, T, proj, sj_floor=0.5)
+    np.testing.assert_array_equal(low.X, free.X)
+    assert low.report["sj_floor"]["backed_off"] == 0
+    with pytest.raises(NestmgInputError, match="sj_floor"):
+        curve_mesh(V, T, proj, sj_floor=1.0)
+
+
 def test_smooth_normals_follow_the_surface_and_keep_sharp_creases():
     Vs, Fs = shapes.sphere(16)
     Vs = Vs / np.linalg.norm(Vs, axis=1, keepdims=True)
@@ -326,5 +358,11 @@ def test_cli_solve_element_p2_writes_tetra10(tmp_path):
     m = meshio.read(tmp_path / "vtu" / "p2.vtu")
     assert m.cells[0].type == "tetra10" and len(m.cells[0].data) == r["curved"]["tets"]
     assert np.isfinite(m.point_data["u"]).all() and np.abs(m.point_data["u"]).max() > 0
+    assert "sj_floor" not in r["curved"]  # off by default; --sj-floor reaches curve_mesh:
+    rc = main(["solve", "shape:sphere", "--method", "decimate", "--levels", "2", "--mesher", "tetgen",
+               "--max-tets", "8000", "--element", "P2", "--sj-floor", "0.955", "--json", str(out), "--quiet"])
+    r = json.loads(out.read_text())["solve"]
+    assert rc == 0 and r["converged"] and r["curved"]["certified"]
+    assert r["curved"]["sj_floor"]["floor"] == 0.955 and r["curved"]["scaled_jacobian"]["bound_min"] >= 0.955
     assert main(["solve", "shape:sphere", "--element", "P2", "--problem", "elasticity-free", "--levels", "2",
                  "--mesher", "tetgen", "--max-tets", "8000", "--quiet"]) == 2

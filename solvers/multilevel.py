@@ -140,6 +140,53 @@ class Level:
     info: dict = field(default_factory=dict)
 
 
+def _checked_inputs(A, Ps, nullspace) -> tuple:
+    """``A`` and ``Ps`` as CSR, their shapes chained (each coarse level smaller, non-empty) and, for
+    ``nullspace="constant"``, every prolongation reproducing constants (one-line errors otherwise)."""
+    A = _as_csr(A, "A")
+    if A.shape[0] != A.shape[1]:
+        raise SolverInputError(f"A must be square, got {A.shape}")
+    Ps = [_as_csr(P, f"Ps[{k}]") for k, P in enumerate(Ps)]
+    n = A.shape[0]
+    for k, P in enumerate(Ps):
+        if P.shape[0] != n:
+            raise SolverInputError(f"Ps[{k}] has shape {P.shape}; expected {n} rows (level {k} size)")
+        if P.shape[1] == 0 or P.shape[1] >= P.shape[0]:
+            raise SolverInputError(f"Ps[{k}] has shape {P.shape}: the coarse level must be smaller and non-empty")
+        if nullspace == "constant":
+            rs = np.asarray(P.sum(axis=1)).ravel()
+            if np.abs(rs - 1).max() > 1e-8:
+                raise SolverInputError(
+                    f"nullspace='constant' needs prolongations reproducing constants, but rows of Ps[{k}] "
+                    f"sum to values in [{rs.min():.3g}, {rs.max():.3g}]"
+                )
+        n = P.shape[1]
+    return A, Ps
+
+
+def _check_operators(ops, nullspace) -> None:
+    """Every level operator has a positive diagonal and, for ``nullspace="constant"``, annihilates
+    constants (one-line :class:`SolverError` naming the level otherwise)."""
+    for k, Ak in enumerate(ops):
+        d = Ak.diagonal()
+        if np.any(d <= 0):
+            bad = np.flatnonzero(d <= 0)
+            raise SolverError(
+                f"level {k} operator has {bad.size} rows with diagonal <= 0 (first: node {bad[0]}); "
+                "a coarse node that touches no free fine node gives an empty row: restrict the "
+                "prolongations with restrict_prolongations(Ps, free)"
+            )
+        if nullspace == "constant":
+            r = np.abs(Ak @ np.ones(Ak.shape[0])).max()
+            # relative to ||A_k||_inf (no empty rows: the diagonal is positive), which is >= max(d): the
+            # row sums are formed only when that cheaper bound does not already pass
+            if r > 1e-9 * d.max() and r > 1e-9 * np.add.reduceat(np.abs(Ak.data), Ak.indptr[:-1]).max():
+                raise SolverError(
+                    f"nullspace='constant' but the level {k} operator does not annihilate constants "
+                    f"(max |A_{k} 1| = {r:.3e})"
+                )
+
+
 class MultigridSolver:
     """Multigrid hierarchy with ``solve`` and ``aspreconditioner`` (modelled on pyamg's MultilevelSolver).
 
@@ -284,29 +331,41 @@ class MultigridSolver:
         if nullspace not in (None, "constant"):
             raise SolverInputError(f"nullspace must be None or 'constant', got {nullspace!r}")
         self.nullspace = nullspace
-        A = _as_csr(A, "A")
-        if A.shape[0] != A.shape[1]:
-            raise SolverInputError(f"A must be square, got {A.shape}")
-        Ps = [_as_csr(P, f"Ps[{k}]") for k, P in enumerate(Ps)]
-        n = A.shape[0]
-        for k, P in enumerate(Ps):
-            if P.shape[0] != n:
-                raise SolverInputError(f"Ps[{k}] has shape {P.shape}; expected {n} rows (level {k} size)")
-            if P.shape[1] == 0 or P.shape[1] >= P.shape[0]:
-                raise SolverInputError(f"Ps[{k}] has shape {P.shape}: the coarse level must be smaller and non-empty")
-            if nullspace == "constant":
-                rs = np.asarray(P.sum(axis=1)).ravel()
-                if np.abs(rs - 1).max() > 1e-8:
-                    raise SolverInputError(
-                        f"nullspace='constant' needs prolongations reproducing constants, but rows of Ps[{k}] "
-                        f"sum to values in [{rs.min():.3g}, {rs.max():.3g}]"
-                    )
-            n = P.shape[1]
+        A, Ps = _checked_inputs(A, Ps, nullspace)
         if local_sweep not in ("symmetric", "one-way"):
             raise SolverInputError(f"local_sweep must be 'symmetric' or 'one-way', got {local_sweep!r}")
         if coarse_scaling not in (None, "energy"):
             raise SolverInputError(f"coarse_scaling must be None or 'energy', got {coarse_scaling!r}")
         self.coarse_scaling = coarse_scaling
+        A, Ps, Rs, ops, sym0 = self._coarse_operators(A, Ps, coarse, ordering, symmetric)
+        _check_operators(ops, nullspace)
+        self.levels = self._make_levels(ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels,
+                                        local_sweep, local_sweeps)
+        # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
+        if self.coarse == "galerkin":
+            self.symmetric = sym0
+        else:
+            self.symmetric = (all(_is_symmetric(L.A) for L in self.levels) if symmetric is None
+                              else bool(symmetric))
+        self._coarse_solver = _CoarseSolver(ops[-1], nullspace, len(ops) - 1, coarse_solver, pinv_max,
+                                            symmetric=self.symmetric or None)
+        #: null vectors of the coarsest operator (1 expected for Neumann, 0 for Dirichlet; more means a
+        #: rank-deficient prolongation, handled by the pseudo-inverse)
+        self.coarse_nullity = self._coarse_solver.nullity
+        # a cycle is a symmetric operator iff A_k are symmetric and post = adjoint(pre) on every level
+        self.symmetric_cycle = self.symmetric and (
+            len(self.levels) == 1
+            or all(_smoothers_adjoint(L.presmoother, L.postsmoother) for L in self.levels[:-1])
+        )
+        self.deflation = self._deflate(deflate, probe_finest)
+        self.setup_seconds = time.perf_counter() - t0
+
+    def _coarse_operators(self, A, Ps, coarse, ordering, symmetric) -> tuple:
+        """The level operators: Galerkin products, or the caller's (checked); both reordered (``ordering``).
+
+        Returns ``(A, Ps, Rs, ops, sym0)`` in the solver's order; sets ``self.coarse``.
+        """
+        sym0 = None
         if isinstance(coarse, str):
             if coarse != "galerkin":
                 raise SolverInputError(
@@ -331,31 +390,18 @@ class MultigridSolver:
             self.coarse = "given"
             A, Ps, Rs, given, _ = self._reorder(A, Ps, ordering, ops[1:], False)
             ops = [A] + given
-        for k, Ak in enumerate(ops):
-            d = Ak.diagonal()
-            if np.any(d <= 0):
-                bad = np.flatnonzero(d <= 0)
-                raise SolverError(
-                    f"level {k} operator has {bad.size} rows with diagonal <= 0 (first: node {bad[0]}); "
-                    "a coarse node that touches no free fine node gives an empty row: restrict the "
-                    "prolongations with restrict_prolongations(Ps, free)"
-                )
-            if nullspace == "constant":
-                r = np.abs(Ak @ np.ones(Ak.shape[0])).max()
-                # relative to ||A_k||_inf (no empty rows: the diagonal is positive), which is >= max(d): the
-                # row sums are formed only when that cheaper bound does not already pass
-                if r > 1e-9 * d.max() and r > 1e-9 * np.add.reduceat(np.abs(Ak.data), Ak.indptr[:-1]).max():
-                    raise SolverError(
-                        f"nullspace='constant' but the level {k} operator does not annihilate constants "
-                        f"(max |A_{k} 1| = {r:.3e})"
-                    )
+        return A, Ps, Rs, ops, sym0
+
+    def _make_levels(self, ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels, local_sweep,
+                     local_sweeps) -> list[Level]:
+        """One :class:`Level` per operator: smoothers (post = adjoint of pre unless given), local sweeps."""
         pre_specs = _level_specs(presmoother, len(Ps))
         if presmoother is DEFAULT_SMOOTHER:
             pre_specs = _dense_level_specs(ops, pre_specs)
         post_specs = ([_adjoint_spec(s) for s in pre_specs] if postsmoother is None
                       else _level_specs(postsmoother, len(Ps)))
         local = _local_sets(_permuted_nodes(local_nodes, self.perm), Ps, local_levels, ops[0].shape[0])
-        self.levels: list[Level] = []
+        levels: list[Level] = []
         for k, Ak in enumerate(ops):
             if k < len(Ps):
                 P = Ps[k]
@@ -373,25 +419,8 @@ class MultigridSolver:
                 lvl = Level(Ak, P, Rs[k], pre, post)
             else:
                 lvl = Level(Ak)
-            self.levels.append(lvl)
-        # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
-        if self.coarse == "galerkin":
-            self.symmetric = sym0
-        else:
-            self.symmetric = (all(_is_symmetric(L.A) for L in self.levels) if symmetric is None
-                              else bool(symmetric))
-        self._coarse_solver = _CoarseSolver(ops[-1], nullspace, len(ops) - 1, coarse_solver, pinv_max,
-                                            symmetric=self.symmetric or None)
-        #: null vectors of the coarsest operator (1 expected for Neumann, 0 for Dirichlet; more means a
-        #: rank-deficient prolongation, handled by the pseudo-inverse)
-        self.coarse_nullity = self._coarse_solver.nullity
-        # a cycle is a symmetric operator iff A_k are symmetric and post = adjoint(pre) on every level
-        self.symmetric_cycle = self.symmetric and (
-            len(self.levels) == 1
-            or all(_smoothers_adjoint(L.presmoother, L.postsmoother) for L in self.levels[:-1])
-        )
-        self.deflation = self._deflate(deflate, probe_finest)
-        self.setup_seconds = time.perf_counter() - t0
+            levels.append(lvl)
+        return levels
 
     def _deflate(self, max_vectors: int, probe_finest: bool) -> list[dict]:
         """Probe levels ``L-2 .. 1`` (and 0 with ``probe_finest``), coarse first so that each probe sees the

@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -41,6 +40,7 @@ import numpy as np
 from nestmg import build_hierarchy, load_mesh, setup_problem
 from nestmg.curved import curve_mesh, p2_nodes, p2_prolongation, surface_projector
 from nestmg.io import json_default
+from exp_common import git_commit, write_json  # benchmarks/ is sys.path[0]
 from nestmg.tetmesh import orient_tets, tet_volumes
 from solvers import stiffness_matrix
 from solvers.fem_p2 import p2_boundary_facets, p2_l2_error, p2_load, p2_neumann_load
@@ -247,8 +247,7 @@ def main(argv=None) -> int:
             Path(args.json).write_text(json.dumps({"picture": pic | {"png": Path(pic["png"]).name}}, indent=1,
                                                   default=json_default))
             return 0
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
+    commit = git_commit()
     zoo = " ".join(f"ZOO_DIR/{Path(m).name}" for m in args.meshes)
     res = {"command": f"python benchmarks/curved.py {zoo} --levels {args.levels} --method {args.method}"
            + f" --edge-length {args.edge_length} --lam {args.lam}"
@@ -256,8 +255,7 @@ def main(argv=None) -> int:
            + " ".join(f"{f:g}" for f in args.sj_floor),
            "commit": commit, "machine": platform.machine(), "solution": "sin(6x) exp(2y) cos(4z)",
            "results": [run_mesh(m, args) for m in args.meshes], "picture": pic if args.png else None}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(res, indent=1, default=json_default))
+    write_json(res, Path(args.json))
     print(f"wrote {args.json}")
     return 0
 

@@ -19,9 +19,7 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
-import json
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -29,10 +27,11 @@ import numpy as np
 
 from nestmg import setup_problem, shapes
 from nestmg.curved import curve_mesh, p2_nodes, p2_prolongation, sphere_projector, torus_projector
-from nestmg.io import json_default
 from nestmg.tetmesh import orient_tets
 from solvers import MultigridSolver, restrict_prolongations, stiffness_matrix
 from solvers.fem_p2 import p2_boundary_facets, p2_l2_error, p2_load, p2_neumann_load
+
+from exp_common import git_commit, write_json  # benchmarks/ is sys.path[0]
 
 
 def _harmonic(x):
@@ -130,14 +129,12 @@ def main(argv=None) -> int:
     p.add_argument("--floors", type=float, nargs="+", default=[0.7, 0.8, 0.955])
     p.add_argument("--json", required=True, help="output JSON")
     args = p.parse_args(argv)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
+    commit = git_commit()
     floors = [None, *args.floors]
     res = {"command": "python benchmarks/curved_floor.py --floors " + " ".join(f"{f:g}" for f in args.floors),
            "commit": commit, "machine": platform.machine(),
            "results": [row for shape in ("ball", "torus") for row in run_shape(shape, floors)]}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(res, indent=1, default=json_default))
+    write_json(res, Path(args.json))
     print(f"wrote {args.json}")
     return 0
 

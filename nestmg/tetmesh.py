@@ -485,6 +485,7 @@ def tetrahedralize(
     stop_energy: float = 10.0,
     max_opt_iter: int = 80,
     coarsen: bool = False,
+    simplify: bool = True,
     outer_edge_factor: float = OUTER_EDGE_FACTOR,
     time_limit: float | str | None = "auto",
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -516,6 +517,9 @@ def tetrahedralize(
         TetWild: coarsen the output as far as the quality allows. Without it the boundary triangles of a
         coarse cage keep ~2-8x more tets than the target edge length asks (measured on the demo torus's
         cages: 4,400 instead of 2,354; with it 2,260, no tet below 5 degrees).
+    simplify : bool
+        TetWild: simplify the input surface within its envelope before meshing (fTetWild's default).
+        ``benchmarks/tetwild_simplify.py`` measures it against meshing the surface as given.
     outer_edge_factor : float
         TetWild: target edge of its working mesh *outside* the solid, relative to the edge length
         (:func:`outer_sizing_field`), applied when fTetWild's box is at least :data:`OUTER_BOX_RATIO`
@@ -565,7 +569,8 @@ def tetrahedralize(
             # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
             Vn, c, _ = normalize(V, diag)
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
-                    "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen)}
+                    "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen),
+                    "simplify": bool(simplify)}
             if outer_edge_factor > 1.0 and box_ratio(Vn, F) >= OUTER_BOX_RATIO:
                 opts.update(outer_sizing_field(Vn, F, h / diag, float(outer_edge_factor)))
             try:

@@ -42,22 +42,29 @@ def _meshed_surface(path: Path) -> tuple[np.ndarray, np.ndarray, float, dict]:
     return S, G, h, {"faces_in": len(F), "faces_meshed": len(G), "edge": h, "rule": plan.rule}
 
 
+def timed_mesh(S: np.ndarray, G: np.ndarray, h: float, **options) -> dict:
+    """One thread, no time limit: CPU and wall seconds, tets and the smallest dihedral angle."""
+    from nestmg.tetmesh import tet_quality, tetrahedralize
+
+    c, t = _cpu(), time.perf_counter()
+    Vt, T = tetrahedralize(S, G, edge_length_abs=h, threads=1, time_limit=None, **options)
+    q = tet_quality(Vt, T)
+    return {"cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t, "tets": int(len(T)),
+            "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
+
+
 def measure(path: Path, factor: float) -> dict:
     from nestmg.memory import enclosed_volume
     from nestmg.sizing import expected_tets
-    from nestmg.tetmesh import box_ratio, tet_quality, tetrahedralize
+    from nestmg.tetmesh import box_ratio
 
     S, G, h, row = _meshed_surface(path)
     row.update(mesh=path.name, box_ratio=box_ratio(S, G),
                expected_solid_tets=expected_tets(enclosed_volume(S, G), h))
     for f in (1.0, factor):
-        c, t = _cpu(), time.perf_counter()
-        Vt, T = tetrahedralize(S, G, edge_length_abs=h, threads=1, time_limit=None, outer_edge_factor=f)
-        q = tet_quality(Vt, T)
         key = "uniform" if f == 1.0 else "graded"
-        row[key] = {"factor": f, "cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t,
-                    "tets": int(len(T)), "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
-        print(f"{path.name}: {key} {row[key]['cpu_seconds']:.1f} CPU s, {len(T):,} tets", flush=True)
+        row[key] = {"factor": f, **timed_mesh(S, G, h, outer_edge_factor=f)}
+        print(f"{path.name}: {key} {row[key]['cpu_seconds']:.1f} CPU s, {row[key]['tets']:,} tets", flush=True)
     row["cpu_ratio_graded_over_uniform"] = row["graded"]["cpu_seconds"] / row["uniform"]["cpu_seconds"]
     return row
 

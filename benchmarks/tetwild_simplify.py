@@ -14,29 +14,19 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
-
 from exp_common import environment, git_commit, write_json
-from tetwild_outside import _cpu, _meshed_surface
+from tetwild_outside import _meshed_surface, timed_mesh
 
 
 def measure(path: Path) -> dict:
-    from nestmg.tetmesh import tet_quality, tetrahedralize
-
     S, G, h, row = _meshed_surface(path)
     row["mesh"] = path.name
     for simplify in (True, False):
-        c, t = _cpu(), time.perf_counter()
-        Vt, T = tetrahedralize(S, G, edge_length_abs=h, threads=1, time_limit=None, outer_edge_factor=1.0,
-                               simplify=simplify)
-        q = tet_quality(Vt, T)
         key = "simplify" if simplify else "as_given"
-        row[key] = {"cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t, "tets": int(len(T)),
-                    "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
-        print(f"{path.name}: {key} {row[key]['cpu_seconds']:.1f} CPU s, {len(T):,} tets", flush=True)
+        row[key] = timed_mesh(S, G, h, outer_edge_factor=1.0, simplify=simplify)
+        print(f"{path.name}: {key} {row[key]['cpu_seconds']:.1f} CPU s, {row[key]['tets']:,} tets", flush=True)
     row["cpu_ratio_as_given_over_simplify"] = row["as_given"]["cpu_seconds"] / row["simplify"]["cpu_seconds"]
     return row
 

@@ -171,19 +171,14 @@ class CoarseLevels:
                 yield np.frombuffer(buf, dtype=dtype).reshape((n,) + tuple(shape[1:]))
                 left -= n
 
-    def _node_chunks(self):
-        if self._path is None:
-            for lo in range(0, len(self._V), CHUNK_ROWS):
-                yield self._V[lo:lo + CHUNK_ROWS]
-        else:
-            yield from self._chunks("V1")
-
-    def _tet_chunks(self):
-        if self._path is None:
-            for lo in range(0, len(self._T), CHUNK_ROWS):
-                yield self._T[lo:lo + CHUNK_ROWS]
-        else:
-            yield from self._chunks("T1")
+    def _mesh_chunks(self, name: str):
+        """``"V1"`` (nodes) or ``"T1"`` (tets) in blocks of :data:`CHUNK_ROWS` rows, from memory or the file."""
+        if self._path is not None:
+            yield from self._chunks(name)
+            return
+        X = self._V if name == "V1" else self._T
+        for lo in range(0, len(X), CHUNK_ROWS):
+            yield X[lo:lo + CHUNK_ROWS]
 
     # ------------------------------------------------------------------------------ pieces
     def crop(self, box) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -199,9 +194,9 @@ class CoarseLevels:
             Global (level-1) index of every row of ``V``, increasing.
         """
         box = np.asarray(box, dtype=np.float64).reshape(2, 3)
-        code = np.concatenate([_outcodes(np.asarray(c, dtype=np.float64), box) for c in self._node_chunks()])
+        code = np.concatenate([_outcodes(np.asarray(c, dtype=np.float64), box) for c in self._mesh_chunks("V1")])
         kept = []
-        for T in self._tet_chunks():
+        for T in self._mesh_chunks("T1"):
             T = np.asarray(T, dtype=np.int64)
             c = code[T]
             kept.append(T[(c[:, 0] & c[:, 1] & c[:, 2] & c[:, 3]) == 0])
@@ -211,7 +206,7 @@ class CoarseLevels:
         T = T.reshape(-1, 4).astype(np.int64)
         V = np.empty((len(gid), 3))
         lo = 0
-        for chunk in self._node_chunks():  # the kept nodes' coordinates, chunk by chunk
+        for chunk in self._mesh_chunks("V1"):  # the kept nodes' coordinates, chunk by chunk
             a, b = np.searchsorted(gid, [lo, lo + len(chunk)])
             V[a:b] = chunk[gid[a:b] - lo]
             lo += len(chunk)

@@ -42,15 +42,18 @@ def _meshed_surface(path: Path) -> tuple[np.ndarray, np.ndarray, float, dict]:
     return S, G, h, {"faces_in": len(F), "faces_meshed": len(G), "edge": h, "rule": plan.rule}
 
 
-def timed_mesh(S: np.ndarray, G: np.ndarray, h: float, **options) -> dict:
-    """One thread, no time limit: CPU and wall seconds, tets and the smallest dihedral angle."""
+def timed_mesh(S: np.ndarray, G: np.ndarray, h: float, label: str, **options) -> dict:
+    """One thread, no time limit: CPU and wall seconds, tets and the smallest dihedral angle (printed
+    after ``label``)."""
     from nestmg.tetmesh import tet_quality, tetrahedralize
 
     c, t = _cpu(), time.perf_counter()
     Vt, T = tetrahedralize(S, G, edge_length_abs=h, threads=1, time_limit=None, **options)
     q = tet_quality(Vt, T)
-    return {"cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t, "tets": int(len(T)),
-            "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
+    row = {"cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t, "tets": int(len(T)),
+           "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
+    print(f"{label}: {row['cpu_seconds']:.1f} CPU s, {row['tets']:,} tets", flush=True)
+    return row
 
 
 def measure(path: Path, factor: float) -> dict:
@@ -63,8 +66,7 @@ def measure(path: Path, factor: float) -> dict:
                expected_solid_tets=expected_tets(enclosed_volume(S, G), h))
     for f in (1.0, factor):
         key = "uniform" if f == 1.0 else "graded"
-        row[key] = {"factor": f, **timed_mesh(S, G, h, outer_edge_factor=f)}
-        print(f"{path.name}: {key} {row[key]['cpu_seconds']:.1f} CPU s, {row[key]['tets']:,} tets", flush=True)
+        row[key] = {"factor": f, **timed_mesh(S, G, h, f"{path.name}: {key}", outer_edge_factor=f)}
     row["cpu_ratio_graded_over_uniform"] = row["graded"]["cpu_seconds"] / row["uniform"]["cpu_seconds"]
     return row
 

@@ -172,7 +172,7 @@ class CoarseLevels:
                 left -= n
 
     def _mesh_chunks(self, name: str):
-        """``"V1"`` (nodes) or ``"T1"`` (tets) in blocks of :data:`CHUNK_ROWS` rows, from memory or the file."""
+        """``"V1"`` (nodes) or ``"T1"`` (tets), :data:`CHUNK_ROWS` rows at a time, from memory or the file."""
         if self._path is not None:
             yield from self._chunks(name)
             return

@@ -28,8 +28,8 @@ import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
 from .deflation import slow_modes, with_deflation
-from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, index_spread, locality_order, permute_prolongation,
-                       permute_symmetric)
+from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
+                       permute_prolongation, permute_symmetric)
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
 from .transfer import (
@@ -143,7 +143,7 @@ class Level:
 def _checked_inputs(A, Ps, nullspace) -> tuple:
     """``A`` and ``Ps`` as CSR, their shapes chained (each coarse level smaller, non-empty) and, for
     ``nullspace="constant"``, every prolongation reproducing constants (one-line errors otherwise)."""
-    A = _as_csr(A, "A")
+    A = _as_csr(A, "A", copy=False)  # copied by the reordering, or by _reorder when the order is kept
     if A.shape[0] != A.shape[1]:
         raise SolverInputError(f"A must be square, got {A.shape}")
     Ps = [_as_csr(P, f"Ps[{k}]") for k, P in enumerate(Ps)]
@@ -331,13 +331,15 @@ class MultigridSolver:
         if nullspace not in (None, "constant"):
             raise SolverInputError(f"nullspace must be None or 'constant', got {nullspace!r}")
         self.nullspace = nullspace
+        A_in = A
         A, Ps = _checked_inputs(A, Ps, nullspace)
+        shared = hasattr(A_in, "data") and np.may_share_memory(A.data, A_in.data)
         if local_sweep not in ("symmetric", "one-way"):
             raise SolverInputError(f"local_sweep must be 'symmetric' or 'one-way', got {local_sweep!r}")
         if coarse_scaling not in (None, "energy"):
             raise SolverInputError(f"coarse_scaling must be None or 'energy', got {coarse_scaling!r}")
         self.coarse_scaling = coarse_scaling
-        A, Ps, Rs, ops, sym0 = self._coarse_operators(A, Ps, coarse, ordering, symmetric)
+        A, Ps, Rs, ops, sym0 = self._coarse_operators(A, Ps, coarse, ordering, symmetric, shared)
         _check_operators(ops, nullspace)
         self.levels = self._make_levels(ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels,
                                         local_sweep, local_sweeps)
@@ -360,9 +362,10 @@ class MultigridSolver:
         self.deflation = self._deflate(deflate, probe_finest)
         self.setup_seconds = time.perf_counter() - t0
 
-    def _coarse_operators(self, A, Ps, coarse, ordering, symmetric) -> tuple:
+    def _coarse_operators(self, A, Ps, coarse, ordering, symmetric, shared=False) -> tuple:
         """The level operators: Galerkin products, or the caller's (checked); both reordered (``ordering``).
 
+        ``shared``: ``A`` holds the caller's arrays (copied unless reordering makes a new matrix anyway).
         Returns ``(A, Ps, Rs, ops, sym0)`` in the solver's order; sets ``self.coarse``.
         """
         sym0 = None
@@ -374,7 +377,7 @@ class MultigridSolver:
             # coarse nodes that reach no finer node (e.g. cage nodes of a hierarchy's raw P) would give
             # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
             Ps = _drop_unreached_columns(Ps)
-            A, Ps, Rs, _, sym0 = self._reorder(A, Ps, ordering, [], symmetric)
+            A, Ps, Rs, _, sym0 = self._reorder(A, Ps, ordering, [], symmetric, shared)
             ops = _galerkin_chain(A, Ps, sym0, Rs)  # A was validated above: no second copy and check
             self.coarse = "galerkin"
         else:
@@ -388,7 +391,7 @@ class MultigridSolver:
                         f"coarse[{k}] has shape {Ac.shape}, expected {(P.shape[1], P.shape[1])}"
                     )
             self.coarse = "given"
-            A, Ps, Rs, given, _ = self._reorder(A, Ps, ordering, ops[1:], False)
+            A, Ps, Rs, given, _ = self._reorder(A, Ps, ordering, ops[1:], False, shared)
             ops = [A] + given
         return A, Ps, Rs, ops, sym0
 
@@ -465,17 +468,20 @@ class MultigridSolver:
         :class:`solvers.elasticity.NullspaceMultigridSolver`."""
         return None
 
-    def _reorder(self, A, Ps, ordering, given, symmetric):
+    def _reorder(self, A, Ps, ordering, given, symmetric, shared=False):
         """Apply the internal orders of every level (see ``ordering``) to ``A``, ``Ps`` and the given coarse
         operators; set ``self.perm``. Returns them, the restrictions ``Rs`` (``Pᵀ`` in CSR, one transpose per
         level, reused by the cycle) and whether ``A`` is symmetric (``symmetric`` if not None, else tested:
-        on the permuted copy's by-product transpose when reordering)."""
+        on the permuted copy's by-product transpose when reordering). ``shared``: ``A`` holds the caller's
+        arrays, copied when the caller's order is kept (the permuted matrix is a new one)."""
         if ordering not in ("auto", "locality", None):
             raise SolverInputError(f"ordering must be 'auto', 'locality' or None, got {ordering!r}")
         self.perm = None
         keep = (not Ps or ordering is None or any((np.diff(P.indptr) == 0).any() for P in Ps)  # unreached row
-                or (ordering == "auto" and (A.shape[0] < ORDER_MIN_N or index_spread(A) <= ORDER_MIN_SPREAD)))
+                or (ordering == "auto" and (A.shape[0] < ORDER_MIN_N
+                                            or index_spread(A, SPREAD_STRIDE) <= ORDER_MIN_SPREAD)))
         if keep:
+            A = A.copy() if shared else A
             return (A, Ps, [sp.csr_matrix(P.T) for P in Ps], list(given),
                     _is_symmetric(A) if symmetric is None else bool(symmetric))
         orders = locality_order(Ps)

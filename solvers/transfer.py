@@ -17,12 +17,20 @@ __all__ = ["galerkin_operators", "prune_prolongations", "reroute_to_pattern", "r
            "sparsified_galerkin_operators"]
 
 
-def _as_csr(A, name: str) -> sp.csr_matrix:
+def _as_csr(A, name: str, copy: bool = True) -> sp.csr_matrix:
+    """``A`` as a canonical float64 CSR matrix with finite entries (one-line errors otherwise).
+
+    ``copy=False``: share the caller's arrays when they are already canonical float64 CSR (they are never
+    modified: a matrix that needs summing or sorting is copied first), for a caller that makes its own
+    copy anyway (:class:`solvers.MultigridSolver`'s reordering).
+    """
     if not sp.issparse(A):
         raise SolverInputError(f"{name} must be a scipy sparse matrix, got {type(A).__name__}")
     if np.iscomplexobj(A.data if hasattr(A, "data") else A):
         raise SolverInputError(f"{name} must be real")
-    A = sp.csr_matrix(A, dtype=np.float64, copy=True)
+    A = sp.csr_matrix(A, dtype=np.float64, copy=copy)
+    if not copy and not A.has_canonical_format:
+        A = A.copy()
     A.sum_duplicates()
     A.sort_indices()
     if not np.all(np.isfinite(A.data)):
@@ -134,7 +142,7 @@ def _canonical_symmetric_part(Ac: sp.csr_matrix) -> sp.csr_matrix:
 ONE_PASS_MAX_ENTRIES = 1 << 26
 
 
-def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
+def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix, trim: bool = True) -> sp.csr_matrix:
     """``A @ B`` (CSR, rows unsorted, no duplicates) by scipy's numeric kernel alone.
 
     scipy's product runs two passes over the work: ``csr_matmat_maxnnz`` counts the output's entries, then
@@ -144,7 +152,9 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     numeric kernel runs once; the result is the same arrays as ``A @ B``, bit for bit (tested). On the
     first Galerkin product of a 1M-tet user hierarchy it took ~115 ms where ``R @ (A @ P)`` took ~160 ms.
     The kernel is scipy's private ``_sparsetools.csr_matmat``: ``A @ B`` is used when it is missing or
-    its signature changed, and when the bound exceeds :data:`ONE_PASS_MAX_ENTRIES`.
+    its signature changed, and when the bound exceeds :data:`ONE_PASS_MAX_ENTRIES`. ``trim=False`` returns
+    views of the arrays allocated at the bound instead of copies of their used part, for a temporary (the
+    unused tail is address space, never written).
     """
     try:
         from scipy.sparse._sparsetools import csr_matmat
@@ -170,7 +180,9 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     except (TypeError, ValueError):  # pragma: no cover - a private kernel whose signature changed
         return sp.csr_matrix(A @ B)
     nnz = int(indptr[-1])
-    return sp.csr_matrix((data[:nnz].copy(), indices[:nnz].copy(), indptr), shape=(m, n))
+    if trim:
+        data, indices = data[:nnz].copy(), indices[:nnz].copy()
+    return sp.csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(m, n))
 
 
 def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_matrix:
@@ -181,7 +193,8 @@ def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_
     # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
     _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
-    Ac = _one_pass_product(R, _one_pass_product(Ak, P))  # no duplicates, rows unsorted
+    # no duplicates, rows unsorted; temporaries kept as views (the symmetric part is a new matrix)
+    Ac = _one_pass_product(R, _one_pass_product(Ak, P, trim=False), trim=not symmetric)
     if symmetric:
         return _canonical_symmetric_part(Ac)
     Ac.sum_duplicates()

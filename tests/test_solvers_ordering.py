@@ -126,3 +126,43 @@ def test_bad_ordering_name(scattered):
     _K, Ks, Ps, _b, _q, _T = scattered
     with pytest.raises(solvers.SolverInputError, match="ordering"):
         MultigridSolver(Ks, Ps, ordering="rcm")
+
+
+def test_stable_argsort_is_numpys_stable_sort():
+    """The radix path (one 16-bit pass, or two for keys up to 2**32) gives numpy's stable permutation."""
+    from solvers.ordering import _stable_argsort
+
+    rng = np.random.default_rng(4)
+    for high in (7, 60_000, 70_000, 3_000_000_000):
+        key = rng.integers(0, high, size=50_000).astype(np.int64)
+        assert np.array_equal(_stable_argsort(key), np.argsort(key, kind="stable")), high
+    assert _stable_argsort(np.zeros(0, np.int64)).size == 0
+
+
+def test_index_spread_stride_estimates_the_full_mean(scattered):
+    K, Ks, _Ps, _b, _q, _T = scattered
+    for M in (K, Ks):
+        full, est = index_spread(M), index_spread(M, stride=16)
+        assert abs(est - full) <= 0.05 * full, (est, full)
+    assert index_spread(sp.identity(5, format="csr"), stride=16) == 0.0
+
+
+def test_callers_matrix_is_neither_modified_nor_shared(scattered):
+    """A is validated without a copy when the reordering makes a new matrix, and copied when the caller's
+    order is kept: the solver never holds the caller's arrays; an unsorted input is left as it was."""
+    K, Ks, Ps, b, _q, _T = scattered
+    for ordering in ("auto", None):
+        A = Ks.copy()
+        ml = MultigridSolver(A, Ps, nullspace="constant", ordering=ordering)
+        assert (ml.perm is None) == (ordering is None)
+        assert not np.may_share_memory(ml.levels[0].A.data, A.data)
+        A.data[:] = 0.0  # the caller reuses its matrix: the solver's is untouched
+        x, info = ml.solve(b, tol=1e-8, accel="cg", return_info=True)
+        assert info["converged"] and np.linalg.norm(Ks @ x - b) <= 1e-8 * np.linalg.norm(b)
+    U = Ks.copy()
+    rev = np.concatenate([U.indices[U.indptr[i]:U.indptr[i + 1]][::-1] for i in range(U.shape[0])])
+    revd = np.concatenate([U.data[U.indptr[i]:U.indptr[i + 1]][::-1] for i in range(U.shape[0])])
+    U = sp.csr_matrix((revd, rev, U.indptr.copy()), shape=U.shape)  # rows in decreasing column order
+    before = U.indices.copy()
+    ml = MultigridSolver(U, Ps, nullspace="constant")
+    assert np.array_equal(U.indices, before) and abs(ml.levels[0].A - Ks[ml.perm][:, ml.perm]).max() == 0.0

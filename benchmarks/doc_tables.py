@@ -286,7 +286,7 @@ def _user_problems(d: dict) -> list:
 def _user_cell(r: dict, spmv: bool, tol: float) -> str:
     it = f"{r['iterations']}, {r['solve_spmv']:.0f} fine SpMV" if spmv else f"{r['iterations']}"
     bad = "" if r["max_final_residual"] <= 1.01 * tol else f", residual {r['max_final_residual']:.0e} ✗"
-    return f"{r['setup_seconds']:.2f} + {r['solve_seconds']:.2f} s ({it}{bad})"
+    return f"{r['setup_cpu_seconds']:.2f} + {r['solve_cpu_seconds']:.2f} s ({it}{bad})"
 
 
 @generator("usermesh.solvers", USER_SOLVERS)
@@ -302,10 +302,10 @@ def usermesh_solvers() -> str:
                 rows.append([label, _USER_LABELS.get(sname, sname)]
                             + [_user_cell(pr[p]["solvers"][sname], sname in ("nestmg", "problem_multigrid"),
                                           d["tol"]) for p in probs])
-        rows.append([label, "**`MultigridSolver(A, P)` speed-up** (setup + solve) vs SA / vs GAMG"]
+        rows.append([label, "**`MultigridSolver(A, P)` speed-up** (setup + solve, CPU) vs SA / vs GAMG"]
                     + [f"**{pr[p]['speedup_vs_pyamg_sa']:.2f}x / {pr[p]['speedup_vs_petsc_gamg']:.2f}x**"
                        for p in probs])
-    heads = [f"{p.capitalize()}: setup + solve (CG it)" for p in probs]
+    heads = [f"{p.capitalize()}: setup + solve, CPU s (CG it)" for p in probs]
     return table(["user mesh (fine tets)", "solver"] + heads, rows)
 
 
@@ -315,7 +315,7 @@ def usermesh_setup() -> str:
     probs = _user_problems(d)
     r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in probs]
     cpu = [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in probs]
-    return f"{rng(r, '.2f')}x in wall time, {rng(cpu, '.2f')}x in CPU time"
+    return f"{rng(cpu, '.2f')}x in CPU time ({rng(r, '.2f')}x in wall time)"
 
 
 @generator("usermesh.deflate", USER_SOLVERS)
@@ -327,7 +327,7 @@ def usermesh_deflate() -> str:
     its = [s["nestmg_deflate8"]["iterations"] - s["nestmg"]["iterations"] for s in cells]
     modes = [max(sum(r["deflated"]) for r in s["nestmg_deflate8"]["runs"]) for s in cells]
     used = [m for m in modes if m]
-    return (f"set-up x{rng(ratio, '.2f')} (wall, median of per-repeat ratios), CG iterations "
+    return (f"set-up x{rng(ratio, '.2f')} (CPU, median of per-repeat ratios), CG iterations "
             f"{rng(its, '+d')} against the default; modes deflated in {len(used)} of {len(cells)} cases"
             + (f" ({rng(used, 'd')} modes)" if used else ""))
 
@@ -339,7 +339,7 @@ def usermesh_fine3() -> str:
     for p in _user_problems(d):
         s = [c["problems"][p]["solvers"] for c in d["cases"]]
         parts.append(f"{p} {rng([x['nestmg_fine3']['iterations'] for x in s], 'd')} iterations against "
-                     f"{rng([x['nestmg']['iterations'] for x in s], 'd')}, solve time "
+                     f"{rng([x['nestmg']['iterations'] for x in s], 'd')}, solve CPU time "
                      f"x{rng([x['nestmg_fine3']['solve_ratio_vs_first'] for x in s], '.2f')}")
     return "; ".join(parts)
 
@@ -362,7 +362,7 @@ def usermesh_speedup() -> str:
     sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in probs]
     gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in probs]
     tets = [c["tets"] for c in d["cases"]]
-    return (f"{rng(sa, '.2f')}x faster (set-up + solve) than pyamg SA and {rng(gamg, '.2f')}x than "
+    return (f"{rng(sa, '.2f')}x faster (set-up + solve, CPU time) than pyamg SA and {rng(gamg, '.2f')}x than "
             f"PETSc GAMG "
             f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
 
@@ -382,7 +382,7 @@ def usermesh_spread() -> str:
 
 @generator("usermesh.spmv", USER_SOLVERS)
 def usermesh_spmv() -> str:
-    return rng(_user_nestmg("spmv_speedup_internal_order"), ".2f") + "x"
+    return rng(_user_nestmg("spmv_cpu_speedup_internal_order"), ".2f") + "x"
 
 
 @generator("usermesh.rows", USER_SOLVERS)
@@ -399,9 +399,9 @@ def usermesh_rows() -> str:
 def usermesh_layer() -> str:
     plain = _user_nestmg("iterations", ("neumann",))
     layer = _user_nestmg("iterations", ("neumann",), "nestmg_boundary_layer")
-    tp = _user_nestmg("solve_seconds", ("neumann",))
-    tl = _user_nestmg("solve_seconds", ("neumann",), "nestmg_boundary_layer")
-    return (f"{rng(layer, 'd')} instead of {rng(plain, 'd')} CG iterations, solve time x"
+    tp = _user_nestmg("solve_cpu_seconds", ("neumann",))
+    tl = _user_nestmg("solve_cpu_seconds", ("neumann",), "nestmg_boundary_layer")
+    return (f"{rng(layer, 'd')} instead of {rng(plain, 'd')} CG iterations, solve CPU time x"
             f"{rng([b / a for a, b in zip(tp, tl)], '.2f')}")
 
 

@@ -329,3 +329,23 @@ def test_decimate_from_input_nests_previous_layer(neck):
     assert verify_nesting([(V, F)] + layers).ok
     assert info["decimate_from"] == "input"
     assert info["layers"][1]["volume_ratio_to_input"] > info["layers"][0]["volume_ratio_to_input"] > 1.0
+
+
+def test_reinflation_step_gives_up_when_it_stops_converging():
+    """A reverse step stops once its best |F - target| has not halved in STALL_NEWTON iterations (the
+    |F - target| of cheburashka.obj's stuck clearance step, in units of 1e-5 of the diagonal)."""
+    import importlib
+
+    rf = importlib.import_module("cagegen.nested.reinflate")
+    seq = [328, 297, 281, 256, 218, 187, 157, 130, 130, 131, 133, 134, 135] + [134, 133] * 30
+    best, stop = [330.0], None
+    for i, g in enumerate(seq):
+        best.append(min(best[-1], g))
+        if rf._stalled(best):
+            stop = i + 1
+            break
+    # iteration 24: the best 130 is more than half of 256, the best 20 iterations before (the real run
+    # stopped there too, instead of running on to max_newton = 60)
+    assert stop == 24
+    halving = [330.0 * 0.7 ** i for i in range(60)]  # steady progress: never stalls
+    assert not any(rf._stalled(halving[: k + 1]) for k in range(60))

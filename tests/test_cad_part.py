@@ -61,8 +61,9 @@ def test_fallback_keeps_the_clearance(fallback):
     from nestmg.shapes import sphere
 
     V, F = sphere(10)
+    # target_offset=0: no envelope target (this 60-face layer's coarse envelope certifies in 5 iterations)
     layers, info = nested_backend(V, F, [60], min_gap=GAP, fallback=fallback, max_recovery_depth=0,
-                                  flow_max_iter=5)
+                                  flow_max_iter=5, target_offset=0)
     lay = info["layers"][0]
     assert lay["fallback"] == fallback
     assert any(r["stage"] == "fallback" for r in lay["recovery"])
@@ -146,3 +147,31 @@ def test_later_layers_try_the_envelope_first_once_a_layer_needed_it(monkeypatch,
     assert two["decimation"]["source"] == "envelope" and two["failed_attempts"] == []
     assert len(calls) == 3
     assert verify_nesting([(V, F), *layers], min_gap=GAP).ok
+
+
+def _genus(V, F) -> int:
+    import igl
+
+    return (2 - (len(V) - len(igl.edges(F)) + len(F))) // 2
+
+
+def test_a_coarse_layer_closes_the_holes_it_cannot_follow(monkeypatch, failing_flow, one_ipctk_thread):
+    """The envelope's offset follows the target's resolution (``TARGET_OFFSET_EDGE_FRACTION``): a 40-face
+    layer around a plate with four small holes is decimated from a genus-0 envelope (featuretype.stl's
+    218-face layer 2: ~300 s of failed flows from the 0.01 envelope of its genus-9 layer 1, 0.3 CPU s
+    from the 0.033 one); the same layer with the offset pinned to 0.01 keeps the holes."""
+    import cagegen.nested.backend as nb
+
+    V, F = plate_with_holes(holes=4, segments=16, radius=0.08)
+    assert _genus(V, F) == 4
+    _first_flow_fails(monkeypatch, failing_flow)
+    layers, info = nested_backend(V, F, [40], min_gap=GAP, fallback=None, max_recovery_depth=0)
+    lay = info["layers"][0]
+    Vn = (V - 0.5 * (V.min(0) + V.max(0))) / np.linalg.norm(V.max(0) - V.min(0))
+    edge = nb._target_edge(Vn, F, 40)
+    assert lay["decimation"]["source"] == "envelope"
+    assert lay["decimation"]["offset"] == pytest.approx(nb.TARGET_OFFSET_EDGE_FRACTION * edge, rel=1e-9)
+    assert lay["decimation"]["offset"] > 0.02 and _genus(*layers[0]) == 0
+    assert verify_nesting([(V, F), layers[0]], min_gap=GAP).ok
+    U, G, dinfo = nb._envelope_target(Vn, F, 40, 0.01)
+    assert _genus(U, G) == 4  # at the old fixed offset the coarse target keeps every hole

@@ -198,16 +198,25 @@ def test_relax_lifts_the_scaled_jacobian_without_moving_the_boundary(ball, torus
     np.testing.assert_array_equal(cm.X[bnd], free.X[bnd])  # the fit is untouched
     assert cm.report["surface_distance"] == free.report["surface_distance"]
     assert cm.report["certified"] and (certify_tets(cm.X, cm.T10) == 1).all()
-    assert sj.min() > sj0.min() + 0.1 and (sj < 0.955).sum() < 0.2 * (sj0 < 0.955).sum()
+    assert cm.report["scaled_jacobian"]["bound_min"] > 0
+    # measured 0.795 -> 0.946 / 0.626 -> 0.890; tets below 0.955: 560 -> 38 / 960 -> 624
+    assert sj.min() > sj0.min() + 0.14 and (sj < 0.955).sum() < 0.7 * (sj0 < 0.955).sum()
+    assert sj[sj < 1].mean() > sj0[sj0 < 1].mean() + 0.03
     assert cm.report["relax"]["passes"][0]["kept"] and cm.report["relax"]["iterations"] > 0
-    # then a floor backs off far fewer boundary nodes than on the projected curving
-    fl, fl0 = (curve_mesh(V, T, proj, relax=r, sj_floor=0.96).report for r in (0.97, None))
-    assert fl["scaled_jacobian"]["bound_min"] >= 0.96 and fl["certified"]
-    b, b0 = fl["sj_floor"]["boundary_backed_off"], fl0["sj_floor"]["boundary_backed_off"]
-    assert b < 0.5 * b0 and b0 == fl0["sj_floor"]["backed_off"]  # without relaxation: boundary nodes only
-    assert fl["surface_distance"]["curved_mean"] < 0.7 * fl0["surface_distance"]["curved_mean"]
     with pytest.raises(NestmgInputError, match="relax"):
         curve_mesh(V, T, proj, relax=1.5)
+
+
+@pytest.mark.slow
+def test_relax_beats_the_papers_minimum_on_the_ball_with_the_full_fit(ball):
+    V, T = ball[0][1]  # 10240 tets: projected, the curved tets go down to 0.889
+    cm = curve_mesh(V, T, sphere_projector(), relax=0.97, sj_floor=0.96)
+    assert cm.report["scaled_jacobian"]["bound_min"] > 0.96 and cm.report["certified"]  # measured 0.967
+    assert cm.report["sj_floor"]["backed_off"] == 0  # the floor had nothing to do
+    assert cm.report["surface_distance"]["curved_max"] < 1e-5  # third-order fit kept (6.9e-6)
+    floor = curve_mesh(V, T, sphere_projector(), sj_floor=0.96).report  # the floor alone un-curves
+    assert floor["sj_floor"]["boundary_backed_off"] == floor["sj_floor"]["boundary_edge_nodes"]
+    assert floor["surface_distance"]["curved_max"] > 100 * cm.report["surface_distance"]["curved_max"]
 
 
 def test_smooth_normals_follow_the_surface_and_keep_sharp_creases():

@@ -1070,6 +1070,67 @@ def curved_floor_cost() -> str:
                ".1f", "x")
 
 
+CURVED_RELAX = tuple(f"curved/relax_{m}.json" for m in ("bunny", "gargo_1000", "fandisk"))
+
+
+def _relax_runs() -> list:
+    return [load(f)["results"][0] for f in CURVED_RELAX]
+
+
+@generator("curved.relax", *CURVED_RELAX)
+def curved_relax() -> str:
+    rows = []
+    for r in _relax_runs():
+        pd, pn = r["problems"]["poisson-dirichlet"], r["problems"]["poisson-neumann"]
+        for label, c in r["curvings"].items():
+            sj, d, fl = c["scaled_jacobian"], c["surface_distance"], c.get("sj_floor")
+            rows.append([r["mesh"], label, f"**{sj['min']:.3f}** / {sj['mean']:.3f}",
+                         f"{sj['bound_min']:.3f}", f"{c['below']['0.955']['sampled']:,}",
+                         f"{fl['boundary_backed_off']:,} of {fl['boundary_edge_nodes']:,}" if fl else "",
+                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}",
+                         f"{pd['P2_curved'][label]['l2_error']:.2e}",
+                         f"{pd['P1']['l2_error'] / pd['P2_curved'][label]['l2_error']:.1f}",
+                         f"{pn['P2_curved'][label]['l2_error']:.2e}",
+                         f"{pd['P2_curved'][label]['iterations']} / {pn['P2_curved'][label]['iterations']}",
+                         f"{c['cpu_seconds']:.1f}"])
+    return table(["mesh", "curving", "scaled Jacobian min / mean (curved tets)", "certified bound on the min",
+                  "tets below 0.955", "boundary edge nodes backed off", "facet distance max / mean",
+                  "L2 Dirichlet, curved P2", "P1 / curved P2", "L2 Neumann (smooth normals)",
+                  "MG-PCG it Dirichlet / Neumann (P1: " + ", ".join(
+                      f"{r['problems']['poisson-dirichlet']['P1']['iterations']} / "
+                      f"{r['problems']['poisson-neumann']['P1']['iterations']}" for r in _relax_runs()) + ")",
+                  "curving CPU s"], rows)
+
+
+@generator("curved.relax_min", *CURVED_RELAX)
+def curved_relax_min() -> str:
+    return rng([r["curvings"]["relaxed, floor 0.96"]["scaled_jacobian"]["bound_min"] for r in _relax_runs()],
+               ".3f")
+
+
+@generator("curved.relax_cost", *CURVED_RELAX)
+def curved_relax_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"]["P2_curved"] for r in _relax_runs()]
+    return rng([x["relaxed, floor 0.96"]["l2_error"] / x["projected"]["l2_error"] for x in p], ".2f", "x")
+
+
+@generator("curved.floor96_cost", *CURVED_RELAX)
+def curved_floor96_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"]["P2_curved"] for r in _relax_runs()]
+    return rng([x["floor 0.96"]["l2_error"] / x["projected"]["l2_error"] for x in p], ".1f", "x")
+
+
+@generator("curved.relax_only_min", *CURVED_RELAX)
+def curved_relax_only_min() -> str:
+    return rng([r["curvings"]["relaxed"]["scaled_jacobian"]["min"] for r in _relax_runs()], ".3f")
+
+
+@generator("curved.relax_below", *CURVED_RELAX)
+def curved_relax_below() -> str:
+    return ", ".join(f"{r['curvings']['projected']['below']['0.955']['sampled']:,} → "
+                     f"{r['curvings']['relaxed']['below']['0.955']['sampled']:,}" for r in _relax_runs())
+
+
 # ----------------------------------------------------------------------------------------- corpus views
 def _corpus() -> dict:
     return load(CORPUS)

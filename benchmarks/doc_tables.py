@@ -1013,8 +1013,21 @@ def curved_floor() -> str:
 
 @generator("curved.floor_rates", CURVED_FLOOR)
 def curved_floor_rates() -> str:
+    return _floor_rates_table(CURVED_FLOOR)
+
+
+CURVED_FLOOR_RELAX = "curved/floor_rates_relax.json"
+
+
+@generator("curved.floor_rates_relax", CURVED_FLOOR_RELAX)
+def curved_floor_rates_relax() -> str:
+    return _floor_rates_table(CURVED_FLOOR_RELAX)
+
+
+def _floor_rates_table(path: str) -> str:
+    """Rates, gains and scaled Jacobians of curved P2 per shape, problem and floor (``curved_floor.py``)."""
     rows = []
-    for x in load(CURVED_FLOOR)["results"]:
+    for x in load(path)["results"]:
         c0, c1 = x["curving"]
         fl = "none" if x["sj_floor"] is None else f"{x['sj_floor']:g}"
         rows.append([x["shape"], x["problem"].replace("poisson-", ""), fl,
@@ -1023,17 +1036,11 @@ def curved_floor_rates() -> str:
                      f"{c0['backed_off']:,} / {c1['backed_off']:,}",
                      f"{c0['facet_distance_max']:.1e} / {c1['facet_distance_max']:.1e}",
                      " / ".join(str(i) for i in x["iterations"])])
-    tets = {x["shape"]: " / ".join(f"{c['tets']:,}" for c in x["curving"])
-            for x in load(CURVED_FLOOR)["results"]}
+    tets = {x["shape"]: " / ".join(f"{c['tets']:,}" for c in x["curving"]) for x in load(path)["results"]}
     return table(["shape", "problem", "floor", "L2 curved P2", "rate", "P1 / curved P2 (equal unknowns)",
                   "scaled Jacobian min", "edge nodes backed off", "facet distance max", "MG-PCG it"], rows) \
         + "\n\n(each pair: the coarser / finer level, " \
         + "; ".join(f"{k} {v} tets" for k, v in tets.items()) + ")"
-
-
-@generator("curved.floor_min_2", CURVED)
-def curved_floor_min_2() -> str:
-    return curved_floor_min()
 
 
 @generator("curved.floor_cost_2", CURVED)
@@ -1118,6 +1125,22 @@ def curved_relax_cost() -> str:
 def curved_floor96_cost() -> str:
     p = [r["problems"]["poisson-dirichlet"]["P2_curved"] for r in _relax_runs()]
     return rng([x["floor 0.96"]["l2_error"] / x["projected"]["l2_error"] for x in p], ".1f", "x")
+
+
+@generator("curved.relax_cpu", *CURVED_RELAX)
+def curved_relax_cpu() -> str:
+    return rng([r["curvings"]["relaxed"]["cpu_seconds"] for r in _relax_runs()], ".0f", " s") + " against " \
+        + rng([r["curvings"]["projected"]["cpu_seconds"] for r in _relax_runs()], ".1f", " s")
+
+
+@generator("curved.relax_min_2", *CURVED_RELAX)
+def curved_relax_min_2() -> str:
+    return curved_relax_min()
+
+
+@generator("curved.relax_cost_2", *CURVED_RELAX)
+def curved_relax_cost_2() -> str:
+    return curved_relax_cost()
 
 
 @generator("curved.relax_only_min", *CURVED_RELAX)

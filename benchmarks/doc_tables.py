@@ -898,28 +898,6 @@ def curved_accuracy() -> str:
 CURVED_LAM = "curved/curved_lam0.05.json"
 
 
-@generator("curved.lambda", CURVED, CURVED_LAM)
-def curved_lambda() -> str:
-    rows = []
-    runs = [load(CURVED_LAM)["results"], _curved()]
-    for k, r in enumerate(_curved()):
-        variants = [("no quality pass", r["curving_no_quality"], r["problems"]["poisson-dirichlet"],
-                     "P2_curved_no_quality")]
-        variants += [(f"λ = {run[k]['curving']['quality']['lam']:g}", run[k]["curving"],
-                      run[k]["problems"]["poisson-dirichlet"], "P2_curved") for run in runs]
-        for label, c, p, key in variants:
-            sj, d = c["scaled_jacobian"], c["surface_distance"]
-            q = c.get("quality")
-            kept = f"{sum(x['kept'] for x in q['passes'])} of {len(q['passes'])}" if q else ""
-            rows.append([r["mesh"], label, kept, f"{sj['min']:.3f} / {sj['mean']:.3f}",
-                         f"{sj['below_threshold']:,}" if q else "",
-                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}", f"{p[key]['l2_error']:.2e}",
-                         f"{c['seconds']['quality']:.0f}" if q else ""])
-    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
-    return table(["mesh", "curving", "passes kept", "scaled Jacobian min / mean", f"tets below {thr}",
-                  "facet distance max / mean", "L2 Dirichlet, curved P2", "quality pass s"], rows)
-
-
 @generator("curved.neumann_face_all", CURVED, CURVED_LAM)
 def curved_neumann_face_all() -> str:
     runs = [load(CURVED_LAM)["results"], _curved()]

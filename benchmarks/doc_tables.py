@@ -905,28 +905,6 @@ def curved_accuracy() -> str:
 CURVED_LAM = "curved/curved_lam0.05.json"
 
 
-@generator("curved.lambda", CURVED, CURVED_LAM)
-def curved_lambda() -> str:
-    rows = []
-    runs = [load(CURVED_LAM)["results"], _curved()]
-    for k, r in enumerate(_curved()):
-        variants = [("no quality pass", r["curving_no_quality"], r["problems"]["poisson-dirichlet"],
-                     "P2_curved_no_quality")]
-        variants += [(f"λ = {run[k]['curving']['quality']['lam']:g}", run[k]["curving"],
-                      run[k]["problems"]["poisson-dirichlet"], "P2_curved") for run in runs]
-        for label, c, p, key in variants:
-            sj, d = c["scaled_jacobian"], c["surface_distance"]
-            q = c.get("quality")
-            kept = f"{sum(x['kept'] for x in q['passes'])} of {len(q['passes'])}" if q else ""
-            rows.append([r["mesh"], label, kept, f"{sj['min']:.3f} / {sj['mean']:.3f}",
-                         f"{sj['below_threshold']:,}" if q else "",
-                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}", f"{p[key]['l2_error']:.2e}",
-                         f"{c['seconds']['quality']:.0f}" if q else ""])
-    thr = _curved()[0]["curving"]["scaled_jacobian"]["threshold"]
-    return table(["mesh", "curving", "passes kept", "scaled Jacobian min / mean", f"tets below {thr}",
-                  "facet distance max / mean", "L2 Dirichlet, curved P2", "quality pass s"], rows)
-
-
 @generator("curved.neumann_face_all", CURVED, CURVED_LAM)
 def curved_neumann_face_all() -> str:
     runs = [load(CURVED_LAM)["results"], _curved()]
@@ -1020,8 +998,21 @@ def curved_floor() -> str:
 
 @generator("curved.floor_rates", CURVED_FLOOR)
 def curved_floor_rates() -> str:
+    return _floor_rates_table(CURVED_FLOOR)
+
+
+CURVED_FLOOR_RELAX = "curved/floor_rates_relax.json"
+
+
+@generator("curved.floor_rates_relax", CURVED_FLOOR_RELAX)
+def curved_floor_rates_relax() -> str:
+    return _floor_rates_table(CURVED_FLOOR_RELAX)
+
+
+def _floor_rates_table(path: str) -> str:
+    """Rates, gains and scaled Jacobians of curved P2 per shape, problem and floor (``curved_floor.py``)."""
     rows = []
-    for x in load(CURVED_FLOOR)["results"]:
+    for x in load(path)["results"]:
         c0, c1 = x["curving"]
         fl = "none" if x["sj_floor"] is None else f"{x['sj_floor']:g}"
         rows.append([x["shape"], x["problem"].replace("poisson-", ""), fl,
@@ -1030,17 +1021,11 @@ def curved_floor_rates() -> str:
                      f"{c0['backed_off']:,} / {c1['backed_off']:,}",
                      f"{c0['facet_distance_max']:.1e} / {c1['facet_distance_max']:.1e}",
                      " / ".join(str(i) for i in x["iterations"])])
-    tets = {x["shape"]: " / ".join(f"{c['tets']:,}" for c in x["curving"])
-            for x in load(CURVED_FLOOR)["results"]}
+    tets = {x["shape"]: " / ".join(f"{c['tets']:,}" for c in x["curving"]) for x in load(path)["results"]}
     return table(["shape", "problem", "floor", "L2 curved P2", "rate", "P1 / curved P2 (equal unknowns)",
                   "scaled Jacobian min", "edge nodes backed off", "facet distance max", "MG-PCG it"], rows) \
         + "\n\n(each pair: the coarser / finer level, " \
         + "; ".join(f"{k} {v} tets" for k, v in tets.items()) + ")"
-
-
-@generator("curved.floor_min_2", CURVED)
-def curved_floor_min_2() -> str:
-    return curved_floor_min()
 
 
 @generator("curved.floor_cost_2", CURVED)
@@ -1075,6 +1060,83 @@ def curved_floor_cost() -> str:
     p = [r["problems"]["poisson-dirichlet"] for r in _curved()]
     return rng([x["P2_curved_floor_0.955"]["l2_error"] / x["P2_curved_no_quality"]["l2_error"] for x in p],
                ".1f", "x")
+
+
+CURVED_RELAX = tuple(f"curved/relax_{m}.json" for m in ("bunny", "gargo_1000", "fandisk"))
+
+
+def _relax_runs() -> list:
+    return [load(f)["results"][0] for f in CURVED_RELAX]
+
+
+@generator("curved.relax", *CURVED_RELAX)
+def curved_relax() -> str:
+    rows = []
+    for r in _relax_runs():
+        pd, pn = r["problems"]["poisson-dirichlet"], r["problems"]["poisson-neumann"]
+        for label, c in r["curvings"].items():
+            sj, d, fl = c["scaled_jacobian"], c["surface_distance"], c.get("sj_floor")
+            rows.append([r["mesh"], label, f"**{sj['min']:.3f}** / {sj['mean']:.3f}",
+                         f"{sj['bound_min']:.3f}", f"{c['below']['0.955']['sampled']:,}",
+                         f"{fl['boundary_backed_off']:,} of {fl['boundary_edge_nodes']:,}" if fl else "",
+                         f"{d['curved_max']:.1e} / {d['curved_mean']:.1e}",
+                         f"{pd['P2_curved'][label]['l2_error']:.2e}",
+                         f"{pd['P1']['l2_error'] / pd['P2_curved'][label]['l2_error']:.1f}",
+                         f"{pn['P2_curved'][label]['l2_error']:.2e}",
+                         f"{pd['P2_curved'][label]['iterations']} / {pn['P2_curved'][label]['iterations']}",
+                         f"{c['cpu_seconds']:.1f}"])
+    return table(["mesh", "curving", "scaled Jacobian min / mean (curved tets)", "certified bound on the min",
+                  "tets below 0.955", "boundary edge nodes backed off", "facet distance max / mean",
+                  "L2 Dirichlet, curved P2", "P1 / curved P2", "L2 Neumann (smooth normals)",
+                  "MG-PCG it Dirichlet / Neumann (P1: " + ", ".join(
+                      f"{r['problems']['poisson-dirichlet']['P1']['iterations']} / "
+                      f"{r['problems']['poisson-neumann']['P1']['iterations']}" for r in _relax_runs()) + ")",
+                  "curving CPU s"], rows)
+
+
+@generator("curved.relax_min", *CURVED_RELAX)
+def curved_relax_min() -> str:
+    return rng([r["curvings"]["relaxed, floor 0.96"]["scaled_jacobian"]["bound_min"] for r in _relax_runs()],
+               ".3f")
+
+
+@generator("curved.relax_cost", *CURVED_RELAX)
+def curved_relax_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"]["P2_curved"] for r in _relax_runs()]
+    return rng([x["relaxed, floor 0.96"]["l2_error"] / x["projected"]["l2_error"] for x in p], ".2f", "x")
+
+
+@generator("curved.floor96_cost", *CURVED_RELAX)
+def curved_floor96_cost() -> str:
+    p = [r["problems"]["poisson-dirichlet"]["P2_curved"] for r in _relax_runs()]
+    return rng([x["floor 0.96"]["l2_error"] / x["projected"]["l2_error"] for x in p], ".1f", "x")
+
+
+@generator("curved.relax_cpu", *CURVED_RELAX)
+def curved_relax_cpu() -> str:
+    return rng([r["curvings"]["relaxed"]["cpu_seconds"] for r in _relax_runs()], ".0f", " s") + " against " \
+        + rng([r["curvings"]["projected"]["cpu_seconds"] for r in _relax_runs()], ".1f", " s")
+
+
+@generator("curved.relax_min_2", *CURVED_RELAX)
+def curved_relax_min_2() -> str:
+    return curved_relax_min()
+
+
+@generator("curved.relax_cost_2", *CURVED_RELAX)
+def curved_relax_cost_2() -> str:
+    return curved_relax_cost()
+
+
+@generator("curved.relax_only_min", *CURVED_RELAX)
+def curved_relax_only_min() -> str:
+    return rng([r["curvings"]["relaxed"]["scaled_jacobian"]["min"] for r in _relax_runs()], ".3f")
+
+
+@generator("curved.relax_below", *CURVED_RELAX)
+def curved_relax_below() -> str:
+    return ", ".join(f"{r['curvings']['projected']['below']['0.955']['sampled']:,} → "
+                     f"{r['curvings']['relaxed']['below']['0.955']['sampled']:,}" for r in _relax_runs())
 
 
 # ----------------------------------------------------------------------------------------- corpus views

@@ -97,13 +97,14 @@ def _p2_level(h) -> int:
     return 1 if rep is not None and str(rep.extrapolation).startswith("none (refinement)") else 0
 
 
-def _curve(h, base: int, quality: float | None = None, sj_floor: float | None = None):
+def _curve(h, base: int, quality: float | None = None, sj_floor: float | None = None,
+           relax: float | None = None):
     """Level ``base`` of ``h`` curved onto the input surface (normalised frame), certified."""
     from .curved import curve_mesh, surface_projector
 
     Vs, Fs = h.surfaces_in("normalized")[0]
     return curve_mesh(*h.tets_in("normalized")[base], surface_projector(Vs, Fs), quality=quality,
-                      sj_floor=sj_floor)
+                      sj_floor=sj_floor, relax=relax)
 
 
 def _solve(h, args, solution: bool = False) -> dict:
@@ -116,7 +117,8 @@ def _solve(h, args, solution: bool = False) -> dict:
         if args.problem.startswith("elasticity"):
             raise NestmgError("--element P2 supports the scalar problems only (not elasticity)")
         base = _p2_level(h)
-        cm = _curve(h, base, getattr(args, "quality", None), getattr(args, "sj_floor", None))
+        cm = _curve(h, base, getattr(args, "quality", None), getattr(args, "sj_floor", None),
+                    getattr(args, "relax", None))
         tets, P, extra = tets[base:], P[base:], {"element": "P2", "curved": cm}
     r = solve_on_hierarchy(tets, P, args.problem, args.solver, return_solution=solution, **extra)
     if extra:
@@ -426,6 +428,10 @@ def build_parser() -> argparse.ArgumentParser:
     _expert(s.add_argument("--quality", type=float, default=None,
                            help="with --element P2: quality pass on the curved tets whose scaled Jacobian "
                                 "(min / max det J) is below this, e.g. 0.96"))
+    _expert(s.add_argument("--relax", type=float, default=None,
+                           help="with --element P2: move the interior edge nodes of the curved tets whose "
+                                "scaled Jacobian is below this (e.g. 0.97) to even out det J; the boundary "
+                                "stays on the surface"))
     _expert(s.add_argument("--sj-floor", type=float, default=None,
                            help="with --element P2: back off the curving until every tet's certified scaled "
                                 "Jacobian is at least this, e.g. 0.955 (costs accuracy: docs/curved.md)"))

@@ -559,15 +559,62 @@ def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, lam: float
     return X, info
 
 
-def _sj_floor(X, Xs, T10, floor: float, *, factor: float = 0.75, steps: int = 8) -> tuple[np.ndarray, dict]:
+def _relax_pass(X, Xs, T, T10, bmark, *, threshold: float, beta: float, passes: int = 2,
+                depth: int) -> tuple[np.ndarray, dict]:
+    """Even out ``det J`` of the curved tets below ``threshold`` by moving interior edge nodes only.
+
+    Pass 0 frees the interior edge nodes of the curved tets whose scaled Jacobian is below
+    ``threshold``; pass 1 those of the tets still below and of their vertex neighbours (more room,
+    fewer tets). Each minimises :func:`nestmg.curved_fit.jacobian_spread_energy` over the tets around
+    the free nodes (:func:`nestmg.curved_fit.relax_interior`). Boundary nodes never move: the facets
+    stay where the projection put them. A pass is kept if its tets are certified and its worst scaled
+    Jacobian did not go down.
+    """
+    from .curved_fit import reference_inverse, relax_interior
+
+    t0 = time.perf_counter()
+    info: dict = {"threshold": threshold, "beta": beta, "passes": [], "iterations": 0}
+    for k in range(passes):
+        curved = _moved_tets(X, Xs, T10)
+        sj = scaled_jacobians(X, T10[curved])
+        low = curved[sj < threshold]
+        if low.size == 0:
+            break
+        if k:
+            low = _tets_with_nodes(T10, np.unique(T[low]), len(X))
+        free = np.unique(T10[low, 4:])
+        free = free[~bmark[free]]
+        if free.size == 0:
+            break
+        etets = _tets_with_nodes(T10, free, len(X))
+        X1, fit = relax_interior(X, T10[etets], reference_inverse(Xs, T[etets], "straight"), free,
+                                 _edge_length_of_nodes(Xs, T10, free), beta=beta)
+        old, new = scaled_jacobians(X, T10[etets]), scaled_jacobians(X1, T10[etets])
+        kept = bool(new.min() >= old.min() and (certify_tets(X1, T10, etets, depth=depth) == VALID).all())
+        info["passes"].append({"below": int((sj < threshold).sum()), "free_nodes": int(len(free)),
+                               "energy_tets": int(len(etets)), "iterations": fit["iterations"],
+                               "min_before": float(old.min()), "min_after": float(new.min()),
+                               "mean_before": float(old.mean()), "mean_after": float(new.mean()),
+                               "kept": kept})
+        info["iterations"] += fit["iterations"]
+        if kept:
+            X = X1
+    info["seconds"] = time.perf_counter() - t0
+    return X, info
+
+
+def _sj_floor(X, Xs, T10, floor: float, bmark: np.ndarray, *, factor: float = 0.75,
+              steps: int = 8) -> tuple[np.ndarray, dict]:
     """Partial curving: back off edge nodes until every tet's certified scaled Jacobian is >= ``floor``.
 
     Each edge node sits at ``Xs + t (X - Xs)``, ``t = 1`` at first. While a tet's certified lower bound
     (:func:`scaled_jacobians` with ``bound=True``) is below ``floor``, the ``t`` of its curved edge nodes
     is multiplied by ``factor`` (``steps`` times, then 0: straight) and the tets around those nodes are
     re-checked. A straight tet has a scaled Jacobian of 1, so the loop ends; ``floor > 0`` also certifies
-    every tet (all Bernstein coefficients of ``det J`` positive). ``factor`` 0.75 left the facets about
-    half as far from the surface as 0.5 at floor 0.8 on the procedural ball and torus (a trial run).
+    every tet (all Bernstein coefficients of ``det J`` positive). Interior edge nodes moved by the
+    relaxation are scaled alike (``bmark``: the boundary nodes, counted apart). ``factor`` 0.75 left the
+    facets about half as far from the surface as 0.5 at floor 0.8 on the procedural ball and torus (a
+    trial run).
     """
     t0 = time.perf_counter()
     X = X.copy()
@@ -587,13 +634,16 @@ def _sj_floor(X, Xs, T10, floor: float, *, factor: float = 0.75, steps: int = 8)
     curved = np.flatnonzero(np.any(D != 0, axis=1))
     info = {"floor": floor, "rounds": rounds, "tets_below_before": int((before < floor).sum()),
             "curved_edge_nodes": int(len(curved)), "backed_off": int((t[curved] < 1).sum()),
-            "straightened": int((t[curved] == 0).sum()), "seconds": time.perf_counter() - t0}
+            "straightened": int((t[curved] == 0).sum()), "boundary_edge_nodes": int(bmark[curved].sum()),
+            "boundary_backed_off": int((t[curved][bmark[curved]] < 1).sum()),
+            "seconds": time.perf_counter() - t0}
     return X, info
 
 
 def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bool = True, fit: bool = True,
                lam: float = 0.05, reference: str = "straight", rounds: int = 4, depth: int = 2,
-               quality: float | None = None, quality_lam: float = 1.0, quality_passes: int = 2,
+               relax: float | None = None, relax_beta: float = 0.1, quality: float | None = None,
+               quality_lam: float = 1.0, quality_passes: int = 2,
                sj_floor: float | None = None) -> CurvedMesh:
     """Curve a tet mesh's boundary onto a surface at order 2, with every element certified valid.
 
@@ -603,11 +653,16 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
        ``fit`` is on, the edge nodes of those tets and of their vertex neighbours are restarted straight
        and moved by the paper's energy ``E_S + λ E_Ω`` (:func:`nestmg.curved_fit.fit_mid_nodes`).
     3. Tets still not certified get their edge nodes straightened (counted in ``report["straightened"]``).
-    4. Quality pass (``quality`` not None): the edge nodes of the curved tets whose scaled Jacobian
+    4. Interior relaxation (``relax`` not None): the interior edge nodes of the curved tets whose
+       scaled Jacobian is below ``relax`` (then also of their vertex neighbours) minimise the spread of
+       ``det J`` over each tet plus ``relax_beta`` times the deviatoric Hencky distortion
+       (:func:`nestmg.curved_fit.jacobian_spread_energy`); boundary nodes stay on the surface
+       (``report["relax"]``).
+    5. Quality pass (``quality`` not None): the edge nodes of the curved tets whose scaled Jacobian
        (:func:`scaled_jacobians`) is below ``quality`` are moved by ``E_S + quality_lam E_Ω`` (the fit
        and the Hencky energy, every tet weighted alike), every iterate certified, up to
        ``quality_passes`` times (``report["quality"]``).
-    5. Scaled-Jacobian floor (``sj_floor`` not None): partial curving; the curving displacement of the
+    6. Scaled-Jacobian floor (``sj_floor`` not None): partial curving; the curving displacement of the
        edge nodes of every tet whose certified scaled Jacobian is below ``sj_floor`` is scaled by 0.75, up
        to 8 times, then removed, until every tet meets the floor (``report["sj_floor"]``).
 
@@ -630,6 +685,10 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
         L-BFGS rounds (point-to-plane targets refreshed between them).
     depth : int
         Subdivision depth of the Bernstein certification.
+    relax : float or None
+        Scaled-Jacobian threshold of the interior relaxation (None: none).
+    relax_beta : float
+        Weight of the deviatoric (shape) Hencky distortion in the relaxation.
     quality : float or None
         Scaled-Jacobian threshold of the quality pass (None: no pass).
     quality_lam : float
@@ -645,10 +704,10 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
     -------
     CurvedMesh
         ``report``: counts, ``scaled_jacobian`` (final, over the curved tets; ``before_quality``: after
-        step 3), ``sj_floor`` (step 5: rounds, tets below the floor before, curved edge nodes, how many
-        were backed off and straightened), ``linear_scaled_jacobian`` (the straight tets',
-        :func:`linear_scaled_jacobians`),
-        ``surface_distance``, ``seconds``.
+        step 3), ``relax`` (step 4: per pass the tets below, free nodes, iterations, min / mean before
+        and after, kept), ``sj_floor`` (step 6: rounds, tets below the floor before, curved edge nodes,
+        how many were backed off and straightened, and of the boundary ones), ``linear_scaled_jacobian``
+        (the straight tets', :func:`linear_scaled_jacobians`), ``surface_distance``, ``seconds``.
     """
     from .tetmesh import tet_volumes
 
@@ -659,22 +718,24 @@ def curve_mesh(V: np.ndarray, T: np.ndarray, project: Projector, *, vertices: bo
                                f"{T.shape}")
     if np.any(np.abs(tet_volumes(V, T)) <= 0):
         raise NestmgInputError("curve_mesh needs a tet mesh without degenerate (zero-volume) tets")
-    if quality is not None and not 0.0 < quality < 1.0:
-        raise NestmgInputError(f"quality must be a scaled Jacobian in (0, 1) or None, got {quality}")
-    if sj_floor is not None and not 0.0 < sj_floor < 1.0:
-        raise NestmgInputError(f"sj_floor must be a scaled Jacobian in (0, 1) or None, got {sj_floor}")
+    for key, val in (("relax", relax), ("quality", quality), ("sj_floor", sj_floor)):
+        if val is not None and not 0.0 < val < 1.0:
+            raise NestmgInputError(f"{key} must be a scaled Jacobian in (0, 1) or None, got {val}")
     X, Xs, T, T10, E, rep = _project_and_repair(V, T, project, vertices=vertices, fit=fit, lam=lam,
                                                 reference=reference, rounds=rounds, depth=depth)
     bmark = np.zeros(len(X), dtype=bool)
     bmark[p2_boundary_facets(T10)[0][:, 3:].ravel()] = True
     thr = 0.9 if quality is None else quality
     rep["scaled_jacobian"] = {"before_quality": _sj_summary(X, T10, _moved_tets(X, Xs, T10), thr)}
+    if relax is not None:
+        X, rep["relax"] = _relax_pass(X, Xs, T, T10, bmark, threshold=relax, beta=relax_beta, depth=depth)
+        rep["seconds"]["relax"] = rep["relax"]["seconds"]
     if quality is not None:
         X, rep["quality"] = _quality_pass(X, Xs, T, T10, bmark, project, threshold=quality, lam=quality_lam,
                                           rounds=rounds, passes=quality_passes, depth=depth)
         rep["seconds"]["quality"] = rep["quality"]["seconds"]
     if sj_floor is not None:
-        X, rep["sj_floor"] = _sj_floor(X, Xs, T10, sj_floor)
+        X, rep["sj_floor"] = _sj_floor(X, Xs, T10, sj_floor, bmark)
         rep["seconds"]["sj_floor"] = rep["sj_floor"]["seconds"]
     _measure(X, Xs, T, T10, project, thr, rep, depth)
     return CurvedMesh(X, T, T10, E, rep)

@@ -19,12 +19,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-from solvers.fem_p2 import det3, p2_basis, p2_jacobians, tet_quadrature
+from solvers.fem_p2 import det3, inv3, p2_basis, p2_jacobians, tet_quadrature
 
-from .curved import jacobian_bernstein
+from .curved import _bernstein_change, jacobian_bernstein
 from .errors import NestmgInputError
 
-__all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy"]
+__all__ = ["A_TET", "FitResult", "fit_mid_nodes", "hencky_energy", "jacobian_spread_energy", "relax_interior"]
 
 #: Ideal (regular, unit-edge) tet of the paper's eq. 4: columns map the reference tet's edges.
 A_TET = np.array([[1.0, 0.5, 0.5], [0.0, np.sqrt(3) / 2, np.sqrt(3) / 6], [0.0, 0.0, np.sqrt(2.0 / 3.0)]])
@@ -43,7 +43,8 @@ def reference_inverse(V: np.ndarray, T: np.ndarray, reference: str = "straight")
 
 
 def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: int = 3,
-                  gradient: bool = True, weighting: str = "volume") -> tuple[float, np.ndarray | None]:
+                  gradient: bool = True, weighting: str = "volume",
+                  deviatoric: bool = False) -> tuple[float, np.ndarray | None]:
     """Volume-weighted mean Hencky distortion of P2 tets and its gradient with respect to ``X``.
 
     Parameters
@@ -56,6 +57,9 @@ def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: i
         ``"volume"``: the integral of eq. 7 over the patch divided by its volume (large tets dominate);
         ``"element"``: the mean over tets of each tet's own mean distortion (every tet counts alike:
         the quality pass, where the worst tets are the small ones).
+    deviatoric : bool
+        Only the deviatoric part ``½‖H − (tr H / 3) I‖²`` of the Hencky distortion: shape, not volume
+        (``tr H = ln det F``).
 
     Returns
     -------
@@ -71,6 +75,8 @@ def hencky_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *, degree: i
         return np.inf, (np.zeros_like(X) if gradient else None)
     mu, Q = np.linalg.eigh(np.einsum("tqki,tqkj->tqij", F, F, optimize=True))  # C = FᵀF
     lg = 0.5 * np.log(mu)  # eigenvalues of H = ln U
+    if deviatoric:  # d/dF ½‖dev H‖² = F⁻ᵀ dev H: the same formula below with dev H's eigenvalues
+        lg = lg - lg.mean(axis=2, keepdims=True)
     wq = _quadrature_weights(w, np.abs(1.0 / det3(Ainv)), weighting)
     E = float(wq.ravel() @ (0.5 * (lg**2).sum(axis=2)).ravel())  # ε = ½‖H‖²
     if not gradient:
@@ -168,3 +174,84 @@ def fit_mid_nodes(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.nda
             (np.linalg.norm(project(X[bidx])[0] - X[bidx], axis=1) / hb) ** 2))) if len(bidx) else 0.0)
     return X, info
 
+
+
+def jacobian_spread_energy(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, *,
+                           beta: float = 0.1) -> tuple[float, np.ndarray]:
+    """How far ``det J`` of P2 tets is from constant on each tet, plus ``beta`` times their shape distortion.
+
+    The Hencky strain of the paper (eq. 2–3) split into its volumetric part ``tr H = ln det F`` and its
+    deviatoric part. The volumetric part is measured against each tet's *own* mean instead of the
+    straight tet: curving a boundary tet must change its volume, but not evenly is what lowers its
+    scaled Jacobian. It is taken on the 20 Bernstein coefficients ``c`` of ``det J``
+    (:func:`nestmg.curved.jacobian_bernstein`), whose ratio ``min c / max c`` is the certified scaled
+    Jacobian: per tet the variance of ``ln c``. The deviatoric part (:func:`hencky_energy` with
+    ``deviatoric=True``, ideal element ``Ainv``) keeps the tets' shape. Both are means over tets.
+
+    Parameters
+    ----------
+    X : (N,3) float array
+    T10 : (t,10) int array
+    Ainv : (t,3,3) float array
+        Inverse ideal-element Jacobians (:func:`reference_inverse`).
+    beta : float
+        Weight of the deviatoric Hencky distortion.
+
+    Returns
+    -------
+    E : float
+        ``inf`` if some Bernstein coefficient is ``<= 0`` (not certified: a barrier).
+    G : (N,3) float array
+        ``∂E/∂X`` (zero where ``E`` is infinite).
+    """
+    A, Binv = _bernstein_change()
+    _, dN = p2_basis((A / 3.0)[:, 1:])
+    J = p2_jacobians(X, T10, dN)  # at the degree-3 lattice points (t,20,3,3)
+    d = det3(J)
+    c = d @ Binv.T
+    if np.any(c <= 0):
+        return np.inf, np.zeros_like(X)
+    lc = np.log(c)
+    dev = lc - lc.mean(axis=1, keepdims=True)
+    E = float((dev**2).mean(axis=1).sum() / len(T10))
+    gd = (2.0 * dev / (c.shape[1] * c * len(T10))) @ Binv  # ∂E/∂det J at the lattice points
+    gJ = (gd * d)[..., None, None] * np.swapaxes(inv3(J, d), -1, -2)  # ∂det J/∂J = det J · J⁻ᵀ
+    G = np.zeros_like(X)
+    np.add.at(G, T10, np.einsum("tpdk,pak->tad", gJ, dN, optimize=True))
+    if beta:
+        Ed, Gd = hencky_energy(X, T10, Ainv, weighting="element", deviatoric=True)
+        E, G = E + beta * Ed, G + beta * Gd
+    return E, G
+
+
+def relax_interior(X: np.ndarray, T10: np.ndarray, Ainv: np.ndarray, free: np.ndarray, h: np.ndarray, *,
+                   beta: float = 0.1, maxiter: int = 500) -> tuple[np.ndarray, FitResult]:
+    """Minimise :func:`jacobian_spread_energy` over the (interior) nodes ``free`` of a patch, L-BFGS.
+
+    The boundary nodes stay where they are (on the surface), so the fit is untouched; every iterate is
+    certified (the energy is infinite otherwise). Parameters as :func:`fit_mid_nodes`.
+
+    Returns
+    -------
+    X : (N,3) float array
+        Moved copy.
+    FitResult
+        ``iterations``, ``energy`` (start, end), ``message``.
+    """
+    X = np.array(X, dtype=np.float64)
+    free = np.asarray(free, dtype=np.int64)
+    x0 = X[free].ravel().copy()
+    scale = np.repeat(0.1 * np.asarray(h, dtype=np.float64), 3)  # as in fit_mid_nodes
+
+    def energy(y):
+        X[free] = (x0 + scale * y).reshape(-1, 3)
+        E, G = jacobian_spread_energy(X, T10, Ainv, beta=beta)
+        return E, G[free].ravel() * scale
+
+    e0 = energy(np.zeros_like(x0))[0]
+    r = minimize(energy, np.zeros_like(x0), jac=True, method="L-BFGS-B",
+                 options={"maxiter": maxiter, "gtol": 1e-12, "ftol": 1e-15})
+    X[free] = (x0 + scale * r.x).reshape(-1, 3)
+    if not np.isfinite(r.fun) or r.fun > e0:  # cannot happen from a certified start; keep the start then
+        X[free] = x0.reshape(-1, 3)
+    return X, FitResult(iterations=int(r.nit), energy=[float(e0), float(r.fun)], message=str(r.message))

@@ -140,8 +140,8 @@ def test_cli_flags_are_the_option_fields():
             assert a.default == f.default, (f.name, a.default, f.default)
     owner, field = CAGE_FLAGS["--cage-time-budget"]
     assert field in {f.name for f in dataclasses.fields(getattr(cagegen, owner))}
-    others = {"help", "help_all", "problem", "method", "element", "quality", "sj_floor", "json", "png", "out",
-              "levels", "cage_time_budget", "no_cache", "quiet"}
+    others = {"help", "help_all", "problem", "method", "element", "quality", "sj_floor", "relax", "json", "png",
+              "out", "levels", "cage_time_budget", "no_cache", "quiet"}
     assert set(actions) == others, set(actions) ^ others
 
 
@@ -182,7 +182,7 @@ def test_help_lists_everyday_flags_and_help_all_every_flag(command, capsys):
                 assert actions[f.name].expert is f.metadata["expert"], f.name
     if command == "solve":
         assert short - {"-h", "--help-all"} == EVERYDAY
-        assert len(every - {"-h", "--help-all"}) == 44 and len(expert) == 25
+        assert len(every - {"-h", "--help-all"}) == 45 and len(expert) == 26
     if command == "cages":
         assert short - {"-h", "--help-all"} == EVERYDAY & every
         assert len(every - {"-h", "--help-all"}) == 26 and len(expert) == 15

@@ -582,6 +582,26 @@ def elasticity_deflation() -> str:
     return sibling("elasticity").deflation_table(load(ELASTICITY_DEFLATION))
 
 
+ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
+ELASTICITY_CYCLES = "elasticity/cycles_300k.json"
+ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")
+
+
+@generator("elasticity.factor", ELASTICITY_FACTOR)
+def elasticity_factor() -> str:
+    return sibling("elasticity_factor").table(load(ELASTICITY_FACTOR))
+
+
+@generator("elasticity.cycles", ELASTICITY_CYCLES)
+def elasticity_cycles() -> str:
+    return sibling("elasticity").cycles_table(load(ELASTICITY_CYCLES))
+
+
+@generator("elasticity.cad", *ELASTICITY_CAD)
+def elasticity_cad() -> str:
+    return "\n\n".join(sibling("elasticity").table(load(f)) for f in ELASTICITY_CAD)
+
+
 CAGE_USES = "cage_uses/cage_uses.json"
 CAGE_CULLING = "cage_uses/cage_uses_culling.json"
 CAGE_R3 = "cage_uses/cage_uses_refine3.json"

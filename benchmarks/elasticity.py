@@ -18,9 +18,10 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
-``nestmg_w``, ``nestmg_w2``  (not run by default) ``nestmg`` preconditioned by a W-cycle instead of the
-                  V-cycle: with the default smoothers (one symmetric sweep on the fine level, two below), and
-                  with two symmetric sweeps on every level.
+``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
+                  instead of the V-cycle: with the default smoothers (one symmetric sweep on the fine level,
+                  two below), with two on every level, and with two on the fine level and four below
+                  (``SolverOptions(nu=2, cycle="W")``).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -64,7 +65,9 @@ DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
                       "nestmg_deflate_all16": {"deflate": 16, "probe_finest": True}}
 #: (multigrid() keywords, cycle) of the cycle variants of ``nestmg`` (issue 32, ν = 0.45)
 CYCLE_VARIANTS = {"nestmg_w": ({}, "W"),
-                  "nestmg_w2": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2})]}, "W")}
+                  "nestmg_w2": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2})]}, "W"),
+                  "nestmg_w24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
+                                                  ("symmetric_gauss_seidel", {"iterations": 4})]}, "W")}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm", "pyamg_sa",
            "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")

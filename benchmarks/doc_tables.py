@@ -574,14 +574,6 @@ def petsc_estimate() -> str:
 
 
 # ----------------------------------------------------------------------------------------- cage uses
-ELASTICITY_DEFLATION = "elasticity/deflation_300k.json"
-
-
-@generator("elasticity.deflation", ELASTICITY_DEFLATION)
-def elasticity_deflation() -> str:
-    return sibling("elasticity").deflation_table(load(ELASTICITY_DEFLATION))
-
-
 ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
 ELASTICITY_CYCLES = "elasticity/cycles_300k.json"
 ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")

@@ -55,8 +55,9 @@ def _sgs(n: int) -> tuple[str, dict]:
 
 
 #: cycle name -> (smoother specs per level or None for the problem's default, cycle, levels used or None)
-CYCLE_SPECS = {"default": (None, "V", None), "V2": ([_sgs(2)], "V", None), "V2c8": ([_sgs(2), _sgs(8)], "V", None),
-               "W2": ([_sgs(2)], "W", None), "twogrid1": ([_sgs(1)], "V", 2), "twogrid2": ([_sgs(2)], "V", 2)}
+CYCLE_SPECS = {"default": (None, "V", None), "V2": ([_sgs(2)], "V", None),
+               "V2c8": ([_sgs(2), _sgs(8)], "V", None), "W2": ([_sgs(2)], "W", None),
+               "twogrid1": ([_sgs(1)], "V", 2), "twogrid2": ([_sgs(2)], "V", 2)}
 
 
 def barycentric_prolongations(meshes: list) -> list:

@@ -178,8 +178,8 @@ def ball_levels():
 
 def test_cycle_factor_on_a_nested_procedural_hierarchy(ball_levels):
     """Issue 32: a cycle factor <= 0.3 on a procedural nested hierarchy (benchmarks/elasticity_factor.py,
-    docs/elasticity.md#v-cycle-factor): two symmetric sweeps on the fine level and eight below (measured
-    0.268), or a W-cycle with two on every level (0.182); the default V-cycle (one / two) gives 0.32."""
+    docs/elasticity.md#cycle-factor-what-limits-it): two symmetric sweeps on the fine level and eight below
+    (measured 0.268), or a W-cycle with two on every level (0.182); the default V-cycle (one / two): 0.32."""
     from nestmg.elasticity import setup_elasticity
 
     meshes, P_mid, P_bary = ball_levels

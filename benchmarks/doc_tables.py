@@ -581,12 +581,27 @@ def petsc_estimate() -> str:
 
 
 # ----------------------------------------------------------------------------------------- cage uses
-ELASTICITY_DEFLATION = "elasticity/deflation_300k.json"
+ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
+ELASTICITY_CYCLES = ("elasticity/cycles_300k.json", "elasticity/cycles_cad_300k.json")
+ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")
 
 
-@generator("elasticity.deflation", ELASTICITY_DEFLATION)
-def elasticity_deflation() -> str:
-    return sibling("elasticity").deflation_table(load(ELASTICITY_DEFLATION))
+@generator("elasticity.factor", ELASTICITY_FACTOR)
+def elasticity_factor() -> str:
+    return sibling("elasticity_factor").table(load(ELASTICITY_FACTOR))
+
+
+@generator("elasticity.cycles", *ELASTICITY_CYCLES)
+def elasticity_cycles() -> str:
+    first, *rest = (load(f) for f in ELASTICITY_CYCLES)  # same methods and tol: one table, rows appended
+    for r in rest:
+        first["meshes"] += r["meshes"]
+    return sibling("elasticity").cycles_table(first)
+
+
+@generator("elasticity.cad", *ELASTICITY_CAD)
+def elasticity_cad() -> str:
+    return "\n\n".join(sibling("elasticity").table(load(f)) for f in ELASTICITY_CAD)
 
 
 CAGE_USES = "cage_uses/cage_uses.json"

@@ -18,6 +18,10 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
+``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
+                  instead of the V-cycle: with the default smoothers (one symmetric sweep on the fine level,
+                  two below), with two on every level, and with two on the fine level and four below
+                  (``SolverOptions(nu=2, cycle="W")``).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -59,7 +63,13 @@ import numpy as np
 DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
                       "nestmg_deflate_all": {"deflate": 8, "probe_finest": True},
                       "nestmg_deflate_all16": {"deflate": 16, "probe_finest": True}}
-METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, "pyamg_sa_rbm", "pyamg_sa",
+#: (multigrid() keywords, cycle) of the cycle variants of ``nestmg`` (issue 32, ν = 0.45)
+CYCLE_VARIANTS = {"nestmg_w": ({}, "W"),
+                  "nestmg_w2": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2})]}, "W"),
+                  "nestmg_w24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
+                                                  ("symmetric_gauss_seidel", {"iterations": 4})]}, "W")}
+METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",
+           "pyamg_sa",
            "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
 #: references run once (first repeat only): they are far from the others and slow
@@ -88,9 +98,11 @@ def _projector(Z: np.ndarray | None):
     return lambda v: v - Q @ (Q.T @ v)
 
 
-def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False) -> dict:
+def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False,
+               cycle: str = "V") -> dict:
     """Setup (restriction + ``P ⊗ I₃`` + ``multigrid(**mg_kwargs)``) and MG-PCG of the assembled problem
-    ``pr``; with ``factor`` also the stationary V-cycle factor (:func:`vcycle_factor`, not timed)."""
+    ``pr`` preconditioned by one ``cycle``; with ``factor`` also the stationary factor of that cycle
+    (:func:`vcycle_factor`, not timed)."""
     from solvers import block_prolongation, restrict_prolongations
 
     t0 = time.perf_counter()
@@ -98,7 +110,7 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
     ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t1 = time.perf_counter()
-    x, info = ml.solve(pr.b, tol=tol, maxiter=500, accel="cg", return_info=True)
+    x, info = ml.solve(pr.b, tol=tol, maxiter=500, cycle=cycle, accel="cg", return_info=True)
     t2 = time.perf_counter()
     out = {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
@@ -107,13 +119,14 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
                          | {k: d[k] for k in ("probe_after", "slow_modes_found", "reverted") if k in d}
                          for d in ml.deflation]}
     if factor:
-        out["vcycle_factor"] = vcycle_factor(ml)
+        out["vcycle_factor"] = vcycle_factor(ml, cycle=cycle)
     return out
 
 
-def vcycle_factor(ml, cycles: int = 20, last: int = 5) -> float:
-    """Stationary V-cycle factor: energy-norm error reduction per cycle on ``A e = 0`` from a random start,
-    geometric mean of the ``last`` of ``cycles`` cycles (kernel of a free problem projected out)."""
+def vcycle_factor(ml, cycles: int = 20, last: int = 5, cycle: str = "V") -> float:
+    """Stationary factor of ``cycle`` (default the V-cycle): energy-norm error reduction per cycle on
+    ``A e = 0`` from a random start, geometric mean of the ``last`` of ``cycles`` cycles (kernel of a free
+    problem projected out)."""
     A = ml.levels[0].A
     Q = getattr(ml, "nullspace_bases", [None])[0]
     e = np.random.default_rng(0).standard_normal(A.shape[0])
@@ -122,7 +135,7 @@ def vcycle_factor(ml, cycles: int = 20, last: int = 5) -> float:
     for _ in range(cycles):
         if Q is not None:
             e -= Q @ (Q.T @ e)
-        ml._cycle(0, e, zero, "V")
+        ml._cycle(0, e, zero, cycle)
         norms.append(float(np.sqrt(max(e @ (A @ e), 0.0))))
     return float((norms[-1] / norms[-1 - last]) ** (1.0 / last))
 
@@ -232,8 +245,9 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 if m.startswith("nestmg"):
-                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol, DEFLATION_VARIANTS.get(m),
-                                     factor=factor and r == 0)
+                    kw, cyc = CYCLE_VARIANTS.get(m, (DEFLATION_VARIANTS.get(m), "V"))
+                    out = run_nestmg(pr, h_P, m == "nestmg_block", tol, kw, factor=factor and r == 0,
+                                     cycle=cyc)
                 elif m in ("pyamg_sa_rbm", "pyamg_sa"):
                     out = run_pyamg(pr.A, pr.b, B if m == "pyamg_sa_rbm" else None, Z, tol)
                 else:
@@ -351,6 +365,32 @@ def deflation_table(res: dict) -> str:
                              f"{o['median_setup']:.2f} + {o['median_solve']:.2f} ({o['iterations']})"
                              f"{_mark(o['final_residual'], res['params']['tol'])} | "
                              f"{o['vcycle_factor']:.3f} | {modes} | {o['median_total'] / base:.2f} |")
+    return "\n".join(lines)
+
+
+def cycles_table(res: dict) -> str:
+    """Markdown table of the cycle variants (``--methods nestmg nestmg_w nestmg_w2 gamg_rbm ... --factor``):
+    per case and nestmg variant, median setup + solve seconds (MG-PCG iterations), the stationary factor of
+    its cycle, its total against ``nestmg`` and the best AMG's total against it (same run)."""
+    variants = [m for m in res["params"]["methods"] if m == "nestmg" or m in CYCLE_VARIANTS]
+    amgs = [m for m in res["params"]["methods"] if not m.startswith("nestmg")]
+    tol = res["params"]["tol"]
+    head = ("| mesh | fine tets | problem | ν | variant | setup + solve s (it) | cycle factor "
+            "| total / nestmg | best AMG s (it) | best AMG / variant |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for rec in res["meshes"]:
+        for c in rec["cases"]:
+            ms = c["methods"]
+            ok = [m for m in amgs if ms[m]["final_residual"] <= 10 * tol]
+            best = min(ok, key=lambda m: ms[m]["median_total"]) if ok else None
+            cell = (f"{ms[best]['median_total']:.2f} ({ms[best]['iterations']}, {best})" if best else "–")
+            for m in variants:
+                o = ms[m]
+                ratio = f"{ms[best]['median_total'] / o['median_total']:.2f}" if best else "–"
+                lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['problem'][11:]} | {c['nu']} "
+                             f"| {m} | {o['median_setup']:.2f} + {o['median_solve']:.2f} ({o['iterations']})"
+                             f"{_mark(o['final_residual'], tol)} | {o['vcycle_factor']:.3f} | "
+                             f"{o['median_total'] / ms['nestmg']['median_total']:.2f} | {cell} | {ratio} |")
     return "\n".join(lines)
 
 

@@ -152,6 +152,50 @@ def test_iterations_flat_under_refinement():
     assert its[1] <= its[0] + 2 and its[1] <= 15, its
 
 
+def _energy_factor(ml, cycle: str, cycles: int = 40, last: int = 10) -> float:
+    """Stationary factor of ``cycle`` in the energy norm on ``A e = 0``: the slowest mode's rate."""
+    A = ml.levels[0].A
+    e = np.random.default_rng(0).standard_normal(A.shape[0])
+    norms = []
+    for _ in range(cycles):
+        ml._cycle(0, e, np.zeros_like(e), cycle)
+        norms.append(np.sqrt(e @ (A @ e)))
+    return float((norms[-1] / norms[-1 - last]) ** (1.0 / last))
+
+
+@pytest.fixture(scope="module")
+def ball_levels():
+    """The procedural nested ball (``shapes.ball_tets``), three finest levels: 82k / 10k / 1.3k tets, with
+    the helper's midpoint prolongations and barycentric ones (exact for linear fields after projection)."""
+    from nestmg.prolongation import prolongation
+    from nestmg.shapes import ball_tets
+
+    meshes, P_mid = ball_tets(4)
+    meshes, P_mid = meshes[:3], P_mid[:2]
+    P_bary = [prolongation(meshes[k][0], *meshes[k + 1], extrapolation="linear")[0] for k in range(2)]
+    return meshes, P_mid, P_bary
+
+
+def test_cycle_factor_on_a_nested_procedural_hierarchy(ball_levels):
+    """Issue 32: a cycle factor <= 0.3 on a procedural nested hierarchy (benchmarks/elasticity_factor.py,
+    docs/elasticity.md#cycle-factor-what-limits-it): two symmetric sweeps on the fine level and eight below
+    (measured 0.268), or a W-cycle with two on every level (0.182); the default V-cycle (one / two): 0.32."""
+    from nestmg.elasticity import setup_elasticity
+
+    meshes, P_mid, P_bary = ball_levels
+    # the midpoint rule is exact for linear fields only before the boundary nodes are projected
+    c = meshes[0][0].mean(axis=0)
+    Z = [rigid_body_modes(V, center=c) for V, _ in meshes]
+    assert np.abs(block_prolongation(P_bary[0]) @ Z[1] - Z[0]).max() <= 1e-12
+    assert np.abs(block_prolongation(P_mid[0]) @ Z[1] - Z[0]).max() > 1e-3
+    pr = setup_elasticity(meshes, P_bary, "elasticity-clamped", nu=0.3)
+    sgs = [("symmetric_gauss_seidel", {"iterations": 2}), ("symmetric_gauss_seidel", {"iterations": 8})]
+    assert _energy_factor(pr.multigrid(presmoother=sgs), "V") <= 0.3
+    assert _energy_factor(pr.multigrid(presmoother=sgs[:1]), "W") <= 0.22
+    default = _energy_factor(pr.multigrid(), "V")
+    assert 0.28 <= default <= 0.36, f"default V-cycle factor {default:.3f}: update docs/elasticity.md"
+
+
 def test_free_problem_refuses_an_unbalanced_load(iso_hierarchy):
     from nestmg.elasticity import setup_elasticity
 

@@ -530,13 +530,9 @@ def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, lam: float
     t0 = time.perf_counter()
     info: dict = {"threshold": threshold, "lam": lam, "passes": [], "iterations": 0}
     for k in range(passes):
-        curved = _moved_tets(X, Xs, T10)
-        sj = scaled_jacobians(X, T10[curved])
-        low = curved[sj < threshold]
+        n_low, low = _low_tets(X, Xs, T, T10, threshold, neighbours=k > 0)
         if low.size == 0:
             break
-        if k:  # the vertex neighbours too
-            low = _tets_with_nodes(T10, np.unique(T[low]), len(X))
         free = np.unique(T10[low, 4:])
         etets = _tets_with_nodes(T10, free, len(X))
         Ainv = reference_inverse(Xs, T[etets], "straight")
@@ -546,7 +542,7 @@ def _quality_pass(X, Xs, T, T10, bmark, project, *, threshold: float, lam: float
         old, new = scaled_jacobians(X, T10[etets]), scaled_jacobians(X1, T10[etets])
         kept = bool(new.min() >= old.min() and new.mean() > old.mean()
                     and (certify_tets(X1, T10, etets, depth=depth) == VALID).all())
-        info["passes"].append({"below": int((sj < threshold).sum()), "free_nodes": int(len(free)),
+        info["passes"].append({"below": n_low, "free_nodes": int(len(free)),
                                "energy_tets": int(len(etets)), "iterations": fit["iterations"],
                                "min_before": float(old.min()),
                                "min_after": float(new.min()), "mean_before": float(old.mean()),
@@ -575,13 +571,9 @@ def _relax_pass(X, Xs, T, T10, bmark, *, threshold: float, beta: float, passes: 
     t0 = time.perf_counter()
     info: dict = {"threshold": threshold, "beta": beta, "passes": [], "iterations": 0}
     for k in range(passes):
-        curved = _moved_tets(X, Xs, T10)
-        sj = scaled_jacobians(X, T10[curved])
-        low = curved[sj < threshold]
+        n_low, low = _low_tets(X, Xs, T, T10, threshold, neighbours=k > 0)
         if low.size == 0:
             break
-        if k:
-            low = _tets_with_nodes(T10, np.unique(T[low]), len(X))
         free = np.unique(T10[low, 4:])
         free = free[~bmark[free]]
         if free.size == 0:
@@ -591,7 +583,7 @@ def _relax_pass(X, Xs, T, T10, bmark, *, threshold: float, beta: float, passes: 
                                  _edge_length_of_nodes(Xs, T10, free), beta=beta)
         old, new = scaled_jacobians(X, T10[etets]), scaled_jacobians(X1, T10[etets])
         kept = bool(new.min() >= old.min() and (certify_tets(X1, T10, etets, depth=depth) == VALID).all())
-        info["passes"].append({"below": int((sj < threshold).sum()), "free_nodes": int(len(free)),
+        info["passes"].append({"below": n_low, "free_nodes": int(len(free)),
                                "energy_tets": int(len(etets)), "iterations": fit["iterations"],
                                "min_before": float(old.min()), "min_after": float(new.min()),
                                "mean_before": float(old.mean()), "mean_after": float(new.mean()),
@@ -601,6 +593,16 @@ def _relax_pass(X, Xs, T, T10, bmark, *, threshold: float, beta: float, passes: 
             X = X1
     info["seconds"] = time.perf_counter() - t0
     return X, info
+
+
+def _low_tets(X, Xs, T, T10, threshold: float, *, neighbours: bool) -> tuple[int, np.ndarray]:
+    """How many curved tets have a scaled Jacobian below ``threshold``, and those tets (with
+    ``neighbours``, every tet sharing a vertex with one of them)."""
+    curved = _moved_tets(X, Xs, T10)
+    low = curved[scaled_jacobians(X, T10[curved]) < threshold]
+    if neighbours and low.size:
+        return int(low.size), _tets_with_nodes(T10, np.unique(T[low]), len(X))
+    return int(low.size), low
 
 
 def _sj_floor(X, Xs, T10, floor: float, bmark: np.ndarray, *, factor: float = 0.75,

@@ -349,3 +349,36 @@ def test_reinflation_step_gives_up_when_it_stops_converging():
     assert stop == 24
     halving = [330.0 * 0.7 ** i for i in range(60)]  # steady progress: never stalls
     assert not any(rf._stalled(halving[: k + 1]) for k in range(60))
+
+
+def _dented_box_pair(depth: float):
+    """F: the cube [-1, 1]^3 (12 triangles); Ĉ: the cube [-1.05, 1.05]^3 with a vertex at the centre of
+    its top face pushed down by ``depth`` (0.1: the dent's apex at z = 0.95 crosses F's top face while
+    every quadrature point of F, 1/6 of a triangle from its edges, stays inside Ĉ)."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    Vf, Ff = np.asarray(box.vertices, float), np.asarray(box.faces, np.int64)
+    cage = trimesh.creation.box(extents=(2.1, 2.1, 2.1)).subdivide()
+    Vc, Fc = np.array(cage.vertices, float), np.asarray(cage.faces, np.int64)
+    top = np.flatnonzero(np.isclose(Vc[:, 2], 1.05) & np.isclose(np.abs(Vc[:, :2]).sum(1), 0.0))
+    assert len(top) == 1
+    Vc[top, 2] -= depth
+    return Vf, Ff, Vc, Fc
+
+
+def test_flow_expands_the_target_where_it_crosses_a_surface_already_inside():
+    """All quadrature points inside but Ĉ crossing F̄: Ĉ is expanded after ``expand_after`` such
+    iterations (it used to wait for 37, then every 25: 100 iterations on featuretype.stl's envelope)."""
+    from cagegen.nested import flow as flow_module
+
+    Vf, Ff, Vc, Fc = _dented_box_pair(0.1)
+    fl = flow_module._Flow(Vf, Ff, Vc, Fc, 2, None)
+    assert fl.S.max() < 0.0  # every quadrature point inside Ĉ
+    assert fl.pair.intersects(fl.pair.stack(fl.Vc, fl.V))
+    actions = [flow_module._when_inside(fl, 150, 5, 20) for _ in range(5)]
+    assert actions == ["", "", "", "", "again"]
+    assert fl.n_expand == 1
+    assert fl.Vc[:, 2].max() > 1.05  # the dent's faces moved out
+    res = flow_module.flow_inside(Vf, Ff, Vc, Fc, expand_after=5)
+    assert res.success and res.iterations <= 10

@@ -154,6 +154,8 @@ def flow_inside(
         When some quadrature points stay outside Ĉ and the largest signed distance has not improved
         for this many iterations, expand Ĉ locally (the paper's remedy for hard cases: "reverse the
         picture and expand the coarse mesh"), CCD-limited so Ĉ stays free of self-intersections.
+        Likewise every ``expand_after`` iterations during which all points are inside but Ĉ still
+        crosses F̄: Ĉ is expanded around the crossing faces.
         ``None`` disables it (then ``FlowResult.target`` is Ĉ itself).
     max_expansions : int
         Cap on expansion steps.
@@ -285,9 +287,10 @@ def _when_inside(fl: _Flow, stall_iter: int, expand_after: int | None, max_expan
         # Ĉ's corners, the paper's "invalid F̄"): sample each triangle more densely
         fl.refine_quadrature(5)
         return "again"
-    if (expand_after is not None and fl.inside_iters > stall_iter // 4 and fl.inside_iters % 25 == 0
-            and fl.n_expand < max_expansions):
-        # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface
+    if expand_after is not None and fl.inside_iters % expand_after == 0 and fl.n_expand < max_expansions:
+        # still cut by Ĉ: expand Ĉ around the faces that cross the fine surface. The flow alone rarely
+        # clears these crossings (Ĉ's edges dipping into F between quadrature points): on the envelope
+        # target of featuretype.stl's first layer it went on for 100 iterations until the 4th expansion
         pairs = cross_intersection_pairs(fl.Vc, fl.Fc, fl.V, fl.Ff)
         if len(pairs):
             fl.expand(pairs[:, 0], np.full(len(pairs), 2e-3 * fl.diag))

@@ -384,10 +384,10 @@ MIN_TARGET_OFFSET = 0.01
 
 #: When that envelope fails too, one at this fraction of the edge of an equilateral ``n_faces``-face mesh
 #: of the layer's area (:func:`_target_edge`, :func:`_target_sources`): a target that coarse cannot follow
-#: a hole or a gap narrower than half its edge, so its envelope closes them. featuretype.stl (genus 9): layer 2 (218 faces, edge 0.13 of the
-#: diagonal) from the 0.01 envelope, the layer itself and two intermediate layers failed for ~300 s
-#: before a 614-face detour certified; the 0.033 envelope is genus 0 and certifies in 0 flow iterations
-#: (0.3 CPU s), 6% less cage volume.
+#: a hole or a gap narrower than half its edge, so its envelope closes them. featuretype.stl (genus 9):
+#: layer 2 (218 faces, edge 0.13 of the diagonal) from the 0.01 envelope, the layer itself and two
+#: intermediate layers failed for ~300 s before a 614-face detour certified; the 0.033 envelope is
+#: genus 0 and certifies in 0 flow iterations (0.3 CPU s), 6% less cage volume.
 TARGET_OFFSET_EDGE_FRACTION = 0.25
 COARSE_ENVELOPE_FACTOR = 1.5
 
@@ -535,7 +535,8 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         tried.add(key)
         t_dec = time.perf_counter() - t
         flow_opts = {k: opts[k] for k in _DEFAULTS}
-        if (src, alg, offset) != sources[-1]:  # another target follows: a flow that does not arrive soon stops
+        # another target follows: a flow that does not arrive soon stops
+        if (src, alg, offset) != sources[-1]:
             quick = max(QUICK_FLOW_MIN_ITER, QUICK_FLOW_WORK // max(len(Ff), 1))
             flow_opts["flow_max_iter"] = min(flow_opts["flow_max_iter"], quick)
         try:

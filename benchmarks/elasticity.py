@@ -344,30 +344,6 @@ def table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def deflation_table(res: dict) -> str:
-    """Markdown table of the deflation variants (``--methods nestmg nestmg_no_deflation nestmg_deflate_all
-    ...`` with ``--factor``): per case and variant, median setup + solve seconds (MG-PCG iterations), the
-    stationary V-cycle factor, modes deflated per probed level (finest first; ``–``: not probed) and the
-    total against ``nestmg_no_deflation`` (same run)."""
-    variants = [m for m in res["params"]["methods"] if m == "nestmg" or m in DEFLATION_VARIANTS]
-    head = ("| mesh | fine tets | problem | ν | variant | setup + solve s (it) | V-cycle factor "
-            "| modes deflated per level | total / no deflation |")
-    lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    for rec in res["meshes"]:
-        for c in rec["cases"]:
-            ms = c["methods"]
-            base = ms["nestmg_no_deflation"]["median_total"]
-            for m in variants:
-                o = ms[m]
-                per = {d["level"]: d["vectors"] for d in o["deflation"]}
-                modes = " / ".join(str(per[k]) if k in per else "–" for k in range(len(o["levels"]) - 1))
-                lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['problem'][11:]} | {c['nu']} | {m} | "
-                             f"{o['median_setup']:.2f} + {o['median_solve']:.2f} ({o['iterations']})"
-                             f"{_mark(o['final_residual'], res['params']['tol'])} | "
-                             f"{o['vcycle_factor']:.3f} | {modes} | {o['median_total'] / base:.2f} |")
-    return "\n".join(lines)
-
-
 def cycles_table(res: dict) -> str:
     """Markdown table of the cycle variants (``--methods nestmg nestmg_w nestmg_w2 gamg_rbm ... --factor``):
     per case and nestmg variant, median setup + solve seconds (MG-PCG iterations), the stationary factor of

@@ -49,9 +49,7 @@ def index_spread(A: sp.csr_matrix, stride: int = 1) -> float:
         A = A[::stride]
         if A.nnz == 0:
             return 0.0
-        rows = np.repeat(np.arange(0, n, stride, dtype=A.indices.dtype), np.diff(A.indptr))
-    else:
-        rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
+    rows = np.repeat(np.arange(0, n, stride, dtype=A.indices.dtype), np.diff(A.indptr))
     return float(np.abs(rows - A.indices).mean() / n)
 
 

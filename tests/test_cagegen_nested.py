@@ -382,3 +382,59 @@ def test_flow_expands_the_target_where_it_crosses_a_surface_already_inside():
     assert fl.Vc[:, 2].max() > 1.05  # the dent's faces moved out
     res = flow_module.flow_inside(Vf, Ff, Vc, Fc, expand_after=5)
     assert res.success and res.iterations <= 10
+
+
+def _two_boxes(top_rotation_deg: float, lift: float):
+    """F: the cube [-1, 1]^2 x [-2, 0] and, above it, a cube of side 2 rotated about the y axis and lifted
+    so that its lowest point is ``lift`` above z = 0 (two components, closed)."""
+    import trimesh
+
+    a = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    a.apply_translation((0.0, 0.0, -1.0))
+    b = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    b.apply_transform(trimesh.transformations.rotation_matrix(np.radians(top_rotation_deg), (0, 1, 0)))
+    b.apply_translation((0.0, 0.0, lift - b.vertices[:, 2].min()))
+    V = np.vstack([a.vertices, b.vertices])
+    F = np.vstack([a.faces, b.faces + len(a.vertices)]).astype(np.int64)
+    return V, F
+
+
+def test_narrow_slot_vertices_finds_points_between_facing_walls_only():
+    """A point between two parallel walls 0.02 apart is in a slot narrower than 0.03, not than 0.015; a
+    point above the top face, or under a wall tilted by 45 degrees (a crease, not a slot), is not."""
+    slot = nested_backend_module.narrow_slot_vertices
+    V, F = _two_boxes(0.0, 0.02)
+    U = np.array([[0.1, 0.2, 0.01], [0.1, 0.2, 2.1], [0.1, 0.2, -0.01]])  # slot, above, inside F
+    assert slot(U, V, F, 0.03).tolist() == [0]
+    assert slot(U, V, F, 0.015).tolist() == []
+    V, F = _two_boxes(45.0, 0.02)  # the ray from (0.1, 0.2, 0) up meets the tilted face at z = 0.12
+    assert slot(np.array([[0.1, 0.2, 0.01]]), V, F, 0.5).tolist() == []
+
+
+def test_a_quick_flow_stops_when_it_makes_no_progress():
+    """The plateau rule: no lower largest signed distance in the last window than in the one before."""
+    from cagegen.nested import flow as flow_module
+
+    rising = list(np.linspace(0.002, 0.013, 60))
+    stops = [k for k in range(1, 61) if flow_module._plateaued(rising[:k], k, 20, 0.0, 1.0)]
+    assert stops[0] == 40  # the first check after twice the window
+    slow = list(0.01 * 0.99 ** np.arange(300))  # lucy-like slow but steady progress: never stops
+    assert not any(flow_module._plateaued(slow[:k], k, 20, 0.0, 1.0) for k in range(1, 301))
+    assert not flow_module._plateaued(rising, 60, None, 0.0, 1.0)  # off by default
+
+
+def test_a_layer_target_in_a_slot_narrower_than_the_clearance_goes_behind_the_envelopes():
+    """_build_layer's order: a decimated layer with a vertex in a slot narrower than twice the clearance
+    is tried after the envelope targets, once; without an envelope after it, or without a clearance,
+    it keeps its place."""
+    defer = nested_backend_module._defer_slotted
+    V, F = _two_boxes(0.0, 0.02)
+    U = np.array([[0.1, 0.2, 0.01]])
+    sources = [("layer", "qslim", None), ("envelope", "qslim", 0.05), ("layer", "shortest_edge", None)]
+    deferred: set = set()
+    assert defer(U, V, F, 0.015, sources, 0, deferred) == 1
+    assert sources[-1] == ("layer", "qslim", None) and len(sources) == 4
+    assert defer(U, V, F, 0.015, sources, 3, deferred) == 0  # moved once only
+    assert defer(U, V, F, 0.0, list(sources), 0, set()) == 0  # no clearance asked
+    assert defer(U, V, F, 0.015, sources[:1] + sources[2:3], 0, set()) == 0  # no envelope follows
+    assert defer(U, V, F, 0.005, list(sources), 0, set()) == 0  # the slot is wider than 2 x 0.005

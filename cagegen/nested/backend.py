@@ -220,6 +220,7 @@ def nest_pair(
     flow_max_iter: int = 1000,
     flow_active_depth: float | None = None,
     flow_stall_window: int | None = 100,
+    flow_plateau_window: int | None = None,
     dhat: float = 5e-3,
     kappa: float = 1e3,
     dhat_final: float = 1e-3,
@@ -251,6 +252,9 @@ def nest_pair(
     flow_stall_window : int, optional
         :func:`cagegen.nested.flow.flow_inside`'s ``stall_window`` (fail fast when the flow cannot
         finish within ``flow_max_iter`` at its current rate; None: run to the cap).
+    flow_plateau_window : int, optional
+        :func:`cagegen.nested.flow.flow_inside`'s ``plateau_window`` (stop a flow that makes no progress
+        at all; :func:`_build_layer` sets it when another target follows).
     dhat, kappa, dhat_final, kappa_final, max_move, final_iters
         Re-inflation options (:func:`cagegen.nested.reinflate.reinflate`).
     gap : float
@@ -287,6 +291,7 @@ def nest_pair(
     upd = rep.phase("flow", flow_max_iter)
     fl = flow_inside(flowed, Ff, Vc, Fc, quad_order=quad_order, step=flow_step,
                      max_iter=flow_max_iter, active_depth=flow_active_depth, stall_window=flow_stall_window,
+                     plateau_window=flow_plateau_window,
                      expand_after=FLOW_EXPAND_AFTER, callback=lambda it: upd(it))
     info["seconds"]["flow"] = time.perf_counter() - t
     info["flow"] = fl.to_dict()
@@ -405,6 +410,10 @@ COARSE_ENVELOPE_FACTOR = 1.5
 #: measured above the iterations a successful first flow needed (knight: cap 500 for 133).
 QUICK_FLOW_WORK = 500_000
 QUICK_FLOW_MIN_ITER = 30
+#: ... and it stops once it makes no progress at all over twice this many iterations
+#: (:func:`cagegen.nested.flow._plateaued`): featuretype.stl's shortest-edge first target went on for its
+#: whole cap of 143 iterations (17-27 s) with its largest signed distance rising.
+QUICK_FLOW_PLATEAU = 20
 
 #: Once a layer certified only with the envelope target, the run's later layers try the envelope
 #: first (their inputs are that layer's cage, smoother but of the same shape): on lucy.ply's
@@ -483,6 +492,43 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
     return C2, min_distance(C2, G, Vf, Ff), oinfo
 
 
+#: Facing walls: the wall a ray along F's outward normal hits next faces back within this angle.
+SLOT_FACING_DEGREES = 30.0
+
+
+def narrow_slot_vertices(U: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, width: float) -> np.ndarray:
+    """Vertices of ``U`` outside F and between two facing walls of F closer than ``width``.
+
+    A cage that keeps ``gap`` from F cannot have a point in an exterior slot of F narrower than
+    ``2 gap`` (it would be closer than ``gap`` to one wall), and the re-inflation only pushes the cage
+    along the walls' normals, never out through the slot's mouth. For each vertex p of ``U`` outside F
+    (signed distance ``s > 0``), a ray from its closest point q along that face's outward normal hits F
+    again at ``t < width`` on a wall facing back (normals within :data:`SLOT_FACING_DEGREES` of
+    opposite: a concave crease, whose walls meet at an angle, is not a slot) and beyond p (``s < t``).
+    Measured on the decimated first layers of 21 zoo meshes (quarter faces, ``width`` twice the
+    clearance): cheburashka.obj 4 vertices between its legs (slot 0.0041-0.0055 of the diagonal, where
+    the re-inflation stalled after 50 s), lucy.ply 20, every other mesh 0; 0.01-0.7 CPU s.
+
+    Returns
+    -------
+    (k,) int array
+        Indices into ``U``.
+    """
+    S, I, Q = igl.signed_distance(np.asarray(U, dtype=float), Vf, Ff)[:3]
+    N = igl.per_face_normals(Vf, Ff, np.array([0.0, 0.0, 1.0]))
+    cand = np.flatnonzero((S > 0) & (S < width))
+    if not len(cand):
+        return cand
+    u = N[I[cand]]
+    tree = igl.AABB()
+    tree.init(Vf, Ff)
+    hit_face, t, _ = tree.intersect_ray_first(Vf, Ff, Q[cand] + 1e-9 * u, u, float(width))
+    hit = (hit_face >= 0) & (t < width)
+    facing = np.zeros(len(cand), dtype=bool)
+    facing[hit] = np.einsum("ij,ij->i", N[hit_face[hit]], u[hit]) < -np.cos(np.radians(SLOT_FACING_DEGREES))
+    return cand[facing & (S[cand] < t)]
+
+
 def _target_sources(Vf, Ff, n_faces: int, opts: dict, first: str) -> list:
     """``(source, decimator, envelope offset)`` of the targets Ĉ :func:`_build_layer` tries in turn.
 
@@ -503,6 +549,24 @@ def _target_sources(Vf, Ff, n_faces: int, opts: dict, first: str) -> list:
     return (env + layer if first == "envelope" else layer + env) + [("layer", other_alg, None)]
 
 
+def _defer_slotted(U, Vf, Ff, gap: float, sources: list, i: int, deferred: set) -> int:
+    """Move ``sources[i]``, a layer target ``U`` with vertices in slots of F narrower than ``2 gap``
+    (:func:`narrow_slot_vertices`), behind the envelope targets; returns that vertex count (0: kept).
+
+    Its clearance step cannot pass there: cheburashka.obj's first layer flowed inside, then its
+    re-inflation stalled in the last reverse step (50 s) before the envelope certified in 6 s. Moved
+    once, when an envelope target follows; it is still tried, last.
+    """
+    src = sources[i]
+    if src[0] != "layer" or gap <= 0 or src in deferred or all(s[0] != "envelope" for s in sources[i + 1:]):
+        return 0
+    n_slot = len(narrow_slot_vertices(U, Vf, Ff, 2.0 * gap))
+    if n_slot:
+        deferred.add(src)
+        sources.append(src)
+    return n_slot
+
+
 def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_no, first="layer"):
     """Cage with ~n_faces faces nesting (Vf, Ff), with recovery. Returns (C, G, info).
 
@@ -516,8 +580,8 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     """
     sources = _target_sources(Vf, Ff, n_faces, opts, first)
     failures = []
-    tried = set()
-    for src, alg, offset in sources:
+    tried, deferred = set(), set()
+    for i, (src, alg, offset) in enumerate(sources):  # may grow: a deferred target goes last
         t = time.perf_counter()
         what = src if offset is None else f"{src} at {offset:.3g}"
         try:
@@ -527,6 +591,13 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
                 U, G, dinfo = _decimate(Vf, Ff, n_faces, alg)
         except CageError as exc:
             failures.append({"action": f"decimate the {what} with {alg}", "stage": "decimate", "reason": str(exc)})
+            log.append({"layer": layer_no, **failures[-1]})
+            continue
+        n_slot = _defer_slotted(U, Vf, Ff, gap, sources, i, deferred)
+        if n_slot:
+            failures.append({"action": f"decimate the {what} with {alg}", "stage": "slot",
+                             "reason": f"{n_slot} vertices in slots of F narrower than twice the clearance: "
+                                       "tried after the envelopes"})
             log.append({"layer": layer_no, **failures[-1]})
             continue
         key = (src, dinfo["decimator"], dinfo["block_intersections"], offset)
@@ -539,6 +610,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         if (src, alg, offset) != sources[-1]:
             quick = max(QUICK_FLOW_MIN_ITER, QUICK_FLOW_WORK // max(len(Ff), 1))
             flow_opts["flow_max_iter"] = min(flow_opts["flow_max_iter"], quick)
+            flow_opts["flow_plateau_window"] = QUICK_FLOW_PLATEAU
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
         except PairFailure as exc:

@@ -51,7 +51,9 @@ def run_one(tree: Path, mesh: Path, levels: int, method: str) -> dict:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         load = os.getloadavg()[0]
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        # run in the temporary folder: ``python -c`` puts the working directory first on sys.path, where
+        # a checkout's own packages would shadow the tree's
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp)
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         row = {"ok": proc.returncode == 0, "wall_seconds": wall, "load_before": load,

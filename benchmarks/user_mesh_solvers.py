@@ -91,6 +91,9 @@ VARIANTS = {
                               ("gauss_seidel", {"sweep": "forward", "iterations": 1})]},
     # the coarse-level deflation probe (solvers.deflation) that was the constructor's default before
     "deflate8": {"deflate": 8},
+    # the default cycle without the pre-smoother's cheap residual (Smoother.smooth_residual: a half sweep
+    # from zero, the residual from the strict upper triangle): the residual as a full product, as before
+    "plain_residual": {"_plain_residual": True},
 }
 
 #: ``nestmg.setup_problem`` names of the benchmark's problems (``problem_multigrid``: ``Problem.multigrid()``)
@@ -164,9 +167,13 @@ def run_nestmg(A, b, Ps, nullspace, tol, opts, problem=None) -> dict:
     """``MultigridSolver(A, Ps, **opts)`` (or ``problem.multigrid()``) + MG-PCG; set-up wall and CPU time."""
     from solvers import MultigridSolver
 
+    opts = dict(opts)
+    plain = opts.pop("_plain_residual", False)
     t, c = time.perf_counter(), time.process_time()
     ml = problem.multigrid() if problem is not None else MultigridSolver(A, Ps, nullspace=nullspace, **opts)
     setup, setup_cpu = time.perf_counter() - t, time.process_time() - c
+    for L in ml.levels[:-1] if plain else ():
+        L.presmoother.smooth_residual = None  # the cycle's plain path: apply, then b - A x
     c = time.process_time()
     _, r = ml.solve(b, tol=tol, accel="cg", return_info=True)
     solve_cpu = time.process_time() - c

@@ -117,24 +117,20 @@ def _galerkin_fits(Ak: sp.csr_matrix, P: sp.csr_matrix, k: int) -> None:
 def _canonical_symmetric_part(Ac: sp.csr_matrix) -> sp.csr_matrix:
     """``(Ac + Acᵀ)/2`` in canonical CSR form, for a product ``Ac`` with a (structurally) symmetric pattern.
 
-    One O(nnz) transpose (scipy's CSR->CSC conversion writes every column's row indices in increasing
-    order) gives ``Acᵀ`` with sorted indices and an in-place sort of each row (``Ac``'s arrays are a
-    temporary of the product) gives ``Ac``'s; when their patterns agree (always, unless a sum cancelled to
-    an exact zero on one side only) the symmetric part is one average of the data arrays. The same arrays,
-    bit for bit, as the second transpose this sort replaced (rows of 50-100 entries sort faster than a
-    transpose moves them).
+    Two O(nnz) transposes (scipy's CSR<->CSC conversion writes every column's row indices in
+    increasing order) give both ``Acᵀ`` and ``Ac`` with sorted indices; when their patterns agree (always,
+    unless a sum cancelled to an exact zero on one side only) the symmetric part is one average of the
+    data arrays. Replaces a per-row sort, a transpose, a sparse addition and a second sort.
     """
     n = Ac.shape[0]
     t = Ac.tocsc()  # the CSR arrays of Acᵀ, rows sorted
     At = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(n, n))
-    s = Ac
-    s.sort_indices()  # in place: the product's arrays are not the caller's
+    s = At.tocsc()  # the CSR arrays of Ac, rows sorted
     if np.array_equal(s.indptr, t.indptr) and np.array_equal(s.indices, t.indices):
         data = s.data + t.data
         data *= 0.5
-        # indices copied: the product's may be a view of an allocation at a bound of its size
-        out = sp.csr_matrix((data, s.indices.copy(), s.indptr), shape=(n, n))
-        out.has_canonical_format = True  # no duplicates (a product), rows sorted (the transpose, the sort)
+        out = sp.csr_matrix((data, s.indices, s.indptr), shape=(n, n))
+        out.has_canonical_format = True  # no duplicates (a product), rows sorted (the transposes)
         return out
     Ac = sp.csr_matrix(0.5 * (Ac + At))
     Ac.sum_duplicates()

@@ -362,6 +362,20 @@ def usermesh_residual() -> str:
             f"{len(s)} cases)")
 
 
+USER_CYCLE_COST = "user_mesh/cycle_cost.json"
+
+
+@generator("usermesh.cycle_cost", USER_CYCLE_COST)
+def usermesh_cycle_cost() -> str:
+    rs = [r for c in load(USER_CYCLE_COST)["cases"] for r in c["problems"].values()]
+    return (f"x{rng([r['cycle_ratio'] for r in rs], '.2f')} of the plain cycle's CPU time "
+            f"({rng([1e3 * r['cycle_cpu_seconds'] for r in rs], '.0f')} ms against "
+            f"{rng([1e3 * r['plain_cycle_cpu_seconds'] for r in rs], '.0f')} ms, median of "
+            f"{load(USER_CYCLE_COST)['repeats']} interleaved repeats; the two cycles' results differ by at most "
+            f"{max(r['relative_difference'] for r in rs):.0e} relative), the splits costing "
+            f"{rng([1e3 * r['split_cpu_seconds'] for r in rs], '.0f')} ms once")
+
+
 @generator("usermesh.goal", USER_SOLVERS)
 def usermesh_goal() -> str:
     d = load(USER_SOLVERS)

@@ -348,15 +348,48 @@ def usermesh_fine3() -> str:
     return "; ".join(parts)
 
 
+@generator("usermesh.residual", USER_SOLVERS)
+def usermesh_residual() -> str:
+    d = load(USER_SOLVERS)
+    s = [c["problems"][p]["solvers"] for c in d["cases"] for p in _user_problems(d)]
+    if "nestmg_plain_residual" not in s[0]:
+        raise KeyError("nestmg_plain_residual: run with --variants default plain_residual ...")
+    plain = [x["nestmg_plain_residual"] for x in s]
+    same = sum(x["nestmg"]["iterations"] == y["iterations"] for x, y in zip(s, plain))
+    return (f"solve CPU time x{rng([1 / y['solve_ratio_vs_first'] for y in plain], '.2f')} of the plain "
+            f"residual's ({rng([y['solve_spmv'] for y in plain], '.0f')} fine SpMV before, "
+            f"{rng([x['nestmg']['solve_spmv'] for x in s], '.0f')} after; the same CG iterations in {same} of "
+            f"{len(s)} cases)")
+
+
+USER_CYCLE_COST = "user_mesh/cycle_cost.json"
+
+
+@generator("usermesh.cycle_cost", USER_CYCLE_COST)
+def usermesh_cycle_cost() -> str:
+    rs = [r for c in load(USER_CYCLE_COST)["cases"] for r in c["problems"].values()]
+    return (f"x{rng([r['cycle_ratio'] for r in rs], '.2f')} of the plain cycle's CPU time "
+            f"({rng([1e3 * r['cycle_cpu_seconds'] for r in rs], '.0f')} ms against "
+            f"{rng([1e3 * r['plain_cycle_cpu_seconds'] for r in rs], '.0f')} ms, median of "
+            f"{load(USER_CYCLE_COST)['repeats']} interleaved repeats; the two cycles' results differ by at most "
+            f"{max(r['relative_difference'] for r in rs):.0e} relative), the splits costing "
+            f"{rng([1e3 * r['split_cpu_seconds'] for r in rs], '.0f')} ms once")
+
+
 @generator("usermesh.goal", USER_SOLVERS)
 def usermesh_goal() -> str:
     d = load(USER_SOLVERS)
     parts = []
+    its, spmv = [], []
     for p in _user_problems(d):
         s = [c["problems"][p]["solvers"]["nestmg"] for c in d["cases"]]
         parts.append(f"{p} {rng([x['iterations'] for x in s], 'd')} iterations and "
                      f"{rng([x['solve_spmv'] for x in s], '.0f')} fine SpMV")
-    return "; ".join(parts)
+        its += [x["iterations"] for x in s]
+        spmv += [x["solve_spmv"] for x in s]
+    both = sum(i <= 10 and m <= 100 for i, m in zip(its, spmv))
+    return ("; ".join(parts) + f"; at most 10 iterations in {sum(i <= 10 for i in its)} of {len(its)} cases, "
+            f"at most 100 fine SpMV in {sum(m <= 100 for m in spmv)}, both in {both}")
 
 
 @generator("usermesh.speedup", USER_SOLVERS)

@@ -91,6 +91,9 @@ VARIANTS = {
                               ("gauss_seidel", {"sweep": "forward", "iterations": 1})]},
     # the coarse-level deflation probe (solvers.deflation) that was the constructor's default before
     "deflate8": {"deflate": 8},
+    # the default cycle without the pre-smoother's cheap residual (Smoother.smooth_residual: a half sweep
+    # from zero, the residual from the strict upper triangle): the residual as a full product, as before
+    "plain_residual": {"_plain_residual": True},
 }
 
 #: ``nestmg.setup_problem`` names of the benchmark's problems (``problem_multigrid``: ``Problem.multigrid()``)
@@ -164,9 +167,13 @@ def run_nestmg(A, b, Ps, nullspace, tol, opts, problem=None) -> dict:
     """``MultigridSolver(A, Ps, **opts)`` (or ``problem.multigrid()``) + MG-PCG; set-up wall and CPU time."""
     from solvers import MultigridSolver
 
+    opts = dict(opts)
+    plain = opts.pop("_plain_residual", False)
     t, c = time.perf_counter(), time.process_time()
     ml = problem.multigrid() if problem is not None else MultigridSolver(A, Ps, nullspace=nullspace, **opts)
     setup, setup_cpu = time.perf_counter() - t, time.process_time() - c
+    for L in ml.levels[:-1] if plain else ():
+        L.presmoother.smooth_residual = None  # the cycle's plain path: apply, then b - A x
     c = time.process_time()
     _, r = ml.solve(b, tol=tol, accel="cg", return_info=True)
     solve_cpu = time.process_time() - c
@@ -408,6 +415,50 @@ def profile(args) -> dict:
     return out
 
 
+def cycle_cost(args) -> dict:
+    """CPU time of one preconditioner application (a V-cycle from zero) with the pre-smoother's cheap
+    residual (the default) and without it (the plain residual ``b - A x``), interleaved, and of building
+    the triangular splits it keeps (:func:`solvers.smoothing.triangular_split`, every smoothed level; median
+    of 3)."""
+    from solvers import MultigridSolver
+    from solvers.smoothing import triangular_split
+
+    out: dict = {"repeats": args.repeats, "cases": []}
+    for work in args.cases:
+        c = load_case(Path(work))
+        cd = {"name": c["name"], "label": c["label"], "tets": c["tets"], "problems": {}}
+        for prob in args.problems:
+            A, b, Ps, ns = c[prob]
+            fast, plain = MultigridSolver(A, Ps, nullspace=ns), MultigridSolver(A, Ps, nullspace=ns)
+            for L in plain.levels[:-1]:
+                L.presmoother.smooth_residual = None
+            Mf, Mp = fast.aspreconditioner(), plain.aspreconditioner()
+            zf, zp = Mf.matvec(b), Mp.matvec(b)  # the first builds the splits
+            tf, tp = [], []
+            for _ in range(args.repeats):
+                t = time.process_time()
+                Mf.matvec(b)
+                tf.append(time.process_time() - t)
+                t = time.process_time()
+                Mp.matvec(b)
+                tp.append(time.process_time() - t)
+            splits = []
+            for _ in range(3):
+                t = time.process_time()
+                for L in fast.levels[:-1]:
+                    triangular_split(L.A)
+                splits.append(time.process_time() - t)
+            split = float(np.median(splits))
+            cd["problems"][prob] = {
+                "cycle_cpu_seconds": float(np.median(tf)), "plain_cycle_cpu_seconds": float(np.median(tp)),
+                "cycle_ratio": float(np.median(np.array(tf) / np.array(tp))),
+                "split_cpu_seconds": split,
+                "relative_difference": float(np.linalg.norm(zf - zp) / np.linalg.norm(zp))}
+            print(c["name"], prob, cd["problems"][prob], flush=True)
+        out["cases"].append(cd)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -441,10 +492,17 @@ def main(argv=None):
     pr.add_argument("--repeats", type=int, default=3)
     pr.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
     pr.add_argument("--json", type=Path, default=None)
+    cc = sub.add_parser("cycle",
+                        help="one V-cycle's CPU time with and without the cheap pre-smoother residual")
+    cc.add_argument("cases", nargs="+", type=Path)
+    cc.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
+                    choices=("dirichlet", "neumann", "diffusion"))
+    cc.add_argument("--repeats", type=int, default=15)
+    cc.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "build":
         return build(args)
-    out = profile(args) if args.cmd == "profile" else run(args)
+    out = {"profile": profile, "cycle": cycle_cost, "run": run}[args.cmd](args)
     if args.json:
         from nestmg.io import json_default
 

@@ -601,14 +601,15 @@ class MultigridSolver:
             raise SolverInputError(f"cycle must be 'V', 'W' or 'F', got {cycle!r}")
         return cycle
 
-    def _cycle(self, k: int, x: np.ndarray, b: np.ndarray, cycle: str, check: bool = False) -> None:
-        """One cycle on level ``k``: x is updated in place."""
+    def _cycle(self, k: int, x: np.ndarray, b: np.ndarray, cycle: str, check: bool = False,
+               zero: bool = False) -> None:
+        """One cycle on level ``k``: x is updated in place (``zero``: ``x`` is zero on entry, which the
+        pre-smoother may exploit: :meth:`solvers.smoothing.Smoother.residual`)."""
         L = self.levels[k]
         A = L.A
-        L.presmoother(A, x, b)
+        r = L.presmoother.residual(A, x, b, zero)
         if check:
             self._check_finite(x, k, "pre-smoothing")
-        r = b - A @ x
         bc = L.R @ r
         if self.nullspace == "constant":
             bc -= bc.mean()
@@ -621,12 +622,12 @@ class MultigridSolver:
         else:
             xc = np.zeros_like(bc)
             if cycle == "V":
-                self._cycle(k + 1, xc, bc, "V", check)
+                self._cycle(k + 1, xc, bc, "V", check, zero=True)
             elif cycle == "W":
-                self._cycle(k + 1, xc, bc, "W", check)
+                self._cycle(k + 1, xc, bc, "W", check, zero=True)
                 self._cycle(k + 1, xc, bc, "W", check)
             else:  # F: an F-cycle then a V-cycle on the coarser level
-                self._cycle(k + 1, xc, bc, "F", check)
+                self._cycle(k + 1, xc, bc, "F", check, zero=True)
                 self._cycle(k + 1, xc, bc, "V", check)
         e = L.P @ xc
         if self.coarse_scaling == "energy":
@@ -656,11 +657,11 @@ class MultigridSolver:
             return e.level, e.stage
         return None, "unknown (not reproducible)"
 
-    def _one(self, x, b, cycle):
+    def _one(self, x, b, cycle, zero: bool = False):
         if len(self.levels) == 1:
             x[:] = self._coarse_solver(b)
         else:
-            self._cycle(0, x, b, cycle)
+            self._cycle(0, x, b, cycle, zero=zero)
 
     def _prepare_rhs(self, b, project: bool) -> np.ndarray:
         n = self.levels[0].A.shape[0]
@@ -853,7 +854,7 @@ class MultigridSolver:
             if self.nullspace == "constant":
                 b = b - b.mean()
             x = np.zeros(n)
-            self._one(x, b, cycle)
+            self._one(x, b, cycle, zero=True)
             if self.nullspace == "constant":
                 x -= x.mean()
             return x

@@ -24,7 +24,8 @@ from pyamg.util.linalg import approximate_spectral_radius
 
 from .errors import SolverInputError
 
-__all__ = ["SMOOTHERS", "Smoother", "local_rows", "make_smoother", "spectral_radius", "with_local_sweeps"]
+__all__ = ["SMOOTHERS", "Smoother", "local_rows", "make_smoother", "spectral_radius", "triangular_split",
+           "with_local_sweeps"]
 
 
 @dataclass
@@ -45,9 +46,22 @@ class Smoother:
     apply: Callable[[sp.csr_matrix, np.ndarray, np.ndarray], None]
     work: float
     params: dict = field(default_factory=dict)
+    #: optional ``(A, x, b, zero) -> r``: ``apply`` then the residual ``b - A x``, cheaper than a separate
+    #: product (``zero``: ``x`` is zero on entry); a pre-smoother's fast path in the cycle, see
+    #: :func:`setup_gauss_seidel`
+    smooth_residual: Callable | None = None
 
     def __call__(self, A, x, b) -> None:
         self.apply(A, x, b)
+
+    def residual(self, A, x, b, zero: bool = False) -> np.ndarray:
+        """Smooth ``x`` in place and return ``b - A x`` (by ``smooth_residual`` when the smoother has one)."""
+        if self.smooth_residual is not None:
+            r = self.smooth_residual(A, x, b, zero)
+            if r is not None:
+                return r
+        self.apply(A, x, b)
+        return b - A @ x
 
 
 def _check_iterations(iterations) -> int:
@@ -132,7 +146,58 @@ def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int
             relaxation.gauss_seidel(A, x, b, iterations=it, sweep=sweep, omega=omega)
 
     work = it * (2.0 if sweep == "symmetric" else 1.0)
-    return Smoother("gauss_seidel", apply, work, {"sweep": sweep, "iterations": it, "omega": omega})
+    fast = (_forward_residual(A, it) if sweep == "forward" and omega == 1.0 and it
+            and isinstance(A, sp.csr_matrix) else None)
+    return Smoother("gauss_seidel", apply, work, {"sweep": sweep, "iterations": it, "omega": omega},
+                    smooth_residual=fast)
+
+
+def triangular_split(A: sp.csr_matrix) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """``(D + L, U)``: the lower triangle with the diagonal and the strict upper triangle of a CSR matrix
+    (one comparison per entry and two order-keeping gathers: each row keeps its entries' order)."""
+    n = A.shape[0]
+    rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
+    upper = A.indices > rows
+    del rows
+    before = np.zeros(A.nnz + 1, dtype=A.indptr.dtype)  # upper entries before each position
+    np.cumsum(upper, out=before[1:])
+    ptr_u = before[A.indptr]
+    ptr_l = A.indptr - ptr_u
+    lower = ~upper
+    L = sp.csr_matrix((A.data[lower], A.indices[lower], ptr_l), shape=A.shape)
+    U = sp.csr_matrix((A.data[upper], A.indices[upper], ptr_u), shape=A.shape)
+    return L, U
+
+
+def _forward_residual(A0: sp.csr_matrix, it: int) -> Callable:
+    """``smooth_residual`` of ``it`` forward Gauss–Seidel sweeps on ``A0`` (the same result as the sweeps,
+    cheaper residual). A forward sweep solves ``(D + L) x_new = b - U x_old``, so afterwards
+    ``b - A x_new = U (x_old - x_new)``: half a product with ``A`` (the strict upper triangle ``U``)
+    instead of a whole one. From a zero ``x`` the first sweep is a forward substitution with ``D + L``
+    (half the entries of ``A``; the upper part would multiply zeros). Costs a copy of ``A``'s entries
+    (``D + L`` and ``U``), built on first use."""
+    split: list = []
+
+    def smooth_residual(A, x, b, zero):
+        if A is not A0 or x.ndim != 1:
+            return None  # another operator, or a block of vectors: the plain path
+        if not split:
+            split.extend(triangular_split(A0))
+        L, U = split
+        left = it
+        if zero:
+            relaxation.gauss_seidel(L, x, b, iterations=1, sweep="forward")
+            left -= 1
+            if not left:
+                return -(U @ x)
+        if left > 1:
+            relaxation.gauss_seidel(A, x, b, iterations=left - 1, sweep="forward")
+        x_old = x.copy()
+        relaxation.gauss_seidel(A, x, b, iterations=1, sweep="forward")
+        x_old -= x
+        return U @ x_old
+
+    return smooth_residual
 
 
 def setup_block_gauss_seidel(A: sp.csr_matrix, **options) -> Smoother:

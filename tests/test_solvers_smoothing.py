@@ -116,3 +116,39 @@ def test_bad_specs(poisson):
         make_smoother(poisson, ("chebyshev", {"lower_bound": 2.0}))
     with pytest.raises(SolverInputError):
         make_smoother(poisson, 3)
+
+
+def test_triangular_split_reassembles_the_matrix(poisson):
+    import scipy.sparse as sp
+
+    from solvers.smoothing import triangular_split
+
+    A = sp.csr_matrix(poisson)
+    A.sort_indices()
+    L, U = triangular_split(A)
+    assert abs(L - sp.tril(A)).max() == 0 and abs(U - sp.triu(A, 1)).max() == 0
+    assert L.nnz + U.nnz == A.nnz and np.array_equal(L.diagonal(), A.diagonal())
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+@pytest.mark.parametrize("zero", [True, False])
+def test_gauss_seidel_residual_fast_path(poisson, iterations, zero):
+    """The forward sweeps' cheap residual U (x_old - x_new) (and the half sweep from zero) give the
+    same iterate and residual as the sweeps followed by b - A x, to round-off."""
+    A = poisson
+    sm = make_smoother(A, ("gauss_seidel", {"sweep": "forward", "iterations": iterations}))
+    assert sm.smooth_residual is not None
+    rng = np.random.default_rng(iterations)
+    b = rng.standard_normal(A.shape[0])
+    x0 = np.zeros(A.shape[0]) if zero else rng.standard_normal(A.shape[0])
+    x_ref = x0.copy()
+    sm(A, x_ref, b)
+    r_ref = b - A @ x_ref
+    x = x0.copy()
+    r = sm.residual(A, x, b, zero=zero)
+    assert np.abs(x - x_ref).max() <= 1e-13 * np.abs(x_ref).max()
+    assert np.abs(r - r_ref).max() <= 1e-12 * np.abs(b).max()
+    assert np.abs(r_ref).max() > 1e-3 * np.abs(b).max()  # a residual that is not trivially zero
+    # another operator than the smoother's own: the plain path
+    A2 = 2.0 * A
+    assert sm.smooth_residual(A2, x0.copy(), b, zero) is None

@@ -241,9 +241,11 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
 _RUN_KEYS = ("setup", "solve", "setup_cpu", "solve_cpu", "iterations", "final_residual", "converged")
 
 
-def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False) -> dict:
-    """All methods on one assembled problem, ``repeat`` interleaved runs each."""
-    from exp_common import relres  # benchmarks/ is sys.path[0]; imported late so doc_tables can load this file
+def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False,
+             once=ONCE) -> dict:
+    """All methods on one assembled problem, ``repeat`` interleaved runs each (``once``: first only)."""
+    # benchmarks/ is sys.path[0]; imported late so doc_tables can load this file
+    from exp_common import relres
 
     from solvers import rigid_body_modes
 
@@ -255,7 +257,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
     sols: dict = {}
     for r in range(repeat):
         for m in methods:
-            if r and m in ONCE:
+            if r and m in once:
                 continue
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -300,7 +302,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
 
 
 def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, problems, methods, tol: float,
-             repeat: int, factor: bool = False) -> dict:
+             repeat: int, factor: bool = False, once=ONCE) -> dict:
     from exp_common import peak_rss_mb
 
     import nestmg
@@ -329,7 +331,7 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]),
                                  "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
-                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat, factor),
+                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat, factor, once),
                                  "peak_rss_mb_so_far": peak_rss_mb()})
     return rec
 
@@ -422,6 +424,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--factor", action="store_true",
                     help="also the nestmg variants' stationary V-cycle factor")
+    ap.add_argument("--once", nargs="+", default=list(ONCE), choices=METHODS,
+                    help=f"methods run on the first repeat only (default {' '.join(ONCE)})")
     ap.add_argument("--out", type=Path, default=None, help="JSON file (required unless --table)")
     a = ap.parse_args(argv)
     if a.table is not None:
@@ -443,7 +447,8 @@ def main(argv=None) -> int:
         print("warning: OMP_NUM_THREADS is not 1: CPU seconds then add up several threads' work",
               file=sys.stderr)
     methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]
-    res = {"params": {"tol": a.tol, "repeat": a.repeat, "levels": a.levels, "methods": methods,
+    res = {"params": {"tol": a.tol, "repeat": a.repeat, "once": a.once, "levels": a.levels,
+                      "methods": methods,
                       "command": " ".join(["benchmarks/elasticity.py"]
                                           + [Path(x).name if Path(x).exists() else x for x in sys.argv[1:]]),
                       "commit": git_commit(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
@@ -454,7 +459,7 @@ def main(argv=None) -> int:
     edges = a.edge_length or [None] * len(a.meshes)
     for spec, n, edge in zip(a.meshes, mt, edges):
         res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat,
-                                      a.factor))
+                                      a.factor, a.once))
         write_json(res, a.out)  # after every mesh: a cut-off run keeps what it measured
     res["environment_end"] = environment()
     res["table"] = table(res)

@@ -38,8 +38,12 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 
 For the singular free problem, pyamg's cycle preconditions the project's CG (``solvers.krylov.pcg``) with
 its input and output projected off the rigid modes, as nestmg's; solutions are compared after the same
-projection. Each method is run ``--repeat`` times (interleaved); wall seconds of every run are kept and
-the median reported. The hierarchy (cages, tet meshing) is geometry reused from the cache: its build
+projection. Each method is run ``--repeat`` times (interleaved; ``--once`` methods on the first repeat
+only); the wall (``time.perf_counter``) and CPU (``time.process_time``) seconds of its setup and solve in
+every run are kept (``setup_seconds``, ``setup_cpu_seconds``, ...) with their medians (``median_total``,
+``median_total_cpu``, ...). Tables compare CPU seconds (a file without them: wall): on the 2 shared cores
+the wall seconds of one single-threaded process swing with the load (2.5x its CPU seconds at load 6), the
+CPU seconds much less. The hierarchy (cages, tet meshing) is geometry reused from the cache: its build
 time is recorded but not counted (AMG needs none). Run with ``OMP_NUM_THREADS=1``::
 
     OMP_NUM_THREADS=1 python benchmarks/elasticity.py shape:torus ZOO_DIR/bunny.off ZOO_DIR/spot.obj \\
@@ -337,7 +341,8 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
 
 
 def table(res: dict) -> str:
-    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg.
+    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg
+    (and / every cycle variant run). CPU seconds when the file has them, else wall seconds (older files).
 
     A run whose true residual is above ``tol`` (CG's recursive residual reached it: round-off on an
     ill-conditioned system) is marked ``*``, one above ``10 tol`` (not converged) ``✗``; the ratio takes
@@ -352,8 +357,9 @@ def table(res: dict) -> str:
     if ref == "nestmg":  # a "nestmg_point" run beside a point-wise "nestmg" repeats the same configuration
         methods = [m for m in methods if m != "nestmg_point"]
     sfx = _clock(res)
+    refs = [ref] + [m for m in methods if m in CYCLE_VARIANTS]  # a ratio column for every cycle variant too
     head = ("| mesh | fine tets | unknowns | problem | ν | " + " | ".join(methods)
-            + f" | best AMG / {ref}{' (CPU s)' if sfx else ''} |")
+            + "".join(f" | best AMG / {r}{' (CPU s)' if sfx else ''}" for r in refs) + " |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for rec in res["meshes"]:
         for c in rec["cases"]:
@@ -362,9 +368,9 @@ def table(res: dict) -> str:
                      f"({ms[m]['iterations']})" + _mark(ms[m]["final_residual"], tol) for m in methods]
             amg = [ms[m]["median_total" + sfx] for m in methods
                    if not m.startswith("nestmg") and ms[m]["final_residual"] <= 10 * tol]
-            ratio = f"{min(amg) / ms[ref]['median_total' + sfx]:.2f}" if amg and ref in ms else "–"
+            ratios = [f"{min(amg) / ms[r]['median_total' + sfx]:.2f}" if amg and r in ms else "–" for r in refs]
             lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | "
-                         f"{c['nu']} | " + " | ".join(cells) + f" | {ratio} |")
+                         f"{c['nu']} | " + " | ".join(cells + ratios) + " |")
     return "\n".join(lines)
 
 

@@ -368,7 +368,8 @@ def table(res: dict) -> str:
                      f"({ms[m]['iterations']})" + _mark(ms[m]["final_residual"], tol) for m in methods]
             amg = [ms[m]["median_total" + sfx] for m in methods
                    if not m.startswith("nestmg") and ms[m]["final_residual"] <= 10 * tol]
-            ratios = [f"{min(amg) / ms[r]['median_total' + sfx]:.2f}" if amg and r in ms else "–" for r in refs]
+            ratios = [f"{min(amg) / ms[r]['median_total' + sfx]:.2f}" if amg and r in ms else "–"
+                      for r in refs]
             lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | "
                          f"{c['nu']} | " + " | ".join(cells + ratios) + " |")
     return "\n".join(lines)

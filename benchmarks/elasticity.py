@@ -38,8 +38,12 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 
 For the singular free problem, pyamg's cycle preconditions the project's CG (``solvers.krylov.pcg``) with
 its input and output projected off the rigid modes, as nestmg's; solutions are compared after the same
-projection. Each method is run ``--repeat`` times (interleaved); wall seconds of every run are kept and
-the median reported. The hierarchy (cages, tet meshing) is geometry reused from the cache: its build
+projection. Each method is run ``--repeat`` times (interleaved; ``--once`` methods on the first repeat
+only); the wall (``time.perf_counter``) and CPU (``time.process_time``) seconds of its setup and solve in
+every run are kept (``setup_seconds``, ``setup_cpu_seconds``, ...) with their medians (``median_total``,
+``median_total_cpu``, ...). Tables compare CPU seconds (a file without them: wall): on the 2 shared cores
+the wall seconds of one single-threaded process swing with the load (2.5x its CPU seconds at load 6), the
+CPU seconds much less. The hierarchy (cages, tet meshing) is geometry reused from the cache: its build
 time is recorded but not counted (AMG needs none). Run with ``OMP_NUM_THREADS=1``::
 
     OMP_NUM_THREADS=1 python benchmarks/elasticity.py shape:torus ZOO_DIR/bunny.off ZOO_DIR/spot.obj \\
@@ -52,6 +56,7 @@ Markdown table of a result file (docs/elasticity.md).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import warnings
@@ -90,6 +95,20 @@ def load_surface(spec: str) -> tuple[np.ndarray, np.ndarray]:
     return load_mesh(Path(spec))
 
 
+class _clocks:
+    """Wall (``time.perf_counter``) and CPU (``time.process_time``) seconds of consecutive phases:
+    ``lap(name)`` stores ``times[name]`` (wall) and ``times[name + "_cpu"]`` since the previous lap."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+
+    def lap(self, name: str) -> None:
+        wall, cpu = time.perf_counter(), time.process_time()
+        self.times[name], self.times[name + "_cpu"] = wall - self._wall, cpu - self._cpu
+        self._wall, self._cpu = wall, cpu
+
+
 def _projector(Z: np.ndarray | None):
     """``v -> v - Q Qᵀ v`` for an orthonormal basis ``Q`` of ``span Z`` (identity for ``Z`` None)."""
     if Z is None:
@@ -105,14 +124,14 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     (:func:`vcycle_factor`, not timed)."""
     from solvers import block_prolongation, restrict_prolongations
 
-    t0 = time.perf_counter()
+    t = _clocks()
     Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
     ml = pr.multigrid(block=block, **(mg_kwargs or {}))
-    t1 = time.perf_counter()
+    t.lap("setup")
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, cycle=cycle, accel="cg", return_info=True)
-    t2 = time.perf_counter()
-    out = {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": info["iterations"],
+    t.lap("solve")
+    out = {"x": x, **t.times, "iterations": info["iterations"],
            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
            "smoother": ml.levels[0].presmoother.params,
            "deflation": [{k: d[k] for k in ("level", "probe_factor", "vectors", "factors", "cycles")}
@@ -148,15 +167,15 @@ def run_pyamg(A, b, B: np.ndarray | None, Z: np.ndarray | None, tol: float) -> d
     from solvers.krylov import pcg
 
     proj = _projector(Z)
-    t0 = time.perf_counter()
+    t = _clocks()
     ml = (pyamg.smoothed_aggregation_solver(A.tobsr(blocksize=(3, 3)), B=B) if B is not None
           else pyamg.smoothed_aggregation_solver(A))
     M = ml.aspreconditioner(cycle="V")
-    t1 = time.perf_counter()
+    t.lap("setup")
     Mp = M if Z is None else _projected_operator(M, proj)
     r = pcg(A, b, M=Mp, tol=tol, maxiter=500)
-    t2 = time.perf_counter()
-    return {"x": proj(r.x), "setup": t1 - t0, "solve": t2 - t1, "iterations": r.iterations,
+    t.lap("solve")
+    return {"x": proj(r.x), **t.times, "iterations": r.iterations,
             "operator_complexity": float(ml.operator_complexity()),
             "levels": [L.A.shape[0] for L in ml.levels]}
 
@@ -176,7 +195,7 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
 
     PETSc = _petsc()
     it = PETSc.IntType
-    t0 = time.perf_counter()
+    t = _clocks()
     csr = (A.indptr.astype(it), A.indices.astype(it), A.data)
     mat = PETSc.Mat().createAIJ(size=A.shape, bsize=3, csr=csr, comm=PETSc.COMM_SELF)
     mat.assemble()
@@ -207,28 +226,30 @@ def run_petsc(A, b, coords: np.ndarray, free_problem: bool, kind: str, tol: floa
         opts[f"el_{kind}_{k}"] = v
     ksp.setFromOptions()
     ksp.setUp()
-    t1 = time.perf_counter()
+    t.lap("setup")
     xv, bv = mat.createVecs()
     bv.setArray(b)
     xv.set(0.0)
     ksp.solve(bv, xv)
     x = xv.getArray().copy()
-    t2 = time.perf_counter()
+    t.lap("solve")
     its, reason = ksp.getIterationNumber(), int(ksp.getConvergedReason())
     for k in list(opts.getAll()):
         if k.startswith(f"el_{kind}_"):
             del opts[k]
     for obj in (xv, bv, pc, ksp, mat, ns, xyz):  # the PC too: without it GAMG's hierarchy outlived every run
         obj.destroy()
-    return {"x": x, "setup": t1 - t0, "solve": t2 - t1, "iterations": int(its), "reason": reason}
+    return {"x": x, **t.times, "iterations": int(its), "reason": reason}
 
 
-_RUN_KEYS = ("setup", "solve", "iterations", "final_residual", "converged")
+_RUN_KEYS = ("setup", "solve", "setup_cpu", "solve_cpu", "iterations", "final_residual", "converged")
 
 
-def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False) -> dict:
-    """All methods on one assembled problem, ``repeat`` interleaved runs each."""
-    from exp_common import relres  # benchmarks/ is sys.path[0]; imported late so doc_tables can load this file
+def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = False,
+             once=ONCE) -> dict:
+    """All methods on one assembled problem, ``repeat`` interleaved runs each (``once``: first only)."""
+    # benchmarks/ is sys.path[0]; imported late so doc_tables can load this file
+    from exp_common import relres
 
     from solvers import rigid_body_modes
 
@@ -240,7 +261,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
     sols: dict = {}
     for r in range(repeat):
         for m in methods:
-            if r and m in ONCE:
+            if r and m in once:
                 continue
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -258,19 +279,24 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
             out["converged"] = out["final_residual"] <= tol * 1.01
             runs[m].append(out)
             sols[m] = x
-            print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s, solve {out['solve']:.2f} s, "
+            print(f"    {m:<13} rep {r}: setup {out['setup']:.2f} s (CPU {out['setup_cpu']:.2f}), solve "
+                  f"{out['solve']:.2f} s (CPU {out['solve_cpu']:.2f}), "
                   f"{out['iterations']} it, residual {out['final_residual']:.1e}"
                   + (f", V-cycle factor {out['vcycle_factor']:.3f}" if "vcycle_factor" in out else ""),
                   file=sys.stderr, flush=True)
     ref = sols[methods[0]]
     res = {}
     for m in methods:
-        setup = [o["setup"] for o in runs[m]]
-        solve = [o["solve"] for o in runs[m]]
+        setup, solve = ([o[k] for o in runs[m]] for k in ("setup", "solve"))
+        setup_cpu, solve_cpu = ([o[k] for o in runs[m]] for k in ("setup_cpu", "solve_cpu"))
         last = runs[m][-1]
         res[m] = {"setup_seconds": setup, "solve_seconds": solve,
                   "median_setup": float(np.median(setup)), "median_solve": float(np.median(solve)),
                   "median_total": float(np.median(np.add(setup, solve))),
+                  "setup_cpu_seconds": setup_cpu, "solve_cpu_seconds": solve_cpu,
+                  "median_setup_cpu": float(np.median(setup_cpu)),
+                  "median_solve_cpu": float(np.median(solve_cpu)),
+                  "median_total_cpu": float(np.median(np.add(setup_cpu, solve_cpu))),
                   "iterations": last["iterations"], "final_residual": last["final_residual"],
                   "converged": all(o["converged"] for o in runs[m]),
                   "max_diff_vs_first_rel": float(np.abs(sols[m] - ref).max() / np.abs(ref).max()),
@@ -280,7 +306,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
 
 
 def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, problems, methods, tol: float,
-             repeat: int, factor: bool = False) -> dict:
+             repeat: int, factor: bool = False, once=ONCE) -> dict:
     from exp_common import peak_rss_mb
 
     import nestmg
@@ -309,13 +335,14 @@ def run_mesh(spec: str, max_tets: int, edge: float | None, levels: int, nus, pro
             rec["cases"].append({"problem": name, "nu": nu, "unknowns": int(pr.A.shape[0]),
                                  "nnz": int(pr.A.nnz),
                                  "assembly_seconds": t_asm, "clamped_nodes": int(len(pr.fixed)),
-                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat, factor),
+                                 "methods": run_case(pr, h.P, coords, methods, tol, repeat, factor, once),
                                  "peak_rss_mb_so_far": peak_rss_mb()})
     return rec
 
 
 def table(res: dict) -> str:
-    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg.
+    """Markdown table: median setup + solve seconds (iterations) per method, and the best AMG / nestmg
+    (and / every cycle variant run). CPU seconds when the file has them, else wall seconds (older files).
 
     A run whose true residual is above ``tol`` (CG's recursive residual reached it: round-off on an
     ill-conditioned system) is marked ``*``, one above ``10 tol`` (not converged) ``✗``; the ratio takes
@@ -329,18 +356,22 @@ def table(res: dict) -> str:
     ref = "nestmg_point" if block_ref else "nestmg"
     if ref == "nestmg":  # a "nestmg_point" run beside a point-wise "nestmg" repeats the same configuration
         methods = [m for m in methods if m != "nestmg_point"]
-    head = "| mesh | fine tets | unknowns | problem | ν | " + " | ".join(methods) + f" | best AMG / {ref} |"
+    sfx = _clock(res)
+    refs = [ref] + [m for m in methods if m in CYCLE_VARIANTS]  # a ratio column for every cycle variant too
+    head = ("| mesh | fine tets | unknowns | problem | ν | " + " | ".join(methods)
+            + "".join(f" | best AMG / {r}{' (CPU s)' if sfx else ''}" for r in refs) + " |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for rec in res["meshes"]:
         for c in rec["cases"]:
             ms = c["methods"]
-            cells = [f"{ms[m]['median_setup']:.2f} + {ms[m]['median_solve']:.2f} ({ms[m]['iterations']})"
-                     + _mark(ms[m]["final_residual"], tol) for m in methods]
-            amg = [ms[m]["median_total"] for m in methods
+            cells = [f"{ms[m]['median_setup' + sfx]:.2f} + {ms[m]['median_solve' + sfx]:.2f} "
+                     f"({ms[m]['iterations']})" + _mark(ms[m]["final_residual"], tol) for m in methods]
+            amg = [ms[m]["median_total" + sfx] for m in methods
                    if not m.startswith("nestmg") and ms[m]["final_residual"] <= 10 * tol]
-            ratio = f"{min(amg) / ms[ref]['median_total']:.2f}" if amg and ref in ms else "–"
+            ratios = [f"{min(amg) / ms[r]['median_total' + sfx]:.2f}" if amg and r in ms else "–"
+                      for r in refs]
             lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['unknowns']:,} | {c['problem'][11:]} | "
-                         f"{c['nu']} | " + " | ".join(cells) + f" | {ratio} |")
+                         f"{c['nu']} | " + " | ".join(cells + ratios) + " |")
     return "\n".join(lines)
 
 
@@ -351,6 +382,7 @@ def cycles_table(res: dict) -> str:
     variants = [m for m in res["params"]["methods"] if m == "nestmg" or m in CYCLE_VARIANTS]
     amgs = [m for m in res["params"]["methods"] if not m.startswith("nestmg")]
     tol = res["params"]["tol"]
+    sfx = _clock(res)
     head = ("| mesh | fine tets | problem | ν | variant | setup + solve s (it) | cycle factor "
             "| total / nestmg | best AMG s (it) | best AMG / variant |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -358,16 +390,25 @@ def cycles_table(res: dict) -> str:
         for c in rec["cases"]:
             ms = c["methods"]
             ok = [m for m in amgs if ms[m]["final_residual"] <= 10 * tol]
-            best = min(ok, key=lambda m: ms[m]["median_total"]) if ok else None
-            cell = (f"{ms[best]['median_total']:.2f} ({ms[best]['iterations']}, {best})" if best else "–")
+            tot = "median_total" + sfx
+            best = min(ok, key=lambda m: ms[m][tot]) if ok else None
+            cell = (f"{ms[best][tot]:.2f} ({ms[best]['iterations']}, {best})" if best else "–")
             for m in variants:
                 o = ms[m]
-                ratio = f"{ms[best]['median_total'] / o['median_total']:.2f}" if best else "–"
+                ratio = f"{ms[best][tot] / o[tot]:.2f}" if best else "–"
                 lines.append(f"| {rec['mesh']} | {rec['tets'][0]:,} | {c['problem'][11:]} | {c['nu']} "
-                             f"| {m} | {o['median_setup']:.2f} + {o['median_solve']:.2f} ({o['iterations']})"
-                             f"{_mark(o['final_residual'], tol)} | {o['vcycle_factor']:.3f} | "
-                             f"{o['median_total'] / ms['nestmg']['median_total']:.2f} | {cell} | {ratio} |")
+                             f"| {m} | {o['median_setup' + sfx]:.2f} + {o['median_solve' + sfx]:.2f} "
+                             f"({o['iterations']}){_mark(o['final_residual'], tol)} | "
+                             f"{o['vcycle_factor']:.3f} | "
+                             f"{o[tot] / ms['nestmg'][tot]:.2f} | {cell} | {ratio} |")
     return "\n".join(lines)
+
+
+def _clock(res: dict) -> str:
+    """Key suffix of the seconds a table compares: ``"_cpu"`` (CPU seconds) when the file has them (runs
+    since CPU seconds were recorded), else ``""`` (wall seconds of older files)."""
+    ms = res["meshes"][0]["cases"][0]["methods"]
+    return "_cpu" if all("median_total_cpu" in o for o in ms.values()) else ""
 
 
 def _mark(residual: float, tol: float) -> str:
@@ -390,6 +431,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--factor", action="store_true",
                     help="also the nestmg variants' stationary V-cycle factor")
+    ap.add_argument("--once", nargs="+", default=list(ONCE), choices=METHODS,
+                    help=f"methods run on the first repeat only (default {' '.join(ONCE)})")
     ap.add_argument("--out", type=Path, default=None, help="JSON file (required unless --table)")
     a = ap.parse_args(argv)
     if a.table is not None:
@@ -407,17 +450,23 @@ def main(argv=None) -> int:
 
     from solvers.petsc_common import petsc_available
 
+    if os.environ.get("OMP_NUM_THREADS") != "1":
+        print("warning: OMP_NUM_THREADS is not 1: CPU seconds then add up several threads' work",
+              file=sys.stderr)
     methods = [m for m in a.methods if petsc_available() or m not in PETSC_VARIANTS]
-    res = {"params": {"tol": a.tol, "repeat": a.repeat, "levels": a.levels, "methods": methods,
+    res = {"params": {"tol": a.tol, "repeat": a.repeat, "once": a.once, "levels": a.levels,
+                      "methods": methods,
                       "command": " ".join(["benchmarks/elasticity.py"]
                                           + [Path(x).name if Path(x).exists() else x for x in sys.argv[1:]]),
-                      "commit": git_commit(), "seconds": "wall; median of the repeats"},
+                      "commit": git_commit(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+                      "seconds": "CPU (time.process_time, *_cpu keys) and wall (time.perf_counter) per "
+                                 "phase; median of the repeats; the table compares CPU seconds"},
            "environment": environment(), "meshes": []}
     mt = a.max_tets * len(a.meshes) if len(a.max_tets) == 1 else a.max_tets
     edges = a.edge_length or [None] * len(a.meshes)
     for spec, n, edge in zip(a.meshes, mt, edges):
         res["meshes"].append(run_mesh(spec, n, edge, a.levels, a.nu, a.problems, methods, a.tol, a.repeat,
-                                      a.factor))
+                                      a.factor, a.once))
         write_json(res, a.out)  # after every mesh: a cut-off run keeps what it measured
     res["environment_end"] = environment()
     res["table"] = table(res)

@@ -362,6 +362,22 @@ def usermesh_residual() -> str:
             f"{len(s)} cases)")
 
 
+CAGES_AB = "cages/ab_48844c4.json"
+
+
+@generator("cages_ab.summary", CAGES_AB)
+def cages_ab_summary() -> str:
+    d = load(CAGES_AB)
+    rows = d["meshes"]
+    same = sum(r["same_cages"] for r in rows.values())
+    cpu = {t: sum(r[t]["cpu_seconds"] for r in rows.values()) for t in ("before", "after")}
+    top = sorted(rows.items(), key=lambda kv: -kv[1]["cpu_ratio"])[:3]
+    ratios = sorted(r["cpu_ratio"] for r in rows.values())
+    return (f"{cpu['before']:.0f} -> {cpu['after']:.0f} in all ("
+            + ", ".join(f"{m} {r['before']['cpu_seconds']:.1f} -> {r['after']['cpu_seconds']:.1f}" for m, r in top)
+            + f"; the others x{ratios[0]:.2f}-{ratios[-4]:.2f}, one run each; same cages on {same} of {len(rows)})")
+
+
 USER_CYCLE_COST = "user_mesh/cycle_cost.json"
 
 

@@ -6,7 +6,7 @@ Usage::
                                   [--meshes a.off b.obj ...] [--levels 3] [--method nested]
                                   [--labels COMMIT_BEFORE COMMIT_AFTER]
 
-Each tree is a checkout (e.g. ``git worktree add --detach /tmp/before <commit>``) imported through
+Each tree is a checkout (e.g. ``git worktree add --detach BEFORE_DIR <commit>``) imported through
 ``PYTHONPATH``. Per mesh the two trees run one after the other (so both meet about the same load), each
 ``nestmg cages MESH --levels L --no-cache --quiet`` in a single-threaded subprocess. The JSON records per
 tree and mesh: CPU seconds (user + system of the process), wall seconds, the SHA-1 of every layer file

@@ -78,9 +78,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     names = args.meshes or sorted(p.name for p in args.folder.iterdir() if p.is_file())
-    out = {"command": "python benchmarks/cages_ab.py " + " ".join(
-               ["MESH_DIR", "--trees", "BEFORE", "AFTER", "--levels", str(args.levels), "--method", args.method,
-                "--meshes", *names]),
+    words = ["MESH_DIR", "--trees", "BEFORE", "AFTER", "--levels", str(args.levels), "--method", args.method,
+             "--meshes", *names]
+    out = {"command": "python benchmarks/cages_ab.py " + " ".join(words),
            "trees": dict(zip(("before", "after"), args.labels or [t.name for t in args.trees])), "meshes": {}}
     for name in names:
         rows = {tag: run_one(tree, args.folder / name, args.levels, args.method)

@@ -595,9 +595,9 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             continue
         n_slot = _defer_slotted(U, Vf, Ff, gap, sources, i, deferred)
         if n_slot:
-            failures.append({"action": f"decimate the {what} with {alg}", "stage": "slot",
-                             "reason": f"{n_slot} vertex(es) in slots of F narrower than twice the clearance: "
-                                       "tried after the envelopes"})
+            reason = (f"{n_slot} vertex(es) in slots of F narrower than twice the clearance: "
+                      "tried after the envelopes")
+            failures.append({"action": f"decimate the {what} with {alg}", "stage": "slot", "reason": reason})
             log.append({"layer": layer_no, **failures[-1]})
             continue
         key = (src, dinfo["decimator"], dinfo["block_intersections"], offset)

@@ -171,15 +171,10 @@ def _active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int 
     if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
     A = (G > 0).astype(np.int8)
-    ring2 = (A + A @ A + sp.identity(len(V), dtype=np.int8, format="csr")).tocoo()
-    # membership of (p, corner) in the two-ring by sorted integer keys (scipy's fancy indexing of
-    # millions of pairs took 60 of the 300 s on a 100k-face scan)
-    keys = np.sort(ring2.row.astype(np.int64) * len(V) + ring2.col)
+    ring2 = (A + A @ A + sp.identity(len(V), dtype=np.int8, format="csr")).tocsr()
     near = np.zeros(len(pv), dtype=bool)
     for k in range(3):
-        q = pv * len(V) + F[pf, k]
-        pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-        near |= keys[pos] == q
+        near |= np.asarray(ring2[pv, F[pf, k]]).ravel() > 0
     pv, pf = pv[~near], pf[~near]
     if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
@@ -192,31 +187,17 @@ def _active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int 
     active = np.zeros(len(V), dtype=bool)
     order = np.argsort(pv, kind="stable")
     ps_v, ps_f = pv[order], pf[order]
-    # sources in spatial order (cells of size l); each chunk's Dijkstra runs on the vertices within l of
-    # the chunk's bounding box only: a path no longer than l stays there, so the result is the same, but
-    # scipy fills a dense (sources x vertices) array (a 100k-face scan: 48k sources, 140 of 300 s)
-    cell = np.floor((V[src] - V.min(0)) / l).astype(np.int64)
-    src = src[np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))]
     starts = np.searchsorted(ps_v, src)
-    counts = np.searchsorted(ps_v, src, side="right") - starts
-    loc = np.full(len(V), -1, dtype=np.int64)
+    ends = np.searchsorted(ps_v, src, side="right")
     for s in range(0, len(src), chunk):
         idx = src[s:s + chunk]
-        lo, hi = V[idx].min(0) - l, V[idx].max(0) + l
-        sub = np.flatnonzero(np.all((V >= lo) & (V <= hi), axis=1))
-        loc[sub] = np.arange(len(sub))
-        D = dijkstra(G[sub][:, sub], directed=False, indices=loc[idx], limit=l)
-        # every (source, triangle) pair of the chunk at once: row of the source in D, the corners' columns
-        n = counts[s:s + chunk]
-        row = np.repeat(np.arange(len(idx)), n)
-        pair = np.concatenate([np.arange(a, a + c) for a, c in zip(starts[s:s + chunk], n)])
-        tri = F[ps_f[pair]]
-        lt = loc[tri]
-        reached = (lt >= 0) & np.isfinite(D[row[:, None], np.maximum(lt, 0)])
-        far = ~reached.any(axis=1)  # no corner reached within l
-        active[idx[row[far]]] = True
-        active[tri[far].ravel()] = True
-        loc[sub] = -1
+        D = dijkstra(G, directed=False, indices=idx, limit=l)
+        for k, p in enumerate(idx):
+            tri = F[ps_f[starts[s + k]:ends[s + k]]]
+            far = ~np.isfinite(D[k][tri]).any(axis=1)  # no corner reached within l
+            if far.any():
+                active[p] = True
+                active[tri[far].ravel()] = True
     return np.flatnonzero(active)
 
 

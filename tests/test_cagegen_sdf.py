@@ -128,18 +128,6 @@ def test_flip_pass_never_makes_an_edge_twice(monkeypatch):
     assert edge_stats(F2, len(V)).closed_manifold
 
 
-def test_active_points_do_not_depend_on_the_dijkstra_chunks():
-    """Each chunk's Dijkstra runs on the vertices within l of its sources' box: one source per chunk (the
-    smallest boxes) finds the same active vertices between the hand's fingers as 5 or 256 per chunk."""
-    from cagegen.envelope import _active_points
-
-    V, F, _ = shapes.hand(res=40)
-    V, F = _unit(V), np.asarray(F, dtype=np.int64)
-    found = [_active_points(V, F, 0.025, 0.15, chunk=c) for c in (1, 5, 256)]
-    assert len(found[0]) > 100
-    assert all(np.array_equal(found[0], a) for a in found[1:])
-
-
 def test_active_points_none_on_a_sphere():
     V, F = shapes.sphere(res=20)
     assert len(active_points(_unit(V), F, 0.025, 0.15)) == 0

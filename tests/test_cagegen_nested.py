@@ -438,3 +438,44 @@ def test_a_layer_target_in_a_slot_narrower_than_the_clearance_goes_behind_the_en
     assert defer(U, V, F, 0.0, list(sources), 0, set()) == 0  # no clearance asked
     assert defer(U, V, F, 0.015, sources[:1] + sources[2:3], 0, set()) == 0  # no envelope follows
     assert defer(U, V, F, 0.005, list(sources), 0, set()) == 0  # the slot is wider than 2 x 0.005
+
+
+def test_the_flow_queries_again_only_the_points_that_may_have_come_near_the_target(monkeypatch):
+    """_Flow.evaluate: a point deeper than DEEP_POINT_DEPTH that cannot have come closer keeps its closest
+    point (its value bounds the exact one from below, within its motion); every other point is exact."""
+    import trimesh
+
+    from cagegen.nested import flow as flow_module
+
+    big = trimesh.creation.icosphere(subdivisions=3)
+    small = trimesh.creation.icosphere(subdivisions=2)
+    Vc, Fc = np.asarray(big.vertices), np.asarray(big.faces, dtype=np.int64)
+    Vf, Ff = 0.5 * np.asarray(small.vertices), np.asarray(small.faces, dtype=np.int64)
+    fl = flow_module._Flow(Vf, Ff, Vc, Fc, 2, None)
+    queried = []
+    exact = flow_module._signed_distance
+    monkeypatch.setattr(flow_module, "_signed_distance", lambda P, V, F: queried.append(len(P)) or exact(P, V, F))
+    fl.evaluate(fl.V)
+    assert queried == [len(fl.S)] and len(fl.S) < flow_module.DEEP_POINT_MIN_POINTS  # small: always exact
+    monkeypatch.setattr(flow_module, "DEEP_POINT_MIN_POINTS", 0)
+
+    def check(V):
+        queried.clear()
+        P, S, Q, N, W = fl.evaluate(V)
+        S_true = exact(P, Vc, Fc)[0]
+        moved = np.linalg.norm(P - fl.B @ fl.V, axis=1)
+        assert np.all(S <= S_true + 1e-12) and np.all(S_true - S <= 2 * moved + 1e-12)
+        near = S_true > -flow_module.DEEP_POINT_DEPTH * fl.diag
+        np.testing.assert_allclose(S[near], S_true[near], atol=1e-12)
+        assert np.count_nonzero(near) <= sum(queried) <= np.count_nonzero(moved > 0)
+        return S, S_true, near
+
+    S, S_true, near = check(fl.V * 1.02)  # every point ~0.49 deep, moved 0.01: none queried again
+    assert sum(queried) == 0 and not near.any()
+    assert np.abs(S - S_true).max() > 0  # ... and their values are bounds, not the exact ones
+    one_side = fl.V.copy()
+    one_side[Vf[:, 0] > 0] *= 2.1  # these move out of Ĉ (radius 1.05): queried again, exact
+    S, S_true, near = check(one_side)
+    assert near.sum() > 0.3 * len(S) and sum(queried) < len(S)
+    fl.evaluate_here()  # Ĉ changed (expansion) or a new quadrature: every point again
+    assert queried[-1] == len(S)

@@ -410,16 +410,21 @@ COARSE_ENVELOPE_FACTOR = 1.5
 #: measured above the iterations a successful first flow needed (knight: cap 500 for 133).
 QUICK_FLOW_WORK = 500_000
 QUICK_FLOW_MIN_ITER = 30
-#: ... and it stops once it makes no progress at all over twice this many iterations
-#: (:func:`cagegen.nested.flow._plateaued`): featuretype.stl's shortest-edge first target went on for its
-#: whole cap of 143 iterations (17-27 s) with its largest signed distance rising.
-QUICK_FLOW_PLATEAU = 20
+#: Every flow, the last target's too, stops once it makes no progress at all over twice this many
+#: iterations (:func:`cagegen.nested.flow._plateaued`): featuretype.stl's shortest-edge first target went
+#: on for its whole cap of 143 iterations (17-27 s) with its largest signed distance rising; on
+#: 42400-IDGH.stl (repaired, layer 1) the last target, deferred for its slots, flowed 200 iterations
+#: (170 s) without its largest signed distance falling at all before the recovery certified.
+FLOW_PLATEAU = 20
 
 #: Once a layer certified only with the envelope target, the run's later layers try the envelope
 #: first (their inputs are that layer's cage, smoother but of the same shape): on lucy.ply's
 #: predecimated 16k faces the flow into layer 2's decimated layer failed after its 122-iteration cap
 #: (37 of the cages' 124 s, 2026-12-04) before the envelope target certified in 0 iterations, as on
-#: layer 1. A layer whose first target certifies changes nothing.
+#: layer 1. A layer whose first target certifies changes nothing. The same holds within a recovery,
+#: from the intermediate layer to the layer around it: on 42400-IDGH.stl (repaired) the intermediate
+#: certified with the envelope, then the layer target around it failed its re-inflation (23 s) before
+#: the envelope certified in 5 s.
 FOLLOW_PREVIOUS_SOURCE = True
 
 
@@ -606,11 +611,11 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         tried.add(key)
         t_dec = time.perf_counter() - t
         flow_opts = {k: opts[k] for k in _DEFAULTS}
+        flow_opts["flow_plateau_window"] = FLOW_PLATEAU  # a flow going nowhere stops, last target too
         # another target follows: a flow that does not arrive soon stops
         if (src, alg, offset) != sources[-1]:
             quick = max(QUICK_FLOW_MIN_ITER, QUICK_FLOW_WORK // max(len(Ff), 1))
             flow_opts["flow_max_iter"] = min(flow_opts["flow_max_iter"], quick)
-            flow_opts["flow_plateau_window"] = QUICK_FLOW_PLATEAU
         try:
             C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
         except PairFailure as exc:
@@ -646,6 +651,8 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
                 "reason": failures[-1]["reason"] if failures else ""})
     rep.say(f"layer {layer_no}: recovering with an intermediate layer of {mid} faces")
     Ci, Gi, iinfo = _build_layer(Vf, Ff, mid, opts, gap, rep, depth + 1, max_depth, log, layer_no, first)
+    if FOLLOW_PREVIOUS_SOURCE and iinfo.get("decimation", {}).get("source") == "envelope":
+        first = "envelope"  # as between layers: the intermediate cage is the next target's input
     C, G, pinfo = _build_layer(Ci, Gi, n_faces, opts, gap, rep, depth + 1, max_depth, log, layer_no, first)
     pinfo["intermediate"] = {"n_faces": len(Gi), "info": iinfo}
     pinfo["failed_attempts"] = failures + pinfo.get("failed_attempts", [])

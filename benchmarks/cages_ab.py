@@ -42,12 +42,13 @@ def _layers(report: dict) -> list:
     return rows
 
 
-def run_one(tree: Path, mesh: Path, levels: int, method: str) -> dict:
+def run_one(tree: Path, mesh: Path, levels: int, method: str, repair: bool = False) -> dict:
     """``nestmg cages`` from ``tree`` on ``mesh``: CPU and wall seconds, layer digests, per-layer record."""
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     with tempfile.TemporaryDirectory(prefix="cages-ab-") as tmp:
         cmd = [sys.executable, "-c", "import sys; from nestmg.cli import main; sys.exit(main())", "cages",
                str(mesh), "--levels", str(levels), "--method", method, "--out", tmp, "--no-cache", "--quiet"]
+        cmd += ["--repair"] if repair else []
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         load = os.getloadavg()[0]
         t0 = time.perf_counter()
@@ -74,16 +75,17 @@ def main(argv=None) -> int:
     ap.add_argument("--meshes", nargs="+", help="only these file names (default: every file of the folder)")
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--method", default="nested")
+    ap.add_argument("--repair", action="store_true", help="pass --repair (e.g. CAD STL caps)")
     ap.add_argument("--labels", nargs=2, metavar=("BEFORE", "AFTER"), help="e.g. the two commits")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     names = args.meshes or sorted(p.name for p in args.folder.iterdir() if p.is_file())
     words = ["MESH_DIR", "--trees", "BEFORE", "AFTER", "--levels", str(args.levels), "--method", args.method,
-             "--meshes", *names]
+             *(["--repair"] if args.repair else []), "--meshes", *names]
     out = {"command": "python benchmarks/cages_ab.py " + " ".join(words),
            "trees": dict(zip(("before", "after"), args.labels or [t.name for t in args.trees])), "meshes": {}}
     for name in names:
-        rows = {tag: run_one(tree, args.folder / name, args.levels, args.method)
+        rows = {tag: run_one(tree, args.folder / name, args.levels, args.method, args.repair)
                 for tag, tree in zip(("before", "after"), args.trees)}
         b, a = rows["before"], rows["after"]
         rows["same_cages"] = bool(b.get("layer_sha1")) and b.get("layer_sha1") == a.get("layer_sha1")

@@ -479,3 +479,34 @@ def test_the_flow_queries_again_only_the_points_that_may_have_come_near_the_targ
     assert near.sum() > 0.3 * len(S) and sum(queried) < len(S)
     fl.evaluate_here()  # Ĉ changed (expansion) or a new quadrature: every point again
     assert queried[-1] == len(S)
+
+
+def test_newton_systems_large_by_cg_small_by_lu_with_lu_when_cg_fails(monkeypatch):
+    """_solve_spd: Jacobi-CG from NEWTON_CG_MIN_SIZE unknowns, sparse LU below it and when CG does not
+    converge; every path solves the SPD system to round-off."""
+    import importlib
+
+    import scipy.sparse as sp
+
+    rm = importlib.import_module("cagegen.nested.reinflate")
+    calls = []
+    cg = rm.spla.cg
+    monkeypatch.setattr(rm.spla, "cg", lambda *a, **k: calls.append(1) or cg(*a, **k))
+    rng = np.random.default_rng(3)
+
+    def spd(n):  # a grid Laplacian (a mesh-like sparsity: LU stays cheap) plus a positive diagonal
+        k = int(np.ceil(n ** (1 / 3)))
+        T = sp.diags([-np.ones(k - 1), 2 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
+        I = sp.identity(k)
+        K = sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)
+        return (K + sp.diags(0.1 + rng.random(k ** 3))).tocsc(), rng.standard_normal(k ** 3)
+
+    def rel_residual(H, x, g):
+        return np.linalg.norm(H @ x - g) / np.linalg.norm(g)
+
+    H, g = spd(rm.NEWTON_CG_MIN_SIZE + 10)
+    assert rel_residual(H, rm._solve_spd(H, g), g) < 1e-9 and len(calls) == 1
+    Hs, gs = spd(500)
+    assert rel_residual(Hs, rm._solve_spd(Hs, gs), gs) < 1e-12 and len(calls) == 1  # small: LU only
+    monkeypatch.setattr(rm, "NEWTON_CG_MAXITER", 1)
+    assert rel_residual(H, rm._solve_spd(H, g), g) < 1e-12 and len(calls) == 2  # CG gave up: LU

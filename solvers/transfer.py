@@ -164,17 +164,21 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix, trim: bool = True) -> 
 def _lower_half(A: sp.csr_matrix) -> sp.csr_matrix:
     """``L + D/2`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D`` diagonal): the
     entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row keeps its
-    lower entries first, so they are one gather of positions and the diagonal is each row's last kept
-    entry."""
+    lower entries first, so they are one gather of positions; when every row stores its diagonal (a level
+    operator's positive diagonal), that entry ends the row's lower part and gives the row pointers."""
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
+    diag = np.flatnonzero(A.indices == rows)
     keep = np.flatnonzero(A.indices <= rows)
     del rows
-    indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row start
     indices, data = A.indices.take(keep), A.data.take(keep)
-    last = indptr[1:][indptr[1:] > indptr[:-1]] - 1  # each non-empty row's last kept entry
-    last = last[indices[last] == np.flatnonzero(indptr[1:] > indptr[:-1])]  # ... when it is the diagonal
-    data[last] *= 0.5
+    if diag.size == n:  # one diagonal entry per row (canonical: no duplicates), the last one kept
+        indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
+        np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
+        data[indptr[1:] - 1] *= 0.5
+    else:
+        indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row
+        data[np.searchsorted(keep, diag)] *= 0.5  # the diagonal entries' new positions
     return sp.csr_matrix((data, indices, indptr), shape=A.shape)
 
 

@@ -183,7 +183,7 @@ def _lower_half(A: sp.csr_matrix) -> sp.csr_matrix:
 
 
 def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix) -> sp.csr_matrix:
-    """``Pᵀ A P`` of a symmetric canonical ``A`` as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P`` (canonical CSR).
+    """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
 
     ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
     (the first one does half the work of ``A P``, the second one reads a product half as long), and the

@@ -338,9 +338,10 @@ def _barycentric_like(n: int, m: int, empty: int, rng) -> sp.csr_matrix:
 
 def test_symmetric_galerkin_product_equals_ptap():
     """The symmetric path (B + Bᵀ, B = Pᵀ (L + D/2) P) equals P.T @ A @ P to 1e-12 relative on a random
-    sparse SPD A and on a symmetric A with an empty row, with a barycentric-like P (4 non-zeros per row,
-    rows summing to 1) that has an empty column: exactly symmetric, canonical, the empty column's row and
-    column of Ac empty; and A's lower half mirrored gives A back exactly."""
+    sparse SPD A and on a symmetric A with an empty row and a row without its diagonal, with a
+    barycentric-like P (4 non-zeros per row, rows summing to 1) that has an empty column: exactly
+    symmetric, canonical, the empty column's row and column of Ac empty; and A's lower half mirrored gives
+    A back exactly."""
     rng = np.random.default_rng(7)
     n, m, empty = 500, 70, 13
     S = sp.random(n, n, density=0.02, format="csr", random_state=rng)
@@ -350,6 +351,7 @@ def test_symmetric_galerkin_product_equals_ptap():
     hole = sp.lil_matrix(spd)
     hole[7, :] = 0.0
     hole[:, 7] = 0.0
+    hole[11, 11] = 0.0  # a row without its diagonal
     hole = sp.csr_matrix(hole)
     hole.eliminate_zeros()
     P = _barycentric_like(n, m, empty, rng)

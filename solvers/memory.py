@@ -163,11 +163,13 @@ def galerkin_nnz_estimate(A: sp.spmatrix, P: sp.spmatrix, sample: int = 256, see
 
 
 def galerkin_bytes(A: sp.spmatrix, P: sp.spmatrix) -> int:
-    """Peak bytes of ``Ac = Pᵀ A P`` followed by the symmetrisation ``(Ac + Acᵀ)/2``.
+    """Peak bytes of a Galerkin level ``Ac = Pᵀ A P``.
 
-    Counts ``A P``, ``Pᵀ`` (a copy of ``P``), ``Ac``, ``Acᵀ`` and their sum (``nnz`` estimates of
+    Counts ``A P``, ``Pᵀ`` (a copy of ``P``) and three matrices of ``Ac``'s size (``nnz`` estimates of
     :func:`galerkin_nnz_estimate` with a 25% margin, :data:`BYTES_PER_NNZ` each) plus the row
-    pointers.
+    pointers. The symmetric path (:func:`solvers.transfer._symmetric_galerkin`) holds ``B``'s two sorted
+    copies and their sum, about four times ``nnz(B)``, with ``nnz(B)`` measured at 0.70-0.78 ``nnz(Ac)``
+    on a 1M-tet user mesh's levels: inside the margin.
     """
     nnz_ap, nnz_c = galerkin_nnz_estimate(A, P)
     P = sp.csr_matrix(P)

@@ -59,10 +59,10 @@ def _is_symmetric(A: sp.csr_matrix, rtol: float = 1e-10) -> bool:
 def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=None) -> list[sp.csr_matrix]:
     """Galerkin hierarchy ``[A, P_0ᵀ A P_0, P_1ᵀ (P_0ᵀ A P_0) P_1, ...]``.
 
-    For a symmetric ``A`` the products are symmetrised, ``(Ac + Acᵀ)/2``, to remove the round-off
-    asymmetry of the sparse triple product (so the hierarchy is exactly symmetric for CG); a
-    non-symmetric ``A`` keeps its exact products. ``symmetric=None`` (default) tests ``A`` (relative
-    tolerance 1e-10).
+    For a symmetric ``A`` the products are formed exactly symmetric (so the hierarchy is symmetric for CG)
+    from ``A``'s lower triangle and diagonal, ``Pᵀ A P = B + Bᵀ`` with ``B = Pᵀ (L + D/2) P`` (an ``A``
+    symmetric to the tolerance below counts as its lower triangle mirrored); a non-symmetric ``A`` keeps
+    its exact products. ``symmetric=None`` (default) tests ``A`` (relative tolerance 1e-10).
 
     Parameters
     ----------
@@ -114,30 +114,6 @@ def _galerkin_fits(Ak: sp.csr_matrix, P: sp.csr_matrix, k: int) -> None:
     check_memory(galerkin_bytes(Ak, P), f"the Galerkin operator of level {k + 1} (P_{k}ᵀ A_{k} P_{k})")
 
 
-def _canonical_symmetric_part(Ac: sp.csr_matrix) -> sp.csr_matrix:
-    """``(Ac + Acᵀ)/2`` in canonical CSR form, for a product ``Ac`` with a (structurally) symmetric pattern.
-
-    Two O(nnz) transposes (scipy's CSR<->CSC conversion writes every column's row indices in
-    increasing order) give both ``Acᵀ`` and ``Ac`` with sorted indices; when their patterns agree (always,
-    unless a sum cancelled to an exact zero on one side only) the symmetric part is one average of the
-    data arrays. Replaces a per-row sort, a transpose, a sparse addition and a second sort.
-    """
-    n = Ac.shape[0]
-    t = Ac.tocsc()  # the CSR arrays of Acᵀ, rows sorted
-    At = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(n, n))
-    s = At.tocsc()  # the CSR arrays of Ac, rows sorted
-    if np.array_equal(s.indptr, t.indptr) and np.array_equal(s.indices, t.indices):
-        data = s.data + t.data
-        data *= 0.5
-        out = sp.csr_matrix((data, s.indices, s.indptr), shape=(n, n))
-        out.has_canonical_format = True  # no duplicates (a product), rows sorted (the transposes)
-        return out
-    Ac = sp.csr_matrix(0.5 * (Ac + At))
-    Ac.sum_duplicates()
-    Ac.sort_indices()
-    return Ac
-
-
 #: :func:`_one_pass_product` allocates at most this many entries for its upper bound (else two passes).
 ONE_PASS_MAX_ENTRIES = 1 << 26
 
@@ -185,18 +161,61 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix, trim: bool = True) -> 
     return sp.csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(m, n))
 
 
+def _lower_half(A: sp.csr_matrix) -> sp.csr_matrix:
+    """``L + D/2`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D`` diagonal): the
+    entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row keeps its
+    lower entries first, so they are one gather of positions; when every row stores its diagonal (a level
+    operator's positive diagonal), that entry ends the row's lower part and gives the row pointers."""
+    n = A.shape[0]
+    rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
+    diag = np.flatnonzero(A.indices == rows)
+    keep = np.flatnonzero(A.indices <= rows)
+    del rows
+    indices, data = A.indices.take(keep), A.data.take(keep)
+    if diag.size == n:  # one diagonal entry per row (canonical: no duplicates), the last one kept
+        indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
+        np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
+        data[indptr[1:] - 1] *= 0.5
+    else:
+        indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row
+        data[np.searchsorted(keep, diag)] *= 0.5  # the diagonal entries' new positions
+    return sp.csr_matrix((data, indices, indptr), shape=A.shape)
+
+
+def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix) -> sp.csr_matrix:
+    """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
+
+    ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
+    (the first one does half the work of ``A P``, the second one reads a product half as long), and the
+    sum is exactly symmetric (``fl(x + y) = fl(y + x)``), replacing the symmetrisation
+    ``(Ac + Acᵀ)/2``. Two O(nnz(B)) transposes sort ``B`` and give ``Bᵀ`` (both canonical), then one
+    merge adds them. Equals ``Pᵀ A P`` up to round-off (tested to 1e-12 relative).
+    """
+    m = P.shape[1]
+    B = _one_pass_product(R, _one_pass_product(_lower_half(Ak), P, trim=False), trim=False)
+    t = B.tocsc()  # the CSR arrays of Bᵀ, rows sorted
+    del B
+    Bt = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(m, m))
+    s = Bt.tocsc()  # the CSR arrays of B, rows sorted
+    Bs = sp.csr_matrix((s.data, s.indices, s.indptr), shape=(m, m))
+    Bt.has_canonical_format = Bs.has_canonical_format = True  # no duplicates (a product), sorted rows
+    Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
+    Ac.has_canonical_format = True
+    return Ac
+
+
 def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_matrix:
-    """``P_kᵀ A_k P_k`` (symmetrised when ``symmetric``), after checking the shapes and the memory."""
+    """``P_kᵀ A_k P_k`` (exactly symmetric when ``symmetric``), after checking the shapes and the memory."""
     P = sp.csr_matrix(P, dtype=np.float64)
     if P.shape[0] != Ak.shape[0]:
         raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
     # refuse before allocating a product that would not fit (MemoryError subclass naming the level)
     _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
-    # no duplicates, rows unsorted; temporaries kept as views (the symmetric part is a new matrix)
-    Ac = _one_pass_product(R, _one_pass_product(Ak, P, trim=False), trim=not symmetric)
     if symmetric:
-        return _canonical_symmetric_part(Ac)
+        return _symmetric_galerkin(Ak, P, R)
+    # no duplicates, rows unsorted; the temporary kept as views
+    Ac = _one_pass_product(R, _one_pass_product(Ak, P, trim=False))
     Ac.sum_duplicates()
     Ac.sort_indices()
     return Ac

@@ -328,6 +328,46 @@ def test_one_pass_product_is_scipys_product(cube, monkeypatch, cap):
         assert abs(ops[k + 1] - ref).max() <= 1e-14 * abs(ref).max()
 
 
+def _barycentric_like(n: int, m: int, empty: int, rng) -> sp.csr_matrix:
+    """(n, m) prolongation with 4 non-zeros per row summing to 1 and no entry in column ``empty``."""
+    cols = np.array([rng.choice(np.setdiff1d(np.arange(m), [empty]), 4, replace=False) for _ in range(n)])
+    w = rng.random((n, 4)) + 0.05
+    w /= w.sum(axis=1, keepdims=True)
+    return sp.csr_matrix((w.ravel(), cols.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, m))
+
+
+def test_symmetric_galerkin_product_equals_ptap():
+    """The symmetric path (B + Bᵀ, B = Pᵀ (L + D/2) P) equals P.T @ A @ P to 1e-12 relative on a random
+    sparse SPD A and on a symmetric A with an empty row and a row without its diagonal, with a
+    barycentric-like P (4 non-zeros per row, rows summing to 1) that has an empty column: exactly
+    symmetric, canonical, the empty column's row and column of Ac empty; and A's lower half mirrored gives
+    A back exactly."""
+    rng = np.random.default_rng(7)
+    n, m, empty = 500, 70, 13
+    S = sp.random(n, n, density=0.02, format="csr", random_state=rng)
+    S = sp.csr_matrix(S + S.T)
+    spd = sp.csr_matrix(S + sp.diags(abs(S).sum(axis=1).A.ravel() + 0.1))
+    assert np.linalg.eigvalsh(spd.toarray()).min() > 0
+    hole = sp.lil_matrix(spd)
+    hole[7, :] = 0.0
+    hole[:, 7] = 0.0
+    hole[11, 11] = 0.0  # a row without its diagonal
+    hole = sp.csr_matrix(hole)
+    hole.eliminate_zeros()
+    P = _barycentric_like(n, m, empty, rng)
+    assert np.allclose(P.sum(axis=1), 1.0) and P.getcol(empty).nnz == 0
+    for A in (spd, hole):
+        A.sort_indices()
+        half = transfer._lower_half(A)
+        assert abs(half + half.T - A).max() == 0.0
+        Ac = transfer.galerkin_operators(A, [P])[1]
+        ref = sp.csr_matrix(P.T @ A @ P)
+        assert abs(Ac - ref).max() <= 1e-12 * abs(ref).max()
+        assert abs(Ac - Ac.T).max() == 0.0 and Ac.has_canonical_format and Ac.has_sorted_indices
+        assert Ac.getrow(empty).nnz == 0 and Ac.getcol(empty).nnz == 0
+        assert np.array_equal(np.diff(Ac.indptr) > 0, np.diff(ref.indptr) > 0)
+
+
 def test_inputs_untouched_and_x0(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     A0, P0, b0 = ds.A.copy(), Pf[0].copy(), ds.b.copy()

@@ -273,8 +273,8 @@ def usermesh_tets() -> str:
 
 USER_SOLVERS = "user_mesh/solvers.json"
 #: two runs of ``profile`` per tree (before / after), one after the other: the shared machine's noise shows
-USER_PROFILE = ("user_mesh/setup_profile_before.json", "user_mesh/setup_profile_after.json",
-                "user_mesh/setup_profile_before_run2.json", "user_mesh/setup_profile_after_run2.json")
+USER_PROFILE = ("user_mesh/setup_profile_sym_before.json", "user_mesh/setup_profile_sym_after.json",
+                "user_mesh/setup_profile_sym_before_run2.json", "user_mesh/setup_profile_sym_after_run2.json")
 _USER_LABELS = {"nestmg": "`MultigridSolver(A, P)`, defaults",
                 "problem_multigrid": "`Problem.multigrid()` (pipeline default)", "pyamg_sa": "pyamg SA + CG",
                 "petsc_gamg": "PETSc GAMG + CG, 1 rank"}
@@ -363,12 +363,13 @@ def usermesh_residual() -> str:
 
 
 CAGES_AB = "cages/ab_48844c4.json"
+CAGES_AB_FLOW = "cages/ab_19cd170.json"
+CAGES_AB_FLOW_REPAIR = "cages/ab_19cd170_repair.json"
 
 
-@generator("cages_ab.summary", CAGES_AB)
-def cages_ab_summary() -> str:
-    d = load(CAGES_AB)
-    rows = d["meshes"]
+def _ab_summary(path: str) -> str:
+    """Total CPU seconds before -> after, the three largest speed-ups, the others' ratio range, same cages."""
+    rows = {m: r for m, r in load(path)["meshes"].items() if "cpu_ratio" in r}
     same = sum(r["same_cages"] for r in rows.values())
     cpu = {t: sum(r[t]["cpu_seconds"] for r in rows.values()) for t in ("before", "after")}
     top = sorted(rows.items(), key=lambda kv: -kv[1]["cpu_ratio"])[:3]
@@ -376,6 +377,27 @@ def cages_ab_summary() -> str:
     return (f"{cpu['before']:.0f} -> {cpu['after']:.0f} in all ("
             + ", ".join(f"{m} {r['before']['cpu_seconds']:.1f} -> {r['after']['cpu_seconds']:.1f}" for m, r in top)
             + f"; the others x{ratios[0]:.2f}-{ratios[-4]:.2f}, one run each; same cages on {same} of {len(rows)})")
+
+
+@generator("cages_ab.summary", CAGES_AB)
+def cages_ab_summary() -> str:
+    return _ab_summary(CAGES_AB)
+
+
+@generator("cages_ab.flow", CAGES_AB_FLOW, CAGES_AB_FLOW_REPAIR)
+def cages_ab_flow() -> str:
+    rows = load(CAGES_AB_FLOW)["meshes"]
+    vol = [abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in rows.values() if r.get("cpu_ratio")
+           for lb, la in zip(r["before"]["layers"], r["after"]["layers"])]
+    changed = sorted((m, lb["layer"], lb["volume_ratio"], la["volume_ratio"]) for m, r in rows.items()
+                     if r.get("cpu_ratio") for lb, la in zip(r["before"]["layers"], r["after"]["layers"])
+                     if abs(la["volume_ratio"] / lb["volume_ratio"] - 1) > 1e-3)
+    rep = load(CAGES_AB_FLOW_REPAIR)["meshes"]["42400-IDGH.stl"]
+    return (_ab_summary(CAGES_AB_FLOW) + "; volume ratios to the previous layer "
+            + (", ".join(f"{m} layer {k} {b:.3f} -> {a:.3f}" for m, k, b, a in changed) + ", every other layer's "
+               if changed else "every layer's ")
+            + f"changed by at most {max(v for v in vol if v <= 1e-3) * 100:.2g}%; 42400-IDGH.stl with `--repair` "
+            f"{rep['before']['cpu_seconds']:.0f} -> {rep['after']['cpu_seconds']:.0f} CPU s")
 
 
 USER_CYCLE_COST = "user_mesh/cycle_cost.json"
@@ -507,6 +529,15 @@ def _func_label(f: str) -> str:
     m = (re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f)
          or re.search(r"\((\w+)\)$", f))
     return m.group(1).split(".")[-1] if m else f
+
+
+@generator("usermesh.sym_ratio", *USER_PROFILE)
+def usermesh_sym_ratio() -> str:
+    def ratios(rels):
+        return [r["setup_cpu_ratio_vs_sa_median"] for rel in rels for r in load(rel)["problems"].values()]
+    b, a = ratios(USER_PROFILE[::2]), ratios(USER_PROFILE[1::2])
+    return (f"{rng(b, '.2f')}x before, {rng(a, '.2f')}x after (at most 0.4x in {sum(x <= 0.4 for x in b)} of "
+            f"{len(b)} runs before, {sum(x <= 0.4 for x in a)} of {len(a)} after)")
 
 
 @generator("usermesh.profile", *USER_PROFILE)

@@ -384,8 +384,8 @@ class NullspaceMultigridSolver(MultigridSolver):
             return self._project(out[0]), out[1]
         return self._project(out)
 
-    def aspreconditioner(self, cycle: str = "V") -> spla.LinearOperator:
-        """One cycle from zero as a ``LinearOperator``, input and output projected off the null space."""
+    def aspreconditioner(self, cycle: str | None = None) -> spla.LinearOperator:
+        """One cycle (default :attr:`cycle`) from zero as a ``LinearOperator``, off the null space."""
         M = super().aspreconditioner(cycle)
 
         def matvec(b):

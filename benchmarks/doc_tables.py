@@ -633,6 +633,7 @@ def petsc_estimate() -> str:
 ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
 ELASTICITY_CYCLES = ("elasticity/cycles_300k.json", "elasticity/cycles_cad_300k.json")
 ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")
+ELASTICITY_DEFAULT_CYCLE = "elasticity/default_cycle_fandisk_173k.json"
 
 
 @generator("elasticity.factor", ELASTICITY_FACTOR)
@@ -651,6 +652,11 @@ def elasticity_cycles() -> str:
 @generator("elasticity.cad", *ELASTICITY_CAD)
 def elasticity_cad() -> str:
     return "\n\n".join(sibling("elasticity").table(load(f)) for f in ELASTICITY_CAD)
+
+
+@generator("elasticity.default_cycle", ELASTICITY_DEFAULT_CYCLE)
+def elasticity_default_cycle() -> str:
+    return sibling("elasticity").table(load(ELASTICITY_DEFAULT_CYCLE))
 
 
 CAGE_USES = "cage_uses/cage_uses.json"

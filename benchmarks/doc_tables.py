@@ -662,8 +662,8 @@ def petsc_estimate() -> str:
 
 # ----------------------------------------------------------------------------------------- cage uses
 ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
-ELASTICITY_CYCLES = ("elasticity/cycles_300k.json", "elasticity/cycles_cad_300k.json")
 ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")
+ELASTICITY_DEFAULT_CYCLE = "elasticity/default_cycle_fandisk_173k.json"
 
 
 @generator("elasticity.factor", ELASTICITY_FACTOR)
@@ -671,17 +671,14 @@ def elasticity_factor() -> str:
     return sibling("elasticity_factor").table(load(ELASTICITY_FACTOR))
 
 
-@generator("elasticity.cycles", *ELASTICITY_CYCLES)
-def elasticity_cycles() -> str:
-    first, *rest = (load(f) for f in ELASTICITY_CYCLES)  # same methods and tol: one table, rows appended
-    for r in rest:
-        first["meshes"] += r["meshes"]
-    return sibling("elasticity").cycles_table(first)
-
-
 @generator("elasticity.cad", *ELASTICITY_CAD)
 def elasticity_cad() -> str:
     return "\n\n".join(sibling("elasticity").table(load(f)) for f in ELASTICITY_CAD)
+
+
+@generator("elasticity.default_cycle", ELASTICITY_DEFAULT_CYCLE)
+def elasticity_default_cycle() -> str:
+    return sibling("elasticity").table(load(ELASTICITY_DEFAULT_CYCLE))
 
 
 CAGE_USES = "cage_uses/cage_uses.json"

@@ -7,8 +7,11 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 
 ``nestmg``        the project's default: the hierarchy's prolongations restricted to the free nodes,
                   ``P ⊗ I₃``, Galerkin coarse operators, symmetric Gauss–Seidel in the pipeline's variable
-                  V-cycle (one sweep on the fine level, two below); the free problem projects the rigid
-                  modes (``NullspaceMultigridSolver``). Setup = restriction + ``P ⊗ I₃`` + ``multigrid()``.
+                  V-cycle (one sweep on the fine level, two below) at ν < 0.4, in a W-cycle with two
+                  sweeps on the fine level and four below at ν >= 0.4 (``SolverOptions.resolved``; before
+                  that rule, files up to ``cad_1m.json``: the V-cycle at every ν); the free problem
+                  projects the rigid modes (``NullspaceMultigridSolver``). Setup = restriction +
+                  ``P ⊗ I₃`` + ``multigrid()``; the cycle run is recorded (``cycle``).
 ``nestmg_block``  the same with nodal 3x3 block Gauss–Seidel (multicolour; ``multigrid(block=True)``).
 ``nestmg_point``  (not run by default) the same configuration as ``nestmg``; in
                   ``elasticity_300k.json`` it ran beside it (a measure of run-to-run spread) and ``--table``
@@ -18,10 +21,12 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
+``nestmg_v``      (not run by default) the V-cycle with one sweep on the fine level and two below at
+                  every ν (``SolverOptions(cycle="V")``): ``nestmg`` before the W-cycle rule.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
-                  instead of the V-cycle: with the default smoothers (one symmetric sweep on the fine level,
-                  two below), with two on every level, and with two on the fine level and four below
-                  (``SolverOptions(nu=2, cycle="W")``).
+                  with given smoothers: one symmetric sweep on the fine level and two below, two on every
+                  level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,
+                  the default at ν >= 0.4).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -68,8 +73,11 @@ import numpy as np
 DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
                       "nestmg_deflate_all": {"deflate": 8, "probe_finest": True},
                       "nestmg_deflate_all16": {"deflate": 16, "probe_finest": True}}
-#: (multigrid() keywords, cycle) of the cycle variants of ``nestmg`` (issue 32, ν = 0.45)
-CYCLE_VARIANTS = {"nestmg_w": ({}, "W"),
+_SGS = "symmetric_gauss_seidel"
+#: (multigrid() keywords, cycle) of the cycle variants of ``nestmg`` (issue 32, ν = 0.45): smoothers and
+#: cycle given, independent of the defaults (``nestmg_v``, ``nestmg_w``: one fine sweep, two below)
+CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS, {"iterations": 2})]}, "V"),
+                  "nestmg_w": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS, {"iterations": 2})]}, "W"),
                   "nestmg_w2": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2})]}, "W"),
                   "nestmg_w24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "W")}
@@ -118,10 +126,10 @@ def _projector(Z: np.ndarray | None):
 
 
 def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False,
-               cycle: str = "V") -> dict:
+               cycle: str | None = None) -> dict:
     """Setup (restriction + ``P ⊗ I₃`` + ``multigrid(**mg_kwargs)``) and MG-PCG of the assembled problem
-    ``pr`` preconditioned by one ``cycle``; with ``factor`` also the stationary factor of that cycle
-    (:func:`vcycle_factor`, not timed)."""
+    ``pr`` preconditioned by one ``cycle`` (None: the solver's default, ``ml.cycle``); with ``factor`` also
+    the stationary factor of that cycle (:func:`vcycle_factor`, not timed)."""
     from solvers import block_prolongation, restrict_prolongations
 
     t = _clocks()
@@ -129,9 +137,10 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
     ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t.lap("setup")
+    cycle = ml.cycle if cycle is None else cycle
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, cycle=cycle, accel="cg", return_info=True)
     t.lap("solve")
-    out = {"x": x, **t.times, "iterations": info["iterations"],
+    out = {"x": x, **t.times, "iterations": info["iterations"], "cycle": cycle,
            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
            "smoother": ml.levels[0].presmoother.params,
            "deflation": [{k: d[k] for k in ("level", "probe_factor", "vectors", "factors", "cycles")}
@@ -266,7 +275,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 if m.startswith("nestmg"):
-                    kw, cyc = CYCLE_VARIANTS.get(m, (DEFLATION_VARIANTS.get(m), "V"))
+                    kw, cyc = CYCLE_VARIANTS.get(m, (DEFLATION_VARIANTS.get(m), None))
                     out = run_nestmg(pr, h_P, m == "nestmg_block", tol, kw, factor=factor and r == 0,
                                      cycle=cyc)
                 elif m in ("pyamg_sa_rbm", "pyamg_sa"):

@@ -166,8 +166,9 @@ def cmd_demo(args) -> int:
     _write_json(out / "report.json", {"shape": args.shape, "hierarchy": h.to_dict(), "solves": results})
     if not args.no_png:
         _png_layers(h, out / "layers.png", f"{args.shape}: {args.method} cages")
-        plot_convergence({p: r["residuals"] for p, r in results.items()}, out / "convergence.png",
-                         title=f"{args.shape}, {h.levels} levels, {args.method} cages, V({args.nu},{args.nu})")
+        cyc = f"{r['cycle']}({r['nu']},{r['nu']})"  # the scalar problems' cycle (SolverOptions.resolved)
+        plot_convergence({p: res["residuals"] for p, res in results.items()}, out / "convergence.png",
+                         title=f"{args.shape}, {h.levels} levels, {args.method} cages, {cyc}")
     print(f"wrote {out / 'report.json'}" + ("" if args.no_png else f", {out / 'layers.png'}, {out / 'convergence.png'}"))
     return 0
 

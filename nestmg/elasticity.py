@@ -42,18 +42,22 @@ from .errors import NestmgInputError
 
 if TYPE_CHECKING:
     from .options import SolverOptions
-from .problems import DEFAULT_SMOOTHERS, Problem
+from .problems import DEFAULT_SMOOTHERS, Problem, cycle_smoothers
 from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
-__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "clamped_nodes", "default_body_force",
-           "setup_elasticity"]
+__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "W_CYCLE_SMOOTHERS", "clamped_nodes",
+           "default_body_force", "setup_elasticity"]
 
 ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 
-#: Smoothers of the ``"robust"`` preset (point-wise spelling; :meth:`ElasticityProblem.multigrid` turns
+#: Smoothers of the ``"robust"`` preset at ν < 0.4 (point-wise spelling; ``multigrid(block=True)`` turns
 #: them into nodal block sweeps): the pipeline's variable V-cycle, one symmetric sweep on the fine level
 #: and two on the coarser ones (:data:`nestmg.problems.DEFAULT_SMOOTHERS`).
 ROBUST_SMOOTHERS = DEFAULT_SMOOTHERS
+
+#: The ``"robust"`` preset's smoothers at ν >= 0.4, run in a W-cycle (:meth:`nestmg.SolverOptions.resolved`):
+#: two symmetric sweeps on the fine level and four on the coarser ones (``SolverOptions(nu=2)``).
+W_CYCLE_SMOOTHERS = cycle_smoothers(nu=2)
 
 #: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.
 FAST_SMOOTHERS = _FAST_SMOOTHERS
@@ -128,9 +132,14 @@ class ElasticityProblem(Problem):
         ----------
         options : SolverOptions, optional
             Its smoothing fields: ``smoothing="robust"`` (default) is ``nu`` sweeps of ``smoother`` on the
-            fine level and ``coarse_nu`` (default ``2 nu``) on the coarser ones (the defaults are
-            :data:`ROBUST_SMOOTHERS`), ``"fast"`` is :data:`FAST_SMOOTHERS`; ``coarse_scaling`` ``"auto"``
-            is None (Galerkin operators); ``local`` is unused (no boundary-layer sweeps for elasticity).
+            fine level and ``coarse_nu`` (default ``2 nu``) on the coarser ones, ``"fast"`` is
+            :data:`FAST_SMOOTHERS`; ``coarse_scaling`` ``"auto"`` is None (Galerkin operators); ``local``
+            is unused (no boundary-layer sweeps for elasticity); ``cycle`` becomes the solver's
+            :attr:`~solvers.MultigridSolver.cycle` (run by ``solve`` and ``aspreconditioner`` given none).
+            Not set (the default), ``nu`` and ``cycle`` follow the problem's Poisson ratio
+            (:meth:`nestmg.SolverOptions.resolved`): below 0.4 the V-cycle with :data:`ROBUST_SMOOTHERS`
+            (one sweep on the fine level, two below), from 0.4 on the W-cycle with two and four sweeps,
+            which keeps MG-PCG within 20 iterations at ν = 0.45 (docs/elasticity.md).
         block : bool
             ``True``: Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"``
             in ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks
@@ -152,11 +161,11 @@ class ElasticityProblem(Problem):
         from solvers import MultigridSolver
 
         from .options import SolverOptions, typed
-        from .problems import cycle_smoothers
 
-        o = typed(options, SolverOptions, "options")
+        # nu and cycle not set: W-cycle and two fine sweeps at ν >= 0.4 (the problem's ν, not options')
+        o = typed(options, SolverOptions, "options").resolved(self.name, self.params.get("nu"))
         coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
-        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS with the defaults
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS at ν < 0.4
         pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)
         kwargs["presmoother"] = _as_block_specs(pre) if block else pre
         kwargs.setdefault("deflate", 0)  # measured: the probe does not pay for elasticity (docs/elasticity.md)
@@ -164,6 +173,7 @@ class ElasticityProblem(Problem):
         # is a principal submatrix): skips the O(nnz) test; free problem, 182k unknowns: set-up 0.60 s CPU
         # instead of 1.08 (median of 4)
         kwargs.setdefault("symmetric", True)
+        kwargs.setdefault("cycle", o.cycle)  # the cycle of solve() and aspreconditioner() given none
         if self.modes is None:
             return MultigridSolver(self.A, self.P, coarse_scaling=coarse_scaling, **kwargs)
         return NullspaceMultigridSolver(self.A, self.P, self.modes, coarse_scaling=coarse_scaling, **kwargs)

@@ -143,7 +143,11 @@ class Problem:
             * ``coarse_scaling``: ``"auto"`` is ``"energy"`` with re-discretised or weighted coarse
               operators (they are not energy projections; docs/coarse.md), None with Galerkin ones.
             * every level, the finest included (``probe_finest=True``), is probed for a few slow modes,
-              which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off).
+              which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off);
+            * ``cycle`` (default V) becomes the solver's :attr:`~solvers.MultigridSolver.cycle`, the one its
+              ``solve`` and ``aspreconditioner`` run when given none.
+
+            ``nu`` and ``cycle`` not set are filled in by :meth:`nestmg.SolverOptions.resolved`.
         **kwargs
             Passed on to :class:`solvers.MultigridSolver` (``presmoother``, ``local_nodes``,
             ``coarse_solver``, ``block``, ...), overriding what ``options`` chose.
@@ -157,7 +161,7 @@ class Problem:
 
         from .options import SolverOptions, typed
 
-        o = typed(options, SolverOptions, "options")
+        o = typed(options, SolverOptions, "options").resolved(self.name)  # V, nu = 1 unless given
         coarse_scaling = o.coarse_scaling
         if coarse_scaling == "auto":
             coarse_scaling = None if isinstance(self.coarse, str) else "energy"
@@ -172,6 +176,7 @@ class Problem:
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
         kwargs.setdefault("deflate", DEFAULT_DEFLATE)  # the bare MultigridSolver's default is 0
         kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run
+        kwargs.setdefault("cycle", o.cycle)  # the cycle of solve() and aspreconditioner() given none
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)
 

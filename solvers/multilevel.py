@@ -279,6 +279,10 @@ class MultigridSolver:
         Probe (and deflate) the finest level too: its probe costs about as much as one solve, so it is
         off by default here and on in ``nestmg``'s problems (:meth:`nestmg.problems.Problem.multigrid`),
         whose setup is a small part of a run.
+    cycle : {"V", "W", "F"}
+        The cycle :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` use when given none
+        (default ``"V"``; ``nestmg``'s elasticity problems at ν >= 0.4 pass ``"W"``,
+        :meth:`nestmg.SolverOptions.resolved`).
 
     Attributes
     ----------
@@ -326,8 +330,12 @@ class MultigridSolver:
         symmetric: bool | None = None,
         deflate: int = 0,
         probe_finest: bool = False,
+        cycle: str = "V",
     ):
         t0 = time.perf_counter()
+        #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
+        #: given none
+        self.cycle = self._check_cycle(cycle)
         if nullspace not in (None, "constant"):
             raise SolverInputError(f"nullspace must be None or 'constant', got {nullspace!r}")
         self.nullspace = nullspace
@@ -519,7 +527,7 @@ class MultigridSolver:
                                  f"{self.coarse_nullity if self.coarse_nullity >= 0 else 'not computed'})")),
             ("Operator complexity", f"{self.operator_complexity():.3f}"),
             ("Grid complexity", f"{self.grid_complexity():.3f}"),
-            ("Cycle complexity (V)", f"{self.cycle_complexity('V'):.3f} fine SpMVs"),
+            (f"Cycle complexity ({self.cycle})", f"{self.cycle_complexity():.3f} fine SpMVs"),
             ("Deflation", self._deflation_desc()),
         ]
         lines = ["MultigridSolver"] + [f"{k + ':':22s}{v}" for k, v in rows]
@@ -575,15 +583,16 @@ class MultigridSolver:
         walk(0, cycle)
         return counts
 
-    def cycle_complexity(self, cycle: str = "V") -> float:
+    def cycle_complexity(self, cycle: str | None = None) -> float:
         """Work of one cycle in units of one SpMV with the fine operator (``nnz(A_0)`` flops pairs).
 
         Per visit of level ``k``: pre- and post-smoothing (``Smoother.work`` SpMVs each), one residual
         SpMV, restriction and interpolation (``2 nnz(P_k)``); the coarsest level costs the two
         triangular solves (``nnz(L) + nnz(U)``). Vector updates are not counted. Measured wall-clock
-        cost is higher in Python (see the report in the docs / benchmarks).
+        cost is higher in Python (see the report in the docs / benchmarks). ``cycle``: default
+        :attr:`cycle`.
         """
-        cycle = self._check_cycle(cycle)
+        cycle = self._check_cycle(self.cycle if cycle is None else cycle)
         visits = self._visits(cycle)
         work = 0.0
         for k, L in enumerate(self.levels):
@@ -688,7 +697,7 @@ class MultigridSolver:
         x0=None,
         tol: float = 1e-8,
         maxiter: int = DEFAULT_MAXITER,
-        cycle: str = "V",
+        cycle: str | None = None,
         accel: str | None = None,
         residuals: list | None = None,
         *,
@@ -706,7 +715,8 @@ class MultigridSolver:
             Stop when ``||b - A x|| <= tol ||b||`` (2-norms).
         maxiter : int
             Maximum number of cycles (or CG iterations); default :data:`DEFAULT_MAXITER`.
-        cycle : {"V", "W", "F"}
+        cycle : {"V", "W", "F"}, optional
+            Default :attr:`cycle` (the constructor's, ``"V"`` unless given).
         accel : None or "cg"
             ``"cg"``: conjugate gradients (pyamg.krylov.cg) preconditioned by one cycle from zero: the one
             MG-PCG entry point of the package (``nestmg.solve_on_hierarchy`` and the CLI call it).
@@ -733,7 +743,7 @@ class MultigridSolver:
         IncompatibleRHSError
             Neumann problem with ``sum(b) != 0`` and ``project=False``.
         """
-        cycle = self._check_cycle(cycle)
+        cycle = self._check_cycle(self.cycle if cycle is None else cycle)
         if accel not in (None, "cg"):
             raise SolverInputError(f"accel must be None or 'cg', got {accel!r}")
         maxiter = int(maxiter)
@@ -828,14 +838,14 @@ class MultigridSolver:
             }
         return x
 
-    def aspreconditioner(self, cycle: str = "V") -> spla.LinearOperator:
-        """One cycle from a zero initial guess, as a ``scipy.sparse.linalg.LinearOperator``.
+    def aspreconditioner(self, cycle: str | None = None) -> spla.LinearOperator:
+        """One cycle (default :attr:`cycle`) from zero as a ``scipy.sparse.linalg.LinearOperator``.
 
         Usable as ``M=`` in ``scipy.sparse.linalg.cg``. Symmetric positive definite when the operators
         are SPD and the pre/post smoothers are adjoint. With ``nullspace="constant"`` input and output are
         projected to zero mean.
         """
-        M = self._preconditioner(cycle)
+        M = self._preconditioner(self.cycle if cycle is None else cycle)
         if self.perm is None:
             return M
 

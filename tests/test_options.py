@@ -202,6 +202,85 @@ def test_cli_builds_the_same_objects():
     assert _cage_options(args, "sdf") == SdfOptions(repair=True, cage_time_budget=60.0)
 
 
+#: SolverOptions() before nu and cycle had a "not set" value (issue 32): what every problem but
+#: elasticity at ν >= 0.4 must still resolve to
+_OLD_SOLVER_DEFAULTS = {"coarse": "galerkin", "smoothing": "robust", "smoother": "symmetric_gauss_seidel",
+                        "nu": 1, "coarse_nu": None, "local": True, "coarse_scaling": "auto", "cycle": "V",
+                        "accel": None, "tol": 1e-8, "maxiter": 100, "lam": 1e-2, "poisson_ratio": 0.3}
+
+
+@pytest.mark.parametrize("problem", [None, "poisson-dirichlet", "poisson-neumann", "diffusion-neumann",
+                                     "elasticity-clamped", "elasticity-free"])
+def test_solver_defaults_resolve_to_the_old_ones_except_for_nearly_incompressible_elasticity(problem):
+    o = SolverOptions()
+    assert (o.nu, o.cycle) == (None, None)  # not set
+    assert dataclasses.asdict(o.resolved(problem)) == _OLD_SOLVER_DEFAULTS  # ν = 0.3 by default
+    for nu in (-0.2, 0.3, 0.39, 0.45):
+        r = o.resolved(problem, nu)
+        if problem is not None and problem.startswith("elasticity") and nu >= 0.4:
+            assert (r.nu, r.coarse_nu, r.cycle) == (2, None, "W")  # nestmg_w24: 2 / 4 sweeps, W
+            assert dataclasses.asdict(r) == {**_OLD_SOLVER_DEFAULTS, "nu": 2, "cycle": "W"}
+        else:
+            assert dataclasses.asdict(r) == _OLD_SOLVER_DEFAULTS, (problem, nu)
+    assert SolverOptions(poisson_ratio=0.45).resolved(problem).cycle == (
+        "W" if problem is not None and problem.startswith("elasticity") else "V")
+
+
+def test_an_explicit_cycle_or_sweep_count_wins_over_the_elasticity_rule():
+    el = "elasticity-clamped"
+    assert SolverOptions().resolved(el, 0.4).cycle == "W"  # the threshold is inclusive
+    assert SolverOptions().resolved(el, np.array([0.3, 0.45, 0.2])).cycle == "W"  # per tet: the largest ν
+    for given, want in (({"cycle": "V"}, ("V", 1)), ({"cycle": "F"}, ("F", 1)), ({"cycle": "W"}, ("W", 2)),
+                        ({"nu": 1}, ("W", 1)), ({"nu": 3, "cycle": "V"}, ("V", 3)),
+                        ({"smoothing": "fast"}, ("V", 1)), ({"smoothing": "fast", "nu": 1}, ("V", 1))):
+        r = SolverOptions(**given).resolved(el, 0.45)
+        assert (r.cycle, r.nu) == want, given
+    w03 = SolverOptions(cycle="W").resolved(el, 0.3)
+    assert (w03.cycle, w03.nu) == ("W", 1)  # below the threshold a chosen W keeps the old sweeps
+    done = SolverOptions(nu=2, cycle="V")
+    assert done.resolved(el, 0.45) is done
+    with pytest.raises(OptionError, match="preset"):
+        SolverOptions(smoothing="fast", nu=2)
+
+
+def test_solvers_without_elasticity_keep_the_v_cycle_bit_for_bit():
+    """A bare MultigridSolver and the scalar problems' solver run the V-cycle when given no cycle, with the
+    old smoothers: residual histories identical to an explicit ``cycle="V"``."""
+    from nestmg.problems import DEFAULT_SMOOTHERS, setup_problem
+    from solvers import MultigridSolver
+    from solvers.gallery import kuhn_cube_hierarchy
+
+    meshes, P = kuhn_cube_hierarchy(8, 3)
+    for name in ("poisson-neumann", "diffusion-neumann"):
+        pr = setup_problem(meshes, P, name)
+        ml = pr.multigrid()
+        assert ml.cycle == "V"
+        assert [L.presmoother.params["iterations"] for L in ml.levels[:-1]] == [
+            s[1]["iterations"] for s in DEFAULT_SMOOTHERS]
+        for accel in (None, "cg"):
+            r0 = ml.solve(pr.b, accel=accel, return_info=True)[1]["residuals"]
+            assert r0 == ml.solve(pr.b, accel=accel, cycle="V", return_info=True)[1]["residuals"]
+        bare = MultigridSolver(pr.A, pr.P)
+        assert bare.cycle == "V" and bare.cycle_complexity() == bare.cycle_complexity("V")
+        x = np.random.default_rng(0).standard_normal(pr.A.shape[0])
+        x -= x.mean()
+        assert np.array_equal(bare.aspreconditioner() @ x, bare.aspreconditioner("V") @ x)
+    with pytest.raises(Exception, match="cycle must be"):
+        MultigridSolver(pr.A, pr.P, cycle="X")
+
+
+def test_cli_cycle_flag_is_not_set_by_default_and_takes_any_case():
+    from nestmg.cli import _typed_options, build_parser
+
+    for argv, want in (([], SolverOptions()), (["--cycle", "w", "--nu", "2"], SolverOptions(nu=2, cycle="W")),
+                       (["--cycle", "v"], SolverOptions(cycle="V")), (["--cycle", "none"], SolverOptions())):
+        args = build_parser().parse_args(["solve", "shape:torus", *argv])
+        _typed_options(args)
+        assert args.solver == want, argv
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["solve", "shape:torus", "--cycle", "x"])
+
+
 def test_hierarchy_records_its_options_and_keys_the_cache_on_them(tmp_path, monkeypatch):
     pytest.importorskip("tetgen")
     monkeypatch.setenv("NESTMG_CACHE", str(tmp_path))

@@ -393,10 +393,11 @@ def cages_ab_flow() -> str:
                      if r.get("cpu_ratio") for lb, la in zip(r["before"]["layers"], r["after"]["layers"])
                      if abs(la["volume_ratio"] / lb["volume_ratio"] - 1) > 1e-3)
     rep = load(CAGES_AB_FLOW_REPAIR)["meshes"]["42400-IDGH.stl"]
+    moved = ", ".join(f"{m} layer {k} {b:.3f} -> {a:.3f}" for m, k, b, a in changed)
+    small = max(v for v in vol if v <= 1e-3) * 100
     return (_ab_summary(CAGES_AB_FLOW) + "; volume ratios to the previous layer "
-            + (", ".join(f"{m} layer {k} {b:.3f} -> {a:.3f}" for m, k, b, a in changed) + ", every other layer's "
-               if changed else "every layer's ")
-            + f"changed by at most {max(v for v in vol if v <= 1e-3) * 100:.2g}%; 42400-IDGH.stl with `--repair` "
+            + (moved + ", every other layer's " if changed else "every layer's ")
+            + f"changed by at most {small:.2g}%; 42400-IDGH.stl with `--repair` "
             f"{rep['before']['cpu_seconds']:.0f} -> {rep['after']['cpu_seconds']:.0f} CPU s")
 
 

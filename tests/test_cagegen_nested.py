@@ -454,7 +454,8 @@ def test_the_flow_queries_again_only_the_points_that_may_have_come_near_the_targ
     fl = flow_module._Flow(Vf, Ff, Vc, Fc, 2, None)
     queried = []
     exact = flow_module._signed_distance
-    monkeypatch.setattr(flow_module, "_signed_distance", lambda P, V, F: queried.append(len(P)) or exact(P, V, F))
+    monkeypatch.setattr(flow_module, "_signed_distance",
+                        lambda P, V, F: queried.append(len(P)) or exact(P, V, F))
     fl.evaluate(fl.V)
     assert queried == [len(fl.S)] and len(fl.S) < flow_module.DEEP_POINT_MIN_POINTS  # small: always exact
     monkeypatch.setattr(flow_module, "DEEP_POINT_MIN_POINTS", 0)

@@ -511,3 +511,28 @@ def test_newton_systems_large_by_cg_small_by_lu_with_lu_when_cg_fails(monkeypatc
     assert rel_residual(Hs, rm._solve_spd(Hs, gs), gs) < 1e-12 and len(calls) == 1  # small: LU only
     monkeypatch.setattr(rm, "NEWTON_CG_MAXITER", 1)
     assert rel_residual(H, rm._solve_spd(H, g), g) < 1e-12 and len(calls) == 2  # CG gave up: LU
+
+
+def test_the_envelope_target_grid_is_refined_when_the_envelope_would_be_coarser_than_the_target(monkeypatch):
+    """_envelope_spacing: h = offset with no probe when the area bound says the envelope is fine enough;
+    halved (at most twice) while the un-amplified envelope has too few faces for the target."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    V, F = _unit(np.asarray(sphere.vertices)), np.asarray(sphere.faces, dtype=np.int64)
+    probes = []
+    real = nested_backend_module.build_envelope
+
+    def probe(*a, **k):
+        probes.append(k["h"])
+        return real(*a, **k)
+
+    monkeypatch.setattr(nested_backend_module, "build_envelope", probe)
+    spacing = nested_backend_module._envelope_spacing
+    assert spacing(V, F, 500, 0.01) == 0.01 and probes == []  # far coarser target: no probe
+    faces_at = {h: len(real(V, F, c=0.01, h=h, band=0.04, amplify=False).F) for h in (0.01, 0.005)}
+    n = int(faces_at[0.01] / nested_backend_module.ENVELOPE_FACE_MARGIN) + 1  # just too many for h = 0.01
+    assert faces_at[0.005] > nested_backend_module.ENVELOPE_FACE_MARGIN * n
+    assert spacing(V, F, n, 0.01) == 0.005 and probes == [0.01]  # at 0.005 the area bound suffices
+    probes.clear()
+    assert spacing(V, F, 10 ** 7, 0.01) == 0.0025 and probes == [0.01, 0.005]  # a quarter at most

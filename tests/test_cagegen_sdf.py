@@ -112,6 +112,32 @@ def test_active_points_found_between_coarse_parts():
     assert len(set(act) & set(bottom_b)) >= 1 and len(set(act) & set(top_a)) >= 1
 
 
+def test_coarse_active_points_cover_the_full_ones_near_the_gap():
+    """coarse_active_points on a surface above ``max_faces``: found on a QEM copy, carried back to the
+    vertices within one copy edge; they cover the active vertices found on the surface itself and stay near
+    the gap between the two boxes. Up to ``max_faces`` it is active_points itself; a sphere has none."""
+    import trimesh
+
+    from cagegen.envelope import coarse_active_points
+
+    boxes = []
+    for shift in ((0.0, 0.0, 0.0), (0.12, 0.15, 0.32)):
+        box = trimesh.creation.box(extents=(0.3, 0.3, 0.3)).subdivide().subdivide().subdivide()
+        box.apply_translation(shift)
+        boxes.append(box)
+    V = np.vstack([b.vertices for b in boxes])
+    F = np.vstack([boxes[0].faces, boxes[1].faces + len(boxes[0].vertices)]).astype(np.int64)
+    full = active_points(V, F, 0.025, 0.15)
+    assert len(full) > 20 and np.all(np.abs(V[full, 2] - 0.16) < 0.05)  # around the 0.02 gap
+    coarse = coarse_active_points(V, F, 0.025, 0.15, max_faces=len(F) // 4)
+    assert len(np.intersect1d(full, coarse)) >= 0.9 * len(full)
+    far = (np.abs(V[:, 2] - 0.16) > 0.15).sum()  # the far halves of the boxes
+    assert far > len(V) / 3 and np.all(np.abs(V[coarse, 2] - 0.16) <= 0.15)  # a dilation of the gap region
+    assert np.array_equal(coarse_active_points(V, F, 0.025, 0.15, max_faces=len(F)), full)
+    S, G = shapes.sphere(res=40)
+    assert len(coarse_active_points(_unit(S), G, 0.025, 0.15, max_faces=len(G) // 4)) == 0
+
+
 def test_flip_pass_never_makes_an_edge_twice(monkeypatch):
     """Octahedron: flipping two opposite equator edges would both create the pole-to-pole edge (non-manifold);
     only one of them may be applied."""

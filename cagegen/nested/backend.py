@@ -434,6 +434,37 @@ def _target_edge(V: np.ndarray, F: np.ndarray, n_faces: int) -> float:
     return float(np.sqrt(4.0 * area / (np.sqrt(3.0) * max(int(n_faces), 1))))
 
 
+#: The envelope target's grid spacing starts at its offset (marching cubes' error below the offset) and
+#: is halved, down to a quarter of it, while the envelope, without the amplification, would have fewer
+#: than this many times the target's faces. lucy.ply's first layer (25k faces from 100k) had an envelope
+#: of 21k faces at spacing 0.01: refused as too coarse after its amplification had cost ~140 CPU s. The
+#: amplification changed the face count by less than 2% on featuretype, cheburashka, homer and pepper.
+ENVELOPE_FACE_MARGIN = 1.1
+
+
+#: The envelope target finds the active points (its amplification, sdf paper Sec. 3.1) of a layer with
+#: more faces on a decimated copy of this many faces (:func:`cagegen.envelope.coarse_active_points`): on
+#: lucy.ply's 100k faces the search alone took ~140 CPU s. No zoo layer up to 20k faces changes.
+ACTIVE_POINTS_MAX_FACES = 20_000
+
+
+def _envelope_spacing(Vf, Ff, n_faces: int, offset: float) -> float:
+    """Grid spacing of the envelope target: ``offset``, halved (twice at most) while the envelope without
+    amplification (cheap: no active points) has at most :data:`ENVELOPE_FACE_MARGIN` ``n_faces`` faces.
+
+    No probe when the envelope is surely fine enough: marching cubes gave 2.1-3.3 faces per ``h²`` of F's
+    area (featuretype, cheburashka, homer, pepper, lucy at ``h = 0.01``), so ``2 area / h²`` is a bound.
+    """
+    h = offset
+    area = 0.5 * float(igl.doublearea(Vf, Ff).sum())
+    while h > offset / 4 * 1.01 and 2.0 * area / h ** 2 <= 2.0 * ENVELOPE_FACE_MARGIN * n_faces:
+        probe = build_envelope(Vf, Ff, c=offset, h=h, band=4.0 * offset, amplify=False)
+        if len(probe.F) > ENVELOPE_FACE_MARGIN * n_faces:
+            break
+        h /= 2
+    return h
+
+
 def _envelope_target(Vf, Ff, n_faces, offset):
     """Ĉ decimated from the envelope ``{d = offset}`` of the fine layer, not from the layer itself.
 
@@ -449,7 +480,9 @@ def _envelope_target(Vf, Ff, n_faces, offset):
     envelopes.
     """
     t = time.perf_counter()
-    env = build_envelope(Vf, Ff, c=float(offset), h=float(offset), band=4.0 * float(offset))
+    h = _envelope_spacing(Vf, Ff, n_faces, float(offset))
+    env = build_envelope(Vf, Ff, c=float(offset), h=h, band=4.0 * float(offset),
+                         active_max_faces=ACTIVE_POINTS_MAX_FACES)
     if len(env.F) <= n_faces:
         raise CageError(f"envelope at {offset:.3g} has {len(env.F)} faces, not more than the target")
     U, G, dinfo = decimate_surface(env.V, env.F, int(n_faces), decimator="qslim", other_decimator=False)

@@ -281,7 +281,8 @@ class _Flow:
         ex = self._exact
         if ex is None or len(ex["S"]) != len(P) or len(P) < DEEP_POINT_MIN_POINTS:
             S, I, Q, N = _signed_distance(P, self.Vc, self.Fc)
-            self._exact = {"P": P, "S": S, "I": I, "Q": Q, "N": N}
+            # copies: the cache is updated in place, the returned arrays become the flow's state
+            self._exact = {"P": P.copy(), "S": S.copy(), "I": I.copy(), "Q": Q.copy(), "N": N.copy()}
             self.I = I
             return P, S, Q, N, W
         depth = DEEP_POINT_DEPTH * self.diag

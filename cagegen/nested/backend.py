@@ -630,6 +630,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
         except CageError as exc:
             failures.append({"action": f"decimate the {what} with {alg}", "stage": "decimate", "reason": str(exc)})
             log.append({"layer": layer_no, **failures[-1]})
+            rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc}")
             continue
         n_slot = _defer_slotted(U, Vf, Ff, gap, sources, i, deferred)
         if n_slot:

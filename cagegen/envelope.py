@@ -135,8 +135,7 @@ def coarse_active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, max_f
     A = active_points(U, G, r, l)
     if len(A) == 0:
         return A
-    E = np.asarray(igl.edges(np.asarray(G, dtype=np.int64)))
-    edge = float(np.linalg.norm(U[E[:, 0]] - U[E[:, 1]], axis=1).mean())
+    edge = float(igl.avg_edge_length(U, np.asarray(G, dtype=np.int64)))
     dist, _ = cKDTree(U[A]).query(V, distance_upper_bound=edge)
     return np.flatnonzero(np.isfinite(dist))
 

@@ -458,7 +458,9 @@ def test_the_flow_queries_again_only_the_points_that_may_have_come_near_the_targ
                         lambda P, V, F: queried.append(len(P)) or exact(P, V, F))
     fl.evaluate(fl.V)
     assert queried == [len(fl.S)] and len(fl.S) < flow_module.DEEP_POINT_MIN_POINTS  # small: always exact
+    assert fl._exact is None  # ... and keeps no cache
     monkeypatch.setattr(flow_module, "DEEP_POINT_MIN_POINTS", 0)
+    fl.evaluate_here()  # the cache, at the flow's positions
 
     def check(V):
         queried.clear()

@@ -278,11 +278,12 @@ class _Flow:
         """
         P = self.B @ V
         W = np.outer(triangle_areas(V, self.Ff), self.w).ravel()  # area × rule weight per point
-        ex = self._exact
-        if ex is None or len(ex["S"]) != len(P) or len(P) < DEEP_POINT_MIN_POINTS:
+        ex = self._exact  # reset by evaluate_here whenever Ĉ or the quadrature changes
+        if ex is None or len(P) < DEEP_POINT_MIN_POINTS:
             S, I, Q, N = _signed_distance(P, self.Vc, self.Fc)
-            # copies: the cache is updated in place, the returned arrays become the flow's state
-            self._exact = {"P": P.copy(), "S": S.copy(), "I": I.copy(), "Q": Q.copy(), "N": N.copy()}
+            if len(P) >= DEEP_POINT_MIN_POINTS:  # copies: the cache is updated in place, the arrays
+                # returned become the flow's state
+                self._exact = {"P": P.copy(), "S": S.copy(), "I": I.copy(), "Q": Q.copy(), "N": N.copy()}
             self.I = I
             return P, S, Q, N, W
         depth = DEEP_POINT_DEPTH * self.diag

@@ -190,13 +190,14 @@ NEWTON_CG_MIN_SIZE = 10_000
 def _solve_spd(H: sp.spmatrix, g: np.ndarray) -> np.ndarray:
     """Solve the SPD Newton system H d = g: Jacobi-CG when large, sparse LU when small or when CG does
     not converge."""
-    H = H.tocsr()
-    diag = H.diagonal()
-    if H.shape[0] >= NEWTON_CG_MIN_SIZE and np.all(diag > 0):
-        x, info = spla.cg(H, g, rtol=NEWTON_CG_RTOL, atol=0.0, maxiter=NEWTON_CG_MAXITER,
-                          M=sp.diags(1.0 / diag))
-        if info == 0:
-            return x
+    if H.shape[0] >= NEWTON_CG_MIN_SIZE:
+        Hr = H.tocsr()
+        diag = Hr.diagonal()
+        if np.all(diag > 0):
+            x, info = spla.cg(Hr, g, rtol=NEWTON_CG_RTOL, atol=0.0, maxiter=NEWTON_CG_MAXITER,
+                              M=sp.diags(1.0 / diag))
+            if info == 0:
+                return x
     lu = spla.splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                    options={"SymmetricMode": True})
     return lu.solve(g)

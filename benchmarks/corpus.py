@@ -45,6 +45,9 @@ GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 
 
 
 # ------------------------------------------------------------------------------------------ inputs
+#: set by ``--repair`` for the case processes: every case then runs with ``--repair``
+REPAIR_ENV = "NESTMG_CORPUS_REPAIR"
+
 def read_surface(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and faces of a surface file, as ``nestmg`` reads it."""
     from nestmg.io import load_mesh
@@ -73,6 +76,8 @@ def _cli_args(command: str, mesh: Path, extra: list[str]):
     from nestmg.cli import _typed_options, build_parser
 
     out = ["--out", tempfile.mkdtemp(prefix="corpus-")] if command == "cages" else []
+    if os.environ.get(REPAIR_ENV):
+        extra = [*extra, "--repair"]
     args = build_parser().parse_args([command, str(mesh), "--levels", "3", "--no-cache", "--quiet", *out, *extra])
     _typed_options(args)  # args.sizing / .meshing / .solver, as `nestmg` builds them
     return args
@@ -161,6 +166,7 @@ def _child(kind: str, mesh: Path, arg: str, result: Path) -> None:
     except Exception as exc:  # noqa: BLE001 -- every failure is a row of the table
         rec = {"ok": False, "error": " ".join(f"{type(exc).__name__}: {exc}".split())[:400],
                "traceback": traceback.format_exc()[-1500:]}
+    rec["repair"] = bool(os.environ.get(REPAIR_ENV))
     rec["wall_seconds"] = time.perf_counter() - t
     rec["peak_mb"] = _peak_mb()
     result.write_text(json.dumps(rec, default=float))
@@ -181,7 +187,7 @@ def run_case(kind: str, mesh: Path, arg: str, timeout: float) -> dict:
             _, err = proc.communicate()
             last = [ln for ln in err.decode(errors="replace").splitlines() if ln.startswith("[nestmg]")][-2:]
             return {"ok": False, "error": f"timeout after {timeout:.0f} s", "last_stage_lines": last,
-                    "wall_seconds": time.perf_counter() - t}
+                    "wall_seconds": time.perf_counter() - t, "repair": bool(os.environ.get(REPAIR_ENV))}
         if result.exists():
             return json.loads(result.read_text())
         tail = err.decode(errors="replace").strip().splitlines()[-3:]
@@ -212,8 +218,10 @@ def solve_row(entry: dict) -> str:
     if not s:
         return f"| {entry['mesh']} | {entry['faces']:,} | not run | | | | | | | |"
     if not s.get("ok"):
-        return f"| {entry['mesh']} | {entry['faces']:,} | **failed** ({_f(s.get('wall_seconds'), '{:.0f}')} s): " \
-               f"{_err(s)} | | | | | | | |"
+        mended = " with `--repair`" if s.get("repair") else ""
+        took = _f(s.get("wall_seconds"), "{:.0f}")
+        return (f"| {entry['mesh']} | {entry['faces']:,} | **failed**{mended} ({took} s): {_err(s)} "
+                "| | | | | | | |")
     st = s["stages"]
     probs = s["problems"]
     cells = []
@@ -223,7 +231,7 @@ def solve_row(entry: dict) -> str:
                      f"{_mark(r['pcg_iterations'] <= GOALS['pcg'])}")
     oc = max(r["operator_complexity"] or 0 for r in probs.values())
     tets = " / ".join(f"{n / 1000:.0f}k" if n >= 1000 else str(n) for n in s["tets"])
-    cert = "yes" if s["certified"] else "**no**"
+    cert = ("yes" if s["certified"] else "**no**") + (" (`--repair`)" if s.get("repair") else "")
     fb = f" (fallback {[d['fallback'] for d in s['fallbacks']]})" if s.get("fallbacks") else ""
     return (f"| {entry['mesh']} | {entry['faces']:,} | {cert}{fb} | {tets} | {_f(st.get('cages'), '{:.0f}')} / "
             f"{_f(st.get('tets'), '{:.0f}')} / {s['wall_seconds']:.0f} | " + " | ".join(cells)
@@ -239,9 +247,11 @@ def cages_row(entry: dict, backends: list[str]) -> str:
             cells.append("not run")
         elif r.get("ok"):
             fb = "*" if r.get("fallbacks") else ""
-            cells.append(f"{'yes' if r['certified'] else 'no'}{fb} {r['seconds']:.0f} s")
+            mended = " (`--repair`)" if r.get("repair") else ""
+            cells.append(f"{'yes' if r['certified'] else 'no'}{fb} {r['seconds']:.0f} s{mended}")
         else:
-            cells.append(f"**fails** {_f(r.get('wall_seconds'), '{:.0f}')} s: {_err(r)[:160]}")
+            mended = " with `--repair`" if r.get("repair") else ""
+            cells.append(f"**fails**{mended} {_f(r.get('wall_seconds'), '{:.0f}')} s: {_err(r)[:160]}")
     w, n = entry.get("wheel") or {}, entry.get("cages:nested") or {}
     if w.get("ok") and n.get("ok"):
         ratio = f"{math.floor(10 * w['seconds'] / n['seconds']) / 10:.1f}x ({w['seconds']:.0f} s)"  # rounded down
@@ -399,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="reuse the wheel rows of these JSONs when they were run at the same face counts "
                          "(the wheel does not change between our commits; its runs take minutes)")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per case")
+    ap.add_argument("--repair", action="store_true",
+                    help="pass --repair to every case (for inputs the defaults refuse; the table marks them)")
     ap.add_argument("--table", type=Path, default=None, help="only rewrite --md from this JSON")
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="merge these JSONs (runs over parts of one folder, e.g. one per core) into --out")
@@ -419,6 +431,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.folder is None or args.out is None:
         ap.error("give FOLDER and --out (or --table JSON --md FILE)")
     backends = [b for b in args.backends.split(",") if b]
+    if args.repair:
+        os.environ[REPAIR_ENV] = "1"  # read by the case processes (_cli_args)
     # the command as anyone would type it: the folder and the output named, not this machine's paths
     named = {str(args.folder): "ZOO_DIR", str(args.out): f"OUT/{args.out.name}"}
     if args.md:

@@ -123,8 +123,10 @@ def check_fields(obj: Any, error: type[NestmgError] | None = None) -> None:
 class CageOptions:
     """Options every cage method takes (:func:`cagegen.build_cages`)."""
 
-    repair: bool = field_spec(False, "merge duplicate vertices, drop unreferenced ones and orient outward "
-                                     "before the audit")
+    repair: bool = field_spec(False, "merge duplicate vertices, drop unreferenced ones, flip STL caps and "
+                                     "orient outward before the audit (nestmg: an input with overlapping "
+                                     "bodies, self-intersections or pinches becomes the boundary of the "
+                                     "solid TetWild meshes)")
     min_gap: float | None = field_spec(None, "clearance between consecutive layers / bbox diagonal (default "
                                              "0; nestmg: 2.5 epsilon under TetWild)", low=0.0, kind=float,
                                        expert=True)

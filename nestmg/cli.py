@@ -485,12 +485,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"nestmg: solver error: {_one_line(exc)}", file=sys.stderr)
         return 3
     except NestmgError as exc:
-        print(f"nestmg: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"nestmg: error: {_one_line(exc)}{_repair_hint(exc, args)}", file=sys.stderr)
         return 2
     except OSError as exc:  # an output that cannot be written, e.g. --out naming an existing file
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"nestmg: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
+
+
+def _repair_hint(exc: BaseException, args) -> str:
+    """The option that mends an input refused for overlapping bodies, self-intersections or pinches."""
+    from cagegen import MeshInputError
+
+    mendable = ("self-intersections", "non-manifold", "several connected components")
+    if (isinstance(exc, MeshInputError) and not getattr(args, "repair", True)
+            and any(w in str(exc) for w in mendable) and "open boundary" not in str(exc)):
+        return " (--repair meshes the solid it encloses with TetWild and uses that boundary)"
+    return ""
 
 
 def _one_line(exc: BaseException) -> str:

@@ -388,6 +388,8 @@ def build_cage_surfaces(
     face_counts = None if sizing.face_counts is None else list(sizing.face_counts)
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
+    _normalize(V)  # the scale checks, before any work
+    V, F, solid = _solid_input(V, F, cages, meshing, t0)
     Vn, center, scale = _normalize(V)
     # `levels` is a ceiling (the levels that fit F's faces, one line when fewer); explicit face counts are
     # checked here, before the audit: both in microseconds
@@ -426,7 +428,46 @@ def build_cage_surfaces(
     out = [(V, F) if same else (V0 * scale + center, F0)] + [(Vk * scale + center, Fk) for Vk, Fk in surfaces[1:]]
     info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_options=as_dict(cages),
                 levels=lp.to_dict())
+    if solid is not None:
+        info["solid"] = solid
     return out, info
+
+
+def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t0) -> tuple:
+    """With ``repair`` on, an input whose audit fails for what TetWild can mend (overlapping bodies,
+    self-intersections, pinches) is replaced by the boundary of its solid
+    (:func:`nestmg.solid.solid_surface`).
+
+    Returns ``(V, F, info)``: the input itself and None when nothing had to be mended. One stage line
+    says what was done; several disjoint bodies are refused with a one-line error.
+    """
+    import cagegen
+
+    from .solid import UNREPAIRABLE, solid_surface
+
+    if not getattr(cages, "repair", False):
+        return V, F, None
+    Vn, center, scale = _normalize(V)  # TetWild works in the normalised frame
+    Vr, Fr = cagegen.repair_mesh(Vn, F)
+    problems = cagegen.audit_mesh(Vr, Fr).problems
+    if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
+        return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
+    t = time.perf_counter()
+    W, G, info = solid_surface(Vr, Fr, epsilon=meshing.epsilon)
+    W = W * scale + center
+    info = dict(info, volume=info["volume"] * scale**3, volume_dropped=info["volume_dropped"] * scale**3,
+                volume_filled=info["volume_filled"] * scale**3)
+    info["problems"] = [p.split(":")[0] for p in problems]
+    if info["bodies"] > 1:
+        raise cagegen.MeshInputError(
+            f"input: {info['bodies']} separate bodies (after the repair of: {', '.join(info['problems'])}); "
+            "a hierarchy is built for one solid: split the file (cagegen.split_components) and run each "
+            "piece, or cagegen.build_cages(..., components='separate') for cages only")
+    dropped, filled = info["volume_dropped"] / info["volume"], info["volume_filled"] / info["volume"]
+    stage_line(f"repair: {', '.join(info['problems'])} -> the boundary of the solid TetWild meshed: "
+               f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%} "
+               f"({time.perf_counter() - t:.1f} s)", t0)
+    return W, G, info
 
 
 def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio: float = 1.0,
@@ -687,6 +728,9 @@ def build_hierarchy(
     Vn, center, scale = _normalize(V)
     if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or F.min() < 0 or F.max() >= len(V):
         raise cagegen.MeshInputError(f"input: faces must be a non-empty (m,3) array of vertex indices, got {F.shape}")
+    V, F, solid = _solid_input(V, F, cages, meshing, t0)
+    if solid is not None:  # the repaired surface is the input from here on (returned as level 0's surface)
+        Vn, center, scale = _normalize(V)
     # 1. sizes first: milliseconds, before any expensive stage
     plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine)
     levels_asked, levels = levels, plan.n_levels  # --levels is a ceiling: the levels that fit the input
@@ -707,6 +751,8 @@ def build_hierarchy(
                                                cages=cages, cache=cache, progress=progress, t0=t0,
                                                audit=audit)
     info["predecimation"] = pre
+    if solid is not None:
+        info["solid"] = solid
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
                f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)
     surfaces_n = [surfaces_u[0]] * n_same + list(surfaces_u)  # same-domain layers first

@@ -1,0 +1,111 @@
+"""``repair`` through the pipeline: overlapping bodies and pinches become the boundary of TetWild's solid
+(:mod:`nestmg.solid`), and the CLI names ``--repair`` when it refuses such an input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from cagegen import MeshInputError, audit_mesh
+from cagegen._geometry import signed_volume
+from nestmg.solid import solid_surface
+
+
+def _two_balls(shift: float = 1.0, subdivisions: int = 2):
+    """Two unit icospheres whose centres are ``shift`` apart along x, as one (V, F): overlapping for < 2."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces, dtype=np.int64)
+    return np.vstack([V, V + [shift, 0.0, 0.0]]), np.vstack([F, F + len(V)])
+
+
+def _union_volume(V, F, n: int = 64) -> float:
+    """Volume where the winding number of either ball exceeds 1/2, on an n^3 grid of cell centres."""
+    import igl
+
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    axes = [lo[i] + (np.arange(n) + 0.5) * (hi[i] - lo[i]) / n for i in range(3)]
+    Q = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    half = len(F) // 2
+    inside = np.zeros(len(Q), dtype=bool)
+    for G in (F[:half], F[half:]):
+        inside |= np.abs(igl.fast_winding_number(V, G, Q)) > 0.5
+    return float(inside.mean() * np.prod(hi - lo))
+
+
+def test_overlapping_balls_become_one_clean_solid():
+    V, F = _two_balls(1.0)
+    problems = [p.split(":")[0] for p in audit_mesh(V, F).problems]
+    assert "self-intersections" in problems and "several connected components" in problems
+    W, G, info = solid_surface(V, F)
+    assert audit_mesh(W, G).ok  # closed, manifold, one piece, outward, no self-intersection
+    assert info["bodies"] == 1 and info["volume_filled"] < 1e-3 * info["volume"]
+    union = _union_volume(V, F)  # two balls minus their lens: ~7.0, one ball ~4.1
+    assert signed_volume(W, G) == pytest.approx(union, rel=0.01)
+    assert info["volume"] == pytest.approx(signed_volume(W, G), rel=1e-6)
+    # within TetWild's envelope (1e-3 of the diagonal) of the input where the input was a clean boundary
+    far = np.linalg.norm(W - [0.5, 0.0, 0.0], axis=1) > 1.2  # away from the intersection circle
+    r = np.minimum(np.linalg.norm(W, axis=1), np.linalg.norm(W - [1.0, 0.0, 0.0], axis=1))
+    assert np.abs(r[far] - 1.0).max() < 0.02  # icosphere facets: radius 0.98-1 between vertices
+
+
+def test_balls_touching_at_a_point_are_two_bodies():
+    """A pinch (two solids meeting at one point) is opened, not kept as a non-manifold vertex."""
+    V, F = _two_balls(2.0)
+    W, G, info = solid_surface(V, F)
+    problems = [p.split(":")[0] for p in audit_mesh(W, G).problems]
+    assert problems == ["several connected components"] and info["bodies"] == 2
+    assert info["pinch_rounds"] >= 1  # TetWild's mesh pinched at the contact; the smaller fan was removed
+    assert signed_volume(W, G) == pytest.approx(_union_volume(V, F), rel=0.01)
+
+
+def test_pipeline_refuses_disjoint_bodies_after_the_repair():
+    from cagegen import NestedOptions
+    from nestmg.hierarchy import build_cage_surfaces
+
+    V, F = _two_balls(2.5)
+    with pytest.raises(MeshInputError, match=r"2 separate bodies .*split the file"):
+        build_cage_surfaces(V, F, 2, "nested", cages=NestedOptions(repair=True), cache=False, progress=False)
+
+
+def _write_obj(path, V, F) -> None:
+    path.write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in V.tolist())
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F.tolist()))
+
+
+def test_cli_names_repair_then_cages_the_union(tmp_path, capsys):
+    from nestmg.cli import main
+
+    V, F = _two_balls(1.0)
+    V = V * 40.0 + [100.0, -20.0, 5.0]  # the user's units: the files written must be in them
+    src = tmp_path / "balls.obj"
+    _write_obj(src, V, F)
+    before = src.read_bytes()
+    rc = main(["cages", str(src), "--levels", "2", "--out", str(tmp_path / "a"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "self-intersections" in err and "--repair" in err and "\n" not in err.strip()
+    rc = main(["cages", str(src), "--levels", "2", "--repair", "--out", str(tmp_path / "b"), "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    assert src.read_bytes() == before
+    rep = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert rep["certified"] is True and rep["solid"]["bodies"] == 1
+    layer0 = trimesh.load(tmp_path / "b" / "layer_0.obj", process=False)
+    W, G = np.asarray(layer0.vertices), np.asarray(layer0.faces)
+    assert audit_mesh(W, G).ok
+    assert signed_volume(W, G) == pytest.approx(_union_volume(V, F), rel=0.01)  # user's units (40^3)
+
+
+def test_specks_touching_the_solid_at_a_vertex_are_dropped():
+    """Tets are grouped through shared faces only: a tiny tet hanging from a corner is its own group."""
+    from nestmg.solid import _drop_specks
+
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    T = np.array([[0, 1, 3, 5], [0, 3, 2, 6], [0, 5, 4, 6], [3, 5, 7, 6], [0, 3, 6, 5]])  # 5 tets, volume 1
+    speck = np.array([[1.0, 1, 1], [1.01, 1, 1], [1, 1.01, 1], [1, 1, 1.01]])  # shares vertex 7 only
+    V = np.vstack([cube, speck[1:]])
+    Ts = np.vstack([T, [[7, 8, 9, 10]]])
+    kept, dropped = _drop_specks(V, Ts)
+    np.testing.assert_array_equal(kept, T)
+    assert dropped == pytest.approx(0.01**3 / 6)

@@ -1278,10 +1278,11 @@ def corpus_errors() -> str:
     for m in _corpus()["meshes"]:
         s = m.get("solve") or {}
         if s.get("ok"):
-            counts.setdefault("certified hierarchy, solved", []).append(m["mesh"])
+            mended = " (with `--repair`)" if s.get("repair") else ""
+            counts.setdefault(f"certified hierarchy, solved{mended}", []).append(m["mesh"])
             continue
         err = str(s.get("error") or m.get("skipped") or "?")
-        kind = err.split(":")[0] if ":" in err else err
+        kind = (err.split(":")[0] if ":" in err else err) + (" (with `--repair`)" if s.get("repair") else "")
         counts.setdefault(kind, []).append(m["mesh"])
     rows = [[k, len(v), ", ".join(sorted(v))] for k, v in sorted(counts.items(), key=lambda kv: -len(kv[1]))]
     return table(["`nestmg solve` outcome", "meshes", "which"], rows)

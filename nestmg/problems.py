@@ -34,10 +34,16 @@ from .errors import NestmgInputError
 if TYPE_CHECKING:
     from .options import SolverOptions
 
-__all__ = ["COARSE", "FAST_NEUMANN_SMOOTHERS", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
+__all__ = ["COARSE", "FAST_NEUMANN_SMOOTHERS", "FACTOR_GOALS", "FAST_SMOOTHERS", "PROBLEMS", "SMOOTHING", "Problem", "default_rhs", "setup_problem",
            "volume_fractions"]
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+
+#: The V-cycle factor the defaults aim at, per problem (issue 27, item 3): :meth:`Problem.multigrid`
+#: deflates the slow modes of a level whose probe is above it (``MultigridSolver(deflate_goal=)``; other
+#: problems: :data:`solvers.deflation.DEFLATION_GOAL`). On idler_riser.stl one TetWild mesh in three left
+#: one Dirichlet mode at 0.21-0.26 under the former single goal 0.3; deflated, 0.14.
+FACTOR_GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
 
 def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coarse_nu: int | None = None) -> list:
     """Per-level smoother specs of the pipeline's variable V-cycle, finest level first.
@@ -143,7 +149,8 @@ class Problem:
             * ``coarse_scaling``: ``"auto"`` is ``"energy"`` with re-discretised or weighted coarse
               operators (they are not energy projections; docs/coarse.md), None with Galerkin ones.
             * every level, the finest included (``probe_finest=True``), is probed for a few slow modes,
-              which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off);
+              which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off) when the
+              probe is above the problem's goal (:data:`FACTOR_GOALS`);
             * ``cycle`` (default V) becomes the solver's :attr:`~solvers.MultigridSolver.cycle`, the one its
               ``solve`` and ``aspreconditioner`` run when given none.
 
@@ -175,6 +182,8 @@ class Problem:
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
         kwargs.setdefault("deflate", DEFAULT_DEFLATE)  # the bare MultigridSolver's default is 0
+        if self.name in FACTOR_GOALS:
+            kwargs.setdefault("deflate_goal", FACTOR_GOALS[self.name])
         kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run
         kwargs.setdefault("cycle", o.cycle)  # the cycle of solve() and aspreconditioner() given none
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,

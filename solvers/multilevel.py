@@ -27,7 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
-from .deflation import slow_modes, with_deflation
+from .deflation import DEFLATION_GOAL, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
                        permute_prolongation, permute_symmetric)
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
@@ -272,9 +272,13 @@ class MultigridSolver:
         :data:`DEFAULT_DEFLATE`). Every level between the finest and the
         coarsest is probed at setup with :data:`solvers.deflation.PROBE_CYCLES` cycles of its own (about
         one fine cycle in all on a hierarchy coarsening 8x per level); where the error survives them
-        (factor above :data:`solvers.deflation.DEFLATION_GOAL`), the slowest modes are found by a few more
+        (factor above ``deflate_goal``), the slowest modes are found by a few more
         Lanczos steps and corrected exactly inside the cycle (:mod:`solvers.deflation`). Only linear
         symmetric cycles are probed (not with ``coarse_scaling``).
+    deflate_goal : float
+        The per-cycle factor a probed level must meet before its slow modes are deflated (default
+        :data:`solvers.deflation.DEFLATION_GOAL`, 0.3; ``nestmg``'s problems pass their own goal,
+        :data:`nestmg.problems.FACTOR_GOALS`: 0.2 for Dirichlet).
     probe_finest : bool
         Probe (and deflate) the finest level too: its probe costs about as much as one solve, so it is
         off by default here and on in ``nestmg``'s problems (:meth:`nestmg.problems.Problem.multigrid`),
@@ -331,6 +335,7 @@ class MultigridSolver:
         deflate: int = 0,
         probe_finest: bool = False,
         cycle: str = "V",
+        deflate_goal: float = DEFLATION_GOAL,
     ):
         t0 = time.perf_counter()
         #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
@@ -367,6 +372,9 @@ class MultigridSolver:
             len(self.levels) == 1
             or all(_smoothers_adjoint(L.presmoother, L.postsmoother) for L in self.levels[:-1])
         )
+        if not 0.0 < deflate_goal < 1.0:
+            raise SolverInputError(f"deflate_goal must be in (0, 1), got {deflate_goal!r}")
+        self.deflate_goal = float(deflate_goal)
         self.deflation = self._deflate(deflate, probe_finest)
         self.setup_seconds = time.perf_counter() - t0
 
@@ -452,7 +460,7 @@ class MultigridSolver:
             neumann = self.nullspace == "constant"
             kernel = self._level_kernel(k)
             Z, info = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
-                                 max_vectors=int(max_vectors))
+                                 max_vectors=int(max_vectors), goal=self.deflate_goal)
             info["level"] = k
             if Z.shape[1]:
                 pre, post = L.presmoother, L.postsmoother

@@ -174,3 +174,19 @@ def test_pipeline_cycle_probes_every_level(torus_iso_tets):
     ml = setup_problem(tets, P, "poisson-neumann").multigrid()
     assert [d["level"] for d in ml.deflation] == list(range(len(ml.levels) - 1))
     assert all(0.0 < d["probe_factor"] < 1.0 for d in ml.deflation)
+
+
+def test_each_problem_deflates_down_to_its_own_goal(torus_iso_tets):
+    """Problem.multigrid() probes against the problem's goal (FACTOR_GOALS: Dirichlet 0.2, else 0.3)."""
+    from nestmg.problems import FACTOR_GOALS
+
+    _, tets, P, _ = torus_iso_tets
+    for name, goal in FACTOR_GOALS.items():
+        pr = setup_problem(tets, P, name)
+        ml = pr.multigrid()
+        assert ml.deflate_goal == goal
+        _, info = ml.solve(pr.b, tol=1e-10, maxiter=60, return_info=True)
+        slow = [d for d in ml.deflation if d["probe_factor"] > goal]
+        assert all(d["vectors"] > 0 or d.get("reverted") or d.get("slow_modes_found", 0) > 8 for d in slow)
+        if name == "poisson-dirichlet":
+            assert info["factor"] <= goal, info["factor"]

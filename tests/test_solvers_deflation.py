@@ -194,3 +194,24 @@ def test_elasticity_deflation_cuts_mg_pcg_iterations(elastic_piece):
         assert np.linalg.norm(Q.T @ x) <= 1e-12 * np.linalg.norm(x)
         assert np.linalg.norm(bp - K @ x) <= 1.01e-8 * np.linalg.norm(bp)
     assert np.linalg.norm(xs[1] - xs[0]) <= 1e-5 * np.linalg.norm(xs[0])
+
+
+def test_the_goal_decides_which_modes_are_deflated(pieces):
+    """A goal above every slow mode deflates nothing; the default goal deflates the weakly attached pieces."""
+    K, Ps = pieces
+    lax = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, deflate_goal=0.95)
+    strict = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True)
+    assert strict.deflate_goal == DEFLATION_GOAL
+    assert lax.deflation[0]["probe_factor"] > 0.8 and all(d["vectors"] == 0 for d in lax.deflation)
+    assert strict.deflation[0]["vectors"] > 0
+    theta = np.r_[0.9, 0.6, 0.45, 0.25, np.linspace(0.15, 0.01, 196)]
+    counts = [slow_modes(lambda x: x.__imul__(theta), sp.identity(200, format="csr"), goal=g)[1]["vectors"]
+              for g in (0.3, 0.2)]
+    assert counts == [3, 4]
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.0, -0.2])
+def test_deflate_goal_must_be_a_factor(pieces, bad):
+    K, Ps = pieces
+    with pytest.raises(SolverInputError, match="deflate_goal"):
+        MultigridSolver(K, Ps, nullspace="constant", deflate_goal=bad)

@@ -98,7 +98,8 @@ def _unpinch(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, int]:
         for v in bad:
             around = VT.indices[VT.indptr[v]:VT.indptr[v + 1]]
             # two tets through v are joined when they share a face through v: 3 shared nodes, v one of them
-            shared = (VT[:, around].T @ VT[:, around]).toarray()
+            Ta = T[around]
+            shared = (Ta[:, None, :, None] == Ta[None, :, None, :]).sum(axis=(2, 3))
             _, lab = connected_components(sp.csr_matrix(shared >= 3), directed=False)
             best = np.argmax(np.bincount(lab, weights=vol[around]))
             drop[around[lab != best]] = True

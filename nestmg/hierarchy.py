@@ -458,6 +458,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     info = dict(info, volume=info["volume"] * scale**3, volume_dropped=info["volume_dropped"] * scale**3,
                 volume_filled=info["volume_filled"] * scale**3)
     info["problems"] = [p.split(":")[0] for p in problems]
+    info["seconds"] = time.perf_counter() - t
     if info["bodies"] > 1:
         raise cagegen.MeshInputError(
             f"input: {info['bodies']} separate bodies (after the repair of: {', '.join(info['problems'])}); "
@@ -466,7 +467,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     dropped, filled = info["volume_dropped"] / info["volume"], info["volume_filled"] / info["volume"]
     stage_line(f"repair: {', '.join(info['problems'])} -> the boundary of the solid TetWild meshed: "
                f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%} "
-               f"({time.perf_counter() - t:.1f} s)", t0)
+               f"({info['seconds']:.1f} s)", t0)
     return W, G, info
 
 

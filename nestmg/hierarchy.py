@@ -452,6 +452,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     problems = cagegen.audit_mesh(Vr, Fr).problems
     if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
         return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
+    _refuse_disjoint_bodies(Vr, Fr)  # in seconds, before TetWild would find them
     t = time.perf_counter()
     W, G, info = solid_surface(Vr, Fr, epsilon=meshing.epsilon)
     W = W * scale + center
@@ -469,6 +470,24 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
                f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%} "
                f"({info['seconds']:.1f} s)", t0)
     return W, G, info
+
+
+def _refuse_disjoint_bodies(V: np.ndarray, F: np.ndarray) -> None:
+    """One line for an input of several bodies that neither overlap nor nest: no repair makes them one solid."""
+    import cagegen
+    from cagegen.components import check_components_disjoint
+
+    pieces = cagegen.split_components(V, F)
+    if len(pieces) < 2:
+        return
+    try:
+        check_components_disjoint(pieces)
+    except cagegen.MeshInputError:
+        return  # overlapping or nested pieces: TetWild's solid is their union
+    raise cagegen.MeshInputError(
+        f"input: {len(pieces)} disjoint bodies; a hierarchy is built for one solid: split the file "
+        "(cagegen.split_components) and run each piece, or cagegen.build_cages(..., components='separate') "
+        "for cages only")
 
 
 def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio: float = 1.0,

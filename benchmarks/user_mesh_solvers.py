@@ -84,7 +84,7 @@ VARIANTS = {
     # an explicit spec equal to the default: two sweeps on every level (no one-sweep dense levels)
     "forward_gs2_uniform": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 2})},
     "chebyshev3": {"presmoother": ("chebyshev", {"degree": 3})},
-    # Neumann only: one forward / backward sweep over the fine boundary layer
+    # natural (Neumann, diffusion) boundaries only: one forward / backward sweep over the fine boundary layer
     # (solvers.fem.boundary_layer_nodes)
     "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
     "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
@@ -343,7 +343,7 @@ def run(args) -> dict:
         for c in cases:
             for prob in args.problems:
                 for sname in solvers:
-                    if sname == "nestmg_boundary_layer" and prob != "neumann":
+                    if sname == "nestmg_boundary_layer" and prob == "dirichlet":  # Neumann boundaries only
                         continue
                     r = run_one(c, prob, sname, args.tol)
                     r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
@@ -353,7 +353,8 @@ def run(args) -> dict:
                           f"setup {r['setup_seconds']:.3f} solve {r['solve_seconds']:.3f} (CPU "
                           f"{r['setup_cpu_seconds']:.3f} + {r['solve_cpu_seconds']:.3f}) it {r['iterations']}",
                           flush=True)
-    out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+    out = {"code": args.label, "tol": args.tol, "repeats": args.repeats,
+           "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "solvers": solvers, "cases": []}
     for c in cases:
         cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside", "build")}
@@ -621,6 +622,7 @@ def main(argv=None):
                         "same matrix and right-hand side")
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
+    r.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
     r.add_argument("--json", type=Path, default=None)
     pr = sub.add_parser("profile", help="cProfile of the MultigridSolver set-up on one case")
     pr.add_argument("case", type=Path)

@@ -559,6 +559,9 @@ def diagnose_case(work: Path, tol: float, cycles: int) -> dict:
                     "layer_two_symmetric": (A, Ps, {"local_nodes": layer, "local_sweeps": 2,
                                                     "local_levels": 1}),
                     "split_layer_columns": (A, _split_boundary_columns(Ps, layer), {})}
+        if prob != "dirichlet":  # the boundary nodes alone
+            variants["boundary_two_symmetric"] = (A, Ps, {"local_nodes": bnd, "local_sweeps": 2,
+                                                          "local_levels": 1})
         if prob == "neumann":
             on = np.zeros(len(V), bool)
             on[bnd] = True
@@ -590,9 +593,10 @@ def diagnose(args) -> dict:
     over the diagonal of the layer's rows and of the others, the boundary tets' shapes, and MG-PCG
     iterations of the default against: a two-grid cycle with an exact first coarse level (is it the coarse
     levels?), six sweeps on every level (the smoother?), two extra symmetric sweeps on the layer (the
-    smoother at the boundary?), the first coarse nodes that reach the layer split in two (the coarse space
-    at the boundary?), and, Neumann only, the matrix without the tets whose four nodes are on the boundary
-    (the flat surface tets?). One run each (iterations, not times, are the point)."""
+    smoother at the boundary?) and on the boundary nodes alone, the first coarse nodes that reach the layer
+    split in two (the coarse space at the boundary?), and, Neumann only, the matrix without the tets whose
+    four nodes are on the boundary (the flat surface tets?). One run each (iterations, not times, are the
+    point)."""
     return {"tol": args.tol, "cycles": args.cycles,
             "cases": [diagnose_case(Path(w), args.tol, args.cycles) for w in args.cases]}
 

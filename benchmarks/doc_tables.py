@@ -322,6 +322,17 @@ def usermesh_setup() -> str:
             f"{len(cpu)} cases")
 
 
+#: the 12-case run before the symmetric Galerkin product (code 7afcb23), kept for comparison
+USER_SOLVERS_BEFORE = "user_mesh/solvers_7afcb23.json"
+
+
+@generator("usermesh.setup_before", USER_SOLVERS_BEFORE)
+def usermesh_setup_before() -> str:
+    d = load(USER_SOLVERS_BEFORE)
+    cpu = [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in _user_problems(d)]
+    return f"{rng(cpu, '.2f')}x, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases"
+
+
 @generator("usermesh.deflate", USER_SOLVERS)
 def usermesh_deflate() -> str:
     d = load(USER_SOLVERS)
@@ -473,31 +484,61 @@ def usermesh_rows() -> str:
 
 @generator("usermesh.layer", USER_SOLVERS)
 def usermesh_layer() -> str:
-    plain = _user_nestmg("iterations", ("neumann",))
-    layer = _user_nestmg("iterations", ("neumann",), "nestmg_boundary_layer")
-    tp = _user_nestmg("solve_cpu_seconds", ("neumann",))
-    tl = _user_nestmg("solve_cpu_seconds", ("neumann",), "nestmg_boundary_layer")
-    return (f"{rng(layer, 'd')} instead of {rng(plain, 'd')} CG iterations, solve CPU time x"
-            f"{rng([b / a for a, b in zip(tp, tl)], '.2f')}")
-
-
-def _kernel_seconds(rel: str, prob: str, names: tuple) -> float:
-    top = load(rel)["problems"][prob]["top_tottime"]
-    return sum(t["tottime"] for t in top if any(n in t["function"] for n in names))
-
-
-@generator("usermesh.kernels", *USER_PROFILE)
-def usermesh_kernels() -> str:
+    d = load(USER_SOLVERS)
     parts = []
-    for label, names in (("sparse products (`csr_matmat` + `csr_matmat_maxnnz`)", ("csr_matmat",)),
-                         ("coarsest factorisation (SuperLU `gstrf` / LAPACK Cholesky)",
-                          ("gstrf", "_cholesky"))):
-        probs = ("dirichlet", "neumann", "diffusion")
-        b = [_kernel_seconds(rel, p, names) for rel in USER_PROFILE[::2] for p in probs
-             if p in load(rel)["problems"]]
-        a = [_kernel_seconds(rel, p, names) for rel in USER_PROFILE[1::2] for p in probs
-             if p in load(rel)["problems"]]
-        parts.append(f"{label} {rng(b, '.2f')} s before, {rng(a, '.2f')} s after")
+    for p in ("neumann", "diffusion"):
+        for kind in ("TetGen", "TetWild"):
+            s = [c["problems"][p]["solvers"] for c in d["cases"]
+                 if p in c["problems"] and (kind == "TetGen") == ("TetGen" in c["label"])]
+            s = [x for x in s if "nestmg_boundary_layer" in x]
+            if s:
+                its = rng([x["nestmg_boundary_layer"]["iterations"] for x in s], "d")
+                ratio = rng([x["nestmg_boundary_layer"]["solve_ratio_vs_first"] for x in s], ".2f")
+                parts.append(f"{p} on the {kind} meshes {its} instead of "
+                             f"{rng([x['nestmg']['iterations'] for x in s], 'd')} CG iterations, solve CPU "
+                             f"time x{ratio}")
+    return "; ".join(parts)
+
+
+USER_DIAGNOSIS = ("user_mesh/neumann_diagnosis.json", "user_mesh/neumann_diagnosis_tetwild_207dda0.json")
+
+
+def _diagnosis_cases() -> list:
+    return [c for rel in USER_DIAGNOSIS for c in load(rel)["cases"]]
+_DIAGNOSIS_COLUMNS = {"default": "default", "two_grid_exact": "exact first coarse level",
+                      "six_sweeps": "6 sweeps", "boundary_two_symmetric": "+2 boundary sweeps",
+                      "layer_two_symmetric": "+2 layer sweeps",
+                      "split_layer_columns": "split layer columns",
+                      "without_flat_boundary_tets": "no flat boundary tets"}
+
+
+@generator("usermesh.neumann", *USER_DIAGNOSIS)
+def usermesh_neumann() -> str:
+    rows = []
+    for c in _diagnosis_cases():
+        for p, r in c["problems"].items():
+            its = [str(r["cg"][k]["iterations"]) if k in r["cg"] else "–" for k in _DIAGNOSIS_COLUMNS]
+            rows.append([f"{c['label']} ({c['tets']:,})", p, f"{r['stationary_factor']:.2f}",
+                         f"{100 * r['slow_error_on_layer']:.0f}% ({100 * r['layer_share']:.0f}%)"] + its)
+    return table(["user mesh (fine tets)", "problem", "V-cycle factor",
+                  "slow error on the layer (layer's share of unknowns)"]
+                 + [f"CG it: {v}" for v in _DIAGNOSIS_COLUMNS.values()], rows)
+
+
+@generator("usermesh.neumann_rows", *USER_DIAGNOSIS)
+def usermesh_neumann_rows() -> str:
+    parts = []
+    for kind in ("TetGen", "TetWild"):
+        cs = [c for c in _diagnosis_cases() if (kind == "TetGen") == ("TetGen" in c["label"])]
+        if not cs:
+            continue
+        flat = rng([100 * c["quality"]["all_boundary_tets"] for c in cs], ".2f")
+        bad = rng([100 * c["quality"]["all_boundary_tets_over_150"] for c in cs], ".0f")
+        pos = [c["problems"]["neumann"]["positive_offdiagonal_over_diagonal_median"] for c in cs]
+        layer, other = (rng([100 * x[k] for x in pos], ".0f") for k in ("layer", "other"))
+        parts.append(f"{kind}: {flat}% of the tets have four boundary nodes, {bad}% of those a dihedral "
+                     f"angle above 150°; positive off-diagonals sum to {layer}% of the diagonal in the "
+                     f"median layer row, {other}% in the others")
     return "; ".join(parts)
 
 
@@ -524,14 +565,6 @@ def usermesh_cycles() -> str:
     return table(["user mesh (fine tets)", "problem"] + [_CYCLE_LABELS.get(n, n) for n in names], rows)
 
 
-def _func_label(f: str) -> str:
-    """``csr_matmat`` from cProfile's ``~:0(<built-in method scipy.sparse._sparsetools.csr_matmat>)``,
-    ``argsort`` from ``~:0(<method 'argsort' of ...>)``, ``_reorder`` from ``multilevel.py:371(_reorder)``."""
-    m = (re.search(r"built-in method ([\w.]+)>", f) or re.search(r"<method '(\w+)'", f)
-         or re.search(r"\((\w+)\)$", f))
-    return m.group(1).split(".")[-1] if m else f
-
-
 @generator("usermesh.sym_ratio", *USER_PROFILE)
 def usermesh_sym_ratio() -> str:
     def ratios(rels):
@@ -539,23 +572,6 @@ def usermesh_sym_ratio() -> str:
     b, a = ratios(USER_PROFILE[::2]), ratios(USER_PROFILE[1::2])
     return (f"{rng(b, '.2f')}x before, {rng(a, '.2f')}x after (at most 0.4x in {sum(x <= 0.4 for x in b)} of "
             f"{len(b)} runs before, {sum(x <= 0.4 for x in a)} of {len(a)} after)")
-
-
-@generator("usermesh.profile", *USER_PROFILE)
-def usermesh_profile() -> str:
-    rows = []
-    for i, rel in enumerate(USER_PROFILE):
-        d = load(rel)
-        when = f"{d.get('code', ('before (base commit)', 'after')[i % 2])}, run {i // 2 + 1}"
-        for p, r in d["problems"].items():
-            top = "; ".join(f"`{_func_label(t['function'])}` {t['tottime']:.2f}"
-                            for t in r["top_tottime"][:5])
-            cpu = r.get("setup_cpu_ratio_vs_sa_median")
-            rows.append([when, p, f"{r['setup_cpu_seconds_median']:.2f}",
-                         f"{r['pyamg_sa_setup_cpu_seconds_median']:.2f}",
-                         f"{r['setup_ratio_vs_sa_median']:.2f}", "–" if cpu is None else f"{cpu:.2f}", top])
-    return table(["code", "problem", "MultigridSolver setup, CPU s", "pyamg SA setup, CPU s", "ratio (wall)",
-                  "ratio (CPU)", "top 5 by own CPU time under cProfile (s)"], rows)
 
 
 # ----------------------------------------------------------------------------------------- PETSc

@@ -12,6 +12,9 @@ right-hand side, to ``--tol``. Two stages::
     # the solver comparison on saved cases: setup + solve, interleaved repeats, medians
     OMP_NUM_THREADS=1 python benchmarks/user_mesh_solvers.py run WORK/bunny-tetgen WORK/spot-tetwild ... \\
         --repeats 3 --json benchmarks/results/user_mesh/solvers.json
+    # where the default cycle is slow (Neumann on TetGen meshes) and what helps: iterations, one run each
+    OMP_NUM_THREADS=1 python benchmarks/user_mesh_solvers.py diagnose WORK/bunny-tetgen ... \
+        --json benchmarks/results/user_mesh/neumann_diagnosis.json
 
 ``build`` writes ``user_mesh.vtu`` (the user's file) and ``hierarchy/`` (:func:`nestmg.save_hierarchy`) in
 its work directory and is skipped when they exist.
@@ -81,7 +84,7 @@ VARIANTS = {
     # an explicit spec equal to the default: two sweeps on every level (no one-sweep dense levels)
     "forward_gs2_uniform": {"presmoother": ("gauss_seidel", {"sweep": "forward", "iterations": 2})},
     "chebyshev3": {"presmoother": ("chebyshev", {"degree": 3})},
-    # Neumann only: one forward / backward sweep over the fine boundary layer
+    # natural (Neumann, diffusion) boundaries only: one forward / backward sweep over the fine boundary layer
     # (solvers.fem.boundary_layer_nodes)
     "boundary_layer": {"local_sweep": "one-way", "local_levels": 1},
     "forward_gs_coarse2": {"presmoother": [("gauss_seidel", {"sweep": "forward", "iterations": 1}),
@@ -340,7 +343,7 @@ def run(args) -> dict:
         for c in cases:
             for prob in args.problems:
                 for sname in solvers:
-                    if sname == "nestmg_boundary_layer" and prob != "neumann":
+                    if sname == "nestmg_boundary_layer" and prob == "dirichlet":  # Neumann boundaries only
                         continue
                     r = run_one(c, prob, sname, args.tol)
                     r["total_seconds"] = r["setup_seconds"] + r["solve_seconds"]
@@ -350,7 +353,8 @@ def run(args) -> dict:
                           f"setup {r['setup_seconds']:.3f} solve {r['solve_seconds']:.3f} (CPU "
                           f"{r['setup_cpu_seconds']:.3f} + {r['solve_cpu_seconds']:.3f}) it {r['iterations']}",
                           flush=True)
-    out = {"tol": args.tol, "repeats": args.repeats, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+    out = {"code": args.label, "tol": args.tol, "repeats": args.repeats,
+           "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "solvers": solvers, "cases": []}
     for c in cases:
         cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside", "build")}
@@ -459,6 +463,144 @@ def cycle_cost(args) -> dict:
     return out
 
 
+def _slow_error(ml, cycles: int) -> tuple[np.ndarray, float]:
+    """The error left by ``cycles`` V-cycles on ``A x = 0`` from a seeded random start (the caller's order)
+    and the last cycle's reduction of its energy norm: the stationary cycle's slowest components."""
+    L = ml.levels[0]
+    zero = np.zeros(L.A.shape[0])
+    x = np.random.default_rng(0).standard_normal(L.A.shape[0])
+    factor = np.nan
+    for _ in range(cycles):
+        x -= x.mean() if ml.nullspace else 0.0
+        before = np.sqrt(x @ (L.A @ x))
+        ml._cycle(0, x, zero, "V")
+        x -= x.mean() if ml.nullspace else 0.0
+        factor = float(np.sqrt(x @ (L.A @ x)) / before)
+    return ml._to_caller(x), factor
+
+
+def _split_boundary_columns(Ps: list, rows: np.ndarray) -> list:
+    """``Ps`` with every first-level coarse node that reaches a fine node of ``rows`` split in two (its
+    entries in ``rows``, its entries elsewhere; the copy interpolated from the next level as the original):
+    a coarse space that can move the fine boundary layer apart from the interior. Rows still sum to 1."""
+    import scipy.sparse as sp
+
+    P0 = sp.csr_matrix(Ps[0])
+    mask = np.zeros(P0.shape[0], bool)
+    mask[rows] = True
+    inside, layer = sp.diags((~mask).astype(float)) @ P0, sp.diags(mask.astype(float)) @ P0
+    cols = np.unique(sp.csr_matrix(layer).indices)
+    out = [sp.csr_matrix(sp.hstack([inside, layer[:, cols]]))]
+    if len(Ps) > 1:
+        P1 = sp.csr_matrix(Ps[1])
+        out.append(sp.csr_matrix(sp.vstack([P1, P1[cols]])))
+    return out + list(Ps[2:])
+
+
+def _tet_quality(V: np.ndarray, T: np.ndarray, boundary: np.ndarray) -> dict:
+    """Share of tets with all four nodes on the boundary (flat caps / slivers on the surface), the share of
+    those and of all tets with a dihedral angle above 150 degrees."""
+    P = V[T]
+    big = np.zeros(len(T), bool)
+    for p, q in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+        r, s = (k for k in range(4) if k not in (p, q))
+        e = P[:, q] - P[:, p]
+        e /= np.linalg.norm(e, axis=1)[:, None]
+        u = P[:, r] - P[:, p]
+        u -= (u * e).sum(1)[:, None] * e
+        v = P[:, s] - P[:, p]
+        v -= (v * e).sum(1)[:, None] * e
+        cos = (u * v).sum(1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
+        big |= cos < np.cos(np.radians(150.0))
+    on = np.zeros(len(V), bool)
+    on[boundary] = True
+    flat = on[T].all(axis=1)
+    return {"all_boundary_tets": float(flat.mean()), "all_boundary_tets_over_150": float(big[flat].mean()),
+            "tets_over_150": float(big.mean())}
+
+
+def diagnose_case(work: Path, tol: float, cycles: int) -> dict:
+    """Where the default cycle is slow on one case, and which change of the hierarchy or the cycle helps:
+    see :func:`diagnose`."""
+    import scipy.sparse as sp
+
+    from nestmg import load_tet_mesh
+    from solvers import MultigridSolver
+    from solvers.fem import boundary_layer_nodes, boundary_nodes, stiffness_matrix
+
+    c = load_case(work)
+    V, T = load_tet_mesh(work / "user_mesh.vtu")
+    bnd = boundary_nodes(T)
+    ring = boundary_layer_nodes(T, 1, boundary=bnd)
+    interior = np.setdiff1d(np.arange(len(V)), bnd)
+    out = {"name": c["name"], "label": c["label"], "tets": c["tets"],
+           "boundary_node_share": bnd.size / len(V), "quality": _tet_quality(V, T, bnd), "problems": {}}
+    for prob in ("dirichlet", "neumann", "diffusion"):
+        A, b, Ps, ns = c[prob]
+        if prob == "dirichlet":  # unknowns: the interior nodes; the layer: the ring next to the boundary
+            layer, first = np.flatnonzero(np.isin(interior, ring)), np.zeros(0, np.int64)
+        else:
+            layer, first = ring, bnd
+        x, factor = _slow_error(MultigridSolver(A, Ps, nullspace=ns), cycles)
+        w = x * x
+        pd = {"unknowns": A.shape[0], "layer_share": layer.size / A.shape[0], "stationary_factor": factor,
+              "slow_error_on_boundary": float(w[first].sum() / w.sum()),
+              "slow_error_on_layer": float(w[layer].sum() / w.sum()), "cg": {}}
+        d = A.diagonal()
+        off = sp.csr_matrix(A - sp.diags(d))
+        pos = np.asarray(off.maximum(0).sum(axis=1)).ravel() / d
+        other = np.setdiff1d(np.arange(A.shape[0]), layer)
+        pd["positive_offdiagonal_over_diagonal_median"] = {"layer": float(np.median(pos[layer])),
+                                                           "other": float(np.median(pos[other]))}
+        variants = {"default": (A, Ps, {}),
+                    "two_grid_exact": (A, Ps[:1], {"coarse_solver": "regularized"}),
+                    "six_sweeps": (A, Ps, {"presmoother": ("gauss_seidel",
+                                                           {"sweep": "forward", "iterations": 6})}),
+                    "layer_two_symmetric": (A, Ps, {"local_nodes": layer, "local_sweeps": 2,
+                                                    "local_levels": 1}),
+                    "split_layer_columns": (A, _split_boundary_columns(Ps, layer), {})}
+        if prob != "dirichlet":  # the boundary nodes alone
+            variants["boundary_two_symmetric"] = (A, Ps, {"local_nodes": bnd, "local_sweeps": 2,
+                                                          "local_levels": 1})
+        if prob == "neumann":
+            on = np.zeros(len(V), bool)
+            on[bnd] = True
+            flat = on[T].all(axis=1)
+            used = np.bincount(T[~flat].ravel(), minlength=len(V))
+            flat &= ~(used[T] == 0).any(axis=1)  # keep a flat tet whose node no other tet uses
+            variants["without_flat_boundary_tets"] = (sp.csr_matrix(stiffness_matrix(V, T[~flat])), Ps, {})
+        for name, (Av, Pv, opts) in variants.items():
+            t = time.process_time()
+            ml = MultigridSolver(Av, Pv, nullspace=ns, **opts)
+            setup = time.process_time() - t
+            t = time.process_time()
+            _, r = ml.solve(b, tol=tol, accel="cg", return_info=True)
+            pd["cg"][name] = {"iterations": r["iterations"], "setup_cpu_seconds": setup,
+                              "solve_cpu_seconds": time.process_time() - t,
+                              "level_unknowns": [L.A.shape[0] for L in ml.levels]}
+        print(c["name"], prob, json.dumps({k: v for k, v in pd.items() if k != "cg"}),
+              {k: v["iterations"] for k, v in pd["cg"].items()}, flush=True)
+        out["problems"][prob] = pd
+    return out
+
+
+def diagnose(args) -> dict:
+    """Why the Neumann problems of the TetGen cases take more CG iterations than their Dirichlet problems.
+
+    Per case and problem: the default V-cycle's stationary factor on ``A x = 0`` after ``--cycles`` cycles,
+    where the error it leaves lives (the boundary nodes, the boundary layer: the nodes within one tet ring
+    of the boundary; for Dirichlet the interior nodes next to it), the median positive off-diagonal sum
+    over the diagonal of the layer's rows and of the others, the boundary tets' shapes, and MG-PCG
+    iterations of the default against: a two-grid cycle with an exact first coarse level (is it the coarse
+    levels?), six sweeps on every level (the smoother?), two extra symmetric sweeps on the layer (the
+    smoother at the boundary?) and on the boundary nodes alone, the first coarse nodes that reach the layer
+    split in two (the coarse space at the boundary?), and, Neumann only, the matrix without the tets whose
+    four nodes are on the boundary (the flat surface tets?). One run each (iterations, not times, are the
+    point)."""
+    return {"tol": args.tol, "cycles": args.cycles,
+            "cases": [diagnose_case(Path(w), args.tol, args.cycles) for w in args.cases]}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -484,6 +626,7 @@ def main(argv=None):
                         "same matrix and right-hand side")
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
+    r.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
     r.add_argument("--json", type=Path, default=None)
     pr = sub.add_parser("profile", help="cProfile of the MultigridSolver set-up on one case")
     pr.add_argument("case", type=Path)
@@ -499,10 +642,15 @@ def main(argv=None):
                     choices=("dirichlet", "neumann", "diffusion"))
     cc.add_argument("--repeats", type=int, default=15)
     cc.add_argument("--json", type=Path, default=None)
+    dg = sub.add_parser("diagnose", help="where the default cycle is slow and what helps (one run each)")
+    dg.add_argument("cases", nargs="+", type=Path)
+    dg.add_argument("--cycles", type=int, default=25)
+    dg.add_argument("--tol", type=float, default=1e-8)
+    dg.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "build":
         return build(args)
-    out = {"profile": profile, "cycle": cycle_cost, "run": run}[args.cmd](args)
+    out = {"profile": profile, "cycle": cycle_cost, "run": run, "diagnose": diagnose}[args.cmd](args)
     if args.json:
         from nestmg.io import json_default
 

@@ -63,6 +63,35 @@ def test_constructor_defaults_are_the_documented_fast_path():
     assert md.levels[1].presmoother.params["iterations"] == 1, rows
 
 
+def test_default_solver_is_the_documented_cycle_spelled_out(scattered):
+    """``MultigridSolver(A, P)`` with no options and with the documented fast path written out (V-cycle,
+    forward Gauss-Seidel x2 / backward x2, x1 on levels denser than DENSE_LEVEL_ROWS times the fine one,
+    locality order, Galerkin operators, "auto" coarsest solve, no deflation) apply the same preconditioner
+    and take the same CG steps, on a scattered Neumann problem whose first coarse level is dense."""
+    _K, Ks, Ps, b, _q, _T = scattered
+    P0 = sp.csr_matrix(Ps[0])
+    nc = P0.shape[1]
+    smear = sum(sp.csr_matrix((np.full(nc, 0.25), ((np.arange(nc) + s) % nc, np.arange(nc))), shape=(nc, nc))
+                for s in range(4))  # each column spread over 4: rows still sum to 1, P^T A P denser
+    Pd = [sp.csr_matrix(P0 @ smear)] + list(Ps[1:])
+    ml = MultigridSolver(Ks, Pd, nullspace="constant")
+    rows = [L.A.nnz / L.A.shape[0] for L in ml.levels]
+    specs = [("gauss_seidel", {"sweep": "forward", "iterations": 1 if k and rows[k] > 2.0 * rows[0] else 2})
+             for k in range(len(Pd))]
+    assert [s[1]["iterations"] for s in specs] == [2, 1], rows  # the dense level is exercised
+    spelled = MultigridSolver(Ks, Pd, nullspace="constant", presmoother=specs, postsmoother=None,
+                              ordering="locality", coarse="galerkin", coarse_solver="auto", deflate=0,
+                              probe_finest=False, cycle="V")
+    assert ml.perm is not None and np.array_equal(ml.perm, spelled.perm)
+    assert ml.levels[0].presmoother.smooth_residual is not None  # the cheap pre-smoother residual
+    v = np.random.default_rng(5).standard_normal(len(b))
+    v -= v.mean()
+    z, zs = ml.aspreconditioner() @ v, spelled.aspreconditioner("V") @ v
+    assert np.linalg.norm(z - zs) <= 1e-13 * np.linalg.norm(zs)
+    r, rs = (m.solve(b, tol=1e-8, accel="cg", return_info=True)[1]["residuals"] for m in (ml, spelled))
+    assert len(r) == len(rs) and np.allclose(r, rs, rtol=1e-8, atol=0), (r, rs)
+
+
 def test_locality_order_is_a_permutation_that_gathers(scattered):
     K, Ks, Ps, _b, _q, _T = scattered
     orders = locality_order(Ps)

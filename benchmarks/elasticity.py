@@ -6,12 +6,10 @@ system is assembled once (:func:`nestmg.elasticity.setup_elasticity`, E = 1, nor
 interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG with:
 
 ``nestmg``        the project's default: the hierarchy's prolongations restricted to the free nodes,
-                  ``P ⊗ I₃``, Galerkin coarse operators, symmetric Gauss–Seidel in a W-cycle with two
-                  sweeps on the fine level and four below plus two on the traction-free boundary nodes
-                  (``SolverOptions.resolved``, ``LOCAL_SWEEPS``; files up to ``cad_1m.json``: the
-                  pipeline's variable V-cycle, one sweep on the fine level and two below, at every ν;
-                  ``default_cycle_fandisk_173k.json``: that V-cycle at ν < 0.4, the W-cycle without
-                  boundary sweeps from 0.4 on); the free problem
+                  ``P ⊗ I₃``, Galerkin coarse operators, symmetric Gauss–Seidel in the pipeline's variable
+                  V-cycle (one sweep on the fine level, two below) at ν < 0.4, in a W-cycle with two
+                  sweeps on the fine level and four below at ν >= 0.4 (``SolverOptions.resolved``; before
+                  that rule, files up to ``cad_1m.json``: the V-cycle at every ν); the free problem
                   projects the rigid modes (``NullspaceMultigridSolver``). Setup = restriction +
                   ``P ⊗ I₃`` + ``multigrid()``; the cycle run is recorded (``cycle``).
 ``nestmg_block``  the same with nodal 3x3 block Gauss–Seidel (multicolour; ``multigrid(block=True)``).
@@ -24,15 +22,11 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
 ``nestmg_v``      (not run by default) the V-cycle with one sweep on the fine level and two below at
-                  every ν (``SolverOptions(cycle="V", local=False)``): ``nestmg`` before the W-cycle rule.
+                  every ν (``SolverOptions(cycle="V")``): ``nestmg`` before the W-cycle rule.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
                   with given smoothers: one symmetric sweep on the fine level and two below, two on every
-                  level, and two on the fine level and four below (``SolverOptions(local=False)``, the
-                  default at ν >= 0.4 before the boundary sweeps). These four: no boundary sweeps
-                  (``local_nodes=None``).
-``nestmg_v_local``, ``nestmg_w24_local``  (not run by default) ``nestmg_v`` and ``nestmg_w24`` plus two extra
-                  symmetric Gauss–Seidel sweeps on the traction-free boundary nodes per smoothing step
-                  (``ElasticityProblem.local_nodes``, every level); ``nestmg_w24_local`` is ``nestmg``.
+                  level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,
+                  the default at ν >= 0.4).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -46,11 +40,6 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   6``) and the rigid modes as interpolation vectors (``vec_interp_variant 2``), block size
                   3. Measured on a 77k-tet torus (45k unknowns): 10 s setup and 60 s solve (43 iterations);
                   with ``strong_threshold 0.6`` and ``agg_nl 1``, 2 + 18 s (64): far behind the others.
-``hypre_nodal_hmis`` (not run by default) ``hypre_nodal`` with the usual 3D tuning: HMIS coarsening,
-                  ``ext+i`` interpolation truncated to 4 entries per row (``P_max 4``), ``strong_threshold
-                  0.5``, ``nodal_coarsen 4``; on a 47k-tet torus (32k unknowns, clamped, ν = 0.3) the best
-                  of five tunings tried (``nodal_coarsen 6``, threshold 0.7, no interpolation vectors:
-                  47–73 iterations), 32 iterations.
 
 For the singular free problem, pyamg's cycle preconditions the project's CG (``solvers.krylov.pcg``) with
 its input and output projected off the rigid modes, as nestmg's; solutions are compared after the same
@@ -87,31 +76,20 @@ DEFLATION_VARIANTS = {"nestmg_no_deflation": {"deflate": 0},
 _SGS = "symmetric_gauss_seidel"
 #: (multigrid() keywords, cycle) of the cycle variants of ``nestmg`` (issue 32, ν = 0.45): smoothers and
 #: cycle given, independent of the defaults (``nestmg_v``, ``nestmg_w``: one fine sweep, two below)
-_W24 = [(_SGS, {"iterations": 2}), (_SGS, {"iterations": 4})]
-_V12 = [(_SGS, {"iterations": 1}), (_SGS, {"iterations": 2})]
-CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": _V12, "local_nodes": None}, "V"),
-                  "nestmg_w": ({"presmoother": _V12, "local_nodes": None}, "W"),
-                  "nestmg_w2": ({"presmoother": [(_SGS, {"iterations": 2})], "local_nodes": None}, "W"),
-                  "nestmg_w24": ({"presmoother": _W24, "local_nodes": None}, "W"),
-                  # "boundary": the problem's traction-free boundary dofs (ElasticityProblem.local_nodes)
-                  "nestmg_v_local": ({"presmoother": _V12, "local_nodes": "boundary", "local_sweeps": 2},
-                                     "V"),
-                  "nestmg_w24_local": ({"presmoother": _W24, "local_nodes": "boundary", "local_sweeps": 2},
-                                       "W")}
+CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS, {"iterations": 2})]}, "V"),
+                  "nestmg_w": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS, {"iterations": 2})]}, "W"),
+                  "nestmg_w2": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2})]}, "W"),
+                  "nestmg_w24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
+                                                  ("symmetric_gauss_seidel", {"iterations": 4})]}, "W")}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",
            "pyamg_sa",
-           "gamg_rbm", "gamg_rbm_thr", "hypre_nodal", "hypre_nodal_hmis")
+           "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
 DEFAULT_METHODS = ("nestmg", "nestmg_block", "pyamg_sa_rbm", "pyamg_sa", "gamg_rbm", "gamg_rbm_thr")
 #: references run once (first repeat only): they are far from the others and slow
 ONCE = ("pyamg_sa",)
 #: PETSc options of the variants beyond block size and near null space
 PETSC_VARIANTS = {"gamg_rbm": ("gamg", {}), "gamg_rbm_thr": ("gamg", {"pc_gamg_threshold": 0.01}),
-                  "hypre_nodal": ("hypre", {}),
-                  "hypre_nodal_hmis": ("hypre", {"pc_hypre_boomeramg_coarsen_type": "HMIS",
-                                                 "pc_hypre_boomeramg_interp_type": "ext+i",
-                                                 "pc_hypre_boomeramg_P_max": 4,
-                                                 "pc_hypre_boomeramg_strong_threshold": 0.5,
-                                                 "pc_hypre_boomeramg_nodal_coarsen": 4})}
+                  "hypre_nodal": ("hypre", {})}
 PROBLEMS = ("elasticity-clamped", "elasticity-free")
 
 
@@ -157,10 +135,7 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     t = _clocks()
     Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
-    kw = dict(mg_kwargs or {})
-    if isinstance(kw.get("local_nodes"), str):  # "boundary": the problem's own
-        kw["local_nodes"] = pr.local_nodes
-    ml = pr.multigrid(block=block, **kw)
+    ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t.lap("setup")
     cycle = ml.cycle if cycle is None else cycle
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, cycle=cycle, accel="cg", return_info=True)

@@ -43,25 +43,25 @@ from .errors import NestmgInputError
 
 if TYPE_CHECKING:
     from .options import SolverOptions
-from .problems import Problem, cycle_smoothers
+from .problems import DEFAULT_SMOOTHERS, Problem, cycle_smoothers
 from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
-__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "LOCAL_SWEEPS", "W_CYCLE_SMOOTHERS", "clamped_nodes",
+__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "W_CYCLE_SMOOTHERS", "clamped_nodes",
            "default_body_force", "setup_elasticity"]
 
 ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 
-#: The ``"robust"`` preset's smoothers, run in a W-cycle (:meth:`nestmg.SolverOptions.resolved`): two
-#: symmetric sweeps on the fine level and four on the coarser ones (``SolverOptions(nu=2)``).
+#: Smoothers of the ``"robust"`` preset at ν < 0.4 (point-wise spelling; ``multigrid(block=True)`` turns
+#: them into nodal block sweeps): the pipeline's variable V-cycle, one symmetric sweep on the fine level
+#: and two on the coarser ones (:data:`nestmg.problems.DEFAULT_SMOOTHERS`).
+ROBUST_SMOOTHERS = DEFAULT_SMOOTHERS
+
+#: The ``"robust"`` preset's smoothers at ν >= 0.4, run in a W-cycle (:meth:`nestmg.SolverOptions.resolved`):
+#: two symmetric sweeps on the fine level and four on the coarser ones (``SolverOptions(nu=2)``).
 W_CYCLE_SMOOTHERS = cycle_smoothers(nu=2)
 
 #: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.
 FAST_SMOOTHERS = _FAST_SMOOTHERS
-
-#: Extra symmetric Gauss–Seidel sweeps of the ``"robust"`` preset on the traction-free boundary nodes
-#: (:attr:`ElasticityProblem.local_nodes`, ``SolverOptions.local``) per smoothing step, on every level
-#: (the coarse nodes interpolating to them): where the cycle's slowest modes live on refined TetWild meshes.
-LOCAL_SWEEPS = 2
 
 
 def default_body_force(V: np.ndarray) -> np.ndarray:
@@ -138,11 +138,12 @@ class ElasticityProblem(Problem):
             Its smoothing fields: ``smoothing="robust"`` (default) is ``nu`` sweeps of ``smoother`` on the
             fine level and ``coarse_nu`` (default ``2 nu``) on the coarser ones, ``"fast"`` is
             :data:`FAST_SMOOTHERS`; ``coarse_scaling`` ``"auto"`` is None (Galerkin operators); ``local``
-            (default True) adds :data:`LOCAL_SWEEPS` symmetric sweeps on the traction-free boundary nodes
-            (:attr:`local_nodes`) to the ``"robust"`` preset; ``cycle`` becomes the solver's
+            is unused (no boundary-layer sweeps for elasticity); ``cycle`` becomes the solver's
             :attr:`~solvers.MultigridSolver.cycle` (run by ``solve`` and ``aspreconditioner`` given none).
-            Not set (the default), ``nu`` and ``cycle`` are the W-cycle with two sweeps on the fine level
-            and four below (:meth:`nestmg.SolverOptions.resolved`, :data:`W_CYCLE_SMOOTHERS`).
+            Not set (the default), ``nu`` and ``cycle`` follow the problem's Poisson ratio
+            (:meth:`nestmg.SolverOptions.resolved`): below 0.4 the V-cycle with :data:`ROBUST_SMOOTHERS`
+            (one sweep on the fine level, two below), from 0.4 on the W-cycle with two and four sweeps,
+            which keeps MG-PCG within 20 iterations at ν = 0.45 (docs/elasticity.md).
         block : bool
             ``True``: Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"``
             in ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks
@@ -165,9 +166,10 @@ class ElasticityProblem(Problem):
 
         from .options import SolverOptions, typed
 
-        o = typed(options, SolverOptions, "options").resolved(self.name)  # not set: W, two fine sweeps
+        # nu and cycle not set: W-cycle and two fine sweeps at ν >= 0.4 (the problem's ν, not options')
+        o = typed(options, SolverOptions, "options").resolved(self.name, self.params.get("nu"))
         coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
-        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # W_CYCLE_SMOOTHERS by default
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS at ν < 0.4
         pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)
         kwargs["presmoother"] = _as_block_specs(pre) if block else pre
         kwargs.setdefault("deflate", 0)  # measured: the probe does not pay for elasticity (docs/elasticity.md)
@@ -176,9 +178,6 @@ class ElasticityProblem(Problem):
         # instead of 1.08 (median of 4)
         kwargs.setdefault("symmetric", True)
         kwargs.setdefault("cycle", o.cycle)  # the cycle of solve() and aspreconditioner() given none
-        local = o.local and o.smoothing == "robust" and LOCAL_SWEEPS > 0
-        kwargs.setdefault("local_nodes", self.local_nodes if local else None)
-        kwargs.setdefault("local_sweeps", max(LOCAL_SWEEPS, 1))
         if self.modes is None:
             return MultigridSolver(self.A, self.P, coarse_scaling=coarse_scaling, **kwargs)
         return NullspaceMultigridSolver(self.A, self.P, self.modes, coarse_scaling=coarse_scaling, **kwargs)
@@ -271,8 +270,6 @@ def setup_elasticity(
         b = (m[:, None] * f).ravel()
     free0 = np.setdiff1d(np.arange(n0), fixed, assume_unique=True)
     d0 = block_dofs(free0)
-    # the traction-free boundary (the clamped nodes are not unknowns): its dofs in the free numbering
-    local = block_dofs(np.flatnonzero(np.isin(free0, boundary_nodes(T0, n=n0), assume_unique=True)))
     A = K if free_problem else K[d0][:, d0].tocsr()
     if P:
         Pr, free = restrict_prolongations(P, free0, min_column_sum=prune)
@@ -290,5 +287,5 @@ def setup_elasticity(
         name=name, A=A, b=b[d0], P=Pb, coarse="galerkin", free=free, n_fine=n0,
         nullspace="rigid" if free_problem else None, params={"lam": None, "coarse": coarse, "prune": prune, "E": E if np.ndim(E) == 0 else "per-tet",
                                 "nu": nu, "band": None if free_problem else band},
-        local_nodes=local, modes=modes, fixed=fixed,
+        local_nodes=None, modes=modes, fixed=fixed,
     )

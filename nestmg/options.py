@@ -18,6 +18,7 @@ import dataclasses
 from dataclasses import dataclass, fields
 from typing import Any
 
+import numpy as np
 
 from cagegen.options import OptionFieldError, check_fields, field_spec
 from solvers import DEFAULT_MAXITER, SMOOTHERS
@@ -28,11 +29,13 @@ from .sizing import DEFAULT_TIME_BUDGET
 from .tetmesh import OUTER_EDGE_FACTOR
 
 __all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "MeshingOptions", "OptionError", "SizingOptions", "SolverOptions",
-           "add_arguments", "from_arguments"]
+           "W_CYCLE_POISSON_RATIO", "add_arguments", "from_arguments"]
 
-#: The cycle and fine-level sweeps of every problem but elasticity (:meth:`SolverOptions.resolved`): the
-#: pipeline's variable V-cycle, one sweep on the fine level.
+#: The cycle and fine-level sweeps of every problem but elasticity at ν >= :data:`W_CYCLE_POISSON_RATIO`
+#: (:meth:`SolverOptions.resolved`): the pipeline's variable V-cycle, one sweep on the fine level.
 DEFAULT_CYCLE, DEFAULT_NU = "V", 1
+#: Poisson ratio from which the elasticity problems default to the W-cycle with two fine sweeps (issue 32).
+W_CYCLE_POISSON_RATIO = 0.4
 
 
 class OptionError(NestmgInputError):
@@ -130,15 +133,15 @@ class SolverOptions:
     smoother: str = field_spec("symmetric_gauss_seidel", "smoother (robust preset)",
                                choices=tuple(sorted(SMOOTHERS)), expert=True)
     nu: int | None = field_spec(None, "pre/post smoothing sweeps on the fine level (robust preset; default "
-                                      "1, 2 with elasticity's W-cycle)", low=1, kind=int,
+                                      "1, 2 with elasticity's W-cycle at ν >= 0.4)", low=1, kind=int,
                                 expert=True)
     coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu)", low=1, kind=int,
                                        expert=True)
-    local: bool = field_spec(True, "extra sweeps on the boundary (layer) of Neumann, diffusion and "
-                                   "elasticity problems", expert=True)
+    local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems",
+                             expert=True)
     coarse_scaling: str | None = field_spec("auto", "auto: energy for re-discretised and weighted operators",
                                             choices=("auto", "energy", None), expert=True)
-    cycle: str | None = field_spec(None, "multigrid cycle (default V; W for elasticity)",
+    cycle: str | None = field_spec(None, "multigrid cycle (default V; W for elasticity at ν >= 0.4)",
                                    choices=("V", "W", "F", None), expert=True)
     accel: str | None = field_spec(None, "cg: MG-preconditioned CG", choices=("cg", None))
     tol: float = field_spec(1e-8, "relative residual to reach", low=0.0, strict=True)
@@ -154,21 +157,23 @@ class SolverOptions:
             raise OptionError("SolverOptions", "smoothing", "'fast' is a preset: leave smoother, nu and "
                                                             "coarse_nu at their defaults")
 
-    def resolved(self, problem: str | None = None) -> SolverOptions:
+    def resolved(self, problem: str | None = None, poisson_ratio: float | None = None) -> SolverOptions:
         """These options with ``nu`` and ``cycle`` set for ``problem`` (the fields given are kept).
 
-        The rule (issue 32): the elasticity problems (:data:`nestmg.elasticity.ELASTICITY_PROBLEMS`) with
-        the ``"robust"`` preset take a W-cycle, and with it ``nu = 2`` (two sweeps on the fine level,
-        ``2 nu = 4`` on the coarser ones unless ``coarse_nu`` is given), at every Poisson ratio: the
-        V-cycle missed 20 MG-PCG iterations to 1e-8 on bunny at ν = 0.3 (23–24 at 392k tets) and on
-        bunny, spot and fandisk at ν = 0.45 (docs/elasticity.md). Everything else keeps
-        :data:`DEFAULT_CYCLE` and :data:`DEFAULT_NU`, as do the sweeps of an explicitly chosen cycle other
-        than W (``cycle="V"`` is the V-cycle with one fine sweep).
+        The rule (issue 32): elasticity problems (:data:`nestmg.elasticity.ELASTICITY_PROBLEMS`) with a
+        Poisson ratio >= :data:`W_CYCLE_POISSON_RATIO` and the ``"robust"`` preset take a W-cycle, and
+        with it ``nu = 2`` (two sweeps on the fine level, ``2 nu = 4`` on the coarser ones unless
+        ``coarse_nu`` is given): on fandisk at 328k and 1.09M tets, ν = 0.45, MG-PCG to 1e-8 took 14–15
+        iterations instead of the V-cycle's 21–22, at 1.20–1.37x its CPU seconds (docs/elasticity.md).
+        Everything else keeps :data:`DEFAULT_CYCLE` and :data:`DEFAULT_NU`, as do the sweeps of an explicitly
+        chosen cycle other than W (``cycle="V"`` at ν = 0.45 is the V-cycle with one fine sweep).
 
         Parameters
         ----------
         problem : str, optional
             The model problem's name (None: no problem context, the plain defaults).
+        poisson_ratio : float or array of float, optional
+            The elasticity problem's ν (default :attr:`poisson_ratio`); per-tet values: their maximum.
 
         Returns
         -------
@@ -179,7 +184,9 @@ class SolverOptions:
 
         if self.nu is not None and self.cycle is not None:
             return self
-        w_rule = problem in ELASTICITY_PROBLEMS and self.smoothing == "robust"
+        ratio = float(np.max(self.poisson_ratio if poisson_ratio is None else poisson_ratio))
+        w_rule = (problem in ELASTICITY_PROBLEMS and ratio >= W_CYCLE_POISSON_RATIO
+                  and self.smoothing == "robust")
         cycle = self.cycle if self.cycle is not None else ("W" if w_rule else DEFAULT_CYCLE)
         nu = self.nu if self.nu is not None else (2 if w_rule and cycle == "W" else DEFAULT_NU)
         return dataclasses.replace(self, nu=nu, cycle=cycle)

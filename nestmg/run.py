@@ -75,7 +75,7 @@ def solve_on_hierarchy(
         coarser ones, plus boundary-layer sweeps with ``local``; :meth:`nestmg.problems.Problem.multigrid`);
         ``coarse_scaling``; ``cycle``, ``accel``, ``tol``, ``maxiter``
         (:meth:`solvers.MultigridSolver.solve`). ``nu`` and ``cycle`` not set follow the problem
-        (:meth:`nestmg.SolverOptions.resolved`: the W-cycle with ``nu = 2`` for elasticity);
+        (:meth:`nestmg.SolverOptions.resolved`: the W-cycle with ``nu = 2`` for elasticity at ν >= 0.4);
         the report gives the values used.
     element, curved
         ``"P2"``: quadratic elements on ``tets[0]``, curved when ``curved`` is its
@@ -100,7 +100,7 @@ def solve_on_hierarchy(
     extra = {"element": element, "curved": curved} if element != "P1" else {}
     prob = setup_problem(tets, P, problem, coarse=o.coarse, lam=o.lam, fractions=fractions,
                          poisson_ratio=o.poisson_ratio, **extra)
-    o = o.resolved(problem)  # nu and cycle not set: the problem's defaults
+    o = o.resolved(problem, prob.params.get("nu"))  # nu and cycle not set: the problem's defaults
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
     ml = prob.multigrid(o)

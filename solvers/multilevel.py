@@ -281,7 +281,7 @@ class MultigridSolver:
         whose setup is a small part of a run.
     cycle : {"V", "W", "F"}
         The cycle :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` use when given none
-        (default ``"V"``; ``nestmg``'s elasticity problems pass ``"W"``,
+        (default ``"V"``; ``nestmg``'s elasticity problems at ν >= 0.4 pass ``"W"``,
         :meth:`nestmg.SolverOptions.resolved`).
 
     Attributes

@@ -33,6 +33,7 @@ from solvers.elasticity import (
     block_dofs,
     block_prolongation,
     elasticity_matrix,
+    galerkin_nullspaces,
     rigid_body_modes,
 )
 from solvers.fem import boundary_nodes, check_tet_mesh, mass_matrix
@@ -112,8 +113,11 @@ class ElasticityProblem(Problem):
 
     Attributes (beyond :class:`~nestmg.problems.Problem`'s)
     ----------
-    modes : list of (3 m_k, 6) arrays or None
-        Rigid-body modes of every level's kept nodes (``elasticity-free``), None when clamped.
+    modes : list of (3 m_k, r_k) arrays or None
+        Kernel bases of every level's operator (``elasticity-free``; None when clamped): the six rigid-body
+        modes of the level's kept nodes on nested levels, the part of them the prolongations carry into
+        the finer kernel on others (:func:`solvers.galerkin_nullspaces`: ``r_k = 3``, the translations,
+        below a level whose outside nodes are extrapolated by clamped weights).
     fixed : (c,) int array
         Clamped fine nodes (empty for ``elasticity-free``).
 
@@ -272,12 +276,15 @@ def setup_elasticity(
     else:
         Pr, free = [], [free0]
     modes = None
+    Pb = [block_prolongation(Pk) for Pk in Pr]
     if free_problem:
         c = V0.mean(axis=0)  # one centre for every level: P_k ⊗ I₃ maps coarse modes onto fine ones
-        modes = [rigid_body_modes(np.asarray(Vk, dtype=np.float64)[fk], center=c)
-                 for (Vk, _), fk in zip(tets, free)]
+        # the part of each level's rigid modes that P carries into the finer kernel: all six on nested
+        # levels, the translations where clamped extrapolation (decimate) does not reproduce rotations
+        modes = galerkin_nullspaces(Pb, [rigid_body_modes(np.asarray(Vk, dtype=np.float64)[fk], center=c)
+                                         for (Vk, _), fk in zip(tets, free)])
     return ElasticityProblem(
-        name=name, A=A, b=b[d0], P=[block_prolongation(Pk) for Pk in Pr], coarse="galerkin", free=free, n_fine=n0,
+        name=name, A=A, b=b[d0], P=Pb, coarse="galerkin", free=free, n_fine=n0,
         nullspace="rigid" if free_problem else None, params={"lam": None, "coarse": coarse, "prune": prune, "E": E if np.ndim(E) == 0 else "per-tet",
                                 "nu": nu, "band": None if free_problem else band},
         local_nodes=None, modes=modes, fixed=fixed,

@@ -10,6 +10,7 @@ from .elasticity import (
     block_dofs,
     block_prolongation,
     elasticity_matrix,
+    galerkin_nullspaces,
     lame_parameters,
     rigid_body_modes,
 )
@@ -78,6 +79,7 @@ __all__ = [
     "convergence_factor",
     "diffusion_matrix",
     "elasticity_matrix",
+    "galerkin_nullspaces",
     "eliminate_dirichlet",
     "galerkin_nnz_estimate",
     "galerkin_operators",

@@ -41,6 +41,7 @@ __all__ = [
     "block_dofs",
     "block_prolongation",
     "elasticity_matrix",
+    "galerkin_nullspaces",
     "lame_parameters",
     "rigid_body_modes",
 ]
@@ -254,8 +255,67 @@ def block_prolongation(P, dim: int = 3) -> sp.csr_matrix:
     return Pb
 
 
+def galerkin_nullspaces(Ps, candidates, *, rtol: float = 1e-8) -> list[np.ndarray]:
+    """The null space of every level's Galerkin operator within the span of given candidates.
+
+    ``ker(Pᵀ A P) = {z : P z ∈ ker A}`` for a positive semi-definite ``A``. Level ``k + 1`` keeps the
+    part of ``span candidates[k+1]`` that ``Ps[k]`` carries into the kernel basis kept on level ``k``
+    (level 0 keeps ``candidates[0]``): all of it when ``Ps[k]`` reproduces the candidates exactly (rigid
+    modes and barycentric interpolation on nested levels: then ``candidates[k+1]`` is returned as it is),
+    the translations only when the rows of fine nodes outside the coarse mesh are clamped barycentric
+    weights (a ``decimate`` hierarchy), which sum to 1 but do not reproduce rotations.
+
+    Parameters
+    ----------
+    Ps : list of sparse
+        ``Ps[k]`` of shape ``(n_k, n_{k+1})``, e.g. :func:`block_prolongation` of nodal prolongations.
+    candidates : list of (n_k, m) float arrays
+        One per level, finest first (``len(Ps) + 1``), e.g. :func:`rigid_body_modes` of every level's nodes;
+        ``candidates[0]`` must span (part of) the fine operator's kernel.
+    rtol : float
+        A direction ``c`` is kept when the part of ``Ps[k] C c`` outside the finer kernel is at most
+        ``rtol ||Ps[k] C c||`` (``C`` = the candidates with unit columns).
+
+    Returns
+    -------
+    list of (n_k, m_k) float arrays, ``m_k <= m``
+        Finest first; ``m_k`` never grows towards the coarse levels, and may be 0 (no kernel left).
+
+    Examples
+    --------
+    >>> from solvers.gallery import kuhn_cube_hierarchy
+    >>> meshes, Ps = kuhn_cube_hierarchy(4, 2)
+    >>> Pb = [block_prolongation(P) for P in Ps]
+    >>> Zs = galerkin_nullspaces(Pb, [rigid_body_modes(V) for V, _ in meshes])
+    >>> [Z.shape[1] for Z in Zs]   # nested levels: every rigid mode on every level
+    [6, 6]
+    """
+    if len(candidates) != len(Ps) + 1:
+        raise SolverInputError(
+            f"candidates needs {len(Ps) + 1} arrays (one per level), got {len(candidates)}")
+    Zs = [np.asarray(candidates[0], dtype=np.float64)]
+    Q = _orthonormal(Zs[0], 0)
+    for k, P in enumerate(Ps):
+        C = np.asarray(candidates[k + 1], dtype=np.float64)
+        if C.ndim != 2 or C.shape[0] != P.shape[1]:
+            raise SolverInputError(f"candidates[{k + 1}] must have {P.shape[1]} rows, got shape {C.shape}")
+        C = C / np.maximum(np.linalg.norm(C, axis=0), np.finfo(float).tiny)
+        W = P @ C
+        R = (W - Q @ (Q.T @ W)) / np.maximum(np.linalg.norm(W, axis=0), np.finfo(float).tiny)
+        _, s, Vt = np.linalg.svd(R, full_matrices=False)
+        keep = s <= rtol
+        # reproduced exactly (nested levels): the caller's basis as it is
+        Zs.append(np.asarray(candidates[k + 1], dtype=np.float64) if keep.all() else C @ Vt[keep].T)
+        Q = _orthonormal(Zs[-1], k + 1)
+    return Zs
+
+
 def _orthonormal(Z: np.ndarray, level: int) -> np.ndarray:
-    Q, R = np.linalg.qr(np.asarray(Z, dtype=np.float64))
+    """An orthonormal basis of the columns of ``Z`` (none: an empty basis, a level without a kernel)."""
+    Z = np.asarray(Z, dtype=np.float64)
+    if Z.ndim == 2 and Z.shape[1] == 0:
+        return np.zeros((Z.shape[0], 0))
+    Q, R = np.linalg.qr(Z)
     d = np.abs(np.diag(R))
     if d.size == 0 or d.min() <= 1e-10 * d.max():
         raise SolverInputError(f"null-space basis of level {level} is rank-deficient")
@@ -301,9 +361,11 @@ class NullspaceMultigridSolver(MultigridSolver):
     Ps : list of sparse
         ``Ps[k]`` of shape ``(n_k, n_{k+1})``; every coarse unknown must be reached by a finer one
         (restrict first, :func:`solvers.restrict_prolongations`).
-    nullspaces : list of (n_k, m) arrays
+    nullspaces : list of (n_k, m_k) arrays
         A basis of ``ker A_k`` for every level, finest first (``len(Ps) + 1`` arrays), e.g.
-        :func:`rigid_body_modes` of every level's nodes. Checked: ``||A_k Z_k|| <= 1e-8 ||A_k|| ||Z_k||``.
+        :func:`rigid_body_modes` of every level's nodes on nested levels, :func:`galerkin_nullspaces` of
+        them on any (``m_k`` may then drop to 3, the translations, or 0 on coarse levels). Checked:
+        ``||A_k Z_k|| <= 1e-8 ||A_k|| ||Z_k||``.
     coarse_solver : str
         As :class:`solvers.MultigridSolver`; default ``"regularized"`` (the coarsest operator is singular).
     **kwargs
@@ -344,11 +406,12 @@ class NullspaceMultigridSolver(MultigridSolver):
             if Z.ndim != 2 or Z.shape[0] != L.A.shape[0]:
                 raise SolverInputError(f"nullspaces[{k}] must have {L.A.shape[0]} rows, got shape {Z.shape}")
             Q = _orthonormal(Z, k)
-            res = float(np.abs(L.A @ Q).max())
+            res = float(np.abs(L.A @ Q).max()) if Q.shape[1] else 0.0
             scale = float(abs(L.A).sum(axis=1).max())  # ||A_k||_inf; Q has unit columns
             if res > 1e-8 * scale:
+                hint = "; on non-nested levels pass galerkin_nullspaces(Ps, nullspaces)" if k else ""
                 raise SolverError(f"nullspaces[{k}] is not in the kernel of the level-{k} operator "
-                                  f"(max |A_{k} Z_{k}| = {res:.3e}, ||A_{k}|| = {scale:.3e})")
+                                  f"(max |A_{k} Z_{k}| = {res:.3e}, ||A_{k}|| = {scale:.3e}){hint}")
             self.nullspace_bases.append(Q)
         self._coarse_solver = _ProjectedCoarseSolve(self._coarse_solver, self.nullspace_bases[-1])
         self.deflation = self._deflate(deflate, probe_finest)  # Krylov vectors kept off nullspace_bases[k]
@@ -358,9 +421,10 @@ class NullspaceMultigridSolver(MultigridSolver):
         return self.nullspace_bases[k]
 
     def __repr__(self) -> str:
-        m = self.nullspace_bases[0].shape[1]
-        return super().__repr__().replace("Null space:           None", f"Null space:           {m} vectors "
-                                          "per level (projected)", 1)
+        m = [Q.shape[1] for Q in self.nullspace_bases]
+        what = f"{m[0]} vectors per level" if len(set(m)) == 1 else f"{' / '.join(map(str, m))} vectors"
+        return super().__repr__().replace("Null space:           None", f"Null space:           {what} "
+                                          "(projected)", 1)
 
     def _project(self, v: np.ndarray) -> np.ndarray:
         Q = self.nullspace_bases[0]

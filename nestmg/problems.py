@@ -41,8 +41,9 @@ PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
 #: The V-cycle factor the defaults aim at, per problem (issue 27, item 3): :meth:`Problem.multigrid`
 #: deflates the slow modes of a level whose probe is above it (``MultigridSolver(deflate_goal=)``; other
-#: problems: :data:`solvers.deflation.DEFLATION_GOAL`). On idler_riser.stl one TetWild mesh in three left
-#: one Dirichlet mode at 0.21-0.26 under the former single goal 0.3; deflated, 0.14.
+#: problems: :data:`solvers.deflation.DEFLATION_GOAL`). On idler_riser.stl some TetWild meshes left one
+#: Dirichlet mode at 0.21-0.26 under the former single goal 0.3 (1 in 10: 0.223 -> 0.161 deflated,
+#: benchmarks/results/corpus/idler_deflation_goal_8c7c925.json).
 FACTOR_GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
 
 def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coarse_nu: int | None = None) -> list:

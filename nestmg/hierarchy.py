@@ -388,6 +388,8 @@ def build_cage_surfaces(
     face_counts = None if sizing.face_counts is None else list(sizing.face_counts)
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
+    if face_counts is not None:  # explicit counts that cannot be met fail in microseconds, before any repair
+        plan_levels(len(F), levels, face_counts=face_counts)
     V, F, solid = _solid_input(V, F, cages, meshing, t0)
     Vn, center, scale = _normalize(V)
     # `levels` is a ceiling (the levels that fit F's faces, one line when fewer); explicit face counts are

@@ -116,3 +116,20 @@ def test_specks_touching_the_solid_at_a_vertex_are_dropped():
     kept, dropped = _drop_specks(V, Ts)
     np.testing.assert_array_equal(kept, T)
     assert dropped == pytest.approx(0.01**3 / 6)
+
+
+def test_face_counts_that_cannot_be_met_fail_before_the_repair():
+    """An explicit --face-counts is checked on the input as given, in well under a second: no TetWild run."""
+    import time
+
+    from cagegen import NestedOptions
+    from nestmg import SizingOptions
+    from nestmg.hierarchy import build_cage_surfaces
+    from nestmg.sizing import LevelsError
+
+    V, F = _two_balls(1.0)  # 640 faces, overlapping: the repair would run TetWild
+    t = time.perf_counter()
+    with pytest.raises(LevelsError, match="cannot be met"):
+        build_cage_surfaces(V, F, 2, "nested", sizing=SizingOptions(face_counts=[5000]),
+                            cages=NestedOptions(repair=True), cache=False, progress=False)
+    assert time.perf_counter() - t < 1.0

@@ -4,7 +4,7 @@ STL exports of assemblies and scans often describe a solid without bounding it c
 overlap each other, a surface that crosses itself, fans that touch at a vertex. No cage backend can use
 such a surface (:func:`cagegen.audit_mesh` refuses it), but TetWild meshes the solid it describes: its
 inside/outside test is the generalised winding number, so overlapping bodies become their union
-(fTetWild, Hu et al. 2020, Sec. 3.3). :func:`solid_surface` tet-meshes the input once and returns the
+(fTetWild, Hu et al. 2020: the generalised winding number filters its tets). :func:`solid_surface` tet-meshes the input once and returns the
 boundary of that tet mesh, made manifold:
 
 1. tets are grouped by shared faces; groups under :data:`SPECK_FRACTION` of the volume are dropped

@@ -3,9 +3,9 @@
 STL exports of assemblies and scans often describe a solid without bounding it cleanly: bodies that
 overlap each other, a surface that crosses itself, fans that touch at a vertex. No cage backend can use
 such a surface (:func:`cagegen.audit_mesh` refuses it), but TetWild meshes the solid it describes: its
-inside/outside test is the generalised winding number, so overlapping bodies become their union
-(fTetWild, Hu et al. 2020: the generalised winding number filters its tets). :func:`solid_surface` tet-meshes the input once and returns the
-boundary of that tet mesh, made manifold:
+inside/outside test is the generalised winding number (fTetWild, Hu et al. 2020), so overlapping bodies
+become their union. :func:`solid_surface` tet-meshes the input once and returns the boundary of that
+tet mesh, made manifold:
 
 1. tets are grouped by shared faces; groups under :data:`SPECK_FRACTION` of the volume are dropped
    (specks that touch the solid at an edge or a vertex only);

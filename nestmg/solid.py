@@ -26,6 +26,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from cagegen import MeshInputError
+from solvers.fem import boundary_faces
+
+from .tetmesh import tet_volumes
 
 __all__ = ["UNREPAIRABLE", "solid_surface"]
 
@@ -35,11 +38,6 @@ SPECK_FRACTION = 1e-3
 PINCH_ROUNDS = 10
 #: audit problems (their first words) that no solid can mend: the input encloses nothing clearly
 UNREPAIRABLE = ("open boundary", "absurd size", "too few faces", "zero volume", "NaN")
-
-
-def _volumes(V: np.ndarray, T: np.ndarray) -> np.ndarray:
-    a = V[T[:, 0]]
-    return np.einsum("ij,ij->i", V[T[:, 1]] - a, np.cross(V[T[:, 2]] - a, V[T[:, 3]] - a)) / 6.0
 
 
 def _face_adjacency(T: np.ndarray) -> sp.csr_matrix:
@@ -53,17 +51,9 @@ def _face_adjacency(T: np.ndarray) -> sp.csr_matrix:
 def _drop_specks(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
     """Keep the face-connected tet groups of at least :data:`SPECK_FRACTION` of the volume."""
     _, lab = connected_components(_face_adjacency(T), directed=False)
-    vol = np.bincount(lab, weights=np.abs(_volumes(V, T)))
+    vol = np.bincount(lab, weights=np.abs(tet_volumes(V, T)))
     keep = vol >= SPECK_FRACTION * vol.sum()
     return T[keep[lab]], float(vol[~keep].sum())
-
-
-def _boundary(T: np.ndarray) -> np.ndarray:
-    """Boundary faces of the tets, oriented away from their tet (positively oriented tets: outward)."""
-    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-    F = T[:, local].reshape(-1, 3)
-    _, key, count = np.unique(np.sort(F, axis=1), axis=0, return_inverse=True, return_counts=True)
-    return F[count[key.ravel()] == 1]
 
 
 def _pinched_vertices(F: np.ndarray, n: int) -> np.ndarray:
@@ -83,12 +73,12 @@ def _unpinch(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, int]:
     """Remove, around every pinched boundary vertex, all tet groups but the largest (grouped by the faces
     through that vertex); returns the tets and the number of rounds."""
     for rounds in range(PINCH_ROUNDS + 1):
-        bad = _pinched_vertices(_boundary(T), len(V))
+        bad = _pinched_vertices(boundary_faces(T)[0], len(V))
         if bad.size == 0:
             return T, rounds
         if rounds == PINCH_ROUNDS:
             break
-        vol = np.abs(_volumes(V, T))
+        vol = np.abs(tet_volumes(V, T))
         VT = sp.csr_matrix((np.ones(T.size), (T.ravel(), np.repeat(np.arange(len(T)), 4))),
                            shape=(len(V), len(T)))
         drop = np.zeros(len(T), dtype=bool)
@@ -161,18 +151,15 @@ def solid_surface(V: np.ndarray, F: np.ndarray, *, epsilon: float = 1e-3, edge_l
         If TetWild fails or runs past ``time_limit``.
     """
     from .tetmesh import tetrahedralize
+    from .usermesh import boundary_surface
 
     Vt, T = tetrahedralize(V, F, edge_length=edge_length, epsilon=epsilon, time_limit=time_limit)
-    v0 = float(np.abs(_volumes(Vt, T)).sum())
+    v0 = float(np.abs(tet_volumes(Vt, T)).sum())
     T, _ = _drop_specks(Vt, T)
     T, rounds = _unpinch(Vt, T)
     T, _ = _drop_specks(Vt, T)  # removing pinched tets can cut a speck loose
-    G = _boundary(T)
-    used = np.unique(G)
-    remap = np.full(len(Vt), -1, dtype=np.int64)
-    remap[used] = np.arange(used.size)
-    W, G, filled, bodies = _fill_voids(Vt[used], remap[G])
-    kept = float(np.abs(_volumes(Vt, T)).sum())
+    W, G, filled, bodies = _fill_voids(*boundary_surface(Vt, T)[:2])
+    kept = float(np.abs(tet_volumes(Vt, T)).sum())
     info = {"faces_in": int(len(F)), "faces_out": int(len(G)), "tets": int(len(T)), "bodies": bodies,
             "pinch_rounds": rounds, "volume": kept + filled, "volume_dropped": v0 - kept,
             "volume_filled": filled + 0.0}

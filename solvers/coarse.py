@@ -1,4 +1,4 @@
-"""Direct solve on the coarsest level (SuperLU, regularised SuperLU, dense pseudo-inverse).
+"""Direct solve on the coarsest level (SuperLU, pivoted Cholesky, regularised SuperLU, dense pseudo-inverse).
 
 Split from :mod:`solvers.multilevel`; also used by :mod:`solvers.petsc` for PETSc's coarsest level, so
 both paths share the same safeguards for rank-deficient Galerkin coarse operators.
@@ -10,13 +10,14 @@ import time
 
 import numpy as np
 import scipy.linalg as sla
+from scipy.linalg import lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import SolverError, SolverInputError
 from .transfer import _is_symmetric
 
-__all__ = ["DENSE_MAX", "sparse_lu"]
+__all__ = ["DENSE_MAX", "PIVOTED_MAX", "sparse_lu"]
 
 #: ``coarse_solver="auto"`` factorises a coarsest level of at most this many unknowns densely (LAPACK
 #: Cholesky, ``scipy.linalg.cho_factor``) instead of with SuperLU. Galerkin products of non-nested
@@ -26,6 +27,12 @@ __all__ = ["DENSE_MAX", "sparse_lu"]
 #: coarsest level: 0.06 s dense against 0.15-0.28 s for SuperLU's failed plain and regularised factors, the
 #: same CG iterations.
 DENSE_MAX = 2000
+
+#: ``coarse_solver="auto"``: a symmetric coarsest level of at most this many unknowns whose SuperLU factor
+#: fails validation gets the dense pivoted Cholesky (:class:`_PivotedCholesky`) before the regularised
+#: SuperLU. LAPACK ``dpstrf`` took 0.12 / 0.83 / 2.7 CPU s at 2,000 / 4,000 / 6,000 unknowns (1.3-1.5x a
+#: plain Cholesky, one thread); the regularised factor is cheaper but can stall CG (see the class).
+PIVOTED_MAX = 6000
 
 
 class _DenseFactor:
@@ -51,6 +58,53 @@ class _DenseFactor:
         if self.symmetric:
             return sla.cho_solve(self.c, b, check_finite=False)
         return sla.lu_solve(self.c, b, check_finite=False)
+
+
+class _PivotedCholesky:
+    """Rank-revealing Cholesky ``Πᵀ A Π = L Lᵀ`` of a symmetric positive semi-definite matrix (LAPACK
+    ``dpstrf``: complete diagonal pivoting, stopped at the first pivot below ``rtol · max diag A``).
+
+    ``solve`` returns the basic solution: the ``rank`` pivoted unknowns from ``L``, the others zero. With
+    ``A = [[A11, A12], [A21, A22]]`` in pivoted order and a zero Schur complement, ``A22 = A21 A11⁻¹ A12``,
+    any consistent ``b`` has ``b2 = A21 A11⁻¹ b1``, so ``x = (A11⁻¹ b1, 0)`` solves ``A x = b`` exactly,
+    whatever the null space, and ``b ↦ x`` is symmetric positive semi-definite (a CG preconditioner stays
+    one). The regularised factor of ``A + 1e-9 diag A`` is not exact on the range: on the clamped
+    elasticity coarsest level of spot (4,017 unknowns, ν = 0.45, six null vectors from a rank-deficient
+    prolongation, smallest nonzero eigenvalue 1.2e-7 λ_max) its coarse corrections were 3 % off, and MG-PCG
+    with the W-cycle stalled at 3e-5 after 200 iterations; with this factor it reaches 1e-8 in 19
+    (``benchmarks/results/elasticity/``). Higham, *Accuracy and Stability of Numerical Algorithms*, §10.3.
+    """
+
+    def __init__(self, A: sp.spmatrix, rtol: float):
+        Ad = A.toarray()
+        d = Ad.diagonal()
+        if not (np.all(np.isfinite(Ad)) and d.size and d.max() > 0):
+            raise SolverError("pivoted Cholesky: no positive diagonal entry (or non-finite entries)")
+        c, piv, rank, info = lapack.dpstrf(Ad, lower=1, tol=rtol * float(d.max()), overwrite_a=1)
+        if info < 0:
+            raise SolverError(f"pivoted Cholesky: LAPACK dpstrf argument {-info} is invalid")
+        n = Ad.shape[0]
+        self.rank = int(rank)
+        p = (piv - 1).astype(np.int64)
+        self.perm = p[:rank]
+        self.c = (np.ascontiguousarray(c[:rank, :rank]), True)
+        # orthonormal basis of the null space, Π (-A11⁻¹ A12; I): the basic solution minus its part there
+        # is the minimum-norm solution, the pseudo-inverse's (the cycle's coarse correction then carries no
+        # null components, which non-nested P only nearly annihilates)
+        self.kernel = np.zeros((n, n - rank))
+        if rank < n:
+            A12 = sla.cho_solve(self.c, A.toarray()[np.ix_(p[:rank], p[rank:])], check_finite=False)
+            self.kernel[p[:rank]] = -A12
+            self.kernel[p[rank:], np.arange(n - rank)] = 1.0
+            self.kernel = np.linalg.qr(self.kernel)[0]
+        self.L = self.U = sp.csr_matrix((n, n))
+        self.nnz = rank * (rank + 1)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        x = np.zeros(b.shape)
+        if self.rank:
+            x[self.perm] = sla.cho_solve(self.c, b[self.perm], check_finite=False)
+        return x - self.kernel @ (self.kernel.T @ x)
 
 
 def sparse_lu(A: sp.spmatrix, symmetric: bool | None = None):
@@ -85,9 +139,11 @@ class _CoarseSolver:
     restricted residual ``Pᵀ r`` is orthogonal to that kernel. ``method="splu"``: sparse LU (SuperLU),
     with one node pinned for ``nullspace="constant"``; validated at setup on a random consistent
     right-hand side, so a rank-deficient operator raises instead of returning garbage.
-    ``method="regularized"``: SuperLU of ``A + 1e-9 diag(A)`` (cheap and sparse; exact on the range for
-    consistent right-hand sides). ``method="auto"``: SuperLU, then the regularised LU, then the
-    pseudo-inverse when the level has at most ``pinv_max`` unknowns.
+    ``method="pivoted"``: dense rank-revealing Cholesky (:class:`_PivotedCholesky`; symmetric positive
+    semi-definite operators, exact on the range, any null space). ``method="regularized"``: SuperLU of
+    ``A + 1e-9 diag(A)`` (cheap and sparse; for consistent right-hand sides accurate to
+    ``1e-9 diag / λ`` on an eigenvalue ``λ``: poor on ill-conditioned levels). ``method="auto"``:
+    :meth:`_setup_auto`.
     """
 
     def __init__(self, A: sp.csr_matrix, nullspace: str | None, level: int, method: str = "auto",
@@ -99,43 +155,55 @@ class _CoarseSolver:
         self.lu = None
         self.Q = None
         t0 = time.perf_counter()
-        if method not in ("auto", "pinv", "splu", "regularized"):
-            raise SolverInputError(
-                f"coarse_solver must be 'auto', 'pinv', 'splu' or 'regularized', got {method!r}")
+        if method not in ("auto", "pinv", "splu", "pivoted", "regularized"):
+            raise SolverInputError("coarse_solver must be 'auto', 'pinv', 'splu', 'pivoted' or 'regularized', "
+                                   f"got {method!r}")
         self.fallback = False
         # "auto" factorises small coarsest levels densely (same pinning, regularisation and validation)
         self.dense = method == "auto" and self.n <= DENSE_MAX
-        if method == "auto" and self.dense and level > 0:
-            # the coarsest level of a hierarchy: its solve is part of a preconditioner, where the regularised
-            # factor's O(1e-9) perturbation is invisible; starting there saves the plain Cholesky that fails
-            # on the extra null vectors of non-nested Galerkin levels (0.1 s of 0.2 s at 1,263 unknowns)
-            try:
-                self._setup(A, nullspace, level, "regularized", rtol)
-            except SolverError:
-                self.fallback = True
-                self.pin, self.lu = None, None
-                if self.n > pinv_max:
-                    raise
-                self._setup(A, nullspace, level, "pinv", rtol)
-        elif method == "auto":
-            try:
-                self._setup(A, nullspace, level, "splu", rtol)
-            except SolverError:
-                self.fallback = True
-                self.pin, self.lu = None, None
-                try:
-                    self._setup(A, nullspace, level, "regularized", rtol)
-                except SolverError:
-                    if self.n > pinv_max:
-                        raise
-                    self.pin, self.lu = None, None
-                    self._setup(A, nullspace, level, "pinv", rtol)
-        else:
+        if method != "auto":
             self._setup(A, nullspace, level, method, rtol)
+        else:
+            self._setup_auto(A, nullspace, level, pinv_max, rtol)
         self.seconds = time.perf_counter() - t0
+
+    def _setup_auto(self, A, nullspace, level, pinv_max, rtol):
+        """``coarse_solver="auto"``: the first of its steps whose factor passes validation.
+
+        Large levels: SuperLU, then (symmetric, at most :data:`PIVOTED_MAX` unknowns) the pivoted Cholesky,
+        then the regularised SuperLU, then (at most ``pinv_max``) the pseudo-inverse. A small coarsest level
+        of a hierarchy (``level > 0``, at most :data:`DENSE_MAX`) starts at the pivoted Cholesky: it is part
+        of a preconditioner, and the plain Cholesky fails on the extra null vectors of non-nested Galerkin
+        levels (0.1 s of 0.2 s at 1,263 unknowns).
+        """
+        steps = ["splu"] + (["pivoted"] if self.symmetric and self.n <= PIVOTED_MAX else [])
+        steps += ["regularized"] + (["pinv"] if self.n <= pinv_max else [])
+        if self.dense and level > 0:
+            steps = steps[1:]
+        for i, step in enumerate(steps):
+            self.pin, self.lu, self.Q = None, None, None
+            try:
+                self._setup(A, nullspace, level, step, rtol)
+                return
+            except SolverError:
+                if i == len(steps) - 1:
+                    raise
+                self.fallback = True
 
     def _setup(self, A, nullspace, level, method, rtol):
         self.method = method
+        if method == "pivoted":
+            self.lu = _PivotedCholesky(A, rtol)
+            self.nnz = self.lu.nnz
+            self.nullity = self.n - self.lu.rank
+            v = np.random.default_rng(0).standard_normal(self.n)
+            b = A @ v  # consistent: the basic solution must reproduce it
+            with np.errstate(all="ignore"):
+                err = np.linalg.norm(A @ self(b) - b) / np.linalg.norm(b)
+            if not err < 1e-6:
+                raise SolverError(f"coarsest operator (level {level}, n={self.n}): pivoted Cholesky residual "
+                                  f"{err:.1e} (not positive semi-definite?)")
+            return
         expected = 1 if nullspace == "constant" else 0
         if method == "regularized":
             # sparse LU of A + eps diag(A): for a consistent right-hand side (b orthogonal to ker A, as

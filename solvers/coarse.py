@@ -75,7 +75,7 @@ class _PivotedCholesky:
     (``benchmarks/results/elasticity/``). Higham, *Accuracy and Stability of Numerical Algorithms*, §10.3.
     """
 
-    def __init__(self, A: sp.spmatrix, rtol: float):
+    def __init__(self, A: sp.spmatrix, rtol: float, sparse_solve: bool = False):
         Ad = A.toarray()
         d = Ad.diagonal()
         if not (np.all(np.isfinite(Ad)) and d.size and d.max() > 0):
@@ -99,11 +99,19 @@ class _PivotedCholesky:
             self.kernel = np.linalg.qr(self.kernel)[0]
         self.L = self.U = sp.csr_matrix((n, n))
         self.nnz = rank * (rank + 1)
+        self.lu = None
+        if sparse_solve and rank:
+            # the cycle solves many times: SuperLU of the kept block A11 (nonsingular) solves faster than
+            # the dense triangles (spot, 4,017 unknowns, W-cycle: 4.2 s against 11.6 s of MG-PCG)
+            self.lu = sparse_lu(sp.csc_matrix(A)[self.perm][:, self.perm], symmetric=True)
+            self.c, self.nnz = None, int(self.lu.L.nnz + self.lu.U.nnz)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         x = np.zeros(b.shape)
         if self.rank:
-            x[self.perm] = sla.cho_solve(self.c, b[self.perm], check_finite=False)
+            bp = b[self.perm]
+            x[self.perm] = self.lu.solve(bp) if self.lu is not None else sla.cho_solve(self.c, bp,
+                                                                                       check_finite=False)
         return x - self.kernel @ (self.kernel.T @ x)
 
 
@@ -193,7 +201,7 @@ class _CoarseSolver:
     def _setup(self, A, nullspace, level, method, rtol):
         self.method = method
         if method == "pivoted":
-            self.lu = _PivotedCholesky(A, rtol)
+            self.lu = _PivotedCholesky(A, rtol, sparse_solve=self.n > DENSE_MAX)
             self.nnz = self.lu.nnz
             self.nullity = self.n - self.lu.rank
             v = np.random.default_rng(0).standard_normal(self.n)

@@ -30,6 +30,7 @@ from .coarse import _CoarseSolver
 from .deflation import DEFLATION_GOAL, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
                        permute_prolongation, permute_symmetric)
+from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
 from .transfer import (
@@ -223,19 +224,23 @@ class MultigridSolver:
     nullspace : None or "constant"
         ``"constant"`` for pure Neumann operators (see module docstring): checks ``A_k 1 = 0`` on every
         level, projects right-hand sides and returns zero-mean solutions.
-    coarse_solver : {"auto", "pinv", "splu", "regularized"}
+    coarse_solver : {"auto", "pinv", "splu", "pivoted", "regularized"}
         Coarsest-level direct solver, set up once. ``"splu"``: SuperLU (one node pinned for Neumann),
         validated at setup on a random consistent right-hand side; raises :class:`SolverError` if the
-        operator is singular beyond the expected null space. ``"regularized"``: SuperLU of
-        ``A + 1e-9 diag(A)``, right for consistent right-hand sides also with extra null vectors
-        (validated by the residual). ``"pinv"``: dense pseudo-inverse (robust to extra null vectors
-        from rank-deficient prolongations; O(n³) setup). ``"auto"`` (default): SuperLU, then the
-        regularised LU when validation fails, then the pseudo-inverse if the coarsest level has at most
-        ``pinv_max`` unknowns (the fallback is reported by ``repr``); a coarsest level of at most
-        :data:`solvers.coarse.DENSE_MAX` unknowns is factorised densely (LAPACK Cholesky) in these
-        steps, a larger one by SuperLU. Measured on a 550k-tet bunny
-        Galerkin hierarchy (2k-node coarsest level, 3 extra null vectors): regularised 3 s setup,
-        pseudo-inverse 31-54 s, identical residual histories.
+        operator is singular beyond the expected null space. ``"pivoted"``: dense rank-revealing Cholesky
+        (LAPACK ``dpstrf``), the minimum-norm solution on the range whatever the null space (symmetric
+        positive semi-definite operators). ``"regularized"``: SuperLU of ``A + 1e-9 diag(A)``, for
+        consistent right-hand sides also with extra null vectors, but off by ``1e-9 diag / λ`` on an
+        eigenvalue ``λ`` (validated by the residual). ``"pinv"``: dense pseudo-inverse (O(n³) setup,
+        about 10x the pivoted Cholesky's). ``"auto"`` (default): SuperLU, then for a symmetric level of at
+        most :data:`solvers.coarse.PIVOTED_MAX` unknowns the pivoted Cholesky, then the regularised LU,
+        then the pseudo-inverse if the coarsest level has at most ``pinv_max`` unknowns (the fallback is
+        reported by ``repr``); a coarsest level of at most :data:`solvers.coarse.DENSE_MAX` unknowns
+        starts at the pivoted Cholesky (LAPACK, dense). Measured on a 550k-tet bunny Galerkin hierarchy
+        (2k-node coarsest level, 3 extra null vectors): regularised 3 s setup, pseudo-inverse 31-54 s,
+        identical residual histories; on the clamped elasticity coarsest level of spot (4,017 unknowns,
+        ν = 0.45) the regularised solve stalled MG-PCG with the W-cycle, the pivoted one did not
+        (:class:`solvers.coarse._PivotedCholesky`).
     pinv_max : int
         Size limit of the ``"auto"`` fallback (dense eigh of 2000 unknowns: ~1–4 s on this machine).
     local_nodes : int array or bool mask, optional
@@ -770,6 +775,7 @@ class MultigridSolver:
         t0 = time.perf_counter()
         normb = float(np.linalg.norm(b))
         hist: list[float] = []
+        res = None  # pcg's result (accel="cg")
         if normb == 0.0:
             x[:] = 0.0
             hist = [0.0]
@@ -828,7 +834,17 @@ class MultigridSolver:
         x = self._to_caller(x)
         seconds = time.perf_counter() - t0
         converged = hist[-1] <= tol
-        if not converged:
+        if not converged and res is not None and res.stagnated:
+            floor = "" if res.attainable is None else (
+                f"; round-off alone allows about {res.attainable:.1e} here (eps ||A|| ||x|| / ||b||)")
+            warnings.warn(
+                f"MG-PCG stagnated: no smaller residual in the last {STALL_ITERATIONS} of {len(hist) - 1} "
+                f"iterations; returned the best iterate, relative residual {hist[-1]:.3e} > tol={tol:g}{floor}. "
+                "Ask for a larger tol, or check the preconditioner",
+                ConvergenceWarning,
+                stacklevel=2,
+            )
+        elif not converged:
             warnings.warn(
                 f"multigrid stopped after {len(hist) - 1} iterations at relative residual {hist[-1]:.3e} > tol={tol:g}",
                 ConvergenceWarning,

@@ -56,8 +56,8 @@ ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 #: and two on the coarser ones (:data:`nestmg.problems.DEFAULT_SMOOTHERS`).
 ROBUST_SMOOTHERS = DEFAULT_SMOOTHERS
 
-#: The ``"robust"`` preset's smoothers at ν >= 0.4, run in a W-cycle (:meth:`nestmg.SolverOptions.resolved`):
-#: two symmetric sweeps on the fine level and four on the coarser ones (``SolverOptions(nu=2)``).
+#: The ``"robust"`` preset's smoothers of the W-cycle at ν >= 0.4 (``SolverOptions(cycle="W")``,
+#: :meth:`nestmg.SolverOptions.resolved`): two symmetric sweeps on the fine level and four on the coarser ones.
 W_CYCLE_SMOOTHERS = cycle_smoothers(nu=2)
 
 #: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.
@@ -140,10 +140,10 @@ class ElasticityProblem(Problem):
             :data:`FAST_SMOOTHERS`; ``coarse_scaling`` ``"auto"`` is None (Galerkin operators); ``local``
             is unused (no boundary-layer sweeps for elasticity); ``cycle`` becomes the solver's
             :attr:`~solvers.MultigridSolver.cycle` (run by ``solve`` and ``aspreconditioner`` given none).
-            Not set (the default), ``nu`` and ``cycle`` follow the problem's Poisson ratio
-            (:meth:`nestmg.SolverOptions.resolved`): below 0.4 the V-cycle with :data:`ROBUST_SMOOTHERS`
-            (one sweep on the fine level, two below), from 0.4 on the W-cycle with two and four sweeps,
-            which keeps MG-PCG within 20 iterations at ν = 0.45 (docs/elasticity.md).
+            Not set (the default), the V-cycle with :data:`ROBUST_SMOOTHERS` (one sweep on the fine level,
+            two below), the fastest under CG at every ν measured; ``cycle="W"`` at ν >= 0.4 gets two and
+            four sweeps (:data:`W_CYCLE_SMOOTHERS`, :meth:`nestmg.SolverOptions.resolved`), fewer MG-PCG
+            iterations for more seconds (docs/elasticity.md).
         block : bool
             ``True``: Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"``
             in ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks
@@ -166,7 +166,7 @@ class ElasticityProblem(Problem):
 
         from .options import SolverOptions, typed
 
-        # nu and cycle not set: W-cycle and two fine sweeps at ν >= 0.4 (the problem's ν, not options')
+        # nu not set: two fine sweeps for a W-cycle at ν >= 0.4 (the problem's ν, not options')
         o = typed(options, SolverOptions, "options").resolved(self.name, self.params.get("nu"))
         coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
         robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS at ν < 0.4

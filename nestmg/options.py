@@ -31,10 +31,11 @@ from .tetmesh import OUTER_EDGE_FACTOR
 __all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "MeshingOptions", "OptionError", "SizingOptions", "SolverOptions",
            "W_CYCLE_POISSON_RATIO", "add_arguments", "from_arguments"]
 
-#: The cycle and fine-level sweeps of every problem but elasticity at ν >= :data:`W_CYCLE_POISSON_RATIO`
-#: (:meth:`SolverOptions.resolved`): the pipeline's variable V-cycle, one sweep on the fine level.
+#: The cycle and fine-level sweeps of every problem (:meth:`SolverOptions.resolved`): the pipeline's
+#: variable V-cycle, one sweep on the fine level.
 DEFAULT_CYCLE, DEFAULT_NU = "V", 1
-#: Poisson ratio from which the elasticity problems default to the W-cycle with two fine sweeps (issue 32).
+#: Poisson ratio from which an elasticity problem run with the W-cycle (``cycle="W"``) gets two fine sweeps
+#: (issue 32; the W-cycle was the default there until the V-cycle measured faster under CG).
 W_CYCLE_POISSON_RATIO = 0.4
 
 
@@ -160,13 +161,13 @@ class SolverOptions:
     def resolved(self, problem: str | None = None, poisson_ratio: float | None = None) -> SolverOptions:
         """These options with ``nu`` and ``cycle`` set for ``problem`` (the fields given are kept).
 
-        The rule (issue 32): elasticity problems (:data:`nestmg.elasticity.ELASTICITY_PROBLEMS`) with a
-        Poisson ratio >= :data:`W_CYCLE_POISSON_RATIO` and the ``"robust"`` preset take a W-cycle, and
-        with it ``nu = 2`` (two sweeps on the fine level, ``2 nu = 4`` on the coarser ones unless
-        ``coarse_nu`` is given): on fandisk at 328k and 1.09M tets, ν = 0.45, MG-PCG to 1e-8 took 14–15
-        iterations instead of the V-cycle's 21–22, at 1.20–1.37x its CPU seconds (docs/elasticity.md).
-        Everything else keeps :data:`DEFAULT_CYCLE` and :data:`DEFAULT_NU`, as do the sweeps of an explicitly
-        chosen cycle other than W (``cycle="V"`` at ν = 0.45 is the V-cycle with one fine sweep).
+        The cycle not set is :data:`DEFAULT_CYCLE`, the V-cycle, for every problem: under CG it was the
+        fastest in CPU seconds also for elasticity at ν = 0.45, where the W-cycle with two / four sweeps
+        takes fewer iterations (fandisk 173k tets: 16 against 24) but 1.2-1.6x the seconds
+        (docs/elasticity.md). ``nu`` not set is :data:`DEFAULT_NU`, except for the W-cycle chosen for an
+        elasticity problem with a Poisson ratio >= :data:`W_CYCLE_POISSON_RATIO` under the ``"robust"``
+        preset: ``nu = 2`` (``2 nu = 4`` on the coarser levels unless ``coarse_nu`` is given), the
+        configuration that keeps MG-PCG within 20 iterations there on most meshes.
 
         Parameters
         ----------
@@ -187,7 +188,7 @@ class SolverOptions:
         ratio = float(np.max(self.poisson_ratio if poisson_ratio is None else poisson_ratio))
         w_rule = (problem in ELASTICITY_PROBLEMS and ratio >= W_CYCLE_POISSON_RATIO
                   and self.smoothing == "robust")
-        cycle = self.cycle if self.cycle is not None else ("W" if w_rule else DEFAULT_CYCLE)
+        cycle = self.cycle if self.cycle is not None else DEFAULT_CYCLE
         nu = self.nu if self.nu is not None else (2 if w_rule and cycle == "W" else DEFAULT_NU)
         return dataclasses.replace(self, nu=nu, cycle=cycle)
 

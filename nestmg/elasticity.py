@@ -57,7 +57,7 @@ ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 ROBUST_SMOOTHERS = DEFAULT_SMOOTHERS
 
 #: The ``"robust"`` preset's smoothers of the W-cycle at ν >= 0.4 (``SolverOptions(cycle="W")``,
-#: :meth:`nestmg.SolverOptions.resolved`): two symmetric sweeps on the fine level and four on the coarser ones.
+#: :meth:`nestmg.SolverOptions.resolved`): two symmetric sweeps on the fine level, four on the coarser ones.
 W_CYCLE_SMOOTHERS = cycle_smoothers(nu=2)
 
 #: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.

@@ -86,32 +86,37 @@ class _PivotedCholesky:
         n = Ad.shape[0]
         self.rank = int(rank)
         p = (piv - 1).astype(np.int64)
-        self.perm = p[:rank]
-        self.c = (np.ascontiguousarray(c[:rank, :rank]), True)
+        self.perm, dropped = p[:rank], p[rank:]
+        self.L = self.U = sp.csr_matrix((n, n))
+        self.lu = self.c = None
+        if sparse_solve and rank:
+            # the cycle solves many times: SuperLU of the kept block A11 (nonsingular) solves faster than
+            # the dense triangles (spot, 4,017 unknowns, W-cycle: 4.2 s against 11.6 s of MG-PCG)
+            A = sp.csr_matrix(A)
+            self.lu = sparse_lu(sp.csc_matrix(A[self.perm][:, self.perm]), symmetric=True)
+            self.nnz = int(self.lu.L.nnz + self.lu.U.nnz)
+        else:
+            self.c = (np.ascontiguousarray(c[:rank, :rank]), True)
+            self.nnz = rank * (rank + 1)
+        del c, Ad
         # orthonormal basis of the null space, Π (-A11⁻¹ A12; I): the basic solution minus its part there
         # is the minimum-norm solution, the pseudo-inverse's (the cycle's coarse correction then carries no
         # null components, which non-nested P only nearly annihilates)
         self.kernel = np.zeros((n, n - rank))
-        if rank < n:
-            A12 = sla.cho_solve(self.c, A.toarray()[np.ix_(p[:rank], p[rank:])], check_finite=False)
-            self.kernel[p[:rank]] = -A12
-            self.kernel[p[rank:], np.arange(n - rank)] = 1.0
+        if 0 < rank < n:
+            self.kernel[self.perm] = -self._solve_kept(sp.csr_matrix(A)[self.perm][:, dropped].toarray())
+            self.kernel[dropped, np.arange(n - rank)] = 1.0
             self.kernel = np.linalg.qr(self.kernel)[0]
-        self.L = self.U = sp.csr_matrix((n, n))
-        self.nnz = rank * (rank + 1)
-        self.lu = None
-        if sparse_solve and rank:
-            # the cycle solves many times: SuperLU of the kept block A11 (nonsingular) solves faster than
-            # the dense triangles (spot, 4,017 unknowns, W-cycle: 4.2 s against 11.6 s of MG-PCG)
-            self.lu = sparse_lu(sp.csc_matrix(A)[self.perm][:, self.perm], symmetric=True)
-            self.c, self.nnz = None, int(self.lu.L.nnz + self.lu.U.nnz)
+
+    def _solve_kept(self, b: np.ndarray) -> np.ndarray:
+        if self.lu is not None:
+            return self.lu.solve(b)
+        return sla.cho_solve(self.c, b, check_finite=False)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         x = np.zeros(b.shape)
         if self.rank:
-            bp = b[self.perm]
-            x[self.perm] = self.lu.solve(bp) if self.lu is not None else sla.cho_solve(self.c, bp,
-                                                                                       check_finite=False)
+            x[self.perm] = self._solve_kept(b[self.perm])
         return x - self.kernel @ (self.kernel.T @ x)
 
 
@@ -164,8 +169,8 @@ class _CoarseSolver:
         self.Q = None
         t0 = time.perf_counter()
         if method not in ("auto", "pinv", "splu", "pivoted", "regularized"):
-            raise SolverInputError("coarse_solver must be 'auto', 'pinv', 'splu', 'pivoted' or 'regularized', "
-                                   f"got {method!r}")
+            raise SolverInputError("coarse_solver must be 'auto', 'pinv', 'splu', 'pivoted' or "
+                                   f"'regularized', got {method!r}")
         self.fallback = False
         # "auto" factorises small coarsest levels densely (same pinning, regularisation and validation)
         self.dense = method == "auto" and self.n <= DENSE_MAX
@@ -184,21 +189,26 @@ class _CoarseSolver:
         of a preconditioner, and the plain Cholesky fails on the extra null vectors of non-nested Galerkin
         levels (0.1 s of 0.2 s at 1,263 unknowns).
         """
-        steps = ["splu"] + (["pivoted"] if self.symmetric and self.n <= PIVOTED_MAX else [])
-        steps += ["regularized"] + (["pinv"] if self.n <= pinv_max else [])
+        steps = [("splu", True)]
+        if self.symmetric and self.n <= PIVOTED_MAX:
+            # SuperLU's symmetric mode, then the pivoted Cholesky, then SuperLU's pivoting LU (a symmetric
+            # indefinite level): the pivoting LU of a semi-definite level that failed the symmetric factor
+            # cost as much as the pivoted Cholesky (0.35 s at 2,730 unknowns) and fails as well
+            steps = [("splu", False), ("pivoted", True), ("splu", True)]
+        steps += [("regularized", True)] + ([("pinv", True)] if self.n <= pinv_max else [])
         if self.dense and level > 0:
-            steps = steps[1:]
-        for i, step in enumerate(steps):
+            steps = [st for st in steps if st[0] != "splu"]
+        for i, (step, pivoting) in enumerate(steps):
             self.pin, self.lu, self.Q = None, None, None
             try:
-                self._setup(A, nullspace, level, step, rtol)
+                self._setup(A, nullspace, level, step, rtol, pivoting)
                 return
             except SolverError:
                 if i == len(steps) - 1:
                     raise
                 self.fallback = True
 
-    def _setup(self, A, nullspace, level, method, rtol):
+    def _setup(self, A, nullspace, level, method, rtol, pivoting: bool = True):
         self.method = method
         if method == "pivoted":
             self.lu = _PivotedCholesky(A, rtol, sparse_solve=self.n > DENSE_MAX)
@@ -272,7 +282,9 @@ class _CoarseSolver:
             # dense path tries Cholesky only: a failure (mostly a semi-definite Galerkin operator with null
             # vectors from a rank-deficient P) goes to the regularised step, which tries the pivoting LU last
             err = np.inf
-            for sym in ((True, False) if self.symmetric and not self.dense else (self.symmetric,)):
+            # SuperLU's pivoting LU after its symmetric mode
+            retry = self.symmetric and not self.dense and pivoting
+            for sym in ((True, False) if retry else (self.symmetric,)):
                 self.lu = None
                 if self.n > 1 or nullspace != "constant":
                     try:

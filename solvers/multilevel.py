@@ -839,7 +839,8 @@ class MultigridSolver:
                 f"; round-off alone allows about {res.attainable:.1e} here (eps ||A|| ||x|| / ||b||)")
             warnings.warn(
                 f"MG-PCG stagnated: no smaller residual in the last {STALL_ITERATIONS} of {len(hist) - 1} "
-                f"iterations; returned the best iterate, relative residual {hist[-1]:.3e} > tol={tol:g}{floor}. "
+                f"iterations; returned the best iterate, relative residual {hist[-1]:.3e} > tol={tol:g}"
+                f"{floor}. "
                 "Ask for a larger tol, or check the preconditioner",
                 ConvergenceWarning,
                 stacklevel=2,

@@ -556,7 +556,8 @@ def test_coarse_solvers_agree(cube, monkeypatch):
         xs.append(ml.solve(b, tol=1e-11))
     for x, tol in zip(xs[1:], (1e-9, 1e-9, 1e-8)):
         assert np.abs(xs[0] - x).max() < tol * np.abs(xs[0]).max()
-    # above PIVOTED_MAX and pinv_max the sparse regularised LU still copes with a rank-deficient coarsest level
+    # above PIVOTED_MAX and pinv_max the sparse regularised LU still copes with a rank-deficient coarsest
+    # level
     bad = [Ps[0], _split_column(Ps[1], 10)]
     monkeypatch.setattr(solvers.coarse, "PIVOTED_MAX", 50)
     ml = MultigridSolver(K, bad, nullspace="constant", pinv_max=100)

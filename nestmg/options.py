@@ -142,7 +142,7 @@ class SolverOptions:
                              expert=True)
     coarse_scaling: str | None = field_spec("auto", "auto: energy for re-discretised and weighted operators",
                                             choices=("auto", "energy", None), expert=True)
-    cycle: str | None = field_spec(None, "multigrid cycle (default V; W for elasticity at ν >= 0.4)",
+    cycle: str | None = field_spec(None, "multigrid cycle (default V)",
                                    choices=("V", "W", "F", None), expert=True)
     accel: str | None = field_spec(None, "cg: MG-preconditioned CG", choices=("cg", None))
     tol: float = field_spec(1e-8, "relative residual to reach", low=0.0, strict=True)

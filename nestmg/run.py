@@ -75,7 +75,8 @@ def solve_on_hierarchy(
         coarser ones, plus boundary-layer sweeps with ``local``; :meth:`nestmg.problems.Problem.multigrid`);
         ``coarse_scaling``; ``cycle``, ``accel``, ``tol``, ``maxiter``
         (:meth:`solvers.MultigridSolver.solve`). ``nu`` and ``cycle`` not set follow the problem
-        (:meth:`nestmg.SolverOptions.resolved`: the W-cycle with ``nu = 2`` for elasticity at ν >= 0.4);
+        (:meth:`nestmg.SolverOptions.resolved`: the V-cycle; ``nu = 2`` for a W-cycle on elasticity at
+        ν >= 0.4);
         the report gives the values used.
     element, curved
         ``"P2"``: quadratic elements on ``tets[0]``, curved when ``curved`` is its

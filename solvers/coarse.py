@@ -70,8 +70,9 @@ class _PivotedCholesky:
     whatever the null space, and ``b ↦ x`` is symmetric positive semi-definite (a CG preconditioner stays
     one). The regularised factor of ``A + 1e-9 diag A`` is not exact on the range: on the clamped
     elasticity coarsest level of spot (4,017 unknowns, ν = 0.45, six null vectors from a rank-deficient
-    prolongation, smallest nonzero eigenvalue 1.2e-7 λ_max) its coarse corrections were 3 % off, and MG-PCG
-    with the W-cycle stalled at 3e-5 after 200 iterations; with this factor it reaches 1e-8 in 19
+    prolongation, smallest nonzero eigenvalue 9.7e-8 λ_max) its coarse corrections were 2.7 % off (median;
+    this factor's 1e-10), and MG-PCG with the W-cycle ended at residual 1.9 after 500 iterations; with this
+    factor (and :func:`solvers.pcg`'s stall stop) it reaches the attainable 1.6e-8 in 23
     (``benchmarks/results/elasticity/``). Higham, *Accuracy and Stability of Numerical Algorithms*, §10.3.
     """
 

@@ -28,10 +28,10 @@ class _Stagnated(Exception):
 
 #: :func:`pcg` stops when this many iterations in a row bring no new minimum of the residual: CG has reached
 #: the system's attainable accuracy (round-off, about ``eps ||A|| ||x|| / ||b||``) or its preconditioner is
-#: inexact. Past that point the residual only drifts: clamped elasticity on spot at ν = 0.45 (193k
-#: unknowns, attainable 1.4e-8: SuperLU plus one refinement step) reached 9e-9 in 24 W-preconditioned
-#: iterations, then climbed to 1.4 by iteration 500 (benchmarks/results/elasticity/). A converging MG-PCG
-#: run makes a new minimum every one or two iterations.
+#: inexact. Past that point the residual only drifts: on clamped elasticity on spot at ν = 0.45 (193k
+#: unknowns; SuperLU plus one refinement step reaches 1.4e-8) W-preconditioned CG asked for 1e-8 ended at
+#: residual 1.9 after 500 iterations (benchmarks/results/elasticity/spot_clamped_045_*.json). A converging
+#: MG-PCG run makes a new minimum every one or two iterations.
 STALL_ITERATIONS = 10
 
 

@@ -358,8 +358,8 @@ def test_symmetric_galerkin_product_equals_ptap():
     assert np.allclose(P.sum(axis=1), 1.0) and P.getcol(empty).nnz == 0
     for A in (spd, hole):
         A.sort_indices()
-        half = transfer._lower_half(A)
-        assert abs(half + half.T - A).max() == 0.0
+        half, d = transfer._lower_half(A)
+        assert abs(half + half.T - A).max() == 0.0 and np.array_equal(d, A.diagonal())
         Ac = transfer.galerkin_operators(A, [P])[1]
         ref = sp.csr_matrix(P.T @ A @ P)
         assert abs(Ac - ref).max() <= 1e-12 * abs(ref).max()

@@ -574,6 +574,21 @@ USER_PARTS = ("user_mesh/setup_profile_parts_before.json", "user_mesh/setup_prof
 def usermesh_setup_parts() -> str:
     before, after = (load(rel) for rel in USER_PARTS)
     probs = [p for p in _USER_PROBLEMS if p in after["problems"]]
+
+    def ms(d, part):
+        return [1e3 * d["problems"][p]["parts"][part] for p in probs]
+
+    coarse, checks = "coarsest factor (incl. validation solves)", "operator checks"
+    ratio = [[d["problems"][p]["setup_cpu_ratio_vs_sa_median"] for p in probs] for d in (before, after)]
+    return (f"coarsest factor {rng(ms(after, coarse), '.0f')} ms against {rng(ms(before, coarse), '.0f')}, "
+            f"operator checks {rng(ms(after, checks), '.0f')} against {rng(ms(before, checks), '.0f')} ms, "
+            f"set-up over SA's {rng(ratio[1], '.2f')}x against {rng(ratio[0], '.2f')}x")
+
+
+def setup_parts_table() -> str:
+    """The table of ``USER_PARTS`` per part (docs/history/usermesh.md keeps it as rendered at f4c9e17)."""
+    before, after = (load(rel) for rel in USER_PARTS)
+    probs = [p for p in _USER_PROBLEMS if p in after["problems"]]
     codes = (f"before ({before['code']})", f"after ({after['code']})")
     heads = [f"{p} {w}, CPU ms" for p in probs for w in codes]
     rows = []

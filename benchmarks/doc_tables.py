@@ -322,8 +322,8 @@ def usermesh_setup() -> str:
             f"{len(cpu)} cases")
 
 
-#: the 12-case run before the symmetric Galerkin product (code 7afcb23), kept for comparison
-USER_SOLVERS_BEFORE = "user_mesh/solvers_7afcb23.json"
+#: the 12-case run before the last set-up round (code b0c5928), kept for comparison
+USER_SOLVERS_BEFORE = "user_mesh/solvers_b0c5928.json"
 
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)
@@ -563,6 +563,45 @@ def usermesh_cycles() -> str:
                 cells.append(f"{r['iterations']} / {ratio}")
             rows.append([f"{c['label']} ({c['tets']:,})", p] + cells)
     return table(["user mesh (fine tets)", "problem"] + [_CYCLE_LABELS.get(n, n) for n in names], rows)
+
+
+#: ``user_mesh_solvers.py profile`` of the spot TetWild case before (ae20b3b) and after (f4c9e17) the set-up
+#: round of the pivoted coarsest factor, band Cholesky and the Galerkin split's diagonals
+USER_PARTS = ("user_mesh/setup_profile_parts_before.json", "user_mesh/setup_profile_parts_after.json")
+
+
+@generator("usermesh.setup_parts", *USER_PARTS)
+def usermesh_setup_parts() -> str:
+    before, after = (load(rel) for rel in USER_PARTS)
+    probs = [p for p in _USER_PROBLEMS if p in after["problems"]]
+
+    def ms(d, part):
+        return [1e3 * d["problems"][p]["parts"][part] for p in probs]
+
+    coarse, checks = "coarsest factor (incl. validation solves)", "operator checks"
+    ratio = [[d["problems"][p]["setup_cpu_ratio_vs_sa_median"] for p in probs] for d in (before, after)]
+    return (f"coarsest factor {rng(ms(after, coarse), '.0f')} ms against {rng(ms(before, coarse), '.0f')}, "
+            f"operator checks {rng(ms(after, checks), '.0f')} against {rng(ms(before, checks), '.0f')} ms, "
+            f"set-up over SA's {rng(ratio[1], '.2f')}x against {rng(ratio[0], '.2f')}x")
+
+
+def setup_parts_table() -> str:
+    """The table of ``USER_PARTS`` per part (docs/history/usermesh.md keeps it as rendered at f4c9e17)."""
+    before, after = (load(rel) for rel in USER_PARTS)
+    probs = [p for p in _USER_PROBLEMS if p in after["problems"]]
+    codes = (f"before ({before['code']})", f"after ({after['code']})")
+    heads = [f"{p} {w}, CPU ms" for p in probs for w in codes]
+    rows = []
+    for part in after["problems"][probs[0]]["parts"]:
+        rows.append([part.replace("  ", "– ")] + [f"{1e3 * d['problems'][p]['parts'][part]:.0f}"
+                                                  for p in probs for d in (before, after)])
+    for key, label in (("setup_cpu_seconds_median", "set-up without the profiler (median)"),
+                       ("pyamg_sa_setup_cpu_seconds_median", "pyamg SA set-up (median, same run)")):
+        rows.append([label] + [f"{1e3 * d['problems'][p][key]:.0f}" for p in probs for d in (before, after)])
+    rows.append(["set-up / SA's (median of per-repeat ratios)"]
+                + [f"{d['problems'][p]['setup_cpu_ratio_vs_sa_median']:.2f}"
+                   for p in probs for d in (before, after)])
+    return table(["part"] + heads, rows)
 
 
 @generator("usermesh.sym_ratio", *USER_PROFILE)

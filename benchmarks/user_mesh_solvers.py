@@ -368,9 +368,37 @@ def run(args) -> dict:
     return out
 
 
+#: ``profile``'s set-up parts: label -> (file, function) whose cumulative CPU time under cProfile is the
+#: part's
+SETUP_PARTS = {
+    "input checks": ("multilevel.py", "_checked_inputs"),
+    "unreached coarse nodes dropped": ("transfer.py", "_drop_unreached_columns"),
+    "reordering (all)": ("multilevel.py", "_reorder"),
+    "  locality order": ("ordering.py", "locality_order"),
+    "  fine matrix permuted + its transpose (symmetry test)": ("ordering.py", "permute_symmetric"),
+    "  prolongations permuted": ("ordering.py", "permute_prolongation"),
+    "Galerkin products (all)": ("transfer.py", "_galerkin_chain"),
+    "  lower halves L + D/2": ("transfer.py", "_lower_half"),
+    "  sparse products": ("transfer.py", "_one_pass_product"),
+    "operator checks": ("multilevel.py", "_check_operators"),
+    "smoother set-up": ("multilevel.py", "_make_levels"),
+    "coarsest factor (incl. validation solves)": ("coarse.py", "_setup"),
+    "deflation probe": ("multilevel.py", "_deflate"),
+}
+
+
+def _setup_parts(stats: dict) -> dict:
+    """CPU seconds of each of :data:`SETUP_PARTS` in a ``pstats.Stats.stats`` dict (cumulative, all calls)."""
+    out = {}
+    for label, (file, func) in SETUP_PARTS.items():
+        out[label] = sum(v[3] for k, v in stats.items() if Path(k[0]).name == file and k[2] == func)
+    return out
+
+
 def profile(args) -> dict:
     """cProfile of ``MultigridSolver(A, P)`` set-up (the code on ``PYTHONPATH``: run it once on the base
-    commit's tree and once on this one for the before/after), plus pyamg SA's set-up time in the same run."""
+    commit's tree and once on this one for the before/after), plus pyamg SA's set-up time in the same run;
+    ``parts``: the medians over three profiled set-ups of :data:`SETUP_PARTS`."""
     import cProfile
     import pstats
 
@@ -396,11 +424,14 @@ def profile(args) -> dict:
             pyamg.smoothed_aggregation_solver(A)
             t_sa.append(time.perf_counter() - t)
             c_sa.append(time.process_time() - c0)
-        pr = cProfile.Profile(time.process_time)  # CPU seconds: the machine is shared
-        pr.enable()
-        MultigridSolver(A, Ps, nullspace=ns)
-        pr.disable()
-        st = pstats.Stats(pr)
+        parts = []
+        for _ in range(3):
+            pr = cProfile.Profile(time.process_time)  # CPU seconds: the machine is shared
+            pr.enable()
+            MultigridSolver(A, Ps, nullspace=ns)
+            pr.disable()
+            st = pstats.Stats(pr)
+            parts.append(_setup_parts(st.stats) | {"total under cProfile": st.total_tt})
         rows = sorted(((v[2], v[3], f"{Path(k[0]).name}:{k[1]}({k[2]})") for k, v in st.stats.items()),
                       reverse=True)
         out["problems"][prob] = {
@@ -411,8 +442,10 @@ def profile(args) -> dict:
             "pyamg_sa_setup_cpu_seconds_median": float(np.median(c_sa)),
             "setup_cpu_ratio_vs_sa_median": float(np.median(np.array(c_mg) / np.array(c_sa))),
             "profile_seconds": float(st.total_tt),
+            "parts": {k: float(np.median([p[k] for p in parts])) for k in parts[0]},
             "top_tottime": [{"function": f, "tottime": tt, "cumtime": ct} for tt, ct, f in rows[:12]],
         }
+        print("; ".join(f"{k.strip()} {v:.3f}" for k, v in out["problems"][prob]["parts"].items()))
         print(f"{prob}: setup {np.median(t_mg):.3f} s vs SA {np.median(t_sa):.3f} s (CPU ratio "
               f"{np.median(np.array(c_mg) / np.array(c_sa)):.2f}); top: "
               + ", ".join(f"{f} {tt:.3f}" for tt, _, f in rows[:5]), flush=True)

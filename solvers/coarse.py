@@ -13,11 +13,12 @@ import scipy.linalg as sla
 from scipy.linalg import lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from .errors import SolverError, SolverInputError
 from .transfer import _is_symmetric
 
-__all__ = ["DENSE_MAX", "PIVOTED_MAX", "sparse_lu"]
+__all__ = ["BAND_MAX_FRACTION", "DENSE_MAX", "PIVOTED_MAX", "sparse_lu"]
 
 #: ``coarse_solver="auto"`` factorises a coarsest level of at most this many unknowns densely (LAPACK
 #: Cholesky, ``scipy.linalg.cho_factor``) instead of with SuperLU. Galerkin products of non-nested
@@ -34,27 +35,78 @@ DENSE_MAX = 2000
 #: plain Cholesky, one thread); the regularised factor is cheaper but can stall CG (see the class).
 PIVOTED_MAX = 6000
 
+#: A symmetric coarsest level under ``DENSE_MAX`` is factorised as a band matrix (LAPACK's banded
+#: Cholesky, ``scipy.linalg.cholesky_banded``) in the reverse Cuthill–McKee order of its own pattern when
+#: that order's half-bandwidth ``b`` is at most this fraction of ``n``: about ``n b²`` flops against
+#: ``n³/3`` for the full factor. Measured (one core, ``n`` = 1,500): 0.21x / 0.41x / 0.87x of the full
+#: Cholesky's time at ``b/n`` = 0.2 / 0.4 / 0.5; on the coarsest levels of the 1M-tet TetGen and TetWild
+#: spot hierarchies of docs/usermesh.md (``b/n`` = 0.33 / 0.28 in that order) 12 / 7 ms against 40 / 30 ms.
+BAND_MAX_FRACTION = 0.4
+
+
+def _band_storage(A: sp.csr_matrix, shift) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(perm, ab)``: the reverse Cuthill–McKee order ``perm`` of ``A``'s pattern and LAPACK's lower band
+    storage of ``A[perm][:, perm]`` (``ab[i - j, j]``, ``0 <= i - j <= b``; the lower triangle is read,
+    duplicates summed), ``shift`` added to the diagonal; None when the half-bandwidth ``b`` in that order
+    exceeds :data:`BAND_MAX_FRACTION` of ``n``."""
+    n = A.shape[0]
+    perm = np.asarray(reverse_cuthill_mckee(A, symmetric_mode=True), dtype=np.int64)
+    inv = np.empty(n, dtype=np.int64)
+    inv[perm] = np.arange(n)
+    i = np.repeat(inv, np.diff(A.indptr))
+    j = inv.take(A.indices)
+    low = np.flatnonzero(i >= j)
+    j = j[low]
+    off = i[low] - j
+    b = int(off.max(initial=0))
+    if b > BAND_MAX_FRACTION * n:
+        return None
+    ab = np.bincount(off * n + j, weights=A.data[low], minlength=(b + 1) * n).reshape(b + 1, n)
+    if shift is not None:
+        ab[0, inv] += shift
+    return perm, ab
+
 
 class _DenseFactor:
-    """Dense Cholesky (symmetric) or LU factor with SuperLU's ``solve`` / ``L`` / ``U`` interface."""
+    """LAPACK factor (symmetric: Cholesky, in band storage when the bandwidth allows; else LU) with SuperLU's
+    ``solve`` / ``L`` / ``U`` interface. ``shift``: added to the diagonal before factorising (regularisation),
+    without forming ``A + diag(shift)``. A symmetric ``A`` is read from its lower triangle, as LAPACK does."""
 
-    def __init__(self, A: sp.spmatrix, symmetric: bool):
-        Ad = A.toarray()
+    def __init__(self, A: sp.spmatrix, symmetric: bool, shift: np.ndarray | None = None):
+        A = sp.csr_matrix(A)
+        n = A.shape[0]
         self.symmetric = symmetric
+        self.perm = None
+        band = _band_storage(A, shift) if symmetric and n > 1 else None
         try:
-            if symmetric:
-                self.c = sla.cho_factor(Ad, lower=True, check_finite=False)
-                if not np.all(np.isfinite(self.c[0].diagonal())):
-                    raise sla.LinAlgError("non-finite Cholesky factor")
+            if band is not None:
+                self.perm, ab = band
+                b = ab.shape[0] - 1
+                self.c = sla.cholesky_banded(ab, lower=True, overwrite_ab=True, check_finite=False)
+                diagonal = self.c[0]
+                self.nnz = 2 * (b + 1) * n - b * (b + 1)  # the two triangular solves
             else:
-                self.c = sla.lu_factor(Ad, check_finite=False)
+                Ad = A.toarray()
+                if shift is not None:
+                    Ad[np.diag_indices(n)] += shift
+                if symmetric:
+                    self.c = sla.cho_factor(Ad, lower=True, overwrite_a=True, check_finite=False)
+                    diagonal = self.c[0].diagonal()
+                else:
+                    self.c = sla.lu_factor(Ad, overwrite_a=True, check_finite=False)
+                    diagonal = np.ones(1)
+                self.nnz = n * (n + 1)
+            if not np.all(np.isfinite(diagonal)):
+                raise sla.LinAlgError("non-finite Cholesky factor")
         except (sla.LinAlgError, ValueError) as e:
             raise SolverError(str(e)) from None  # a RuntimeError: caught by the callers below
-        n = Ad.shape[0]
         self.L = self.U = sp.csr_matrix((n, n))
-        self.nnz = n * (n + 1)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
+        if self.perm is not None:
+            x = np.empty_like(b, dtype=np.float64)
+            x[self.perm] = sla.cho_solve_banded((self.c, True), b[self.perm], check_finite=False)
+            return x
         if self.symmetric:
             return sla.cho_solve(self.c, b, check_finite=False)
         return sla.lu_solve(self.c, b, check_finite=False)
@@ -77,15 +129,17 @@ class _PivotedCholesky:
     """
 
     def __init__(self, A: sp.spmatrix, rtol: float, sparse_solve: bool = False):
-        Ad = A.toarray()
-        d = Ad.diagonal()
-        if not (np.all(np.isfinite(Ad)) and d.size and d.max() > 0):
+        A = sp.csr_matrix(A)
+        n = A.shape[0]
+        d = A.diagonal()
+        if not (np.all(np.isfinite(A.data)) and d.size and d.max() > 0):
             raise SolverError("pivoted Cholesky: no positive diagonal entry (or non-finite entries)")
-        c, piv, rank, info = lapack.dpstrf(Ad, lower=1, tol=rtol * float(d.max()), overwrite_a=1)
+        # in Fortran order LAPACK factorises the array in place (a C-ordered one is copied first)
+        c, piv, rank, info = lapack.dpstrf(A.toarray(order="F"), lower=1, tol=rtol * float(d.max()),
+                                           overwrite_a=1)
         if info < 0:
             raise SolverError(f"pivoted Cholesky: LAPACK dpstrf argument {-info} is invalid")
-        n = Ad.shape[0]
-        self.rank = int(rank)
+        self.rank = rank = int(rank)
         p = (piv - 1).astype(np.int64)
         self.perm, dropped = p[:rank], p[rank:]
         self.L = self.U = sp.csr_matrix((n, n))
@@ -93,31 +147,39 @@ class _PivotedCholesky:
         if sparse_solve and rank:
             # the cycle solves many times: SuperLU of the kept block A11 (nonsingular) solves faster than
             # the dense triangles (spot, 4,017 unknowns, W-cycle: 4.2 s against 11.6 s of MG-PCG)
-            A = sp.csr_matrix(A)
+            del c
             self.lu = sparse_lu(sp.csc_matrix(A[self.perm][:, self.perm]), symmetric=True)
             self.nnz = int(self.lu.L.nnz + self.lu.U.nnz)
         else:
-            self.c = (np.ascontiguousarray(c[:rank, :rank]), True)
+            # L11 kept in place, the trailing rows of the lower triangle set to (0, I): the n x n triangular
+            # solves of (b1, 0) give (A11⁻¹ b1, 0) without a copy of L11 (a strided block would be copied to
+            # Fortran order at every solve)
+            c[rank:, :] = 0.0
+            c[np.arange(rank, n), np.arange(rank, n)] = 1.0
+            self.c = (c, True)
             self.nnz = rank * (rank + 1)
-        del c, Ad
         # orthonormal basis of the null space, Π (-A11⁻¹ A12; I): the basic solution minus its part there
         # is the minimum-norm solution, the pseudo-inverse's (the cycle's coarse correction then carries no
         # null components, which non-nested P only nearly annihilates)
         self.kernel = np.zeros((n, n - rank))
         if 0 < rank < n:
-            self.kernel[self.perm] = -self._solve_kept(sp.csr_matrix(A)[self.perm][:, dropped].toarray())
+            self.kernel[self.perm] = -self._solve_kept(A[self.perm][:, dropped].toarray())
             self.kernel[dropped, np.arange(n - rank)] = 1.0
             self.kernel = np.linalg.qr(self.kernel)[0]
 
-    def _solve_kept(self, b: np.ndarray) -> np.ndarray:
+    def _solve_kept(self, b1: np.ndarray) -> np.ndarray:
+        """``A11⁻¹ b1`` (rows in pivoted order)."""
         if self.lu is not None:
-            return self.lu.solve(b)
-        return sla.cho_solve(self.c, b, check_finite=False)
+            return self.lu.solve(b1)
+        y = np.zeros((self.c[0].shape[0],) + b1.shape[1:])
+        y[: self.rank] = b1
+        return sla.cho_solve(self.c, y, check_finite=False)[: self.rank]
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         x = np.zeros(b.shape)
         if self.rank:
             x[self.perm] = self._solve_kept(b[self.perm])
+        return x - self.kernel @ (self.kernel.T @ x)
         return x - self.kernel @ (self.kernel.T @ x)
 
 
@@ -184,21 +246,23 @@ class _CoarseSolver:
     def _setup_auto(self, A, nullspace, level, pinv_max, rtol):
         """``coarse_solver="auto"``: the first of its steps whose factor passes validation.
 
-        Large levels: SuperLU, then (symmetric, at most :data:`PIVOTED_MAX` unknowns) the pivoted Cholesky,
-        then the regularised SuperLU, then (at most ``pinv_max``) the pseudo-inverse. A small coarsest level
-        of a hierarchy (``level > 0``, at most :data:`DENSE_MAX`) starts at the pivoted Cholesky: it is part
-        of a preconditioner, and the plain Cholesky fails on the extra null vectors of non-nested Galerkin
-        levels (0.1 s of 0.2 s at 1,263 unknowns).
+        Large levels: SuperLU's symmetric mode, then (symmetric, at most :data:`PIVOTED_MAX` unknowns) the
+        pivoted Cholesky, then SuperLU's pivoting LU (a symmetric indefinite level), then the regularised
+        SuperLU, then (at most ``pinv_max``) the pseudo-inverse. The pivoting LU of a semi-definite level
+        that failed the symmetric factor cost as much as the pivoted Cholesky (0.35 s at 2,730 unknowns)
+        and fails as well. A small coarsest level of a hierarchy (``level > 0``, at most
+        :data:`DENSE_MAX`) starts at the regularised dense (band) Cholesky, then the pivoted one: it is
+        part of a preconditioner, and the plain Cholesky fails on the extra null vectors of non-nested
+        Galerkin levels (0.1 s of 0.2 s at 1,263 unknowns); the pivoted factor first cost 20-50 ms more
+        set-up and 2.5 ms instead of 0.3 per solve on the user-mesh levels, for the same iterations
+        (docs/usermesh.md).
         """
         steps = [("splu", True)]
         if self.symmetric and self.n <= PIVOTED_MAX:
-            # SuperLU's symmetric mode, then the pivoted Cholesky, then SuperLU's pivoting LU (a symmetric
-            # indefinite level): the pivoting LU of a semi-definite level that failed the symmetric factor
-            # cost as much as the pivoted Cholesky (0.35 s at 2,730 unknowns) and fails as well
             steps = [("splu", False), ("pivoted", True), ("splu", True)]
         steps += [("regularized", True)] + ([("pinv", True)] if self.n <= pinv_max else [])
         if self.dense and level > 0:
-            steps = [st for st in steps if st[0] != "splu"]
+            steps = [("regularized", True)] + [st for st in steps if st[0] not in ("splu", "regularized")]
         for i, (step, pivoting) in enumerate(steps):
             self.pin, self.lu, self.Q = None, None, None
             try:
@@ -229,10 +293,9 @@ class _CoarseSolver:
             # the restricted residual P^T r is) the range component is exact to O(eps cond) and null
             # components are irrelevant -- they are invisible after prolongation (ker of a Galerkin
             # operator = ker P, plus the constants, which are projected out). Validated by the residual.
-            eps = 1e-9
-            Ar = sp.csc_matrix(A + eps * sp.diags(np.maximum(A.diagonal(), np.finfo(float).tiny)))
+            shift = 1e-9 * np.maximum(A.diagonal(), np.finfo(float).tiny)
             try:
-                self.lu = self._factor(Ar, self.symmetric)
+                self.lu = self._factor(A, self.symmetric, shift)
             except RuntimeError as e:
                 if not (self.dense and self.symmetric):
                     raise SolverError(f"coarsest operator (level {level}, n={self.n}): regularised LU "
@@ -310,11 +373,12 @@ class _CoarseSolver:
                     "(prune_prolongations)"
                 )
 
-    def _factor(self, A: sp.spmatrix, symmetric: bool):
-        """SuperLU (:func:`sparse_lu`) or, for a small level under ``"auto"``, the dense factor."""
+    def _factor(self, A: sp.spmatrix, symmetric: bool, shift: np.ndarray | None = None):
+        """SuperLU (:func:`sparse_lu`) or, for a small level under ``"auto"``, the LAPACK factor, of
+        ``A + diag(shift)``."""
         if self.dense:
-            return _DenseFactor(A, symmetric)
-        return sparse_lu(A, symmetric)
+            return _DenseFactor(A, symmetric, shift)
+        return sparse_lu(A if shift is None else A + sp.diags(shift), symmetric)
 
     def _nnz(self) -> int:
         if self.lu is None:

@@ -147,7 +147,7 @@ def _checked_inputs(A, Ps, nullspace) -> tuple:
     A = _as_csr(A, "A", copy=False)  # copied by the reordering, or by _reorder when the order is kept
     if A.shape[0] != A.shape[1]:
         raise SolverInputError(f"A must be square, got {A.shape}")
-    Ps = [_as_csr(P, f"Ps[{k}]") for k, P in enumerate(Ps)]
+    Ps = [_as_csr(P, f"Ps[{k}]", copy=False) for k, P in enumerate(Ps)]  # copied or permuted by _reorder
     n = A.shape[0]
     for k, P in enumerate(Ps):
         if P.shape[0] != n:
@@ -155,7 +155,7 @@ def _checked_inputs(A, Ps, nullspace) -> tuple:
         if P.shape[1] == 0 or P.shape[1] >= P.shape[0]:
             raise SolverInputError(f"Ps[{k}] has shape {P.shape}: the coarse level must be smaller and non-empty")
         if nullspace == "constant":
-            rs = np.asarray(P.sum(axis=1)).ravel()
+            rs = P @ np.ones(P.shape[1])
             if np.abs(rs - 1).max() > 1e-8:
                 raise SolverInputError(
                     f"nullspace='constant' needs prolongations reproducing constants, but rows of Ps[{k}] "
@@ -165,11 +165,22 @@ def _checked_inputs(A, Ps, nullspace) -> tuple:
     return A, Ps
 
 
-def _check_operators(ops, nullspace) -> None:
+def _max_abs(x: np.ndarray) -> float:
+    """``max |x|`` (0 for an empty array) without a temporary ``|x|``."""
+    return max(float(x.max()), -float(x.min())) if x.size else 0.0
+
+
+def _max_abs_difference(x: np.ndarray, y: np.ndarray) -> float:
+    """``max |x - y|`` with one temporary."""
+    return _max_abs(np.subtract(x, y))
+
+
+def _check_operators(ops, nullspace, diagonals=()) -> None:
     """Every level operator has a positive diagonal and, for ``nullspace="constant"``, annihilates
-    constants (one-line :class:`SolverError` naming the level otherwise)."""
+    constants (one-line :class:`SolverError` naming the level otherwise). ``diagonals``: those of the first
+    levels, if the caller has them."""
     for k, Ak in enumerate(ops):
-        d = Ak.diagonal()
+        d = diagonals[k] if k < len(diagonals) else Ak.diagonal()
         if np.any(d <= 0):
             bad = np.flatnonzero(d <= 0)
             raise SolverError(
@@ -236,7 +247,7 @@ class MultigridSolver:
         most :data:`solvers.coarse.PIVOTED_MAX` unknowns the pivoted Cholesky, then the regularised LU,
         then the pseudo-inverse if the coarsest level has at most ``pinv_max`` unknowns (the fallback is
         reported by ``repr``); a coarsest level of at most :data:`solvers.coarse.DENSE_MAX` unknowns
-        starts at the pivoted Cholesky (LAPACK, dense). Measured on a 550k-tet bunny Galerkin hierarchy
+        starts at the regularised dense (band) Cholesky, then the pivoted one. Measured on a 550k-tet bunny Galerkin hierarchy
         (2k-node coarsest level, 3 extra null vectors): regularised 3 s setup, pseudo-inverse 31-54 s,
         identical residual histories; on the clamped elasticity coarsest level of spot (4,017 unknowns,
         ν = 0.45) the regularised solve stalled MG-PCG with the W-cycle, the pivoted one did not
@@ -357,8 +368,8 @@ class MultigridSolver:
         if coarse_scaling not in (None, "energy"):
             raise SolverInputError(f"coarse_scaling must be None or 'energy', got {coarse_scaling!r}")
         self.coarse_scaling = coarse_scaling
-        A, Ps, Rs, ops, sym0 = self._coarse_operators(A, Ps, coarse, ordering, symmetric, shared)
-        _check_operators(ops, nullspace)
+        A, Ps, Rs, ops, sym0, diagonals = self._coarse_operators(A, Ps, coarse, ordering, symmetric, shared)
+        _check_operators(ops, nullspace, diagonals)
         self.levels = self._make_levels(ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels,
                                         local_sweep, local_sweeps)
         # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
@@ -387,9 +398,11 @@ class MultigridSolver:
         """The level operators: Galerkin products, or the caller's (checked); both reordered (``ordering``).
 
         ``shared``: ``A`` holds the caller's arrays (copied unless reordering makes a new matrix anyway).
-        Returns ``(A, Ps, Rs, ops, sym0)`` in the solver's order; sets ``self.coarse``.
+        Returns ``(A, Ps, Rs, ops, sym0, diagonals)`` in the solver's order (``diagonals``: those of the first
+        operators, by-products of the Galerkin products); sets ``self.coarse``.
         """
         sym0 = None
+        diagonals: list = []
         if isinstance(coarse, str):
             if coarse != "galerkin":
                 raise SolverInputError(
@@ -399,7 +412,7 @@ class MultigridSolver:
             # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
             Ps = _drop_unreached_columns(Ps)
             A, Ps, Rs, _, sym0 = self._reorder(A, Ps, ordering, [], symmetric, shared)
-            ops = _galerkin_chain(A, Ps, sym0, Rs)  # A was validated above: no second copy and check
+            ops = _galerkin_chain(A, Ps, sym0, Rs, diagonals)  # A validated above: no second copy and check
             self.coarse = "galerkin"
         else:
             given = list(coarse)
@@ -414,7 +427,7 @@ class MultigridSolver:
             self.coarse = "given"
             A, Ps, Rs, given, _ = self._reorder(A, Ps, ordering, ops[1:], False, shared)
             ops = [A] + given
-        return A, Ps, Rs, ops, sym0
+        return A, Ps, Rs, ops, sym0, diagonals
 
     def _make_levels(self, ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels, local_sweep,
                      local_sweeps) -> list[Level]:
@@ -503,15 +516,16 @@ class MultigridSolver:
                                             or index_spread(A, SPREAD_STRIDE) <= ORDER_MIN_SPREAD)))
         if keep:
             A = A.copy() if shared else A
+            Ps = [P.copy() for P in Ps]  # the caller's arrays are never shared (the permuted ones are new)
             return (A, Ps, [sp.csr_matrix(P.T) for P in Ps], list(given),
                     _is_symmetric(A) if symmetric is None else bool(symmetric))
         orders = locality_order(Ps)
         self.perm = orders[0]
         Ap, At = permute_symmetric(A, orders[0], with_transpose=True)
         if symmetric is None:
-            symmetric = bool(np.array_equal(Ap.indices, At.indices) and np.array_equal(Ap.indptr, At.indptr)
-                             and (Ap.nnz == 0 or np.abs(Ap.data - At.data).max()
-                                  <= 1e-10 * np.abs(Ap.data).max())) or _is_symmetric(Ap)
+            symmetric = bool(np.array_equal(Ap.indptr, At.indptr) and np.array_equal(Ap.indices, At.indices)
+                             and _max_abs_difference(Ap.data, At.data) <= 1e-10 * _max_abs(Ap.data)
+                             ) or _is_symmetric(Ap)
         del At
         Ps = [permute_prolongation(P, orders[k], orders[k + 1]) for k, P in enumerate(Ps)]
         given = [permute_symmetric(G, orders[k + 1]) for k, G in enumerate(given)]

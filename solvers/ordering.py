@@ -97,7 +97,7 @@ def locality_order(Ps) -> list[np.ndarray]:
         if (np.diff(P.indptr) == 0).any():
             raise SolverInputError("locality_order needs prolongations without empty rows")
         rank = _inverse(orders[0])
-        key = np.minimum.reduceat(rank[P.indices], P.indptr[:-1])  # lowest-ranked coarse parent per row
+        key = np.minimum.reduceat(rank.take(P.indices), P.indptr[:-1])  # lowest-ranked coarse parent per row
         orders.insert(0, _stable_argsort(key).astype(np.int64))
     return orders
 
@@ -111,7 +111,7 @@ def permute_symmetric(A: sp.csr_matrix, p: np.ndarray, *, with_transpose: bool =
     """
     B = A[p]
     inv = _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype)  # one gather in the index type
-    B = sp.csr_matrix((B.data, inv[B.indices], B.indptr), shape=A.shape)
+    B = sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=A.shape)
     t = B.tocsc()  # CSR arrays of Bᵀ, sorted
     Bt = sp.csr_matrix((t.data, t.indices, t.indptr), shape=A.shape)
     s = Bt.tocsc()  # CSR arrays of B, sorted
@@ -127,6 +127,6 @@ def permute_prolongation(P: sp.csr_matrix, p_fine: np.ndarray, p_coarse: np.ndar
     """``P[p_fine][:, p_coarse]`` (canonical CSR)."""
     B = P[p_fine]
     inv = _inverse(np.asarray(p_coarse, dtype=np.int64), B.indices.dtype)
-    out = sp.csr_matrix((B.data, inv[B.indices], B.indptr), shape=P.shape)
+    out = sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=P.shape)
     out.sort_indices()
     return out

@@ -86,12 +86,15 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=Non
     return _galerkin_chain(A, Ps, _is_symmetric(A) if symmetric is None else bool(symmetric), Rs)
 
 
-def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None) -> list[sp.csr_matrix]:
+def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None, diagonals=None) -> list[sp.csr_matrix]:
     """:func:`galerkin_operators` for an ``A`` already checked by :func:`_as_csr` (no second copy, sort and
-    finiteness pass: :class:`solvers.MultigridSolver` validates its input once)."""
+    finiteness pass: :class:`solvers.MultigridSolver` validates its input once). ``diagonals``: a list that
+    receives the diagonal of every operator the symmetric path splits (levels ``0 .. len(Ps) - 1``), a
+    by-product of the split (scipy's ``diagonal()`` scans whole rows: ~11 ms for the four levels of a 1M-tet
+    user hierarchy)."""
     ops = [A]
     for k, P in enumerate(Ps):
-        ops.append(_galerkin_level(ops[-1], P, k, None if Rs is None else Rs[k], symmetric))
+        ops.append(_galerkin_level(ops[-1], P, k, None if Rs is None else Rs[k], symmetric, diagonals))
     return ops
 
 
@@ -118,7 +121,7 @@ def _galerkin_fits(Ak: sp.csr_matrix, P: sp.csr_matrix, k: int) -> None:
 ONE_PASS_MAX_ENTRIES = 1 << 26
 
 
-def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix, trim: bool = True) -> sp.csr_matrix:
+def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     """``A @ B`` (CSR, rows unsorted, no duplicates) by scipy's numeric kernel alone.
 
     scipy's product runs two passes over the work: ``csr_matmat_maxnnz`` counts the output's entries, then
@@ -128,9 +131,10 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix, trim: bool = True) -> 
     numeric kernel runs once; the result is the same arrays as ``A @ B``, bit for bit (tested). On the
     first Galerkin product of a 1M-tet user hierarchy it took ~115 ms where ``R @ (A @ P)`` took ~160 ms.
     The kernel is scipy's private ``_sparsetools.csr_matmat``: ``A @ B`` is used when it is missing or
-    its signature changed, and when the bound exceeds :data:`ONE_PASS_MAX_ENTRIES`. ``trim=False`` returns
-    views of the arrays allocated at the bound instead of copies of their used part, for a temporary (the
-    unused tail is address space, never written).
+    its signature changed, and when the bound exceeds :data:`ONE_PASS_MAX_ENTRIES`. The arrays allocated at
+    the bound are then shrunk in place to the output's size (``ndarray.resize``: a ``realloc``, no copy; a
+    view of their used part would be copied by scipy's constructor when it is less than half of the
+    allocation: 10 ms of a 1M-tet user hierarchy's 100 ms first product).
     """
     try:
         from scipy.sparse._sparsetools import csr_matmat
@@ -156,16 +160,16 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix, trim: bool = True) -> 
     except (TypeError, ValueError):  # pragma: no cover - a private kernel whose signature changed
         return sp.csr_matrix(A @ B)
     nnz = int(indptr[-1])
-    if trim:
-        data, indices = data[:nnz].copy(), indices[:nnz].copy()
-    return sp.csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(m, n))
+    indices.resize(nnz, refcheck=False)  # owned arrays, nothing else refers to them
+    data.resize(nnz, refcheck=False)
+    return sp.csr_matrix((data, indices, indptr), shape=(m, n))
 
 
-def _lower_half(A: sp.csr_matrix) -> sp.csr_matrix:
-    """``L + D/2`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D`` diagonal): the
-    entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row keeps its
-    lower entries first, so they are one gather of positions; when every row stores its diagonal (a level
-    operator's positive diagonal), that entry ends the row's lower part and gives the row pointers."""
+def _lower_half(A: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray]:
+    """``(L + D/2, diag(A))`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D``
+    diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row
+    keeps its lower entries first, so they are one gather of positions; when every row stores its diagonal (a
+    level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers."""
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
     diag = np.flatnonzero(A.indices == rows)
@@ -173,26 +177,34 @@ def _lower_half(A: sp.csr_matrix) -> sp.csr_matrix:
     del rows
     indices, data = A.indices.take(keep), A.data.take(keep)
     if diag.size == n:  # one diagonal entry per row (canonical: no duplicates), the last one kept
+        d = A.data.take(diag)
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
         data[indptr[1:] - 1] *= 0.5
     else:
+        d = A.diagonal()
         indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row
         data[np.searchsorted(keep, diag)] *= 0.5  # the diagonal entries' new positions
-    return sp.csr_matrix((data, indices, indptr), shape=A.shape)
+    return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
 
 
-def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix) -> sp.csr_matrix:
+def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
+                        diagonals=None) -> sp.csr_matrix:
     """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
 
     ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
     (the first one does half the work of ``A P``, the second one reads a product half as long), and the
     sum is exactly symmetric (``fl(x + y) = fl(y + x)``), replacing the symmetrisation
     ``(Ac + Acᵀ)/2``. Two O(nnz(B)) transposes sort ``B`` and give ``Bᵀ`` (both canonical), then one
-    merge adds them. Equals ``Pᵀ A P`` up to round-off (tested to 1e-12 relative).
+    merge adds them. Equals ``Pᵀ A P`` up to round-off (tested to 1e-12 relative). ``diagonals``: a list
+    that receives ``A``'s diagonal.
     """
     m = P.shape[1]
-    B = _one_pass_product(R, _one_pass_product(_lower_half(Ak), P, trim=False), trim=False)
+    half, d = _lower_half(Ak)
+    if diagonals is not None:
+        diagonals.append(d)
+    B = _one_pass_product(R, _one_pass_product(half, P))
+    del half
     t = B.tocsc()  # the CSR arrays of Bᵀ, rows sorted
     del B
     Bt = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(m, m))
@@ -204,8 +216,9 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix) -
     return Ac
 
 
-def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_matrix:
-    """``P_kᵀ A_k P_k`` (exactly symmetric when ``symmetric``), after checking the shapes and the memory."""
+def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=None) -> sp.csr_matrix:
+    """``P_kᵀ A_k P_k`` (exactly symmetric when ``symmetric``), after checking the shapes and the memory;
+    ``diagonals``: see :func:`_symmetric_galerkin`."""
     P = sp.csr_matrix(P, dtype=np.float64)
     if P.shape[0] != Ak.shape[0]:
         raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
@@ -213,9 +226,9 @@ def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool) -> sp.csr_
     _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
     if symmetric:
-        return _symmetric_galerkin(Ak, P, R)
-    # no duplicates, rows unsorted; the temporary kept as views
-    Ac = _one_pass_product(R, _one_pass_product(Ak, P, trim=False))
+        return _symmetric_galerkin(Ak, P, R, diagonals)
+    # no duplicates, rows unsorted
+    Ac = _one_pass_product(R, _one_pass_product(Ak, P))
     Ac.sum_duplicates()
     Ac.sort_indices()
     return Ac

@@ -358,8 +358,8 @@ def test_symmetric_galerkin_product_equals_ptap():
     assert np.allclose(P.sum(axis=1), 1.0) and P.getcol(empty).nnz == 0
     for A in (spd, hole):
         A.sort_indices()
-        half = transfer._lower_half(A)
-        assert abs(half + half.T - A).max() == 0.0
+        half, d = transfer._lower_half(A)
+        assert abs(half + half.T - A).max() == 0.0 and np.array_equal(d, A.diagonal())
         Ac = transfer.galerkin_operators(A, [P])[1]
         ref = sp.csr_matrix(P.T @ A @ P)
         assert abs(Ac - ref).max() <= 1e-12 * abs(ref).max()
@@ -503,7 +503,7 @@ def _split_column(P, j):
 @pytest.mark.parametrize("dense_max", [0, 1500])
 def test_rank_deficient_prolongation(cube, bc, dense_max, monkeypatch):
     """Extra null vectors of P^T A P (rank-deficient P): pseudo-inverse and pivoted Cholesky cope, SuperLU
-    refuses clearly; on a small coarsest level "auto" goes straight to the pivoted Cholesky."""
+    refuses clearly; on a small coarsest level "auto" goes straight to the regularised dense factor."""
     import solvers.coarse
 
     monkeypatch.setattr(solvers.coarse, "DENSE_MAX", dense_max)
@@ -518,20 +518,19 @@ def test_rank_deficient_prolongation(cube, bc, dense_max, monkeypatch):
     bad = [Ps[0], _split_column(Ps[1], j)]
     ref = MultigridSolver(A, Ps, nullspace=nullspace)
     ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> pivoted Cholesky
-    assert ml._coarse_solver.method == "pivoted"
-    if dense_max:  # dense: the pivoted factor first, no fallback
-        assert ml._coarse_solver.dense and "(dense)" in repr(ml)
+    expected = 1 if nullspace == "constant" else 0
+    if dense_max:  # dense: the regularised (band) factor first, no fallback
+        assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.dense and "(dense)" in repr(ml)
         assert not ml._coarse_solver.fallback and not ref._coarse_solver.fallback
     else:
-        assert ml._coarse_solver.fallback and "fallback" in repr(ml)
-    expected = 1 if nullspace == "constant" else 0
-    assert ml.coarse_nullity == expected + 1  # the pivoted factor sees the extra null vector too
+        assert ml._coarse_solver.method == "pivoted" and ml._coarse_solver.fallback and "fallback" in repr(ml)
+        assert ml.coarse_nullity == expected + 1  # the pivoted factor sees the extra null vector too
     mp = MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="pinv")
     assert mp.coarse_nullity == expected + 1  # the pseudo-inverse sees the extra null vector
-    assert ref.coarse_nullity == expected
+    assert ref.coarse_nullity == (-1 if dense_max else expected)  # the regularised factor does not count
     fp, resp = _factor(mp, b)
     assert resp[-1] < 1e-11 and fp <= _factor(ref, b)[0] + 0.01
-    assert ref._coarse_solver.method == ("pivoted" if dense_max else "splu")
+    assert ref._coarse_solver.method == ("regularized" if dense_max else "splu")
     assert not ref._coarse_solver.fallback
     f_ref, _ = _factor(ref, b)
     f, res = _factor(ml, b)
@@ -790,13 +789,13 @@ def test_pivoted_cholesky_is_the_pseudo_inverse_on_the_range():
 
 
 def test_pivoted_cholesky_refuses_an_indefinite_operator():
-    from solvers.coarse import _CoarseSolver
+    from solvers.coarse import _CoarseSolver, _DenseFactor
 
     A, _ = _semidefinite(100, 1e-3, 0, 2)
     A = A - 0.5 * sp.eye(100)  # eigenvalues from -0.5 to 0.5
     with pytest.raises(SolverError, match="pivoted Cholesky residual"):
         _CoarseSolver(sp.csr_matrix(A), None, 1, "pivoted", symmetric=True)
-    auto = _CoarseSolver(sp.csr_matrix(A), None, 1, "auto", symmetric=True)  # dense: falls back to LU
-    assert auto.method == "regularized" and auto.fallback
+    auto = _CoarseSolver(sp.csr_matrix(A), None, 1, "auto", symmetric=True)  # dense: regularised -> LU
+    assert auto.method == "regularized" and isinstance(auto.lu, _DenseFactor) and not auto.lu.symmetric
     b = A @ np.ones(100)
     assert np.linalg.norm(A @ auto(b) - b) < 1e-8 * np.linalg.norm(b)

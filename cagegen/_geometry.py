@@ -309,18 +309,18 @@ def min_edge_edge_distance(
 ) -> float:
     """Smallest distance between an edge of mesh A and an edge of mesh B, if below ``bound``.
 
-    Candidate pairs come from a k-d tree on edge midpoints: two segments with midpoints ``m_a, m_b``
+    Candidate pairs come from k-d trees on edge midpoints: two segments with midpoints ``m_a, m_b``
     and half-lengths ``h_a, h_b`` are at least ``|m_a - m_b| - h_a - h_b`` apart, so only pairs with
-    ``|m_a - m_b| < bound + h_a + max(h_b)`` can beat ``bound``. Distances are evaluated vectorised in
-    chunks of at most ``chunk`` pairs.
+    ``|m_a - m_b| < bound + h_a + max(h_b)`` can beat ``bound``. The stored edges are grouped by
+    half-length (factors of :data:`EDGE_LENGTH_CLASS_RATIO`), one tree per group, so that a few long
+    edges do not widen every query ball (lucy.ply against its first cage: 12 s in one tree, the longest
+    edge 13x the median). Distances are evaluated vectorised in chunks of at most ``chunk`` pairs.
 
     Returns
     -------
     float
         ``min(bound, smallest edge-edge distance)``.
     """
-    from scipy.spatial import cKDTree
-
     def unique_edges(F):
         E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
         return np.unique(E, axis=0)
@@ -328,24 +328,44 @@ def min_edge_edge_distance(
     EA, EB = unique_edges(FA), unique_edges(FB)
     A0, A1 = VA[EA[:, 0]], VA[EA[:, 1]]
     B0, B1 = VB[EB[:, 0]], VB[EB[:, 1]]
-    mA, mB = 0.5 * (A0 + A1), 0.5 * (B0 + B1)
     hA = 0.5 * np.linalg.norm(A1 - A0, axis=1)
     hB = 0.5 * np.linalg.norm(B1 - B0, axis=1)
     if hB.max() > hA.max():  # query with the long edges, store the short ones: smaller balls
-        A0, A1, B0, B1, mA, mB, hA, hB, EA = B0, B1, A0, A1, mB, mA, hB, hA, EB
-    tree = cKDTree(mB)
-    radius = bound + hA + hB.max()
-    counts = tree.query_ball_point(mA, r=radius, return_length=True)
+        A0, A1, B0, B1, hA, hB = B0, B1, A0, A1, hB, hA
     best = float(bound) ** 2
+    # length classes of the stored edges: [0, 2 median], then doubling
+    edges = 2.0 * max(float(np.median(hB)), 1e-300) * EDGE_LENGTH_CLASS_RATIO ** np.arange(64)
+    cls = np.searchsorted(edges, hB)
+    for c in np.unique(cls):
+        sel = np.flatnonzero(cls == c)
+        best = _min_ee_class((A0, A1, hA), (B0[sel], B1[sel], hB[sel]), bound, best, chunk)
+    return float(np.sqrt(best))
+
+
+#: Stored edges of :func:`min_edge_edge_distance` are grouped by half-length within this factor.
+EDGE_LENGTH_CLASS_RATIO = 2.0
+
+
+def _min_ee_class(A: tuple, B: tuple, bound: float, best: float, chunk: int) -> float:
+    """Smallest squared edge-edge distance between the query edges ``A`` and the stored edges ``B``
+    (each ``(P0, P1, half_length)``), if below ``best`` (squared; returned otherwise)."""
+    from scipy.spatial import cKDTree
+
+    A0, A1, hA = A
+    B0, B1, hB = B
+    mA, mB = 0.5 * (A0 + A1), 0.5 * (B0 + B1)
+    tree = cKDTree(mB)
+    radius = min(float(bound), np.sqrt(best)) + hA + hB.max()
+    counts = tree.query_ball_point(mA, r=radius, return_length=True)
     start = 0
     ends = np.cumsum(counts)
-    while start < len(EA):
+    while start < len(A0):
         # largest block of A-edges whose candidate lists fit in one chunk (at least one edge)
         base = ends[start - 1] if start else 0
         stop = max(start + 1, int(np.searchsorted(ends, base + chunk, side="right")))
-        lists = tree.query_ball_point(mA[start:stop], r=radius[start:stop])
-        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-        if lens.sum():
+        if ends[stop - 1] > base:
+            lists = tree.query_ball_point(mA[start:stop], r=radius[start:stop])
+            lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
             ia = np.repeat(np.arange(start, stop), lens)
             ib = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
             # the same lower bound per pair, against the best distance so far: most pairs go here
@@ -356,7 +376,7 @@ def min_edge_edge_distance(
                 d2 = segment_segment_sqdist(A0[ia], A1[ia], B0[ib], B1[ib])
                 best = min(best, float(d2.min()))
         start = stop
-    return float(np.sqrt(best))
+    return best
 
 
 def point_triangle_sqdist(P, A, B, C):

@@ -22,11 +22,13 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
 ``nestmg_v``      (not run by default) the V-cycle with one sweep on the fine level and two below at
-                  every ν (``SolverOptions(cycle="V")``): ``nestmg`` before the W-cycle rule.
+                  every ν (``SolverOptions(cycle="V")``): ``nestmg``, the default again.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
                   with given smoothers: one symmetric sweep on the fine level and two below, two on every
                   level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,
-                  the default at ν >= 0.4).
+                  what ``cycle="W"`` gets at ν >= 0.4).
+``nestmg_v24``    (not run by default) the V-cycle with two sweeps on the fine level and four below
+                  (``SolverOptions(nu=2, cycle="V")``).
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -80,7 +82,9 @@ CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS
                   "nestmg_w": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS, {"iterations": 2})]}, "W"),
                   "nestmg_w2": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2})]}, "W"),
                   "nestmg_w24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
-                                                  ("symmetric_gauss_seidel", {"iterations": 4})]}, "W")}
+                                                  ("symmetric_gauss_seidel", {"iterations": 4})]}, "W"),
+                  "nestmg_v24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
+                                                  ("symmetric_gauss_seidel", {"iterations": 4})]}, "V")}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",
            "pyamg_sa",
            "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")

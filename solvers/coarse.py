@@ -152,8 +152,8 @@ class _PivotedCholesky:
             self.nnz = int(self.lu.L.nnz + self.lu.U.nnz)
         else:
             # L11 kept in place, the trailing rows of the lower triangle set to (0, I): the n x n triangular
-            # solves of (b1, 0) give (A11⁻¹ b1, 0) without a copy of L11 (a strided block would be copied to
-            # Fortran order at every solve)
+            # solves of (b1, 0) give (A11⁻¹ b1, 0) without a copy of L11 (a strided block would be copied
+            # to Fortran order at every solve)
             c[rank:, :] = 0.0
             c[np.arange(rank, n), np.arange(rank, n)] = 1.0
             self.c = (c, True)

@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def coarse_study(pr) -> dict:
-    """Spectrum of the coarsest operator and the coarse solvers' corrections on a W-cycle's right-hand sides."""
+    """Spectrum of the coarsest operator; the coarse solvers' corrections on a W-cycle's right-hand sides."""
     import scipy.linalg as sla
 
     from solvers.coarse import _CoarseSolver

@@ -249,9 +249,9 @@ class MultigridSolver:
         reported by ``repr``); a coarsest level of at most :data:`solvers.coarse.DENSE_MAX` unknowns
         starts at the regularised dense (band) Cholesky, then the pivoted one. Measured on a 550k-tet
         bunny Galerkin hierarchy (2k-node coarsest level, 3 extra null vectors): regularised 3 s setup,
-        pseudo-inverse 31-54 s, identical residual histories; on the clamped elasticity coarsest level of spot (4,017 unknowns,
-        ν = 0.45) the regularised solve stalled MG-PCG with the W-cycle, the pivoted one did not
-        (:class:`solvers.coarse._PivotedCholesky`).
+        pseudo-inverse 31-54 s, identical residual histories; on the clamped elasticity coarsest level of
+        spot (4,017 unknowns, ν = 0.45) the regularised solve stalled MG-PCG with the W-cycle, the pivoted
+        one did not (:class:`solvers.coarse._PivotedCholesky`).
     pinv_max : int
         Size limit of the ``"auto"`` fallback (dense eigh of 2000 unknowns: ~1–4 s on this machine).
     local_nodes : int array or bool mask, optional

@@ -205,7 +205,7 @@ class PetscMultigrid:
         PETSc options prefix of the KSP (see the module docstring).
     options : dict, optional
         Extra PETSc options (without the prefix), e.g. ``{"mg_levels_pc_sor_its": 2}``.
-    coarse_solver : {"auto", "splu", "regularized", "pinv", "petsc"}
+    coarse_solver : {"auto", "splu", "pivoted", "regularized", "pinv", "petsc"}
         Coarsest solve. The in-process names (default ``"auto"``) run :class:`solvers.MultigridSolver`'s
         coarsest solver (same safeguards: ``"auto"`` survives rank-deficient Galerkin coarse operators
         of cage hierarchies) inside PETSc on every rank, as a python PC. ``"petsc"``: PETSc's Cholesky
@@ -382,9 +382,9 @@ class PetscMultigrid:
         if not isinstance(options_prefix, str) or not options_prefix or options_prefix.startswith("-"):
             raise SolverInputError(
                 f"options_prefix must be a non-empty string without '-', got {options_prefix!r}")
-        if coarse_solver not in ("auto", "splu", "regularized", "pinv", "petsc"):
+        if coarse_solver not in ("auto", "splu", "pivoted", "regularized", "pinv", "petsc"):
             raise SolverInputError(
-                "coarse_solver must be 'auto', 'splu', 'regularized', 'pinv' or 'petsc', "
+                "coarse_solver must be 'auto', 'splu', 'pivoted', 'regularized', 'pinv' or 'petsc', "
                 f"got {coarse_solver!r}")
         self.nullspace = _check_nullspace(nullspace)
         self.comm = PETSc.COMM_WORLD if comm is None else comm

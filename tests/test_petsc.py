@@ -99,6 +99,18 @@ def test_cycles_match_inprocess_one_rank(dirichlet, cycle, pre, post):
     assert info["final_residual"] <= 1e-8
 
 
+@pytest.mark.parametrize("coarse_solver", ["pivoted", "pinv", "regularized"])
+def test_in_process_coarse_solvers_agree_with_auto(dirichlet, coarse_solver):
+    """Every in-process coarsest solver name runs inside PETSc's cycle with the same result as "auto"."""
+    with PetscMultigrid(dirichlet["A"], dirichlet["Ps"], krylov="richardson") as mg:
+        xa, ia = mg.solve(dirichlet["b"], tol=1e-10, maxiter=100)
+    with PetscMultigrid(dirichlet["A"], dirichlet["Ps"], krylov="richardson", coarse_solver=coarse_solver) as mg:
+        x, info = mg.solve(dirichlet["b"], tol=1e-10, maxiter=100)
+    assert info["converged"] and abs(info["iterations"] - ia["iterations"]) <= 1 and _rel(x, xa) < 1e-8
+    with pytest.raises(SolverInputError, match="pivoted"):
+        PetscMultigrid(dirichlet["A"], dirichlet["Ps"], coarse_solver="cholesky")
+
+
 def test_w_cycle_is_not_v_cycle(dirichlet):
     """Regression: PCMG's zero-guess pre-smoothers silently turned W into V; W must contract faster here."""
     _, v = _inprocess(dirichlet, cycle="V")

@@ -104,7 +104,8 @@ def test_in_process_coarse_solvers_agree_with_auto(dirichlet, coarse_solver):
     """Every in-process coarsest solver name runs inside PETSc's cycle with the same result as "auto"."""
     with PetscMultigrid(dirichlet["A"], dirichlet["Ps"], krylov="richardson") as mg:
         xa, ia = mg.solve(dirichlet["b"], tol=1e-10, maxiter=100)
-    with PetscMultigrid(dirichlet["A"], dirichlet["Ps"], krylov="richardson", coarse_solver=coarse_solver) as mg:
+    with PetscMultigrid(dirichlet["A"], dirichlet["Ps"], krylov="richardson",
+                        coarse_solver=coarse_solver) as mg:
         x, info = mg.solve(dirichlet["b"], tol=1e-10, maxiter=100)
     assert info["converged"] and abs(info["iterations"] - ia["iterations"]) <= 1 and _rel(x, xa) < 1e-8
     with pytest.raises(SolverInputError, match="pivoted"):

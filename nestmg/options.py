@@ -163,7 +163,7 @@ class SolverOptions:
 
         The cycle not set is :data:`DEFAULT_CYCLE`, the V-cycle, for every problem: under CG it was the
         fastest in CPU seconds also for elasticity at ν = 0.45, where the W-cycle with two / four sweeps
-        takes fewer iterations (fandisk 173k tets: 16 against 24) but 1.2-1.6x the seconds
+        takes fewer iterations (fandisk 173k tets: 16 against 24) but 1.13-1.36x the seconds
         (docs/elasticity.md). ``nu`` not set is :data:`DEFAULT_NU`, except for the W-cycle chosen for an
         elasticity problem with a Poisson ratio >= :data:`W_CYCLE_POISSON_RATIO` under the ``"robust"``
         preset: ``nu = 2`` (``2 nu = 4`` on the coarser levels unless ``coarse_nu`` is given), the

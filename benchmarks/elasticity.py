@@ -6,12 +6,13 @@ system is assembled once (:func:`nestmg.elasticity.setup_elasticity`, E = 1, nor
 interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG with:
 
 ``nestmg``        the project's default: the hierarchy's prolongations restricted to the free nodes,
-                  ``P ⊗ I₃``, Galerkin coarse operators, symmetric Gauss–Seidel in the pipeline's variable
-                  V-cycle (one sweep on the fine level, two below) at ν < 0.4, in a W-cycle with two
-                  sweeps on the fine level and four below at ν >= 0.4 (``SolverOptions.resolved``; before
-                  that rule, files up to ``cad_1m.json``: the V-cycle at every ν); the free problem
-                  projects the rigid modes (``NullspaceMultigridSolver``). Setup = restriction +
-                  ``P ⊗ I₃`` + ``multigrid()``; the cycle run is recorded (``cycle``).
+                  ``P ⊗ I₃``, Galerkin coarse operators, ``SolverOptions.resolved``'s smoothing and cycle
+                  (since issue 32 item 2: the F-cycle with two forward / backward Gauss–Seidel sweeps on
+                  the fine level and four below, at every ν; before, files up to
+                  ``default_cycle_fandisk_173k.json``: the V-cycle with one symmetric sweep on the fine
+                  level and two below, today's ``nestmg_v``, with a W-cycle rule at ν >= 0.4 for a while
+                  in between); the free problem projects the rigid modes (``NullspaceMultigridSolver``).
+                  Setup = restriction + ``P ⊗ I₃`` + ``multigrid()``; the cycle run is recorded (``cycle``).
 ``nestmg_block``  the same with nodal 3x3 block Gauss–Seidel (multicolour; ``multigrid(block=True)``).
 ``nestmg_point``  (not run by default) the same configuration as ``nestmg``; in
                   ``elasticity_300k.json`` it ran beside it (a measure of run-to-run spread) and ``--table``
@@ -21,8 +22,8 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
-``nestmg_v``      (not run by default) the V-cycle with one sweep on the fine level and two below at
-                  every ν (``SolverOptions(cycle="V")``): ``nestmg``, the default again.
+``nestmg_v``      (not run by default) the V-cycle with one symmetric sweep on the fine level and two
+                  below at every ν: ``nestmg`` before issue 32 item 2.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
                   with given smoothers: one symmetric sweep on the fine level and two below, two on every
                   level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,

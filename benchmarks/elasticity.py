@@ -23,7 +23,9 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
 ``nestmg_v``      (not run by default) the V-cycle with one symmetric sweep on the fine level and two
-                  below at every ν: ``nestmg`` before issue 32 item 2.
+                  below at every ν.
+``nestmg_v02``    (not run by default) ``nestmg_v`` with the clamped problem's coarse nodes pruned at column
+                  sum 0.2 instead of ``CLAMPED_PRUNE`` = 0.35: ``nestmg`` before issue 32 item 2.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
                   with given smoothers: one symmetric sweep on the fine level and two below, two on every
                   level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,
@@ -86,6 +88,9 @@ CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "W"),
                   "nestmg_v24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "V")}
+CYCLE_VARIANTS["nestmg_v02"] = CYCLE_VARIANTS["nestmg_v"]
+#: clamped-problem prune (``min_column_sum``) of variants that do not use the problem's own
+PRUNE_VARIANTS = {"nestmg_v02": 0.2}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",
            "pyamg_sa",
            "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
@@ -131,14 +136,17 @@ def _projector(Z: np.ndarray | None):
 
 
 def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False,
-               cycle: str | None = None) -> dict:
+               cycle: str | None = None, prune: float | None = None) -> dict:
     """Setup (restriction + ``P ⊗ I₃`` + ``multigrid(**mg_kwargs)``) and MG-PCG of the assembled problem
     ``pr`` preconditioned by one ``cycle`` (None: the solver's default, ``ml.cycle``); with ``factor`` also
-    the stationary factor of that cycle (:func:`vcycle_factor`, not timed)."""
+    the stationary factor of that cycle (:func:`vcycle_factor`, not timed). ``prune``: the clamped
+    problem's ``min_column_sum`` instead of its own (the free problem keeps 0)."""
     from solvers import block_prolongation, restrict_prolongations
 
     t = _clocks()
-    Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
+    if prune is None or pr.modes is not None:
+        prune = pr.params["prune"]
+    Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=prune)
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
     ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t.lap("setup")
@@ -147,6 +155,7 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     t.lap("solve")
     out = {"x": x, **t.times, "iterations": info["iterations"], "cycle": cycle,
            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
+           "prune": prune, "coarse_solver": getattr(ml._coarse_solver, "method", None),
            "smoother": ml.levels[0].presmoother.params,
            "deflation": [{k: d[k] for k in ("level", "probe_factor", "vectors", "factors", "cycles")}
                          | {k: d[k] for k in ("probe_after", "slow_modes_found", "reverted") if k in d}
@@ -282,7 +291,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
                 if m.startswith("nestmg"):
                     kw, cyc = CYCLE_VARIANTS.get(m, (DEFLATION_VARIANTS.get(m), None))
                     out = run_nestmg(pr, h_P, m == "nestmg_block", tol, kw, factor=factor and r == 0,
-                                     cycle=cyc)
+                                     cycle=cyc, prune=PRUNE_VARIANTS.get(m))
                 elif m in ("pyamg_sa_rbm", "pyamg_sa"):
                     out = run_pyamg(pr.A, pr.b, B if m == "pyamg_sa_rbm" else None, Z, tol)
                 else:

@@ -154,6 +154,7 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, cycle=cycle, accel="cg", return_info=True)
     t.lap("solve")
     out = {"x": x, **t.times, "iterations": info["iterations"], "cycle": cycle,
+           "residuals": info["residuals"],  # relative, per CG iteration (the last: the true one)
            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
            "prune": prune, "coarse_solver": getattr(ml._coarse_solver, "method", None),
            "smoother": ml.levels[0].presmoother.params,

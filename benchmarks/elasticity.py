@@ -27,11 +27,13 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 ``nestmg_v02``    (not run by default) ``nestmg_v`` with the clamped problem's coarse nodes pruned at column
                   sum 0.2 instead of ``CLAMPED_PRUNE`` = 0.35: ``nestmg`` before issue 32 item 2.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
-                  with given smoothers: one symmetric sweep on the fine level and two below, two on every
-                  level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,
-                  what ``cycle="W"`` gets at ν >= 0.4).
-``nestmg_v24``    (not run by default) the V-cycle with two sweeps on the fine level and four below
-                  (``SolverOptions(nu=2, cycle="V")``).
+                  with given symmetric Gauss–Seidel smoothers: one sweep on the fine level and two below,
+                  two on every level, and two on the fine level and four below (what ``cycle="W"`` got at
+                  ν >= 0.4 before issue 32 item 2).
+``nestmg_v24``    (not run by default) the V-cycle with two symmetric sweeps on the fine level and four below.
+``nestmg_f24``, ``nestmg_f34``  (not run by default) the F-cycle with two / three forward Gauss–Seidel
+                  sweeps on the fine level and four below (backward after the coarse correction): the
+                  default below / from ν = 0.4.
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -89,6 +91,9 @@ CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS
                   "nestmg_v24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "V")}
 CYCLE_VARIANTS["nestmg_v02"] = CYCLE_VARIANTS["nestmg_v"]
+_GS = "gauss_seidel"  # forward before the coarse correction, backward after it (the adjoint)
+CYCLE_VARIANTS.update({f"nestmg_f{k}4": ({"presmoother": [(_GS, {"iterations": k}), (_GS, {"iterations": 4})]}, "F")
+                       for k in (2, 3)})
 #: clamped-problem prune (``min_column_sum``) of variants that do not use the problem's own
 PRUNE_VARIANTS = {"nestmg_v02": 0.2}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",

@@ -43,11 +43,12 @@ from .errors import NestmgInputError
 
 if TYPE_CHECKING:
     from .options import SolverOptions
-from .options import ELASTICITY_NU, ELASTICITY_SMOOTHER
+from .options import ELASTICITY_COARSE_NU, ELASTICITY_NU, ELASTICITY_SMOOTHER
 from .problems import Problem, cycle_smoothers
 from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
-__all__ = ["CLAMPED_PRUNE", "ELASTICITY_PROBLEMS", "ELASTICITY_SMOOTHERS", "ElasticityProblem", "clamped_nodes",
+__all__ = ["CLAMPED_PRUNE", "ELASTICITY_PROBLEMS", "ELASTICITY_SMOOTHERS", "ElasticityProblem",
+           "NEARLY_INCOMPRESSIBLE_SMOOTHERS", "clamped_nodes",
            "default_body_force", "setup_elasticity"]
 
 ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
@@ -60,11 +61,14 @@ ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 #: 0.5 s for the same MG-PCG iterations (docs/elasticity.md).
 CLAMPED_PRUNE = 0.35
 
-#: Smoothers of the ``"robust"`` preset not set (point-wise spelling; ``multigrid(block=True)`` turns them
-#: into nodal block sweeps), run in the F-cycle: two forward Gauss–Seidel sweeps on the fine level and four
-#: on the coarser ones before the coarse correction, the backward ones after it (the solver's adjoint
-#: post-smoother), :meth:`nestmg.SolverOptions.resolved`.
-ELASTICITY_SMOOTHERS = cycle_smoothers(ELASTICITY_SMOOTHER, ELASTICITY_NU)
+#: Smoothers of the ``"robust"`` preset not set, ν < 0.4 (point-wise spelling; ``multigrid(block=True)``
+#: turns them into nodal block sweeps), run in the F-cycle: two forward Gauss–Seidel sweeps on the fine
+#: level and four on the coarser ones before the coarse correction, the backward ones after it (the
+#: solver's adjoint post-smoother); from ν = 0.4 three on the fine level
+#: (:data:`NEARLY_INCOMPRESSIBLE_SMOOTHERS`). :meth:`nestmg.SolverOptions.resolved` holds the rule.
+ELASTICITY_SMOOTHERS = cycle_smoothers(ELASTICITY_SMOOTHER, ELASTICITY_NU, ELASTICITY_COARSE_NU)
+NEARLY_INCOMPRESSIBLE_SMOOTHERS = cycle_smoothers(ELASTICITY_SMOOTHER, ELASTICITY_NU + 1,
+                                                  ELASTICITY_COARSE_NU)
 
 #: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.
 FAST_SMOOTHERS = _FAST_SMOOTHERS
@@ -147,9 +151,10 @@ class ElasticityProblem(Problem):
             is unused (no boundary-layer sweeps for elasticity); ``cycle`` becomes the solver's
             :attr:`~solvers.MultigridSolver.cycle` (run by ``solve`` and ``aspreconditioner`` given none).
             Not set (the default), the F-cycle with :data:`ELASTICITY_SMOOTHERS` (two forward / backward
-            Gauss–Seidel sweeps on the fine level, four below; :meth:`nestmg.SolverOptions.resolved`), at
-            every ν: fewer MG-PCG iterations than the V-cycle with one symmetric sweep (13-22 against
-            16-29 on fandisk and spot) for fewer CPU seconds (docs/elasticity.md).
+            Gauss–Seidel sweeps on the fine level, four below), from ν = 0.4
+            :data:`NEARLY_INCOMPRESSIBLE_SMOOTHERS` (three on the fine level;
+            :meth:`nestmg.SolverOptions.resolved`): fewer MG-PCG iterations and CPU seconds than the V-cycle
+            with one symmetric sweep, the default before (docs/elasticity.md).
         block : bool
             ``True``: Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"``
             in ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks
@@ -172,9 +177,10 @@ class ElasticityProblem(Problem):
 
         from .options import SolverOptions, typed
 
-        o = typed(options, SolverOptions, "options").resolved(self.name)  # not set: F, gauss_seidel, 2 / 4
+        # not set: F-cycle, gauss_seidel, 2 / 4 sweeps (3 / 4 from ν = 0.4: the problem's ν, not options')
+        o = typed(options, SolverOptions, "options").resolved(self.name, self.params.get("nu"))
         coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
-        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ELASTICITY_SMOOTHERS when not set
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
         pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)
         kwargs["presmoother"] = _as_block_specs(pre) if block else pre
         kwargs.setdefault("deflate", 0)  # measured: the probe does not pay for elasticity (docs/elasticity.md)

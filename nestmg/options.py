@@ -18,6 +18,8 @@ import dataclasses
 from dataclasses import dataclass, fields
 from typing import Any
 
+import numpy as np
+
 from cagegen.options import OptionFieldError, check_fields, field_spec
 from solvers import DEFAULT_MAXITER, SMOOTHERS
 
@@ -26,18 +28,21 @@ from .problems import COARSE, SMOOTHING
 from .sizing import DEFAULT_TIME_BUDGET
 from .tetmesh import OUTER_EDGE_FACTOR
 
-__all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "DEFAULT_SMOOTHER", "ELASTICITY_CYCLE", "ELASTICITY_NU",
-           "ELASTICITY_SMOOTHER", "MeshingOptions", "OptionError", "SizingOptions", "SolverOptions",
-           "add_arguments", "from_arguments"]
+__all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "DEFAULT_SMOOTHER", "ELASTICITY_COARSE_NU", "ELASTICITY_CYCLE",
+           "ELASTICITY_NU", "ELASTICITY_SMOOTHER", "MeshingOptions", "OptionError", "SizingOptions",
+           "SolverOptions", "THREE_SWEEP_POISSON_RATIO", "add_arguments", "from_arguments"]
 
 #: The cycle, fine-level sweeps and smoother of the scalar problems (:meth:`SolverOptions.resolved`): the
 #: pipeline's variable V-cycle, one symmetric Gauss–Seidel sweep on the fine level (two below).
 DEFAULT_CYCLE, DEFAULT_NU, DEFAULT_SMOOTHER = "V", 1, "symmetric_gauss_seidel"
-#: The same for the elasticity problems, at every ν (issue 32): the F-cycle, two forward Gauss–Seidel
-#: sweeps before the coarse correction and two backward ones after it on the fine level, four below. On
-#: fandisk (173k tets) and spot (349k) it takes 13-22 MG-PCG iterations where the V-cycle with one
-#: symmetric sweep took 16-29, for fewer CPU seconds per solve (docs/elasticity.md).
-ELASTICITY_CYCLE, ELASTICITY_NU, ELASTICITY_SMOOTHER = "F", 2, "gauss_seidel"
+#: The same for the elasticity problems (issue 32 item 2): the F-cycle, ``nu`` forward Gauss–Seidel sweeps
+#: before the coarse correction and as many backward ones after it on the fine level (two, three from
+#: ν = :data:`THREE_SWEEP_POISSON_RATIO`), four on the coarser levels (:data:`ELASTICITY_COARSE_NU`).
+ELASTICITY_CYCLE, ELASTICITY_NU, ELASTICITY_SMOOTHER, ELASTICITY_COARSE_NU = "F", 2, "gauss_seidel", 4
+#: Poisson ratio from which elasticity's fine level gets three sweeps instead of two: at ν = 0.45 two
+#: took 17-22 MG-PCG iterations on fandisk (173k tets) and spot (349k), three take at most 20 for a few
+#: percent more CPU seconds; at ν = 0.3 two are the faster (docs/elasticity.md).
+THREE_SWEEP_POISSON_RATIO = 0.4
 
 
 class OptionError(NestmgInputError):
@@ -136,9 +141,9 @@ class SolverOptions:
                                             "gauss_seidel for elasticity)",
                                       choices=(*sorted(SMOOTHERS), None), expert=True)
     nu: int | None = field_spec(None, "pre/post smoothing sweeps on the fine level (robust preset; default "
-                                      "1, 2 for elasticity)", low=1, kind=int, expert=True)
-    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu)", low=1, kind=int,
-                                       expert=True)
+                                      "1; elasticity 2, 3 at ν >= 0.4)", low=1, kind=int, expert=True)
+    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu; elasticity 4)",
+                                       low=1, kind=int, expert=True)
     local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems",
                              expert=True)
     coarse_scaling: str | None = field_spec("auto", "auto: energy for re-discretised and weighted operators",
@@ -154,42 +159,49 @@ class SolverOptions:
 
     def __post_init__(self) -> None:
         _check(self)
-        if self.smoothing == "fast" and (self.smoother not in (None, DEFAULT_SMOOTHER) or self.nu not in (None, 1)
-                                         or self.coarse_nu is not None):
+        given = self.smoother not in (None, DEFAULT_SMOOTHER) or self.nu not in (None, 1)
+        if self.smoothing == "fast" and (given or self.coarse_nu is not None):
             raise OptionError("SolverOptions", "smoothing", "'fast' is a preset: leave smoother, nu and "
                                                             "coarse_nu at their defaults")
 
-    def resolved(self, problem: str | None = None) -> SolverOptions:
+    def resolved(self, problem: str | None = None, poisson_ratio=None) -> SolverOptions:
         """These options with ``smoother``, ``nu`` and ``cycle`` set for ``problem`` (given fields are kept).
 
         Not set, they are :data:`DEFAULT_SMOOTHER`, :data:`DEFAULT_NU` and :data:`DEFAULT_CYCLE` (the
-        V-cycle, one symmetric Gauss–Seidel sweep on the fine level), except for an elasticity problem
-        under the ``"robust"`` preset: :data:`ELASTICITY_SMOOTHER`, :data:`ELASTICITY_NU` and
-        :data:`ELASTICITY_CYCLE` (the F-cycle, two forward sweeps before the coarse correction and two
-        backward ones after it on the fine level, ``2 nu = 4`` below unless ``coarse_nu`` is given). Under
-        CG it took 13-22 iterations on fandisk and spot at ν = 0.3 and 0.45 where that V-cycle took 16-29,
-        for 0.8-0.9x its CPU seconds per solve (docs/elasticity.md).
+        V-cycle, one symmetric Gauss–Seidel sweep on the fine level, ``2 nu`` below), except for an
+        elasticity problem under the ``"robust"`` preset: :data:`ELASTICITY_SMOOTHER`,
+        :data:`ELASTICITY_CYCLE`, ``nu`` = :data:`ELASTICITY_NU` (two forward sweeps before the coarse
+        correction, two backward after it), three from ν = :data:`THREE_SWEEP_POISSON_RATIO`, and
+        ``coarse_nu`` = :data:`ELASTICITY_COARSE_NU` whatever ``nu``. Measured under CG on fandisk and spot
+        (docs/elasticity.md): fewer iterations and fewer CPU seconds than that V-cycle at ν = 0.3 and 0.45.
 
         Parameters
         ----------
         problem : str, optional
             The model problem's name (None: no problem context, the plain defaults).
+        poisson_ratio : float or array of float, optional
+            The elasticity problem's ν (default :attr:`poisson_ratio`); per-tet values: their maximum.
 
         Returns
         -------
         SolverOptions
-            ``smoother``, ``nu`` and ``cycle`` not None; ``self`` when all three were given.
+            ``smoother``, ``nu`` and ``cycle`` not None (and ``coarse_nu`` for elasticity); ``self`` when
+            nothing was left to fill in.
         """
         from .elasticity import ELASTICITY_PROBLEMS
 
-        if self.smoother is not None and self.nu is not None and self.cycle is not None:
-            return self
         el = problem in ELASTICITY_PROBLEMS and self.smoothing == "robust"
-        defaults = (ELASTICITY_SMOOTHER, ELASTICITY_NU, ELASTICITY_CYCLE) if el else (
-            DEFAULT_SMOOTHER, DEFAULT_NU, DEFAULT_CYCLE)
-        given = (self.smoother, self.nu, self.cycle)
-        smoother, nu, cycle = (g if g is not None else d for g, d in zip(given, defaults))
-        return dataclasses.replace(self, smoother=smoother, nu=nu, cycle=cycle)
+        if None not in (self.smoother, self.nu, self.cycle) and not (el and self.coarse_nu is None):
+            return self
+        if el:
+            ratio = float(np.max(self.poisson_ratio if poisson_ratio is None else poisson_ratio))
+            nu = ELASTICITY_NU + (ratio >= THREE_SWEEP_POISSON_RATIO)
+            defaults = (ELASTICITY_SMOOTHER, nu, ELASTICITY_CYCLE, ELASTICITY_COARSE_NU)
+        else:
+            defaults = (DEFAULT_SMOOTHER, DEFAULT_NU, DEFAULT_CYCLE, None)
+        given = (self.smoother, self.nu, self.cycle, self.coarse_nu)
+        smoother, nu, cycle, coarse_nu = (g if g is not None else d for g, d in zip(given, defaults))
+        return dataclasses.replace(self, smoother=smoother, nu=nu, cycle=cycle, coarse_nu=coarse_nu)
 
 
 def _check(obj: Any) -> None:

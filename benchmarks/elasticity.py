@@ -8,7 +8,7 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
 ``nestmg``        the project's default: the hierarchy's prolongations restricted to the free nodes,
                   ``P ⊗ I₃``, Galerkin coarse operators, ``SolverOptions.resolved``'s smoothing and cycle
                   (since issue 32 item 2: the F-cycle with two forward / backward Gauss–Seidel sweeps on
-                  the fine level and four below, at every ν; before, files up to
+                  the fine level, three from ν = 0.4, and four below; before, files up to
                   ``default_cycle_fandisk_173k.json``: the V-cycle with one symmetric sweep on the fine
                   level and two below, today's ``nestmg_v``, with a W-cycle rule at ν >= 0.4 for a while
                   in between); the free problem projects the rigid modes (``NullspaceMultigridSolver``).
@@ -92,8 +92,8 @@ CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "V")}
 CYCLE_VARIANTS["nestmg_v02"] = CYCLE_VARIANTS["nestmg_v"]
 _GS = "gauss_seidel"  # forward before the coarse correction, backward after it (the adjoint)
-CYCLE_VARIANTS.update({f"nestmg_f{k}4": ({"presmoother": [(_GS, {"iterations": k}), (_GS, {"iterations": 4})]}, "F")
-                       for k in (2, 3)})
+CYCLE_VARIANTS.update({f"nestmg_f{k}4": ({"presmoother": [(_GS, {"iterations": k}),
+                                                          (_GS, {"iterations": 4})]}, "F") for k in (2, 3)})
 #: clamped-problem prune (``min_column_sum``) of variants that do not use the problem's own
 PRUNE_VARIANTS = {"nestmg_v02": 0.2}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",

@@ -56,9 +56,9 @@ ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 #: ``elasticity-clamped`` drops coarse nodes whose restricted prolongation column sums to less than this
 #: (:func:`solvers.restrict_prolongations`). Such cage nodes reach a few fine nodes with small weights and
 #: make the Galerkin coarse operators singular: at 0.2 the coarsest levels of fandisk (173k fine tets) and
-#: spot (349k) kept 9 and 6 null vectors and needed the dense pivoted Cholesky (1.4 CPU s of spot's 1.4 s
-#: set-up at 4,017 unknowns); at 0.35 they have none, SuperLU factorises them, and the set-up takes 0.2 /
-#: 0.5 s for the same MG-PCG iterations (docs/elasticity.md).
+#: spot (349k) needed the dense pivoted Cholesky; at 0.35 SuperLU factorises them, and the clamped set-up
+#: takes 0.4x the CPU seconds (0.22 against 0.55 s on fandisk) for the same MG-PCG iterations
+#: (``default_cycle_f_*.json``, docs/elasticity.md).
 CLAMPED_PRUNE = 0.35
 
 #: Smoothers of the ``"robust"`` preset not set, ν < 0.4 (point-wise spelling; ``multigrid(block=True)``

@@ -299,6 +299,12 @@ class MultigridSolver:
         Probe (and deflate) the finest level too: its probe costs about as much as one solve, so it is
         off by default here and on in ``nestmg``'s problems (:meth:`nestmg.problems.Problem.multigrid`),
         whose setup is a small part of a run.
+    probe_at : {"setup", "stationary"}
+        When the probe of ``deflate`` runs: at set-up (default), or at the first stationary solve
+        (``solve(accel=None)``) or :meth:`probe` call (``nestmg``'s problems). Deflation serves the factor
+        of the stationary cycle; CG removes a few slow modes by itself, so ``solve(accel="cg")`` and
+        :meth:`aspreconditioner` never pay for the probe (on the TetGen bunny of docs/usermesh.md it was
+        ~90 % of ``Problem.multigrid()``'s set-up and saved CG one iteration of ten).
     cycle : {"V", "W", "F"}
         The cycle :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` use when given none
         (default ``"V"``; ``nestmg``'s elasticity problems at ν >= 0.4 pass ``"W"``,
@@ -311,7 +317,8 @@ class MultigridSolver:
     perm : (n_0,) int64 array or None
         The finest level's internal order (None: the caller's).
     deflation : list of dict
-        Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors``.
+        Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors`` (empty
+        while a probe deferred by ``probe_at="stationary"`` has not run).
     setup_seconds : float
 
     Examples
@@ -352,6 +359,7 @@ class MultigridSolver:
         probe_finest: bool = False,
         cycle: str = "V",
         deflate_goal: float = DEFLATION_GOAL,
+        probe_at: str = "setup",
     ):
         t0 = time.perf_counter()
         #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
@@ -391,7 +399,7 @@ class MultigridSolver:
         if not 0.0 < deflate_goal < 1.0:
             raise SolverInputError(f"deflate_goal must be in (0, 1), got {deflate_goal!r}")
         self.deflate_goal = float(deflate_goal)
-        self.deflation = self._deflate(deflate, probe_finest)
+        self._schedule_probe(deflate, probe_finest, probe_at)
         self.setup_seconds = time.perf_counter() - t0
 
     def _coarse_operators(self, A, Ps, coarse, ordering, symmetric, shared=False) -> tuple:
@@ -458,6 +466,25 @@ class MultigridSolver:
                 lvl = Level(Ak)
             levels.append(lvl)
         return levels
+
+    def _schedule_probe(self, max_vectors: int, probe_finest: bool, probe_at: str) -> None:
+        """Run the deflation probe now (``probe_at="setup"``) or keep it for :meth:`probe`."""
+        if probe_at not in ("setup", "stationary"):
+            raise SolverInputError(f"probe_at must be 'setup' or 'stationary', got {probe_at!r}")
+        if isinstance(max_vectors, bool) or int(max_vectors) != max_vectors or max_vectors < 0:
+            raise SolverInputError(f"deflate must be a non-negative integer, got {max_vectors!r}")
+        self.deflation: list[dict] = []
+        self._pending_probe = (int(max_vectors), bool(probe_finest)) if max_vectors else None
+        if probe_at == "setup":
+            self.probe()
+
+    def probe(self) -> list[dict]:
+        """Run the deflation probe deferred by ``probe_at="stationary"`` (once; later calls and a probe run
+        at set-up do nothing) and return :attr:`deflation`. ``solve(accel=None)`` calls it."""
+        if self._pending_probe is not None:
+            pending, self._pending_probe = self._pending_probe, None
+            self.deflation = self._deflate(*pending)
+        return self.deflation
 
     def _deflate(self, max_vectors: int, probe_finest: bool) -> list[dict]:
         """Probe levels ``L-2 .. 1`` (and 0 with ``probe_finest``), coarse first so that each probe sees the
@@ -777,6 +804,8 @@ class MultigridSolver:
         if maxiter < 0:
             raise SolverInputError(f"maxiter must be >= 0, got {maxiter}")
         b = self._to_internal(self._prepare_rhs(b, project))
+        if accel is None:
+            self.probe()  # a probe deferred by probe_at="stationary" (its time is not in info["seconds"])
         n = b.size
         A = self.levels[0].A
         if x0 is None:

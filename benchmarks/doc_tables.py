@@ -338,7 +338,7 @@ def probe_under_cg() -> str:
                  for at in ("setup", "stationary")}
             gains.append(t["setup"] / t["stationary"])
     big = sorted(gains)[1]
-    return (f"{rng(gains)}x less set-up + solve time (at least {big:.2f}x in {len(gains) - 1} of "
+    return (f"set-up + solve time divided by {rng(gains)} (by at least {big:.2f} in {len(gains) - 1} of "
             f"{len(gains)} cases)")
 
 

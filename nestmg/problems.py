@@ -151,7 +151,9 @@ class Problem:
               operators (they are not energy projections; docs/coarse.md), None with Galerkin ones.
             * every level, the finest included (``probe_finest=True``), is probed for a few slow modes,
               which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off) when the
-              probe is above the problem's goal (:data:`FACTOR_GOALS`);
+              probe is above the problem's goal (:data:`FACTOR_GOALS`); the probe runs at the first
+              stationary solve (``probe_at="stationary"``): ``solve(accel="cg")`` and
+              ``aspreconditioner()`` skip it;
             * ``cycle`` (default V) becomes the solver's :attr:`~solvers.MultigridSolver.cycle`, the one its
               ``solve`` and ``aspreconditioner`` run when given none.
 
@@ -186,6 +188,8 @@ class Problem:
         if self.name in FACTOR_GOALS:
             kwargs.setdefault("deflate_goal", FACTOR_GOALS[self.name])
         kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run
+        # ... but it serves the stationary cycle only: MG-PCG and aspreconditioner() never run it
+        kwargs.setdefault("probe_at", "stationary")
         kwargs.setdefault("cycle", o.cycle)  # the cycle of solve() and aspreconditioner() given none
         return MultigridSolver(self.A, self.P, coarse=self.coarse, nullspace=self.nullspace,
                                coarse_scaling=coarse_scaling, **kwargs)

@@ -194,6 +194,29 @@ def mesh_time_limit(V: np.ndarray, F: np.ndarray, edge_length: float, mesher: st
     return max(MIN_TIME_LIMIT[mesher], TIME_LIMIT_FACTOR * fine_mesh_seconds(len(F), n_tets, mesher))
 
 
+#: how often (seconds) a worker with a CPU budget is checked
+CPU_POLL_SECONDS = 0.1
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """CPU seconds (user + system, all threads) used so far by process ``pid``; None if unknown."""
+    try:
+        import psutil
+
+        t = psutil.Process(pid).cpu_times()
+        return float(t.user + t.system)
+    except ImportError:
+        pass
+    except Exception:  # noqa: BLE001 - the process ended or is not readable: no CPU figure
+        return None
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 class _MeshTimeout(Exception):
     """The worker did not answer within the time limit (it has been killed)."""
 
@@ -229,10 +252,11 @@ class _MesherWorker:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
-    def run(self, job: tuple, limit: float | None) -> tuple:
-        """Send ``job`` and wait at most ``limit`` seconds (None: no limit) for the reply."""
+    def run(self, job: tuple, limit: float | None, cpu_budget: float | None = None) -> tuple:
+        """Send ``job`` and wait at most ``limit`` seconds (None: no limit) for the reply, and while the
+        worker has used at most ``cpu_budget`` CPU seconds on it (None: no budget)."""
         self.conn.send(job)
-        if not self.conn.poll(limit):
+        if not self._wait(limit, cpu_budget):
             raise _MeshTimeout
         try:
             reply = self.conn.recv()
@@ -240,6 +264,20 @@ class _MesherWorker:
             raise _MeshCrash(self.proc.wait()) from None
         self._log_output()
         return reply
+
+    def _wait(self, limit: float | None, cpu_budget: float | None) -> bool:
+        """True when the reply arrived within ``limit`` wall seconds and ``cpu_budget`` CPU seconds."""
+        start = None if cpu_budget is None else _cpu_seconds(self.proc.pid)
+        if start is None:
+            return self.conn.poll(limit)
+        end = None if limit is None else time.monotonic() + limit
+        while True:
+            step = CPU_POLL_SECONDS if end is None else min(CPU_POLL_SECONDS, max(0.0, end - time.monotonic()))
+            if self.conn.poll(step):
+                return True
+            used = _cpu_seconds(self.proc.pid)
+            if (end is not None and time.monotonic() >= end) or (used is not None and used - start > cpu_budget):
+                return False
 
     def _log_output(self) -> None:
         self.out.seek(0)
@@ -277,8 +315,10 @@ def _close_worker() -> None:
 atexit.register(_close_worker)
 
 
-def _run_in_worker(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict, deadline: float) -> tuple:
-    """One mesher call in the worker process, answered before ``deadline`` (time.monotonic) or killed."""
+def _run_in_worker(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict, deadline: float,
+                   cpu_budget: float | None = None) -> tuple:
+    """One mesher call in the worker process, answered before ``deadline`` (time.monotonic) and within
+    ``cpu_budget`` CPU seconds, or killed."""
     global _worker
     with _worker_lock:
         for fresh in (False, True):
@@ -288,7 +328,7 @@ def _run_in_worker(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict, deadli
                 _worker = _MesherWorker()  # a forked child never touches its parent's worker
             w = _worker
             try:
-                return w.run((mesher, V, F, opts), max(0.0, deadline - time.monotonic()))
+                return w.run((mesher, V, F, opts), max(0.0, deadline - time.monotonic()), cpu_budget)
             except (BrokenPipeError, ConnectionResetError) as exc:
                 # the worker had died between jobs (nothing was computed): start a new one, once
                 w.close(kill=True)
@@ -302,9 +342,10 @@ def _run_in_worker(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict, deadli
     raise AssertionError("unreachable")
 
 
-def _mesher_call(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict,
-                 deadline: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """``run_job`` in-process (no deadline) or in the worker, with the mesher's failures as TetMeshError."""
+def _mesher_call(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict, deadline: float | None,
+                 cpu_budget: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``run_job`` in-process (no deadline) or in the worker (killed at ``deadline`` or past ``cpu_budget``
+    CPU seconds), with the mesher's failures as TetMeshError."""
     what = f"a surface with {len(V)} vertices / {len(F)} faces"
     if deadline is None:
         if mesher == "tetwild":
@@ -313,9 +354,11 @@ def _mesher_call(mesher: str, V: np.ndarray, F: np.ndarray, opts: dict,
         return run_job(mesher, V, F, opts)
     t = time.monotonic()
     try:
-        reply = _run_in_worker(mesher, V, F, opts, deadline)
+        reply = _run_in_worker(mesher, V, F, opts, deadline, cpu_budget)
     except _MeshTimeout:
-        raise TetMeshTimeoutError(f"{mesher} stopped after {time.monotonic() - t:.3g} s on {what}") from None
+        budget = "" if cpu_budget is None else f" (CPU budget {cpu_budget:.3g} s)"
+        raise TetMeshTimeoutError(f"{mesher} stopped after {time.monotonic() - t:.3g} s{budget} on {what}") \
+            from None
     except _MeshCrash as exc:
         rc = exc.args[0]
         how = f"signal {-rc}" if isinstance(rc, int) and rc < 0 else f"exit code {rc}"
@@ -418,7 +461,10 @@ _TETGEN_MODES = {
 #: TetGen's radius-edge bound does not remove slivers: when a mode leaves flat tets it is retried with
 #: these dihedral-angle bounds (TetGen's -q/d switch) before the next mode
 _TETGEN_MINDIHEDRAL = (0.0, 10.0, 18.0)
-#: seconds (plus 5x the time estimate) TetGen's exact mode may take before the merged mode is tried
+#: CPU seconds (plus 5x the time estimate) TetGen's exact mode may use before the merged mode is tried.
+#: CPU, not wall seconds: a wall-clock share made the mesh depend on the machine's load (the test torus's
+#: exact mode, 1.4 CPU s, passed its 7.1 s share under load 4 in 5 of 10 runs and was meshed in merged
+#: mode instead: another mesh, another convergence factor)
 EXACT_MODE_SECONDS = 3.0
 
 
@@ -430,24 +476,26 @@ def _tetgen(V, F, h, minratio, deadline, limit):
     """
     failures, timed_out = [], False
     modes = list(_TETGEN_MODES.items())
-    # a mode that is not the last may use EXACT_MODE_SECONDS + 5x the estimate (TetGen meshes ~1e5 tets/s,
-    # so the limit is reached only by the mesh-improvement loop, not by work): a loop costs seconds
+    # a mode that is not the last may use EXACT_MODE_SECONDS + 5x the estimate in CPU seconds (TetGen meshes
+    # ~1e5 tets/s, so the budget is reached only by the mesh-improvement loop, not by work): a loop costs
+    # seconds; half the remaining wall time protects the call's own limit
     from .memory import enclosed_volume  # nestmg.memory and nestmg.sizing import this module
     from .sizing import expected_tets, fine_mesh_seconds
 
     estimate = fine_mesh_seconds(len(F), expected_tets(enclosed_volume(V, F), h, "tetgen"), "tetgen")
     for i, (mode, flags) in enumerate(modes):
-        mode_deadline = None
+        mode_deadline, cpu_budget = None, None
         if deadline is not None:
             remaining = max(0.0, deadline - time.monotonic())
-            share = min(remaining / 2, EXACT_MODE_SECONDS + 5 * estimate) if i < len(modes) - 1 else remaining
-            mode_deadline = time.monotonic() + share
+            last = i == len(modes) - 1
+            mode_deadline = time.monotonic() + (remaining if last else remaining / 2)
+            cpu_budget = None if last else EXACT_MODE_SECONDS + 5 * estimate
         mesh = None
         for mindihedral in _TETGEN_MINDIHEDRAL:
             opts = {"quality": True, "minratio": minratio, "mindihedral": mindihedral, "fixedvolume": True,
                     "maxvolume": h**3 / (6 * np.sqrt(2)), "steinerleft": -1, **flags}
             try:
-                Vt, T = _mesher_call("tetgen", V, F, opts, mode_deadline)
+                Vt, T = _mesher_call("tetgen", V, F, opts, mode_deadline, cpu_budget)
             except TetMeshError as exc:
                 mesh = None
                 timed_out = timed_out or isinstance(exc, TetMeshTimeoutError)

@@ -375,7 +375,7 @@ class NullspaceMultigridSolver(MultigridSolver):
         As :class:`solvers.MultigridSolver` (slow modes deflated per probed level), default 0 here. The
         probe runs once the projected coarsest solve is installed, with its Krylov vectors kept orthogonal
         to each probed level's kernel basis (:func:`solvers.deflation.slow_modes`, ``nullspace_basis``).
-    probe_finest : bool
+    probe_finest, probe_at
         As :class:`solvers.MultigridSolver`.
 
     Attributes
@@ -385,7 +385,7 @@ class NullspaceMultigridSolver(MultigridSolver):
     """
 
     def __init__(self, A, Ps, nullspaces, *, coarse_solver: str = "regularized", deflate: int = 0,
-                 probe_finest: bool = False, **kwargs):
+                 probe_finest: bool = False, probe_at: str = "setup", **kwargs):
         t0 = time.perf_counter()
         if "nullspace" in kwargs:
             raise SolverInputError(
@@ -414,7 +414,8 @@ class NullspaceMultigridSolver(MultigridSolver):
                                   f"(max |A_{k} Z_{k}| = {res:.3e}, ||A_{k}|| = {scale:.3e}){hint}")
             self.nullspace_bases.append(Q)
         self._coarse_solver = _ProjectedCoarseSolve(self._coarse_solver, self.nullspace_bases[-1])
-        self.deflation = self._deflate(deflate, probe_finest)  # Krylov vectors kept off nullspace_bases[k]
+        # Krylov vectors kept off nullspace_bases[k]
+        self._schedule_probe(deflate, probe_finest, probe_at)
         self.setup_seconds = time.perf_counter() - t0
 
     def _level_kernel(self, k: int) -> np.ndarray:

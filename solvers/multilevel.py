@@ -299,6 +299,12 @@ class MultigridSolver:
         Probe (and deflate) the finest level too: its probe costs about as much as one solve, so it is
         off by default here and on in ``nestmg``'s problems (:meth:`nestmg.problems.Problem.multigrid`),
         whose setup is a small part of a run.
+    probe_at : {"setup", "stationary"}
+        When the finest level's probe (``probe_finest``) runs: at set-up (default), or at the first
+        stationary solve (``solve(accel=None)``) or :meth:`probe` call (``nestmg``'s problems). The coarser
+        levels are probed at set-up either way (cheap). The finest probe costs about one solve and serves
+        the stationary cycle's factor; under CG it saved at most one iteration on the corpus meshes
+        measured, so ``solve(accel="cg")`` and :meth:`aspreconditioner` skip it.
     cycle : {"V", "W", "F"}
         The cycle :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` use when given none
         (default ``"V"``; ``nestmg``'s elasticity problems at ν >= 0.4 pass ``"W"``,
@@ -311,7 +317,8 @@ class MultigridSolver:
     perm : (n_0,) int64 array or None
         The finest level's internal order (None: the caller's).
     deflation : list of dict
-        Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors``.
+        Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors`` (without
+        the finest level while its probe, deferred by ``probe_at="stationary"``, has not run).
     setup_seconds : float
 
     Examples
@@ -352,6 +359,7 @@ class MultigridSolver:
         probe_finest: bool = False,
         cycle: str = "V",
         deflate_goal: float = DEFLATION_GOAL,
+        probe_at: str = "setup",
     ):
         t0 = time.perf_counter()
         #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
@@ -391,7 +399,7 @@ class MultigridSolver:
         if not 0.0 < deflate_goal < 1.0:
             raise SolverInputError(f"deflate_goal must be in (0, 1), got {deflate_goal!r}")
         self.deflate_goal = float(deflate_goal)
-        self.deflation = self._deflate(deflate, probe_finest)
+        self._schedule_probe(deflate, probe_finest, probe_at)
         self.setup_seconds = time.perf_counter() - t0
 
     def _coarse_operators(self, A, Ps, coarse, ordering, symmetric, shared=False) -> tuple:
@@ -459,15 +467,35 @@ class MultigridSolver:
             levels.append(lvl)
         return levels
 
-    def _deflate(self, max_vectors: int, probe_finest: bool) -> list[dict]:
-        """Probe levels ``L-2 .. 1`` (and 0 with ``probe_finest``), coarse first so that each probe sees the
-        corrections below it, and deflate their slow modes (:func:`solvers.deflation.slow_modes`)."""
+    def _schedule_probe(self, max_vectors: int, probe_finest: bool, probe_at: str) -> None:
+        """Probe the coarser levels now, and the finest (``probe_finest``) now (``probe_at="setup"``) or at
+        :meth:`probe`."""
+        if probe_at not in ("setup", "stationary"):
+            raise SolverInputError(f"probe_at must be 'setup' or 'stationary', got {probe_at!r}")
+        defer = probe_at == "stationary" and probe_finest and max_vectors
+        #: (max_vectors) of the finest level's probe deferred to :meth:`probe`, or None
+        self._pending_probe = int(max_vectors) if defer else None
+        self.deflation: list[dict] = self._deflate(max_vectors, probe_finest and not defer)
+
+    def probe(self) -> list[dict]:
+        """Run the finest level's probe deferred by ``probe_at="stationary"`` (once; later calls, and a
+        probe run at set-up, do nothing) and return :attr:`deflation`. ``solve(accel=None)`` calls it."""
+        if self._pending_probe is not None:
+            max_vectors, self._pending_probe = self._pending_probe, None
+            self.deflation = self._deflate(max_vectors, True, first=0) + self.deflation
+        return self.deflation
+
+    def _deflate(self, max_vectors: int, probe_finest: bool, first: int | None = None) -> list[dict]:
+        """Probe levels ``first .. 1`` (default ``first = L-2``; and 0 with ``probe_finest``), coarse first so
+        that each probe sees the corrections below it, and deflate their slow modes
+        (:func:`solvers.deflation.slow_modes`). Returns the reports, finest level first."""
         if isinstance(max_vectors, bool) or int(max_vectors) != max_vectors or max_vectors < 0:
             raise SolverInputError(f"deflate must be a non-negative integer, got {max_vectors!r}")
         report = []
         last = 0 if probe_finest else 1
+        first = len(self.levels) - 2 if first is None else first
         linear = self.symmetric_cycle and self.coarse_scaling is None  # Lanczos needs a linear symmetric cycle
-        probed = range(len(self.levels) - 2, last - 1, -1) if max_vectors and linear else ()
+        probed = range(first, last - 1, -1) if max_vectors and linear else ()
         for k in probed:
             L = self.levels[k]
             zero = np.zeros(L.A.shape[0])
@@ -777,6 +805,8 @@ class MultigridSolver:
         if maxiter < 0:
             raise SolverInputError(f"maxiter must be >= 0, got {maxiter}")
         b = self._to_internal(self._prepare_rhs(b, project))
+        if accel is None:
+            self.probe()  # a probe deferred by probe_at="stationary" (its time is not in info["seconds"])
         n = b.size
         A = self.levels[0].A
         if x0 is None:

@@ -538,3 +538,33 @@ def test_the_envelope_target_grid_is_refined_when_the_envelope_would_be_coarser_
     assert spacing(V, F, n, 0.01) == 0.005 and probes == [0.01]  # at 0.005 the area bound suffices
     probes.clear()
     assert spacing(V, F, 10 ** 7, 0.01) == 0.0025 and probes == [0.01, 0.005]  # a quarter at most
+
+
+def test_target_dilation_tests_only_moved_faces_and_finds_what_the_full_test_finds(monkeypatch):
+    """_dilate_target's rounds after the first test self-intersections of the faces that moved only;
+    the dilation must be the one the whole-mesh test gives (a torus whose hole closes when dilated:
+    8 rounds, pairs found in the later ones, vertices held)."""
+    import trimesh
+
+    from cagegen import intersect
+
+    t = trimesh.creation.torus(1.0, 0.99, 48, 24)
+    V, F = np.asarray(t.vertices), np.asarray(t.faces, dtype=np.int64)
+    full = intersect.self_pairs
+    calls = []
+
+    def recorded(V, F, only=None):
+        pairs = full(V, F, only)
+        calls.append((None if only is None else len(only), len(pairs)))
+        return pairs
+
+    monkeypatch.setattr(intersect, "self_pairs", recorded)
+    W, info = nested_backend_module._dilate_target(V, F, 2.0)
+    monkeypatch.setattr(intersect, "self_pairs", lambda V, F, only=None: full(V, F))
+    W_full, info_full = nested_backend_module._dilate_target(V, F, 2.0)
+    assert np.array_equal(W, W_full) and info == info_full
+    assert info["rounds"] >= 3 and info["held"] > 0
+    assert calls[0][0] is None  # the first round tests the whole mesh
+    # later rounds test a part of the mesh, and find pairs there
+    assert all(n is not None for n, _ in calls[1:])
+    assert any(n < len(F) and found for n, found in calls[1:])

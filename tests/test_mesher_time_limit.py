@@ -57,3 +57,41 @@ def test_time_limit_from_the_environment(monkeypatch):
     monkeypatch.delenv(TIME_LIMIT_ENV)
     assert mesh_time_limit(V, F, 0.05, "tetgen") >= 60.0  # the floors of the automatic limit
     assert mesh_time_limit(V, F, 0.05, "tetwild") >= 900.0
+
+
+def test_a_cpu_budget_stops_the_worker_and_ignores_idle_seconds():
+    """TetGen's modes are switched on CPU seconds, not wall seconds (a wall-clock share made the mesh
+    depend on the machine's load): a busy job past its budget is stopped with the budget in the message,
+    and the worker's idle wall time counts for nothing."""
+    pytest.importorskip("tetgen")
+    import os
+    import signal
+
+    from nestmg import tetmesh
+
+    V, F = shapes.torus(24)
+    d = float(np.linalg.norm(np.ptp(V, axis=0)))
+
+    def opts(h):  # TetGen's options for edge length h x the diagonal
+        return {"quality": True, "minratio": 1.5, "fixedvolume": True, "maxvolume": (h * d) ** 3 / (6 * np.sqrt(2)),
+                "steinerleft": -1}
+
+    t = time.perf_counter()
+    with pytest.raises(TetMeshTimeoutError, match="CPU budget 0.3 s"):
+        tetmesh._mesher_call("tetgen", V, F, opts(0.006), time.monotonic() + 120, cpu_budget=0.3)
+    assert time.perf_counter() - t < 10.0
+    # a small job while the worker is stopped for 1.5 s: 1.5 wall seconds, no CPU: within a 1 s budget
+    small = opts(0.1)
+    tetmesh._mesher_call("tetgen", V, F, small, time.monotonic() + 120)  # a fresh worker, warmed up
+    pid = tetmesh._worker.proc.pid
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        timer = __import__("threading").Timer(1.5, os.kill, (pid, signal.SIGCONT))
+        timer.start()
+        t = time.perf_counter()
+        Vt, T = tetmesh._mesher_call("tetgen", V, F, small, time.monotonic() + 120, cpu_budget=1.0)
+        assert time.perf_counter() - t >= 1.4 and len(T) > 100
+    finally:
+        timer.join()
+        os.kill(pid, signal.SIGCONT)
+    assert tetmesh._cpu_seconds(os.getpid()) > 0.0

@@ -215,3 +215,33 @@ def test_deflate_goal_must_be_a_factor(pieces, bad):
     K, Ps = pieces
     with pytest.raises(SolverInputError, match="deflate_goal"):
         MultigridSolver(K, Ps, nullspace="constant", deflate_goal=bad)
+
+
+def test_probe_deferred_to_the_first_stationary_solve(pieces):
+    """probe_at="stationary": the coarser levels are probed at set-up, the finest level not for MG-PCG or
+    aspreconditioner(); the first stationary solve probes it and then cycles exactly as a solver that
+    probed everything at set-up (same report, same residuals bit for bit)."""
+    K, Ps = pieces
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    b -= b.mean()
+    eager = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True)
+    lazy = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, probe_at="stationary")
+    assert [d["level"] for d in lazy.deflation] == [1]
+    _, info = lazy.solve(b, tol=1e-8, accel="cg", return_info=True)
+    lazy.aspreconditioner() @ b
+    assert info["converged"] and [d["level"] for d in lazy.deflation] == [1]
+    r_eager, r_lazy = [], []
+    eager.solve(b, tol=1e-8, residuals=r_eager)
+    lazy.solve(b, tol=1e-8, residuals=r_lazy)
+    assert [d["level"] for d in lazy.deflation] == [d["level"] for d in eager.deflation] == [0, 1]
+    assert [d["vectors"] for d in lazy.deflation] == [d["vectors"] for d in eager.deflation]
+    assert sum(d["vectors"] for d in lazy.deflation) >= 1
+    assert r_lazy == r_eager and r_lazy[-1] <= 1e-8
+    report = lazy.deflation
+    assert lazy.probe() is report  # once only
+
+
+def test_probe_at_must_be_named(pieces):
+    K, Ps = pieces
+    with pytest.raises(SolverInputError, match="probe_at"):
+        MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_at="later")

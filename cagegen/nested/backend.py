@@ -372,7 +372,7 @@ def _dilate_target(Vc, Fc, delta):
     CPU s: 3 reverse steps instead of 5), 0.0004 on lucy.ply's (now 0.21 of a 0.32 mean: near contacts in
     its drapery still cut the CCD step; its re-inflation 234 -> 213 s).
     """
-    from .._geometry import self_intersection_pairs
+    from ..intersect import self_pairs
 
     faces = np.asarray(Fc, dtype=np.int64)
     D = offset_surface(Vc, faces, delta) - Vc
@@ -381,17 +381,22 @@ def _dilate_target(Vc, Fc, delta):
     adj = igl.adjacency_matrix(faces).tocsr()
     cos_max = np.cos(np.radians(DILATE_MAX_TURN_DEGREES))
     rounds = 0
+    moved = None  # faces whose position changed since the last round (None: all)
     for rounds in range(DILATE_ROUNDS + 1):
         W = Vc + scale[:, None] * D
         N1 = igl.per_face_normals(W, faces, np.array([0.0, 0.0, 1.0]))
         bad = np.flatnonzero(np.einsum("ij,ij->i", N0, N1) < cos_max)
-        bad = np.union1d(bad, self_intersection_pairs(W, faces).ravel())
+        # two faces that kept their position cannot meet: the last round tested them and moved every
+        # face of a meeting pair, unless all its vertices were already held at Ĉ (free of intersections)
+        bad = np.union1d(bad, self_pairs(W, faces, only=moved).ravel())
         if not len(bad):
             break
         verts = np.zeros(len(Vc), dtype=bool)
         verts[faces[bad].ravel()] = True
         verts |= adj @ verts > 0  # and their neighbours: the cut motion stays smooth
+        old = scale.copy()
         scale[verts] = 0.0 if rounds == DILATE_ROUNDS - 1 else 0.5 * scale[verts]
+        moved = np.flatnonzero((scale != old)[faces].any(axis=1))
     target = Vc + scale[:, None] * D
     alpha = self_collision_free_step(Vc, Fc, target)
     alpha = min(1.0, 0.9 * alpha) if alpha < 1.0 else 1.0  # stop short of a contact the CCD found

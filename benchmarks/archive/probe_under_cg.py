@@ -1,0 +1,54 @@
+"""The pipeline's deflation probe under MG-PCG: at set-up (``probe_at="setup"``, the behaviour before) or
+deferred to the first stationary solve (``probe_at="stationary"``, the default of ``Problem.multigrid()``).
+
+For each mesh: the default hierarchy (``build_hierarchy(V, F, levels=3)``, cached), then for the three model
+problems ``Problem.multigrid(probe_at=...)`` + ``solve(b, tol=1e-8, accel="cg")``, alternating, twice each;
+CPU seconds of set-up and solve, CG iterations, modes deflated per level.
+
+    OMP_NUM_THREADS=1 python benchmarks/archive/probe_under_cg.py ZOO_DIR/homer.obj --out FILE.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from pathlib import Path
+
+from nestmg import build_hierarchy, load_mesh, setup_problem
+
+PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+
+
+def measure(mesh: Path) -> dict:
+    """Set-up / solve CPU seconds and CG iterations of both probe placements on one mesh."""
+    V, F = load_mesh(mesh)[:2]
+    H = build_hierarchy(V, F, levels=3, progress=False)
+    out = {"mesh": mesh.name, "tets": [len(t) for _, t in H.tets], "rows": []}
+    for name in PROBLEMS:
+        pr = setup_problem(H.tets, H.P, name)
+        for at in ("setup", "stationary", "setup", "stationary"):
+            t = time.process_time()
+            ml = pr.multigrid(probe_at=at)
+            setup = time.process_time() - t
+            t = time.process_time()
+            _, info = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
+            out["rows"].append({"problem": name, "probe_at": at, "setup": setup, "solve": time.process_time() - t,
+                                "it": info["iterations"], "modes": [d["vectors"] for d in ml.deflation]})
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("meshes", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore")
+    runs = [measure(m) for m in args.meshes]
+    args.out.write_text(json.dumps({"command": "benchmarks/archive/probe_under_cg.py", "clock": "process_time",
+                                    "runs": runs}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -739,7 +739,8 @@ def petsc_estimate() -> str:
 # ----------------------------------------------------------------------------------------- cage uses
 ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
 ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")
-ELASTICITY_DEFAULT_CYCLE = "elasticity/default_cycle_fandisk_173k.json"
+ELASTICITY_F_CYCLE = ("elasticity/default_cycle_f_fandisk_173k.json",
+                      "elasticity/default_cycle_f_spot_349k.json")
 
 
 @generator("elasticity.factor", ELASTICITY_FACTOR)
@@ -752,9 +753,9 @@ def elasticity_cad() -> str:
     return "\n\n".join(sibling("elasticity").table(load(f)) for f in ELASTICITY_CAD)
 
 
-@generator("elasticity.default_cycle", ELASTICITY_DEFAULT_CYCLE)
-def elasticity_default_cycle() -> str:
-    return sibling("elasticity").table(load(ELASTICITY_DEFAULT_CYCLE))
+@generator("elasticity.f_cycle", *ELASTICITY_F_CYCLE)
+def elasticity_f_cycle() -> str:
+    return "\n\n".join(sibling("elasticity").table(load(f)) for f in ELASTICITY_F_CYCLE)
 
 
 CAGE_USES = "cage_uses/cage_uses.json"

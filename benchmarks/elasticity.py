@@ -6,12 +6,13 @@ system is assembled once (:func:`nestmg.elasticity.setup_elasticity`, E = 1, nor
 interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG with:
 
 ``nestmg``        the project's default: the hierarchy's prolongations restricted to the free nodes,
-                  ``P ⊗ I₃``, Galerkin coarse operators, symmetric Gauss–Seidel in the pipeline's variable
-                  V-cycle (one sweep on the fine level, two below) at ν < 0.4, in a W-cycle with two
-                  sweeps on the fine level and four below at ν >= 0.4 (``SolverOptions.resolved``; before
-                  that rule, files up to ``cad_1m.json``: the V-cycle at every ν); the free problem
-                  projects the rigid modes (``NullspaceMultigridSolver``). Setup = restriction +
-                  ``P ⊗ I₃`` + ``multigrid()``; the cycle run is recorded (``cycle``).
+                  ``P ⊗ I₃``, Galerkin coarse operators, ``SolverOptions.resolved``'s smoothing and cycle
+                  (since issue 32 item 2: the F-cycle with two forward / backward Gauss–Seidel sweeps on
+                  the fine level, three from ν = 0.4, and four below; before, files up to
+                  ``default_cycle_fandisk_173k.json``: the V-cycle with one symmetric sweep on the fine
+                  level and two below, today's ``nestmg_v``, with a W-cycle rule at ν >= 0.4 for a while
+                  in between); the free problem projects the rigid modes (``NullspaceMultigridSolver``).
+                  Setup = restriction + ``P ⊗ I₃`` + ``multigrid()``; the cycle run is recorded (``cycle``).
 ``nestmg_block``  the same with nodal 3x3 block Gauss–Seidel (multicolour; ``multigrid(block=True)``).
 ``nestmg_point``  (not run by default) the same configuration as ``nestmg``; in
                   ``elasticity_300k.json`` it ran beside it (a measure of run-to-run spread) and ``--table``
@@ -21,14 +22,18 @@ interleaved dofs) and solved from zero to ``||b - A x|| <= tol ||b||`` by CG wit
                   included (``probe_finest=True``, ``deflate=8`` / ``16`` slow modes at most per level;
                   :mod:`solvers.deflation`); their records hold the probe reports (``deflation``).
                   ``--factor`` adds every nestmg variant's stationary V-cycle factor (first repeat).
-``nestmg_v``      (not run by default) the V-cycle with one sweep on the fine level and two below at
-                  every ν (``SolverOptions(cycle="V")``): ``nestmg``, the default again.
+``nestmg_v``      (not run by default) the V-cycle with one symmetric sweep on the fine level and two
+                  below at every ν.
+``nestmg_v02``    (not run by default) ``nestmg_v`` with the clamped problem's coarse nodes pruned at column
+                  sum 0.2 instead of ``CLAMPED_PRUNE`` = 0.35: ``nestmg`` before issue 32 item 2.
 ``nestmg_w``, ``nestmg_w2``, ``nestmg_w24``  (not run by default) ``nestmg`` preconditioned by a W-cycle
-                  with given smoothers: one symmetric sweep on the fine level and two below, two on every
-                  level, and two on the fine level and four below (``SolverOptions(nu=2, cycle="W")``,
-                  what ``cycle="W"`` gets at ν >= 0.4).
-``nestmg_v24``    (not run by default) the V-cycle with two sweeps on the fine level and four below
-                  (``SolverOptions(nu=2, cycle="V")``).
+                  with given symmetric Gauss–Seidel smoothers: one sweep on the fine level and two below,
+                  two on every level, and two on the fine level and four below (what ``cycle="W"`` got at
+                  ν >= 0.4 before issue 32 item 2).
+``nestmg_v24``    (not run by default) the V-cycle with two symmetric sweeps on the fine level and four below.
+``nestmg_f24``, ``nestmg_f34``  (not run by default) the F-cycle with two / three forward Gauss–Seidel
+                  sweeps on the fine level and four below (backward after the coarse correction): the
+                  default below / from ν = 0.4.
 ``pyamg_sa_rbm``  pyamg smoothed aggregation on the BSR (3x3) matrix with the six rigid-body modes of the
                   free nodes as ``B`` (pyamg's defaults otherwise: symmetric strength, standard aggregation,
                   Jacobi-smoothed prolongation, block Gauss–Seidel smoothing, pinv coarse solve).
@@ -85,6 +90,12 @@ CYCLE_VARIANTS = {"nestmg_v": ({"presmoother": [(_SGS, {"iterations": 1}), (_SGS
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "W"),
                   "nestmg_v24": ({"presmoother": [("symmetric_gauss_seidel", {"iterations": 2}),
                                                   ("symmetric_gauss_seidel", {"iterations": 4})]}, "V")}
+CYCLE_VARIANTS["nestmg_v02"] = CYCLE_VARIANTS["nestmg_v"]
+_GS = "gauss_seidel"  # forward before the coarse correction, backward after it (the adjoint)
+CYCLE_VARIANTS.update({f"nestmg_f{k}4": ({"presmoother": [(_GS, {"iterations": k}),
+                                                          (_GS, {"iterations": 4})]}, "F") for k in (2, 3)})
+#: clamped-problem prune (``min_column_sum``) of variants that do not use the problem's own
+PRUNE_VARIANTS = {"nestmg_v02": 0.2}
 METHODS = ("nestmg", "nestmg_block", "nestmg_point", *DEFLATION_VARIANTS, *CYCLE_VARIANTS, "pyamg_sa_rbm",
            "pyamg_sa",
            "gamg_rbm", "gamg_rbm_thr", "hypre_nodal")
@@ -130,14 +141,17 @@ def _projector(Z: np.ndarray | None):
 
 
 def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, factor: bool = False,
-               cycle: str | None = None) -> dict:
+               cycle: str | None = None, prune: float | None = None) -> dict:
     """Setup (restriction + ``P ⊗ I₃`` + ``multigrid(**mg_kwargs)``) and MG-PCG of the assembled problem
     ``pr`` preconditioned by one ``cycle`` (None: the solver's default, ``ml.cycle``); with ``factor`` also
-    the stationary factor of that cycle (:func:`vcycle_factor`, not timed)."""
+    the stationary factor of that cycle (:func:`vcycle_factor`, not timed). ``prune``: the clamped
+    problem's ``min_column_sum`` instead of its own (the free problem keeps 0)."""
     from solvers import block_prolongation, restrict_prolongations
 
     t = _clocks()
-    Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=pr.params["prune"])
+    if prune is None or pr.modes is not None:
+        prune = pr.params["prune"]
+    Pr, _ = restrict_prolongations(h_P, pr.free[0], min_column_sum=prune)
     pr.P = [block_prolongation(P) for P in Pr]  # the same matrices as setup_elasticity's, rebuilt and timed
     ml = pr.multigrid(block=block, **(mg_kwargs or {}))
     t.lap("setup")
@@ -145,7 +159,9 @@ def run_nestmg(pr, h_P, block: bool, tol: float, mg_kwargs: dict | None = None, 
     x, info = ml.solve(pr.b, tol=tol, maxiter=500, cycle=cycle, accel="cg", return_info=True)
     t.lap("solve")
     out = {"x": x, **t.times, "iterations": info["iterations"], "cycle": cycle,
+           "residuals": info["residuals"],  # relative, per CG iteration (the last: the true one)
            "operator_complexity": ml.operator_complexity(), "levels": [L.A.shape[0] for L in ml.levels],
+           "prune": prune, "coarse_solver": getattr(ml._coarse_solver, "method", None),
            "smoother": ml.levels[0].presmoother.params,
            "deflation": [{k: d[k] for k in ("level", "probe_factor", "vectors", "factors", "cycles")}
                          | {k: d[k] for k in ("probe_after", "slow_modes_found", "reverted") if k in d}
@@ -281,7 +297,7 @@ def run_case(pr, h_P, coords, methods, tol: float, repeat: int, factor: bool = F
                 if m.startswith("nestmg"):
                     kw, cyc = CYCLE_VARIANTS.get(m, (DEFLATION_VARIANTS.get(m), None))
                     out = run_nestmg(pr, h_P, m == "nestmg_block", tol, kw, factor=factor and r == 0,
-                                     cycle=cyc)
+                                     cycle=cyc, prune=PRUNE_VARIANTS.get(m))
                 elif m in ("pyamg_sa_rbm", "pyamg_sa"):
                     out = run_pyamg(pr.A, pr.b, B if m == "pyamg_sa_rbm" else None, Z, tol)
                 else:

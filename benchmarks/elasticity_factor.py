@@ -23,7 +23,8 @@ for linear fields, hence for rigid motions.
 Cycles (symmetric Gauss–Seidel, point-wise; "k / m": k sweeps before and after the coarse correction on
 the fine level, m on the coarser ones):
 
-``default``   ``ElasticityProblem.multigrid()``: V-cycle, 1 / 2 (the pipeline's variable V-cycle)
+``default``   V-cycle, 1 / 2 (the pipeline's variable V-cycle; ``ElasticityProblem.multigrid()`` until the
+              F-cycle with forward / backward sweeps became elasticity's default, issue 32 item 2)
 ``V2``        V-cycle, 2 / 2          ``V2c8``  V-cycle, 2 / 8          ``W2``  W-cycle, 2 / 2
 ``twogrid1``  two levels, 1 sweep, exact coarse solve of level 1 (the limit of any cycle with 1 fine sweep)
 ``twogrid2``  the same with 2 sweeps
@@ -55,7 +56,7 @@ def _sgs(n: int) -> tuple[str, dict]:
 
 
 #: cycle name -> (smoother specs per level or None for the problem's default, cycle, levels used or None)
-CYCLE_SPECS = {"default": (None, "V", None), "V2": ([_sgs(2)], "V", None),
+CYCLE_SPECS = {"default": ([_sgs(1), _sgs(2)], "V", None), "V2": ([_sgs(2)], "V", None),
                "V2c8": ([_sgs(2), _sgs(8)], "V", None), "W2": ([_sgs(2)], "W", None),
                "twogrid1": ([_sgs(1)], "V", 2), "twogrid2": ([_sgs(2)], "V", 2)}
 

@@ -43,22 +43,32 @@ from .errors import NestmgInputError
 
 if TYPE_CHECKING:
     from .options import SolverOptions
-from .problems import DEFAULT_SMOOTHERS, Problem, cycle_smoothers
+from .options import ELASTICITY_COARSE_NU, ELASTICITY_NU, ELASTICITY_SMOOTHER
+from .problems import Problem, cycle_smoothers
 from .problems import FAST_SMOOTHERS as _FAST_SMOOTHERS
 
-__all__ = ["ELASTICITY_PROBLEMS", "ElasticityProblem", "W_CYCLE_SMOOTHERS", "clamped_nodes",
+__all__ = ["CLAMPED_PRUNE", "ELASTICITY_PROBLEMS", "ELASTICITY_SMOOTHERS", "ElasticityProblem",
+           "NEARLY_INCOMPRESSIBLE_SMOOTHERS", "clamped_nodes",
            "default_body_force", "setup_elasticity"]
 
 ELASTICITY_PROBLEMS = ("elasticity-clamped", "elasticity-free")
 
-#: Smoothers of the ``"robust"`` preset at ν < 0.4 (point-wise spelling; ``multigrid(block=True)`` turns
-#: them into nodal block sweeps): the pipeline's variable V-cycle, one symmetric sweep on the fine level
-#: and two on the coarser ones (:data:`nestmg.problems.DEFAULT_SMOOTHERS`).
-ROBUST_SMOOTHERS = DEFAULT_SMOOTHERS
+#: ``elasticity-clamped`` drops coarse nodes whose restricted prolongation column sums to less than this
+#: (:func:`solvers.restrict_prolongations`). Such cage nodes reach a few fine nodes with small weights and
+#: make the Galerkin coarse operators singular: at 0.2 the coarsest levels of fandisk (173k fine tets) and
+#: spot (349k) needed the dense pivoted Cholesky; at 0.35 SuperLU factorises them, and the clamped set-up
+#: takes 0.4x the CPU seconds (0.22 against 0.55 s on fandisk) for the same MG-PCG iterations
+#: (``default_cycle_f_*.json``, docs/elasticity.md).
+CLAMPED_PRUNE = 0.35
 
-#: The ``"robust"`` preset's smoothers of the W-cycle at ν >= 0.4 (``SolverOptions(cycle="W")``,
-#: :meth:`nestmg.SolverOptions.resolved`): two symmetric sweeps on the fine level, four on the coarser ones.
-W_CYCLE_SMOOTHERS = cycle_smoothers(nu=2)
+#: Smoothers of the ``"robust"`` preset not set, ν < 0.4 (point-wise spelling; ``multigrid(block=True)``
+#: turns them into nodal block sweeps), run in the F-cycle: two forward Gauss–Seidel sweeps on the fine
+#: level and four on the coarser ones before the coarse correction, the backward ones after it (the
+#: solver's adjoint post-smoother); from ν = 0.4 three on the fine level
+#: (:data:`NEARLY_INCOMPRESSIBLE_SMOOTHERS`). :meth:`nestmg.SolverOptions.resolved` holds the rule.
+ELASTICITY_SMOOTHERS = cycle_smoothers(ELASTICITY_SMOOTHER, ELASTICITY_NU, ELASTICITY_COARSE_NU)
+NEARLY_INCOMPRESSIBLE_SMOOTHERS = cycle_smoothers(ELASTICITY_SMOOTHER, ELASTICITY_NU + 1,
+                                                  ELASTICITY_COARSE_NU)
 
 #: The ``"fast"`` preset: one forward sweep before the coarse correction and the backward one after it.
 FAST_SMOOTHERS = _FAST_SMOOTHERS
@@ -140,10 +150,11 @@ class ElasticityProblem(Problem):
             :data:`FAST_SMOOTHERS`; ``coarse_scaling`` ``"auto"`` is None (Galerkin operators); ``local``
             is unused (no boundary-layer sweeps for elasticity); ``cycle`` becomes the solver's
             :attr:`~solvers.MultigridSolver.cycle` (run by ``solve`` and ``aspreconditioner`` given none).
-            Not set (the default), the V-cycle with :data:`ROBUST_SMOOTHERS` (one sweep on the fine level,
-            two below), the fastest under CG at every ν measured; ``cycle="W"`` at ν >= 0.4 gets two and
-            four sweeps (:data:`W_CYCLE_SMOOTHERS`, :meth:`nestmg.SolverOptions.resolved`), fewer MG-PCG
-            iterations for more seconds (docs/elasticity.md).
+            Not set (the default), the F-cycle with :data:`ELASTICITY_SMOOTHERS` (two forward / backward
+            Gauss–Seidel sweeps on the fine level, four below), from ν = 0.4
+            :data:`NEARLY_INCOMPRESSIBLE_SMOOTHERS` (three on the fine level;
+            :meth:`nestmg.SolverOptions.resolved`): fewer MG-PCG iterations and CPU seconds than the V-cycle
+            with one symmetric sweep, the default before (docs/elasticity.md).
         block : bool
             ``True``: Gauss–Seidel specs (the presets, or ``"gauss_seidel"`` / ``"symmetric_gauss_seidel"``
             in ``presmoother``, e.g. from the command line) act on nodal 3x3 blocks
@@ -166,10 +177,10 @@ class ElasticityProblem(Problem):
 
         from .options import SolverOptions, typed
 
-        # nu not set: two fine sweeps for a W-cycle at ν >= 0.4 (the problem's ν, not options')
+        # not set: F-cycle, gauss_seidel, 2 / 4 sweeps (3 / 4 from ν = 0.4: the problem's ν, not options')
         o = typed(options, SolverOptions, "options").resolved(self.name, self.params.get("nu"))
         coarse_scaling = None if o.coarse_scaling == "auto" else o.coarse_scaling
-        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)  # ROBUST_SMOOTHERS at ν < 0.4
+        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
         pre = kwargs.pop("presmoother", FAST_SMOOTHERS if o.smoothing == "fast" else robust)
         kwargs["presmoother"] = _as_block_specs(pre) if block else pre
         kwargs.setdefault("deflate", 0)  # measured: the probe does not pay for elasticity (docs/elasticity.md)
@@ -238,8 +249,8 @@ def setup_elasticity(
     gravity : (3,) float
         Constant body force of ``elasticity-clamped`` when ``f`` is None.
     prune : float, optional
-        ``min_column_sum`` of :func:`solvers.restrict_prolongations`: default 0.2 (clamped) and 0 (free,
-        see the module docstring).
+        ``min_column_sum`` of :func:`solvers.restrict_prolongations`: default :data:`CLAMPED_PRUNE`
+        (clamped) and 0 (free, see the module docstring).
 
     Returns
     -------
@@ -252,7 +263,7 @@ def setup_elasticity(
     if len(P) != len(tets) - 1:
         raise NestmgInputError(f"need len(P) == len(tets) - 1, got {len(P)} and {len(tets)}")
     free_problem = name == "elasticity-free"
-    prune = (0.0 if free_problem else 0.2) if prune is None else float(prune)
+    prune = (0.0 if free_problem else CLAMPED_PRUNE) if prune is None else float(prune)
     V0, T0, vol0 = check_tet_mesh(*tets[0], return_volumes=True)
     n0 = len(V0)
     m = mass_matrix(V0, T0, check=False, volumes=vol0).diagonal()

@@ -28,15 +28,21 @@ from .problems import COARSE, SMOOTHING
 from .sizing import DEFAULT_TIME_BUDGET
 from .tetmesh import OUTER_EDGE_FACTOR
 
-__all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "MeshingOptions", "OptionError", "SizingOptions", "SolverOptions",
-           "W_CYCLE_POISSON_RATIO", "add_arguments", "from_arguments"]
+__all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "DEFAULT_SMOOTHER", "ELASTICITY_COARSE_NU", "ELASTICITY_CYCLE",
+           "ELASTICITY_NU", "ELASTICITY_SMOOTHER", "MeshingOptions", "OptionError", "SizingOptions",
+           "SolverOptions", "THREE_SWEEP_POISSON_RATIO", "add_arguments", "from_arguments"]
 
-#: The cycle and fine-level sweeps of every problem (:meth:`SolverOptions.resolved`): the pipeline's
-#: variable V-cycle, one sweep on the fine level.
-DEFAULT_CYCLE, DEFAULT_NU = "V", 1
-#: Poisson ratio from which an elasticity problem run with the W-cycle (``cycle="W"``) gets two fine sweeps
-#: (issue 32; the W-cycle was the default there until the V-cycle measured faster under CG).
-W_CYCLE_POISSON_RATIO = 0.4
+#: The cycle, fine-level sweeps and smoother of the scalar problems (:meth:`SolverOptions.resolved`): the
+#: pipeline's variable V-cycle, one symmetric Gauss–Seidel sweep on the fine level (two below).
+DEFAULT_CYCLE, DEFAULT_NU, DEFAULT_SMOOTHER = "V", 1, "symmetric_gauss_seidel"
+#: The same for the elasticity problems (issue 32 item 2): the F-cycle, ``nu`` forward Gauss–Seidel sweeps
+#: before the coarse correction and as many backward ones after it on the fine level (two, three from
+#: ν = :data:`THREE_SWEEP_POISSON_RATIO`), four on the coarser levels (:data:`ELASTICITY_COARSE_NU`).
+ELASTICITY_CYCLE, ELASTICITY_NU, ELASTICITY_SMOOTHER, ELASTICITY_COARSE_NU = "F", 2, "gauss_seidel", 4
+#: Poisson ratio from which elasticity's fine level gets three sweeps instead of two: at ν = 0.45 two
+#: took 17-22 MG-PCG iterations on fandisk (173k tets) and spot (349k), three take at most 20 for a few
+#: percent more CPU seconds; at ν = 0.3 two are the faster (docs/elasticity.md).
+THREE_SWEEP_POISSON_RATIO = 0.4
 
 
 class OptionError(NestmgInputError):
@@ -131,18 +137,18 @@ class SolverOptions:
     coarse: str = field_spec("galerkin", "coarse operators", choices=tuple(COARSE), expert=True)
     smoothing: str = field_spec("robust", "preset: robust (smoother / nu / coarse_nu below, boundary-layer "
                                           "sweeps) or fast (textbook V(1,1))", choices=SMOOTHING, expert=True)
-    smoother: str = field_spec("symmetric_gauss_seidel", "smoother (robust preset)",
-                               choices=tuple(sorted(SMOOTHERS)), expert=True)
+    smoother: str | None = field_spec(None, "smoother (robust preset; default symmetric_gauss_seidel, "
+                                            "gauss_seidel for elasticity)",
+                                      choices=(*sorted(SMOOTHERS), None), expert=True)
     nu: int | None = field_spec(None, "pre/post smoothing sweeps on the fine level (robust preset; default "
-                                      "1, 2 with elasticity's W-cycle at ν >= 0.4)", low=1, kind=int,
-                                expert=True)
-    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu)", low=1, kind=int,
-                                       expert=True)
+                                      "1; elasticity 2, 3 at ν >= 0.4)", low=1, kind=int, expert=True)
+    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu; elasticity 4)",
+                                       low=1, kind=int, expert=True)
     local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems",
                              expert=True)
     coarse_scaling: str | None = field_spec("auto", "auto: energy for re-discretised and weighted operators",
                                             choices=("auto", "energy", None), expert=True)
-    cycle: str | None = field_spec(None, "multigrid cycle (default V)",
+    cycle: str | None = field_spec(None, "multigrid cycle (default V, F for elasticity)",
                                    choices=("V", "W", "F", None), expert=True)
     accel: str | None = field_spec(None, "cg: MG-preconditioned CG", choices=("cg", None))
     tol: float = field_spec(1e-8, "relative residual to reach", low=0.0, strict=True)
@@ -153,21 +159,21 @@ class SolverOptions:
 
     def __post_init__(self) -> None:
         _check(self)
-        if self.smoothing == "fast" and (self.smoother != "symmetric_gauss_seidel" or self.nu not in (None, 1)
-                                         or self.coarse_nu is not None):
+        given = self.smoother not in (None, DEFAULT_SMOOTHER) or self.nu not in (None, 1)
+        if self.smoothing == "fast" and (given or self.coarse_nu is not None):
             raise OptionError("SolverOptions", "smoothing", "'fast' is a preset: leave smoother, nu and "
                                                             "coarse_nu at their defaults")
 
-    def resolved(self, problem: str | None = None, poisson_ratio: float | None = None) -> SolverOptions:
-        """These options with ``nu`` and ``cycle`` set for ``problem`` (the fields given are kept).
+    def resolved(self, problem: str | None = None, poisson_ratio=None) -> SolverOptions:
+        """These options with ``smoother``, ``nu`` and ``cycle`` set for ``problem`` (given fields are kept).
 
-        The cycle not set is :data:`DEFAULT_CYCLE`, the V-cycle, for every problem: under CG it was the
-        fastest in CPU seconds also for elasticity at ν = 0.45, where the W-cycle with two / four sweeps
-        takes fewer iterations (fandisk 173k tets: 16 against 24) but 1.13-1.36x the seconds
-        (docs/elasticity.md). ``nu`` not set is :data:`DEFAULT_NU`, except for the W-cycle chosen for an
-        elasticity problem with a Poisson ratio >= :data:`W_CYCLE_POISSON_RATIO` under the ``"robust"``
-        preset: ``nu = 2`` (``2 nu = 4`` on the coarser levels unless ``coarse_nu`` is given), the
-        configuration that keeps MG-PCG within 20 iterations there on most meshes.
+        Not set, they are :data:`DEFAULT_SMOOTHER`, :data:`DEFAULT_NU` and :data:`DEFAULT_CYCLE` (the
+        V-cycle, one symmetric Gauss–Seidel sweep on the fine level, ``2 nu`` below), except for an
+        elasticity problem under the ``"robust"`` preset: :data:`ELASTICITY_SMOOTHER`,
+        :data:`ELASTICITY_CYCLE`, ``nu`` = :data:`ELASTICITY_NU` (two forward sweeps before the coarse
+        correction, two backward after it), three from ν = :data:`THREE_SWEEP_POISSON_RATIO`, and
+        ``coarse_nu`` = :data:`ELASTICITY_COARSE_NU` whatever ``nu``. Measured under CG on fandisk and spot
+        (docs/elasticity.md): fewer iterations and fewer CPU seconds than that V-cycle at ν = 0.3 and 0.45.
 
         Parameters
         ----------
@@ -179,18 +185,23 @@ class SolverOptions:
         Returns
         -------
         SolverOptions
-            ``nu`` and ``cycle`` not None; ``self`` when both were given.
+            ``smoother``, ``nu`` and ``cycle`` not None (and ``coarse_nu`` for elasticity); ``self`` when
+            nothing was left to fill in.
         """
         from .elasticity import ELASTICITY_PROBLEMS
 
-        if self.nu is not None and self.cycle is not None:
+        el = problem in ELASTICITY_PROBLEMS and self.smoothing == "robust"
+        if None not in (self.smoother, self.nu, self.cycle) and not (el and self.coarse_nu is None):
             return self
-        ratio = float(np.max(self.poisson_ratio if poisson_ratio is None else poisson_ratio))
-        w_rule = (problem in ELASTICITY_PROBLEMS and ratio >= W_CYCLE_POISSON_RATIO
-                  and self.smoothing == "robust")
-        cycle = self.cycle if self.cycle is not None else DEFAULT_CYCLE
-        nu = self.nu if self.nu is not None else (2 if w_rule and cycle == "W" else DEFAULT_NU)
-        return dataclasses.replace(self, nu=nu, cycle=cycle)
+        if el:
+            ratio = float(np.max(self.poisson_ratio if poisson_ratio is None else poisson_ratio))
+            nu = ELASTICITY_NU + (ratio >= THREE_SWEEP_POISSON_RATIO)
+            defaults = (ELASTICITY_SMOOTHER, nu, ELASTICITY_CYCLE, ELASTICITY_COARSE_NU)
+        else:
+            defaults = (DEFAULT_SMOOTHER, DEFAULT_NU, DEFAULT_CYCLE, None)
+        given = (self.smoother, self.nu, self.cycle, self.coarse_nu)
+        smoother, nu, cycle, coarse_nu = (g if g is not None else d for g, d in zip(given, defaults))
+        return dataclasses.replace(self, smoother=smoother, nu=nu, cycle=cycle, coarse_nu=coarse_nu)
 
 
 def _check(obj: Any) -> None:

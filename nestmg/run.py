@@ -101,7 +101,7 @@ def solve_on_hierarchy(
     extra = {"element": element, "curved": curved} if element != "P1" else {}
     prob = setup_problem(tets, P, problem, coarse=o.coarse, lam=o.lam, fractions=fractions,
                          poisson_ratio=o.poisson_ratio, **extra)
-    o = o.resolved(problem, prob.params.get("nu"))  # nu and cycle not set: the problem's defaults
+    o = o.resolved(problem, prob.params.get("nu"))  # smoother, nu, cycle not set: the problem's defaults
     t_asm = time.perf_counter() - t0
     t0 = time.perf_counter()
     ml = prob.multigrid(o)

@@ -142,8 +142,14 @@ def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int
         raise SolverInputError(f"Gauss-Seidel/SOR weight must be in (0, 2), got {omega}")
 
     def apply(A, x, b):
-        if it:
-            relaxation.gauss_seidel(A, x, b, iterations=it, sweep=sweep, omega=omega)
+        if not it:
+            return
+        if sweep == "symmetric" and omega != 1.0:  # pyamg's symmetric sweep drops omega (runs it at 1)
+            for _ in range(it):
+                relaxation.gauss_seidel(A, x, b, sweep="forward", omega=omega)
+                relaxation.gauss_seidel(A, x, b, sweep="backward", omega=omega)
+            return
+        relaxation.gauss_seidel(A, x, b, iterations=it, sweep=sweep, omega=omega)
 
     work = it * (2.0 if sweep == "symmetric" else 1.0)
     fast = (_forward_residual(A, it) if sweep == "forward" and omega == 1.0 and it

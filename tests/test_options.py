@@ -202,43 +202,51 @@ def test_cli_builds_the_same_objects():
     assert _cage_options(args, "sdf") == SdfOptions(repair=True, cage_time_budget=60.0)
 
 
-#: SolverOptions() before nu and cycle had a "not set" value (issue 32): what every problem resolves to
+#: SolverOptions() before smoother, nu and cycle had a "not set" value (issue 32): what the scalar problems
+#: resolve to
 _OLD_SOLVER_DEFAULTS = {"coarse": "galerkin", "smoothing": "robust", "smoother": "symmetric_gauss_seidel",
                         "nu": 1, "coarse_nu": None, "local": True, "coarse_scaling": "auto", "cycle": "V",
                         "accel": None, "tol": 1e-8, "maxiter": 100, "lam": 1e-2, "poisson_ratio": 0.3}
 
 
-@pytest.mark.parametrize("problem", [None, "poisson-dirichlet", "poisson-neumann", "diffusion-neumann",
-                                     "elasticity-clamped", "elasticity-free"])
-def test_solver_defaults_resolve_to_the_old_ones_for_every_problem(problem):
-    """The V-cycle with one fine sweep for every problem and ν (the W-cycle default of elasticity at
-    ν >= 0.4 was reverted: slower under CG, docs/elasticity.md)."""
+@pytest.mark.parametrize("problem", [None, "poisson-dirichlet", "poisson-neumann", "diffusion-neumann"])
+def test_solver_defaults_resolve_to_the_old_ones_for_scalar_problems(problem):
+    """The V-cycle with one symmetric Gauss–Seidel sweep on the fine level, whatever the Poisson ratio."""
     o = SolverOptions()
-    assert (o.nu, o.cycle) == (None, None)  # not set
-    assert dataclasses.asdict(o.resolved(problem)) == _OLD_SOLVER_DEFAULTS  # ν = 0.3 by default
-    for nu in (-0.2, 0.3, 0.39, 0.45):
-        assert dataclasses.asdict(o.resolved(problem, nu)) == _OLD_SOLVER_DEFAULTS, (problem, nu)
-    assert SolverOptions(poisson_ratio=0.45).resolved(problem).cycle == "V"
+    assert (o.smoother, o.nu, o.cycle) == (None, None, None)  # not set
+    assert dataclasses.asdict(o.resolved(problem)) == _OLD_SOLVER_DEFAULTS
+    assert dataclasses.asdict(SolverOptions(poisson_ratio=0.45).resolved(problem, 0.45)) == {
+        **_OLD_SOLVER_DEFAULTS, "poisson_ratio": 0.45}
+    done = SolverOptions(smoother="jacobi", nu=2, cycle="W")
+    assert done.resolved(problem) is done
 
 
-def test_a_chosen_w_cycle_gets_two_fine_sweeps_for_nearly_incompressible_elasticity():
-    el = "elasticity-clamped"
-    w = SolverOptions(cycle="W")
-    assert (w.resolved(el, 0.4).nu, w.resolved(el, 0.39).nu) == (2, 1)  # the threshold is inclusive
-    assert w.resolved(el, np.array([0.3, 0.45, 0.2])).nu == 2  # per tet: the largest ν
-    assert w.resolved("poisson-dirichlet", 0.45).nu == 1
-    for given, want in (({"cycle": "V"}, ("V", 1)), ({"cycle": "F"}, ("F", 1)), ({"cycle": "W"}, ("W", 2)),
-                        ({"nu": 1}, ("V", 1)), ({"nu": 1, "cycle": "W"}, ("W", 1)),
-                        ({"nu": 3, "cycle": "V"}, ("V", 3)),
-                        ({"smoothing": "fast"}, ("V", 1)), ({"smoothing": "fast", "nu": 1}, ("V", 1))):
-        r = SolverOptions(**given).resolved(el, 0.45)
-        assert (r.cycle, r.nu) == want, given
-    w03 = SolverOptions(cycle="W").resolved(el, 0.3)
-    assert (w03.cycle, w03.nu) == ("W", 1)  # below the threshold a chosen W keeps the old sweeps
-    done = SolverOptions(nu=2, cycle="V")
-    assert done.resolved(el, 0.45) is done
+@pytest.mark.parametrize("problem", ["elasticity-clamped", "elasticity-free"])
+def test_elasticity_resolves_to_the_f_cycle_with_forward_sweeps(problem):
+    """Issue 32 item 2: the F-cycle, forward Gauss–Seidel (backward after the correction), two sweeps on the
+    fine level (three from ν = 0.4, per tet: the largest ν) and four below; a given field wins, the others
+    keep elasticity's defaults; the fast preset is the fast one."""
+    for ratio, nu in ((0.3, 2), (0.39, 2), (0.4, 3), (0.45, 3)):  # the threshold is inclusive
+        r = SolverOptions(poisson_ratio=ratio).resolved(problem)
+        assert dataclasses.asdict(r) == {**_OLD_SOLVER_DEFAULTS, "smoother": "gauss_seidel", "nu": nu,
+                                         "coarse_nu": 4, "cycle": "F", "poisson_ratio": ratio}
+        assert SolverOptions().resolved(problem, ratio).nu == nu  # the problem's ν wins over the field's
+    assert SolverOptions().resolved(problem, np.array([0.3, 0.45, 0.2])).nu == 3
+    for given, want in (({"cycle": "V"}, ("gauss_seidel", 3, 4, "V")),
+                        ({"nu": 1}, ("gauss_seidel", 1, 4, "F")),
+                        ({"coarse_nu": 8}, ("gauss_seidel", 3, 8, "F")),
+                        ({"smoother": "symmetric_gauss_seidel"}, ("symmetric_gauss_seidel", 3, 4, "F")),
+                        ({"smoother": "symmetric_gauss_seidel", "nu": 1, "cycle": "V"},
+                         ("symmetric_gauss_seidel", 1, 4, "V")),
+                        ({"smoothing": "fast"}, ("symmetric_gauss_seidel", 1, None, "V"))):
+        r = SolverOptions(**given).resolved(problem, 0.45)
+        assert (r.smoother, r.nu, r.coarse_nu, r.cycle) == want, given
+    done = SolverOptions(smoother="jacobi", nu=2, coarse_nu=4, cycle="V")
+    assert done.resolved(problem, 0.45) is done
     with pytest.raises(OptionError, match="preset"):
         SolverOptions(smoothing="fast", nu=2)
+    with pytest.raises(OptionError, match="preset"):
+        SolverOptions(smoothing="fast", smoother="gauss_seidel")
 
 
 def test_solvers_without_elasticity_keep_the_v_cycle_bit_for_bit():

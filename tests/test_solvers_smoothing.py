@@ -152,3 +152,25 @@ def test_gauss_seidel_residual_fast_path(poisson, iterations, zero):
     # another operator than the smoother's own: the plain path
     A2 = 2.0 * A
     assert sm.smooth_residual(A2, x0.copy(), b, zero) is None
+
+
+def test_symmetric_sor_uses_its_weight(poisson):
+    """``symmetric_gauss_seidel`` with ``omega`` is SSOR: a forward then a backward SOR sweep (pyamg's own
+    symmetric sweep runs ``omega = 1`` whatever it is given)."""
+    from pyamg.relaxation.relaxation import sor
+
+    rng = np.random.default_rng(2)
+    x0, b = rng.standard_normal((2, poisson.shape[0]))
+    for omega in (0.8, 1.0, 1.5):
+        x = x0.copy()
+        make_smoother(poisson, ("symmetric_gauss_seidel", {"omega": omega, "iterations": 2}))(poisson, x, b)
+        y = x0.copy()
+        for _ in range(2):
+            sor(poisson, y, b, omega, sweep="forward")
+            sor(poisson, y, b, omega, sweep="backward")
+        assert np.allclose(x, y, rtol=0, atol=1e-14 * np.abs(y).max()), omega
+    z = x0.copy()
+    make_smoother(poisson, ("symmetric_gauss_seidel", {"omega": 1.5}))(poisson, z, b)
+    w = x0.copy()
+    make_smoother(poisson, "symmetric_gauss_seidel")(poisson, w, b)
+    assert np.abs(z - w).max() > 1e-3 * np.abs(w).max()  # the weight changes the sweep

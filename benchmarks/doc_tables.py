@@ -738,7 +738,7 @@ def petsc_estimate() -> str:
 
 # ----------------------------------------------------------------------------------------- cage uses
 ELASTICITY_FACTOR = "elasticity/factor_procedural.json"
-ELASTICITY_CAD = ("elasticity/cad_300k.json", "elasticity/cad_1m.json")
+ELASTICITY_CAD = ("elasticity/cad_1m_8ce6215.json", "elasticity/dev_1m_8ce6215.json")
 ELASTICITY_F_CYCLE = ("elasticity/default_cycle_f_fandisk_173k.json",
                       "elasticity/default_cycle_f_spot_349k.json")
 

@@ -35,6 +35,14 @@ DENSE_MAX = 2000
 #: plain Cholesky, one thread); the regularised factor is cheaper but can stall CG (see the class).
 PIVOTED_MAX = 6000
 
+#: the guarded regularised factor of "auto": block inverse iteration (vectors, steps) estimating the smallest
+#: range eigenvalue, quotients below GUARD_NULL taken as null vectors, and the factor refused when the
+#: floor is below GUARD_MIN (then the regularised solve could be off by more than 1e-9 / GUARD_MIN = 1e-4)
+GUARD_VECTORS = 16
+GUARD_STEPS = 4
+GUARD_NULL = 1e-10
+GUARD_MIN = 1e-5
+
 #: A symmetric coarsest level under ``DENSE_MAX`` is factorised as a band matrix (LAPACK's banded
 #: Cholesky, ``scipy.linalg.cholesky_banded``) in the reverse Cuthill–McKee order of its own pattern when
 #: that order's half-bandwidth ``b`` is at most this fraction of ``n``: about ``n b²`` flops against
@@ -258,7 +266,7 @@ class _CoarseSolver:
         """
         steps = [("splu", True)]
         if self.symmetric and self.n <= PIVOTED_MAX:
-            steps = [("splu", False), ("pivoted", True), ("splu", True)]
+            steps = [("splu", False), ("guarded", True), ("pivoted", True), ("splu", True)]
         steps += [("regularized", True)] + ([("pinv", True)] if self.n <= pinv_max else [])
         if self.dense and level > 0:
             steps = [("regularized", True)] + [st for st in steps if st[0] not in ("splu", "regularized")]
@@ -284,6 +292,13 @@ class _CoarseSolver:
                                   f"{err:.1e} (not positive semi-definite?)")
             return
         expected = 1 if nullspace == "constant" else 0
+        if method == "guarded":  # the regularised factor, kept only where the range is well conditioned
+            self._setup(A, nullspace, level, "regularized", rtol)
+            floor = self._range_floor(A)
+            if floor < GUARD_MIN:
+                raise SolverError(f"coarsest operator (level {level}, n={self.n}): a range eigenvalue "
+                                  f"{floor:.1e} x diag: the regularised factor is inexact there")
+            return
         if method == "regularized":
             # sparse LU of A + eps diag(A): for a consistent right-hand side (b orthogonal to ker A, as
             # the restricted residual P^T r is) the range component is exact to O(eps cond) and null
@@ -366,6 +381,20 @@ class _CoarseSolver:
                     "(or more levels so the coarsest is small enough for it), or drop those coarse nodes "
                     "(prune_prolongations)"
                 )
+
+    def _range_floor(self, A: sp.spmatrix) -> float:
+        """Smallest nonzero generalised Rayleigh quotient ``xᵀAx / xᵀDx`` (``D = diag A``) found by
+        :data:`GUARD_STEPS` block inverse iterations of :data:`GUARD_VECTORS` vectors with this (regularised)
+        factor; quotients below :data:`GUARD_NULL` are null vectors and skipped. The regularised solve is
+        off by about ``1e-9 / floor`` along the slowest range direction."""
+        d = np.maximum(A.diagonal(), np.finfo(float).tiny)
+        X = np.random.default_rng(0).standard_normal((self.n, min(GUARD_VECTORS, self.n)))
+        for _ in range(GUARD_STEPS):
+            X = np.linalg.qr(self.lu.solve(d[:, None] * X))[0]
+        with np.errstate(all="ignore"):
+            theta = sla.eigh(X.T @ (A @ X), X.T @ (d[:, None] * X), eigvals_only=True)
+        nonzero = theta[theta > GUARD_NULL]
+        return float(nonzero.min()) if nonzero.size else np.inf
 
     def _range_residual(self, A: sp.spmatrix) -> float:
         """``||A x - b|| / ||b||`` for ``x`` this solve of the consistent ``b = A v``, ``v`` random (seeded)."""

@@ -517,14 +517,16 @@ def test_rank_deficient_prolongation(cube, bc, dense_max, monkeypatch):
     j = Ps[1].shape[1] // 2
     bad = [Ps[0], _split_column(Ps[1], j)]
     ref = MultigridSolver(A, Ps, nullspace=nullspace)
-    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> pivoted Cholesky
+    ml = MultigridSolver(A, bad, nullspace=nullspace)  # auto: SuperLU fails validation -> guarded regularised
     expected = 1 if nullspace == "constant" else 0
     if dense_max:  # dense: the regularised (band) factor first, no fallback
         assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.dense and "(dense)" in repr(ml)
         assert not ml._coarse_solver.fallback and not ref._coarse_solver.fallback
-    else:
-        assert ml._coarse_solver.method == "pivoted" and ml._coarse_solver.fallback and "fallback" in repr(ml)
-        assert ml.coarse_nullity == expected + 1  # the pivoted factor sees the extra null vector too
+    else:  # a well-conditioned range: the guard keeps the sparse regularised factor
+        assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.fallback and "fallback" in repr(ml)
+        assert not ml._coarse_solver.dense
+        pv = MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="pivoted")
+        assert pv.coarse_nullity == expected + 1  # the pivoted factor sees the extra null vector too
     mp = MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="pinv")
     assert mp.coarse_nullity == expected + 1  # the pseudo-inverse sees the extra null vector
     assert ref.coarse_nullity == (-1 if dense_max else expected)  # the regularised factor does not count
@@ -539,6 +541,34 @@ def test_rank_deficient_prolongation(cube, bc, dense_max, monkeypatch):
     assert np.abs(x - xr).max() < 1e-8 * np.abs(xr).max()
     with pytest.raises(SolverError, match="rank-deficient"):
         MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="splu")
+
+
+def test_guard_refuses_the_regularised_factor_on_an_ill_conditioned_range(monkeypatch):
+    """"auto"'s guarded regularised factor: kept on a singular level whose range is well conditioned, refused
+    (the pivoted Cholesky instead) when a range eigenvalue sits at 1e-8 of the diagonal, where the regularised
+    solve is off by about 10 % along it."""
+    import solvers.coarse
+    from solvers.coarse import _CoarseSolver
+
+    monkeypatch.setattr(solvers.coarse, "DENSE_MAX", 0)
+    n = 300
+    L = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    rng = np.random.default_rng(3)
+    Z = np.linalg.qr(rng.standard_normal((n, 2)))[0]  # two null vectors, like a rank-deficient P
+    Pz = np.eye(n) - Z @ Z.T
+    good = sp.csr_matrix(Pz @ L.toarray() @ Pz)
+    cs = _CoarseSolver(good, None, 2, "auto")
+    assert cs.method == "regularized" and cs.fallback
+    w, V = np.linalg.eigh(good.toarray())
+    v = V[:, 2]  # the smallest range eigenvalue, 1e-4 of the diagonal: bring it down to 1e-8
+    bad = sp.csr_matrix(good.toarray() - (w[2] - 1e-8 * good.diagonal().mean()) * np.outer(v, v))
+    cs = _CoarseSolver(bad, None, 2, "auto")
+    assert cs.method == "pivoted" and cs.nullity == 2
+    b = bad @ v
+    scale = np.abs(v).max()
+    assert np.abs(cs(b) - v).max() < 1e-5 * scale  # exact along the small eigenvector ...
+    reg = _CoarseSolver(bad, None, 2, "regularized")
+    assert np.abs(reg(b) - v).max() > 0.05 * scale  # ... where the regularised solve is ~10 % off
 
 
 def test_coarse_solvers_agree(cube, monkeypatch):

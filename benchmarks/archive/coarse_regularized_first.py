@@ -1,7 +1,8 @@
-"""Lead for the next round (issue 31): the pipeline's scalar problems with coarse_solver="auto" against
-"regularized" on the default hierarchies of zoo meshes whose coarsest Galerkin level is singular (coarse
-nodes whose restricted prolongation columns are linearly dependent). "auto" then ends at the dense pivoted
-Cholesky (PIVOTED_MAX); the regularised SuperLU is exact on the range up to 1e-9 diag / lambda.
+"""The pipeline's scalar problems with coarse_solver="auto" against "regularized" on the default hierarchies
+of zoo meshes whose coarsest Galerkin level is singular (coarse nodes whose restricted prolongation columns
+are linearly dependent). Before the guard (coarse.GUARD_MIN) "auto" ended there at the dense pivoted
+Cholesky (PIVOTED_MAX); the regularised SuperLU is exact on the range up to 1e-9 diag / lambda
+(benchmarks/results/setup_cost/coarse_guard_before.json, coarse_guard_after.json).
 
     OMP_NUM_THREADS=1 python benchmarks/archive/coarse_regularized_first.py ZOO_DIR/homer.obj ZOO_DIR/bunny.off \
         --out FILE.json

@@ -199,6 +199,21 @@ STYLES = {"nested": ("k", "o", "-"), "naive-clamped": ("tab:blue", "s", "--"),
           "naive-nearest_vertex": ("tab:orange", "D", "--")}
 
 
+def mesh_study_main(script: str, description: str, measure, argv=None) -> None:
+    """Command line of a per-mesh study: ``MESH [MESH ...] --out FILE.json``; writes ``{"command", "clock",
+    "runs": [measure(mesh) for each mesh]}`` (``measure`` times with ``time.process_time``)."""
+    import argparse
+    import warnings
+
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("meshes", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore")
+    runs = [measure(m) for m in args.meshes]
+    args.out.write_text(json.dumps({"command": script, "clock": "process_time", "runs": runs}, indent=1))
+
+
 def figure(rows: int, cols: int, **kwargs):
     """``(fig, axes)`` of ``matplotlib.pyplot.subplots(rows, cols, **kwargs)`` drawn off-screen (Agg)."""
     import matplotlib

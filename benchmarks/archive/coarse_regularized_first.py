@@ -13,16 +13,17 @@ Per mesh, problem and solver (alternating, twice): set-up CPU seconds, MG-PCG CP
 
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 import time
-import warnings
 from pathlib import Path
 
 from nestmg import build_hierarchy, load_mesh, setup_problem
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from exp_common import mesh_study_main  # noqa: E402
 
-def measure(mesh: Path) -> list[dict]:
+
+def measure(mesh: Path) -> dict:
     V, F = load_mesh(mesh)[:2]
     H = build_hierarchy(V, F, levels=3, progress=False)
     rows = []
@@ -41,18 +42,11 @@ def measure(mesh: Path) -> list[dict]:
                          "coarse_n": int(ml.levels[-1].A.shape[0]), "coarse_nullity": int(ml.coarse_nullity),
                          "setup": setup, "pcg": pcg, "pcg_iterations": info["iterations"],
                          "stationary_cycles": len(res) - 1})
-    return rows
+    return {"mesh": mesh.name, "rows": rows}
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("meshes", nargs="+", type=Path)
-    ap.add_argument("--out", type=Path, required=True)
-    args = ap.parse_args(argv)
-    warnings.simplefilter("ignore")
-    rows = [r for m in args.meshes for r in measure(m)]
-    args.out.write_text(json.dumps({"command": "benchmarks/archive/coarse_regularized_first.py", "clock": "process_time",
-                                    "rows": rows}, indent=1))
+    mesh_study_main("benchmarks/archive/coarse_regularized_first.py", __doc__.splitlines()[0], measure, argv)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,14 @@ CPU seconds of set-up and solve, CG iterations, modes deflated per level.
 
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 import time
-import warnings
 from pathlib import Path
 
 from nestmg import build_hierarchy, load_mesh, setup_problem
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from exp_common import mesh_study_main  # noqa: E402
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
@@ -40,14 +41,7 @@ def measure(mesh: Path) -> dict:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("meshes", nargs="+", type=Path)
-    ap.add_argument("--out", type=Path, required=True)
-    args = ap.parse_args(argv)
-    warnings.simplefilter("ignore")
-    runs = [measure(m) for m in args.meshes]
-    args.out.write_text(json.dumps({"command": "benchmarks/archive/probe_under_cg.py", "clock": "process_time",
-                                    "runs": runs}, indent=1))
+    mesh_study_main("benchmarks/archive/probe_under_cg.py", __doc__.splitlines()[0], measure, argv)
 
 
 if __name__ == "__main__":

@@ -199,6 +199,16 @@ STYLES = {"nested": ("k", "o", "-"), "naive-clamped": ("tab:blue", "s", "--"),
           "naive-nearest_vertex": ("tab:orange", "D", "--")}
 
 
+def timed_pcg(make, b) -> tuple:
+    """``ml = make()`` and ``ml.solve(b, tol=1e-8, accel="cg")``: ``(ml, setup CPU s, solve CPU s, info)``."""
+    t = time.process_time()
+    ml = make()
+    setup = time.process_time() - t
+    t = time.process_time()
+    _, info = ml.solve(b, tol=1e-8, accel="cg", return_info=True)
+    return ml, setup, time.process_time() - t, info
+
+
 def mesh_study_main(script: str, description: str, measure, argv=None) -> None:
     """Command line of a per-mesh study: ``MESH [MESH ...] --out FILE.json``; writes ``{"command", "clock",
     "runs": [measure(mesh) for each mesh]}`` (``measure`` times with ``time.process_time``)."""

@@ -14,13 +14,12 @@ Per mesh, problem and solver (alternating, twice): set-up CPU seconds, MG-PCG CP
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 from nestmg import build_hierarchy, load_mesh, setup_problem
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from exp_common import mesh_study_main  # noqa: E402
+from exp_common import mesh_study_main, timed_pcg  # noqa: E402
 
 
 def measure(mesh: Path) -> dict:
@@ -30,12 +29,7 @@ def measure(mesh: Path) -> dict:
     for name in ("poisson-dirichlet", "poisson-neumann"):
         pr = setup_problem(H.tets, H.P, name)
         for cs in ("auto", "regularized", "auto", "regularized"):
-            t = time.process_time()
-            ml = pr.multigrid(coarse_solver=cs)
-            setup = time.process_time() - t
-            t = time.process_time()
-            _, info = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
-            pcg = time.process_time() - t
+            ml, setup, pcg, info = timed_pcg(lambda cs=cs: pr.multigrid(coarse_solver=cs), pr.b)
             res: list = []
             ml.solve(pr.b, tol=1e-8, residuals=res)
             rows.append({"mesh": mesh.name, "problem": name, "coarse_solver": cs, "used": ml._coarse_solver.method,

@@ -11,13 +11,12 @@ CPU seconds of set-up and solve, CG iterations, modes deflated per level.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 from nestmg import build_hierarchy, load_mesh, setup_problem
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from exp_common import mesh_study_main  # noqa: E402
+from exp_common import mesh_study_main, timed_pcg  # noqa: E402
 
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
@@ -30,12 +29,8 @@ def measure(mesh: Path) -> dict:
     for name in PROBLEMS:
         pr = setup_problem(H.tets, H.P, name)
         for at in ("setup", "stationary", "setup", "stationary"):
-            t = time.process_time()
-            ml = pr.multigrid(probe_at=at)
-            setup = time.process_time() - t
-            t = time.process_time()
-            _, info = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
-            out["rows"].append({"problem": name, "probe_at": at, "setup": setup, "solve": time.process_time() - t,
+            ml, setup, solve, info = timed_pcg(lambda at=at: pr.multigrid(probe_at=at), pr.b)
+            out["rows"].append({"problem": name, "probe_at": at, "setup": setup, "solve": solve,
                                 "it": info["iterations"], "modes": [d["vectors"] for d in ml.deflation]})
     return out
 

@@ -272,11 +272,13 @@ class _MesherWorker:
             return self.conn.poll(limit)
         end = None if limit is None else time.monotonic() + limit
         while True:
-            step = CPU_POLL_SECONDS if end is None else min(CPU_POLL_SECONDS, max(0.0, end - time.monotonic()))
-            if self.conn.poll(step):
+            left = None if end is None else max(0.0, end - time.monotonic())
+            if self.conn.poll(CPU_POLL_SECONDS if left is None else min(CPU_POLL_SECONDS, left)):
                 return True
+            if left is not None and time.monotonic() >= end:
+                return False
             used = _cpu_seconds(self.proc.pid)
-            if (end is not None and time.monotonic() >= end) or (used is not None and used - start > cpu_budget):
+            if used is not None and used - start > cpu_budget:
                 return False
 
     def _log_output(self) -> None:

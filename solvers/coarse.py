@@ -254,7 +254,10 @@ class _CoarseSolver:
         """``coarse_solver="auto"``: the first of its steps whose factor passes validation.
 
         Large levels: SuperLU's symmetric mode, then (symmetric, at most :data:`PIVOTED_MAX` unknowns) the
-        pivoted Cholesky, then SuperLU's pivoting LU (a symmetric indefinite level), then the regularised
+        regularised SuperLU if :meth:`_range_floor` is at least :data:`GUARD_MIN` ("guarded": homer's
+        singular Poisson levels, 0.4-0.7 s set-up against 1.4-2.5 s for the pivoted factor, the same
+        iterations), the pivoted Cholesky, then SuperLU's pivoting LU (a symmetric indefinite level), then
+        the regularised
         SuperLU, then (at most ``pinv_max``) the pseudo-inverse. The pivoting LU of a semi-definite level
         that failed the symmetric factor cost as much as the pivoted Cholesky (0.35 s at 2,730 unknowns)
         and fails as well. A small coarsest level of a hierarchy (``level > 0``, at most
@@ -397,7 +400,8 @@ class _CoarseSolver:
         return float(nonzero.min()) if nonzero.size else np.inf
 
     def _range_residual(self, A: sp.spmatrix) -> float:
-        """``||A x - b|| / ||b||`` for ``x`` this solve of the consistent ``b = A v``, ``v`` random (seeded)."""
+        """``||A x - b|| / ||b||`` for ``x`` this solve of the consistent ``b = A v``, ``v`` random
+        (seeded)."""
         b = A @ np.random.default_rng(0).standard_normal(self.n)
         with np.errstate(all="ignore"):
             return float(np.linalg.norm(A @ self(b) - b) / np.linalg.norm(b))

@@ -244,7 +244,8 @@ class MultigridSolver:
         consistent right-hand sides also with extra null vectors, but off by ``1e-9 diag / λ`` on an
         eigenvalue ``λ`` (validated by the residual). ``"pinv"``: dense pseudo-inverse (O(n³) setup,
         about 10x the pivoted Cholesky's). ``"auto"`` (default): SuperLU, then for a symmetric level of at
-        most :data:`solvers.coarse.PIVOTED_MAX` unknowns the pivoted Cholesky, then the regularised LU,
+        most :data:`solvers.coarse.PIVOTED_MAX` unknowns the regularised LU if a guard finds its range well
+        conditioned (:data:`solvers.coarse.GUARD_MIN`), else the pivoted Cholesky, then the regularised LU,
         then the pseudo-inverse if the coarsest level has at most ``pinv_max`` unknowns (the fallback is
         reported by ``repr``); a coarsest level of at most :data:`solvers.coarse.DENSE_MAX` unknowns
         starts at the regularised dense (band) Cholesky, then the pivoted one. Measured on a 550k-tet

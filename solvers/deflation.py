@@ -13,7 +13,10 @@ re-orthogonalisation, A-inner product) gives Ritz pairs ``(θ, z)`` of ``E``: ``
 which one cycle reduces ``z``. :func:`slow_modes` runs :data:`PROBE_CYCLES` steps; if the largest Ritz
 value meets :data:`DEFLATION_GOAL` nothing more is done, otherwise it continues to
 :data:`LANCZOS_CYCLES` steps and returns the Ritz vectors above the goal as ``Z`` (``Zᵀ A Z = I``).
-:func:`with_deflation` adds the exact correction ``x += Z Zᵀ (b - A x)`` (the A-orthogonal projection
+The i-th largest Ritz value never decreases from one step to the next and never exceeds the i-th largest
+eigenvalue (Cauchy interlacing), so once more than ``max_vectors`` Ritz values are above the goal the
+answer ("the bulk is slow, deflate nothing") is final: the probe stops there instead of running all
+:data:`LANCZOS_CYCLES` steps. :func:`with_deflation` adds the exact correction ``x += Z Zᵀ (b - A x)`` (the A-orthogonal projection
 onto span Z) after pre-smoothing and before post-smoothing: the cycle stays symmetric.
 """
 
@@ -96,8 +99,9 @@ def slow_modes(
         deflation is not meant to fix).
     info : dict
         ``probe_factor`` (largest Ritz value after the probe), ``probe_min`` (the smallest), ``cycles`` run,
-        ``vectors`` (m) and ``factors`` (the Ritz values of the kept vectors); ``non_finite`` when a cycle gave NaN/inf (nothing
-        is deflated then: the setup never fails because of the probe).
+        ``vectors`` (m) and ``factors`` (the Ritz values of the kept vectors); ``slow_modes_found`` when the
+        bulk was refused (a lower bound: the count when the probe stopped); ``non_finite`` when a cycle gave
+        NaN/inf (nothing is deflated then: the setup never fails because of the probe).
     """
     n = A.shape[0]
     if nullspace_basis is not None:
@@ -139,6 +143,11 @@ def slow_modes(
             # the cycle to be a positive definite preconditioner)
             info["probe_factor"], info["probe_min"] = float(theta[0]), float(theta[-1])
             if info["probe_factor"] <= goal or max_vectors <= 0:
+                return np.zeros((n, 0)), info
+        if j + 1 >= PROBE_CYCLES and j + 1 > max_vectors:
+            slow = int(np.count_nonzero(_ritz(H, j + 1)[0] > goal))
+            if slow > max_vectors:  # already more slow modes than can be kept: the answer cannot change
+                info["slow_modes_found"] = slow
                 return np.zeros((n, 0)), info
         if beta <= 1e-10 * max(float(np.abs(H[: j + 1, j]).max()), 1e-300):
             break  # an invariant subspace: the Ritz pairs are exact

@@ -6,7 +6,7 @@ import scipy.sparse as sp
 
 from solvers import (MultigridSolver, NullspaceMultigridSolver, block_prolongation, elasticity_matrix,
                      rigid_body_modes)
-from solvers.deflation import DEFLATION_GOAL, slow_modes
+from solvers.deflation import DEFLATION_GOAL, LANCZOS_CYCLES, PROBE_CYCLES, slow_modes
 from solvers.errors import SolverInputError
 from solvers.fem import stiffness_matrix
 from solvers.gallery import kuhn_cube_hierarchy
@@ -55,6 +55,21 @@ def test_slow_modes_refuses_the_bulk_of_the_spectrum():
     theta = np.r_[np.linspace(0.8, 0.5, 20), np.full(80, 0.05)]
     Z, info = slow_modes(lambda x: x.__imul__(theta), sp.identity(100, format="csr"), max_vectors=4)
     assert Z.shape == (100, 0) and info["slow_modes_found"] > 4 and info["probe_factor"] > 0.7
+    # the verdict is final as soon as more than max_vectors Ritz values are above the goal (interlacing):
+    # the probe stops there, not after LANCZOS_CYCLES steps
+    assert info["cycles"] == PROBE_CYCLES and info["slow_modes_found"] == 7
+    Z, info = slow_modes(lambda x: x.__imul__(theta), sp.identity(100, format="csr"), max_vectors=12)
+    assert Z.shape == (100, 0) and info["cycles"] == 14 and info["slow_modes_found"] == 13
+
+
+def test_slow_modes_early_stop_keeps_a_late_verdict():
+    """Six outliers and max_vectors 6: all 24 steps, six modes back; max_vectors 5: refused, early."""
+    theta = np.r_[0.95, 0.9, 0.85, 0.8, 0.75, 0.7, np.linspace(0.2, 0.0, 194)]
+    Z, info = slow_modes(lambda x: x.__imul__(theta), sp.identity(200, format="csr"), max_vectors=6)
+    assert info["cycles"] == LANCZOS_CYCLES and info["vectors"] == 6
+    assert np.allclose(info["factors"], theta[:6], atol=1e-8)
+    Z, info = slow_modes(lambda x: x.__imul__(theta), sp.identity(200, format="csr"), max_vectors=5)
+    assert Z.shape == (200, 0) and info["slow_modes_found"] == 6 and info["cycles"] < LANCZOS_CYCLES
 
 
 def test_deflation_fixes_weakly_attached_pieces(pieces):

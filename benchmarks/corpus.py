@@ -115,6 +115,8 @@ def case_solve(mesh: Path) -> dict:
             "pcg_iterations": c["iterations"], "pcg_converged": c["converged"],
             "operator_complexity": r.get("operator_complexity"), "solve_seconds": r["seconds"],
             "pcg_seconds": c["seconds"], "deflation": r.get("deflation"),
+            "solve_cpu_seconds": r.get("cpu_seconds"), "pcg_cpu_seconds": c.get("cpu_seconds"),
+            "coarsest": c.get("coarsest"),
         }
     return rec
 

@@ -94,20 +94,22 @@ def solve_on_hierarchy(
     -------
     dict
         ``residuals``, ``factor``, ``iterations``, ``converged``, ``diverged``, ``message``,
-        ``seconds`` (assembly / setup / solve), ``levels`` (n, nnz per level), ``cycle_cost``.
+        ``seconds`` (assembly / setup / solve, wall) and ``cpu_seconds`` (the same in CPU seconds),
+        ``levels`` (n, nnz per level), ``coarsest`` (:attr:`solvers.MultigridSolver.coarsest_solver`),
+        ``cycle_cost``.
     """
     o = typed(options, SolverOptions, "options")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     extra = {"element": element, "curved": curved} if element != "P1" else {}
     prob = setup_problem(tets, P, problem, coarse=o.coarse, lam=o.lam, fractions=fractions,
                          poisson_ratio=o.poisson_ratio, **extra)
     o = o.resolved(problem, prob.params.get("nu"))  # smoother, nu, cycle not set: the problem's defaults
-    t_asm = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t_asm, c_asm = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
     ml = prob.multigrid(o)
     if o.accel is None:
         ml.probe()  # the deflation probe serves stationary cycling only: part of its set-up
-    t_setup = time.perf_counter() - t0
+    t_setup, c_setup = time.perf_counter() - t0, time.process_time() - c0
     pre = ml.levels[0].presmoother if len(ml.levels) > 1 else None
     out: dict[str, Any] = {
         "problem": problem, "coarse": o.coarse, "nu": o.nu, "smoothing": o.smoothing,
@@ -120,11 +122,12 @@ def solve_on_hierarchy(
         "tol": o.tol, "coarse_scaling": ml.coarse_scaling,
         "levels": [{"n": int(L.A.shape[0]), "nnz": int(L.A.nnz)} for L in ml.levels],
         "operator_complexity": ml.operator_complexity(),
+        "coarsest": ml.coarsest_solver,
         # slow modes deflated per level (solvers.deflation): level, probe factor, modes kept
         "deflation": [{"level": d["level"], "probe_factor": d["probe_factor"], "modes": d["vectors"]}
                       for d in ml.deflation],
     }
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -137,9 +140,11 @@ def solve_on_hierarchy(
             out["solution"] = prob.expand(x)
     except DivergenceError as exc:
         out.update(residuals=exc.residuals, iterations=exc.cycle, converged=False, diverged=True, message=str(exc))
-    t_solve = time.perf_counter() - t0
+    t_solve, c_solve = time.perf_counter() - t0, time.process_time() - c0
     out["factor"] = convergence_factor(out["residuals"])
     out["seconds"] = {"assembly": t_asm, "setup": t_setup, "solve": t_solve}
+    # this process's CPU seconds (its threads included): less inflated than wall seconds on a busy machine
+    out["cpu_seconds"] = {"assembly": c_asm, "setup": c_setup, "solve": c_solve}
     if cost:
         out["cycle_cost"] = measure_cycle_cost(ml, o.cycle)
     return out

@@ -301,6 +301,7 @@ class _CoarseSolver:
             if floor < GUARD_MIN:
                 raise SolverError(f"coarsest operator (level {level}, n={self.n}): a range eigenvalue "
                                   f"{floor:.1e} x diag: the regularised factor is inexact there")
+            self.method = "guarded"  # reported by MultigridSolver.coarsest_solver: the regularised factor, kept
             return
         if method == "regularized":
             # sparse LU of A + eps diag(A): for a consistent right-hand side (b orthogonal to ker A, as

@@ -608,6 +608,15 @@ class MultigridSolver:
         L = self.levels[0]
         return f"{L.presmoother.name}{L.presmoother.params} / {L.postsmoother.name}{L.postsmoother.params}"
 
+    @property
+    def coarsest_solver(self) -> dict:
+        """How the coarsest level is solved: ``method`` (e.g. ``"regularized"``, ``"pivoted"``, ``"lu"``),
+        ``dense``, ``fallback`` (SuperLU failed its validation), ``unknowns`` and ``nullity`` (-1: not
+        computed)."""
+        cs = self._coarse_solver
+        return {"method": cs.method, "dense": bool(cs.dense), "fallback": bool(cs.fallback),
+                "unknowns": int(self.levels[-1].A.shape[0]), "nullity": int(self.coarse_nullity)}
+
     def operator_complexity(self) -> float:
         """``sum_k nnz(A_k) / nnz(A_0)``."""
         return sum(L.A.nnz for L in self.levels) / self.levels[0].A.nnz

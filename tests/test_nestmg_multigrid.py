@@ -81,6 +81,14 @@ def test_cycle_cost_reported(torus_iso_tets):
     c = r["cycle_cost"]
     assert 3.0 < c["counted_spmv_units"] < 25.0
     assert c["measured_spmv_units"] > 1.0
+    # the coarsest solve and the CPU seconds are reported too (the corpus records them: wall seconds on a
+    # busy machine are inflated, and a slow set-up is often the coarsest factor)
+    co = r["coarsest"]
+    assert co["method"] in ("splu", "guarded", "pivoted", "regularized", "pinv")
+    assert co["unknowns"] == r["levels"][-1]["n"] and isinstance(co["dense"], bool)
+    cpu = r["cpu_seconds"]
+    assert set(cpu) == {"assembly", "setup", "solve"} and all(v > 0 for v in cpu.values())
+    assert cpu["solve"] < 4 * r["seconds"]["solve"] + 0.5  # one process's CPU: bounded by wall x threads
 
 
 # ----------------------------------------------------------------------------- issue 5: cycles and levels

@@ -523,7 +523,8 @@ def test_rank_deficient_prolongation(cube, bc, dense_max, monkeypatch):
         assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.dense and "(dense)" in repr(ml)
         assert not ml._coarse_solver.fallback and not ref._coarse_solver.fallback
     else:  # a well-conditioned range: the guard keeps the sparse regularised factor
-        assert ml._coarse_solver.method == "regularized" and ml._coarse_solver.fallback and "fallback" in repr(ml)
+        assert ml._coarse_solver.method == "guarded" and ml._coarse_solver.fallback and "fallback" in repr(ml)
+        assert ml.coarsest_solver["method"] == "guarded" and ml.coarsest_solver["unknowns"] == Ps[1].shape[1] + 1
         assert not ml._coarse_solver.dense
         pv = MultigridSolver(A, bad, nullspace=nullspace, coarse_solver="pivoted")
         assert pv.coarse_nullity == expected + 1  # the pivoted factor sees the extra null vector too
@@ -558,7 +559,7 @@ def test_guard_refuses_the_regularised_factor_on_an_ill_conditioned_range(monkey
     Pz = np.eye(n) - Z @ Z.T
     good = sp.csr_matrix(Pz @ L.toarray() @ Pz)
     cs = _CoarseSolver(good, None, 2, "auto")
-    assert cs.method == "regularized" and cs.fallback
+    assert cs.method == "guarded" and cs.fallback
     w, V = np.linalg.eigh(good.toarray())
     v = V[:, 2]  # the smallest range eigenvalue, 1e-4 of the diagonal: bring it down to 1e-8
     bad = sp.csr_matrix(good.toarray() - (w[2] - 1e-8 * good.diagonal().mean()) * np.outer(v, v))

@@ -256,6 +256,8 @@ def tet_hierarchy(
         t = time.perf_counter()
         # coarse TetWild levels are coarsened (else a cage's boundary triangles keep 2-8x the tets asked)
         twk = dict(tw, coarsen=True) if (k > 0 and meshing.coarsen_coarse and mesher == "tetwild") else tw
+        if k > 0 and mesher == "tetwild":  # bounded passes on the cage levels (see COARSE_MAX_OPT_ITER)
+            twk = dict(twk, max_opt_iter=min(meshing.max_opt_iter, meshing.coarse_max_opt_iter))
         with timer("tets"):
             tets[k] = _mesh_layer(*surfaces[k], mesher, hs[k], eps[k], cache, twk, layer=k)
         t_level[k] += time.perf_counter() - t

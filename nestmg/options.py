@@ -26,7 +26,7 @@ from solvers import DEFAULT_MAXITER, SMOOTHERS
 from .errors import NestmgInputError
 from .problems import COARSE, SMOOTHING
 from .sizing import DEFAULT_TIME_BUDGET
-from .tetmesh import OUTER_EDGE_FACTOR
+from .tetmesh import COARSE_MAX_OPT_ITER, OUTER_EDGE_FACTOR
 
 __all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "DEFAULT_SMOOTHER", "ELASTICITY_COARSE_NU", "ELASTICITY_CYCLE",
            "ELASTICITY_NU", "ELASTICITY_SMOOTHER", "MeshingOptions", "OptionError", "SizingOptions",
@@ -113,6 +113,9 @@ class MeshingOptions:
                            "solid's volume (1: off, fTetWild's uniform sizing)", low=1.0, expert=True)
     threads: int | None = field_spec(None, "TetWild threads (default: its own)", low=0, kind=int, expert=True)
     coarsen_coarse: bool = field_spec(True, "TetWild's coarsen on the coarse levels", expert=True)
+    coarse_max_opt_iter: int = field_spec(
+        COARSE_MAX_OPT_ITER, "TetWild's optimisation passes at most on the cage levels (the smaller of "
+                             "this and max_opt_iter)", low=1, expert=True)
 
     def __post_init__(self) -> None:
         _check(self)

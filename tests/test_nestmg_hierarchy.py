@@ -78,3 +78,24 @@ def test_one_bounding_box_normalisation():
     assert np.allclose(Vc.max(0) + Vc.min(0), 0.0, atol=1e-15)
     assert np.linalg.norm(Vc.max(0) - Vc.min(0)) == pytest.approx(1.0, abs=1e-15)
     assert np.allclose(Vc * s + c, V, rtol=0, atol=1e-13)
+
+
+def test_cage_levels_bound_tetwild_passes(monkeypatch):
+    """The cage levels get at most ``coarse_max_opt_iter`` TetWild passes (a runaway sizing-field loop on a
+    cage's thin triangles is cut there), the input's level keeps ``max_opt_iter``; the smaller one wins."""
+    import nestmg.hierarchy as hh
+    from nestmg.hierarchy import tet_hierarchy
+
+    seen = []
+    real = hh.tetrahedralize
+    monkeypatch.setattr(hh, "tetrahedralize", lambda V, F, **kw: seen.append(kw) or real(V, F, **kw))
+    S = shapes.nested_isosurfaces("torus", [0.0, 0.15, 0.35], [20, 12, 8])
+    sizing = SizingOptions(edge_length=0.08, coarsening=None)
+    tets, P, _, _ = tet_hierarchy(S, sizing=sizing, cache=False, progress=False)
+    assert [kw["max_opt_iter"] for kw in seen] == [80, 20, 20]
+    assert [kw.get("coarsen") for kw in seen][1:] == [True] * 2
+    assert all(len(T) > 0 for _, T in tets) and len(P) == 2
+    seen.clear()
+    tet_hierarchy(S[:2], sizing=sizing, meshing=MeshingOptions(max_opt_iter=12, coarse_max_opt_iter=30),
+                  cache=False, progress=False)
+    assert [kw["max_opt_iter"] for kw in seen] == [12, 12]

@@ -55,7 +55,8 @@ def test_contact_arrays_reproduce_the_ipctk_barrier_gradient(contact_state):
     rest = np.asarray(pair.mesh.rest_positions)
     d, g, w = contact_gradients(X, ca, rest)
     # distances: ipctk's squared distances of the same stencils
-    d_ref = np.array([np.sqrt(c.compute_distance(X, pair.mesh.edges, pair.mesh.faces)) for c in col.fv_collisions])
+    E, Fm = pair.mesh.edges, pair.mesh.faces
+    d_ref = np.sqrt([c.compute_distance(X, E, Fm) for c in col.fv_collisions])
     np.testing.assert_allclose(d[ca.kind == ContactArrays.FV], d_ref, rtol=1e-10)
     h1, _ = barrier_derivatives(d, dhat, kappa)
     G = np.zeros_like(X)
@@ -94,7 +95,8 @@ def test_single_point_triangle_contact_has_the_exact_normal_curvature():
     ca = contact_arrays(col, mesh)
     assert list(ca.kind) == [ContactArrays.FV] and list(ca.ids[0]) == [3, 0, 1, 2]
     H = gauss_newton_hessian(V, ca, V, dhat, kappa).toarray()
-    H_exact = ipctk.BarrierPotential(dhat, kappa).hessian(col, mesh, V, ipctk.PSDProjectionMethod.NONE).toarray()
+    barrier = ipctk.BarrierPotential(dhat, kappa)
+    H_exact = barrier.hessian(col, mesh, V, ipctk.PSDProjectionMethod.NONE).toarray()
     v = np.zeros(12)
     v[11] = 1.0  # the point's z
     _, h2 = barrier_derivatives(np.array([0.01]), dhat, kappa)

@@ -24,7 +24,7 @@ import ipctk
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["ContactArrays", "contact_arrays", "gauss_newton_hessian", "barrier_derivatives"]
+__all__ = ["ContactArrays", "barrier_derivatives", "contact_arrays", "contact_gradients", "gauss_newton_hessian"]
 
 
 class ContactArrays:

@@ -7,9 +7,9 @@ machinery: for every reverse step F(t) → F(t+∆t) we minimise over both surfa
 
     Φ(C, F) = E(C) + (k_F/2) ‖F − F(t+∆t)‖² + κ B(C, F)
 
-with Newton's method (barrier Hessian projected to PSD), a CCD-bounded backtracking line search
-(``compute_collision_free_stepsize``: every accepted motion is intersection-free) and the barrier
-B of Li et al. (IPC) with activation distance ``dhat``. The stiff spring k_F plays the role of the
+with Newton's method (the barrier's Gauss-Newton Hessian, :mod:`cagegen.nested.contact_hessian`), a
+CCD-bounded backtracking line search (``compute_collision_free_stepsize``: every accepted motion is
+intersection-free) and the barrier B of Li et al. (IPC) with activation distance ``dhat``. The stiff spring k_F plays the role of the
 fine mesh's "infinite mass": the barrier's reaction moves the cage, the fine surface follows its
 prescribed path. When F is within ``snap_tol`` of its target, it is snapped *exactly* onto it
 (after a CCD check), so after the last step F equals its rest positions bit for bit. As in the

@@ -129,3 +129,23 @@ def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monk
     assert np.array_equal(rr.fine, V)
     assert verify_nesting([(V, F), (rr.cage, G)]).ok
     assert rr.stats["volume_after_final"] < rr.stats["volume_before_final"]
+
+
+def test_a_blocked_gauss_newton_step_switches_the_reinflation_to_ipctk(contact_state, monkeypatch):
+    V, F, U, G, fl, *_ = contact_state
+    monkeypatch.setattr(rf, "GN_BLOCKED_ALPHA", 1.01)  # every step counts as blocked: switch at the first
+    kinds = []
+    newton_step = rf._Problem.newton_step
+
+    def spy(self, X, target):
+        kinds.append((self.hessian_kind, target is None))
+        return newton_step(self, X, target)
+
+    monkeypatch.setattr(rf._Problem, "newton_step", spy)
+    rr = reinflate(fl.history, F, U, G, energy="volume")
+    assert rr.success, rr.reason
+    assert rr.stats["hessian_switched_at"] == [1, 1]
+    re, fin = [k for k, final in kinds if not final], [k for k, final in kinds if final]
+    assert re[0] == "gauss_newton" and set(re[1:]) == {"ipctk"} and len(re) > 1
+    assert set(fin) == {"gauss_newton"}  # the final phase starts over with the Gauss-Newton matrix
+    assert verify_nesting([(V, F), (rr.cage, G)]).ok

@@ -7,14 +7,14 @@ machinery: for every reverse step F(t) → F(t+∆t) we minimise over both surfa
 
     Φ(C, F) = E(C) + (k_F/2) ‖F − F(t+∆t)‖² + κ B(C, F)
 
-with Newton's method (the barrier's Gauss-Newton Hessian, :mod:`cagegen.nested.contact_hessian`), a
-CCD-bounded backtracking line search (``compute_collision_free_stepsize``: every accepted motion is
-intersection-free) and the barrier B of Li et al. (IPC) with activation distance ``dhat``. The stiff spring k_F plays the role of the
-fine mesh's "infinite mass": the barrier's reaction moves the cage, the fine surface follows its
-prescribed path. When F is within ``snap_tol`` of its target, it is snapped *exactly* onto it
-(after a CCD check), so after the last step F equals its rest positions bit for bit. As in the
-paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol) only once F is at
-rest, with F fixed.
+with Newton's method (the barrier's Gauss-Newton Hessian, :mod:`cagegen.nested.contact_hessian`),
+a CCD-bounded backtracking line search (``compute_collision_free_stepsize``: every accepted motion is
+intersection-free) and the barrier B of Li et al. (IPC) with activation distance ``dhat``. The stiff
+spring k_F plays the role of the fine mesh's "infinite mass": the barrier's reaction moves the cage,
+the fine surface follows its prescribed path. When F is within ``snap_tol`` of its target, it is
+snapped *exactly* onto it (after a CCD check), so after the last step F equals its rest positions bit
+for bit. As in the paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol)
+only once F is at rest, with F fixed.
 """
 
 from __future__ import annotations
@@ -73,18 +73,26 @@ STALL_NEWTON = 20
 #: ipctk's either way.
 BARRIER_HESSIAN = "gauss_newton"
 
-#: A re-inflation Newton step cut below this fraction (CCD bound and backtracking) with the Gauss-Newton
-#: matrix switches the rest of the re-inflation to ipctk's projected Hessian. Without the distance
-#: curvature the Gauss-Newton direction can keep running into a contact: on decimated-knight.off a reverse
-#: step's steps shrank 3x per iteration (0.3, 0.13, 0.046, ...) until the step stalled and the layer
-#: fell back to other targets (36 CPU s against 3.2 with ipctk's Hessian throughout).
+#: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
+#: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|
+#: has not halved in :data:`GN_PATIENCE` iterations; the switched step gets a fresh stall window.
+#: Without the distance curvature the direction can keep running into a contact: on
+#: decimated-knight.off a reverse step's steps shrank geometrically (0.3, 0.13, 0.046, ...) until the step
+#: stalled and the layer fell back to other targets (36 CPU s against 3.2 with ipctk's Hessian), and a
+#: homer.obj second layer stalled without short steps.
 GN_BLOCKED_ALPHA = 0.1
+GN_PATIENCE = 5
+
+
+def _slow(best: list, n: int) -> bool:
+    """True when ``best`` (smallest |F - target| after 0, 1, ... Newton iterations of one reverse step)
+    has not halved over the last ``n`` iterations."""
+    return len(best) > n and best[-1] > 0.5 * best[-1 - n]
 
 
 def _stalled(best: list) -> bool:
-    """True when ``best`` (smallest |F - target| after 0, 1, ... Newton iterations of one reverse step)
-    has not halved over the last :data:`STALL_NEWTON` iterations."""
-    return len(best) > STALL_NEWTON and best[-1] > 0.5 * best[-1 - STALL_NEWTON]
+    """True when ``best`` has not halved over the last :data:`STALL_NEWTON` iterations (:func:`_slow`)."""
+    return _slow(best, STALL_NEWTON)
 
 
 def resample_history(history: list, max_move: float) -> list:
@@ -318,14 +326,15 @@ def reinflate(
         best = [float(np.abs(X[nc:] - Fb).max())]  # smallest |F - target| after 0, 1, ... iterations
         for it in range(max_newton):
             X, alpha, move = prob.newton_step(X, Fb)
-            if alpha < GN_BLOCKED_ALPHA and prob.hessian_kind == "gauss_newton":
-                prob.hessian_kind = "ipctk"
-                stats["hessian_switched_at"] = [k + 1, it + 1]
             stats["newton_iterations"] += 1
             stats["most_newton_in_a_step"] = max(stats["most_newton_in_a_step"], it + 1)
             gap = float(np.abs(X[nc:] - Fb).max())
             _log.debug("reverse step %d: alpha %.3g move %.3g |F - target| %.3g", k, alpha, move, gap)
             best.append(min(best[-1], gap))
+            if prob.hessian_kind == "gauss_newton" and (alpha < GN_BLOCKED_ALPHA or _slow(best, GN_PATIENCE)):
+                prob.hessian_kind = "ipctk"
+                stats["hessian_switched_at"] = [k + 1, it + 1]
+                best = best[-1:]
             if _stalled(best):
                 stats["stalled"] = True
                 break

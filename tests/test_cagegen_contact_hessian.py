@@ -131,9 +131,11 @@ def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monk
     assert rr.stats["volume_after_final"] < rr.stats["volume_before_final"]
 
 
-def test_a_blocked_gauss_newton_step_switches_the_reinflation_to_ipctk(contact_state, monkeypatch):
+@pytest.mark.parametrize("knob, value", [("GN_BLOCKED_ALPHA", 1.01), ("GN_PATIENCE", 0)])
+def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(contact_state, monkeypatch,
+                                                                                knob, value):
     V, F, U, G, fl, *_ = contact_state
-    monkeypatch.setattr(rf, "GN_BLOCKED_ALPHA", 1.01)  # every step counts as blocked: switch at the first
+    monkeypatch.setattr(rf, knob, value)  # every step counts as blocked / too slow: switch at the first
     kinds = []
     newton_step = rf._Problem.newton_step
 

@@ -432,8 +432,8 @@ def cages_ab_flow() -> str:
             f"{rep['before']['cpu_seconds']:.0f} -> {rep['after']['cpu_seconds']:.0f} CPU s")
 
 
-CAGES_AB_GN = "cages/ab_1daab8b.json"
-ZOO_GN = ("corpus/zoo_cages_gn_9adea45_main.json", "corpus/zoo_cages_gn_1daab8b.json")
+CAGES_AB_GN = "cages/ab_0eb1630.json"
+ZOO_GN = ("corpus/zoo_cages_gn_9adea45_main.json", "corpus/zoo_cages_gn_708dd15.json")
 
 
 @generator("cages.gauss_newton", CAGES_AB_GN, *ZOO_GN)

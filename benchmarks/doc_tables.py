@@ -432,6 +432,24 @@ def cages_ab_flow() -> str:
             f"{rep['before']['cpu_seconds']:.0f} -> {rep['after']['cpu_seconds']:.0f} CPU s")
 
 
+CAGES_AB_GN = "cages/ab_0eb1630.json"
+ZOO_GN = ("corpus/zoo_cages_gn_9adea45_main.json", "corpus/zoo_cages_gn_708dd15.json")
+
+
+@generator("cages.gauss_newton", CAGES_AB_GN, *ZOO_GN)
+def cages_gauss_newton() -> str:
+    """CPU seconds before -> after per mesh (cages_ab, interleaved) and the zoo's certified counts."""
+    rows = {m: r for m, r in load(CAGES_AB_GN)["meshes"].items() if "cpu_ratio" in r}
+    cpu = ", ".join(f"{m} {r['before']['cpu_seconds']:.1f} -> {r['after']['cpu_seconds']:.1f}"
+                    for m, r in rows.items())
+    cert = []
+    for rel in ZOO_GN:
+        cells = [e.get("cages:nested") or {} for e in load(rel)["meshes"] if e["closed"]]
+        cert.append(f"{sum(bool(c.get('certified')) for c in cells)} of {len(cells)}")
+    return (f"CPU seconds main -> this change (`benchmarks/cages_ab.py`, one run each, interleaved): {cpu}; "
+            f"zoo meshes certified (the same refused inputs at both): {cert[0]} at main, {cert[1]} here")
+
+
 USER_CYCLE_COST = "user_mesh/cycle_cost.json"
 
 

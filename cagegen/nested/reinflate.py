@@ -7,14 +7,14 @@ machinery: for every reverse step F(t) → F(t+∆t) we minimise over both surfa
 
     Φ(C, F) = E(C) + (k_F/2) ‖F − F(t+∆t)‖² + κ B(C, F)
 
-with Newton's method (barrier Hessian projected to PSD), a CCD-bounded backtracking line search
-(``compute_collision_free_stepsize``: every accepted motion is intersection-free) and the barrier
-B of Li et al. (IPC) with activation distance ``dhat``. The stiff spring k_F plays the role of the
-fine mesh's "infinite mass": the barrier's reaction moves the cage, the fine surface follows its
-prescribed path. When F is within ``snap_tol`` of its target, it is snapped *exactly* onto it
-(after a CCD check), so after the last step F equals its rest positions bit for bit. As in the
-paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol) only once F is at
-rest, with F fixed.
+with Newton's method (the barrier's Gauss-Newton Hessian, :mod:`cagegen.nested.contact_hessian`),
+a CCD-bounded backtracking line search (``compute_collision_free_stepsize``: every accepted motion is
+intersection-free) and the barrier B of Li et al. (IPC) with activation distance ``dhat``. The stiff
+spring k_F plays the role of the fine mesh's "infinite mass": the barrier's reaction moves the cage,
+the fine surface follows its prescribed path. When F is within ``snap_tol`` of its target, it is
+snapped *exactly* onto it (after a CCD check), so after the last step F equals its rest positions bit
+for bit. As in the paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol)
+only once F is at rest, with F fixed.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..collision import PairMesh
+from .contact_hessian import contact_arrays, gauss_newton_hessian
 from .energies import make_energy, signed_volume
 
 _log = logging.getLogger(__name__)
@@ -66,11 +67,32 @@ class ReinflateResult:
 #: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall.
 STALL_NEWTON = 20
 
+#: Newton matrix of the barrier: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.
+#: gauss_newton_hessian`, numpy) or ``"ipctk"`` (ipctk's full Hessian projected to PSD by clamping the
+#: eigenvalues of every contact's 12x12 block). Both are SPD; the gradient and the line search are
+#: ipctk's either way.
+BARRIER_HESSIAN = "gauss_newton"
+
+#: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
+#: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|
+#: has not halved in :data:`GN_PATIENCE` iterations; the switched step gets a fresh stall window.
+#: Without the distance curvature the direction can keep running into a contact: on
+#: decimated-knight.off a reverse step's steps shrank geometrically (0.3, 0.13, 0.046, ...) until the step
+#: stalled and the layer fell back to other targets (36 CPU s against 3.2 with ipctk's Hessian), and a
+#: homer.obj second layer stalled without short steps.
+GN_BLOCKED_ALPHA = 0.1
+GN_PATIENCE = 5
+
+
+def _slow(best: list, n: int) -> bool:
+    """True when ``best`` (smallest |F - target| after 0, 1, ... Newton iterations of one reverse step)
+    has not halved over the last ``n`` iterations."""
+    return len(best) > n and best[-1] > 0.5 * best[-1 - n]
+
 
 def _stalled(best: list) -> bool:
-    """True when ``best`` (smallest |F - target| after 0, 1, ... Newton iterations of one reverse step)
-    has not halved over the last :data:`STALL_NEWTON` iterations."""
-    return len(best) > STALL_NEWTON and best[-1] > 0.5 * best[-1 - STALL_NEWTON]
+    """True when ``best`` has not halved over the last :data:`STALL_NEWTON` iterations (:func:`_slow`)."""
+    return _slow(best, STALL_NEWTON)
 
 
 def resample_history(history: list, max_move: float) -> list:
@@ -105,6 +127,24 @@ class _Problem:
         self.n_build = 0
         self.lam = np.zeros((pair.nf, 3))  # augmented-Lagrangian multipliers of F = target
         self._cache = None
+        self.hessian_kind = BARRIER_HESSIAN
+        self.rest = np.asarray(pair.mesh.rest_positions)
+
+    def barrier_hessian(self, col: ipctk.NormalCollisions, X: np.ndarray, fine_moves: bool
+                        ) -> tuple[sp.csr_matrix, np.ndarray]:
+        """SPD Newton matrix of the barrier at ``X`` (see :data:`BARRIER_HESSIAN`) on the DOFs ``idx``
+        it returns: the cage DOFs, then (``fine_moves``) the fine DOFs of the vertices in contact."""
+        nc3 = 3 * self.nc
+        if self.hessian_kind == "ipctk":
+            HB = self.barrier.hessian(col, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()
+            dofs = np.unique(HB.indices) if fine_moves else np.zeros(0, dtype=np.int64)
+            idx = np.r_[np.arange(nc3), dofs[dofs >= nc3]]
+            return HB[idx][:, idx], idx
+        ca = contact_arrays(col, self.pair.mesh)
+        verts = np.unique(ca.ids) if fine_moves else np.zeros(0, dtype=np.int64)
+        verts = verts[verts >= self.nc]
+        idx = np.r_[np.arange(nc3), (3 * verts[:, None] + np.arange(3)).ravel()]
+        return gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx), idx
 
     def _collisions(self, X: np.ndarray) -> ipctk.NormalCollisions:
         # the accepted line-search point is the next Newton point: reuse its collision set
@@ -133,30 +173,24 @@ class _Problem:
         C, F = X[: self.nc], X[self.nc :]
         col = self._collisions(X)
         gB = self.barrier.gradient(col, self.pair.mesh, X)
-        HB = self.barrier.hessian(col, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP)
+        HB, idx = self.barrier_hessian(col, X, target is not None)
         gC = self.energy.gradient(C).ravel() + gB[:nc3]
         HC = self.energy.metric(C)
         if target is None:  # fine surface fixed: reduced system on the cage DOFs
-            H = (HC + HB[:nc3, :nc3]).tocsc()
             g = gC
             d = np.zeros(X.size)
-            d[:nc3] = -_solve_spd(H, g)
+            d[:nc3] = -_solve_spd(HC + HB, g)
             f0 = self.energy.value(C) + float(self.barrier(col, self.pair.mesh, X))
         else:
             gF = (self.k_fine * (F - target) - self.lam).ravel() + gB[nc3:]
             g = np.r_[gC, gF]
             # fine DOFs untouched by any contact have the diagonal Hessian k_F: solve them in closed
-            # form and the coupled system only on the cage + fine DOFs in contact (small)
-            HB = HB.tocsr()
-            touched = np.zeros(X.size, dtype=bool)
-            touched[:nc3] = True
-            touched[np.unique(HB.indices)] = True
+            # form and the coupled system only on the cage + fine DOFs in contact (small); idx starts
+            # with the nc3 cage DOFs
             d = -g / self.k_fine
-            idx = np.flatnonzero(touched)
-            # idx starts with the nc3 cage DOFs
-            Hs = (HB[idx][:, idx] + sp.diags(np.where(idx < nc3, 0.0, self.k_fine))
-                  + sp.block_diag([HC, sp.csr_matrix((len(idx) - nc3, len(idx) - nc3))]))
-            d[idx] = -_solve_spd(Hs.tocsc(), g[idx])
+            Hs = (HB + sp.diags(np.where(idx < nc3, 0.0, self.k_fine))
+                  + sp.block_diag([HC, sp.csr_matrix((len(idx) - nc3, len(idx) - nc3))], format="csr"))
+            d[idx] = -_solve_spd(Hs, g[idx])
             c = F - target
             f0 = (self.energy.value(C) + float(self.barrier(col, self.pair.mesh, X))
                   + 0.5 * self.k_fine * float(np.sum(c * c)) - float(np.sum(self.lam * c)))
@@ -297,6 +331,10 @@ def reinflate(
             gap = float(np.abs(X[nc:] - Fb).max())
             _log.debug("reverse step %d: alpha %.3g move %.3g |F - target| %.3g", k, alpha, move, gap)
             best.append(min(best[-1], gap))
+            if prob.hessian_kind == "gauss_newton" and (alpha < GN_BLOCKED_ALPHA or _slow(best, GN_PATIENCE)):
+                prob.hessian_kind = "ipctk"
+                stats["hessian_switched_at"] = [k + 1, it + 1]
+                best = best[-1:]
             if _stalled(best):
                 stats["stalled"] = True
                 break
@@ -331,8 +369,10 @@ def reinflate(
     stats["volume_before_final"] = signed_volume(X[:nc], Fc)
     n_final = 0
     if energy != "step":
+        prob.hessian_kind = BARRIER_HESSIAN  # the final phase's blocked steps are the barrier's softness
         prob.energy = final_energy
         prob.dhat = dhat_final * diag
+        prob.kappa = kappa_final
         prob.barrier = ipctk.BarrierPotential(prob.dhat, kappa_final)
         f_prev = prob.objective(X, None)
         kap = kappa_final
@@ -345,6 +385,7 @@ def reinflate(
                 # a blocked (CCD-limited) step: the barrier is too soft to stop the cage before the
                 # contact, stiffen it (adaptive stiffness, as in IPC)
                 kap *= 2.0
+                prob.kappa = kap
                 prob.barrier = ipctk.BarrierPotential(prob.dhat, kap)
                 f = prob.objective(X, None)
             elif abs(f_prev - f) <= final_tol * max(abs(f_prev), 1e-300):

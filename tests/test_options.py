@@ -182,10 +182,10 @@ def test_help_lists_everyday_flags_and_help_all_every_flag(command, capsys):
                 assert actions[f.name].expert is f.metadata["expert"], f.name
     if command == "solve":
         assert short - {"-h", "--help-all"} == EVERYDAY
-        assert len(every - {"-h", "--help-all"}) == 45 and len(expert) == 26
+        assert len(every - {"-h", "--help-all"}) == 46 and len(expert) == 27
     if command == "cages":
         assert short - {"-h", "--help-all"} == EVERYDAY & every
-        assert len(every - {"-h", "--help-all"}) == 26 and len(expert) == 15
+        assert len(every - {"-h", "--help-all"}) == 27 and len(expert) == 16
 
 
 def test_cli_builds_the_same_objects():

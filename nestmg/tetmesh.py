@@ -386,14 +386,16 @@ def _limit_hint(limit: float | None) -> str:
 #: (``_cheburashka.json``). An earlier loaded run (no JSON) had bunny 59.5 / 51.1 and angle_block
 #: 24.7 / 15.7. The ratio predicts the gain on 4 of the 5 shapes above it, not on all: one run each.
 OUTER_EDGE_FACTOR = 3.0
-#: fTetWild's optimisation passes at most on a cage level (``MeshingOptions.coarse_max_opt_iter``; its own
-#: default, 80, stays on the input's level). fTetWild stops at ``stop_energy`` only; where a few tets
-#: near a cage's long thin triangles stay just above it (AMIPS 10-20), every few passes it halves the
-#: local sizing field, so the working mesh doubles: a 250-face cage of decimated-knight.off went from
-#: 8k to 95k working tets in 31 passes (37 s, for 2.9k tets out), and one corpus run in three took
-#: 560-810 s on that layer (against 20-35 s for the whole hierarchy). Normal cage layers converged in
-#: 13-17 passes; 20 bounds the runaway (7.6 s through pass 19 there) and changes nothing else.
-COARSE_MAX_OPT_ITER = 20
+#: fTetWild's optimisation passes at most on a cage level (``MeshingOptions.coarse_max_opt_iter``): its
+#: own 80, as on the input's level. fTetWild stops at ``stop_energy`` only; where a few tets near a cage's
+#: long thin triangles stay just above it (AMIPS 10-20), every few passes it halves the local sizing field,
+#: so the working mesh doubles: a 250-face cage of decimated-knight.off went from 8k to 95k working tets
+#: in 31 passes, and that layer took 592 s in one corpus run (``corpus/zoo_9adea45.json``; 20-35 s for the
+#: whole hierarchy in others). A cap of 20 bounds that loop but cost the knight's Neumann factors
+#: (medians 0.270 / 0.296 against 0.247 / 0.271 over 4 fresh hierarchies each,
+#: ``setup_cost/cage_tetwild_passes_factors.json``): the refinement it cuts also serves the coarse space.
+#: So the default stays 80; lower it when a cage level's meshing runs away.
+COARSE_MAX_OPT_ITER = 80
 #: box / solid volume ratio from which :data:`OUTER_EDGE_FACTOR` applies (see :func:`box_ratio`)
 OUTER_BOX_RATIO = 8.0
 #: most background-grid nodes of :func:`outer_sizing_field` (the spacing grows past it)

@@ -82,7 +82,7 @@ def test_one_bounding_box_normalisation():
 
 def test_cage_levels_bound_tetwild_passes(monkeypatch):
     """The cage levels get at most ``coarse_max_opt_iter`` TetWild passes (a runaway sizing-field loop on a
-    cage's thin triangles is cut there), the input's level keeps ``max_opt_iter``; the smaller one wins."""
+    cage's thin triangles can be cut there), the input's level keeps ``max_opt_iter``; the smaller one wins."""
     import nestmg.hierarchy as hh
     from nestmg.hierarchy import tet_hierarchy
 
@@ -91,7 +91,8 @@ def test_cage_levels_bound_tetwild_passes(monkeypatch):
     monkeypatch.setattr(hh, "tetrahedralize", lambda V, F, **kw: seen.append(kw) or real(V, F, **kw))
     S = shapes.nested_isosurfaces("torus", [0.0, 0.15, 0.35], [20, 12, 8])
     sizing = SizingOptions(edge_length=0.08, coarsening=None)
-    tets, P, _, _ = tet_hierarchy(S, sizing=sizing, cache=False, progress=False)
+    tets, P, _, _ = tet_hierarchy(S, sizing=sizing, meshing=MeshingOptions(coarse_max_opt_iter=20), cache=False,
+                                  progress=False)
     assert [kw["max_opt_iter"] for kw in seen] == [80, 20, 20]
     assert [kw.get("coarsen") for kw in seen][1:] == [True] * 2
     assert all(len(T) > 0 for _, T in tets) and len(P) == 2
@@ -99,3 +100,6 @@ def test_cage_levels_bound_tetwild_passes(monkeypatch):
     tet_hierarchy(S[:2], sizing=sizing, meshing=MeshingOptions(max_opt_iter=12, coarse_max_opt_iter=30),
                   cache=False, progress=False)
     assert [kw["max_opt_iter"] for kw in seen] == [12, 12]
+    seen.clear()
+    tet_hierarchy(S[:2], sizing=sizing, cache=False, progress=False)
+    assert [kw["max_opt_iter"] for kw in seen] == [80, 80]  # the default: fTetWild's own on every level

@@ -209,6 +209,21 @@ def timed_pcg(make, b) -> tuple:
     return ml, setup, time.process_time() - t, info
 
 
+#: the three scalar model problems of the per-mesh studies (``nestmg.setup_problem`` names)
+MODEL_PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+
+
+def model_problems(mesh: Path) -> tuple[dict, list]:
+    """The default hierarchy of ``mesh`` (``build_hierarchy(V, F, levels=3)``, cached) and its model problems:
+    ``({"mesh", "tets", "rows": []}, [(name, Problem), ...])`` for :data:`MODEL_PROBLEMS`."""
+    from nestmg import build_hierarchy, load_mesh, setup_problem
+
+    V, F = load_mesh(mesh)[:2]
+    H = build_hierarchy(V, F, levels=3, progress=False)
+    head = {"mesh": mesh.name, "tets": [len(t) for _, t in H.tets], "rows": []}
+    return head, [(name, setup_problem(H.tets, H.P, name)) for name in MODEL_PROBLEMS]
+
+
 def mesh_study_main(script: str, description: str, measure, argv=None) -> None:
     """Command line of a per-mesh study: ``MESH [MESH ...] --out FILE.json``; writes ``{"command", "clock",
     "runs": [measure(mesh) for each mesh]}`` (``measure`` times with ``time.process_time``)."""

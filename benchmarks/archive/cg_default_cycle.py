@@ -16,13 +16,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from nestmg import SolverOptions, build_hierarchy, load_mesh, setup_problem
+from nestmg import SolverOptions
 from solvers import MultigridSolver
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from exp_common import mesh_study_main, timed_pcg  # noqa: E402
-
-PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+from exp_common import mesh_study_main, model_problems, timed_pcg  # noqa: E402
 
 
 def variants(pr) -> dict:
@@ -36,11 +34,8 @@ def variants(pr) -> dict:
 
 def measure(mesh: Path) -> dict:
     """CG set-up / solve CPU seconds, iterations and the stationary factor of every variant on one mesh."""
-    V, F = load_mesh(mesh)[:2]
-    H = build_hierarchy(V, F, levels=3, progress=False)
-    out = {"mesh": mesh.name, "tets": [len(t) for _, t in H.tets], "rows": []}
-    for name in PROBLEMS:
-        pr = setup_problem(H.tets, H.P, name)
+    out, problems = model_problems(mesh)
+    for name, pr in problems:
         make = variants(pr)
         for rep in range(2):
             for v, f in make.items():

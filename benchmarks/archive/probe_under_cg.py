@@ -13,21 +13,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from nestmg import build_hierarchy, load_mesh, setup_problem
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from exp_common import mesh_study_main, timed_pcg  # noqa: E402
-
-PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+from exp_common import mesh_study_main, model_problems, timed_pcg  # noqa: E402
 
 
 def measure(mesh: Path) -> dict:
     """Set-up / solve CPU seconds and CG iterations of both probe placements on one mesh."""
-    V, F = load_mesh(mesh)[:2]
-    H = build_hierarchy(V, F, levels=3, progress=False)
-    out = {"mesh": mesh.name, "tets": [len(t) for _, t in H.tets], "rows": []}
-    for name in PROBLEMS:
-        pr = setup_problem(H.tets, H.P, name)
+    out, problems = model_problems(mesh)
+    for name, pr in problems:
         for at in ("setup", "stationary", "setup", "stationary"):
             ml, setup, solve, info = timed_pcg(lambda at=at: pr.multigrid(probe_at=at), pr.b)
             out["rows"].append({"problem": name, "probe_at": at, "setup": setup, "solve": solve,

@@ -75,3 +75,15 @@ def test_cli_misuse_is_one_line_and_nonzero(tmp_path, argv, fragment):
     assert len(ours) == 1 and lines[-1] == ours[0], f"{argv}: expected one error line, got:\n{p.stderr}"
     assert "error:" in ours[0] and fragment in ours[0], (fragment, ours[0])
     assert all("error" not in ln.lower() for ln in lines[:-1]), p.stderr
+
+
+def test_python_dash_m_nestmg_is_the_command(tmp_path):
+    """``python -m nestmg`` runs the ``nestmg`` command: its help (exit 0), its one-line errors (non-zero)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    ok = subprocess.run([sys.executable, "-m", "nestmg", "solve", "--help"], capture_output=True, text=True,
+                        env=env, cwd=tmp_path, timeout=120)
+    assert ok.returncode == 0 and "usage: nestmg solve" in ok.stdout, ok.stderr
+    bad = subprocess.run([sys.executable, "-m", "nestmg", "solve", str(tmp_path / "missing.obj"), "--quiet"],
+                         capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr and "missing.obj" in bad.stderr, bad.stderr

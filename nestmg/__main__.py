@@ -1,5 +1,6 @@
 """``python -m nestmg ...``: the ``nestmg`` command (:func:`nestmg.cli.main`)."""
 
-from .cli import main
+if __name__ == "__main__":  # not when a tool imports every module of the package
+    from .cli import main
 
-raise SystemExit(main())
+    raise SystemExit(main())

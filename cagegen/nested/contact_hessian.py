@@ -24,6 +24,8 @@ import ipctk
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import CageError
+
 __all__ = ["ContactArrays", "barrier_derivatives", "contact_arrays", "contact_gradients", "gauss_newton_hessian"]
 
 
@@ -58,7 +60,7 @@ def contact_arrays(col: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh) -> Co
     weights are then 1; the edge-vertex and vertex-vertex ones count duplicates and are read).
     """
     if col.use_area_weighting or col.collision_set_type != ipctk.NormalCollisions.CollisionSetType.IPC:
-        raise ValueError("only the IPC collision set without area weighting is supported")
+        raise CageError("contact_arrays: only the IPC collision set without area weighting is supported")
     E, Fm = np.asarray(mesh.edges), np.asarray(mesh.faces)
     fvl, eel, evl, vvl = col.fv_collisions, col.ee_collisions, col.ev_collisions, col.vv_collisions
     fv_v, fv_f = _ints(fvl, "vertex_id"), _ints(fvl, "face_id")

@@ -136,6 +136,7 @@ def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(c
                                                                                 knob, value):
     V, F, U, G, fl, *_ = contact_state
     monkeypatch.setattr(rf, knob, value)  # every step counts as blocked / too slow: switch at the first
+    monkeypatch.setattr(rf, "BARRIER_HESSIAN", "gauss_newton")
     kinds = []
     newton_step = rf._Problem.newton_step
 

@@ -7,7 +7,7 @@ machinery: for every reverse step F(t) → F(t+∆t) we minimise over both surfa
 
     Φ(C, F) = E(C) + (k_F/2) ‖F − F(t+∆t)‖² + κ B(C, F)
 
-with Newton's method (the barrier's Gauss-Newton Hessian, :mod:`cagegen.nested.contact_hessian`),
+with Newton's method (ipctk's barrier Hessian projected to PSD, or :mod:`cagegen.nested.contact_hessian`),
 a CCD-bounded backtracking line search (``compute_collision_free_stepsize``: every accepted motion is
 intersection-free) and the barrier B of Li et al. (IPC) with activation distance ``dhat``. The stiff
 spring k_F plays the role of the fine mesh's "infinite mass": the barrier's reaction moves the cage,
@@ -71,7 +71,11 @@ STALL_NEWTON = 20
 #: gauss_newton_hessian`, numpy) or ``"ipctk"`` (ipctk's full Hessian projected to PSD by clamping the
 #: eigenvalues of every contact's 12x12 block). Both are SPD; the gradient and the line search are
 #: ipctk's either way.
-BARRIER_HESSIAN = "gauss_newton"
+#: Default ``"ipctk"``: with ``"gauss_newton"`` the cages were 1.0-1.7x cheaper in CPU
+#: (``benchmarks/results/cages/ab_0eb1630.json``) but homer.obj's diffusion V-cycle factor came out 0.317 and
+#: 0.260 over two fresh hierarchies against 0.197 with ipctk's Hessian in the same session (0.126-0.241 in
+#: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column is run on it.
+BARRIER_HESSIAN = "ipctk"
 
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
 #: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|

@@ -74,7 +74,7 @@ STALL_NEWTON = 20
 #: Default ``"ipctk"``: with ``"gauss_newton"`` the cages were 1.0-1.7x cheaper in CPU
 #: (``benchmarks/results/cages/ab_0eb1630.json``) but homer.obj's diffusion V-cycle factor came out 0.317 and
 #: 0.260 over two fresh hierarchies against 0.197 with ipctk's Hessian in the same session (0.126-0.241 in
-#: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column is run on it.
+#: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column backs it.
 BARRIER_HESSIAN = "ipctk"
 
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a

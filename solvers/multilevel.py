@@ -610,7 +610,8 @@ class MultigridSolver:
 
     @property
     def coarsest_solver(self) -> dict:
-        """How the coarsest level is solved: ``method`` (e.g. ``"regularized"``, ``"pivoted"``, ``"lu"``),
+        """How the coarsest level is solved: ``method`` (``"splu"``, ``"guarded"``, ``"pivoted"``, ``"regularized"``
+        or ``"pinv"``),
         ``dense``, ``fallback`` (SuperLU failed its validation), ``unknowns`` and ``nullity`` (-1: not
         computed)."""
         cs = self._coarse_solver

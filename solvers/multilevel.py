@@ -610,8 +610,8 @@ class MultigridSolver:
 
     @property
     def coarsest_solver(self) -> dict:
-        """How the coarsest level is solved: ``method`` (``"splu"``, ``"guarded"``, ``"pivoted"``, ``"regularized"``
-        or ``"pinv"``),
+        """How the coarsest level is solved: ``method`` (``"splu"``, ``"guarded"``, ``"pivoted"``,
+        ``"regularized"`` or ``"pinv"``),
         ``dense``, ``fallback`` (SuperLU failed its validation), ``unknowns`` and ``nullity`` (-1: not
         computed)."""
         cs = self._coarse_solver

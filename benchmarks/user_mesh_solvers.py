@@ -376,6 +376,7 @@ SETUP_PARTS = {
     "reordering (all)": ("multilevel.py", "_reorder"),
     "  locality order": ("ordering.py", "locality_order"),
     "  fine matrix permuted + its transpose (symmetry test)": ("ordering.py", "permute_symmetric"),
+    "  fine matrix permuted, symmetry probed": ("ordering.py", "permute_symmetric_transpose"),
     "  prolongations permuted": ("ordering.py", "permute_prolongation"),
     "Galerkin products (all)": ("transfer.py", "_galerkin_chain"),
     "  lower halves L + D/2": ("transfer.py", "_lower_half"),

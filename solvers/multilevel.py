@@ -29,7 +29,8 @@ import scipy.sparse.linalg as spla
 from .coarse import _CoarseSolver
 from .deflation import DEFLATION_GOAL, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
-                       permute_prolongation, permute_symmetric)
+                       permute_prolongation, permute_symmetric,
+                       permute_symmetric_transpose)
 from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
@@ -165,16 +166,6 @@ def _checked_inputs(A, Ps, nullspace) -> tuple:
     return A, Ps
 
 
-def _max_abs(x: np.ndarray) -> float:
-    """``max |x|`` (0 for an empty array) without a temporary ``|x|``."""
-    return max(float(x.max()), -float(x.min())) if x.size else 0.0
-
-
-def _max_abs_difference(x: np.ndarray, y: np.ndarray) -> float:
-    """``max |x - y|`` with one temporary."""
-    return _max_abs(np.subtract(x, y))
-
-
 def _check_operators(ops, nullspace, diagonals=()) -> None:
     """Every level operator has a positive diagonal and, for ``nullspace="constant"``, annihilates
     constants (one-line :class:`SolverError` naming the level otherwise). ``diagonals``: those of the first
@@ -278,7 +269,9 @@ class MultigridSolver:
         (docs/usermesh.md). ``"auto"`` (default): ``"locality"`` when the finest level has
         at least :data:`solvers.ordering.ORDER_MIN_N` unknowns and a scattered order
         (:func:`solvers.ordering.index_spread` above :data:`solvers.ordering.ORDER_MIN_SPREAD`); None:
-        the caller's order. ``levels[0]`` then holds the permuted operator and ``perm`` the permutation.
+        the caller's order. ``levels[0]`` then holds the permuted operator and ``perm`` the permutation
+        (a symmetric ``A``'s as the transpose of the permuted matrix: the same for an exactly symmetric
+        ``A``, within the symmetry tolerance for one symmetric up to round-off).
     symmetric : bool, optional
         The caller's statement that ``A`` and the given coarse operators are symmetric (e.g. the sparse
         sums of :class:`solvers.shifted.ShiftedGalerkin`, symmetric by construction), which skips the
@@ -550,15 +543,13 @@ class MultigridSolver:
                     _is_symmetric(A) if symmetric is None else bool(symmetric))
         orders = locality_order(Ps)
         self.perm = orders[0]
-        Ap, At = permute_symmetric(A, orders[0], with_transpose=True)
-        if symmetric is None:
-            symmetric = bool(np.array_equal(Ap.indptr, At.indptr) and np.array_equal(Ap.indices, At.indices)
-                             and _max_abs_difference(Ap.data, At.data) <= 1e-10 * _max_abs(Ap.data)
-                             ) or _is_symmetric(Ap)
-        del At
-        Ps = [permute_prolongation(P, orders[k], orders[k + 1]) for k, P in enumerate(Ps)]
+        if symmetric is False:
+            Ap = permute_symmetric(A, orders[0])
+        else:  # one transpose, and two probe products when untold (a second transpose if not symmetric)
+            Ap, symmetric = permute_symmetric_transpose(A, orders[0], probe=symmetric is None)
+        PRs = [permute_prolongation(P, orders[k], orders[k + 1], with_transpose=True) for k, P in enumerate(Ps)]
         given = [permute_symmetric(G, orders[k + 1]) for k, G in enumerate(given)]
-        return Ap, Ps, [sp.csr_matrix(P.T) for P in Ps], given, bool(symmetric)
+        return Ap, [P for P, _ in PRs], [R for _, R in PRs], given, bool(symmetric)
 
     def _to_internal(self, v: np.ndarray) -> np.ndarray:
         return v if self.perm is None else v[self.perm]

@@ -10,7 +10,8 @@ import solvers.coarse
 from solvers import MultigridSolver, fem
 from solvers.gallery import kuhn_cube_hierarchy
 from solvers.multilevel import DEFAULT_SMOOTHER, DENSE_LEVEL_ROWS
-from solvers.ordering import ORDER_MIN_N, index_spread, locality_order, permute_symmetric
+from solvers.ordering import (ORDER_MIN_N, index_spread, locality_order, permute_prolongation, permute_symmetric,
+                              permute_symmetric_transpose)
 
 
 @pytest.fixture(scope="module")
@@ -104,13 +105,53 @@ def test_locality_order_is_a_permutation_that_gathers(scattered):
     assert index_spread(Ks) > 0.3 and index_spread(Ap) < 0.03, (index_spread(Ks), index_spread(Ap))
 
 
+def test_one_transpose_permutation_and_its_symmetry_probe(scattered):
+    """A symmetric matrix permuted with one transpose is the permuted matrix's transpose, canonical; the
+    probe calls it symmetric at round-off and catches a single asymmetric entry; a non-symmetric matrix comes
+    back as the permuted matrix itself."""
+    K, Ks, Ps, _b, _q, _T = scattered
+    p = locality_order(Ps)[0]
+    Kp = Ks[p][:, p]
+    Ap, sym = permute_symmetric_transpose(Ks, p)
+    assert sym and Ap.has_canonical_format and abs(Ap - Kp.T).max() == 0.0
+    exact = sp.csr_matrix(sp.tril(Ks) + sp.tril(Ks, -1).T)  # exactly symmetric
+    Ae, sym_e = permute_symmetric_transpose(exact, p)
+    assert sym_e and abs(Ae - exact[p][:, p]).max() == 0.0
+    scale = abs(Ks.data).max()
+    caught = 0
+    for seed in range(20):  # one off-diagonal entry perturbed by 1e-6 of the largest entry, different rows
+        i = int(np.random.default_rng(seed).integers(Ks.shape[0]))
+        j = Ks.indices[Ks.indptr[i]] if Ks.indices[Ks.indptr[i]] != i else Ks.indices[Ks.indptr[i] + 1]
+        Kb = Ks.copy()
+        Kb[i, j] += 1e-6 * scale
+        An, sym_n = permute_symmetric_transpose(Kb, p)
+        caught += not sym_n
+        if not sym_n:
+            assert An.has_canonical_format and abs(An - Kb[p][:, p]).max() == 0.0
+    assert caught == 20  # |x_j| < 1e-4 has probability 1e-4 per case
+    As, told = permute_symmetric_transpose(Kb, p, probe=False)  # the caller's statement: not tested
+    assert told and abs(As - Kb[p][:, p].T).max() == 0.0
+
+
+def test_permuted_prolongation_and_restriction(scattered):
+    _K, _Ks, Ps, _b, _q, _T = scattered
+    orders = locality_order(Ps)
+    P, R = permute_prolongation(Ps[0], orders[0], orders[1], with_transpose=True)
+    ref = Ps[0][orders[0]][:, orders[1]]
+    assert P.has_canonical_format and R.has_canonical_format
+    assert abs(P - ref).max() == 0.0 and abs(R - ref.T).max() == 0.0
+
+
 def test_reordered_solver_solves_in_the_callers_order(scattered):
     K, Ks, Ps, b, q, T = scattered
     assert Ks.shape[0] >= ORDER_MIN_N
     ml = MultigridSolver(Ks, Ps, nullspace="constant")
     plain = MultigridSolver(Ks, Ps, nullspace="constant", ordering=None)
     assert ml.perm is not None and plain.perm is None
-    assert abs(ml.levels[0].A - Ks[ml.perm][:, ml.perm]).max() == 0.0
+    # the permuted matrix's transpose (Ks is symmetric up to round-off: the assembly's sums)
+    Kp = Ks[ml.perm][:, ml.perm]
+    assert ml.levels[0].A.has_canonical_format and abs(ml.levels[0].A - Kp.T).max() == 0.0
+    assert abs(ml.levels[0].A - Kp).max() <= 1e-15 * abs(Kp).max()
     x, info = ml.solve(b, tol=1e-10, accel="cg", return_info=True)
     xp, info_p = plain.solve(b, tol=1e-10, accel="cg", return_info=True)
     assert np.linalg.norm(Ks @ x - b) <= 1e-9 * np.linalg.norm(b)
@@ -194,4 +235,4 @@ def test_callers_matrix_is_neither_modified_nor_shared(scattered):
     U = sp.csr_matrix((revd, rev, U.indptr.copy()), shape=U.shape)  # rows in decreasing column order
     before = U.indices.copy()
     ml = MultigridSolver(U, Ps, nullspace="constant")
-    assert np.array_equal(U.indices, before) and abs(ml.levels[0].A - Ks[ml.perm][:, ml.perm]).max() == 0.0
+    assert np.array_equal(U.indices, before) and abs(ml.levels[0].A - Ks[ml.perm][:, ml.perm].T).max() == 0.0

@@ -342,8 +342,9 @@ def probe_under_cg() -> str:
             f"{len(gains)} cases)")
 
 
-#: the 12-case run before the last set-up round (code b0c5928), kept for comparison
-USER_SOLVERS_BEFORE = "user_mesh/solvers_b0c5928.json"
+#: the 12-case run before the last set-up round (code 9c6a189, hierarchies built in an earlier session), kept for
+#: comparison
+USER_SOLVERS_BEFORE = "user_mesh/solvers_9c6a189.json"
 
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)

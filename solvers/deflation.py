@@ -11,7 +11,8 @@ For a symmetric cycle the error propagation ``E = I - B A`` is self-adjoint in t
 the cycles of one random vector form a Krylov sequence and the Lanczos process (full
 re-orthogonalisation, A-inner product) gives Ritz pairs ``(θ, z)`` of ``E``: ``θ`` is the factor by
 which one cycle reduces ``z``. :func:`slow_modes` runs :data:`PROBE_CYCLES` steps; if the largest Ritz
-value meets :data:`DEFLATION_GOAL` nothing more is done, otherwise it continues to
+value plus its pair's residual ``|E y - θ y|_A`` meets :data:`DEFLATION_GOAL` nothing more is done (the
+Ritz value alone is a lower bound of the slowest factor), otherwise it continues to
 :data:`LANCZOS_CYCLES` steps and returns the Ritz vectors above the goal as ``Z`` (``Zᵀ A Z = I``).
 The i-th largest Ritz value never decreases from one step to the next and never exceeds the i-th largest
 eigenvalue (Cauchy interlacing), so once more than ``max_vectors`` Ritz values are above the goal the
@@ -98,7 +99,8 @@ def slow_modes(
         ``max_vectors`` modes are slower than it (then the cycle is slow on the bulk of the spectrum, which
         deflation is not meant to fix).
     info : dict
-        ``probe_factor`` (largest Ritz value after the probe), ``probe_min`` (the smallest), ``cycles`` run,
+        ``probe_factor`` (largest Ritz value after the probe), ``probe_residual`` (its Ritz pair's
+        residual), ``probe_min`` (the smallest Ritz value), ``cycles`` run,
         ``vectors`` (m) and ``factors`` (the Ritz values of the kept vectors); ``slow_modes_found`` when the
         bulk was refused (a lower bound: the count when the probe stopped); ``non_finite`` when a cycle gave
         NaN/inf (nothing is deflated then: the setup never fails because of the probe).
@@ -138,11 +140,14 @@ def slow_modes(
         H[j + 1, j] = beta
         info["cycles"] = j + 1
         if j + 1 == PROBE_CYCLES:
-            theta = _ritz(H, j + 1)[0]
+            theta, U = _ritz(H, j + 1)
             # the extreme Ritz values of E: the slowest mode, and the most negative one (E must stay > -1 for
             # the cycle to be a positive definite preconditioner)
             info["probe_factor"], info["probe_min"] = float(theta[0]), float(theta[-1])
-            if info["probe_factor"] <= goal or max_vectors <= 0:
+            # the slowest Ritz pair's residual |E y - θ y|_A = β |u_last| (an eigenvalue lies within it)
+            info["probe_residual"] = float(beta * abs(U[-1, 0]))
+            # a lower bound (interlacing): met only when the residual cannot lift it above the goal
+            if info["probe_factor"] + info["probe_residual"] <= goal or max_vectors <= 0:
                 return np.zeros((n, 0)), info
         if j + 1 >= PROBE_CYCLES and j + 1 > max_vectors:
             slow = int(np.count_nonzero(_ritz(H, j + 1)[0] > goal))

@@ -72,6 +72,21 @@ def test_slow_modes_early_stop_keeps_a_late_verdict():
     assert Z.shape == (200, 0) and info["slow_modes_found"] == 6 and info["cycles"] < LANCZOS_CYCLES
 
 
+def test_a_probe_below_the_goal_but_undecided_continues():
+    """Two outliers (0.33, 0.31) above a dense spectrum up to 0.29: after the probe's 8 cycles the slowest
+    Ritz value is still below the goal (a lower bound, by interlacing), but its residual could lift it above:
+    the probe continues and finds both modes. A spectrum well below the goal stops at the probe."""
+    theta = np.r_[0.33, 0.31, np.linspace(0.29, 0.0, 998)]
+    Z, info = slow_modes(lambda x: x.__imul__(theta), sp.identity(1000, format="csr"), max_vectors=8)
+    assert info["probe_factor"] < DEFLATION_GOAL < info["probe_factor"] + info["probe_residual"]
+    assert info["cycles"] == LANCZOS_CYCLES and info["vectors"] == 2
+    assert np.allclose(info["factors"], [0.33, 0.31], atol=1e-4)
+    low = np.linspace(0.2, 0.0, 1000)
+    Z, info = slow_modes(lambda x: x.__imul__(low), sp.identity(1000, format="csr"), max_vectors=8)
+    assert info["cycles"] == PROBE_CYCLES and Z.shape == (1000, 0)
+    assert info["probe_factor"] + info["probe_residual"] <= DEFLATION_GOAL
+
+
 def test_deflation_fixes_weakly_attached_pieces(pieces):
     """Measured: V-cycle factor 0.853 without deflation, 0.281 with it (4 modes on the finest level)."""
     K, Ps = pieces

@@ -215,6 +215,36 @@ def test_neck_three_cages_certified(neck, neck_layers):
     json.dumps(info)  # JSON-serialisable
 
 
+def test_layer_gap_is_the_distance_to_the_previous_layer(neck, neck_layers):
+    """``min_gap_absolute`` (taken from the clearance step's measurement at unit diagonal, scaled) is the
+    distance to the previous layer in the caller's units, and the internal record does not leak."""
+    V, F = neck
+    layers, info = neck_layers
+    prev = (V, F)
+    for (Vk, Fk), li in zip(layers, info["layers"]):
+        d = min_distance(Vk, Fk, *prev)
+        assert li["min_gap_absolute"] == pytest.approx(d, rel=1e-9)
+        assert "clearance_distance" not in li
+        prev = (Vk, Fk)
+
+
+def test_layer_gap_after_an_intermediate_layer_is_measured_again(neck, monkeypatch, failing_flow):
+    """After a recovery the clearance was measured against the intermediate layer: not reused."""
+    V, F = neck
+    real = nested_backend_module.flow_inside
+
+    def flaky(Vf, Ff, Vc, Fc, **kw):  # every target of 600 faces around the input fails
+        if len(Fc) <= 620 and len(Ff) >= len(F):
+            return failing_flow(Vf, Ff, Vc, Fc, **kw)
+        return real(Vf, Ff, Vc, Fc, **kw)
+
+    monkeypatch.setattr(nested_backend_module, "flow_inside", flaky)
+    layers, info = nested_backend(V, F, [600])
+    li = info["layers"][0]
+    assert "intermediate" in li
+    assert li["min_gap_absolute"] == pytest.approx(min_distance(*layers[0], V, F), rel=1e-9)
+
+
 def test_genus2_three_cages_certified(genus2):
     V, F = genus2
     layers, info = nested_backend(V, F, [700, 180, 100])
@@ -397,6 +427,34 @@ def _two_boxes(top_rotation_deg: float, lift: float):
     V = np.vstack([a.vertices, b.vertices])
     F = np.vstack([a.faces, b.faces + len(a.vertices)]).astype(np.int64)
     return V, F
+
+
+def test_crossings_plateau_rule():
+    """The flow's inside phase stops when the fewest crossing pairs of the last window are no fewer than
+    those of the window before (featuretype.stl's second layer: 8 early, then 22-24 for 60 iterations)."""
+    from cagegen.nested.flow import _crossings_plateaued
+
+    counts = [10, 8, 24, 24, 22, 24, 24, 24]
+    assert _crossings_plateaued(counts, 20, 5)
+    assert not _crossings_plateaued(counts[:-1], 20, 5)  # fewer than two windows of counts
+    assert not _crossings_plateaued(counts, None, 5)
+    assert not _crossings_plateaued([60, 32, 66, 44, 102, 60, 35, 7], 20, 5)  # still clearing
+
+
+def test_flow_inside_phase_stops_when_crossings_do_not_fall():
+    """Every point inside, Ĉ crossing F̄ and nothing clearing it (no expansion left): with a plateau
+    window the flow gives up after two windows of counts, without one only at ``stall_iter``."""
+    from cagegen.nested import flow as flow_module
+
+    Vf, Ff, Vc, Fc = _dented_box_pair(0.1)
+    fl = flow_module._Flow(Vf, Ff, Vc, Fc, 2, None)
+    actions = [flow_module._when_inside(fl, 150, 5, 0, 20) for _ in range(40)]
+    assert actions[:36] == [""] * 36 and actions[36] == "again"  # the denser quadrature at 150 // 4
+    assert actions[37:] == ["", "", "plateaued"]
+    assert len(fl.crossings) == 8 and len(set(fl.crossings)) == 1 and fl.crossings[0] > 0
+    fl = flow_module._Flow(Vf, Ff, Vc, Fc, 2, None)
+    actions = [flow_module._when_inside(fl, 150, 5, 0, None) for _ in range(150)]
+    assert "plateaued" not in actions and actions[-1] == "stalled"
 
 
 def test_narrow_slot_vertices_finds_points_between_facing_walls_only():

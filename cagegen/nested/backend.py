@@ -707,6 +707,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: clearance {d:.3g} too small")
             continue
         pinfo["decimation"] = dict(dinfo, source=src)
+        pinfo["clearance_distance"] = d  # to (Vf, Ff), unit frame (:func:`_finish_layer`)
         pinfo["seconds"]["decimate"] = t_dec
         pinfo["failed_attempts"] = failures
         return C, G, pinfo
@@ -936,7 +937,7 @@ def _finish_layer(run: _Run, k: int, m: int, C, G, linfo: dict, log: list, prev_
             raise CageError(f"layer {k} failed certification: {report.pairs[0].reason}",
                             layer=k, reason=str(report.pairs[0].reason))
     linfo.setdefault("seconds", {})["verify"] = time.perf_counter() - t
-    gap_k = min_distance(Vk, Gk, *prev_orig)
+    gap_k = _layer_gap(run, Vk, Gk, linfo, prev_orig)
     linfo.update({
         "layer": k,
         "target": m,
@@ -950,6 +951,17 @@ def _finish_layer(run: _Run, k: int, m: int, C, G, linfo: dict, log: list, prev_
         "recovery": log,
     })
     return Vk, Gk
+
+
+def _layer_gap(run: _Run, Vk, Gk, linfo: dict, prev_orig) -> float:
+    """Distance of layer ``k`` to the previous layer in the caller's units: the one
+    :func:`complete_clearance` measured at unit diagonal, scaled, when it was measured against the previous
+    layer itself (no intermediate layer, not a fallback), else :func:`min_distance` again (0.2-0.3 CPU s
+    on a 10k-face layer)."""
+    d = linfo.pop("clearance_distance", None)
+    if d is not None and "intermediate" not in linfo and run.decimate_from == "previous":
+        return float(d) * run.diag
+    return min_distance(Vk, Gk, *prev_orig)
 
 
 def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):

@@ -304,33 +304,6 @@ def test_recovery_after_flow_failure(neck, monkeypatch, failing_flow):
     assert verify_nesting([(V, F)] + layers).ok
 
 
-def test_a_failed_first_decimator_does_not_put_the_other_decimators_layer_first(neck, monkeypatch):
-    """When QEM cannot decimate the layer (featuretype.stl's first layer: self-intersections), the
-    shortest-edge layer, the last source, is not flowed first in its place (it plateaued there for ~3 CPU
-    s before the envelope certified): the envelope comes next, as listed by ``_target_sources``."""
-    from cagegen.errors import CageError
-
-    V, F = neck
-    real = nested_backend_module.decimate_surface
-    calls: list = []
-
-    def no_qslim_on_the_layer(U, G, n, **kw):
-        calls.append((kw.get("decimator"), kw.get("other_decimator", True)))
-        if kw.get("decimator") == "qslim" and len(G) == len(F):  # the layer itself, not an envelope
-            if not kw.get("other_decimator", True):
-                raise CageError("qslim: self-intersecting faces (test)")
-            kw["decimator"] = "shortest_edge"  # what the decimator's own fallback does
-        return real(U, G, n, **kw)
-
-    monkeypatch.setattr(nested_backend_module, "decimate_surface", no_qslim_on_the_layer)
-    layers, info = nested_backend(V, F, [600])
-    li = info["layers"][0]
-    assert li["decimation"]["source"] == "envelope"
-    assert [f["stage"] for f in li["failed_attempts"]] == ["decimate"]
-    assert ("shortest_edge", False) not in calls  # the last source was never needed
-    assert verify_nesting([(V, F)] + layers).ok
-
-
 def test_only_the_last_target_gets_the_full_flow_cap(neck, monkeypatch, failing_flow):
     """Every target Ĉ but the last one tried gets a flow cap of QUICK_FLOW_WORK / fine faces iterations
     (at least QUICK_FLOW_MIN_ITER), so a plateaued flow cannot spend minutes before the next target;

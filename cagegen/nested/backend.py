@@ -412,8 +412,8 @@ def _dilate_target(Vc, Fc, delta):
                                         "held": int(np.count_nonzero(scale == 0.0))}
 
 
-def _decimate(V, F, n_faces, decimator, other_decimator: bool = True):
-    U, G, dinfo = decimate_surface(V, F, int(n_faces), decimator=decimator, other_decimator=other_decimator)
+def _decimate(V, F, n_faces, decimator):
+    U, G, dinfo = decimate_surface(V, F, int(n_faces), decimator=decimator)
     return U, G, {"decimator": dinfo["decimator"], "block_intersections": dinfo["block_intersections"],
                   "n_faces": int(G.shape[0]), "seconds": dinfo["seconds"]}
 
@@ -665,9 +665,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             if src == "envelope":
                 U, G, dinfo = _envelope_target(Vf, Ff, n_faces, offset)
             else:
-                # only ``alg`` (then with intersection blocking): the other decimator's layer is a source
-                # of its own, tried last (:func:`_target_sources`)
-                U, G, dinfo = _decimate(Vf, Ff, n_faces, alg, other_decimator=False)
+                U, G, dinfo = _decimate(Vf, Ff, n_faces, alg)
         except CageError as exc:
             failures.append({"action": f"decimate the {what} with {alg}", "stage": "decimate", "reason": str(exc)})
             log.append({"layer": layer_no, **failures[-1]})

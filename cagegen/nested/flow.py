@@ -363,10 +363,12 @@ def _crossings_plateaued(counts: list, window: int | None, every: int) -> bool:
     count every ``every`` of them) is no lower than among the ``window`` before: expansions and flow
     together clear no crossing.
 
-    Measured (``nestmg cages``, 2026-12-05): featuretype.stl's second layer, envelope target at 0.01
-    (218 faces): 10, 8, 24, 24, 22, 24, ... crossing pairs, 24 from the 12th count to the 27th, when
-    ``stall_iter`` stopped it after 139 iterations (2.4 CPU s) and the coarser envelope certified in 0
-    iterations; this rule stops it after 39 iterations.
+    Measured (``nestmg cages``, 2026-12-05, one run): featuretype.stl's second layer, envelope target
+    at 0.01 (218 faces): 8, 24, 24, 22 crossing pairs at the first counts, then 24 at every count after
+    the expansions were used up, until ``stall_iter`` stopped it after 139 iterations (2.4 CPU s); the
+    coarser envelope then certified in 0 iterations. This rule stops that flow at its 8th count (39
+    iterations); the envelope flow of the first layer that certified (counts ... 102, 60, 35, 10, then
+    no crossing) does not meet it.
     """
     if not window:
         return False

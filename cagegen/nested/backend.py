@@ -591,7 +591,10 @@ def narrow_slot_vertices(U: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, width: f
     (k,) int array
         Indices into ``U``.
     """
-    S, I, Q = igl.signed_distance(np.asarray(U, dtype=float), Vf, Ff)[:3]
+    # the pseudonormal sign (exact on a closed manifold surface, F here; as the flow's) instead of the
+    # winding number's: 0.04 against 0.25 CPU s for bumpy-cube.obj's first decimated layer
+    S, I, Q = igl.signed_distance(np.asarray(U, dtype=float), Vf, Ff,
+                                  sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[:3]
     N = igl.per_face_normals(Vf, Ff, np.array([0.0, 0.0, 1.0]))
     cand = np.flatnonzero((S > 0) & (S < width))
     if not len(cand):

@@ -451,6 +451,38 @@ def cages_gauss_newton() -> str:
             f"zoo meshes certified (the same refused inputs at both): {cert[0]} at main, {cert[1]} here")
 
 
+CAGES_AB_SPEED = tuple(f"cages/ab_6c2b2cf_run{i}.json" for i in (1, 2, 3))
+CAGES_PROFILE = "cages/profile_4c331d9.json"
+
+
+@generator("cages.speed", *CAGES_AB_SPEED)
+def cages_speed() -> str:
+    """Median CPU seconds before -> after per mesh over the interleaved runs, the certified count."""
+    runs = [load(rel)["meshes"] for rel in CAGES_AB_SPEED]
+    parts, ok = [], 0
+    for m in runs[0]:
+        b = statistics.median(r[m]["before"]["cpu_seconds"] for r in runs)
+        a = statistics.median(r[m]["after"]["cpu_seconds"] for r in runs)
+        ok += all(r[m]["after"]["ok"] for r in runs)
+        parts.append(f"{m} {b:.1f} -> {a:.1f}")
+    return (f"median CPU seconds of {len(runs)} interleaved runs, main -> this change: " + ", ".join(parts)
+            + f"; every layer of {ok} of {len(runs[0])} meshes certified in every run")
+
+
+@generator("cages.profile", CAGES_PROFILE)
+def cages_profile() -> str:
+    """Shares of the profiled CPU seconds: ipctk's barrier Hessian, collision builds and CCD."""
+    rows = {m: r for m, r in load(CAGES_PROFILE)["meshes"].items() if "hessian" in r}
+    big = {m: r for m, r in rows.items() if r["hessian"] > r["flow"]}
+    share = {k: [100 * r[k] / r["cpu_seconds_profiled"] for r in big.values()]
+             for k in ("hessian", "collision_build", "ccd", "reinflate")}
+    flow = [(m, 100 * r["flow"] / r["cpu_seconds_profiled"]) for m, r in rows.items() if m not in big]
+    return (f"on {', '.join(big)}: the re-inflation {rng(share['reinflate'], '.0f', '%')} of the CPU seconds, "
+            f"ipctk's barrier Hessian {rng(share['hessian'], '.0f', '%')}, its collision builds "
+            f"{rng(share['collision_build'], '.0f', '%')}, its CCD {rng(share['ccd'], '.0f', '%')}"
+            + "".join(f"; on {m} the flow {v:.0f}%" for m, v in flow))
+
+
 USER_CYCLE_COST = "user_mesh/cycle_cost.json"
 
 

@@ -465,8 +465,15 @@ def cages_speed() -> str:
         a = statistics.median(r[m]["after"]["cpu_seconds"] for r in runs)
         ok += all(r[m]["after"]["ok"] for r in runs)
         parts.append(f"{m} {b:.1f} -> {a:.1f}")
+    pairs = [(lb, la) for r in runs for row in r.values()
+             for lb, la in zip(row["before"]["layers"], row["after"]["layers"])]
+    vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for lb, la in pairs)
+    same = all(lb["source"] == la["source"] and len(lb["failed_attempts"]) == len(la["failed_attempts"])
+               for lb, la in pairs)
     return (f"median CPU seconds of {len(runs)} interleaved runs, main -> this change: " + ", ".join(parts)
-            + f"; every layer of {ok} of {len(runs[0])} meshes certified in every run")
+            + f"; every layer of {ok} of {len(runs[0])} meshes certified in every run, "
+            + ("the same target sources and failed attempts, " if same else "")
+            + f"volume ratios within {vol:.1e} of main's")
 
 
 @generator("cages.profile", CAGES_PROFILE)

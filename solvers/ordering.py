@@ -102,19 +102,10 @@ def locality_order(Ps) -> list[np.ndarray]:
     return orders
 
 
-def permute_symmetric(A: sp.csr_matrix, p: np.ndarray, *, with_transpose: bool = False):
+def permute_symmetric(A: sp.csr_matrix, p: np.ndarray) -> sp.csr_matrix:
     """``A[p][:, p]`` in canonical CSR form: a row gather, a relabelling of the columns and two O(nnz)
-    transposes (which leave every row's indices sorted), exact for any square ``A``.
-
-    With ``with_transpose=True`` also return the transpose (canonical CSR), a by-product: comparing the
-    two tests the symmetry of ``A`` at no extra cost.
-    """
-    B = _gathered(A, p)
-    Bt = _transposed(B)  # CSR arrays of Bᵀ, sorted
-    out = _transposed(Bt)  # CSR arrays of B, sorted
-    if with_transpose:
-        return out, Bt
-    return out
+    transposes (which leave every row's indices sorted), exact for any square ``A``."""
+    return _transposed(_transposed(_gathered(A, p, p)))
 
 
 def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool = True, rtol: float = 1e-10,
@@ -137,7 +128,7 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
         ``Ap`` (canonical; ``A[p][:, p]`` exactly when ``A`` is exactly symmetric, else within ``rtol`` of
         it when symmetric, and exactly when not) and the symmetry verdict.
     """
-    B = _gathered(A, p)
+    B = _gathered(A, p, p)
     Bt = _transposed(B)
     if not probe:
         return Bt, True
@@ -147,10 +138,11 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
     return (Bt, True) if symmetric else (_transposed(Bt), False)
 
 
-def _gathered(A: sp.csr_matrix, p: np.ndarray) -> sp.csr_matrix:
-    """``A[p][:, p]`` as CSR with the rows' entries in ``A``'s column order (not sorted by new label)."""
-    B = A[p]
-    inv = _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype)  # one gather in the index type
+def _gathered(A: sp.csr_matrix, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
+    """``A[rows][:, cols]`` for permutations ``rows`` and ``cols``, as CSR with each row's entries in ``A``'s
+    column order (not sorted by new label): one row gather and one relabelling gather."""
+    B = A[rows]
+    inv = _inverse(np.asarray(cols, dtype=np.int64), B.indices.dtype)  # one gather in the index type
     return sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=A.shape)
 
 
@@ -166,8 +158,6 @@ def permute_prolongation(P: sp.csr_matrix, p_fine: np.ndarray, p_coarse: np.ndar
                          with_transpose: bool = False):
     """``P[p_fine][:, p_coarse]`` (canonical CSR); with ``with_transpose=True`` also its transpose (the
     restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows."""
-    B = P[p_fine]
-    inv = _inverse(np.asarray(p_coarse, dtype=np.int64), B.indices.dtype)
-    R = _transposed(sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=P.shape))
+    R = _transposed(_gathered(P, p_fine, p_coarse))
     out = _transposed(R)
     return (out, R) if with_transpose else out

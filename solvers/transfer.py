@@ -12,6 +12,7 @@ import scipy.sparse as sp
 from .errors import SolverInputError
 from .fem import node_indices
 from .memory import check_memory, galerkin_bytes
+from .ordering import _transposed
 
 __all__ = ["galerkin_operators", "prune_prolongations", "reroute_to_pattern", "restrict_prolongations",
            "sparsified_galerkin_operators"]
@@ -199,18 +200,14 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     merge adds them. Equals ``Pᵀ A P`` up to round-off (tested to 1e-12 relative). ``diagonals``: a list
     that receives ``A``'s diagonal.
     """
-    m = P.shape[1]
     half, d = _lower_half(Ak)
     if diagonals is not None:
         diagonals.append(d)
     B = _one_pass_product(R, _one_pass_product(half, P))
     del half
-    t = B.tocsc()  # the CSR arrays of Bᵀ, rows sorted
+    Bt = _transposed(B)  # canonical (a product has no duplicates)
     del B
-    Bt = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(m, m))
-    s = Bt.tocsc()  # the CSR arrays of B, rows sorted
-    Bs = sp.csr_matrix((s.data, s.indices, s.indptr), shape=(m, m))
-    Bt.has_canonical_format = Bs.has_canonical_format = True  # no duplicates (a product), sorted rows
+    Bs = _transposed(Bt)  # B with its rows sorted
     Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
     Ac.has_canonical_format = True
     return Ac

@@ -174,3 +174,70 @@ def test_symmetric_sor_uses_its_weight(poisson):
     w = x0.copy()
     make_smoother(poisson, "symmetric_gauss_seidel")(poisson, w, b)
     assert np.abs(z - w).max() > 1e-3 * np.abs(w).max()  # the weight changes the sweep
+
+
+def test_reversed_order_is_the_reversal_permutation(poisson):
+    import scipy.sparse as sp
+
+    from solvers.smoothing import reversed_order
+
+    A = sp.csr_matrix(poisson)
+    A.sort_indices()
+    A.data = A.data * (1.0 + np.arange(A.nnz) / A.nnz)  # distinct entries, not symmetric: order matters
+    J = np.arange(A.shape[0])[::-1]
+    R = reversed_order(A)
+    ref = sp.csr_matrix(A[J][:, J])
+    ref.sort_indices()
+    assert R.has_canonical_format and np.array_equal(R.indptr, ref.indptr)
+    assert np.array_equal(R.indices, ref.indices) and np.array_equal(R.data, ref.data)
+
+
+@pytest.mark.parametrize("sweep,iterations,omega", [("backward", 1, 1.0), ("backward", 2, 1.0),
+                                                    ("backward", 2, 1.4), ("symmetric", 2, 1.0),
+                                                    ("symmetric", 1, 0.8)])
+def test_backward_sweeps_on_the_reversed_matrix_equal_pyamgs(poisson, sweep, iterations, omega, monkeypatch):
+    """A backward sweep runs forwards on J A J (rows of >= REVERSED_SWEEP_MIN_ROW entries: here every
+    matrix); the iterate equals pyamg's backward sweep to round-off (each row's sum in the other order).
+    Another operator takes pyamg's path."""
+    from pyamg.relaxation.relaxation import sor
+
+    import solvers.smoothing as smoothing
+
+    monkeypatch.setattr(smoothing, "REVERSED_SWEEP_MIN_ROW", 0)
+    A = poisson
+    rng = np.random.default_rng(7)
+    x0, b = rng.standard_normal((2, A.shape[0]))
+    sm = make_smoother(A, ("gauss_seidel", {"sweep": sweep, "iterations": iterations, "omega": omega}))
+    x = x0.copy()
+    sm(A, x, b)
+    y = x0.copy()
+    for _ in range(iterations):
+        if sweep == "symmetric":
+            sor(A, y, b, omega, sweep="forward")
+        sor(A, y, b, omega, sweep="backward")
+    assert np.abs(x - y).max() <= 1e-13 * np.abs(y).max()
+    assert np.abs(x - x0).max() > 1e-2 * np.abs(x0).max()  # the sweeps did move x
+    A2 = 2.0 * A  # not the smoother's operator: pyamg on A2 itself
+    z, w = x0.copy(), x0.copy()
+    sm(A2, z, b)
+    for _ in range(iterations):
+        if sweep == "symmetric":
+            sor(A2, w, b, omega, sweep="forward")
+        sor(A2, w, b, omega, sweep="backward")
+    assert np.array_equal(z, w)
+
+
+def test_short_rows_keep_pyamgs_backward_sweep(poisson):
+    """Rows shorter than REVERSED_SWEEP_MIN_ROW (a P1 Laplacian's ~14) keep pyamg's backward sweep: the
+    same bits, no reversed copy."""
+    from pyamg.relaxation.relaxation import gauss_seidel
+
+    from solvers.smoothing import REVERSED_SWEEP_MIN_ROW
+
+    assert poisson.nnz < REVERSED_SWEEP_MIN_ROW * poisson.shape[0]
+    rng = np.random.default_rng(3)
+    x0, b = rng.standard_normal((2, poisson.shape[0]))
+    x, y = x0.copy(), x0.copy()
+    make_smoother(poisson, ("gauss_seidel", {"sweep": "backward", "iterations": 2}))(poisson, x, b)
+    gauss_seidel(poisson, y, b, iterations=2, sweep="backward")
+    assert np.array_equal(x, y)

@@ -414,7 +414,8 @@ class MultigridSolver:
             # empty rows of P^T A P; as Galerkin levels they add nothing, so they are dropped
             Ps = _drop_unreached_columns(Ps)
             A, Ps, Rs, _, sym0 = self._reorder(A, Ps, ordering, [], symmetric, shared)
-            ops = _galerkin_chain(A, Ps, sym0, Rs, diagonals)  # A validated above: no second copy and check
+            # A validated above: no second copy and check; the smoothed levels stored diagonal first
+            ops = _galerkin_chain(A, Ps, sym0, Rs, diagonals, diagonal_first=True)
             self.coarse = "galerkin"
         else:
             given = list(coarse)

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from .errors import SolverInputError
 from .fem import node_indices
 from .memory import check_memory, galerkin_bytes
-from .ordering import _transposed
+from .ordering import _transposed, diagonal_first
 
 __all__ = ["galerkin_operators", "prune_prolongations", "reroute_to_pattern", "restrict_prolongations",
            "sparsified_galerkin_operators"]
@@ -87,15 +87,23 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=Non
     return _galerkin_chain(A, Ps, _is_symmetric(A) if symmetric is None else bool(symmetric), Rs)
 
 
-def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None, diagonals=None) -> list[sp.csr_matrix]:
+def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None, diagonals=None,
+                    diagonal_first: bool = False) -> list[sp.csr_matrix]:
     """:func:`galerkin_operators` for an ``A`` already checked by :func:`_as_csr` (no second copy, sort and
     finiteness pass: :class:`solvers.MultigridSolver` validates its input once). ``diagonals``: a list that
     receives the diagonal of every operator the symmetric path splits (levels ``0 .. len(Ps) - 1``), a
     by-product of the split (scipy's ``diagonal()`` scans whole rows: ~11 ms for the four levels of a 1M-tet
-    user hierarchy)."""
+    user hierarchy). ``diagonal_first``: return those operators with each row's diagonal entry first (the
+    storage Gauss–Seidel sweeps fastest, :func:`solvers.ordering.diagonal_first`), from the split's
+    diagonal positions; the coarsest operator stays canonical."""
     ops = [A]
+    firsts: list | None = [] if diagonal_first else None
     for k, P in enumerate(Ps):
-        ops.append(_galerkin_level(ops[-1], P, k, None if Rs is None else Rs[k], symmetric, diagonals))
+        R = None if Rs is None else Rs[k]
+        ops.append(_galerkin_level(ops[-1], P, k, R, symmetric, diagonals, firsts))
+    for k, F in enumerate(firsts or ()):
+        if F is not None:
+            ops[k] = F
     return ops
 
 
@@ -166,17 +174,20 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     return sp.csr_matrix((data, indices, indptr), shape=(m, n))
 
 
-def _lower_half(A: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray]:
+def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
     """``(L + D/2, diag(A))`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D``
     diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row
     keeps its lower entries first, so they are one gather of positions; when every row stores its diagonal (a
-    level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers."""
+    level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
+    ``positions``: a list that receives the diagonal entries' positions in ``A`` (None if a row lacks it)."""
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
     diag = np.flatnonzero(A.indices == rows)
     keep = np.flatnonzero(A.indices <= rows)
     del rows
     indices, data = A.indices.take(keep), A.data.take(keep)
+    if positions is not None:
+        positions.append(diag if diag.size == n else None)
     if diag.size == n:  # one diagonal entry per row (canonical: no duplicates), the last one kept
         d = A.data.take(diag)
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
@@ -190,7 +201,7 @@ def _lower_half(A: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray]:
 
 
 def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
-                        diagonals=None) -> sp.csr_matrix:
+                        diagonals=None, firsts=None) -> sp.csr_matrix:
     """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
 
     ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
@@ -198,9 +209,12 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     sum is exactly symmetric (``fl(x + y) = fl(y + x)``), replacing the symmetrisation
     ``(Ac + Acᵀ)/2``. Two O(nnz(B)) transposes sort ``B`` and give ``Bᵀ`` (both canonical), then one
     merge adds them. Equals ``Pᵀ A P`` up to round-off (tested to 1e-12 relative). ``diagonals``: a list
-    that receives ``A``'s diagonal.
+    that receives ``A``'s diagonal; ``firsts``: a list that receives ``A`` with each row's diagonal entry
+    first (:func:`solvers.ordering.diagonal_first`, from the split's diagonal positions; None when a row
+    lacks its diagonal).
     """
-    half, d = _lower_half(Ak)
+    positions: list = []
+    half, d = _lower_half(Ak, positions)
     if diagonals is not None:
         diagonals.append(d)
     B = _one_pass_product(R, _one_pass_product(half, P))
@@ -210,12 +224,16 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     Bs = _transposed(Bt)  # B with its rows sorted
     Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
     Ac.has_canonical_format = True
+    if firsts is not None:  # after the products: not held beside them
+        firsts.append(None if positions[0] is None else diagonal_first(Ak, positions[0]))
     return Ac
 
 
-def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=None) -> sp.csr_matrix:
+def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=None,
+                    firsts=None) -> sp.csr_matrix:
     """``P_kᵀ A_k P_k`` (exactly symmetric when ``symmetric``), after checking the shapes and the memory;
-    ``diagonals``: see :func:`_symmetric_galerkin`."""
+    ``diagonals``, ``firsts``: see :func:`_symmetric_galerkin` (the non-symmetric path appends None to
+    ``firsts``)."""
     P = sp.csr_matrix(P, dtype=np.float64)
     if P.shape[0] != Ak.shape[0]:
         raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
@@ -223,7 +241,9 @@ def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=
     _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
     if symmetric:
-        return _symmetric_galerkin(Ak, P, R, diagonals)
+        return _symmetric_galerkin(Ak, P, R, diagonals, firsts)
+    if firsts is not None:
+        firsts.append(None)
     # no duplicates, rows unsorted
     Ac = _one_pass_product(R, _one_pass_product(Ak, P))
     Ac.sum_duplicates()

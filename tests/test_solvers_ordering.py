@@ -148,9 +148,13 @@ def test_reordered_solver_solves_in_the_callers_order(scattered):
     ml = MultigridSolver(Ks, Ps, nullspace="constant")
     plain = MultigridSolver(Ks, Ps, nullspace="constant", ordering=None)
     assert ml.perm is not None and plain.perm is None
-    # the permuted matrix's transpose (Ks is symmetric up to round-off: the assembly's sums)
+    # the permuted matrix's transpose (Ks is symmetric up to round-off: the assembly's sums), each row's
+    # diagonal entry stored first (the smoothed levels)
     Kp = Ks[ml.perm][:, ml.perm]
-    assert ml.levels[0].A.has_canonical_format and abs(ml.levels[0].A - Kp.T).max() == 0.0
+    A0 = ml.levels[0].A
+    assert np.array_equal(A0.indices[A0.indptr[:-1]], np.arange(A0.shape[0])) and abs(A0 - Kp.T).max() == 0.0
+    assert all(np.array_equal(L.A.indices[L.A.indptr[:-1]], np.arange(L.A.shape[0])) for L in ml.levels[:-1])
+    assert ml.levels[-1].A.has_canonical_format
     assert abs(ml.levels[0].A - Kp).max() <= 1e-15 * abs(Kp).max()
     x, info = ml.solve(b, tol=1e-10, accel="cg", return_info=True)
     xp, info_p = plain.solve(b, tol=1e-10, accel="cg", return_info=True)
@@ -236,3 +240,31 @@ def test_callers_matrix_is_neither_modified_nor_shared(scattered):
     before = U.indices.copy()
     ml = MultigridSolver(U, Ps, nullspace="constant")
     assert np.array_equal(U.indices, before) and abs(ml.levels[0].A - Ks[ml.perm][:, ml.perm].T).max() == 0.0
+
+
+def test_diagonal_first_moves_only_the_diagonal():
+    """Each row's diagonal entry first, the others in their order; Gauss-Seidel on it gives the same bits."""
+    from pyamg.relaxation.relaxation import gauss_seidel
+
+    from solvers.ordering import diagonal_first
+
+    rng = np.random.default_rng(5)
+    n = 300
+    A = sp.random(n, n, density=0.03, random_state=rng, format="csr") + sp.eye(n) * 10.0
+    A = sp.csr_matrix(A)
+    A.sum_duplicates()
+    A.sort_indices()
+    rows = np.repeat(np.arange(n), np.diff(A.indptr))
+    pos = np.flatnonzero(A.indices == rows)
+    F = diagonal_first(A, pos)
+    assert np.array_equal(F.indptr, A.indptr) and np.array_equal(F.indices[F.indptr[:-1]], np.arange(n))
+    for i in rng.choice(n, 20, replace=False):  # the off-diagonal entries keep their order
+        a, f = slice(A.indptr[i], A.indptr[i + 1]), slice(F.indptr[i] + 1, F.indptr[i + 1])
+        keep = A.indices[a] != i
+        assert np.array_equal(F.indices[f], A.indices[a][keep]) and np.array_equal(F.data[f], A.data[a][keep])
+    assert abs(F - A).max() == 0.0 and not F.has_sorted_indices
+    x0, b = rng.standard_normal((2, n))
+    x, y = x0.copy(), x0.copy()
+    gauss_seidel(A, x, b, iterations=2, sweep="forward")
+    gauss_seidel(F, y, b, iterations=2, sweep="forward")
+    assert np.array_equal(x, y)

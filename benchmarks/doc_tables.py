@@ -342,9 +342,8 @@ def probe_under_cg() -> str:
             f"{len(gains)} cases)")
 
 
-#: the 12-case run before the last set-up round (code 9c6a189, hierarchies built in an earlier session), kept for
-#: comparison
-USER_SOLVERS_BEFORE = "user_mesh/solvers_9c6a189.json"
+#: the 12-case run before the sweep-layout round (code b6a77ee, on the same saved cases), kept for comparison
+USER_SOLVERS_BEFORE = "user_mesh/solvers_b6a77ee.json"
 
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)
@@ -352,6 +351,25 @@ def usermesh_setup_before() -> str:
     d = load(USER_SOLVERS_BEFORE)
     cpu = [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in _user_problems(d)]
     return f"{rng(cpu, '.2f')}x, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases"
+
+
+@generator("usermesh.before_after", USER_SOLVERS, USER_SOLVERS_BEFORE)
+def usermesh_before_after() -> str:
+    """The defaults' set-up and solve CPU seconds in the last run over those of the run before (the same
+    saved cases), and the fine SpMV counts of both."""
+    new, old = load(USER_SOLVERS), load(USER_SOLVERS_BEFORE)
+    probs = _user_problems(new)
+    pairs = [(c["problems"][p]["solvers"]["nestmg"], o["problems"][p]["solvers"]["nestmg"])
+             for c, o in zip(new["cases"], old["cases"]) for p in probs]
+    if [c["name"] for c in new["cases"]] != [o["name"] for o in old["cases"]]:
+        raise ValueError("the two user-mesh runs hold different cases")
+    solve = [n["solve_cpu_seconds"] / o["solve_cpu_seconds"] for n, o in pairs]
+    setup = [n["setup_cpu_seconds"] / o["setup_cpu_seconds"] for n, o in pairs]
+    same = sum(n["iterations"] == o["iterations"] for n, o in pairs)
+    before = rng([o["solve_spmv"] for _, o in pairs], ".0f")
+    after = rng([n["solve_spmv"] for n, _ in pairs], ".0f")
+    return (f"solve CPU time x{rng(solve, '.2f')} of the run before's, set-up x{rng(setup, '.2f')}, the same "
+            f"CG iterations in {same} of {len(pairs)} cases; fine SpMV {before} before, {after} after")
 
 
 @generator("usermesh.deflate", USER_SOLVERS)

@@ -120,10 +120,12 @@ def test_gauss_newton_hessian_is_psd_and_its_dofs_form_is_the_submatrix(contact_
     assert abs(Hs - H[dofs][:, dofs]).max() <= 1e-12 * abs(H).max()
 
 
-@pytest.mark.parametrize("kind", ["gauss_newton", "ipctk"])
-def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monkeypatch, kind):
+@pytest.mark.parametrize("reverse", ["gauss_newton", "ipctk"])
+@pytest.mark.parametrize("final", ["gauss_newton", "ipctk"])
+def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monkeypatch, reverse, final):
     V, F, U, G, fl, *_ = contact_state
-    monkeypatch.setattr(rf, "BARRIER_HESSIAN", kind)
+    monkeypatch.setattr(rf, "REVERSE_HESSIAN", reverse)
+    monkeypatch.setattr(rf, "BARRIER_HESSIAN", final)
     rr = reinflate(fl.history, F, U, G, energy="volume")
     assert rr.success, rr.reason
     assert np.array_equal(rr.fine, V)
@@ -136,6 +138,7 @@ def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(c
                                                                                 knob, value):
     V, F, U, G, fl, *_ = contact_state
     monkeypatch.setattr(rf, knob, value)  # every step counts as blocked / too slow: switch at the first
+    monkeypatch.setattr(rf, "REVERSE_HESSIAN", "gauss_newton")
     monkeypatch.setattr(rf, "BARRIER_HESSIAN", "gauss_newton")
     kinds = []
     newton_step = rf._Problem.newton_step
@@ -152,3 +155,36 @@ def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(c
     assert re[0] == "gauss_newton" and set(re[1:]) == {"ipctk"} and len(re) > 1
     assert set(fin) == {"gauss_newton"}  # the final phase starts over with the Gauss-Newton matrix
     assert verify_nesting([(V, F), (rr.cage, G)]).ok
+
+
+def _hessian_kinds(contact_state, monkeypatch) -> tuple[list, list]:
+    """The Newton matrices re-inflation used: (reverse steps, final phase), one entry per Newton step."""
+    V, F, U, G, fl, *_ = contact_state
+    kinds = []
+    newton_step = rf._Problem.newton_step
+
+    def spy(self, X, target):
+        kinds.append((self.hessian_kind, target is None))
+        return newton_step(self, X, target)
+
+    monkeypatch.setattr(rf._Problem, "newton_step", spy)
+    rr = reinflate(fl.history, F, U, G, energy="volume")
+    assert rr.success, rr.reason
+    assert verify_nesting([(V, F), (rr.cage, G)]).ok
+    return [k for k, final in kinds if not final], [k for k, final in kinds if final]
+
+
+def test_by_default_the_reverse_steps_use_gauss_newton_and_the_final_phase_ipctk(contact_state, monkeypatch):
+    # the defaults: the final energy's minimiser (the cage) is reached with ipctk's projected Hessian
+    assert (rf.REVERSE_HESSIAN, rf.BARRIER_HESSIAN) == ("gauss_newton", "ipctk")
+    monkeypatch.setattr(rf, "GN_BLOCKED_ALPHA", -1.0)  # no switch: every reverse step stays Gauss-Newton
+    monkeypatch.setattr(rf, "GN_PATIENCE", 10**6)
+    re, fin = _hessian_kinds(contact_state, monkeypatch)
+    assert re and set(re) == {"gauss_newton"}
+    assert fin and set(fin) == {"ipctk"}
+
+
+def test_reverse_hessian_ipctk_keeps_ipctk_throughout(contact_state, monkeypatch):
+    monkeypatch.setattr(rf, "REVERSE_HESSIAN", "ipctk")
+    re, fin = _hessian_kinds(contact_state, monkeypatch)
+    assert set(re) == {"ipctk"} and set(fin) == {"ipctk"}

@@ -77,6 +77,15 @@ STALL_NEWTON = 20
 #: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column backs it.
 BARRIER_HESSIAN = "ipctk"
 
+#: Newton matrix of the reverse steps (same choices; :data:`BARRIER_HESSIAN` is the final phase's, so the
+#: final energy's minimiser -- what the cage becomes -- is reached with ipctk's Hessian either way).
+#: ``"gauss_newton"``: a reverse step only has to push the cage out of the fine surface's way; ipctk's
+#: projected Hessian was 0.3 of 0.45 s a Newton iteration on homer.obj's first layer (35k contacts,
+#: ~10 CPU us each against ~2 for the Gauss-Newton matrix, contact arrays included) and the reverse steps
+#: are most of a layer's cost on homer, pepper and decimated-max. A blocked or slow step still switches
+#: the rest of the re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
+REVERSE_HESSIAN = "gauss_newton"
+
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
 #: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|
 #: has not halved in :data:`GN_PATIENCE` iterations; the switched step gets a fresh stall window.
@@ -131,7 +140,7 @@ class _Problem:
         self.n_build = 0
         self.lam = np.zeros((pair.nf, 3))  # augmented-Lagrangian multipliers of F = target
         self._cache = None
-        self.hessian_kind = BARRIER_HESSIAN
+        self.hessian_kind = REVERSE_HESSIAN
         self.rest = np.asarray(pair.mesh.rest_positions)
 
     def barrier_hessian(self, col: ipctk.NormalCollisions, X: np.ndarray, fine_moves: bool

@@ -64,8 +64,11 @@ class ReinflateResult:
 #: A reverse step gives up when its smallest |F - target| has not halved in this many Newton iterations
 #: (it needs ~7 halvings to reach ``snap_tol``). cheburashka.obj's first target: the last step (the
 #: clearance) reached 0.0013 of the diagonal in 8 iterations, stayed there for 15 and then drifted away,
-#: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall.
-STALL_NEWTON = 20
+#: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall. 10, not 20: over 21 zoo meshes no
+#: reverse step that went on to converge had gone more than 5 iterations without halving (242 steps,
+#: ``benchmarks/results/cages/stall_plateaus_84c70b7.json``); the one stalled step there, homer.obj's
+#: QEM second layer, sat at 0.6 of ``dhat`` for 20 iterations with full steps shrinking 0.85x each.
+STALL_NEWTON = 10
 
 #: Newton matrix of the barrier: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.
 #: gauss_newton_hessian`, numpy) or ``"ipctk"`` (ipctk's full Hessian projected to PSD by clamping the

@@ -67,25 +67,26 @@ class ReinflateResult:
 #: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall. 10, not 20: over 21 zoo meshes no
 #: reverse step that went on to converge had gone more than 5 iterations without halving (242 steps,
 #: ``benchmarks/results/cages/stall_plateaus_84c70b7.json``); the one stalled step there, homer.obj's
-#: QEM second layer, sat at 0.6 of ``dhat`` for 20 iterations with full steps shrinking 0.85x each.
+#: QEM second layer (at 84c70b7), sat at 0.12 ``dhat`` from its target for 20 full, ever shorter steps.
 STALL_NEWTON = 10
 
-#: Newton matrix of the barrier: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.
-#: gauss_newton_hessian`, numpy) or ``"ipctk"`` (ipctk's full Hessian projected to PSD by clamping the
-#: eigenvalues of every contact's 12x12 block). Both are SPD; the gradient and the line search are
-#: ipctk's either way.
-#: Default ``"ipctk"``: with ``"gauss_newton"`` the cages were 1.0-1.7x cheaper in CPU
+#: Newton matrix of the barrier in the final phase (and of the reverse steps: :data:`REVERSE_HESSIAN`):
+#: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.gauss_newton_hessian`, numpy) or ``"ipctk"``
+#: (ipctk's full Hessian projected to PSD by clamping the eigenvalues of every contact's 12x12 block). Both
+#: are SPD; the gradient and the line search are ipctk's either way.
+#: Default ``"ipctk"``: with ``"gauss_newton"`` in both phases the cages were 1.0-1.7x cheaper in CPU
 #: (``benchmarks/results/cages/ab_0eb1630.json``) but homer.obj's diffusion V-cycle factor came out 0.317 and
 #: 0.260 over two fresh hierarchies against 0.197 with ipctk's Hessian in the same session (0.126-0.241 in
 #: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column backs it.
 BARRIER_HESSIAN = "ipctk"
 
-#: Newton matrix of the reverse steps (same choices; :data:`BARRIER_HESSIAN` is the final phase's, so the
-#: final energy's minimiser -- what the cage becomes -- is reached with ipctk's Hessian either way).
-#: ``"gauss_newton"``: a reverse step only has to push the cage out of the fine surface's way; ipctk's
-#: projected Hessian was 0.3 of 0.45 s a Newton iteration on homer.obj's first layer (35k contacts,
-#: ~10 CPU us each against ~2 for the Gauss-Newton matrix, contact arrays included) and the reverse steps
-#: are most of a layer's cost on homer, pepper and decimated-max. A blocked or slow step still switches
+#: Newton matrix of the reverse steps (same choices). ``"gauss_newton"``: a reverse step only has to push
+#: the cage out of the fine surface's way, and the final phase (:data:`BARRIER_HESSIAN`) reaches the final
+#: energy's minimiser, the cage, with ipctk's Hessian either way. ipctk's clamped Hessian costs 6.4-10.6 CPU
+#: us a contact on homer's and pepper's collision sets, the Gauss-Newton matrix 1.6-2.2 with its contact
+#: arrays (``benchmarks/results/cages/contact_hessian_cost_0568980.json``); cages 1.3-1.4x cheaper in CPU on
+#: homer, pepper, 1.2x on decimated-max (``cages/ab_ada0168_run*.json``), diffusion factors on fresh
+#: hierarchies not worse (``cages/factor_reverse_hessian_*.json``). A blocked or slow step still switches
 #: the rest of the re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
 REVERSE_HESSIAN = "gauss_newton"
 

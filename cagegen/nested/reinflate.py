@@ -85,9 +85,10 @@ BARRIER_HESSIAN = "ipctk"
 #: energy's minimiser, the cage, with ipctk's Hessian either way. ipctk's clamped Hessian costs 6.4-10.6 CPU
 #: us a contact on homer's and pepper's collision sets, the Gauss-Newton matrix 1.6-2.2 with its contact
 #: arrays (``benchmarks/results/cages/contact_hessian_cost_0568980.json``); cages 1.3-1.4x cheaper in CPU on
-#: homer, pepper, 1.2x on decimated-max (``cages/ab_ada0168_run*.json``), diffusion factors on fresh
-#: hierarchies not worse (``cages/factor_reverse_hessian_*.json``). A blocked or slow step still switches
-#: the rest of the re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
+#: homer, pepper, 1.2x on decimated-max (``cages/ab_ada0168_run*.json``); median diffusion factors on
+#: fresh hierarchies 0.216 -> 0.128, 0.106 -> 0.104, 0.124 -> 0.127 (6, 4, 4 each; run to run they spread
+#: over 0.12-0.27 on homer either way: ``cages/factor_reverse_hessian_*.json``). A blocked or slow step
+#: still switches the rest of the re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
 REVERSE_HESSIAN = "gauss_newton"
 
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a

@@ -120,6 +120,29 @@ def test_gauss_newton_hessian_is_psd_and_its_dofs_form_is_the_submatrix(contact_
     assert abs(Hs - H[dofs][:, dofs]).max() <= 1e-12 * abs(H).max()
 
 
+def test_gauss_newton_hessian_is_the_sum_of_the_contacts_outer_products(contact_state):
+    """The sparse assembly against a dense sum over the contacts of ``w m max(h'', 0) grad d grad d^T``."""
+    *_, pair, X, dhat, col = contact_state
+    kappa = 1e3
+    ca = contact_arrays(col, pair.mesh)
+    rest = np.asarray(pair.mesh.rest_positions)
+    d, g, w = contact_gradients(X, ca, rest)
+    _, h2 = barrier_derivatives(d, dhat, kappa)
+    used = np.unique(ca.ids[ca.ids >= 0])
+    dofs = (3 * used[:, None] + np.arange(3)).ravel()  # every DOF of some contact, in vertex order
+    where = np.full(X.size, -1)
+    where[dofs] = np.arange(len(dofs))
+    dense = np.zeros((len(dofs), len(dofs)))
+    for k in range(len(ca)):
+        ok = ca.ids[k] >= 0
+        rows = where[(3 * ca.ids[k][ok][:, None] + np.arange(3)).ravel()]
+        gk = g[k][ok].ravel()
+        dense[np.ix_(rows, rows)] += w[k] * max(h2[k], 0.0) * np.outer(gk, gk)
+    H = gauss_newton_hessian(X, ca, rest, dhat, kappa, dofs=dofs).toarray()
+    assert np.abs(dense).max() > 0
+    np.testing.assert_allclose(H, dense, rtol=0, atol=1e-12 * np.abs(dense).max())
+
+
 @pytest.mark.parametrize("reverse", ["gauss_newton", "ipctk"])
 @pytest.mark.parametrize("final", ["gauss_newton", "ipctk"])
 def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monkeypatch, reverse, final):

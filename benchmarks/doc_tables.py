@@ -477,7 +477,8 @@ def cages_speed() -> str:
 
 
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))
-CAGES_FACTOR_REVERSE_GN = tuple(f"cages/factor_reverse_hessian_{c}.json" for c in ("3a99854", "ada0168"))
+CAGES_FACTOR_REVERSE_GN = tuple(f"cages/factor_reverse_hessian_{c}.json" for c in (
+    "3a99854", "ada0168", "ada0168_fandisk_featuretype", "ada0168_featuretype2"))
 
 
 @generator("cages.reverse_gn", *CAGES_AB_REVERSE_GN, *CAGES_FACTOR_REVERSE_GN)

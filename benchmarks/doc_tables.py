@@ -494,6 +494,45 @@ def cages_speed() -> str:
             + f"volume ratios within {vol:.1e} of main's")
 
 
+CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))
+CAGES_FACTOR_REVERSE_GN = tuple(f"cages/factor_reverse_hessian_{c}.json" for c in (
+    "3a99854", "ada0168", "ada0168_fandisk_featuretype", "ada0168_featuretype2"))
+
+
+@generator("cages.reverse_gn", *CAGES_AB_REVERSE_GN, *CAGES_FACTOR_REVERSE_GN)
+def cages_reverse_gn() -> str:
+    """Median CPU seconds main -> Gauss-Newton reverse steps, what changed in the layers, and the diffusion
+    factors on fresh hierarchies with either reverse-step Hessian."""
+    runs = [load(rel)["meshes"] for rel in CAGES_AB_REVERSE_GN]
+    parts, ok, moved = [], 0, set()
+    for m in runs[0]:
+        b = statistics.median(r[m]["before"]["cpu_seconds"] for r in runs)
+        a = statistics.median(r[m]["after"]["cpu_seconds"] for r in runs)
+        ok += all(r[m]["after"]["ok"] for r in runs)
+        parts.append(f"{m} {b:.1f} -> {a:.1f}")
+        for r in runs:
+            for lb, la in zip(r[m]["before"]["layers"], r[m]["after"]["layers"]):
+                if lb["source"] != la["source"] or len(lb["failed_attempts"]) != len(la["failed_attempts"]):
+                    moved.add(f"{m} layer {la['layer']}")
+    ratios = [la["volume_ratio"] / lb["volume_ratio"] - 1 for r in runs for row in r.values()
+              for lb, la in zip(row["before"]["layers"], row["after"]["layers"])
+              if lb["source"] == la["source"]]
+    fac = [row for rel in CAGES_FACTOR_REVERSE_GN for row in load(rel)["runs"]]
+    cells = []
+    for m in dict.fromkeys(r["mesh"] for r in fac):
+        b, a = ([r["factor"] for r in fac if r["mesh"] == m and r["mode"] == k]
+                for k in ("ipctk", "gauss_newton"))
+        cells.append(f"{m} {rng(b, '.3f')} -> {rng(a, '.3f')} (medians {statistics.median(b):.3f} -> "
+                     f"{statistics.median(a):.3f}, {len(b)} hierarchies each)")
+    return (f"median CPU seconds of {len(runs)} interleaved runs, main -> this change: " + ", ".join(parts)
+            + f"; every layer of {ok} of {len(runs[0])} meshes certified in every run; volume ratios to the "
+            f"previous layer (same target source) {100 * min(ratios):+.2f}% to {100 * max(ratios):+.2f}% "
+            "of main's"
+            + (f"; other failed attempts or sources in some run: {', '.join(sorted(moved))}" if moved else "")
+            + "; diffusion V-cycle factors on fresh default hierarchies, ipctk's -> Gauss-Newton reverse "
+            "steps: " + "; ".join(cells))
+
+
 @generator("cages.profile", CAGES_PROFILE)
 def cages_profile() -> str:
     """Shares of the profiled CPU seconds: ipctk's barrier Hessian, collision builds and CCD."""

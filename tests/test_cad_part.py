@@ -144,8 +144,13 @@ def test_later_layers_try_the_envelope_first_once_a_layer_needed_it(monkeypatch,
     one, two = info["layers"]
     assert one["decimation"]["source"] == "envelope" and len(one["failed_attempts"]) == 1
     assert one["failed_attempts"][0]["flow_iterations"] == 0 and one["failed_attempts"][0]["seconds"] >= 0
-    assert two["decimation"]["source"] == "envelope" and two["failed_attempts"] == []
-    assert len(calls) == 3
+    # layer 2 goes straight to the envelope and none of its flows fails; a first envelope target may still
+    # miss the clearance after the final energy (with Gauss-Newton reverse steps, REVERSE_HESSIAN, its gap
+    # came out 0.00183 < GAP here) and the next envelope target certifies
+    assert two["decimation"]["source"] == "envelope"
+    assert all(f["action"].startswith("decimate the envelope") and f["stage"] != "flow"
+               for f in two["failed_attempts"])
+    assert len(calls) == 3 + len(two["failed_attempts"])
     assert verify_nesting([(V, F), *layers], min_gap=GAP).ok
 
 

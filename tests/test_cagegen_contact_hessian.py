@@ -120,10 +120,35 @@ def test_gauss_newton_hessian_is_psd_and_its_dofs_form_is_the_submatrix(contact_
     assert abs(Hs - H[dofs][:, dofs]).max() <= 1e-12 * abs(H).max()
 
 
-@pytest.mark.parametrize("kind", ["gauss_newton", "ipctk"])
-def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monkeypatch, kind):
+def test_gauss_newton_hessian_is_the_sum_of_the_contacts_outer_products(contact_state):
+    """The sparse assembly against a dense sum over the contacts of ``w m max(h'', 0) grad d grad d^T``."""
+    *_, pair, X, dhat, col = contact_state
+    kappa = 1e3
+    ca = contact_arrays(col, pair.mesh)
+    rest = np.asarray(pair.mesh.rest_positions)
+    d, g, w = contact_gradients(X, ca, rest)
+    _, h2 = barrier_derivatives(d, dhat, kappa)
+    used = np.unique(ca.ids[ca.ids >= 0])
+    dofs = (3 * used[:, None] + np.arange(3)).ravel()  # every DOF of some contact, in vertex order
+    where = np.full(X.size, -1)
+    where[dofs] = np.arange(len(dofs))
+    dense = np.zeros((len(dofs), len(dofs)))
+    for k in range(len(ca)):
+        ok = ca.ids[k] >= 0
+        rows = where[(3 * ca.ids[k][ok][:, None] + np.arange(3)).ravel()]
+        gk = g[k][ok].ravel()
+        dense[np.ix_(rows, rows)] += w[k] * max(h2[k], 0.0) * np.outer(gk, gk)
+    H = gauss_newton_hessian(X, ca, rest, dhat, kappa, dofs=dofs).toarray()
+    assert np.abs(dense).max() > 0
+    np.testing.assert_allclose(H, dense, rtol=0, atol=1e-12 * np.abs(dense).max())
+
+
+@pytest.mark.parametrize("reverse", ["gauss_newton", "ipctk"])
+@pytest.mark.parametrize("final", ["gauss_newton", "ipctk"])
+def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monkeypatch, reverse, final):
     V, F, U, G, fl, *_ = contact_state
-    monkeypatch.setattr(rf, "BARRIER_HESSIAN", kind)
+    monkeypatch.setattr(rf, "REVERSE_HESSIAN", reverse)
+    monkeypatch.setattr(rf, "BARRIER_HESSIAN", final)
     rr = reinflate(fl.history, F, U, G, energy="volume")
     assert rr.success, rr.reason
     assert np.array_equal(rr.fine, V)
@@ -136,6 +161,7 @@ def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(c
                                                                                 knob, value):
     V, F, U, G, fl, *_ = contact_state
     monkeypatch.setattr(rf, knob, value)  # every step counts as blocked / too slow: switch at the first
+    monkeypatch.setattr(rf, "REVERSE_HESSIAN", "gauss_newton")
     monkeypatch.setattr(rf, "BARRIER_HESSIAN", "gauss_newton")
     kinds = []
     newton_step = rf._Problem.newton_step
@@ -152,3 +178,36 @@ def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(c
     assert re[0] == "gauss_newton" and set(re[1:]) == {"ipctk"} and len(re) > 1
     assert set(fin) == {"gauss_newton"}  # the final phase starts over with the Gauss-Newton matrix
     assert verify_nesting([(V, F), (rr.cage, G)]).ok
+
+
+def _hessian_kinds(contact_state, monkeypatch) -> tuple[list, list]:
+    """The Newton matrices re-inflation used: (reverse steps, final phase), one entry per Newton step."""
+    V, F, U, G, fl, *_ = contact_state
+    kinds = []
+    newton_step = rf._Problem.newton_step
+
+    def spy(self, X, target):
+        kinds.append((self.hessian_kind, target is None))
+        return newton_step(self, X, target)
+
+    monkeypatch.setattr(rf._Problem, "newton_step", spy)
+    rr = reinflate(fl.history, F, U, G, energy="volume")
+    assert rr.success, rr.reason
+    assert verify_nesting([(V, F), (rr.cage, G)]).ok
+    return [k for k, final in kinds if not final], [k for k, final in kinds if final]
+
+
+def test_by_default_the_reverse_steps_use_gauss_newton_and_the_final_phase_ipctk(contact_state, monkeypatch):
+    # the defaults: the final energy's minimiser (the cage) is reached with ipctk's projected Hessian
+    assert (rf.REVERSE_HESSIAN, rf.BARRIER_HESSIAN) == ("gauss_newton", "ipctk")
+    monkeypatch.setattr(rf, "GN_BLOCKED_ALPHA", -1.0)  # no switch: every reverse step stays Gauss-Newton
+    monkeypatch.setattr(rf, "GN_PATIENCE", 10**6)
+    re, fin = _hessian_kinds(contact_state, monkeypatch)
+    assert re and set(re) == {"gauss_newton"}
+    assert fin and set(fin) == {"ipctk"}
+
+
+def test_reverse_hessian_ipctk_keeps_ipctk_throughout(contact_state, monkeypatch):
+    monkeypatch.setattr(rf, "REVERSE_HESSIAN", "ipctk")
+    re, fin = _hessian_kinds(contact_state, monkeypatch)
+    assert set(re) == {"ipctk"} and set(fin) == {"ipctk"}

@@ -202,12 +202,14 @@ def gauss_newton_hessian(X: np.ndarray, ca: ContactArrays, rest: np.ndarray, dha
     d, g, w = contact_gradients(X, ca, rest)
     _, h2 = barrier_derivatives(d, dhat, kappa)
     a = w * np.maximum(h2, 0.0)
-    # H = J^T diag(a) J with J the (k, 3N) Jacobian of the distances: 12 nonzeros a row
+    # H = (J^T diag(a)) J with J the (k, 3N) Jacobian of the distances (12 nonzeros a row); J^T diag(a) is
+    # assembled as a csr matrix of its own, so the product is one csr x csr (no csc conversions)
     where = np.full(n3, -1, dtype=np.int64)
     where[dofs] = np.arange(len(dofs))
     cols = where[(3 * np.maximum(ca.ids, 0)[:, :, None] + np.arange(3)).reshape(len(ca), 12)]
     valid = np.repeat(ca.ids >= 0, 3, axis=1) & (cols >= 0)
-    rows = np.broadcast_to(np.arange(len(ca))[:, None], cols.shape)
-    J = sp.csr_matrix((g.reshape(len(ca), 12)[valid], (rows[valid], cols[valid])),
-                      shape=(len(ca), len(dofs)))
-    return (J.T @ sp.diags(a) @ J).tocsr()
+    rows = np.broadcast_to(np.arange(len(ca))[:, None], cols.shape)[valid]
+    cols, vals = cols[valid], g.reshape(len(ca), 12)[valid]
+    J = sp.csr_matrix((vals, (rows, cols)), shape=(len(ca), len(dofs)))
+    JtA = sp.csr_matrix((vals * a[rows], (cols, rows)), shape=(len(dofs), len(ca)))
+    return (JtA @ J).tocsr()

@@ -64,18 +64,32 @@ class ReinflateResult:
 #: A reverse step gives up when its smallest |F - target| has not halved in this many Newton iterations
 #: (it needs ~7 halvings to reach ``snap_tol``). cheburashka.obj's first target: the last step (the
 #: clearance) reached 0.0013 of the diagonal in 8 iterations, stayed there for 15 and then drifted away,
-#: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall.
-STALL_NEWTON = 20
+#: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall. 10, not 20: over 21 zoo meshes no
+#: reverse step that went on to converge had gone more than 5 iterations without halving (242 steps,
+#: ``benchmarks/results/cages/stall_plateaus_84c70b7.json``); the one stalled step there, homer.obj's
+#: QEM second layer (at 84c70b7), sat at 0.12 ``dhat`` from its target for 20 full, ever shorter steps.
+STALL_NEWTON = 10
 
-#: Newton matrix of the barrier: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.
-#: gauss_newton_hessian`, numpy) or ``"ipctk"`` (ipctk's full Hessian projected to PSD by clamping the
-#: eigenvalues of every contact's 12x12 block). Both are SPD; the gradient and the line search are
-#: ipctk's either way.
-#: Default ``"ipctk"``: with ``"gauss_newton"`` the cages were 1.0-1.7x cheaper in CPU
+#: Newton matrix of the barrier in the final phase (and of the reverse steps: :data:`REVERSE_HESSIAN`):
+#: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.gauss_newton_hessian`, numpy) or ``"ipctk"``
+#: (ipctk's full Hessian projected to PSD by clamping the eigenvalues of every contact's 12x12 block). Both
+#: are SPD; the gradient and the line search are ipctk's either way.
+#: Default ``"ipctk"``: with ``"gauss_newton"`` in both phases the cages were 1.0-1.7x cheaper in CPU
 #: (``benchmarks/results/cages/ab_0eb1630.json``) but homer.obj's diffusion V-cycle factor came out 0.317 and
 #: 0.260 over two fresh hierarchies against 0.197 with ipctk's Hessian in the same session (0.126-0.241 in
 #: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column backs it.
 BARRIER_HESSIAN = "ipctk"
+
+#: Newton matrix of the reverse steps (same choices). ``"gauss_newton"``: a reverse step only has to push
+#: the cage out of the fine surface's way, and the final phase (:data:`BARRIER_HESSIAN`) reaches the final
+#: energy's minimiser, the cage, with ipctk's Hessian either way. ipctk's clamped Hessian costs 6.4-10.6 CPU
+#: us a contact on homer's and pepper's collision sets, the Gauss-Newton matrix 1.6-2.2 with its contact
+#: arrays (``benchmarks/results/cages/contact_hessian_cost_0568980.json``); cages 1.3-1.4x cheaper in CPU on
+#: homer, pepper, 1.2x on decimated-max (``cages/ab_ada0168_run*.json``); median diffusion factors on
+#: fresh hierarchies 0.216 -> 0.128, 0.106 -> 0.104, 0.124 -> 0.127 (6, 4, 4 each; run to run they spread
+#: over 0.12-0.27 on homer either way: ``cages/factor_reverse_hessian_*.json``). A blocked or slow step
+#: still switches the rest of the re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
+REVERSE_HESSIAN = "gauss_newton"
 
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
 #: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|
@@ -131,7 +145,7 @@ class _Problem:
         self.n_build = 0
         self.lam = np.zeros((pair.nf, 3))  # augmented-Lagrangian multipliers of F = target
         self._cache = None
-        self.hessian_kind = BARRIER_HESSIAN
+        self.hessian_kind = REVERSE_HESSIAN
         self.rest = np.asarray(pair.mesh.rest_positions)
 
     def barrier_hessian(self, col: ipctk.NormalCollisions, X: np.ndarray, fine_moves: bool

@@ -64,11 +64,12 @@ class ReinflateResult:
 #: A reverse step gives up when its smallest |F - target| has not halved in this many Newton iterations
 #: (it needs ~7 halvings to reach ``snap_tol``). cheburashka.obj's first target: the last step (the
 #: clearance) reached 0.0013 of the diagonal in 8 iterations, stayed there for 15 and then drifted away,
-#: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall. 10, not 20: over 21 zoo meshes no
-#: reverse step that went on to converge had gone more than 5 iterations without halving (242 steps,
-#: ``benchmarks/results/cages/stall_plateaus_84c70b7.json``); the one stalled step there, homer.obj's
-#: QEM second layer (at 84c70b7), sat at 0.12 ``dhat`` from its target for 20 full, ever shorter steps.
-STALL_NEWTON = 10
+#: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall. Over 21 zoo meshes no reverse step
+#: that went on to converge had gone more than 5 iterations without halving (242 steps,
+#: ``benchmarks/results/cages/stall_plateaus_84c70b7.json``), so 10 would do there; it stays 20 because
+#: lucy.ply's full surface, not among them, ran past 700 s with 10 and Gauss-Newton reverse steps
+#: (``corpus/lucy_cages_e8342fb.json``) and the cause was not separated (:data:`REVERSE_HESSIAN`).
+STALL_NEWTON = 20
 
 #: Newton matrix of the barrier in the final phase (and of the reverse steps: :data:`REVERSE_HESSIAN`):
 #: ``"gauss_newton"`` (:func:`cagegen.nested.contact_hessian.gauss_newton_hessian`, numpy) or ``"ipctk"``
@@ -80,16 +81,18 @@ STALL_NEWTON = 10
 #: earlier corpus runs; ``corpus/zoo_866d3e5_part.json``): not the default until the solve column backs it.
 BARRIER_HESSIAN = "ipctk"
 
-#: Newton matrix of the reverse steps (same choices). ``"gauss_newton"``: a reverse step only has to push
-#: the cage out of the fine surface's way, and the final phase (:data:`BARRIER_HESSIAN`) reaches the final
-#: energy's minimiser, the cage, with ipctk's Hessian either way. ipctk's clamped Hessian costs 6.4-10.6 CPU
-#: us a contact on homer's and pepper's collision sets, the Gauss-Newton matrix 1.6-2.2 with its contact
-#: arrays (``benchmarks/results/cages/contact_hessian_cost_0568980.json``); cages 1.3-1.4x cheaper in CPU on
-#: homer, pepper, 1.2x on decimated-max (``cages/ab_ada0168_run*.json``); median diffusion factors on
-#: fresh hierarchies 0.216 -> 0.128, 0.106 -> 0.104, 0.124 -> 0.127 (6, 4, 4 each; run to run they spread
-#: over 0.12-0.27 on homer either way: ``cages/factor_reverse_hessian_*.json``). A blocked or slow step
-#: still switches the rest of the re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
-REVERSE_HESSIAN = "gauss_newton"
+#: Newton matrix of the reverse steps (same choices). ``"gauss_newton"`` there is cheaper: ipctk's clamped
+#: Hessian costs 6.4-10.6 CPU us a contact on homer's and pepper's collision sets, the Gauss-Newton matrix
+#: 1.6-2.2 with its contact arrays (``benchmarks/results/cages/contact_hessian_cost_0568980.json``); with it
+#: and ``STALL_NEWTON = 10`` the cages were 1.3-1.4x cheaper in CPU on homer and pepper, 1.2x on
+#: decimated-max (``cages/ab_ada0168_run*.json``), the median diffusion factors on fresh hierarchies
+#: 0.216 -> 0.128, 0.106 -> 0.104, 0.124 -> 0.127 (``cages/factor_reverse_hessian_*.json``). Not the default:
+#: the cages of lucy.ply's full 100k-face surface took 301 s with ipctk's Hessian and ran past 700 s with
+#: Gauss-Newton reverse steps and a stall window of 10 (the two run side by side, ``corpus/lucy_cages_*``),
+#: and round.stl's corpus hierarchy missed its tet-level certificate once (one fine node outside after the
+#: retries, ``corpus/zoo_e8342fb.json``; certified on a re-run). A blocked or slow step switches a
+#: Gauss-Newton re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
+REVERSE_HESSIAN = "ipctk"
 
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
 #: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|

@@ -159,29 +159,18 @@ def test_both_barrier_hessians_reinflate_to_a_certified_cage(contact_state, monk
 @pytest.mark.parametrize("knob, value", [("GN_BLOCKED_ALPHA", 1.01), ("GN_PATIENCE", 0)])
 def test_a_blocked_or_slow_gauss_newton_step_switches_the_reinflation_to_ipctk(contact_state, monkeypatch,
                                                                                 knob, value):
-    V, F, U, G, fl, *_ = contact_state
     monkeypatch.setattr(rf, knob, value)  # every step counts as blocked / too slow: switch at the first
     monkeypatch.setattr(rf, "REVERSE_HESSIAN", "gauss_newton")
     monkeypatch.setattr(rf, "BARRIER_HESSIAN", "gauss_newton")
-    kinds = []
-    newton_step = rf._Problem.newton_step
-
-    def spy(self, X, target):
-        kinds.append((self.hessian_kind, target is None))
-        return newton_step(self, X, target)
-
-    monkeypatch.setattr(rf._Problem, "newton_step", spy)
-    rr = reinflate(fl.history, F, U, G, energy="volume")
-    assert rr.success, rr.reason
+    re, fin, rr = _hessian_kinds(contact_state, monkeypatch)
     assert rr.stats["hessian_switched_at"] == [1, 1]
-    re, fin = [k for k, final in kinds if not final], [k for k, final in kinds if final]
     assert re[0] == "gauss_newton" and set(re[1:]) == {"ipctk"} and len(re) > 1
     assert set(fin) == {"gauss_newton"}  # the final phase starts over with the Gauss-Newton matrix
-    assert verify_nesting([(V, F), (rr.cage, G)]).ok
 
 
-def _hessian_kinds(contact_state, monkeypatch) -> tuple[list, list]:
-    """The Newton matrices re-inflation used: (reverse steps, final phase), one entry per Newton step."""
+def _hessian_kinds(contact_state, monkeypatch) -> tuple[list, list, object]:
+    """The Newton matrices a certified re-inflation used: (reverse steps, final phase), one entry per Newton
+    step, and its result."""
     V, F, U, G, fl, *_ = contact_state
     kinds = []
     newton_step = rf._Problem.newton_step
@@ -194,7 +183,7 @@ def _hessian_kinds(contact_state, monkeypatch) -> tuple[list, list]:
     rr = reinflate(fl.history, F, U, G, energy="volume")
     assert rr.success, rr.reason
     assert verify_nesting([(V, F), (rr.cage, G)]).ok
-    return [k for k, final in kinds if not final], [k for k, final in kinds if final]
+    return [k for k, final in kinds if not final], [k for k, final in kinds if final], rr
 
 
 def test_gauss_newton_reverse_steps_and_the_final_phase_ipctk(contact_state, monkeypatch):
@@ -204,12 +193,12 @@ def test_gauss_newton_reverse_steps_and_the_final_phase_ipctk(contact_state, mon
     monkeypatch.setattr(rf, "REVERSE_HESSIAN", "gauss_newton")
     monkeypatch.setattr(rf, "GN_BLOCKED_ALPHA", -1.0)  # no switch: every reverse step stays Gauss-Newton
     monkeypatch.setattr(rf, "GN_PATIENCE", 10**6)
-    re, fin = _hessian_kinds(contact_state, monkeypatch)
+    re, fin, _ = _hessian_kinds(contact_state, monkeypatch)
     assert re and set(re) == {"gauss_newton"}
     assert fin and set(fin) == {"ipctk"}
 
 
 def test_reverse_hessian_ipctk_keeps_ipctk_throughout(contact_state, monkeypatch):
     monkeypatch.setattr(rf, "REVERSE_HESSIAN", "ipctk")
-    re, fin = _hessian_kinds(contact_state, monkeypatch)
+    re, fin, _ = _hessian_kinds(contact_state, monkeypatch)
     assert set(re) == {"ipctk"} and set(fin) == {"ipctk"}

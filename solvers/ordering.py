@@ -154,15 +154,17 @@ def _transposed(B: sp.csr_matrix) -> sp.csr_matrix:
     return out
 
 
-def diagonal_first(A: sp.csr_matrix, positions: np.ndarray) -> sp.csr_matrix:
-    """``A`` with each row's diagonal entry moved to the front of its row (the others keep their order).
+def diagonal_first(A: sp.csr_matrix, positions: np.ndarray, *, in_place: bool = False) -> sp.csr_matrix:
+    """``A`` with each row's diagonal entry first: it trades places with the row's first entry.
 
     pyamg's Gauss–Seidel kernel tests every entry of a row for the diagonal; with the diagonal at a varying
     place in the row that branch is mispredicted about once per row, and a sweep on a canonical P1 matrix
-    (14-15 entries per row) cost 1.6-2.1 SpMVs (either direction). With the diagonal first the same sweep, the
-    same bits, took 0.95-1.4 (the fine levels of the 1M-tet user hierarchies,
-    ``benchmarks/results/user_mesh/sweep_direction.json``); 1.1-1.3x less on their coarse levels. Products
-    with the matrix sum each row in another order (round-off). One gather of ``A``'s entries.
+    (14-15 entries per row) cost 1.6-2.1 SpMVs (either direction). With the diagonal first the same sweep
+    took 0.95-1.4 (the fine levels of the 1M-tet user hierarchies,
+    ``benchmarks/results/user_mesh/sweep_direction.json``); 1.1-1.3x less on their coarse levels. One swap
+    per row, O(n): moving the diagonal to the front with the other entries in their order was a gather of
+    every entry (15-18 ms of a 1M-tet user hierarchy's set-up). Sums over a row (products, sweeps) then add
+    its entries in another order (round-off).
 
     Parameters
     ----------
@@ -170,22 +172,24 @@ def diagonal_first(A: sp.csr_matrix, positions: np.ndarray) -> sp.csr_matrix:
         Every row stores its diagonal entry once.
     positions : (n,) int array
         The position of row ``i``'s diagonal entry in ``A.indices`` / ``A.data``.
+    in_place : bool
+        Swap in ``A``'s own arrays (``A`` then is the result, no longer sorted) instead of copies.
 
     Returns
     -------
     csr_matrix
-        ``A`` as a matrix (``has_sorted_indices`` False), new index and value arrays, ``A``'s row pointers.
+        ``A`` as a matrix (``has_sorted_indices`` False) on ``A``'s row pointers.
     """
     start = A.indptr[:-1]
-    # a row's entries up to its diagonal shift one place right, the diagonal takes the first place:
-    # source position = own position - 1 on (start, diagonal], the diagonal's at start
-    shift = np.zeros(A.nnz + 1, dtype=A.indptr.dtype)
-    shift[start + 1] += 1
-    shift[positions + 1] -= 1
-    src = np.arange(A.nnz, dtype=A.indptr.dtype)
-    src -= np.cumsum(shift[:-1], dtype=A.indptr.dtype)
-    src[start] = positions
-    out = sp.csr_matrix((A.data.take(src), A.indices.take(src), A.indptr), shape=A.shape)
+    data, indices = (A.data, A.indices) if in_place else (A.data.copy(), A.indices.copy())
+    for arr in (data, indices):
+        first = arr.take(start)
+        arr[start] = arr.take(positions)
+        arr[positions] = first
+    if in_place:
+        A.has_sorted_indices = False
+        return A
+    out = sp.csr_matrix((data, indices, A.indptr), shape=A.shape)
     out.has_sorted_indices = False
     return out
 

@@ -225,7 +225,7 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
     Ac.has_canonical_format = True
     if firsts is not None:  # after the products: not held beside them
-        firsts.append(None if positions[0] is None else diagonal_first(Ak, positions[0]))
+        firsts.append(None if positions[0] is None else diagonal_first(Ak, positions[0], in_place=True))
     return Ac
 
 

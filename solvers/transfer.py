@@ -175,9 +175,9 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
 
 
 def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
-    """``(L + D/2, diag(A))`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D``
-    diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row
-    keeps its lower entries first, so they are one gather of positions; when every row stores its diagonal (a
+    """``(L + D/2, diag(A))`` of a CSR matrix ``A = L + D + U`` without duplicates (``L`` strictly lower,
+    ``D`` diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. They are one
+    gather of positions; when the rows are sorted (``has_sorted_indices``) and every row stores its diagonal (a
     level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
     ``positions``: a list that receives the diagonal entries' positions in ``A`` (None if a row lacks it)."""
     n = A.shape[0]
@@ -188,7 +188,7 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr
     indices, data = A.indices.take(keep), A.data.take(keep)
     if positions is not None:
         positions.append(diag if diag.size == n else None)
-    if diag.size == n:  # one diagonal entry per row (canonical: no duplicates), the last one kept
+    if diag.size == n and A.has_sorted_indices:  # one diagonal entry per row, the last one kept
         d = A.data.take(diag)
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])

@@ -360,6 +360,12 @@ def test_symmetric_galerkin_product_equals_ptap():
         A.sort_indices()
         half, d = transfer._lower_half(A)
         assert abs(half + half.T - A).max() == 0.0 and np.array_equal(d, A.diagonal())
+        # rows in another order (a permuted fine matrix's): the same split
+        shuffle = np.concatenate([A.indptr[i] + rng.permutation(A.indptr[i + 1] - A.indptr[i]) for i in range(n)])
+        U = sp.csr_matrix((A.data[shuffle], A.indices[shuffle], A.indptr.copy()), shape=A.shape)
+        U.has_sorted_indices = False
+        half_u, d_u = transfer._lower_half(U)
+        assert abs(half_u - half).max() == 0.0 and np.array_equal(d_u, d)
         Ac = transfer.galerkin_operators(A, [P])[1]
         ref = sp.csr_matrix(P.T @ A @ P)
         assert abs(Ac - ref).max() <= 1e-12 * abs(ref).max()

@@ -109,7 +109,7 @@ def permute_symmetric(A: sp.csr_matrix, p: np.ndarray) -> sp.csr_matrix:
 
 
 def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool = True, rtol: float = 1e-10,
-                                seed: int = 0) -> tuple[sp.csr_matrix, bool]:
+                                seed: int = 0, sort: bool = True) -> tuple[sp.csr_matrix, bool]:
     """``(A[p][:, p])ᵀ`` in canonical CSR form and whether ``A`` is symmetric, for one transpose.
 
     A symmetric matrix is its own transpose, so one O(nnz) transpose of the gathered, relabelled rows gives
@@ -120,21 +120,27 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
     for the asymmetry of an advection or a one-sided boundary condition, with probability ``1 - 1/c`` for a
     ``δ`` of ``c`` times the tolerance, whose test is a matter of convention anyway.
     A non-symmetric ``A`` gets the second transpose: the returned matrix is then ``A[p][:, p]`` itself.
-    ``probe=False``: the caller states that ``A`` is symmetric (no test).
+    ``probe=False``: the caller states that ``A`` is symmetric (no test). ``sort=False``: no transpose at all,
+    ``A[p][:, p]`` itself with each row's entries in ``A``'s column order (``has_sorted_indices`` False; the
+    probe multiplies by its transpose in place), for a caller that does not need sorted rows (the multigrid
+    set-up: ~12 ms of a 1M-tet user matrix's 2.5M entries).
 
     Returns
     -------
     (csr_matrix, bool)
         ``Ap`` (canonical; ``A[p][:, p]`` exactly when ``A`` is exactly symmetric, else within ``rtol`` of
-        it when symmetric, and exactly when not) and the symmetry verdict.
+        it when symmetric, and exactly when not; ``sort=False``: ``A[p][:, p]`` exactly, rows unsorted) and
+        the symmetry verdict.
     """
     B = _gathered(A, p, p)
-    Bt = _transposed(B)
+    Bt = _transposed(B) if sort else B.T
     if not probe:
-        return Bt, True
+        return (Bt if sort else B), True
     scale = rtol * (float(np.abs(B.data).max()) if B.nnz else 1.0)
     x = np.random.default_rng(seed).uniform(-1.0, 1.0, B.shape[0])
     symmetric = float(np.abs(B @ x - Bt @ x).max(initial=0.0)) <= scale
+    if not sort:
+        return B, symmetric
     return (Bt, True) if symmetric else (_transposed(Bt), False)
 
 
@@ -143,7 +149,9 @@ def _gathered(A: sp.csr_matrix, rows: np.ndarray, cols: np.ndarray) -> sp.csr_ma
     column order (not sorted by new label): one row gather and one relabelling gather."""
     B = A[rows]
     inv = _inverse(np.asarray(cols, dtype=np.int64), B.indices.dtype)  # one gather in the index type
-    return sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=A.shape)
+    out = sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=A.shape)
+    out.has_sorted_indices = False  # relabelled: not known sorted (no O(nnz) check when asked)
+    return out
 
 
 def _transposed(B: sp.csr_matrix) -> sp.csr_matrix:
@@ -154,15 +162,17 @@ def _transposed(B: sp.csr_matrix) -> sp.csr_matrix:
     return out
 
 
-def diagonal_first(A: sp.csr_matrix, positions: np.ndarray) -> sp.csr_matrix:
-    """``A`` with each row's diagonal entry moved to the front of its row (the others keep their order).
+def diagonal_first(A: sp.csr_matrix, positions: np.ndarray, *, in_place: bool = False) -> sp.csr_matrix:
+    """``A`` with each row's diagonal entry first: it trades places with the row's first entry.
 
     pyamg's Gauss–Seidel kernel tests every entry of a row for the diagonal; with the diagonal at a varying
     place in the row that branch is mispredicted about once per row, and a sweep on a canonical P1 matrix
-    (14-15 entries per row) cost 1.6-2.1 SpMVs (either direction). With the diagonal first the same sweep, the
-    same bits, took 0.95-1.4 (the fine levels of the 1M-tet user hierarchies,
-    ``benchmarks/results/user_mesh/sweep_direction.json``); 1.1-1.3x less on their coarse levels. Products
-    with the matrix sum each row in another order (round-off). One gather of ``A``'s entries.
+    (14-15 entries per row) cost 1.6-2.1 SpMVs (either direction). With the diagonal first the same sweep
+    took 0.95-1.4 (the fine levels of the 1M-tet user hierarchies,
+    ``benchmarks/results/user_mesh/sweep_direction.json``); 1.1-1.3x less on their coarse levels. One swap
+    per row, O(n): moving the diagonal to the front with the other entries in their order was a gather of
+    every entry (15-18 ms of a 1M-tet user hierarchy's set-up). Sums over a row (products, sweeps) then add
+    its entries in another order (round-off).
 
     Parameters
     ----------
@@ -170,30 +180,35 @@ def diagonal_first(A: sp.csr_matrix, positions: np.ndarray) -> sp.csr_matrix:
         Every row stores its diagonal entry once.
     positions : (n,) int array
         The position of row ``i``'s diagonal entry in ``A.indices`` / ``A.data``.
+    in_place : bool
+        Swap in ``A``'s own arrays (``A`` then is the result, no longer sorted) instead of copies.
 
     Returns
     -------
     csr_matrix
-        ``A`` as a matrix (``has_sorted_indices`` False), new index and value arrays, ``A``'s row pointers.
+        ``A`` as a matrix (``has_sorted_indices`` False) on ``A``'s row pointers.
     """
     start = A.indptr[:-1]
-    # a row's entries up to its diagonal shift one place right, the diagonal takes the first place:
-    # source position = own position - 1 on (start, diagonal], the diagonal's at start
-    shift = np.zeros(A.nnz + 1, dtype=A.indptr.dtype)
-    shift[start + 1] += 1
-    shift[positions + 1] -= 1
-    src = np.arange(A.nnz, dtype=A.indptr.dtype)
-    src -= np.cumsum(shift[:-1], dtype=A.indptr.dtype)
-    src[start] = positions
-    out = sp.csr_matrix((A.data.take(src), A.indices.take(src), A.indptr), shape=A.shape)
+    data, indices = (A.data, A.indices) if in_place else (A.data.copy(), A.indices.copy())
+    for arr in (data, indices):
+        first = arr.take(start)
+        arr[start] = arr.take(positions)
+        arr[positions] = first
+    if in_place:
+        A.has_sorted_indices = False
+        return A
+    out = sp.csr_matrix((data, indices, A.indptr), shape=A.shape)
     out.has_sorted_indices = False
     return out
 
 
 def permute_prolongation(P: sp.csr_matrix, p_fine: np.ndarray, p_coarse: np.ndarray, *,
-                         with_transpose: bool = False):
+                         with_transpose: bool = False, sort: bool = True):
     """``P[p_fine][:, p_coarse]`` (canonical CSR); with ``with_transpose=True`` also its transpose (the
-    restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows."""
-    R = _transposed(_gathered(P, p_fine, p_coarse))
-    out = _transposed(R)
+    restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows.
+    ``sort=False``: the prolongation with each row's entries in ``P``'s column order (one transpose fewer;
+    products and the cycle's interpolation do not need sorted rows)."""
+    G = _gathered(P, p_fine, p_coarse)
+    R = _transposed(G)
+    out = _transposed(R) if sort else G
     return (out, R) if with_transpose else out

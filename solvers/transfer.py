@@ -175,28 +175,33 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
 
 
 def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
-    """``(L + D/2, diag(A))`` of a canonical CSR matrix ``A = L + D + U`` (``L`` strictly lower, ``D``
-    diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. A canonical row
-    keeps its lower entries first, so they are one gather of positions; when every row stores its diagonal (a
+    """``(L + D/2, diag(A))`` of a CSR matrix ``A = L + D + U`` without duplicates (``L`` strictly lower,
+    ``D`` diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. They are one
+    gather of positions; when the rows are sorted (``has_sorted_indices``) and every row stores its diagonal (a
     level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
     ``positions``: a list that receives the diagonal entries' positions in ``A`` (None if a row lacks it)."""
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
-    diag = np.flatnonzero(A.indices == rows)
-    keep = np.flatnonzero(A.indices <= rows)
+    on_diag = A.indices == rows
+    diag = np.flatnonzero(on_diag)
+    lower = A.indices <= rows
+    keep = np.flatnonzero(lower)
     del rows
     indices, data = A.indices.take(keep), A.data.take(keep)
     if positions is not None:
         positions.append(diag if diag.size == n else None)
-    if diag.size == n:  # one diagonal entry per row (canonical: no duplicates), the last one kept
-        d = A.data.take(diag)
+    if diag.size == n and A.has_sorted_indices:  # one diagonal entry per row, the last one kept
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
         data[indptr[1:] - 1] *= 0.5
+    elif diag.size == n:  # unsorted rows (a permuted fine matrix), none empty: count the kept entries per row
+        indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
+        np.cumsum(np.add.reduceat(lower.view(np.int8), A.indptr[:-1], dtype=A.indptr.dtype), out=indptr[1:])
+        data[on_diag.take(keep)] *= 0.5
     else:
-        d = A.diagonal()
         indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row
         data[np.searchsorted(keep, diag)] *= 0.5  # the diagonal entries' new positions
+    d = A.data.take(diag) if diag.size == n else A.diagonal()
     return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
 
 
@@ -225,7 +230,7 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
     Ac.has_canonical_format = True
     if firsts is not None:  # after the products: not held beside them
-        firsts.append(None if positions[0] is None else diagonal_first(Ak, positions[0]))
+        firsts.append(None if positions[0] is None else diagonal_first(Ak, positions[0], in_place=True))
     return Ac
 
 

@@ -360,6 +360,12 @@ def test_symmetric_galerkin_product_equals_ptap():
         A.sort_indices()
         half, d = transfer._lower_half(A)
         assert abs(half + half.T - A).max() == 0.0 and np.array_equal(d, A.diagonal())
+        # rows in another order (a permuted fine matrix's): the same split
+        shuffle = np.concatenate([A.indptr[i] + rng.permutation(A.indptr[i + 1] - A.indptr[i]) for i in range(n)])
+        U = sp.csr_matrix((A.data[shuffle], A.indices[shuffle], A.indptr.copy()), shape=A.shape)
+        U.has_sorted_indices = False
+        half_u, d_u = transfer._lower_half(U)
+        assert abs(half_u - half).max() == 0.0 and np.array_equal(d_u, d)
         Ac = transfer.galerkin_operators(A, [P])[1]
         ref = sp.csr_matrix(P.T @ A @ P)
         assert abs(Ac - ref).max() <= 1e-12 * abs(ref).max()
@@ -652,8 +658,9 @@ def test_energy_scaling_recovers_galerkin_from_scaled_operators(cube):
     f_ge, res_ge = _factor(ge, ds.b)
     f_s, res_s = _factor(fixed, ds.b)
     # identical up to round-off: the first 8 residuals agree to 1e-6; the factor (from the last ratios,
-    # near 1e-8) to 1e-5
-    assert f_s == pytest.approx(f_ge, abs=1e-5)
+    # near 1e-8) to 1e-4 (the given operators are sorted, the Galerkin ones stored diagonal first: the
+    # sweeps add each row in another order, 2e-5 apart here)
+    assert f_s == pytest.approx(f_ge, abs=1e-4)
     assert np.allclose(res_s[:8], res_ge[:8], rtol=1e-6)
     # with Galerkin operators the scaling only tunes the step after inexact inner cycles (measured
     # 0.228 -> 0.202 on this 3-level cube)

@@ -342,8 +342,8 @@ def probe_under_cg() -> str:
             f"{len(gains)} cases)")
 
 
-#: the 12-case run before the sweep-layout round (code b6a77ee, on the same saved cases), kept for comparison
-USER_SOLVERS_BEFORE = "user_mesh/solvers_b6a77ee.json"
+#: the 12-case run before the diagonal swaps and unsorted permutations (code f34456f, same saved cases)
+USER_SOLVERS_BEFORE = "user_mesh/solvers_f34456f.json"
 
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)

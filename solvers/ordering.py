@@ -109,7 +109,7 @@ def permute_symmetric(A: sp.csr_matrix, p: np.ndarray) -> sp.csr_matrix:
 
 
 def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool = True, rtol: float = 1e-10,
-                                seed: int = 0, sort: bool = True) -> tuple[sp.csr_matrix, bool]:
+                                seed: int = 0) -> tuple[sp.csr_matrix, bool]:
     """``(A[p][:, p])ᵀ`` in canonical CSR form and whether ``A`` is symmetric, for one transpose.
 
     A symmetric matrix is its own transpose, so one O(nnz) transpose of the gathered, relabelled rows gives
@@ -120,27 +120,21 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
     for the asymmetry of an advection or a one-sided boundary condition, with probability ``1 - 1/c`` for a
     ``δ`` of ``c`` times the tolerance, whose test is a matter of convention anyway.
     A non-symmetric ``A`` gets the second transpose: the returned matrix is then ``A[p][:, p]`` itself.
-    ``probe=False``: the caller states that ``A`` is symmetric (no test). ``sort=False``: no transpose at all,
-    ``A[p][:, p]`` itself with each row's entries in ``A``'s column order (``has_sorted_indices`` False; the
-    probe multiplies by its transpose in place), for a caller that does not need sorted rows (the multigrid
-    set-up: ~12 ms of a 1M-tet user matrix's 2.5M entries).
+    ``probe=False``: the caller states that ``A`` is symmetric (no test).
 
     Returns
     -------
     (csr_matrix, bool)
         ``Ap`` (canonical; ``A[p][:, p]`` exactly when ``A`` is exactly symmetric, else within ``rtol`` of
-        it when symmetric, and exactly when not; ``sort=False``: ``A[p][:, p]`` exactly, rows unsorted) and
-        the symmetry verdict.
+        it when symmetric, and exactly when not) and the symmetry verdict.
     """
     B = _gathered(A, p, p)
-    Bt = _transposed(B) if sort else B.T
+    Bt = _transposed(B)
     if not probe:
-        return (Bt if sort else B), True
+        return Bt, True
     scale = rtol * (float(np.abs(B.data).max()) if B.nnz else 1.0)
     x = np.random.default_rng(seed).uniform(-1.0, 1.0, B.shape[0])
     symmetric = float(np.abs(B @ x - Bt @ x).max(initial=0.0)) <= scale
-    if not sort:
-        return B, symmetric
     return (Bt, True) if symmetric else (_transposed(Bt), False)
 
 
@@ -203,12 +197,9 @@ def diagonal_first(A: sp.csr_matrix, positions: np.ndarray, *, in_place: bool = 
 
 
 def permute_prolongation(P: sp.csr_matrix, p_fine: np.ndarray, p_coarse: np.ndarray, *,
-                         with_transpose: bool = False, sort: bool = True):
+                         with_transpose: bool = False):
     """``P[p_fine][:, p_coarse]`` (canonical CSR); with ``with_transpose=True`` also its transpose (the
-    restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows.
-    ``sort=False``: the prolongation with each row's entries in ``P``'s column order (one transpose fewer;
-    products and the cycle's interpolation do not need sorted rows)."""
-    G = _gathered(P, p_fine, p_coarse)
-    R = _transposed(G)
-    out = _transposed(R) if sort else G
+    restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows."""
+    R = _transposed(_gathered(P, p_fine, p_coarse))
+    out = _transposed(R)
     return (out, R) if with_transpose else out

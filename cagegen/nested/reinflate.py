@@ -68,7 +68,8 @@ class ReinflateResult:
 #: that went on to converge had gone more than 5 iterations without halving (242 steps,
 #: ``benchmarks/results/cages/stall_plateaus_84c70b7.json``), so 10 would do there; it stays 20 because
 #: lucy.ply's full surface, not among them, ran past 700 s with 10 and Gauss-Newton reverse steps
-#: (``corpus/lucy_cages_e8342fb.json``) and the cause was not separated (:data:`REVERSE_HESSIAN`).
+#: (``corpus/lucy_cages_e8342fb.json``); with 20 and Gauss-Newton it took 166 against 156 CPU s with
+#: ipctk's Hessian (``cages/ab_32667e4.json``): the window of 10 (or that run's load) was the cause.
 STALL_NEWTON = 20
 
 #: Newton matrix of the barrier in the final phase (and of the reverse steps: :data:`REVERSE_HESSIAN`):

@@ -194,7 +194,7 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
         data[indptr[1:] - 1] *= 0.5
-    elif diag.size == n:  # unsorted rows (a permuted fine matrix), none empty: count the kept entries per row
+    elif diag.size == n:  # rows not known sorted, none empty: count the kept entries of each row
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(np.add.reduceat(lower.view(np.int8), A.indptr[:-1], dtype=A.indptr.dtype), out=indptr[1:])
         data[on_diag.take(keep)] *= 0.5

@@ -158,10 +158,10 @@ def slow_modes(
                 info["slow_modes_found"] = slow
                 return np.zeros((n, 0)), info
         # an invariant subspace: the Ritz pairs are exact. The Krylov vectors have unit A-norm, so the scale
-        # is at least 1: a cycle that annihilates q_j (E q_j ~ 1e-300 on level 1 of the tests' TetGen torus,
-        # diffusion with boundary-layer sweeps) leaves a column of round-off, and w / beta would be noise
-        # that breaks the Lanczos relation (a Ritz value of 1.48, modes with Zᵀ A Z = 0.82 and a smoother
-        # amplifying by 1e12 followed)
+        # is at least 1 (a column of round-off, as after a cycle that annihilates q_j, is no scale). On level
+        # 1 of the tests' TetGen torus (diffusion, boundary-layer sweeps) w·Aw came out <= 0 at step 9 and the
+        # Lanczos relation broke without this test firing: a Ritz value of 1.48, modes with Zᵀ A Z = 0.82, a
+        # smoother amplifying by 1e12; the checks after the loop refuse such modes
         if beta <= 1e-10 * max(float(np.abs(H[: j + 1, : j + 1]).max()), 1.0):
             break
         Q[:, j + 1], AQ[:, j + 1] = w / beta, Aw / beta

@@ -143,9 +143,7 @@ def _gathered(A: sp.csr_matrix, rows: np.ndarray, cols: np.ndarray) -> sp.csr_ma
     column order (not sorted by new label): one row gather and one relabelling gather."""
     B = A[rows]
     inv = _inverse(np.asarray(cols, dtype=np.int64), B.indices.dtype)  # one gather in the index type
-    out = sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=A.shape)
-    out.has_sorted_indices = False  # relabelled: not known sorted (no O(nnz) check when asked)
-    return out
+    return sp.csr_matrix((B.data, inv.take(B.indices), B.indptr), shape=A.shape)
 
 
 def _transposed(B: sp.csr_matrix) -> sp.csr_matrix:

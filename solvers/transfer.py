@@ -182,10 +182,8 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr
     ``positions``: a list that receives the diagonal entries' positions in ``A`` (None if a row lacks it)."""
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
-    on_diag = A.indices == rows
-    diag = np.flatnonzero(on_diag)
-    lower = A.indices <= rows
-    keep = np.flatnonzero(lower)
+    diag = np.flatnonzero(A.indices == rows)
+    keep = np.flatnonzero(A.indices <= rows)
     del rows
     indices, data = A.indices.take(keep), A.data.take(keep)
     if positions is not None:
@@ -194,10 +192,6 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
         data[indptr[1:] - 1] *= 0.5
-    elif diag.size == n:  # rows not known sorted, none empty: count the kept entries of each row
-        indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
-        np.cumsum(np.add.reduceat(lower.view(np.int8), A.indptr[:-1], dtype=A.indptr.dtype), out=indptr[1:])
-        data[on_diag.take(keep)] *= 0.5
     else:
         indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row
         data[np.searchsorted(keep, diag)] *= 0.5  # the diagonal entries' new positions

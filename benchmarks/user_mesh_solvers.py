@@ -453,15 +453,48 @@ def profile(args) -> dict:
     return out
 
 
-def cycle_cost(args) -> dict:
-    """CPU time of one preconditioner application (a V-cycle from zero) with the pre-smoother's cheap
-    residual (the default) and without it (the plain residual ``b - A x``), interleaved, and of building
-    the triangular splits it keeps (:func:`solvers.smoothing.triangular_split`, every smoothed level; median
-    of 3)."""
-    from solvers import MultigridSolver
+def _median_cpu(f, repeats: int) -> float:
+    ts = []
+    for _ in range(repeats):
+        t = time.process_time()
+        f()
+        ts.append(time.process_time() - t)
+    return float(np.median(ts))
+
+
+def _level_parts(L, repeats: int) -> dict:
+    """CPU seconds of the pieces of a forward sweep's residual shortcut on one level (medians): the split
+    of the level's matrix, a product with ``A``, with ``U`` and with ``(D + L)ᵀ`` (the kept lower triangle's
+    transpose, the default path), a sweep from zero on ``A`` and the substitution with ``D + L``."""
+    from pyamg.relaxation import relaxation
+
     from solvers.smoothing import triangular_split
 
-    out: dict = {"repeats": args.repeats, "cases": []}
+    A = L.A
+    DL, U = triangular_split(A)
+    d = A.diagonal()
+    x = np.random.default_rng(0).standard_normal(A.shape[0])
+
+    def sweep(M):
+        return lambda: relaxation.gauss_seidel(M, np.zeros(A.shape[0]), x, iterations=1, sweep="forward")
+
+    return {"rows": A.shape[0], "nnz": A.nnz,
+            "split": _median_cpu(lambda: triangular_split(A), 3),
+            "product_A": _median_cpu(lambda: A @ x, repeats), "product_U": _median_cpu(lambda: U @ x, repeats),
+            "product_lower_transposed": _median_cpu(lambda: DL.T @ x - d * x, repeats),
+            "sweep_from_zero": _median_cpu(sweep(A), repeats), "substitution": _median_cpu(sweep(DL), repeats)}
+
+
+def cycle_cost(args) -> dict:
+    """CPU time of one preconditioner application (a V-cycle from zero) with the pre-smoother's cheap
+    residual (the default) and without it (the plain residual ``b - A x``), interleaved (median of
+    ``--repeats``), and of the first application of each (what it builds on first use is in it); the pieces
+    of the shortcut per smoothed level (:func:`_level_parts`, among them what splitting the level's matrix
+    would cost: :func:`solvers.smoothing.triangular_split`, the path without the Galerkin products' lower
+    triangles)."""
+    from solvers import MultigridSolver
+
+    out: dict = {"repeats": args.repeats, "code": args.label, "cases": []}
     for work in args.cases:
         c = load_case(Path(work))
         cd = {"name": c["name"], "label": c["label"], "tets": c["tets"], "problems": {}}
@@ -471,7 +504,12 @@ def cycle_cost(args) -> dict:
             for L in plain.levels[:-1]:
                 L.presmoother.smooth_residual = None
             Mf, Mp = fast.aspreconditioner(), plain.aspreconditioner()
-            zf, zp = Mf.matvec(b), Mp.matvec(b)  # the first builds the splits
+            t = time.process_time()
+            zf = Mf.matvec(b)
+            first_fast = time.process_time() - t
+            t = time.process_time()
+            zp = Mp.matvec(b)
+            first_plain = time.process_time() - t
             tf, tp = [], []
             for _ in range(args.repeats):
                 t = time.process_time()
@@ -480,19 +518,14 @@ def cycle_cost(args) -> dict:
                 t = time.process_time()
                 Mp.matvec(b)
                 tp.append(time.process_time() - t)
-            splits = []
-            for _ in range(3):
-                t = time.process_time()
-                for L in fast.levels[:-1]:
-                    triangular_split(L.A)
-                splits.append(time.process_time() - t)
-            split = float(np.median(splits))
+            parts = [_level_parts(L, args.repeats) for L in fast.levels[:-1]]
             cd["problems"][prob] = {
                 "cycle_cpu_seconds": float(np.median(tf)), "plain_cycle_cpu_seconds": float(np.median(tp)),
                 "cycle_ratio": float(np.median(np.array(tf) / np.array(tp))),
-                "split_cpu_seconds": split,
+                "first_cycle_cpu_seconds": first_fast, "first_plain_cycle_cpu_seconds": first_plain,
+                "split_cpu_seconds": sum(p["split"] for p in parts), "levels": parts,
                 "relative_difference": float(np.linalg.norm(zf - zp) / np.linalg.norm(zp))}
-            print(c["name"], prob, cd["problems"][prob], flush=True)
+            print(c["name"], prob, {k: v for k, v in cd["problems"][prob].items() if k != "levels"}, flush=True)
         out["cases"].append(cd)
     return out
 
@@ -675,6 +708,7 @@ def main(argv=None):
     cc.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
                     choices=("dirichlet", "neumann", "diffusion"))
     cc.add_argument("--repeats", type=int, default=15)
+    cc.add_argument("--label", default=None, help="code label stored in the JSON (e.g. the commit)")
     cc.add_argument("--json", type=Path, default=None)
     dg = sub.add_parser("diagnose", help="where the default cycle is slow and what helps (one run each)")
     dg.add_argument("cases", nargs="+", type=Path)

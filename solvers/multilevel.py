@@ -370,10 +370,12 @@ class MultigridSolver:
         if coarse_scaling not in (None, "energy"):
             raise SolverInputError(f"coarse_scaling must be None or 'energy', got {coarse_scaling!r}")
         self.coarse_scaling = coarse_scaling
-        A, Ps, Rs, ops, sym0, diagonals = self._coarse_operators(A, Ps, coarse, ordering, symmetric, shared)
+        A, Ps, Rs, ops, sym0, diagonals, lowers = self._coarse_operators(A, Ps, coarse, ordering, symmetric,
+                                                                         shared)
         _check_operators(ops, nullspace, diagonals)
         self.levels = self._make_levels(ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels,
-                                        local_sweep, local_sweeps)
+                                        local_sweep, local_sweeps, [*zip(lowers, diagonals)])
+        del lowers
         # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
         if self.coarse == "galerkin":
             self.symmetric = sym0
@@ -400,11 +402,13 @@ class MultigridSolver:
         """The level operators: Galerkin products, or the caller's (checked); both reordered (``ordering``).
 
         ``shared``: ``A`` holds the caller's arrays (copied unless reordering makes a new matrix anyway).
-        Returns ``(A, Ps, Rs, ops, sym0, diagonals)`` in the solver's order (``diagonals``: those of the first
-        operators, by-products of the Galerkin products); sets ``self.coarse``.
+        Returns ``(A, Ps, Rs, ops, sym0, diagonals, lowers)`` in the solver's order (``diagonals``, ``lowers``:
+        the diagonals and lower triangles ``D + L`` of the first operators, by-products of the Galerkin
+        products; both empty for given operators); sets ``self.coarse``.
         """
         sym0 = None
         diagonals: list = []
+        lowers: list = []
         if isinstance(coarse, str):
             if coarse != "galerkin":
                 raise SolverInputError(
@@ -415,7 +419,7 @@ class MultigridSolver:
             Ps = _drop_unreached_columns(Ps)
             A, Ps, Rs, _, sym0 = self._reorder(A, Ps, ordering, [], symmetric, shared)
             # A validated above: no second copy and check; the smoothed levels stored diagonal first
-            ops = _galerkin_chain(A, Ps, sym0, Rs, diagonals, diagonal_first=True)
+            ops = _galerkin_chain(A, Ps, sym0, Rs, diagonals, diagonal_first=True, lowers=lowers)
             self.coarse = "galerkin"
         else:
             given = list(coarse)
@@ -430,11 +434,13 @@ class MultigridSolver:
             self.coarse = "given"
             A, Ps, Rs, given, _ = self._reorder(A, Ps, ordering, ops[1:], False, shared)
             ops = [A] + given
-        return A, Ps, Rs, ops, sym0, diagonals
+        return A, Ps, Rs, ops, sym0, diagonals, lowers
 
     def _make_levels(self, ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels, local_sweep,
-                     local_sweeps) -> list[Level]:
-        """One :class:`Level` per operator: smoothers (post = adjoint of pre unless given), local sweeps."""
+                     local_sweeps, lowers=()) -> list[Level]:
+        """One :class:`Level` per operator: smoothers (post = adjoint of pre unless given), local sweeps.
+        ``lowers``: ``(D + L, diagonal)`` of the first operators (Gauss–Seidel's lower triangles, see
+        :func:`solvers.smoothing.make_smoother`), when the Galerkin products kept them."""
         pre_specs = _level_specs(presmoother, len(Ps))
         if presmoother is DEFAULT_SMOOTHER:
             pre_specs = _dense_level_specs(ops, pre_specs)
@@ -446,9 +452,11 @@ class MultigridSolver:
             if k < len(Ps):
                 P = Ps[k]
                 pre_spec, post_spec = pre_specs[k], post_specs[k]
-                pre = make_smoother(Ak, pre_spec, diagonal_checked=True)  # checked above
+                lower = lowers[k] if k < len(lowers) and lowers[k][0] is not None else None
+                pre = make_smoother(Ak, pre_spec, diagonal_checked=True, lower=lower)  # checked above
                 # a self-adjoint smoother is shared (one spectral radius estimate per level)
-                post = pre if post_spec is pre_spec else make_smoother(Ak, post_spec, diagonal_checked=True)
+                post = (pre if post_spec is pre_spec
+                        else make_smoother(Ak, post_spec, diagonal_checked=True, lower=lower))
                 if local[k] is not None:
                     one_way = local_sweep == "one-way"
                     rows = local_rows(Ak, local[k])  # one copy of the rows for both smoothers

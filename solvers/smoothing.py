@@ -126,11 +126,14 @@ def _rho(A, rho) -> float:
 
 
 def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int = 1, omega: float = 1.0,
-                       *, diagonal_checked: bool = False):
+                       *, diagonal_checked: bool = False, lower=None):
     """Gauss–Seidel (SOR with ``omega != 1``); ``sweep`` is forward, backward or symmetric.
 
     ``diagonal_checked=True``: the caller has checked that ``A``'s diagonal is positive (as
     :class:`solvers.MultigridSolver` does once per level), so the O(nnz) check is skipped.
+    ``lower``: ``(D + L, diag(A))`` of a symmetric ``A`` (``D + L`` its entries with column <= row, any order
+    within rows; no copy is made): the forward sweeps' residual shortcut (:func:`_forward_residual`) then
+    reads ``U = (D + L)ᵀ - D`` off it instead of splitting ``A`` at its first use.
     """
     if sweep not in ("forward", "backward", "symmetric"):
         raise SolverInputError(f"sweep must be 'forward', 'backward' or 'symmetric', got {sweep!r}")
@@ -172,7 +175,7 @@ def setup_gauss_seidel(A: sp.csr_matrix, sweep: str = "forward", iterations: int
         relaxation.gauss_seidel(A, x, b, iterations=it, sweep=sweep, omega=omega)
 
     work = it * (2.0 if sweep == "symmetric" else 1.0)
-    fast = (_forward_residual(A, it) if sweep == "forward" and omega == 1.0 and it
+    fast = (_forward_residual(A, it, lower) if sweep == "forward" and omega == 1.0 and it
             and isinstance(A, sp.csr_matrix) else None)
     return Smoother("gauss_seidel", apply, work, {"sweep": sweep, "iterations": it, "omega": omega},
                     smooth_residual=fast)
@@ -223,33 +226,41 @@ def triangular_split(A: sp.csr_matrix) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     return L, U
 
 
-def _forward_residual(A0: sp.csr_matrix, it: int) -> Callable:
+def _forward_residual(A0: sp.csr_matrix, it: int, lower=None) -> Callable:
     """``smooth_residual`` of ``it`` forward Gauss–Seidel sweeps on ``A0`` (the same result as the sweeps,
     cheaper residual). A forward sweep solves ``(D + L) x_new = b - U x_old``, so afterwards
-    ``b - A x_new = U (x_old - x_new)``: half a product with ``A`` (the strict upper triangle ``U``)
-    instead of a whole one. From a zero ``x`` the first sweep is a forward substitution with ``D + L``
-    (half the entries of ``A``; the upper part would multiply zeros). Costs a copy of ``A``'s entries
-    (``D + L`` and ``U``), built on first use."""
+    ``b - A x_new = U (x_old - x_new)``: a product with the strict upper triangle ``U`` instead of ``A``.
+    From a zero ``x`` the first sweep is a forward substitution with ``D + L`` (half the entries of ``A``;
+    the upper part would multiply zeros). ``lower = (D + L, d)`` of a symmetric ``A0`` gives both: ``U v =
+    (D + L)ᵀ v - d v``. Without it, ``A0`` is split on first use (:func:`triangular_split`, a copy of its
+    entries). On the fine level of a 1M-tet user hierarchy (15 entries per row) the product with ``U`` cost
+    as much as one with ``A`` and the substitution 0.8 of a sweep, while the split cost 10 sweeps
+    (``benchmarks/results/user_mesh/forward_residual.json``): the shortcut pays only with ``lower``."""
     split: list = []
 
     def smooth_residual(A, x, b, zero):
         if A is not A0 or x.ndim != 1:
             return None  # another operator, or a block of vectors: the plain path
         if not split:
-            split.extend(triangular_split(A0))
-        L, U = split
+            if lower is not None:
+                L, d = lower
+                split.extend((L, lambda v: L.T @ v - d * v))
+            else:
+                L, U = triangular_split(A0)
+                split.extend((L, U.__matmul__))
+        L, upper = split
         left = it
         if zero:
             relaxation.gauss_seidel(L, x, b, iterations=1, sweep="forward")
             left -= 1
             if not left:
-                return -(U @ x)
+                return -upper(x)
         if left > 1:
             relaxation.gauss_seidel(A, x, b, iterations=left - 1, sweep="forward")
         x_old = x.copy()
         relaxation.gauss_seidel(A, x, b, iterations=1, sweep="forward")
         x_old -= x
-        return U @ x_old
+        return upper(x_old)
 
     return smooth_residual
 
@@ -433,7 +444,7 @@ SMOOTHERS: dict[str, Callable[..., Smoother]] = {
 }
 
 
-def make_smoother(A: sp.csr_matrix, spec, *, diagonal_checked: bool = False) -> Smoother:
+def make_smoother(A: sp.csr_matrix, spec, *, diagonal_checked: bool = False, lower=None) -> Smoother:
     """Build a :class:`Smoother` for operator ``A`` from a spec.
 
     Parameters
@@ -445,6 +456,10 @@ def make_smoother(A: sp.csr_matrix, spec, *, diagonal_checked: bool = False) -> 
 
     diagonal_checked : bool
         The caller has checked that ``A``'s diagonal is positive: Gauss–Seidel skips its own check.
+    lower : (csr_matrix, ndarray), optional
+        ``(D + L, diag(A))`` of a symmetric ``A`` (e.g. kept by :class:`solvers.MultigridSolver`'s Galerkin
+        products): forward Gauss–Seidel uses it instead of splitting ``A`` (see :func:`setup_gauss_seidel`);
+        other smoothers ignore it.
 
     Returns
     -------
@@ -460,8 +475,11 @@ def make_smoother(A: sp.csr_matrix, spec, *, diagonal_checked: bool = False) -> 
         raise SolverInputError(f"smoother spec must be a name or (name, options), got {spec!r}")
     if name not in SMOOTHERS:
         raise SolverInputError(f"unknown smoother {name!r}; choose one of {sorted(SMOOTHERS)}")
-    if diagonal_checked and SMOOTHERS[name] is setup_gauss_seidel:
-        opts["diagonal_checked"] = True
+    if SMOOTHERS[name] is setup_gauss_seidel:
+        if diagonal_checked:
+            opts["diagonal_checked"] = True
+        if lower is not None:
+            opts["lower"] = lower
     try:
         return SMOOTHERS[name](A, **opts)
     except TypeError as e:  # unknown option name

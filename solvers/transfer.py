@@ -88,19 +88,20 @@ def galerkin_operators(A: sp.spmatrix, Ps, symmetric: bool | None = None, Rs=Non
 
 
 def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None, diagonals=None,
-                    diagonal_first: bool = False) -> list[sp.csr_matrix]:
+                    diagonal_first: bool = False, lowers=None) -> list[sp.csr_matrix]:
     """:func:`galerkin_operators` for an ``A`` already checked by :func:`_as_csr` (no second copy, sort and
     finiteness pass: :class:`solvers.MultigridSolver` validates its input once). ``diagonals``: a list that
     receives the diagonal of every operator the symmetric path splits (levels ``0 .. len(Ps) - 1``), a
     by-product of the split (scipy's ``diagonal()`` scans whole rows: ~11 ms for the four levels of a 1M-tet
     user hierarchy). ``diagonal_first``: return those operators with each row's diagonal entry first (the
     storage Gauss–Seidel sweeps fastest, :func:`solvers.ordering.diagonal_first`), from the split's
-    diagonal positions; the coarsest operator stays canonical."""
+    diagonal positions; the coarsest operator stays canonical. ``lowers``: a list that receives the lower
+    triangle ``D + L`` of those operators (:func:`_symmetric_galerkin`; None on the non-symmetric path)."""
     ops = [A]
     firsts: list | None = [] if diagonal_first else None
     for k, P in enumerate(Ps):
         R = None if Rs is None else Rs[k]
-        ops.append(_galerkin_level(ops[-1], P, k, R, symmetric, diagonals, firsts))
+        ops.append(_galerkin_level(ops[-1], P, k, R, symmetric, diagonals, firsts, lowers))
     for k, F in enumerate(firsts or ()):
         if F is not None:
             ops[k] = F
@@ -174,12 +175,14 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     return sp.csr_matrix((data, indices, indptr), shape=(m, n))
 
 
-def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
+def _lower_half(A: sp.csr_matrix, positions: list | None = None,
+                half_positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
     """``(L + D/2, diag(A))`` of a CSR matrix ``A = L + D + U`` without duplicates (``L`` strictly lower,
     ``D`` diagonal): the entries with column <= row, in ``A``'s order, the diagonal ones halved. They are one
     gather of positions; when the rows are sorted (``has_sorted_indices``) and every row stores its diagonal (a
     level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
-    ``positions``: a list that receives the diagonal entries' positions in ``A`` (None if a row lacks it)."""
+    ``positions``, ``half_positions``: lists that receive the diagonal entries' positions in ``A`` and in the
+    half (None if a row lacks it)."""
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
     diag = np.flatnonzero(A.indices == rows)
@@ -191,16 +194,19 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None) -> tuple[sp.csr
     if diag.size == n and A.has_sorted_indices:  # one diagonal entry per row, the last one kept
         indptr = np.zeros(n + 1, dtype=A.indptr.dtype)
         np.cumsum(diag - A.indptr[:-1] + 1, out=indptr[1:])
-        data[indptr[1:] - 1] *= 0.5
+        where = indptr[1:] - 1
     else:
         indptr = np.searchsorted(keep, A.indptr).astype(A.indptr.dtype)  # kept entries before each row
-        data[np.searchsorted(keep, diag)] *= 0.5  # the diagonal entries' new positions
+        where = np.searchsorted(keep, diag)  # the diagonal entries' new positions
+    data[where] *= 0.5
+    if half_positions is not None:
+        half_positions.append(where if diag.size == n else None)
     d = A.data.take(diag) if diag.size == n else A.diagonal()
     return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
 
 
 def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
-                        diagonals=None, firsts=None) -> sp.csr_matrix:
+                        diagonals=None, firsts=None, lowers=None) -> sp.csr_matrix:
     """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
 
     ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
@@ -210,13 +216,21 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     merge adds them. Equals ``Pᵀ A P`` up to round-off (tested to 1e-12 relative). ``diagonals``: a list
     that receives ``A``'s diagonal; ``firsts``: a list that receives ``A`` with each row's diagonal entry
     first (:func:`solvers.ordering.diagonal_first`, from the split's diagonal positions; None when a row
-    lacks its diagonal).
+    lacks its diagonal); ``lowers``: a list that receives ``D + L``, the split with its diagonal restored
+    (exactly: halving and doubling are exact), each row's diagonal entry first: a Gauss–Seidel sweep's
+    lower triangle, kept instead of split again (:func:`solvers.smoothing.setup_gauss_seidel`'s ``lower``).
     """
     positions: list = []
-    half, d = _lower_half(Ak, positions)
+    where: list = []
+    half, d = _lower_half(Ak, positions, where)
     if diagonals is not None:
         diagonals.append(d)
     B = _one_pass_product(R, _one_pass_product(half, P))
+    if lowers is not None and where[0] is not None:
+        half.data[where[0]] *= 2.0
+        lowers.append(diagonal_first(half, where[0], in_place=True))
+    elif lowers is not None:
+        lowers.append(None)
     del half
     Bt = _transposed(B)  # canonical (a product has no duplicates)
     del B
@@ -229,10 +243,10 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
 
 
 def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=None,
-                    firsts=None) -> sp.csr_matrix:
+                    firsts=None, lowers=None) -> sp.csr_matrix:
     """``P_kᵀ A_k P_k`` (exactly symmetric when ``symmetric``), after checking the shapes and the memory;
-    ``diagonals``, ``firsts``: see :func:`_symmetric_galerkin` (the non-symmetric path appends None to
-    ``firsts``)."""
+    ``diagonals``, ``firsts``, ``lowers``: see :func:`_symmetric_galerkin` (the non-symmetric path appends
+    None to ``firsts`` and ``lowers``)."""
     P = sp.csr_matrix(P, dtype=np.float64)
     if P.shape[0] != Ak.shape[0]:
         raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
@@ -240,9 +254,10 @@ def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=
     _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
     if symmetric:
-        return _symmetric_galerkin(Ak, P, R, diagonals, firsts)
-    if firsts is not None:
-        firsts.append(None)
+        return _symmetric_galerkin(Ak, P, R, diagonals, firsts, lowers)
+    for out in (firsts, lowers):
+        if out is not None:
+            out.append(None)
     # no duplicates, rows unsorted
     Ac = _one_pass_product(R, _one_pass_product(Ak, P))
     Ac.sum_duplicates()

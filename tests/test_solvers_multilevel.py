@@ -374,6 +374,41 @@ def test_symmetric_galerkin_product_equals_ptap():
         assert np.array_equal(np.diff(Ac.indptr) > 0, np.diff(ref.indptr) > 0)
 
 
+def test_galerkin_products_hand_their_lower_triangles_to_the_sweeps(cube, monkeypatch):
+    """The symmetric Galerkin products keep each split's ``D + L`` (diagonal restored exactly, diagonal
+    first) for the forward sweeps' residual shortcut, so no level is split again at the first cycle; the
+    preconditioner equals the plain cycle's (every residual ``b - A x``) to round-off, Dirichlet and Neumann."""
+    from solvers import smoothing, transfer
+
+    ds, Pf, _ = _dirichlet(cube, 3)
+    kept: list = []
+    chain = transfer._galerkin_chain
+
+    def spy(*args, lowers=None, **kw):
+        out = chain(*args, lowers=lowers, **kw)
+        kept.extend(lowers)
+        return out
+
+    monkeypatch.setattr("solvers.multilevel._galerkin_chain", spy)
+    monkeypatch.setattr(smoothing, "triangular_split", lambda A: pytest.fail("a level was split again"))
+    _, Ps, K, _ = cube
+    for A, P, nullspace in ((ds.A, Pf, None), (K, Ps[:2], "constant")):
+        kept.clear()
+        ml = MultigridSolver(A, P, nullspace=nullspace)
+        assert len(kept) == len(ml.levels) - 1
+        for L, DL in zip(ml.levels[:-1], kept):
+            assert abs(DL - sp.tril(L.A)).max() == 0.0 and DL.nnz == sp.tril(L.A).nnz
+            assert np.array_equal(DL.indices[DL.indptr[:-1]], np.arange(L.A.shape[0]))  # diagonal first
+        r = _random_rhs(A.shape[0], 3)
+        if nullspace:
+            r -= r.mean()
+        fast = ml.aspreconditioner() @ r
+        for L in ml.levels[:-1]:
+            L.presmoother.smooth_residual = None
+        plain = ml.aspreconditioner() @ r
+        assert np.abs(fast - plain).max() <= 1e-12 * np.abs(plain).max()
+
+
 def test_inputs_untouched_and_x0(cube):
     ds, Pf, _ = _dirichlet(cube, 3)
     A0, P0, b0 = ds.A.copy(), Pf[0].copy(), ds.b.copy()

@@ -132,11 +132,25 @@ def test_triangular_split_reassembles_the_matrix(poisson):
 
 @pytest.mark.parametrize("iterations", [1, 2, 3])
 @pytest.mark.parametrize("zero", [True, False])
-def test_gauss_seidel_residual_fast_path(poisson, iterations, zero):
+@pytest.mark.parametrize("given_lower", [False, True])
+def test_gauss_seidel_residual_fast_path(poisson, iterations, zero, given_lower):
     """The forward sweeps' cheap residual U (x_old - x_new) (and the half sweep from zero) give the
-    same iterate and residual as the sweeps followed by b - A x, to round-off."""
+    same iterate and residual as the sweeps followed by b - A x, to round-off; with ``lower = (D + L, d)``
+    given (rows shuffled, as any order within rows is allowed) ``U`` is read off it."""
+    import scipy.sparse as sp
+
     A = poisson
-    sm = make_smoother(A, ("gauss_seidel", {"sweep": "forward", "iterations": iterations}))
+    lower = None
+    if given_lower:
+        DL = sp.csr_matrix(sp.tril(A))
+        rng = np.random.default_rng(7)
+        for i in range(DL.shape[0]):  # shuffle every row's entries
+            s = slice(DL.indptr[i], DL.indptr[i + 1])
+            p = rng.permutation(s.stop - s.start)
+            DL.indices[s], DL.data[s] = DL.indices[s][p], DL.data[s][p]
+        DL.has_sorted_indices = False
+        lower = (DL, A.diagonal())
+    sm = make_smoother(A, ("gauss_seidel", {"sweep": "forward", "iterations": iterations}), lower=lower)
     assert sm.smooth_residual is not None
     rng = np.random.default_rng(iterations)
     b = rng.standard_normal(A.shape[0])

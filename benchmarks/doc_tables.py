@@ -552,13 +552,22 @@ USER_CYCLE_COST = "user_mesh/cycle_cost.json"
 
 @generator("usermesh.cycle_cost", USER_CYCLE_COST)
 def usermesh_cycle_cost() -> str:
-    rs = [r for c in load(USER_CYCLE_COST)["cases"] for r in c["problems"].values()]
+    d = load(USER_CYCLE_COST)
+    rs = [r for c in d["cases"] for r in c["problems"].values()]
+    fine = [r["levels"][0] for r in rs]
     return (f"x{rng([r['cycle_ratio'] for r in rs], '.2f')} of the plain cycle's CPU time "
-            f"({rng([1e3 * r['cycle_cpu_seconds'] for r in rs], '.0f')} ms against "
-            f"{rng([1e3 * r['plain_cycle_cpu_seconds'] for r in rs], '.0f')} ms, median of "
-            f"{load(USER_CYCLE_COST)['repeats']} interleaved repeats; the two cycles' results differ by at most "
-            f"{max(r['relative_difference'] for r in rs):.0e} relative), the splits costing "
-            f"{rng([1e3 * r['split_cpu_seconds'] for r in rs], '.0f')} ms once")
+            f"({rng([1e3 * r['cycle_cpu_seconds'] for r in rs], '.1f')} ms against "
+            f"{rng([1e3 * r['plain_cycle_cpu_seconds'] for r in rs], '.1f')} ms, median of "
+            f"{d['repeats']} interleaved repeats; the two cycles' results differ by at most "
+            f"{max(r['relative_difference'] for r in rs):.0e} relative; the first application "
+            f"{rng([1e3 * r['first_cycle_cpu_seconds'] for r in rs], '.1f')} ms against "
+            f"{rng([1e3 * r['first_plain_cycle_cpu_seconds'] for r in rs], '.1f')} ms). On the fine levels "
+            f"the product with U cost x{rng([f['product_U'] / f['product_A'] for f in fine], '.2f')} of one "
+            f"with A (x{rng([f['product_lower_transposed'] / f['product_A'] for f in fine], '.2f')} read off "
+            f"the lower triangle), the substitution "
+            f"x{rng([f['substitution'] / f['sweep_from_zero'] for f in fine], '.2f')} of a sweep, and splitting "
+            f"every level would have cost {rng([1e3 * r['split_cpu_seconds'] for r in rs], '.0f')} ms once "
+            f"({rng([f['split'] / f['sweep_from_zero'] for f in fine], '.1f')} fine sweeps)")
 
 
 @generator("usermesh.goal", USER_SOLVERS)

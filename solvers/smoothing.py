@@ -233,9 +233,10 @@ def _forward_residual(A0: sp.csr_matrix, it: int, lower=None) -> Callable:
     From a zero ``x`` the first sweep is a forward substitution with ``D + L`` (half the entries of ``A``;
     the upper part would multiply zeros). ``lower = (D + L, d)`` of a symmetric ``A0`` gives both: ``U v =
     (D + L)ᵀ v - d v``. Without it, ``A0`` is split on first use (:func:`triangular_split`, a copy of its
-    entries). On the fine level of a 1M-tet user hierarchy (15 entries per row) the product with ``U`` cost
-    as much as one with ``A`` and the substitution 0.8 of a sweep, while the split cost 10 sweeps
-    (``benchmarks/results/user_mesh/forward_residual.json``): the shortcut pays only with ``lower``."""
+    entries). On the fine levels of 1M-tet user hierarchies (14-15 entries per row) the product with ``U``
+    cost 0.62-0.99 of one with ``A`` (0.67-1.11 as ``(D + L)ᵀ``), the substitution 0.78-0.93 of a sweep,
+    and the split 9.6-10.7 sweeps (``benchmarks/results/user_mesh/cycle_cost.json``): over a solve of 7-12
+    cycles the shortcut pays only with ``lower``."""
     split: list = []
 
     def smooth_residual(A, x, b, zero):

@@ -343,7 +343,7 @@ def probe_under_cg() -> str:
 
 
 #: the 12-case run before the diagonal swaps and unsorted permutations (code f34456f, same saved cases)
-USER_SOLVERS_BEFORE = "user_mesh/solvers_f34456f.json"
+USER_SOLVERS_BEFORE = "user_mesh/solvers_d671587.json"
 
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)
@@ -396,6 +396,15 @@ def usermesh_fine3() -> str:
                      f"{rng([x['nestmg']['iterations'] for x in s], 'd')}, solve CPU time "
                      f"x{rng([x['nestmg_fine3']['solve_ratio_vs_first'] for x in s], '.2f')}")
     return "; ".join(parts)
+
+
+@generator("usermesh.pipeline_ratio", USER_SOLVERS)
+def usermesh_pipeline_ratio() -> str:
+    """``Problem.multigrid()``'s set-up and set-up + solve CPU seconds over the defaults' (medians)."""
+    s = [c["problems"][p]["solvers"] for c in load(USER_SOLVERS)["cases"] for p in _user_problems(load(USER_SOLVERS))]
+    setup = [x["problem_multigrid"]["setup_cpu_seconds"] / x["nestmg"]["setup_cpu_seconds"] for x in s]
+    total = [x["problem_multigrid"]["total_cpu_seconds"] / x["nestmg"]["total_cpu_seconds"] for x in s]
+    return f"a set-up {rng(setup, '.1f')}x and a set-up + solve {rng(total, '.1f')}x"
 
 
 @generator("usermesh.residual", USER_SOLVERS)

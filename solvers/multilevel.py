@@ -786,7 +786,7 @@ class MultigridSolver:
         cycle : {"V", "W", "F"}, optional
             Default :attr:`cycle` (the constructor's, ``"V"`` unless given).
         accel : None or "cg"
-            ``"cg"``: conjugate gradients (pyamg.krylov.cg) preconditioned by one cycle from zero: the one
+            ``"cg"``: conjugate gradients (:func:`solvers.krylov.pcg`) preconditioned by one cycle from zero: the one
             MG-PCG entry point of the package (``nestmg.solve_on_hierarchy`` and the CLI call it).
         residuals : list, optional
             Cleared and filled with the relative residuals ``||b - A x_i|| / ||b||``, ``i = 0..iters``

@@ -279,14 +279,19 @@ def run_child(code: str, payload: dict, *, timeout: float | None = None, stderr_
     return {"error": ((p.stderr or "") + p.stdout)[-2000:], "returncode": p.returncode}
 
 
-def best_cpu_time(f, repeat: int) -> float:
-    """Smallest CPU time (``time.process_time``) of ``repeat`` calls of ``f()`` (robust on a shared machine)."""
+def cpu_times(f, repeat: int) -> list[float]:
+    """CPU times (``time.process_time``) of ``repeat`` calls of ``f()``."""
     ts = []
     for _ in range(repeat):
         t0 = time.process_time()
         f()
         ts.append(time.process_time() - t0)
-    return min(ts)
+    return ts
+
+
+def best_cpu_time(f, repeat: int) -> float:
+    """Smallest CPU time of ``repeat`` calls of ``f()`` (robust on a shared machine)."""
+    return min(cpu_times(f, repeat))
 
 
 # ------------------------------------------------------------------ cage benchmarks (cages.py, cages_sdf.py, ...)

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from exp_common import cpu_times
 from solvers.ordering import index_spread
 
 
@@ -454,12 +455,7 @@ def profile(args) -> dict:
 
 
 def _median_cpu(f, repeats: int) -> float:
-    ts = []
-    for _ in range(repeats):
-        t = time.process_time()
-        f()
-        ts.append(time.process_time() - t)
-    return float(np.median(ts))
+    return float(np.median(cpu_times(f, repeats)))
 
 
 def _level_parts(L, repeats: int) -> dict:

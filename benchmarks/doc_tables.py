@@ -395,7 +395,9 @@ def usermesh_fine3() -> str:
         parts.append(f"{p} {rng([x['nestmg_fine3']['iterations'] for x in s], 'd')} iterations against "
                      f"{rng([x['nestmg']['iterations'] for x in s], 'd')}, solve CPU time "
                      f"x{rng([x['nestmg_fine3']['solve_ratio_vs_first'] for x in s], '.2f')}")
-    return "; ".join(parts)
+    f3 = [c["problems"][p]["solvers"]["nestmg_fine3"] for c in d["cases"] for p in _user_problems(d)]
+    both = sum(x["iterations"] <= 10 and x["solve_spmv"] <= 100 for x in f3)
+    return "; ".join(parts) + f"; at most 10 iterations and 100 fine SpMV in {both} of {len(f3)} cases"
 
 
 @generator("usermesh.pipeline_ratio", USER_SOLVERS)

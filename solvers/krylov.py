@@ -54,6 +54,9 @@ class KrylovResult:
     attainable : float or None
         With ``stagnated``: ``eps ||A||_1 ||x|| / ||b||``, the relative residual round-off alone allows
         (None when ``A`` is not a sparse matrix).
+    breakdown : str or None
+        Why CG stopped early, when ``A`` or ``M`` showed a non-positive curvature (``pᵀAp <= 0`` or
+        ``rᵀMr <= 0``): not symmetric positive definite on the iterates' subspace.
     """
 
     x: np.ndarray
@@ -64,6 +67,7 @@ class KrylovResult:
     nonfinite: bool = False
     stagnated: bool = False
     attainable: float | None = None
+    breakdown: str | None = None
 
 
 class _Best:
@@ -157,12 +161,13 @@ def pcg(
     best = _Best(res, max(int(stall), 1))
     stagnated = False
     rtrue = None  # ||b - A x|| of the returned x, when the iteration formed it
+    breakdown = None
     try:
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             if flexible:
                 x = _flexible_cg(A, b, x, Mop, tol, maxiter, res, nullspace == "constant", best)
             else:
-                x, rtrue = _cg(A, b, x, Mop, tol, maxiter, res, best)
+                x, rtrue, breakdown = _cg(A, b, x, Mop, tol, maxiter, res, best)
     except _Stagnated:
         stagnated, x = True, best.x
     except _NonFiniteStop:
@@ -188,7 +193,7 @@ def pcg(
     if stagnated and sp.issparse(A):  # ||A||_1: the largest column sum of |A|
         attainable = float(np.finfo(float).eps * abs(A).sum(axis=0).max() * np.linalg.norm(x) / normb)
     return KrylovResult(x, len(rel) - 1, rel, rel[-1] <= tol * 1.0000001 or rtrue <= tol, seconds,
-                        stagnated=stagnated, attainable=attainable)
+                        stagnated=stagnated, attainable=attainable, breakdown=breakdown)
 
 
 def _cg(A, b, x, M, tol, maxiter, res, callback):
@@ -198,22 +203,24 @@ def _cg(A, b, x, M, tol, maxiter, res, callback):
     formed from a zero ``x0`` (it is ``b``), the convergence test comes before ``M`` is applied to the
     new residual, and ``r`` is recomputed as ``b - A x`` only when the recursive one meets the tolerance
     (then the true one must too, else CG goes on from it). pyamg's ``cg``, used before, spent one more
-    cycle and two or three more products on a 10-iteration MG-PCG solve. Returns ``x`` and ``||b - A x||``
-    when the last step formed it (else None).
+    cycle and two or three more products on a 10-iteration MG-PCG solve. Returns ``x``, ``||b - A x||``
+    when the last step formed it (else None) and the reason of a breakdown (else None).
     """
     normb = float(np.linalg.norm(b))
     r = b - A @ x if x.any() else b.copy()
     res.append(float(np.linalg.norm(r)))
     if res[-1] <= tol * normb:
-        return x, res[-1]
+        return x, res[-1], None
     z = M.matvec(r) if M is not None else r.copy()
     p = z.copy()
     rz = float(r @ z)
     for _ in range(maxiter):
         q = A @ p
         pq = float(p @ q)
-        if not pq > 0.0 or not rz > 0.0:  # A or M not positive definite (or a NaN): stop, not converged
-            break
+        if not rz > 0.0:  # (or a NaN): stop, not converged
+            return x, None, f"the preconditioner is not positive definite (rᵀMr = {rz:.3g})"
+        if not pq > 0.0:
+            return x, None, f"A is not positive definite (pᵀAp = {pq:.3g} along a search direction)"
         alpha = rz / pq
         x += alpha * p
         r -= alpha * q
@@ -223,13 +230,13 @@ def _cg(A, b, x, M, tol, maxiter, res, callback):
             r = b - A @ x  # drift of the recursive residual: trust only the true one
             true = float(np.linalg.norm(r))
             if true <= tol * normb:
-                return x, true
+                return x, true, None
         z = M.matvec(r) if M is not None else r.copy()
         rz_new = float(r @ z)
         p *= rz_new / rz
         p += z
         rz = rz_new
-    return x, None
+    return x, None, None
 
 
 def _flexible_cg(A, b, x, M, tol, maxiter, res, zero_mean, callback):

@@ -903,8 +903,10 @@ class MultigridSolver:
                 stacklevel=2,
             )
         elif not converged:
+            why = "" if res is None or res.breakdown is None else f": CG broke down, {res.breakdown}"
             warnings.warn(
-                f"multigrid stopped after {len(hist) - 1} iterations at relative residual {hist[-1]:.3e} > tol={tol:g}",
+                f"multigrid stopped after {len(hist) - 1} iterations at relative residual {hist[-1]:.3e} > tol={tol:g}"
+                f"{why}",
                 ConvergenceWarning,
                 stacklevel=2,
             )

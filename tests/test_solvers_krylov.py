@@ -149,3 +149,24 @@ def test_pcg_takes_pyamgs_steps_without_the_wasted_work(system, problem):
     assert ar_calls[0] >= r.iterations + 2
     assert np.abs(np.array(r.residuals[:-1]) - ref[:-1]).max() <= 1e-9 * ref[0]
     assert abs(r.residuals[-1] - ref[-1]) <= 1e-2 * ref[-1]  # ours: the true residual, pyamg's recursive one
+
+
+def test_pcg_names_a_breakdown(system):
+    """CG on an indefinite matrix stops at the first non-positive curvature and says which operator showed
+    it (``breakdown``), and so does an indefinite preconditioner; neither reports convergence."""
+    import scipy.sparse.linalg as spla
+
+    ds, *_ = system
+    n = ds.A.shape[0]
+    signs = np.where(np.arange(n) % 2, 1.0, -1.0)
+    indefinite = sp.csr_matrix(ds.A + sp.diags(5.0 * ds.A.diagonal() * (signs < 0)))
+    indefinite = sp.csr_matrix(sp.diags(signs) @ indefinite @ sp.diags(np.ones(n)))
+    indefinite = sp.csr_matrix((indefinite + indefinite.T) / 2)
+    r = pcg(indefinite, ds.b, tol=1e-8, maxiter=200)
+    assert not r.converged and r.breakdown is not None and r.breakdown.startswith("A is not positive definite")
+    negative = spla.LinearOperator((n, n), matvec=lambda v: -v, dtype=np.float64)
+    r = pcg(ds.A, ds.b, M=negative, tol=1e-8)
+    assert not r.converged and r.iterations == 0
+    assert r.breakdown is not None and r.breakdown.startswith("the preconditioner is not positive definite")
+    ok = pcg(ds.A, ds.b, tol=1e-8)
+    assert ok.converged and ok.breakdown is None

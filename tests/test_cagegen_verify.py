@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from cagegen.errors import CageError
-from cagegen.verify import verify_nesting
+from cagegen.verify import WINDING_THRESHOLD, verify_nesting
 
 
 def _ico(sub: int, r: float = 1.0, c=(0.0, 0.0, 0.0)):
@@ -198,8 +198,12 @@ def test_nearly_touching_layers_are_certified(eps):
     # distance from a fine vertex to the planes of the coarse faces around its scaled copy: eps * cos(tilt)
     assert p.min_gap == pytest.approx(eps * 0.9989, rel=1e-3)
     if eps <= 1e-8:
-        # the Barnes-Hut approximation misclassifies points this close: the reason exact is the default
-        assert not verify_nesting([(V, F), ((1.0 + eps) * V, F)], exact_winding=False).ok
+        # the Barnes-Hut approximation misclassifies points this close (the reason exact is the default
+        # where every vertex is evaluated); the per-piece decision sums exactly at the farthest vertex
+        import igl
+
+        assert igl.fast_winding_number((1.0 + eps) * V, F, V).min() < WINDING_THRESHOLD
+        assert verify_nesting([(V, F), ((1.0 + eps) * V, F)], exact_winding=False).ok
 
 
 def test_figures_invariant_under_similarity_transforms(fine):
@@ -256,3 +260,42 @@ def test_segment_distances_match_ipctk():
     d = segment_segment_sqdist(P0, P1, Q0, Q1)
     ref = np.array([ipctk.edge_edge_distance(P0[i], P1[i], Q0[i], Q1[i]) for i in range(400)])
     assert np.allclose(d, ref, rtol=1e-10, atol=1e-13)
+
+
+def test_winding_numbers_one_vertex_per_piece(monkeypatch):
+    """Without crossings every connected piece of a layer lies in one region of the other layer's
+    complement, so one winding number per piece decides it (summed directly at its farthest vertex): a
+    fine layer of two spheres, one of them outside the cage, has exactly that sphere's vertices counted
+    outside, with 2 + 1 evaluations; a crossing pair evaluates every vertex (libigl)."""
+    import igl
+
+    import cagegen.verify as verify
+
+    calls: list = []
+    exact, direct = igl.winding_number, verify._solid_angle_sum
+
+    def spy(V, F, O):
+        calls.append(("igl", len(O)))
+        return exact(V, F, O)
+
+    def spy_direct(V, F, q):
+        calls.append(("direct", 1))
+        return direct(V, F, q)
+
+    monkeypatch.setattr(igl, "winding_number", spy)
+    monkeypatch.setattr(verify, "_solid_angle_sum", spy_direct)
+    a, b = _ico(2, 0.3, (0.0, 0.0, 0.0)), _ico(2, 0.3, (3.0, 0.0, 0.0))
+    fine2 = (np.vstack([a[0], b[0]]), np.vstack([a[1], b[1] + len(a[0])]))
+    rep = verify_nesting([fine2, _ico(3, 1.0)])
+    p = rep.pairs[0]
+    assert calls == [("direct", 1)] * 3 and p.n_intersecting_pairs == 0
+    assert p.n_outside_vertices == len(b[0]) and p.n_coarse_inside_vertices == 0
+    assert p.min_winding == pytest.approx(0.0, abs=1e-9)
+    _fail(rep, 1, f"{len(b[0])} of {len(fine2[0])} fine vertices outside")
+    calls.clear()
+    inside = verify_nesting([a, _ico(3, 1.0)])
+    assert inside.ok and len(calls) == 2 and inside.pairs[0].min_winding == pytest.approx(1.0, abs=1e-9)
+    calls.clear()
+    crossing = verify_nesting([a, _ico(3, 0.3, (0.2, 0.0, 0.0))])
+    assert not crossing.ok and crossing.pairs[0].n_intersecting_pairs > 0
+    assert calls == [("igl", len(a[0])), ("igl", len(_ico(3, 0.3)[0]))]

@@ -172,7 +172,7 @@ class NestedOptions(CageOptions):
     flow_step: float = field_spec(1e-3, "flow step / diagonal", low=0.0, strict=True)
     flow_max_iter: int = field_spec(1000, "flow iterations at most", low=1)
     dhat: float = field_spec(5e-3, "barrier activation distance / diagonal", low=0.0, strict=True)
-    kappa: float = field_spec(1e3, "barrier stiffness", low=0.0, strict=True)
+    kappa: float = field_spec(1e4, "barrier stiffness while re-inflating", low=0.0, strict=True)
     dhat_final: float = field_spec(1e-3, "final energy's barrier distance / diagonal", low=0.0, strict=True)
     kappa_final: float = field_spec(1e3, "barrier stiffness of the final energy", low=0.0, strict=True)
     max_move: float = field_spec(5e-3, "largest vertex move per re-inflation step / diagonal", low=0.0,

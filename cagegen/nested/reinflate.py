@@ -269,7 +269,7 @@ def reinflate(
     *,
     energy: str = "volume",
     dhat: float = 5e-3,
-    kappa: float = 1e3,
+    kappa: float = 1e4,
     dhat_final: float = 1e-3,
     kappa_final: float = 1e3,
     k_fine: float = 1e3,
@@ -302,7 +302,7 @@ def reinflate(
         Larger than the per-step motion ``max_move`` so the cage "sees" the fine surface coming.
     kappa : float
         Barrier stiffness while re-inflating (stiff: the cage keeps ahead of the fine surface, few
-        Newton iterations).
+        contacts and Newton iterations; see :data:`cagegen.nested.backend._DEFAULTS`).
     dhat_final, kappa_final : float
         Barrier of the final phase (softer and shorter-ranged: the final energy pulls the cage
         close to the fine surface; the equilibrium gap shrinks with both).

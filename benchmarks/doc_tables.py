@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import re
 import statistics
 import sys
@@ -32,7 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_0a2e0bc_merged.json"
+CORPUS = "corpus/zoo_kappa1e4_merged.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
@@ -503,6 +504,28 @@ def cages_speed() -> str:
             + f"; every layer of {ok} of {len(runs[0])} meshes certified in every run, "
             + ("the same target sources and failed attempts, " if same else "")
             + f"volume ratios within {vol:.1e} of main's")
+
+
+CAGES_AB_KAPPA = ("cages/ab_kappa1e4_0e7e562.json", "cages/ab_kappa1e4_0e7e562_run2.json")
+
+
+@generator("cages.kappa", *CAGES_AB_KAPPA)
+def cages_kappa() -> str:
+    """The re-inflation barrier's stiffness 1e3 -> 1e4: CPU geomean per run, the largest gains and losses
+    (medians of the runs), certification and volume ratios."""
+    runs = [load(rel)["meshes"] for rel in CAGES_AB_KAPPA]
+    geo = [math.exp(statistics.mean(math.log(r[m]["after"]["cpu_seconds"] / r[m]["before"]["cpu_seconds"])
+                                    for m in r)) for r in runs]
+    med = {m: (statistics.median(r[m]["before"]["cpu_seconds"] for r in runs),
+               statistics.median(r[m]["after"]["cpu_seconds"] for r in runs)) for m in runs[0]}
+    order = sorted(med, key=lambda m: med[m][1] / med[m][0])
+    show = lambda ms: ", ".join(f"{m} {med[m][0]:.1f} -> {med[m][1]:.1f}" for m in ms)  # noqa: E731
+    ok = sum(all(r[m]["after"]["ok"] for r in runs) for m in runs[0])
+    vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in runs for row in r.values()
+              for lb, la in zip(row["before"]["layers"], row["after"]["layers"]))
+    return (f"CPU seconds x{min(geo):.3f}–{max(geo):.3f} (geometric mean over {len(runs[0])} meshes, "
+            f"{len(runs)} runs); medians: {show(order[:3])}; slower: {show(order[-3:])}; "
+            f"{ok} of {len(runs[0])} certified in every run, volume ratios within {100 * vol:.1f}%")
 
 
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))

@@ -206,17 +206,21 @@ def edge_stats(F: np.ndarray, n_vertices: int | None = None) -> EdgeStats:
     )
 
 
-def n_components(F: np.ndarray, n_vertices: int) -> int:
-    """Number of edge-connected components of the faces ``F`` (unreferenced vertices ignored)."""
+def vertex_components(F: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Label of each vertex's edge-connected component of the faces ``F`` (an unreferenced vertex is a
+    component of its own)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    ref = np.unique(F)
     i = F.ravel()
     j = np.roll(F, -1, axis=1).ravel()
     A = sp.coo_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(n_vertices, n_vertices)).tocsr()
-    _, labels = connected_components(A, directed=False)
-    return int(np.unique(labels[ref]).size)
+    return connected_components(A, directed=False)[1]
+
+
+def n_components(F: np.ndarray, n_vertices: int) -> int:
+    """Number of edge-connected components of the faces ``F`` (unreferenced vertices ignored)."""
+    return int(np.unique(vertex_components(F, n_vertices)[np.unique(F)]).size)
 
 
 #: Engine of the exact intersection tests: ``"filtered"`` (default; :mod:`cagegen.intersect`, numpy

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._geometry import as_mesh_arrays, cross_intersection_pairs
+from ._geometry import as_mesh_arrays, cross_intersection_pairs, vertex_components
 from .errors import MeshInputError
 
 __all__ = ["build_cages_per_component", "check_components_disjoint", "split_components"]
@@ -49,16 +49,9 @@ def split_components(V, F) -> list[tuple[np.ndarray, np.ndarray]]:
         Ordered by the smallest face index of each piece (deterministic); unreferenced vertices are
         dropped. New arrays; the inputs are not modified.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     V, F = as_mesh_arrays(V, F, "input")
     n = V.shape[0]
-    i = F.ravel()
-    j = np.roll(F, -1, axis=1).ravel()
-    A = sp.coo_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(n, n)).tocsr()
-    _, vlab = connected_components(A, directed=False)
-    flab = vlab[F[:, 0]]
+    flab = vertex_components(F, n)[F[:, 0]]
     _, first = np.unique(flab, return_index=True)
     pieces = []
     for lab in flab[np.sort(first)]:

@@ -63,6 +63,7 @@ from ._geometry import (
     min_edge_edge_distance,
     self_intersection_pairs,
     signed_volume,
+    vertex_components,
 )
 from .errors import CageError, CageOptionError, MeshInputError
 
@@ -253,13 +254,7 @@ def _piece_winding(winding, surface: _Layer, query: _Layer, d2: np.ndarray | Non
     """
     if d2 is None:
         return np.asarray(winding(surface.V, surface.F, query.V), dtype=float)
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n, F = query.V.shape[0], query.F
-    edges = np.concatenate([F[:, [0, 1]], F[:, [1, 2]]])
-    graph = csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)  # a vertex of no face is a piece of its own
+    label = vertex_components(query.F, query.V.shape[0])
     order = np.lexsort((-d2, label))  # by piece, farthest first
     first = order[np.r_[0, np.flatnonzero(np.diff(label[order])) + 1]]
     if len(first) <= DIRECT_WINDING_POINTS:

@@ -215,10 +215,10 @@ def _cg(A, b, x, M, tol, maxiter, res, callback):
     p = z.copy()
     rz = float(r @ z)
     for _ in range(maxiter):
+        if not rz > 0.0:  # (or a NaN): stop, not converged, before a product with A
+            return x, None, f"the preconditioner is not positive definite (rᵀMr = {rz:.3g})"
         q = A @ p
         pq = float(p @ q)
-        if not rz > 0.0:  # (or a NaN): stop, not converged
-            return x, None, f"the preconditioner is not positive definite (rᵀMr = {rz:.3g})"
         if not pq > 0.0:
             return x, None, f"A is not positive definite (pᵀAp = {pq:.3g} along a search direction)"
         alpha = rz / pq

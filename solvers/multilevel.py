@@ -375,7 +375,6 @@ class MultigridSolver:
         _check_operators(ops, nullspace, diagonals)
         self.levels = self._make_levels(ops, Ps, Rs, presmoother, postsmoother, local_nodes, local_levels,
                                         local_sweep, local_sweeps, [*zip(lowers, diagonals)])
-        del lowers
         # Galerkin products of a symmetric A are symmetrised on construction: only A is tested
         if self.coarse == "galerkin":
             self.symmetric = sym0

@@ -509,11 +509,10 @@ def cages_speed() -> str:
 CAGES_AB_KAPPA = ("cages/ab_kappa1e4_0e7e562.json", "cages/ab_kappa1e4_0e7e562_run2.json")
 
 
-@generator("cages.kappa", *CAGES_AB_KAPPA)
-def cages_kappa() -> str:
-    """The re-inflation barrier's stiffness 1e3 -> 1e4: CPU geomean per run, the largest gains and losses
-    (medians of the runs), certification and volume ratios."""
-    runs = [load(rel)["meshes"] for rel in CAGES_AB_KAPPA]
+def _ab_runs_summary(paths: tuple[str, ...]) -> str:
+    """A default's before / after over ``cages_ab.py`` runs: CPU geomean per run, the largest gains and
+    losses (medians of the runs), certification and volume ratios."""
+    runs = [load(rel)["meshes"] for rel in paths]
     geo = [math.exp(statistics.mean(math.log(r[m]["after"]["cpu_seconds"] / r[m]["before"]["cpu_seconds"])
                                     for m in r)) for r in runs]
     med = {m: (statistics.median(r[m]["before"]["cpu_seconds"] for r in runs),
@@ -523,9 +522,33 @@ def cages_kappa() -> str:
     ok = sum(all(r[m]["after"]["ok"] for r in runs) for m in runs[0])
     vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in runs for row in r.values()
               for lb, la in zip(row["before"]["layers"], row["after"]["layers"]))
-    return (f"CPU seconds x{min(geo):.3f}–{max(geo):.3f} (geometric mean over {len(runs[0])} meshes, "
-            f"{len(runs)} runs); medians: {show(order[:3])}; slower: {show(order[-3:])}; "
+    return (f"CPU seconds x{rng(geo, '.3f')} (geometric mean over {len(runs[0])} meshes, "
+            f"{len(runs)} run{'s' if len(runs) > 1 else ''}); medians: {show(order[:3])}; "
+            f"slower: {show(order[-3:])}; "
             f"{ok} of {len(runs[0])} certified in every run, volume ratios within {100 * vol:.1f}%")
+
+
+@generator("cages.kappa", *CAGES_AB_KAPPA)
+def cages_kappa() -> str:
+    """The re-inflation barrier's stiffness 1e3 -> 1e4 (:func:`_ab_runs_summary`)."""
+    return _ab_runs_summary(CAGES_AB_KAPPA)
+
+
+CAGES_AB_SNAP = ("cages/ab_lastsnap_0aa4550.json",)
+CAGES_FACTOR_SNAP = "cages/factor_lastsnap_knight_0aa4550.json"
+
+
+@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP)
+def cages_snap() -> str:
+    """The last reverse step's snap from 0.01 to 0.1 of ``dhat`` (:func:`_ab_runs_summary`), and
+    decimated-knight.off's diffusion factors on fresh hierarchies with either tree."""
+    runs = load(CAGES_FACTOR_SNAP)["runs"]
+    fac = {t: [r["problems"]["diffusion-neumann"]["factor"] for r in runs if r["tree"] == t]
+           for t in dict.fromkeys(r["tree"] for r in runs)}
+    before, after = fac.values()
+    return (_ab_runs_summary(CAGES_AB_SNAP) + f"; decimated-knight.off's diffusion V-cycle factor "
+            f"{rng(before, '.3f')} ({len(before)} hierarchies) -> {rng(after, '.3f')} ({len(after)}, "
+            f"{sum(f > 0.3 for f in after)} above the 0.3 goal)")
 
 
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))

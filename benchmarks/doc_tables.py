@@ -536,19 +536,41 @@ def cages_kappa() -> str:
 
 CAGES_AB_SNAP = ("cages/ab_lastsnap_0aa4550.json",)
 CAGES_FACTOR_SNAP = "cages/factor_lastsnap_knight_0aa4550.json"
+KNIGHT_SPREAD = "corpus/knight_spread_7fc4fbf.json"
 
 
-@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP)
+def _knight_default(problem: str) -> list[float]:
+    """decimated-knight.off's V-cycle factors of ``problem`` on main's fresh default hierarchies."""
+    return [r["variants"]["default"][problem][0] for r in load(KNIGHT_SPREAD)["runs"]]
+
+
+@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP, KNIGHT_SPREAD)
 def cages_snap() -> str:
     """The last reverse step's snap from 0.01 to 0.1 of ``dhat`` (:func:`_ab_runs_summary`), and
-    decimated-knight.off's diffusion factors on fresh hierarchies with either tree."""
-    runs = load(CAGES_FACTOR_SNAP)["runs"]
-    fac = {t: [r["problems"]["diffusion-neumann"]["factor"] for r in runs if r["tree"] == t]
-           for t in dict.fromkeys(r["tree"] for r in runs)}
-    before, after = fac.values()
-    return (_ab_runs_summary(CAGES_AB_SNAP) + f"; decimated-knight.off's diffusion V-cycle factor "
-            f"{rng(before, '.3f')} ({len(before)} hierarchies) -> {rng(after, '.3f')} ({len(after)}, "
-            f"{sum(f > 0.3 for f in after)} above the 0.3 goal)")
+    decimated-knight.off's diffusion factors on fresh hierarchies, main's against the change's."""
+    after = [r["problems"]["diffusion-neumann"]["factor"] for r in load(CAGES_FACTOR_SNAP)["runs"]
+             if r["tree"] == "0aa4550"]
+    before = _knight_default("diffusion-neumann")
+    over = lambda xs: sum(f > 0.3 for f in xs)  # noqa: E731
+    return (_ab_runs_summary(CAGES_AB_SNAP) + f"; decimated-knight.off's diffusion V-cycle factor on fresh "
+            f"hierarchies {rng(before, '.3f')} at main ({over(before)} of {len(before)} above the 0.3 goal) -> "
+            f"{rng(after, '.3f')} ({over(after)} of {len(after)})")
+
+
+@generator("corpus.knight_spread", KNIGHT_SPREAD)
+def corpus_knight_spread() -> str:
+    """decimated-knight.off's factors over main's fresh default hierarchies, and with V(2,2) / W cycles."""
+    runs = load(KNIGHT_SPREAD)["runs"]
+    parts = []
+    for p, goal in (("poisson-neumann", 0.3), ("diffusion-neumann", 0.3)):
+        xs = _knight_default(p)
+        parts.append(f"{p} {rng(xs, '.3f')} ({sum(x > goal for x in xs)} of {len(xs)} above {goal})")
+    alt = []
+    for v, label in (("nu2", "V(2,2)"), ("W", "W(1,1)")):
+        xs = [r["variants"][v][p][0] for r in runs if v in r["variants"] for p in ("poisson-neumann", "diffusion-neumann")]
+        alt.append(f"{label} {rng(xs, '.3f')}")
+    n_alt = sum("nu2" in r["variants"] for r in runs)
+    return "; ".join(parts) + f"; on {n_alt} of them, both Neumann problems: " + ", ".join(alt)
 
 
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))
@@ -1492,6 +1514,12 @@ def curved_relax_below() -> str:
 # ----------------------------------------------------------------------------------------- corpus views
 def _corpus() -> dict:
     return load(CORPUS)
+
+
+@generator("corpus.source", CORPUS)
+def corpus_source() -> str:
+    """The corpus JSON the tables read and the date of its latest run."""
+    return f"`benchmarks/results/{CORPUS}` (latest run {_corpus()['date']})"
 
 
 @generator("corpus.stages", CORPUS)

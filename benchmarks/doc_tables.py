@@ -536,41 +536,48 @@ def cages_kappa() -> str:
 
 CAGES_AB_SNAP = ("cages/ab_lastsnap_0aa4550.json",)
 CAGES_FACTOR_SNAP = "cages/factor_lastsnap_knight_0aa4550.json"
-KNIGHT_SPREAD = "corpus/knight_spread_7fc4fbf.json"
+FACTOR_SPREAD = "corpus/factor_spread_7fc4fbf.json"
 
 
-def _knight_default(problem: str) -> list[float]:
-    """decimated-knight.off's V-cycle factors of ``problem`` on main's fresh default hierarchies."""
-    return [r["variants"]["default"][problem][0] for r in load(KNIGHT_SPREAD)["runs"]]
+def _spread_default(mesh: str, problem: str) -> list[float]:
+    """``mesh``'s V-cycle factors of ``problem`` on main's fresh default hierarchies."""
+    return [r["variants"]["default"][problem][0] for r in load(FACTOR_SPREAD)["meshes"][mesh]]
 
 
-@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP, KNIGHT_SPREAD)
+@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP, FACTOR_SPREAD)
 def cages_snap() -> str:
     """The last reverse step's snap from 0.01 to 0.1 of ``dhat`` (:func:`_ab_runs_summary`), and
     decimated-knight.off's diffusion factors on fresh hierarchies, main's against the change's."""
     after = [r["problems"]["diffusion-neumann"]["factor"] for r in load(CAGES_FACTOR_SNAP)["runs"]
              if r["tree"] == "0aa4550"]
-    before = _knight_default("diffusion-neumann")
+    before = _spread_default("decimated-knight.off", "diffusion-neumann")
     over = lambda xs: sum(f > 0.3 for f in xs)  # noqa: E731
     return (_ab_runs_summary(CAGES_AB_SNAP) + f"; decimated-knight.off's diffusion V-cycle factor on fresh "
             f"hierarchies {rng(before, '.3f')} at main ({over(before)} of {len(before)} above the 0.3 goal) -> "
             f"{rng(after, '.3f')} ({over(after)} of {len(after)})")
 
 
-@generator("corpus.knight_spread", KNIGHT_SPREAD)
-def corpus_knight_spread() -> str:
-    """decimated-knight.off's factors over main's fresh default hierarchies, and with V(2,2) / W cycles."""
-    runs = load(KNIGHT_SPREAD)["runs"]
+@generator("corpus.factor_spread", FACTOR_SPREAD)
+def corpus_factor_spread() -> str:
+    """Per mesh, the range of the default cycle's factors over fresh hierarchies and the goals missed; for
+    decimated-knight.off also the V(2,2) and W(1,1) cycles' Neumann factors."""
+    doc = load(FACTOR_SPREAD)["meshes"]
+    goals = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
+    short = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
     parts = []
-    for p, goal in (("poisson-neumann", 0.3), ("diffusion-neumann", 0.3)):
-        xs = _knight_default(p)
-        parts.append(f"{p} {rng(xs, '.3f')} ({sum(x > goal for x in xs)} of {len(xs)} above {goal})")
-    alt = []
-    for v, label in (("nu2", "V(2,2)"), ("W", "W(1,1)")):
-        xs = [r["variants"][v][p][0] for r in runs if v in r["variants"] for p in ("poisson-neumann", "diffusion-neumann")]
-        alt.append(f"{label} {rng(xs, '.3f')}")
-    n_alt = sum("nu2" in r["variants"] for r in runs)
-    return "; ".join(parts) + f"; on {n_alt} of them, both Neumann problems: " + ", ".join(alt)
+    for mesh, runs in doc.items():
+        cells = []
+        for p, goal in goals.items():
+            xs = [r["variants"]["default"][p][0] for r in runs if p in r["variants"]["default"]]
+            miss = sum(x > goal for x in xs)
+            n = f" on {len(xs)}" if len(xs) != len(runs) else ""
+            cells.append(f"{short[p]}{n} {rng(xs, '.3f')}" + (f" ({miss} above {goal})" if miss else ""))
+        parts.append(f"{mesh} ({len(runs)} hierarchies): " + ", ".join(cells))
+    knight = doc["decimated-knight.off"]
+    alt = [f"{label} {rng([r['variants'][v][p][0] for r in knight if v in r['variants'] for p in ('poisson-neumann', 'diffusion-neumann')], '.3f')}"
+           for v, label in (("nu2", "V(2,2)"), ("W", "W(1,1)"))]
+    n_alt = sum("nu2" in r["variants"] for r in knight)
+    return "; ".join(parts) + f"; decimated-knight.off's Neumann problems on {n_alt} of them: " + ", ".join(alt)
 
 
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))

@@ -1,0 +1,77 @@
+"""How much the V-cycle factors of one mesh vary between fresh default hierarchies.
+
+Usage::
+
+    python benchmarks/factor_spread.py ZOO_DIR --meshes decimated-knight.off angle_block.stl \\
+        --runs 6 [--variants default nu2 W] --out OUT.json
+
+``benchmarks/corpus.py`` shows one hierarchy per mesh. The nested cages are reproducible only to round-off
+(ipctk's threaded reductions), TetWild's tets follow the cages, and the factors follow the tets: a mesh near
+a goal can meet it in one corpus run and miss it in the next. Per mesh and run this builds the hierarchy of
+``nestmg solve FILE --levels 3`` (defaults, no cache) and solves the three model problems with each solver
+variant, as V-cycles (factor) and MG-PCG (iterations). Variants: ``default`` (the pipeline's cycle),
+``nu2`` (V(2,2) on the fine level, ``SolverOptions(nu=2)``), ``W`` (``SolverOptions(cycle="W")``).
+The JSON holds, per mesh, one record per run: tets per level and ``[factor, MG-PCG iterations]`` per
+variant and problem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from corpus import _cli_args
+from nestmg.problems import PROBLEMS
+
+VARIANTS = {"default": {}, "nu2": {"nu": 2}, "W": {"cycle": "W"}}
+
+
+def one_run(mesh: Path, variants: list[str]) -> dict:
+    """A fresh default hierarchy of ``mesh`` and ``[factor, MG-PCG iterations]`` per variant and problem."""
+    from nestmg.cli import _hierarchy, _load, _solve
+
+    args = _cli_args("solve", mesh, [])
+    V, F, _ = _load(str(mesh))
+    h = _hierarchy(V, F, args)
+    base, out = args.solver, {}
+    for name in variants:
+        row = {}
+        for problem in PROBLEMS:
+            args.problem = problem
+            args.solver = replace(base, accel=None, **VARIANTS[name])
+            r = _solve(h, args)
+            args.solver = replace(base, accel="cg", **VARIANTS[name])
+            c = _solve(h, args)
+            row[problem] = [r["factor"], c["iterations"]]
+        out[name] = row
+    return {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[1], formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--meshes", nargs="+", required=True)
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--variants", nargs="+", default=["default", "nu2", "W"], choices=sorted(VARIANTS))
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    doc = {"command": (f"python benchmarks/factor_spread.py ZOO_DIR --meshes {' '.join(args.meshes)} "
+                       f"--runs {args.runs} --variants {' '.join(args.variants)} --out OUT/{args.out.name}"),
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "meshes": {}}
+    for m in args.meshes:
+        runs = doc["meshes"].setdefault(m, [])
+        for i in range(args.runs):
+            t = time.perf_counter()
+            runs.append(one_run(args.folder / m, args.variants))
+            d = runs[-1]["variants"]["default"] if "default" in args.variants else {}
+            print(f"[spread] {m} run {i + 1}: {time.perf_counter() - t:.0f} s, default factors "
+                  + ", ".join(f"{p} {v[0]:.3f}" for p, v in d.items()), flush=True)
+            args.out.write_text(json.dumps(doc, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

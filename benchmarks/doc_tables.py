@@ -536,15 +536,24 @@ def cages_kappa() -> str:
 
 CAGES_AB_SNAP = ("cages/ab_lastsnap_0aa4550.json",)
 CAGES_FACTOR_SNAP = "cages/factor_lastsnap_knight_0aa4550.json"
-FACTOR_SPREAD = "corpus/factor_spread_7fc4fbf.json"
+FACTOR_SPREAD = ("corpus/factor_spread_7fc4fbf.json", "corpus/factor_spread_9de6cec.json")
+
+
+def _spread_runs() -> dict[str, list]:
+    """Per mesh, the fresh default hierarchies of every :data:`FACTOR_SPREAD` file, pooled."""
+    runs: dict[str, list] = {}
+    for rel in FACTOR_SPREAD:
+        for mesh, rs in load(rel)["meshes"].items():
+            runs.setdefault(mesh, []).extend(rs)
+    return runs
 
 
 def _spread_default(mesh: str, problem: str) -> list[float]:
     """``mesh``'s V-cycle factors of ``problem`` on main's fresh default hierarchies."""
-    return [r["variants"]["default"][problem][0] for r in load(FACTOR_SPREAD)["meshes"][mesh]]
+    return [r["variants"]["default"][problem][0] for r in _spread_runs()[mesh]]
 
 
-@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP, FACTOR_SPREAD)
+@generator("cages.snap", *CAGES_AB_SNAP, CAGES_FACTOR_SNAP, *FACTOR_SPREAD)
 def cages_snap() -> str:
     """The last reverse step's snap from 0.01 to 0.1 of ``dhat`` (:func:`_ab_runs_summary`), and
     decimated-knight.off's diffusion factors on fresh hierarchies, main's against the change's."""
@@ -557,11 +566,11 @@ def cages_snap() -> str:
             f"{rng(after, '.3f')} ({over(after)} of {len(after)})")
 
 
-@generator("corpus.factor_spread", FACTOR_SPREAD)
+@generator("corpus.factor_spread", *FACTOR_SPREAD)
 def corpus_factor_spread() -> str:
     """Per mesh, the range of the default cycle's factors over fresh hierarchies and the goals missed; for
     decimated-knight.off also the V(2,2) and W(1,1) cycles' Neumann factors."""
-    doc = load(FACTOR_SPREAD)["meshes"]
+    doc = _spread_runs()
     goals = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
     short = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
     parts = []

@@ -12,7 +12,10 @@ a goal can meet it in one corpus run and miss it in the next. Per mesh and run t
 variant, as V-cycles (factor) and MG-PCG (iterations). Variants: ``default`` (the pipeline's cycle),
 ``nu2`` (V(2,2) on the fine level, ``SolverOptions(nu=2)``), ``W`` (``SolverOptions(cycle="W")``).
 The JSON holds, per mesh, one record per run: tets per level and ``[factor, MG-PCG iterations]`` per
-variant and problem.
+variant and problem. ``--slow-mode``: also the pure-Neumann problem's two-grid pair of the two finest levels
+(exact coarse solve on level 1): its asymptotic energy-norm contraction after 40 error-propagation steps
+``e <- e - M A e`` from a random start, and where that slowest error lives (the share of its energy
+``e_i (A e)_i`` on the 1% of nodes that carry most, their centroid and the share of them on the boundary).
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
+
+import numpy as np
 from dataclasses import replace
 from pathlib import Path
 
@@ -29,7 +34,35 @@ from nestmg.problems import PROBLEMS
 VARIANTS = {"default": {}, "nu2": {"nu": 2}, "W": {"cycle": "W"}}
 
 
-def one_run(mesh: Path, variants: list[str]) -> dict:
+def slow_mode(tets, P, steps: int = 40) -> dict:
+    """The Neumann two-grid pair of the two finest levels: asymptotic contraction and where its slowest
+    error lives (see the module docstring)."""
+    from nestmg.options import SolverOptions
+    from nestmg.problems import setup_problem
+
+    prob = setup_problem(tets[:2], P[:1], "poisson-neumann")
+    A, M = prob.A, prob.multigrid(SolverOptions().resolved("poisson-neumann")).aspreconditioner()
+    e = np.random.default_rng(0).standard_normal(A.shape[0])
+    for _ in range(steps):
+        e -= e.mean()
+        e /= np.sqrt(e @ (A @ e))
+        e = e - M @ (A @ e)
+    e -= e.mean()
+    contraction = float(np.sqrt(e @ (A @ e)))  # the last step's, from unit energy
+    local = np.abs(e * (A @ e))
+    top = np.argsort(-local)[: max(1, A.shape[0] // 100)]
+    X, T = tets[0]
+    faces = np.sort(np.vstack([T[:, [0, 1, 2]], T[:, [0, 1, 3]], T[:, [0, 2, 3]], T[:, [1, 2, 3]]]), axis=1)
+    uniq, count = np.unique(faces, axis=0, return_counts=True)
+    boundary = np.zeros(len(X), dtype=bool)
+    boundary[uniq[count == 1].ravel()] = True
+    return {"contraction": contraction, "energy_share_top1pct": float(local[top].sum() / local.sum()),
+            "top1pct_centroid": X[top].mean(axis=0).tolist(),
+            "top1pct_extent": np.ptp(X[top], axis=0).tolist(),
+            "top1pct_on_boundary": float(boundary[top].mean()), "on_boundary_all": float(boundary.mean())}
+
+
+def one_run(mesh: Path, variants: list[str], modes: bool = False) -> dict:
     """A fresh default hierarchy of ``mesh`` and ``[factor, MG-PCG iterations]`` per variant and problem."""
     from nestmg.cli import _hierarchy, _load, _solve
 
@@ -47,28 +80,36 @@ def one_run(mesh: Path, variants: list[str]) -> dict:
             c = _solve(h, args)
             row[problem] = [r["factor"], c["iterations"]]
         out[name] = row
-    return {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out}
+    rec = {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out}
+    if modes:
+        rec["slow_mode"] = slow_mode(h.tets_in("normalized"), h.P)
+    return rec
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[1], formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[1],
+                                 formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("folder", type=Path)
     ap.add_argument("--meshes", nargs="+", required=True)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--variants", nargs="+", default=["default", "nu2", "W"], choices=sorted(VARIANTS))
+    ap.add_argument("--slow-mode", action="store_true",
+                    help="also locate the Neumann two-grid pair's slowest error")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
+    flags = " --slow-mode" if args.slow_mode else ""
     doc = {"command": (f"python benchmarks/factor_spread.py ZOO_DIR --meshes {' '.join(args.meshes)} "
-                       f"--runs {args.runs} --variants {' '.join(args.variants)} --out OUT/{args.out.name}"),
+                       f"--runs {args.runs} --variants {' '.join(args.variants)}{flags} --out OUT/{args.out.name}"),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "meshes": {}}
     for m in args.meshes:
         runs = doc["meshes"].setdefault(m, [])
         for i in range(args.runs):
             t = time.perf_counter()
-            runs.append(one_run(args.folder / m, args.variants))
+            runs.append(one_run(args.folder / m, args.variants, args.slow_mode))
             d = runs[-1]["variants"]["default"] if "default" in args.variants else {}
+            slow = f"; slow mode {runs[-1]['slow_mode']['contraction']:.3f}" if args.slow_mode else ""
             print(f"[spread] {m} run {i + 1}: {time.perf_counter() - t:.0f} s, default factors "
-                  + ", ".join(f"{p} {v[0]:.3f}" for p, v in d.items()), flush=True)
+                  + ", ".join(f"{p} {v[0]:.3f}" for p, v in d.items()) + slow, flush=True)
             args.out.write_text(json.dumps(doc, indent=1))
     return 0
 

@@ -97,9 +97,9 @@ def main(argv=None) -> int:
                     help="also locate the Neumann two-grid pair's slowest error")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    flags = " --slow-mode" if args.slow_mode else ""
+    flags = f" --variants {' '.join(args.variants)}" + (" --slow-mode" if args.slow_mode else "")
     doc = {"command": (f"python benchmarks/factor_spread.py ZOO_DIR --meshes {' '.join(args.meshes)} "
-                       f"--runs {args.runs} --variants {' '.join(args.variants)}{flags} --out OUT/{args.out.name}"),
+                       f"--runs {args.runs}{flags} --out OUT/{args.out.name}"),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "meshes": {}}
     for m in args.meshes:
         runs = doc["meshes"].setdefault(m, [])

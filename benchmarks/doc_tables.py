@@ -566,6 +566,28 @@ def cages_snap() -> str:
             f"{rng(after, '.3f')} ({over(after)} of {len(after)})")
 
 
+SLOW_MODE = "corpus/slow_mode_65e1832.json"
+
+
+@generator("corpus.slow_mode", SLOW_MODE)
+def corpus_slow_mode() -> str:
+    """The Neumann two-grid pair of the two finest levels: contraction per mesh, and where
+    decimated-knight.off's slowest error lives."""
+    doc = load(SLOW_MODE)["meshes"]
+    knight = [r["slow_mode"] for r in doc["decimated-knight.off"]]
+    cen = [round(statistics.median(s["top1pct_centroid"][i] for s in knight), 2) for i in range(3)]
+    others = ", ".join(f"{m} {rng([r['slow_mode']['contraction'] for r in rs])}" for m, rs in doc.items()
+                       if m != "decimated-knight.off")
+    share = math.floor(1000 * min(s["energy_share_top1pct"] for s in knight)) / 10
+    dev = max(math.dist(s["top1pct_centroid"], cen) for s in knight)
+    return (f"{rng([s['contraction'] for s in knight])} on decimated-knight.off ({len(knight)} hierarchies; "
+            f"at least {share:.1f}% of the slowest error's energy on 1% of the nodes, centred within "
+            f"{math.ceil(100 * dev) / 100:.2f} of ({cen[0]:.2f}, {cen[1]:.2f}, {cen[2]:.2f}) "
+            f"of the unit-diagonal shape, "
+            f"{rng([s['top1pct_on_boundary'] for s in knight])} of those nodes on the boundary against "
+            f"{rng([s['on_boundary_all'] for s in knight])} of all), {others}")
+
+
 @generator("corpus.factor_spread", *FACTOR_SPREAD)
 def corpus_factor_spread() -> str:
     """Per mesh, the range of the default cycle's factors over fresh hierarchies and the goals missed; for

@@ -72,7 +72,10 @@ def test_default_hierarchy_refines_and_converges():
     assert res["poisson-dirichlet"]["factor"] <= 0.2
     assert res["poisson-neumann"]["factor"] <= 0.25
     assert res["diffusion-neumann"]["factor"] <= 0.2
-    for p in plain:  # the local sweeps are what removes the Neumann boundary error
-        assert res[p]["factor"] <= 0.75 * plain[p]["factor"], (p, res[p]["factor"], plain[p]["factor"])
+    # the local sweeps are what removes the Neumann boundary error: default / plain 0.47-0.57 over six
+    # fresh hierarchies (2026-12-05), but 0.76 (0.202 / 0.265, Neumann) in one CI run, hierarchies differing
+    # at round-off; without the local sweeps the ratio is ~1
+    for p in plain:
+        assert res[p]["factor"] <= 0.8 * plain[p]["factor"], (p, res[p]["factor"], plain[p]["factor"])
     pcg = solve_on_hierarchy(tets, h.P, "poisson-neumann", SolverOptions(accel="cg"), cost=False)
     assert pcg["converged"] and pcg["iterations"] <= 9

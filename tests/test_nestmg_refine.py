@@ -65,17 +65,18 @@ def test_default_hierarchy_refines_and_converges():
     tets = h.tets_in("normalized")
     res = {p: solve_on_hierarchy(tets, h.P, p, cost=False)
            for p in ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")}
-    plain = {p: solve_on_hierarchy(tets, h.P, p, SolverOptions(local=False, coarse_nu=1), cost=False)
-             for p in ("poisson-neumann", "diffusion-neumann")}
+    no_local = {p: solve_on_hierarchy(tets, h.P, p, SolverOptions(local=False), cost=False)
+                for p in ("poisson-neumann", "diffusion-neumann")}
     # default cycle (boundary-layer sweeps + 2 coarse sweeps), measured over two TetWild runs:
     # 0.094-0.109 / 0.130-0.165 / 0.100-0.126; the plain V(1,1): 0.124-0.140 / 0.244-0.324 / 0.212-0.272
+    # (one CI run of fa363c9 drew 0.202 for Neumann: hierarchies differ at round-off)
     assert res["poisson-dirichlet"]["factor"] <= 0.2
     assert res["poisson-neumann"]["factor"] <= 0.25
     assert res["diffusion-neumann"]["factor"] <= 0.2
-    # the local sweeps are what removes the Neumann boundary error: default / plain 0.47-0.57 over six
-    # fresh hierarchies (2026-12-05), but 0.76 (0.202 / 0.265, Neumann) in one CI run, hierarchies differing
-    # at round-off; without the local sweeps the ratio is ~1
-    for p in plain:
-        assert res[p]["factor"] <= 0.8 * plain[p]["factor"], (p, res[p]["factor"], plain[p]["factor"])
+    # the local sweeps are what removes the Neumann boundary error: the default cycle against the same cycle
+    # without them, 0.48-0.71 over five fresh hierarchies (Neumann and diffusion, 2026-12-05); exactly 1 if
+    # the local sweeps did nothing
+    for p in no_local:
+        assert res[p]["factor"] <= 0.85 * no_local[p]["factor"], (p, res[p]["factor"], no_local[p]["factor"])
     pcg = solve_on_hierarchy(tets, h.P, "poisson-neumann", SolverOptions(accel="cg"), cost=False)
     assert pcg["converged"] and pcg["iterations"] <= 9

@@ -34,29 +34,41 @@ from nestmg.problems import PROBLEMS
 VARIANTS = {"default": {}, "nu2": {"nu": 2}, "W": {"cycle": "W"}}
 
 
-def slow_mode(tets, P, steps: int = 40) -> dict:
-    """The Neumann two-grid pair of the two finest levels: asymptotic contraction and where its slowest
-    error lives (see the module docstring)."""
+def neumann_two_grid(tets, P):
+    """``(A, M)``: the pure-Neumann problem on the two finest levels and its default two-grid cycle (exact
+    coarse solve on level 1) as a preconditioner."""
     from nestmg.options import SolverOptions
     from nestmg.problems import setup_problem
 
     prob = setup_problem(tets[:2], P[:1], "poisson-neumann")
-    A, M = prob.A, prob.multigrid(SolverOptions().resolved("poisson-neumann")).aspreconditioner()
+    return prob.A, prob.multigrid(SolverOptions().resolved("poisson-neumann")).aspreconditioner()
+
+
+def contraction(A, step, n_steps: int = 40) -> tuple[float, np.ndarray]:
+    """Energy-norm contraction of the error propagation ``step`` (e.g. ``e -> e - M A e``) at its last of
+    ``n_steps`` from a random start, every error normalised and made zero-mean; and that last error."""
     e = np.random.default_rng(0).standard_normal(A.shape[0])
-    for _ in range(steps):
+    for _ in range(n_steps):
         e -= e.mean()
         e /= np.sqrt(e @ (A @ e))
-        e = e - M @ (A @ e)
+        e = step(e)
     e -= e.mean()
-    contraction = float(np.sqrt(e @ (A @ e)))  # the last step's, from unit energy
+    return float(np.sqrt(e @ (A @ e))), e
+
+
+def slow_mode(tets, P, steps: int = 40) -> dict:
+    """The Neumann two-grid pair of the two finest levels: asymptotic contraction and where its slowest
+    error lives (see the module docstring)."""
+    from solvers import boundary_nodes
+
+    A, M = neumann_two_grid(tets, P)
+    rate, e = contraction(A, lambda e: e - M @ (A @ e), steps)
     local = np.abs(e * (A @ e))
     top = np.argsort(-local)[: max(1, A.shape[0] // 100)]
     X, T = tets[0]
-    faces = np.sort(np.vstack([T[:, [0, 1, 2]], T[:, [0, 1, 3]], T[:, [0, 2, 3]], T[:, [1, 2, 3]]]), axis=1)
-    uniq, count = np.unique(faces, axis=0, return_counts=True)
     boundary = np.zeros(len(X), dtype=bool)
-    boundary[uniq[count == 1].ravel()] = True
-    return {"contraction": contraction, "energy_share_top1pct": float(local[top].sum() / local.sum()),
+    boundary[boundary_nodes(T)] = True
+    return {"contraction": rate, "energy_share_top1pct": float(local[top].sum() / local.sum()),
             "top1pct_centroid": X[top].mean(axis=0).tolist(),
             "top1pct_extent": np.ptp(X[top], axis=0).tolist(),
             "top1pct_on_boundary": float(boundary[top].mean()), "on_boundary_all": float(boundary.mean())}

@@ -1,7 +1,7 @@
 """Does an exact local solve at a mesh's Neumann slow mode remove it? (issue 27, docs/pipeline.md limits)
 
 On fresh default hierarchies of one mesh: the pure-Neumann two-grid pair of the two finest levels
-(:func:`factor_spread.slow_mode`'s set-up), its asymptotic energy contraction, then the same with one exact
+(:func:`factor_spread.neumann_two_grid`), its asymptotic energy contraction, then the same with one exact
 solve on the fine nodes within ``--radius`` of the slowest error's centre after every two-grid application
 (``e <- e - A_RR^-1 (A e)_R``). A study of the cause, not a smoother the package offers. Run from
 ``benchmarks/``'s parent::
@@ -22,31 +22,18 @@ import scipy.sparse.linalg as spla
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from corpus import _cli_args  # noqa: E402
-
-
-def contraction(A, step, n_steps: int = 40) -> tuple[float, np.ndarray]:
-    """Energy-norm contraction of the error propagation ``step`` after ``n_steps`` (zero-mean errors)."""
-    e = np.random.default_rng(0).standard_normal(A.shape[0])
-    for _ in range(n_steps):
-        e -= e.mean()
-        e /= np.sqrt(e @ (A @ e))
-        e = step(e)
-    e -= e.mean()
-    return float(np.sqrt(e @ (A @ e))), e
+from factor_spread import contraction, neumann_two_grid  # noqa: E402
 
 
 def one_run(mesh: Path, radius: float) -> dict:
     from nestmg.cli import _hierarchy, _load
-    from nestmg.options import SolverOptions
-    from nestmg.problems import setup_problem
 
     args = _cli_args("solve", mesh, [])
     V, F, _ = _load(str(mesh))
     h = _hierarchy(V, F, args)
     tets = h.tets_in("normalized")
-    prob = setup_problem(tets[:2], h.P[:1], "poisson-neumann")
-    A = prob.A.tocsr()
-    M = prob.multigrid(SolverOptions().resolved("poisson-neumann")).aspreconditioner()
+    A, M = neumann_two_grid(tets, h.P)
+    A = A.tocsr()
     plain, e = contraction(A, lambda e: e - M @ (A @ e))
     local = np.abs(e * (A @ e))
     X = tets[0][0]

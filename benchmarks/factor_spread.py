@@ -11,8 +11,9 @@ a goal can meet it in one corpus run and miss it in the next. Per mesh and run t
 ``nestmg solve FILE --levels 3`` (defaults, no cache) and solves the three model problems with each solver
 variant, as V-cycles (factor) and MG-PCG (iterations). Variants: ``default`` (the pipeline's cycle),
 ``nu2`` (V(2,2) on the fine level, ``SolverOptions(nu=2)``), ``W`` (``SolverOptions(cycle="W")``).
-The JSON holds, per mesh, one record per run: tets per level and ``[factor, MG-PCG iterations]`` per
-variant and problem. ``--slow-mode``: also the pure-Neumann problem's two-grid pair of the two finest levels
+The JSON holds, per mesh, one record per run: tets per level, ``[factor, MG-PCG iterations]`` per
+variant and problem, and the default cycle's subdomain solves (``local_solves``: ``[level, nodes]`` per
+problem, :mod:`solvers.subdomain`). ``--slow-mode``: also the pure-Neumann problem's two-grid pair of the two finest levels
 (exact coarse solve on level 1): its asymptotic energy-norm contraction after 40 error-propagation steps
 ``e <- e - M A e`` from a random start, and where that slowest error lives (the share of its energy
 ``e_i (A e)_i`` on the 1% of nodes that carry most, their centroid and the share of them on the boundary).
@@ -81,18 +82,21 @@ def one_run(mesh: Path, variants: list[str], modes: bool = False) -> dict:
     args = _cli_args("solve", mesh, [])
     V, F, _ = _load(str(mesh))
     h = _hierarchy(V, F, args)
-    base, out = args.solver, {}
+    base, out, local = args.solver, {}, {}
     for name in variants:
         row = {}
         for problem in PROBLEMS:
             args.problem = problem
             args.solver = replace(base, accel=None, **VARIANTS[name])
             r = _solve(h, args)
+            if name == "default":  # [level, nodes] of each subdomain solve the probe kept
+                local[problem] = [[d["level"], d["local_solve"]["nodes"]] for d in r.get("deflation") or []
+                                  if d.get("local_solve", {}).get("kept")]
             args.solver = replace(base, accel="cg", **VARIANTS[name])
             c = _solve(h, args)
             row[problem] = [r["factor"], c["iterations"]]
         out[name] = row
-    rec = {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out}
+    rec = {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out, "local_solves": local}
     if modes:
         rec["slow_mode"] = slow_mode(h.tets_in("normalized"), h.P)
     return rec

@@ -133,9 +133,12 @@ def _print_solve(label: str, h, r: dict) -> None:
     print(f"{label:<10} levels={h.levels} tets={[len(T) for _, T in h.tets]} n_outside={h.n_outside} "
           f"certified={h.certified}{fb}")
     deflated = [f"level {d['level']}: {d['modes']}" for d in r.get("deflation") or [] if d["modes"]]
+    local = [f"level {d['level']}: {d['local_solve']['nodes']} nodes" for d in r.get("deflation") or []
+             if d.get("local_solve", {}).get("kept")]
     extra = (f", {r['coarse_nu']} coarse sweeps" if r.get("coarse_nu", r["nu"]) != r["nu"] else "") + (
         f", boundary layer +1 ({r['local_nodes']} nodes)" if r.get("local_nodes") else "") + (
-        f", slow modes deflated ({', '.join(deflated)})" if deflated else "")
+        f", slow modes deflated ({', '.join(deflated)})" if deflated else "") + (
+        f", local solves ({', '.join(local)})" if local else "")
     cyc = r.get("cycle") or "V"
     print(f"{'':<10} {r['problem']} ({r['coarse']}, {r['smoother']} {cyc}({r['nu']},{r['nu']}){extra}): factor "
           f"{r['factor']:.3f}, {r['iterations']} cycles, {status}, final residual {r['residuals'][-1]:.2e}")

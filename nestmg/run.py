@@ -125,6 +125,7 @@ def solve_on_hierarchy(
         "coarsest": ml.coarsest_solver,
         # slow modes deflated per level (solvers.deflation): level, probe factor, modes kept
         "deflation": [{"level": d["level"], "probe_factor": d["probe_factor"], "modes": d["vectors"]}
+                      | ({"local_solve": d["local_solve"]} if "local_solve" in d else {})
                       for d in ml.deflation],
     }
     t0, c0 = time.perf_counter(), time.process_time()

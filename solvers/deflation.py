@@ -72,6 +72,7 @@ def slow_modes(
     max_vectors: int = 8,
     goal: float = DEFLATION_GOAL,
     seed: int = 0,
+    keep_bulk: bool = False,
 ) -> tuple[np.ndarray, dict]:
     """The error components that a symmetric ``cycle`` reduces by less than ``goal`` per application.
 
@@ -94,6 +95,10 @@ def slow_modes(
         Per-cycle factor above which a mode is returned.
     seed : int
         Seed of the random start vector (the result is deterministic).
+    keep_bulk : bool
+        When more than ``max_vectors`` modes are slower than the goal, return their Ritz vectors in ``info``
+        as ``bulk_modes`` (A-orthonormal; where they live decides whether a subdomain solve can take them,
+        :func:`solvers.subdomain.slow_region`).
 
     Returns
     -------
@@ -155,8 +160,7 @@ def slow_modes(
         if j + 1 >= PROBE_CYCLES and j + 1 > max_vectors:
             slow = int(np.count_nonzero(_ritz(H, j + 1)[0] > goal))
             if slow > max_vectors:  # already more slow modes than can be kept: the answer cannot change
-                info["slow_modes_found"] = slow
-                return np.zeros((n, 0)), info
+                return _refused(Q, H, j + 1, slow, info, keep_bulk)
         # an invariant subspace: the Ritz pairs are exact. The Krylov vectors have unit A-norm, so the scale
         # is at least 1 (a column of round-off, as after a cycle that annihilates q_j, is no scale). On level
         # 1 of the tests' TetGen torus (diffusion, boundary-layer sweeps) w·Aw came out <= 0 at step 9 and the
@@ -171,8 +175,7 @@ def slow_modes(
         info["probe_factor"] = float(theta[0])
     slow = int(np.count_nonzero(theta > goal))
     if slow > max_vectors:  # the bulk of the spectrum, not a few outliers: a smoother / coarse space matter
-        info["slow_modes_found"] = slow
-        return np.zeros((n, 0)), info
+        return _refused(Q, H, k, slow, info, keep_bulk)
     if slow and theta[0] > 1.0 + ORTHONORMAL_TOL:
         # a symmetric cycle's E = I - B A (B positive definite) has no eigenvalue above 1: the Lanczos
         # relation broke (a Ritz value of 1.48 on the tests' torus), its vectors are noise
@@ -181,6 +184,15 @@ def slow_modes(
     Z = _a_orthonormal(Q[:, :k] @ U[:, :slow], A, info)
     info.update(vectors=int(Z.shape[1]), factors=[float(t) for t in theta[:slow]] if Z.shape[1] else [])
     return Z, info
+
+
+def _refused(Q: np.ndarray, H: np.ndarray, k: int, slow: int, info: dict, keep: bool) -> tuple[np.ndarray, dict]:
+    """No modes deflated (``slow`` of the ``k``-step Ritz values are above the goal); with ``keep`` their
+    Ritz vectors go to ``info["bulk_modes"]``."""
+    info["slow_modes_found"] = slow
+    if keep:
+        info["bulk_modes"] = Q[:, :k] @ _ritz(H, k)[1][:, :slow]
+    return np.zeros((Q.shape[0], 0)), info
 
 
 def _a_orthonormal(Z: np.ndarray, A: sp.csr_matrix, info: dict) -> np.ndarray:

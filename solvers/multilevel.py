@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .coarse import _CoarseSolver
+from .coarse import _CoarseSolver, sparse_lu
 from .deflation import DEFLATION_GOAL, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
                        permute_prolongation, permute_symmetric,
@@ -34,6 +34,7 @@ from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_sprea
 from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
+from .subdomain import slow_region, with_subdomain_solve
 from .transfer import (
     _as_csr,
     _galerkin_chain,
@@ -293,6 +294,12 @@ class MultigridSolver:
         Probe (and deflate) the finest level too: its probe costs about as much as one solve, so it is
         off by default here and on in ``nestmg``'s problems (:meth:`nestmg.problems.Problem.multigrid`),
         whose setup is a small part of a run.
+    local_solve : bool
+        Where a probed level's slow modes live on a small region (a thin lip of flat elements: a family of
+        slow modes too large to deflate, or a few that deflation removes one by one), add an exact solve on
+        that region to its smoothers instead (:mod:`solvers.subdomain`), kept only if the probe re-run with
+        it is faster; the modes still slow after it are deflated as before. Default True; acts only where
+        ``deflate`` probes.
     probe_at : {"setup", "stationary"}
         When the finest level's probe (``probe_finest``) runs: at set-up (default), or at the first
         stationary solve (``solve(accel=None)``) or :meth:`probe` call (``nestmg``'s problems). The coarser
@@ -312,7 +319,9 @@ class MultigridSolver:
         The finest level's internal order (None: the caller's).
     deflation : list of dict
         Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors`` (without
-        the finest level while its probe, deferred by ``probe_at="stationary"``, has not run).
+        the finest level while its probe, deferred by ``probe_at="stationary"``, has not run);
+        ``local_solve`` where a subdomain solve was tried: its ``nodes``, ``kept``, and the re-run
+        ``probe_factor`` (or ``refused_fill``: its factor would cost more than a sweep of the level).
     setup_seconds : float
 
     Examples
@@ -354,6 +363,7 @@ class MultigridSolver:
         cycle: str = "V",
         deflate_goal: float = DEFLATION_GOAL,
         probe_at: str = "setup",
+        local_solve: bool = True,
     ):
         t0 = time.perf_counter()
         #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
@@ -394,6 +404,7 @@ class MultigridSolver:
         if not 0.0 < deflate_goal < 1.0:
             raise SolverInputError(f"deflate_goal must be in (0, 1), got {deflate_goal!r}")
         self.deflate_goal = float(deflate_goal)
+        self.local_solve = bool(local_solve)
         self._schedule_probe(deflate, probe_finest, probe_at)
         self.setup_seconds = time.perf_counter() - t0
 
@@ -508,8 +519,11 @@ class MultigridSolver:
             neumann = self.nullspace == "constant"
             kernel = self._level_kernel(k)
             Z, info = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
-                                 max_vectors=int(max_vectors), goal=self.deflate_goal)
+                                 max_vectors=int(max_vectors), goal=self.deflate_goal, keep_bulk=self.local_solve)
             info["level"] = k
+            bulk = info.pop("bulk_modes", None)
+            if self.local_solve and (Z.shape[1] or bulk is not None):
+                Z = self._local_solve(k, Z if Z.shape[1] else bulk, info, cycle, neumann, kernel, max_vectors, Z)
             if Z.shape[1]:
                 pre, post = L.presmoother, L.postsmoother
                 L.presmoother = with_deflation(pre, L.A, Z)
@@ -525,6 +539,33 @@ class MultigridSolver:
                     info.update(vectors=0, factors=[], reverted=True)
             report.append(info)
         return report[::-1]
+
+    def _local_solve(self, k, modes, info, cycle, neumann, kernel, max_vectors, Z) -> np.ndarray:
+        """Try an exact subdomain solve on the region of level ``k``'s slow ``modes``
+        (:mod:`solvers.subdomain`); keep it if the re-run probe is faster, and return the modes still to
+        deflate (``Z``, the first probe's, when there is no local region or no gain)."""
+        L = self.levels[k]
+        region = slow_region(modes, L.A)
+        if region is None:
+            return Z
+        rows = L.A[region]
+        lu = sparse_lu(rows[:, region], symmetric=True)
+        if lu.L.nnz + lu.U.nnz > L.A.nnz:  # dearer than a sweep of the level: no longer a local fix
+            info["local_solve"] = {"nodes": int(region.size), "kept": False,
+                                   "refused_fill": int(lu.L.nnz + lu.U.nnz)}
+            return Z
+        pre, post = L.presmoother, L.postsmoother
+        L.presmoother = with_subdomain_solve(pre, L.A, region, factor=lu, rows=rows)
+        L.postsmoother = with_subdomain_solve(post, L.A, region, first=True, factor=lu, rows=rows)
+        Z2, again = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
+                               max_vectors=int(max_vectors), goal=self.deflate_goal)
+        kept = again["probe_factor"] < info["probe_factor"] and again.get("probe_min", 0.0) > -0.95
+        info["local_solve"] = {"nodes": int(region.size), "probe_factor": again["probe_factor"], "kept": kept}
+        if not kept:  # as for the deflation: kept only if the probe (same start, same steps) says it helps
+            L.presmoother, L.postsmoother = pre, post
+            return Z
+        info.update(vectors=int(Z2.shape[1]), factors=again["factors"])
+        return Z2
 
     def _level_kernel(self, k: int) -> np.ndarray | None:
         """Orthonormal basis of level ``k``'s kernel kept out of the deflation probe (beyond the constant of

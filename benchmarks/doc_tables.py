@@ -611,6 +611,38 @@ def corpus_factor_spread() -> str:
     return "; ".join(parts) + f"; decimated-knight.off's Neumann problems on {n_alt} of them: " + ", ".join(alt)
 
 
+FACTOR_SPREAD_LOCAL = ("corpus/factor_spread_f9e818d.json", "corpus/factor_spread_knight_f9e818d.json")
+
+
+@generator("corpus.local_solve", *FACTOR_SPREAD, *FACTOR_SPREAD_LOCAL)
+def corpus_local_solve() -> str:
+    """Per mesh, the default cycle's factors on fresh hierarchies with the subdomain solves
+    (:data:`FACTOR_SPREAD_LOCAL`) against those before them (:data:`FACTOR_SPREAD`), goals missed, and in how
+    many hierarchies a subdomain solve was kept on the fine level."""
+    before, after = _spread_runs(), {}
+    for rel in FACTOR_SPREAD_LOCAL:
+        for mesh, rs in load(rel)["meshes"].items():
+            after.setdefault(mesh, []).extend(rs)
+    goals = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
+    short = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
+    parts = []
+    for mesh, runs in after.items():
+        cells = []
+        for p, goal in goals.items():
+            xs = [[r["variants"]["default"][p][0] for r in rs if p in r["variants"]["default"]]
+                  for rs in (before[mesh], runs)]
+            miss = [sum(x > goal for x in v) for v in xs]
+            cells.append(f"{short[p]} {rng(xs[0], '.3f')} ({miss[0]} of {len(xs[0])} above {goal}) -> "
+                         f"{rng(xs[1], '.3f')} ({miss[1]} of {len(xs[1])})")
+        sizes = [[n for ls in r["local_solves"].values() for lv, n in ls if lv == 0] for r in runs]
+        fine = [n for ns in sizes for n in ns]
+        its = max(r["variants"]["default"][p][1] for r in runs for p in goals)
+        kept = f" ({min(fine)}–{max(fine)} nodes)" if fine else ""
+        parts.append(f"{mesh}: " + ", ".join(cells) + f"; a fine-level solve{kept} kept in "
+                     f"{sum(map(bool, sizes))} of {len(runs)}, MG-PCG at most {its} iterations")
+    return "; ".join(parts)
+
+
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))
 CAGES_FACTOR_REVERSE_GN = tuple(f"cages/factor_reverse_hessian_{c}.json" for c in (
     "3a99854", "ada0168", "ada0168_fandisk_featuretype", "ada0168_featuretype2"))

@@ -539,13 +539,23 @@ CAGES_FACTOR_SNAP = "cages/factor_lastsnap_knight_0aa4550.json"
 FACTOR_SPREAD = ("corpus/factor_spread_7fc4fbf.json", "corpus/factor_spread_9de6cec.json")
 
 
-def _spread_runs() -> dict[str, list]:
-    """Per mesh, the fresh default hierarchies of every :data:`FACTOR_SPREAD` file, pooled."""
+#: The model problems' V-cycle goals (``nestmg.problems.FACTOR_GOALS``) and their short names in the docs.
+SPREAD_GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
+SPREAD_SHORT = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
+
+
+def _spread_runs(files: tuple[str, ...] = FACTOR_SPREAD) -> dict[str, list]:
+    """Per mesh, the fresh default hierarchies of every ``factor_spread.py`` file of ``files``, pooled."""
     runs: dict[str, list] = {}
-    for rel in FACTOR_SPREAD:
+    for rel in files:
         for mesh, rs in load(rel)["meshes"].items():
             runs.setdefault(mesh, []).extend(rs)
     return runs
+
+
+def _spread_factors(runs: list, problem: str) -> list[float]:
+    """The default cycle's V-cycle factors of ``problem`` in ``runs`` (those that solved it)."""
+    return [r["variants"]["default"][problem][0] for r in runs if problem in r["variants"]["default"]]
 
 
 def _spread_default(mesh: str, problem: str) -> list[float]:
@@ -593,16 +603,14 @@ def corpus_factor_spread() -> str:
     """Per mesh, the range of the default cycle's factors over fresh hierarchies and the goals missed; for
     decimated-knight.off also the V(2,2) and W(1,1) cycles' Neumann factors."""
     doc = _spread_runs()
-    goals = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
-    short = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
     parts = []
     for mesh, runs in doc.items():
         cells = []
-        for p, goal in goals.items():
-            xs = [r["variants"]["default"][p][0] for r in runs if p in r["variants"]["default"]]
+        for p, goal in SPREAD_GOALS.items():
+            xs = _spread_factors(runs, p)
             miss = sum(x > goal for x in xs)
             n = f" on {len(xs)}" if len(xs) != len(runs) else ""
-            cells.append(f"{short[p]}{n} {rng(xs, '.3f')}" + (f" ({miss} above {goal})" if miss else ""))
+            cells.append(f"{SPREAD_SHORT[p]}{n} {rng(xs, '.3f')}" + (f" ({miss} above {goal})" if miss else ""))
         parts.append(f"{mesh} ({len(runs)} hierarchies): " + ", ".join(cells))
     knight = doc["decimated-knight.off"]
     alt = [f"{label} {rng([r['variants'][v][p][0] for r in knight if v in r['variants'] for p in ('poisson-neumann', 'diffusion-neumann')], '.3f')}"
@@ -619,24 +627,18 @@ def corpus_local_solve() -> str:
     """Per mesh, the default cycle's factors on fresh hierarchies with the subdomain solves
     (:data:`FACTOR_SPREAD_LOCAL`) against those before them (:data:`FACTOR_SPREAD`), goals missed, and in how
     many hierarchies a subdomain solve was kept on the fine level."""
-    before, after = _spread_runs(), {}
-    for rel in FACTOR_SPREAD_LOCAL:
-        for mesh, rs in load(rel)["meshes"].items():
-            after.setdefault(mesh, []).extend(rs)
-    goals = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
-    short = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
+    before, after = _spread_runs(), _spread_runs(FACTOR_SPREAD_LOCAL)
     parts = []
     for mesh, runs in after.items():
         cells = []
-        for p, goal in goals.items():
-            xs = [[r["variants"]["default"][p][0] for r in rs if p in r["variants"]["default"]]
-                  for rs in (before[mesh], runs)]
+        for p, goal in SPREAD_GOALS.items():
+            xs = [_spread_factors(rs, p) for rs in (before[mesh], runs)]
             miss = [sum(x > goal for x in v) for v in xs]
-            cells.append(f"{short[p]} {rng(xs[0], '.3f')} ({miss[0]} of {len(xs[0])} above {goal}) -> "
+            cells.append(f"{SPREAD_SHORT[p]} {rng(xs[0], '.3f')} ({miss[0]} of {len(xs[0])} above {goal}) -> "
                          f"{rng(xs[1], '.3f')} ({miss[1]} of {len(xs[1])})")
         sizes = [[n for ls in r["local_solves"].values() for lv, n in ls if lv == 0] for r in runs]
         fine = [n for ns in sizes for n in ns]
-        its = max(r["variants"]["default"][p][1] for r in runs for p in goals)
+        its = max(r["variants"]["default"][p][1] for r in runs for p in SPREAD_GOALS)
         kept = f" ({min(fine)}–{max(fine)} nodes)" if fine else ""
         parts.append(f"{mesh}: " + ", ".join(cells) + f"; a fine-level solve{kept} kept in "
                      f"{sum(map(bool, sizes))} of {len(runs)}, MG-PCG at most {its} iterations")

@@ -11,18 +11,7 @@ from solvers.gallery import kuhn_cube_hierarchy
 from solvers.smoothing import make_smoother
 from solvers.subdomain import slow_region, with_subdomain_solve
 
-
-def _factor(ml, cycles=25):
-    """Asymptotic energy-norm factor of the cycle's error propagation (zero mean)."""
-    A = ml.levels[0].A
-    e = np.random.default_rng(1).standard_normal(A.shape[0])
-    norms = []
-    for _ in range(cycles):
-        e -= e.mean()
-        ml._cycle(0, e, np.zeros_like(e), "V")
-        e -= e.mean()
-        norms.append(np.sqrt(e @ (A @ e)))
-    return (norms[-1] / norms[-6]) ** 0.2
+from conftest import energy_factor as _factor
 
 
 def _flat_patch(n: int, half: float, squash: float = 0.1):
@@ -115,17 +104,3 @@ def test_local_solve_replaces_deflation_of_a_small_family():
     assert plain.deflation[0]["vectors"] == 8 and fixed.deflation[0]["vectors"] == 0
     assert _factor(fixed) <= min(_factor(plain), 0.3)
 
-
-def test_no_local_solve_for_weakly_attached_pieces():
-    """Slow modes whose energy spreads over more than a tenth of the level (skins around three pieces) are
-    left to the deflation, and the cycle is as without the option."""
-    meshes, Ps = kuhn_cube_hierarchy(16, 3)
-    V, T = meshes[0]
-    c = V[T].mean(axis=1)
-    w = np.ones(len(T))
-    for centre in ([0.3, 0.3, 0.3], [0.7, 0.6, 0.4], [0.4, 0.7, 0.7]):
-        d = np.abs(c - centre).max(axis=1)
-        w[(d > 0.08) & (d < 0.08 + 1.2 / 16)] = 1e-3
-    K = stiffness_matrix(V, T, w)
-    ml = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True)
-    assert ml.deflation[0]["vectors"] == 4 and "local_solve" not in ml.deflation[0]

@@ -132,7 +132,8 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
     Bt = _transposed(B)
     if not probe:
         return Bt, True
-    scale = rtol * (float(np.abs(B.data).max()) if B.nnz else 1.0)
+    # max |a_ij| as max(max a, -min a): two reductions, no O(nnz) temporary
+    scale = rtol * (max(float(B.data.max()), -float(B.data.min())) if B.nnz else 1.0)
     x = np.random.default_rng(seed).uniform(-1.0, 1.0, B.shape[0])
     symmetric = float(np.abs(B @ x - Bt @ x).max(initial=0.0)) <= scale
     return (Bt, True) if symmetric else (_transposed(Bt), False)
@@ -197,7 +198,29 @@ def diagonal_first(A: sp.csr_matrix, positions: np.ndarray, *, in_place: bool = 
 def permute_prolongation(P: sp.csr_matrix, p_fine: np.ndarray, p_coarse: np.ndarray, *,
                          with_transpose: bool = False):
     """``P[p_fine][:, p_coarse]`` (canonical CSR); with ``with_transpose=True`` also its transpose (the
-    restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows."""
-    R = _transposed(_gathered(P, p_fine, p_coarse))
+    restriction, canonical CSR), a by-product: two O(nnz) transposes sort the relabelled rows (the rows'
+    order before them does not matter, so rows of equal length are gathered as one dense block,
+    :func:`_gathered_equal_rows`)."""
+    B = _gathered_equal_rows(P, p_fine, p_coarse)
+    R = _transposed(B if B is not None else _gathered(P, p_fine, p_coarse))
     out = _transposed(R)
     return (out, R) if with_transpose else out
+
+
+def _gathered_equal_rows(P: sp.csr_matrix, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix | None:
+    """:func:`_gathered` for a matrix whose rows all hold the same number ``k`` of entries (a non-nested
+    prolongation's rows: the four barycentric weights of a coarse tet), else None.
+
+    The arrays are then an ``(n, k)`` block each and the row gather is one ``take`` of whole block rows:
+    scipy's row indexing copies row by row (two ``memmove`` calls per row), which cost 4-7 ms against 0.4 for
+    the first prolongation of a 1M-tet user hierarchy (173k rows of 4).
+    """
+    n = P.shape[0]
+    k = P.nnz // n if n else 0
+    if k == 0 or P.nnz != n * k or np.any(np.diff(P.indptr) != k):
+        return None
+    inv = _inverse(np.asarray(cols, dtype=np.int64), P.indices.dtype)
+    indices = inv.take(P.indices.reshape(n, k).take(rows, axis=0)).ravel()
+    data = P.data.reshape(n, k).take(rows, axis=0).ravel()
+    indptr = np.arange(0, n * k + 1, k, dtype=P.indptr.dtype)
+    return sp.csr_matrix((data, indices, indptr), shape=P.shape)

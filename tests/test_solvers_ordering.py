@@ -142,6 +142,27 @@ def test_permuted_prolongation_and_restriction(scattered):
     assert abs(P - ref).max() == 0.0 and abs(R - ref.T).max() == 0.0
 
 
+def test_permuted_prolongation_with_equal_rows_is_the_general_one():
+    """Rows of equal length (a non-nested level's four barycentric weights) are gathered as one block: the
+    same arrays as the row-by-row gather, bit for bit."""
+    from solvers import ordering
+
+    rng = np.random.default_rng(3)
+    n, m = 500, 90
+    cols = np.stack([rng.choice(m, 4, replace=False) for _ in range(n)])
+    P = sp.csr_matrix((rng.random(4 * n), cols.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, m))
+    P.sort_indices()
+    pf, pc = rng.permutation(n), rng.permutation(m)
+    B = ordering._gathered_equal_rows(P, pf, pc)
+    G = ordering._gathered(P, pf, pc)
+    assert B is not None and all(np.array_equal(getattr(B, a), getattr(G, a)) for a in ("indptr", "indices", "data"))
+    got, R = permute_prolongation(P, pf, pc, with_transpose=True)
+    ref = P[pf][:, pc]
+    assert got.has_canonical_format and abs(got - ref).max() == 0.0 and abs(R - ref.T).max() == 0.0
+    uneven = sp.csr_matrix(P[:, :m - 5])  # rows of 3 and 4 entries: the general path
+    assert ordering._gathered_equal_rows(uneven, pf, pc[pc < m - 5]) is None
+
+
 def test_reordered_solver_solves_in_the_callers_order(scattered):
     K, Ks, Ps, b, q, T = scattered
     assert Ks.shape[0] >= ORDER_MIN_N

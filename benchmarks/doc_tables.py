@@ -541,7 +541,8 @@ FACTOR_SPREAD = ("corpus/factor_spread_7fc4fbf.json", "corpus/factor_spread_9de6
 
 #: The model problems' V-cycle goals (``nestmg.problems.FACTOR_GOALS``) and their short names in the docs.
 SPREAD_GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
-SPREAD_SHORT = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann", "diffusion-neumann": "diffusion"}
+SPREAD_SHORT = {"poisson-dirichlet": "Dirichlet", "poisson-neumann": "Neumann",
+                "diffusion-neumann": "diffusion"}
 
 
 def _spread_runs(files: tuple[str, ...] = FACTOR_SPREAD) -> dict[str, list]:
@@ -610,7 +611,8 @@ def corpus_factor_spread() -> str:
             xs = _spread_factors(runs, p)
             miss = sum(x > goal for x in xs)
             n = f" on {len(xs)}" if len(xs) != len(runs) else ""
-            cells.append(f"{SPREAD_SHORT[p]}{n} {rng(xs, '.3f')}" + (f" ({miss} above {goal})" if miss else ""))
+            cells.append(f"{SPREAD_SHORT[p]}{n} {rng(xs, '.3f')}"
+                         + (f" ({miss} above {goal})" if miss else ""))
         parts.append(f"{mesh} ({len(runs)} hierarchies): " + ", ".join(cells))
     knight = doc["decimated-knight.off"]
     alt = [f"{label} {rng([r['variants'][v][p][0] for r in knight if v in r['variants'] for p in ('poisson-neumann', 'diffusion-neumann')], '.3f')}"

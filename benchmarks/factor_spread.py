@@ -13,10 +13,11 @@ variant, as V-cycles (factor) and MG-PCG (iterations). Variants: ``default`` (th
 ``nu2`` (V(2,2) on the fine level, ``SolverOptions(nu=2)``), ``W`` (``SolverOptions(cycle="W")``).
 The JSON holds, per mesh, one record per run: tets per level, ``[factor, MG-PCG iterations]`` per
 variant and problem, and the default cycle's subdomain solves (``local_solves``: ``[level, nodes]`` per
-problem, :mod:`solvers.subdomain`). ``--slow-mode``: also the pure-Neumann problem's two-grid pair of the two finest levels
-(exact coarse solve on level 1): its asymptotic energy-norm contraction after 40 error-propagation steps
-``e <- e - M A e`` from a random start, and where that slowest error lives (the share of its energy
-``e_i (A e)_i`` on the 1% of nodes that carry most, their centroid and the share of them on the boundary).
+problem, :mod:`solvers.subdomain`). ``--slow-mode``: also the pure-Neumann problem's two-grid pair of the
+two finest levels (exact coarse solve on level 1): its asymptotic energy-norm contraction after 40
+error-propagation steps ``e <- e - M A e`` from a random start, and where that slowest error lives (the
+share of its energy ``e_i (A e)_i`` on the 1% of nodes that carry most, their centroid and the share of
+them on the boundary).
 """
 
 from __future__ import annotations
@@ -96,7 +97,8 @@ def one_run(mesh: Path, variants: list[str], modes: bool = False) -> dict:
             c = _solve(h, args)
             row[problem] = [r["factor"], c["iterations"]]
         out[name] = row
-    rec = {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out, "local_solves": local}
+    rec = {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "variants": out,
+           "local_solves": local}
     if modes:
         rec["slow_mode"] = slow_mode(h.tets_in("normalized"), h.P)
     return rec

@@ -186,7 +186,8 @@ def slow_modes(
     return Z, info
 
 
-def _refused(Q: np.ndarray, H: np.ndarray, k: int, slow: int, info: dict, keep: bool) -> tuple[np.ndarray, dict]:
+def _refused(Q: np.ndarray, H: np.ndarray, k: int, slow: int, info: dict,
+             keep: bool) -> tuple[np.ndarray, dict]:
     """No modes deflated (``slow`` of the ``k``-step Ritz values are above the goal); with ``keep`` their
     Ritz vectors go to ``info["bulk_modes"]``."""
     info["slow_modes_found"] = slow

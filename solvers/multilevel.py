@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .coarse import _CoarseSolver, sparse_lu
+from .coarse import _CoarseSolver
 from .deflation import DEFLATION_GOAL, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
                        permute_prolongation, permute_symmetric,
@@ -34,7 +34,7 @@ from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_sprea
 from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
-from .subdomain import slow_region, with_subdomain_solve
+from .subdomain import slow_region, subdomain_factor, with_subdomain_solve
 from .transfer import (
     _as_csr,
     _galerkin_chain,
@@ -321,7 +321,8 @@ class MultigridSolver:
         Per probed level: ``level``, ``probe_factor``, ``vectors`` deflated and their ``factors`` (without
         the finest level while its probe, deferred by ``probe_at="stationary"``, has not run);
         ``local_solve`` where a subdomain solve was tried: its ``nodes``, ``kept``, and the re-run
-        ``probe_factor`` (or ``refused_fill``: its factor would cost more than a sweep of the level).
+        ``probe_factor`` (or ``refused_fill``: its factor would cost more than a sweep of the level; or
+        ``singular``: the region's block is).
     setup_seconds : float
 
     Examples
@@ -519,11 +520,13 @@ class MultigridSolver:
             neumann = self.nullspace == "constant"
             kernel = self._level_kernel(k)
             Z, info = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
-                                 max_vectors=int(max_vectors), goal=self.deflate_goal, keep_bulk=self.local_solve)
+                                 max_vectors=int(max_vectors), goal=self.deflate_goal,
+                                 keep_bulk=self.local_solve)
             info["level"] = k
             bulk = info.pop("bulk_modes", None)
             if self.local_solve and (Z.shape[1] or bulk is not None):
-                Z = self._local_solve(k, Z if Z.shape[1] else bulk, info, cycle, neumann, kernel, max_vectors, Z)
+                Z = self._local_solve(k, Z if Z.shape[1] else bulk, info, cycle, neumann, kernel,
+                                      max_vectors, Z)
             if Z.shape[1]:
                 pre, post = L.presmoother, L.postsmoother
                 L.presmoother = with_deflation(pre, L.A, Z)
@@ -549,7 +552,10 @@ class MultigridSolver:
         if region is None:
             return Z
         rows = L.A[region]
-        lu = sparse_lu(rows[:, region], symmetric=True)
+        lu = subdomain_factor(L.A, region, rows)
+        if lu is None:  # e.g. the extra kernel of a rank-deficient coarse level: nothing to solve there
+            info["local_solve"] = {"nodes": int(region.size), "kept": False, "singular": True}
+            return Z
         if lu.L.nnz + lu.U.nnz > L.A.nnz:  # dearer than a sweep of the level: no longer a local fix
             info["local_solve"] = {"nodes": int(region.size), "kept": False,
                                    "refused_fill": int(lu.L.nnz + lu.U.nnz)}

@@ -24,7 +24,8 @@ from .coarse import sparse_lu
 from .errors import SolverInputError
 from .smoothing import Smoother, chained
 
-__all__ = ["REGION_MAX_FRACTION", "REGION_MAX_NODES", "REGION_SHARE", "slow_region", "with_subdomain_solve"]
+__all__ = ["REGION_MAX_FRACTION", "REGION_MAX_NODES", "REGION_SHARE", "slow_region", "subdomain_factor",
+           "with_subdomain_solve"]
 
 #: Share of the slow modes' energy the region must carry.
 REGION_SHARE = 0.9
@@ -75,9 +76,24 @@ def slow_region(Z: np.ndarray, A: sp.csr_matrix, share: float = REGION_SHARE, ri
     return region if region.size <= limit and region.size < n else None
 
 
+def subdomain_factor(A: sp.csr_matrix, nodes: np.ndarray, rows: sp.csr_matrix | None = None):
+    """:func:`solvers.coarse.sparse_lu` of ``A_SS`` (``rows``: ``A[nodes]`` if already built), or None when
+    ``A_SS`` is numerically singular or not positive definite (a pivot of ``U`` not above 1e-12 of the
+    largest): a rank-deficient coarse level's extra kernel vectors are local slow modes too, and their
+    region's block is singular; without pivoting SuperLU would return a useless factor."""
+    A_S = A[nodes] if rows is None else rows
+    try:
+        lu = sparse_lu(A_S[:, nodes], symmetric=True)
+    except RuntimeError:  # SuperLU: "Factor is exactly singular"
+        return None
+    pivots = lu.U.diagonal()
+    return lu if pivots.size and np.all(pivots > 1e-12 * pivots.max()) else None
+
+
 def with_subdomain_solve(base: Smoother, A: sp.csr_matrix, nodes: np.ndarray, first: bool = False,
                          factor=None, rows: sp.csr_matrix | None = None) -> Smoother:
-    """``base`` plus the exact subdomain correction ``x_S += A_SS⁻¹ (b - A x)_S`` on the unknowns ``nodes``.
+    """``base`` plus the exact subdomain correction ``x_S += A_SS⁻¹ (b - A x)_S`` on the unknowns ``nodes``
+    (a multiplicative Schwarz step).
 
     With ``first=False`` the correction follows ``base`` (pre-smoother), with ``first=True`` it precedes it
     (post-smoother): the pair stays adjoint and the cycle symmetric.
@@ -92,7 +108,7 @@ def with_subdomain_solve(base: Smoother, A: sp.csr_matrix, nodes: np.ndarray, fi
         The subdomain ``S`` (sorted, unique, a proper subset).
     first : bool
     factor : SuperLU, optional
-        :func:`solvers.coarse.sparse_lu` of ``A_SS`` if already built (a pre/post pair shares one).
+        :func:`subdomain_factor` of ``A_SS`` if already built (a pre/post pair shares one).
     rows : csr_matrix, optional
         ``A[nodes]`` (CSR) if already built.
 
@@ -105,7 +121,9 @@ def with_subdomain_solve(base: Smoother, A: sp.csr_matrix, nodes: np.ndarray, fi
     if idx.size == 0 or idx[0] < 0 or idx[-1] >= A.shape[0] or np.any(np.diff(idx) <= 0):
         raise SolverInputError(f"subdomain nodes must be sorted, unique and in [0, {A.shape[0]})")
     A_S = A[idx] if rows is None else rows
-    lu = sparse_lu(A_S[:, idx], symmetric=True) if factor is None else factor
+    lu = subdomain_factor(A, idx, A_S) if factor is None else factor
+    if lu is None:
+        raise SolverInputError(f"the subdomain's block A_SS ({idx.size} unknowns) is singular")
 
     def correct(A_, x, b):
         x[idx] += lu.solve(b[idx] - A_S @ x)

@@ -155,7 +155,8 @@ def test_permuted_prolongation_with_equal_rows_is_the_general_one():
     pf, pc = rng.permutation(n), rng.permutation(m)
     B = ordering._gathered_equal_rows(P, pf, pc)
     G = ordering._gathered(P, pf, pc)
-    assert B is not None and all(np.array_equal(getattr(B, a), getattr(G, a)) for a in ("indptr", "indices", "data"))
+    assert B is not None
+    assert all(np.array_equal(getattr(B, a), getattr(G, a)) for a in ("indptr", "indices", "data"))
     got, R = permute_prolongation(P, pf, pc, with_transpose=True)
     ref = P[pf][:, pc]
     assert got.has_canonical_format and abs(got - ref).max() == 0.0 and abs(R - ref.T).max() == 0.0

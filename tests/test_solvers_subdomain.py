@@ -1,4 +1,5 @@
-"""Exact subdomain solves on the region of a level's slow modes (solvers.subdomain, MultigridSolver(local_solve=))."""
+"""Exact subdomain solves on the region of a level's slow modes (solvers.subdomain,
+MultigridSolver(local_solve=))."""
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from solvers.errors import SolverInputError
 from solvers.fem import stiffness_matrix
 from solvers.gallery import kuhn_cube_hierarchy
 from solvers.smoothing import make_smoother
-from solvers.subdomain import slow_region, with_subdomain_solve
+from solvers.subdomain import slow_region, subdomain_factor, with_subdomain_solve
 
 from conftest import energy_factor as _factor
 
@@ -104,3 +105,19 @@ def test_local_solve_replaces_deflation_of_a_small_family():
     assert plain.deflation[0]["vectors"] == 8 and fixed.deflation[0]["vectors"] == 0
     assert _factor(fixed) <= min(_factor(plain), 0.3)
 
+
+
+def test_a_singular_block_is_refused():
+    """A region holding a whole piece of a two-piece Neumann operator (the extra kernel of a rank-deficient
+    coarse level looks like that: a local mode of factor 1) has a singular block: no factor, a clear error."""
+    n = 50
+    path = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tolil()
+    path[0, 0] = path[n - 1, n - 1] = 1.0  # a Neumann path: constants in its kernel
+    A = sp.block_diag([path, path[:5, :5].tocsr()]).tocsr()
+    A[n + 4, n + 4] = 1.0
+    piece = np.arange(n, n + 5)
+    assert subdomain_factor(A, piece) is None
+    assert subdomain_factor(A, np.arange(10, 20)) is not None  # a proper part of a piece: nonsingular
+    base = make_smoother(A, ("jacobi", {}))
+    with pytest.raises(SolverInputError, match="singular"):
+        with_subdomain_solve(base, A, piece)

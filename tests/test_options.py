@@ -54,6 +54,16 @@ def test_cage_options_match_the_backends_keywords():
 
     assert _fields(DecimateOptions) == _keyword_defaults(decimate_layer)
     assert _fields(NestedOptions) == {**_keyword_defaults(nested_backend), **_DEFAULTS}
+    # the layer's own functions repeat the re-inflation defaults in their signatures (for direct callers):
+    # the same values as the options, or a default would differ by entry point
+    from cagegen.nested.backend import nest_pair
+    from cagegen.nested.reinflate import reinflate
+
+    for fn in (nest_pair, reinflate):
+        own = _keyword_defaults(fn)
+        shared = own.keys() & _DEFAULTS.keys()
+        assert {k: own[k] for k in shared} == {k: _DEFAULTS[k] for k in shared}, fn.__name__
+        assert len(shared) >= 6, fn.__name__
     assert _fields(SdfOptions) == _keyword_defaults(sdf_cage_layer)
     assert _fields(SkeletonOptions) == {**_keyword_defaults(skeleton_cage),
                                         **_keyword_defaults(skeleton_backend)}

@@ -643,8 +643,12 @@ class MultigridSolver:
         return "\n".join(lines)
 
     def _deflation_desc(self) -> str:
-        used = [f"level {d['level']}: {d['vectors']} modes (probe {d['probe_factor']:.2f})"
-                for d in self.deflation if d["vectors"]]
+        used = [f"level {d['level']}: " + ", ".join(
+                    ([f"{d['vectors']} modes"] if d["vectors"] else [])
+                    + ([f"local solve on {d['local_solve']['nodes']} unknowns"]
+                       if d.get("local_solve", {}).get("kept") else []))
+                + f" (probe {d['probe_factor']:.2f})"
+                for d in self.deflation if d["vectors"] or d.get("local_solve", {}).get("kept")]
         if used:
             return "; ".join(used)
         return "none" + (f" (probe factors <= {max(d['probe_factor'] for d in self.deflation):.2f})"

@@ -90,6 +90,7 @@ def test_local_solve_takes_a_family_too_large_to_deflate(flat_patch):
     assert _factor(fixed) <= 0.3
     local = fixed.deflation[0]["local_solve"]
     assert local["probe_factor"] <= 0.3 and local["nodes"] <= 0.1 * K.shape[0]
+    assert f"level 0: local solve on {local['nodes']} unknowns" in repr(fixed)
     b = np.random.default_rng(0).standard_normal(K.shape[0])
     b -= b.mean()
     its = [ml.solve(b, tol=1e-8, accel="cg", return_info=True)[1]["iterations"] for ml in (plain, fixed)]

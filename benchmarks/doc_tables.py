@@ -647,6 +647,19 @@ def corpus_local_solve() -> str:
     return "; ".join(parts)
 
 
+FACTOR_SPREAD_NEAR = ("corpus/factor_spread_homer_ccadc74.json",)
+
+
+@generator("corpus.near_goal", *FACTOR_SPREAD_NEAR)
+def corpus_near_goal() -> str:
+    """Meshes whose default factors come close to a goal on fresh hierarchies after the subdomain solves."""
+    parts = []
+    for mesh, runs in _spread_runs(FACTOR_SPREAD_NEAR).items():
+        cells = [f"{SPREAD_SHORT[p]} {rng(_spread_factors(runs, p), '.3f')}" for p in SPREAD_GOALS]
+        parts.append(f"{mesh} ({len(runs)} hierarchies): " + ", ".join(cells))
+    return "; ".join(parts)
+
+
 CAGES_AB_REVERSE_GN = tuple(f"cages/ab_ada0168_run{i}.json" for i in (1, 2, 3))
 CAGES_FACTOR_REVERSE_GN = tuple(f"cages/factor_reverse_hessian_{c}.json" for c in (
     "3a99854", "ada0168", "ada0168_fandisk_featuretype", "ada0168_featuretype2"))

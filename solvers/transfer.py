@@ -526,7 +526,7 @@ def _drop_unreached_columns(Ps) -> list[sp.csr_matrix]:
         return list(Ps)
     out, rows = [], None
     for k, P in enumerate(Ps):
-        P = _kept_rows(P, rows)
+        P = sp.csr_matrix(P) if rows is None else sp.csr_matrix(P)[rows]  # new arrays: no copy needed
         count = counts[k] if rows is None and k < len(counts) else None
         if not P.data.all():  # explicit zeros reach nothing
             P = sp.csr_matrix(P, copy=True)
@@ -541,20 +541,6 @@ def _drop_unreached_columns(Ps) -> list[sp.csr_matrix]:
         out.append(P)
         rows = np.flatnonzero(reached)
     return out
-
-
-def _kept_rows(P: sp.csr_matrix, rows: np.ndarray | None) -> sp.csr_matrix:
-    """``P[rows]`` (increasing ``rows``; None: ``P`` itself as CSR), its rows in ``P``'s index order."""
-    P = sp.csr_matrix(P)
-    if rows is None:
-        return P
-    ends = P.indptr.take(rows + 1)
-    starts = P.indptr.take(rows)
-    counts = ends - starts
-    indptr = np.zeros(rows.size + 1, dtype=P.indptr.dtype)
-    np.cumsum(counts, out=indptr[1:])
-    pos = np.repeat(starts - indptr[:-1], counts) + np.arange(indptr[-1], dtype=P.indptr.dtype)
-    return sp.csr_matrix((P.data.take(pos), P.indices.take(pos), indptr), shape=(rows.size, P.shape[1]))
 
 
 def prune_prolongations(Ps, min_column_sum: float = 0.2, renormalize: bool = True):

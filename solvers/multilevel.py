@@ -123,6 +123,14 @@ def convergence_factor(residuals, last: int = 5) -> float:
     return float((r[-1] / r[-1 - m]) ** (1.0 / m))
 
 
+def _probe_helps(before: dict, after: dict) -> bool:
+    """Whether a correction added to a level's smoothers helps, by two probes of the cycle (the same start
+    and steps, :func:`solvers.deflation.slow_modes`): a correction inside a product of smoothers is not sure
+    to; kept only if the slowest factor drops and the cycle still contracts both ways (smallest Ritz value
+    above -0.95: a positive definite preconditioner)."""
+    return after["probe_factor"] < before["probe_factor"] and after.get("probe_min", 0.0) > -0.95
+
+
 @dataclass
 class Level:
     """One level of the hierarchy (a bare struct, as pyamg's).
@@ -535,9 +543,8 @@ class MultigridSolver:
                 # probe (same start, same steps) says it does, and the cycle still contracts both ways
                 check = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
                                    max_vectors=0)[1]
-                after = check["probe_factor"]
-                info["probe_after"] = after
-                if after >= info["probe_factor"] or check.get("probe_min", 0.0) <= -0.95:
+                info["probe_after"] = check["probe_factor"]
+                if not _probe_helps(info, check):
                     L.presmoother, L.postsmoother = pre, post
                     info.update(vectors=0, factors=[], reverted=True)
             report.append(info)
@@ -565,9 +572,9 @@ class MultigridSolver:
         L.postsmoother = with_subdomain_solve(post, L.A, region, first=True, factor=lu, rows=rows)
         Z2, again = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
                                max_vectors=int(max_vectors), goal=self.deflate_goal)
-        kept = again["probe_factor"] < info["probe_factor"] and again.get("probe_min", 0.0) > -0.95
+        kept = _probe_helps(info, again)
         info["local_solve"] = {"nodes": int(region.size), "probe_factor": again["probe_factor"], "kept": kept}
-        if not kept:  # as for the deflation: kept only if the probe (same start, same steps) says it helps
+        if not kept:
             L.presmoother, L.postsmoother = pre, post
             return Z
         info.update(vectors=int(Z2.shape[1]), factors=again["factors"])

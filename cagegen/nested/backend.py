@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import igl
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .._geometry import normalize
 from ..collision import PairMesh, min_distance, self_collision_free_step
@@ -866,7 +867,10 @@ def nested_backend(
     layers = []
     prev_n, prev_F = Vn, F
     prev_orig = (V, F)
-    with _Reporter(progress) as rep:
+    # one BLAS thread: the backend's BLAS work is dot products of Newton-CG vectors (~20k entries), too
+    # short to share, and OpenBLAS's spinning threads beside ipctk's TBB pool cost homer.obj's cages
+    # 1.1x wall on an idle machine and up to 30x per CG solve on a loaded one (2 cores; ad hoc)
+    with _Reporter(progress) as rep, threadpool_limits(limits=1, user_api="blas"):
         rep.layers(len(face_counts))
         for k, m in enumerate(face_counts, start=1):
             t_layer = time.perf_counter()

@@ -61,8 +61,17 @@ class ReinflateResult:
     stats: dict = field(default_factory=dict)
 
 
+#: A reverse step ends when the fine surface is within this fraction of ``dhat`` of its target and the CCD lets
+#: it jump there (the snap: the rest of the way is one collision-free linear motion, so nothing is given up).
+#: At 0.01, closing the last 1e-4 of the diagonal took a third of the Newton iterations of homer.obj's first
+#: layer (18 -> 12 at 0.1; its clearance step spent 5 of 10 between 1.3e-4 and 4.6e-5). At 0.05, 0.1 and
+#: 0.2 the cages of 12 zoo meshes kept their volume ratios to 0.01 and took 0.91-0.92x the CPU seconds in
+#: all; at 0.1 homer 0.85x, pepper 0.83x, decimated-max 0.87x
+#: (``benchmarks/results/cages/ab_snaptol_*_2137b50.json``).
+SNAP_TOL = 0.1
+
 #: A reverse step gives up when its smallest |F - target| has not halved in this many Newton iterations
-#: (it needs ~7 halvings to reach ``snap_tol``). cheburashka.obj's first target: the last step (the
+#: (it needs ~3-4 halvings to reach ``snap_tol``). cheburashka.obj's first target: the last step (the
 #: clearance) reached 0.0013 of the diagonal in 8 iterations, stayed there for 15 and then drifted away,
 #: until ``max_newton`` ran out: 52 of 104 CPU s spent after the stall. Over 21 zoo meshes no reverse step
 #: that went on to converge had gone more than 5 iterations without halving (242 steps,
@@ -274,7 +283,7 @@ def reinflate(
     kappa_final: float = 1e3,
     k_fine: float = 1e3,
     max_move: float = 5e-3,
-    snap_tol: float = 1e-2,
+    snap_tol: float = SNAP_TOL,
     max_newton: int = 60,
     final_iters: int = 60,
     final_tol: float = 1e-3,

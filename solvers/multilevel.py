@@ -314,12 +314,12 @@ class MultigridSolver:
         ``local_probe`` V-cycles on a random error (:func:`solvers.subdomain.power_probe`); if its energy
         then sits on a few unknowns (:func:`solvers.subdomain.concentrated_region`), an exact solve on them
         and their neighbours is added to the fine smoothers as with ``local_solve``, kept if one more cycle
-        shows it reduces the error faster per unit of work (:attr:`local_probe`). With 2, on the 1M-tet TetGen user
-        hierarchies (Neumann, diffusion) it found 5.6-6.4k unknowns and cut MG-PCG from 10-12 to 9-10
-        iterations and the solve's CPU time by 6-13%, but the set-up took 0.06-0.07 s more (3 cycles), more
-        than the solve saved; on TetWild fine levels and Dirichlet problems it found nothing, for 0.02-0.05 s
-        (``local_probe2`` in ``benchmarks/user_mesh_solvers.py``). So off by default: it pays where one set-up
-        serves several solves.
+        shows it reduces the error faster per unit of work (:attr:`local_probe`). With 2 on the 1M-tet
+        TetGen user hierarchies (Neumann, diffusion) it took 5.6-6.4k unknowns and cut MG-PCG from 10-12 to
+        9-10 iterations and the solve's CPU time by 8-14%, but the set-up took 0.05-0.07 s more (3 cycles,
+        a factor), more than the solve saved; on TetWild fine levels and Dirichlet problems it took nothing,
+        for 0.03-0.06 s (``local_probe2`` in ``benchmarks/user_mesh_solvers.py``; docs/solvers.md). Off by
+        default: it pays where one set-up serves several solves.
     probe_at : {"setup", "stationary"}
         When the finest level's probe (``probe_finest``) runs: at set-up (default), or at the first
         stationary solve (``solve(accel=None)``) or :meth:`probe` call (``nestmg``'s problems). The coarser

@@ -98,6 +98,11 @@ VARIANTS = {
     # the default cycle without the pre-smoother's cheap residual (Smoother.smooth_residual: a half sweep
     # from zero, the residual from the strict upper triangle): the residual as a full product, as before
     "plain_residual": {"_plain_residual": True},
+    # the finest level's cheap slow-region probe (two V-cycles, solvers.subdomain.power_probe) and its
+    # exact subdomain solve
+    "local_probe2": {"local_probe": 2},
+    "local_probe1": {"local_probe": 1},
+    "local_probe3": {"local_probe": 3},
 }
 
 #: ``nestmg.setup_problem`` names of the benchmark's problems (``problem_multigrid``: ``Problem.multigrid()``)
@@ -168,13 +173,15 @@ def sp_csr(A):
 
 
 def run_nestmg(A, b, Ps, nullspace, tol, opts, problem=None) -> dict:
-    """``MultigridSolver(A, Ps, **opts)`` (or ``problem.multigrid()``) + MG-PCG; set-up wall and CPU time."""
+    """``MultigridSolver(A, Ps, **opts)`` (or ``problem.multigrid(**opts)``) + MG-PCG; set-up wall and CPU
+    time."""
     from solvers import MultigridSolver
 
     opts = dict(opts)
     plain = opts.pop("_plain_residual", False)
     t, c = time.perf_counter(), time.process_time()
-    ml = problem.multigrid() if problem is not None else MultigridSolver(A, Ps, nullspace=nullspace, **opts)
+    ml = (problem.multigrid(**opts) if problem is not None
+          else MultigridSolver(A, Ps, nullspace=nullspace, **opts))
     setup, setup_cpu = time.perf_counter() - t, time.process_time() - c
     for L in ml.levels[:-1] if plain else ():
         L.presmoother.smooth_residual = None  # the cycle's plain path: apply, then b - A x
@@ -186,6 +193,7 @@ def run_nestmg(A, b, Ps, nullspace, tol, opts, problem=None) -> dict:
             "iterations": r["iterations"],
             "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
             "deflated": [d["vectors"] for d in ml.deflation],
+            "local_probe": getattr(ml, "local_probe", None),
             "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
             "level_unknowns": [L.A.shape[0] for L in ml.levels],
             "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels],
@@ -266,15 +274,16 @@ def spmv_seconds(A, repeats: int = 30, clock=time.perf_counter) -> float:
 
 
 def run_one(c: dict, prob: str, sname: str, tol: float) -> dict:
-    """One solver on one case and problem (``sname``: a baseline, ``problem_multigrid`` or
+    """One solver on one case and problem (``sname``: a baseline, ``problem_multigrid[_VARIANT]`` or
     ``nestmg[_VARIANT]``)."""
     A, b, Ps, ns = c[prob]
     if sname == "pyamg_sa":
         return run_sa(A, b, ns, tol)
     if sname == "petsc_gamg":
         return run_gamg(A, b, ns, tol)
-    if sname == "problem_multigrid":
-        return run_nestmg(A, b, Ps, ns, tol, {}, problem=c["problem:" + prob])
+    if sname.startswith("problem_multigrid"):
+        v = sname[len("problem_multigrid_"):]
+        return run_nestmg(A, b, Ps, ns, tol, VARIANTS[v] if v else {}, problem=c["problem:" + prob])
     v = sname[len("nestmg_"):] if sname != "nestmg" else "default"
     opts = dict(VARIANTS[v])
     if v == "boundary_layer":
@@ -337,7 +346,9 @@ def summarize(c: dict, prob: str, solvers: list, raw: dict) -> dict:
 def run(args) -> dict:
     """Interleaved repeats over cases x problems x solvers; medians and within-run ratios."""
     solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants]
-    solvers += ["problem_multigrid"] * args.problem_multigrid + list(args.baselines)
+    solvers += ["problem_multigrid"] * args.problem_multigrid
+    solvers += [f"problem_multigrid_{v}" for v in args.problem_variants if args.problem_multigrid]
+    solvers += list(args.baselines)
     cases = [load_case(Path(w), args.problems if args.problem_multigrid else ()) for w in args.cases]
     raw: dict = {}
     for rep in range(args.repeats):
@@ -687,6 +698,8 @@ def main(argv=None):
     r.add_argument("--problem-multigrid", action="store_true",
                    help="also nestmg.setup_problem(...).multigrid() (the pipeline's default cycle) on the "
                         "same matrix and right-hand side")
+    r.add_argument("--problem-variants", nargs="*", default=[], choices=sorted(VARIANTS),
+                   help="with --problem-multigrid: also Problem.multigrid(**VARIANTS[v]) for these variants")
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
     r.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")

@@ -27,14 +27,15 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .coarse import _CoarseSolver
-from .deflation import DEFLATION_GOAL, slow_modes, with_deflation
+from .deflation import DEFLATION_GOAL, _kernel_projector, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
                        permute_prolongation, permute_symmetric,
                        permute_symmetric_transpose)
 from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
-from .subdomain import slow_region, subdomain_factor, with_subdomain_solve
+from .subdomain import (concentrated_region, power_probe, slow_region, subdomain_factor,
+                        with_subdomain_solve)
 from .transfer import (
     _as_csr,
     _galerkin_chain,
@@ -308,6 +309,17 @@ class MultigridSolver:
         that region to its smoothers instead (:mod:`solvers.subdomain`), kept only if the probe re-run with
         it is faster; the modes still slow after it are deflated as before. Default True; acts only where
         ``deflate`` probes.
+    local_probe : int
+        Cycles of a cheap search for a finest-level slow region, without Lanczos steps (default 0: off):
+        ``local_probe`` V-cycles on a random error (:func:`solvers.subdomain.power_probe`); if its energy
+        then sits on a few unknowns (:func:`solvers.subdomain.concentrated_region`), an exact solve on them
+        and their neighbours is added to the fine smoothers as with ``local_solve``, kept if one more cycle
+        shows it reduces the error faster per unit of work (:attr:`local_probe`). With 2 on the 1M-tet
+        TetGen user hierarchies (Neumann, diffusion) it took 5.6-6.4k unknowns and cut MG-PCG from 10-12 to
+        9-10 iterations and the solve's CPU time by 8-14%, but the set-up took 0.05-0.07 s more (3 cycles,
+        a factor), more than the solve saved; on TetWild fine levels and Dirichlet problems it took nothing,
+        for 0.03-0.06 s (``local_probe2`` in ``benchmarks/user_mesh_solvers.py``; docs/solvers.md). Off by
+        default: it pays where one set-up serves several solves.
     probe_at : {"setup", "stationary"}
         When the finest level's probe (``probe_finest``) runs: at set-up (default), or at the first
         stationary solve (``solve(accel=None)``) or :meth:`probe` call (``nestmg``'s problems). The coarser
@@ -331,6 +343,10 @@ class MultigridSolver:
         ``local_solve`` where a subdomain solve was tried: its ``nodes``, ``kept``, and the re-run
         ``probe_factor`` (or ``refused_fill``: its factor would cost more than a sweep of the level; or
         ``singular``: the region's block is).
+    local_probe : dict or None
+        The ``local_probe`` search's report: ``cycles``, ``nodes`` of the region (0: none found), and when one
+        was: the keep test's ``ratio`` (last probe cycle) and ``ratio_after`` (with the subdomain solve),
+        ``kept``; None when it did not run.
     setup_seconds : float
 
     Examples
@@ -373,6 +389,7 @@ class MultigridSolver:
         deflate_goal: float = DEFLATION_GOAL,
         probe_at: str = "setup",
         local_solve: bool = True,
+        local_probe: int = 0,
     ):
         t0 = time.perf_counter()
         #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
@@ -415,6 +432,8 @@ class MultigridSolver:
         self.deflate_goal = float(deflate_goal)
         self.local_solve = bool(local_solve)
         self._schedule_probe(deflate, probe_finest, probe_at)
+        #: the report of the finest level's cheap slow-region search (``local_probe``; see Attributes)
+        self.local_probe = self._cheap_local_solve(local_probe)
         self.setup_seconds = time.perf_counter() - t0
 
     def _coarse_operators(self, A, Ps, coarse, ordering, symmetric, shared=False) -> tuple:
@@ -550,6 +569,51 @@ class MultigridSolver:
             report.append(info)
         return report[::-1]
 
+    def _cheap_local_solve(self, cycles: int) -> dict | None:
+        """The ``local_probe``: ``cycles`` V-cycles of the finest level on a random error
+        (:func:`solvers.subdomain.power_probe`); where their error's energy is concentrated
+        (:func:`solvers.subdomain.concentrated_region`), an exact solve on that region is added to the fine
+        smoothers, kept if one cycle from the previous error ``e_{k-1}`` then reduces its energy norm more
+        per unit of work than the last probe cycle did (``ratio_after`` against ``ratio``, each to the power
+        ``1 / cycle_complexity``). Returns the report, None when it did not run (off, a single level, a
+        nonlinear or non-symmetric cycle, or a fine local solve already kept)."""
+        if isinstance(cycles, bool) or int(cycles) != cycles or cycles < 0:
+            raise SolverInputError(f"local_probe must be a non-negative integer, got {cycles!r}")
+        done = any(d["level"] == 0 and d.get("local_solve", {}).get("kept") for d in self.deflation)
+        if not cycles or len(self.levels) < 2 or not self.symmetric_cycle or self.coarse_scaling or done:
+            return None
+        A = self.levels[0].A
+        zero = np.zeros(A.shape[0])
+
+        def cycle(x):
+            self._cycle(0, x, zero, "V")
+
+        project = _kernel_projector(self.nullspace == "constant", self._level_kernel(0))
+        with np.errstate(all="ignore"):
+            prev, e = power_probe(cycle, A, cycles, project)
+        report = {"cycles": int(cycles), "nodes": 0, "kept": False}
+        Ae = A @ e
+        region = concentrated_region(e, A, Ae=Ae) if np.all(np.isfinite(Ae)) else None
+        if region is None:
+            return report
+        report["nodes"] = int(region.size)
+        work = self.cycle_complexity("V")
+        installed = self._add_subdomain_solve(0, region, report)
+        if installed is None:
+            return report
+        norm = float(np.sqrt(prev @ (A @ prev)))
+        report["ratio"] = float(np.sqrt(max(e @ Ae, 0.0))) / norm
+        cycle(prev)
+        project(prev)
+        report["ratio_after"] = float(np.sqrt(max(prev @ (A @ prev), 0.0))) / norm
+        # the solve costs (work per cycle) / log(1 / factor): kept if that drops
+        with np.errstate(divide="ignore"):
+            gain = np.log(report["ratio_after"]) / self.cycle_complexity("V") < np.log(report["ratio"]) / work
+        report["kept"] = bool(gain)
+        if not report["kept"]:
+            self.levels[0].presmoother, self.levels[0].postsmoother = installed
+        return report
+
     def _local_solve(self, k, modes, info, cycle, neumann, kernel, max_vectors, Z) -> np.ndarray:
         """Try an exact subdomain solve on the region of level ``k``'s slow ``modes``
         (:mod:`solvers.subdomain`); keep it if the re-run probe is faster, and return the modes still to
@@ -558,27 +622,38 @@ class MultigridSolver:
         region = slow_region(modes, L.A)
         if region is None:
             return Z
-        rows = L.A[region]
-        lu = subdomain_factor(L.A, region, rows)
-        if lu is None:  # e.g. the extra kernel of a rank-deficient coarse level: nothing to solve there
-            info["local_solve"] = {"nodes": int(region.size), "kept": False, "singular": True}
+        info["local_solve"] = {"nodes": int(region.size), "kept": False}
+        installed = self._add_subdomain_solve(k, region, info["local_solve"])
+        if installed is None:
             return Z
-        if lu.L.nnz + lu.U.nnz > L.A.nnz:  # dearer than a sweep of the level: no longer a local fix
-            info["local_solve"] = {"nodes": int(region.size), "kept": False,
-                                   "refused_fill": int(lu.L.nnz + lu.U.nnz)}
-            return Z
-        pre, post = L.presmoother, L.postsmoother
-        L.presmoother = with_subdomain_solve(pre, L.A, region, factor=lu, rows=rows)
-        L.postsmoother = with_subdomain_solve(post, L.A, region, first=True, factor=lu, rows=rows)
+        pre, post = installed
         Z2, again = slow_modes(cycle, L.A, constant_nullspace=neumann, nullspace_basis=kernel,
                                max_vectors=int(max_vectors), goal=self.deflate_goal)
         kept = _probe_helps(info, again)
-        info["local_solve"] = {"nodes": int(region.size), "probe_factor": again["probe_factor"], "kept": kept}
+        info["local_solve"].update(probe_factor=again["probe_factor"], kept=kept)
         if not kept:
             L.presmoother, L.postsmoother = pre, post
             return Z
         info.update(vectors=int(Z2.shape[1]), factors=again["factors"])
         return Z2
+
+    def _add_subdomain_solve(self, k: int, region: np.ndarray, report: dict) -> tuple | None:
+        """Add an exact solve on ``region`` to level ``k``'s smoothers; return the previous ``(pre, post)``,
+        or None (``report`` says why: ``singular`` block, or ``refused_fill``: its factor would cost more than
+        a sweep of the level)."""
+        L = self.levels[k]
+        rows = L.A[region]
+        lu = subdomain_factor(L.A, region, rows)
+        if lu is None:  # e.g. the extra kernel of a rank-deficient coarse level: nothing to solve there
+            report["singular"] = True
+            return None
+        if lu.L.nnz + lu.U.nnz > L.A.nnz:  # dearer than a sweep of the level: no longer a local fix
+            report["refused_fill"] = int(lu.L.nnz + lu.U.nnz)
+            return None
+        pre, post = L.presmoother, L.postsmoother
+        L.presmoother = with_subdomain_solve(pre, L.A, region, factor=lu, rows=rows)
+        L.postsmoother = with_subdomain_solve(post, L.A, region, first=True, factor=lu, rows=rows)
+        return pre, post
 
     def _level_kernel(self, k: int) -> np.ndarray | None:
         """Orthonormal basis of level ``k``'s kernel kept out of the deflation probe (beyond the constant of
@@ -656,6 +731,9 @@ class MultigridSolver:
                        if d.get("local_solve", {}).get("kept") else []))
                 + f" (probe {d['probe_factor']:.2f})"
                 for d in self.deflation if d["vectors"] or d.get("local_solve", {}).get("kept")]
+        lp = self.local_probe
+        if lp and lp["kept"]:
+            used.insert(0, f"level 0: local solve on {lp['nodes']} unknowns ({lp['cycles']}-cycle probe)")
         if used:
             return "; ".join(used)
         return "none" + (f" (probe factors <= {max(d['probe_factor'] for d in self.deflation):.2f})"

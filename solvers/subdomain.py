@@ -13,9 +13,17 @@ symmetric.
 that carry :data:`REGION_SHARE` of their summed energy ``Σ_k |z_k,i (A z_k)_i|``, plus their neighbours,
 and only when that is a small part of the level (:data:`REGION_MAX_FRACTION`, :data:`REGION_MAX_NODES`);
 global slow modes are left to the deflation.
+
+:func:`power_probe` and :func:`concentrated_region` find such a region without the probe's Lanczos steps (a
+few cycles, for the finest level, whose Lanczos probe costs about a solve): a random error after a few
+cycles, ``e_k = E^k e_0``, is dominated by the slow modes; when :data:`POWER_SHARE` of its energy
+``|e_i (A e)_i|`` sits on at most :data:`POWER_CORE_FRACTION` of the unknowns, those nodes and their
+neighbours are the region.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -24,8 +32,8 @@ from .coarse import sparse_lu
 from .errors import SolverInputError
 from .smoothing import Smoother, chained
 
-__all__ = ["REGION_MAX_FRACTION", "REGION_MAX_NODES", "REGION_SHARE", "slow_region", "subdomain_factor",
-           "with_subdomain_solve"]
+__all__ = ["POWER_CORE_FRACTION", "POWER_SHARE", "REGION_MAX_FRACTION", "REGION_MAX_NODES", "REGION_SHARE",
+           "concentrated_region", "power_probe", "slow_region", "subdomain_factor", "with_subdomain_solve"]
 
 #: Share of the slow modes' energy the region must carry.
 REGION_SHARE = 0.9
@@ -34,6 +42,13 @@ REGION_SHARE = 0.9
 REGION_MAX_FRACTION = 0.1
 #: Largest region in unknowns: bounds the sparse factorisation's time and fill.
 REGION_MAX_NODES = 20_000
+#: Share of a cheap probe's error energy the core of its region carries (:func:`concentrated_region`).
+POWER_SHARE = 0.7
+#: Largest core of a cheap probe's region, as a fraction of the level's unknowns. After two default
+#: V-cycles on the 1M-tet user hierarchies, 70% of the energy sat on ~0.5% of the nodes of the TetGen
+#: fine levels (Neumann; the Lanczos probe's local family) and needed 4-20% on the TetWild ones and on
+#: Dirichlet problems (no local family).
+POWER_CORE_FRACTION = 0.01
 
 
 def slow_region(Z: np.ndarray, A: sp.csr_matrix, share: float = REGION_SHARE, rings: int = 1,
@@ -62,18 +77,91 @@ def slow_region(Z: np.ndarray, A: sp.csr_matrix, share: float = REGION_SHARE, ri
     n = A.shape[0]
     if Z.shape[1] == 0:
         return None
-    energy = np.abs(Z * (A @ Z)).sum(axis=1)
-    order = np.argsort(-energy)
-    core = order[: int(np.searchsorted(np.cumsum(energy[order]), share * energy.sum())) + 1]
     limit = min(max_fraction * n, max_nodes)
-    if core.size > limit:
-        return None
-    mask = np.zeros(n, dtype=bool)
+    core = _energy_core(np.abs(Z * (A @ Z)).sum(axis=1), share, int(limit))
+    return None if core is None else _grown(core, A, rings, limit)
+
+
+def _energy_core(energy: np.ndarray, share: float, limit: int) -> np.ndarray | None:
+    """The fewest nodes (by decreasing ``energy``) that carry ``share`` of its sum, or None if that takes
+    more than ``limit``: only the ``limit`` largest are sorted (a partition first)."""
+    n = energy.size
+    top = np.argpartition(-energy, limit)[: limit + 1] if limit + 1 < n else np.arange(n)
+    top = top[np.argsort(-energy[top])]
+    cut = int(np.searchsorted(np.cumsum(energy[top]), share * energy.sum()))
+    return top[: cut + 1] if cut < min(limit, top.size) else None
+
+
+def _grown(core: np.ndarray, A: sp.csr_matrix, rings: int, limit: float) -> np.ndarray | None:
+    """``core`` plus ``rings`` graph neighbourhoods in ``A``'s pattern (sorted), or None beyond ``limit``
+    unknowns or when that is every unknown."""
+    mask = np.zeros(A.shape[0], dtype=bool)
     mask[core] = True
     for _ in range(rings):
         mask[A[np.flatnonzero(mask)].indices] = True
     region = np.flatnonzero(mask)
-    return region if region.size <= limit and region.size < n else None
+    return region if region.size <= limit and region.size < A.shape[0] else None
+
+
+def power_probe(cycle: Callable[[np.ndarray], None], A: sp.csr_matrix, cycles: int,
+                project: Callable[[np.ndarray], None], seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The last two errors ``e_{k-1}, e_k`` of ``k = cycles`` applications of a cycle to ``A x = 0`` from a
+    seeded random start (its slowest components, for the region and the keep test of a cheap probe).
+
+    Parameters
+    ----------
+    cycle : callable
+        ``cycle(x)``: one cycle on ``A x = 0``, in place (``x`` becomes ``E x``).
+    A : (n, n) csr_matrix
+    cycles : int
+        At least 1 (``e_0`` is the random start).
+    project : callable
+        Removes the known kernel from a vector in place (the mean, for a Neumann operator).
+    seed : int
+
+    Returns
+    -------
+    (e_{k-1}, e_k) : two (n,) float arrays
+    """
+    e = np.random.default_rng(seed).standard_normal(A.shape[0])
+    project(e)
+    prev = e
+    for _ in range(int(cycles)):
+        prev = e.copy()
+        cycle(e)
+        project(e)
+    return prev, e
+
+
+def concentrated_region(e: np.ndarray, A: sp.csr_matrix, share: float = POWER_SHARE,
+                        core_fraction: float = POWER_CORE_FRACTION, rings: int = 1,
+                        max_fraction: float = REGION_MAX_FRACTION, max_nodes: int = REGION_MAX_NODES,
+                        Ae: np.ndarray | None = None) -> np.ndarray | None:
+    """The region of an error ``e`` whose energy ``|e_i (A e)_i|`` is concentrated: the fewest nodes carrying
+    ``share`` of it (at most ``core_fraction`` of the unknowns) plus ``rings`` neighbourhoods.
+
+    Parameters
+    ----------
+    e : (n,) float array
+        E.g. :func:`power_probe`'s last error.
+    A : (n, n) csr_matrix
+    share, core_fraction : float
+    rings : int
+    max_fraction, max_nodes : float, int
+        Largest accepted region (as :func:`slow_region`).
+    Ae : (n,) float array, optional
+        ``A @ e`` if already computed.
+
+    Returns
+    -------
+    int array or None
+        Sorted unknowns of the region; None when the energy is spread (or zero) or the region too large.
+    """
+    energy = np.abs(e * (A @ e if Ae is None else Ae))
+    if not energy.sum() > 0.0:
+        return None
+    core = _energy_core(energy, share, int(core_fraction * A.shape[0]))
+    return None if core is None else _grown(core, A, rings, min(max_fraction * A.shape[0], max_nodes))
 
 
 def subdomain_factor(A: sp.csr_matrix, nodes: np.ndarray, rows: sp.csr_matrix | None = None):
@@ -130,4 +218,25 @@ def with_subdomain_solve(base: Smoother, A: sp.csr_matrix, nodes: np.ndarray, fi
 
     work = base.work + (A_S.nnz + lu.L.nnz + lu.U.nnz) / max(A.nnz, 1)
     params = dict(base.params, subdomain_nodes=int(idx.size))
-    return Smoother(base.name, chained(base, correct, first), work, params)
+    fast = None if first or base.smooth_residual is None else _corrected_residual(base, A, idx, A_S, lu)
+    return Smoother(base.name, chained(base, correct, first), work, params, smooth_residual=fast)
+
+
+def _corrected_residual(base: Smoother, A0: sp.csr_matrix, idx: np.ndarray, A_S: sp.csr_matrix, lu):
+    """``smooth_residual`` of a pre-smoother followed by the subdomain correction: ``base``'s own (cheap)
+    residual ``r``, then ``d = A_SS⁻¹ r_S``, ``x_S += d`` and ``r -= A_{:,S} d`` (``A_Sᵀ d``, ``A`` symmetric:
+    only the region's rows and their neighbours change). Without it the cycle would fall back to the plain
+    path, a full product with ``A`` per visit on top of the correction's ``A_S x``."""
+    cols, local = np.unique(A_S.indices, return_inverse=True)  # the region and its neighbours
+    A_T = sp.csr_matrix((A_S.data, local, A_S.indptr), shape=(idx.size, cols.size)).T.tocsr()
+
+    def smooth_residual(A, x, b, zero):
+        r = base.smooth_residual(A, x, b, zero) if A is A0 else None
+        if r is None:
+            return None
+        d = lu.solve(r[idx])
+        x[idx] += d
+        r[cols] -= A_T @ d
+        return r
+
+    return smooth_residual

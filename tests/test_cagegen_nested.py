@@ -627,3 +627,27 @@ def test_target_dilation_tests_only_moved_faces_and_finds_what_the_full_test_fin
     # later rounds test a part of the mesh, and find pairs there
     assert all(n is not None for n, _ in calls[1:])
     assert any(n < len(F) and found for n, found in calls[1:])
+
+
+def test_backend_runs_with_one_blas_thread(neck, monkeypatch):
+    """The nested backend's BLAS work (Newton-CG dot products) runs on one thread, and the caller's
+    thread count is back afterwards (OpenBLAS threads spinning beside ipctk's pool slowed it down)."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    blas = [p for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+    if not blas:
+        pytest.skip("no BLAS library reported by threadpoolctl")
+    inside = []
+    real = nested_backend_module.reinflate
+
+    def spy(*args, **kwargs):
+        inside.extend(p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(nested_backend_module, "reinflate", spy)
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+        V, F = neck
+        nested_backend(V, F, [600])
+        after = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+    assert inside and set(inside) == {1}
+    assert after == before

@@ -178,6 +178,24 @@ def test_reinflation_returns_fine_surface_to_rest_and_nests(neck_pair, neck_flow
         assert rr.stats["volume_after_final"] < rr.stats["volume_before_final"]
 
 
+def test_reinflation_snaps_onto_the_rest_pose_from_a_tenth_of_dhat(neck_pair, neck_flow):
+    """The last reverse step puts F onto its rest pose once within 0.1 dhat (if the CCD allows; the others
+    within 0.01): on the clearance path (rest pose = the offset surface) F still ends at it bit for bit,
+    and the cage keeps the gap."""
+    import inspect
+
+    Vn, F, U, G = neck_pair
+    params = inspect.signature(reinflate).parameters
+    assert (params["snap_tol"].default, params["last_snap_tol"].default) == (0.01, 0.1)
+    gap = 0.0025
+    target = offset_surface(Vn, F, 1.1 * gap)
+    rr = reinflate([target, *neck_flow.history], F, U, G)
+    assert rr.success, rr.reason
+    assert np.array_equal(rr.fine, target)
+    assert verify_nesting([(Vn, F), (rr.cage, G)]).ok
+    assert min_distance(rr.cage, G, Vn, F) >= gap
+
+
 @pytest.mark.parametrize("energy", ["surface_arap", "volumetric_arap"])
 def test_arap_energies_nest(neck_pair, neck_flow, energy):
     Vn, F, U, G = neck_pair

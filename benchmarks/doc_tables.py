@@ -577,6 +577,40 @@ def cages_snap() -> str:
             f"{rng(after, '.3f')} ({over(after)} of {len(after)})")
 
 
+CAGES_AB_LASTSNAP = "cages/ab_lastsnap_2137b50.json"
+CAGES_AB_SNAPALL = "cages/ab_snaptol_0.1_2137b50.json"
+CAGES_LUCY_LASTSNAP = "cages/ab_lucy_lastsnap_2137b50.json"
+CAGES_LUCY_SNAPALL = "cages/ab_lucy_snapall_2137b50.json"
+
+
+def _ab_one_run(path: str, lucy: str) -> str:
+    """One ``cages_ab.py`` run over the meshes both trees certified: total CPU seconds after / before, the
+    largest changes, volume ratios; then lucy.ply's CPU seconds from its own run."""
+    runs = {m: r for m, r in load(path)["meshes"].items() if r["before"]["ok"] and r["after"]["ok"]}
+    cpu = lambda m, side: runs[m][side]["cpu_seconds"]  # noqa: E731
+    total = sum(cpu(m, "after") for m in runs) / sum(cpu(m, "before") for m in runs)
+    order = sorted(runs, key=lambda m: cpu(m, "after") / cpu(m, "before"))
+    vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in runs.values()
+              for lb, la in zip(r["before"]["layers"], r["after"]["layers"]))
+    lu = load(lucy)["meshes"]["lucy.ply"]
+    return (f"CPU seconds x{total:.2f} in all over {len(runs)} meshes (one run), "
+            + ", ".join(f"{m} x{cpu(m, 'after') / cpu(m, 'before'):.2f}" for m in order[:2])
+            + f", volume ratios within {100 * vol:.1f}%; lucy.ply {lu['before']['cpu_seconds']:.0f} -> "
+            f"{lu['after']['cpu_seconds']:.0f} CPU s")
+
+
+@generator("cages.lastsnap", CAGES_AB_LASTSNAP, CAGES_LUCY_LASTSNAP)
+def cages_lastsnap() -> str:
+    """The last reverse step's snap from 0.1 ``dhat`` at 2137b50 (:func:`_ab_one_run`)."""
+    return _ab_one_run(CAGES_AB_LASTSNAP, CAGES_LUCY_LASTSNAP)
+
+
+@generator("cages.snapall", CAGES_AB_SNAPALL, CAGES_LUCY_SNAPALL)
+def cages_snapall() -> str:
+    """Every reverse step's snap from 0.1 ``dhat`` at 2137b50 (:func:`_ab_one_run`)."""
+    return _ab_one_run(CAGES_AB_SNAPALL, CAGES_LUCY_SNAPALL)
+
+
 SLOW_MODE = "corpus/slow_mode_65e1832.json"
 
 

@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ._threads import one_blas_thread
 from .coarse import _CoarseSolver
 from .deflation import DEFLATION_GOAL, _kernel_projector, slow_modes, with_deflation
 from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
@@ -946,6 +947,11 @@ class MultigridSolver:
         IncompatibleRHSError
             Neumann problem with ``sum(b) != 0`` and ``project=False``.
         """
+        with one_blas_thread():
+            return self._solve(b, x0, tol, maxiter, cycle, accel, residuals, project, divtol, return_info)
+
+    def _solve(self, b, x0, tol, maxiter, cycle, accel, residuals, project, divtol, return_info):
+        """:meth:`solve`'s body, run under one BLAS thread (:mod:`solvers._threads`)."""
         cycle = self._check_cycle(self.cycle if cycle is None else cycle)
         if accel not in (None, "cg"):
             raise SolverInputError(f"accel must be None or 'cg', got {accel!r}")
@@ -978,7 +984,7 @@ class MultigridSolver:
                 warnings.warn(
                     "accel='cg' with a non-symmetric cycle (non-symmetric operators or non-adjoint pre/post "
                     "smoothers): CG may stall; use adjoint smoothers (postsmoother=None)",
-                    stacklevel=2,
+                    stacklevel=3,
                 )
 
             res = pcg(A, b, M=self._preconditioner(cycle), x0=x, tol=tol, maxiter=maxiter,
@@ -1035,7 +1041,7 @@ class MultigridSolver:
                 f"{floor}. "
                 "Ask for a larger tol, or check the preconditioner",
                 ConvergenceWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         elif not converged:
             why = "" if res is None or res.breakdown is None else f": CG broke down, {res.breakdown}"
@@ -1043,7 +1049,7 @@ class MultigridSolver:
                 f"multigrid stopped after {len(hist) - 1} iterations at relative residual {hist[-1]:.3e} > tol={tol:g}"
                 f"{why}",
                 ConvergenceWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         if residuals is not None:
             residuals[:] = hist
@@ -1083,7 +1089,8 @@ class MultigridSolver:
             if self.nullspace == "constant":
                 b = b - b.mean()
             x = np.zeros(n)
-            self._one(x, b, cycle, zero=True)
+            with one_blas_thread():
+                self._one(x, b, cycle, zero=True)
             if self.nullspace == "constant":
                 x -= x.mean()
             return x

@@ -872,3 +872,33 @@ def test_pivoted_cholesky_refuses_an_indefinite_operator():
     assert auto.method == "regularized" and isinstance(auto.lu, _DenseFactor) and not auto.lu.symmetric
     b = A @ np.ones(100)
     assert np.linalg.norm(A @ auto(b) - b) < 1e-8 * np.linalg.norm(b)
+
+
+def test_cycles_run_with_one_blas_thread(cube, monkeypatch):
+    """solve() and aspreconditioner() run their cycles on one BLAS thread and give the caller's limit back
+    (OpenBLAS threads spinning beside the cycle's short BLAS calls slowed MG-PCG solves down)."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+
+    def blas_threads():
+        return [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+
+    if not blas_threads():
+        pytest.skip("no BLAS library reported by threadpoolctl")
+    ds, Pf, _ = _dirichlet(cube, 3)
+    ml = MultigridSolver(ds.A, Pf)
+    inside = []
+    real = ml._one
+
+    def spy(*args, **kwargs):
+        inside.extend(blas_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ml, "_one", spy)
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        ml.solve(ds.b, tol=1e-8, accel="cg")
+        ml.solve(ds.b, tol=1e-8)
+        ml.aspreconditioner().matvec(ds.b)
+        after = blas_threads()
+    assert inside and set(inside) == {1}
+    assert after == before

@@ -20,6 +20,15 @@ def energy_factor(ml, cycles: int = 25) -> float:
     return (norms[-1] / norms[-6]) ** 0.2
 
 
+def blas_threads() -> list[int]:
+    """Thread limits of the loaded BLAS libraries (threadpoolctl); the test skips when none is reported."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    counts = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+    if not counts:
+        pytest.skip("no BLAS library reported by threadpoolctl")
+    return counts
+
+
 @pytest.fixture(autouse=True)
 def _isolated_cache(tmp_path_factory, monkeypatch):
     """Every test session writes its cache entries into a temporary folder."""

@@ -12,6 +12,7 @@ import json
 import igl
 import numpy as np
 import pytest
+import threadpoolctl
 
 from cagegen import build_cages, verify_nesting
 from cagegen.decimate import decimate_surface
@@ -28,6 +29,7 @@ from cagegen.nested import (
 )
 from cagegen.collision import PairMesh, min_distance
 from cagegen.nested.energies import signed_volume
+from conftest import blas_threads
 from nestmg import shapes
 
 
@@ -650,22 +652,19 @@ def test_target_dilation_tests_only_moved_faces_and_finds_what_the_full_test_fin
 def test_backend_runs_with_one_blas_thread(neck, monkeypatch):
     """The nested backend's BLAS work (Newton-CG dot products) runs on one thread, and the caller's
     thread count is back afterwards (OpenBLAS threads spinning beside ipctk's pool slowed it down)."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
-    blas = [p for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
-    if not blas:
-        pytest.skip("no BLAS library reported by threadpoolctl")
+    blas_threads()  # skips without a reported BLAS library
     inside = []
     real = nested_backend_module.reinflate
 
     def spy(*args, **kwargs):
-        inside.extend(p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas")
+        inside.extend(blas_threads())
         return real(*args, **kwargs)
 
     monkeypatch.setattr(nested_backend_module, "reinflate", spy)
     with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
-        before = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+        before = blas_threads()
         V, F = neck
         nested_backend(V, F, [600])
-        after = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+        after = blas_threads()
     assert inside and set(inside) == {1}
     assert after == before

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+import threadpoolctl
 
 import solvers.multilevel
 from solvers import (
@@ -27,6 +28,8 @@ from solvers import (
     transfer,
 )
 from solvers.gallery import kuhn_cube_hierarchy, kuhn_cube_mesh, kuhn_interpolation
+
+from conftest import blas_threads
 
 N = 16  # 17^3 = 4913 nodes, 3375 interior
 
@@ -877,13 +880,7 @@ def test_pivoted_cholesky_refuses_an_indefinite_operator():
 def test_cycles_run_with_one_blas_thread(cube, monkeypatch):
     """solve() and aspreconditioner() run their cycles on one BLAS thread and give the caller's limit back
     (OpenBLAS threads spinning beside the cycle's short BLAS calls slowed MG-PCG solves down)."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
-
-    def blas_threads():
-        return [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
-
-    if not blas_threads():
-        pytest.skip("no BLAS library reported by threadpoolctl")
+    blas_threads()  # skips without a reported BLAS library
     ds, Pf, _ = _dirichlet(cube, 3)
     ml = MultigridSolver(ds.A, Pf)
     inside = []

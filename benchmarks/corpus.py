@@ -297,11 +297,36 @@ def merge_runs(docs: list[dict]) -> dict:
     for r in rows.values():
         distinct = set(map(str, r["commits"].values()))
         r["commit"] = distinct.pop() if len(distinct) == 1 else None
+    runs = list({(r["command"], str(r.get("commit"))): r for d in docs for r in _runs(d)}.values())
     # the latest run's commit first: the table marks the columns run at other commits
-    return dict(docs[0], command=" ; ".join(d["command"] for d in docs),
+    return dict(docs[0], runs=runs, command=" ; ".join(dict.fromkeys(r["command"] for r in runs)),
                 commit=" / ".join(dict.fromkeys(str(d.get("commit")) for d in reversed(docs))),
                 date=docs[-1].get("date", docs[0].get("date")), timeout=docs[-1].get("timeout", docs[0].get("timeout")),
                 meshes=[rows[k] for k in sorted(rows)])
+
+
+def _runs(doc: dict) -> list[dict]:
+    """The runs behind a corpus JSON: ``{command, commit, date}`` each (a merge lists those it merged)."""
+    return doc.get("runs") or [{k: doc.get(k) for k in ("command", "commit", "date")}]
+
+
+def _provenance(doc: dict) -> list[str]:
+    """Markdown lines naming the commands behind the shown columns (older merged runs: the JSON's ``runs``)."""
+    shown = {str(c) for e in doc["meshes"] for c in (e.get("commits") or {}).values()}
+    runs = _runs(doc)
+    used = [r for r in runs if str(r.get("commit")) in shown]
+    if len(runs) == 1 or not used:
+        return [f"Run: `{doc['command']}` at commit {doc['commit']}, {doc['date']}; "
+                f"{doc['timeout']:.0f} s per case."]
+    lines = [f"Runs whose columns are shown ({doc['timeout']:.0f} s per case; each row names the commit of its "
+             "columns when it differs from the first):", ""]
+    lines += [f"- `{r['command']}` at {r.get('commit')}, {r.get('date')}" for r in used]
+    mine = {r["command"] for r in used}
+    older = len({c for r in runs for c in r["command"].split(" ; ")} - mine)
+    if older:
+        lines += ["", f"Columns marked \"at\" another commit come from {older} earlier runs, merged into the JSON "
+                  "(its `runs`, with their commands and commits)."]
+    return lines
 
 
 def _at(entry: dict, columns, main: str) -> dict:
@@ -327,8 +352,7 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
              "end of the run), plus the reference `nested_cages` wheel at the same face counts (extra `bench`). "
              "Timings are wall seconds of one run on a 2-core machine; when the run was split over the two cores "
              "(one process per core, `--merge`), each case had one core and the other was busy.", "",
-             f"Run: `{doc['command']}` at commit {doc['commit']}, {doc['date']}; {doc['timeout']:.0f} s per case.",
-             "", "### `nestmg solve FILE --levels 3` (defaults: nested cages, TetWild)", "",
+             *_provenance(doc), "", "### `nestmg solve FILE --levels 3` (defaults: nested cages, TetWild)", "",
              "Cells: V-cycle factor / MG-PCG iterations to 1e-8 (✗: above the goal "
              f"{GOALS['poisson-dirichlet']} Dirichlet, {GOALS['poisson-neumann']} Neumann and diffusion, "
              f"{GOALS['pcg']} iterations, operator complexity {GOALS['complexity']}). Seconds: cages / tets / "

@@ -58,6 +58,15 @@ def test_merge_replaces_columns_not_rows(tmp_path):
     # the table marks only the columns run elsewhere than the first commit
     assert corpus._at(m, ["solve"], "bbb")["mesh"] == "m.off"
     assert corpus._at(m, ["cages:nested", "cages:decimate"], "bbb")["mesh"] == "m.off (at aaa)"
+    # the page names each shown column's run once; a merged run is listed through the JSON's ``runs``
+    assert [r["command"] for r in corpus.merge_runs([doc, new])["runs"]] == ["run A", "run B"]
+    lines = corpus._provenance(doc)
+    assert [ln for ln in lines if ln.startswith("- ")] == ["- `run A` at aaa, d1", "- `run B` at bbb, d2"]
+    older = {k: v for k, v in doc.items() if k != "runs"}  # a merge from before ``runs`` existed
+    older.update(command="run 0 ; run A", commit="aaa / zzz")
+    lines = corpus._provenance(corpus.merge_runs([older, new]))
+    assert [ln for ln in lines if ln.startswith("- ")] == ["- `run B` at bbb, d2"]
+    assert "from 2 earlier runs" in lines[-1]
 
 
 def test_derived_inputs_recipe():

@@ -202,3 +202,52 @@ def test_reverse_hessian_ipctk_keeps_ipctk_throughout(contact_state, monkeypatch
     monkeypatch.setattr(rf, "REVERSE_HESSIAN", "ipctk")
     re, fin, _ = _hessian_kinds(contact_state, monkeypatch)
     assert set(re) == {"ipctk"} and set(fin) == {"ipctk"}
+
+
+def test_hybrid_hessian_is_ipctk_near_and_gauss_newton_far(contact_state, monkeypatch):
+    """``HYBRID_NEAR`` above every contact: ipctk's projected Hessian; at 0: the Gauss-Newton matrix; in
+    between: the sum of the two over the split, on the same DOFs."""
+    *_, pair, X, dhat, col = contact_state
+    prob = rf._Problem(pair, None, dhat, 1e3, 1e3)
+    rest = np.asarray(pair.mesh.rest_positions)
+    ca = contact_arrays(col, pair.mesh)
+    d = contact_gradients(X, ca, rest)[0]
+    full = prob.barrier.hessian(col, pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()
+    monkeypatch.setattr(rf, "HYBRID_NEAR", 1.01)
+    H, idx = prob._hybrid_hessian(col, X, True)
+    assert len(idx) > 3 * pair.nc and abs(H - full[idx][:, idx]).max() <= 1e-12 * abs(full).max()
+    monkeypatch.setattr(rf, "HYBRID_NEAR", 0.0)
+    H0, idx0 = prob._hybrid_hessian(col, X, True)
+    assert np.array_equal(idx0, idx)
+    gn = gauss_newton_hessian(X, ca, rest, dhat, 1e3, dofs=idx)
+    assert abs(H0 - gn).max() <= 1e-12 * abs(gn).max()
+    split = float(np.median(d)) / dhat
+    monkeypatch.setattr(rf, "HYBRID_NEAR", split)
+    Hs, _ = prob._hybrid_hessian(col, X, True)
+    near = pair.collisions(X, split * dhat)
+    assert 0 < len(near) < len(col)
+    ref = (gauss_newton_hessian(X, ca, rest, dhat, 1e3, dofs=idx, mask=d >= split * dhat)
+           + prob.barrier.hessian(near, pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()[idx][:, idx])
+    assert abs(Hs - ref).max() <= 1e-12 * abs(full).max()
+    assert abs(Hs - full[idx][:, idx]).max() > 1e-6 * abs(full).max()  # the far part is not ipctk's
+
+
+def test_large_contact_sets_take_the_hybrid_matrix_and_still_certify(contact_state, monkeypatch):
+    V, F, U, G, fl, *_ = contact_state
+    calls = []
+    hybrid = rf._Problem._hybrid_hessian
+
+    def spy(self, col, X, fine_moves):
+        calls.append(len(col))
+        return hybrid(self, col, X, fine_moves)
+
+    monkeypatch.setattr(rf._Problem, "_hybrid_hessian", spy)
+    monkeypatch.setattr(rf, "HYBRID_MIN_CONTACTS", 1)  # every set counts as large
+    rr = reinflate(fl.history, F, U, G, energy="volume")
+    assert rr.success, rr.reason
+    assert calls
+    assert verify_nesting([(V, F), (rr.cage, G)]).ok
+    assert rr.stats["volume_after_final"] < rr.stats["volume_before_final"]
+    calls.clear()
+    monkeypatch.setattr(rf, "HYBRID_MIN_CONTACTS", 10**9)
+    assert reinflate(fl.history, F, U, G, energy="volume").success and not calls

@@ -174,7 +174,8 @@ def contact_gradients(X: np.ndarray, ca: ContactArrays, rest: np.ndarray
 
 
 def gauss_newton_hessian(X: np.ndarray, ca: ContactArrays, rest: np.ndarray, dhat: float, kappa: float,
-                         dofs: np.ndarray | None = None) -> sp.csr_matrix:
+                         dofs: np.ndarray | None = None, grads: tuple | None = None,
+                         mask: np.ndarray | None = None) -> sp.csr_matrix:
     """Gauss-Newton barrier Hessian ``sum_k w_k m_k max(h''(d_k), 0) grad d_k grad d_k^T``.
 
     Parameters
@@ -190,6 +191,10 @@ def gauss_newton_hessian(X: np.ndarray, ca: ContactArrays, rest: np.ndarray, dha
     dofs : (n,) int array, optional
         DOFs (``3 vertex + axis``) to keep: the result is ``H[dofs][:, dofs]``; the other DOFs are held
         fixed (their columns dropped). Default: all ``3N``.
+    grads : tuple, optional
+        :func:`contact_gradients` of ``(X, ca, rest)`` when the caller has them already.
+    mask : (k,) bool array, optional
+        Only the contacts where it is True contribute (the others' terms are zero).
 
     Returns
     -------
@@ -199,9 +204,11 @@ def gauss_newton_hessian(X: np.ndarray, ca: ContactArrays, rest: np.ndarray, dha
     dofs = np.arange(n3) if dofs is None else np.asarray(dofs)
     if len(ca) == 0:
         return sp.csr_matrix((len(dofs), len(dofs)))
-    d, g, w = contact_gradients(X, ca, rest)
+    d, g, w = contact_gradients(X, ca, rest) if grads is None else grads
     _, h2 = barrier_derivatives(d, dhat, kappa)
     a = w * np.maximum(h2, 0.0)
+    if mask is not None:
+        a = np.where(mask, a, 0.0)
     # H = (J^T diag(a)) J with J the (k, 3N) Jacobian of the distances (12 nonzeros a row); J^T diag(a) is
     # assembled as a csr matrix of its own, so the product is one csr x csr (no csc conversions)
     where = np.full(n3, -1, dtype=np.int64)

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..collision import PairMesh
-from .contact_hessian import contact_arrays, gauss_newton_hessian
+from .contact_hessian import contact_arrays, contact_gradients, gauss_newton_hessian
 from .energies import make_energy, signed_volume
 
 _log = logging.getLogger(__name__)
@@ -107,6 +107,20 @@ BARRIER_HESSIAN = "ipctk"
 #: Gauss-Newton re-inflation to ipctk's Hessian (:data:`GN_BLOCKED_ALPHA`).
 REVERSE_HESSIAN = "ipctk"
 
+#: With ``"ipctk"``, a collision set of at least this many contacts gets a hybrid Newton matrix: ipctk's
+#: projected Hessian on the contacts closer than :data:`HYBRID_NEAR` ``dhat``, the Gauss-Newton matrix on
+#: the others. After the clearance dilation the whole cage floats within ``dhat`` of F: on homer.obj's
+#: first layer 35k contacts, the median at 0.87 ``dhat``, 1% closer than 0.5 ``dhat``. ipctk took 7.4 us a
+#: contact (two threads), the hybrid 3.5 (most of it reading the contacts into arrays). Far from F,
+#: ``h'(d) -> 0`` and the dropped term ``h'(d) grad^2 d`` is what the PSD projection mostly removes; near
+#: it the distance curvature keeps the direction from running into a contact (Gauss-Newton everywhere
+#: stalled, :data:`GN_BLOCKED_ALPHA`). Small sets keep ipctk's Hessian: there it costs milliseconds.
+#: ``cages_ab.py`` on 12 zoo meshes: CPU x0.91 in all (bumpy-cube 0.71, fandisk 0.83, pepper 0.85; homer
+#: 1.12: its second layer tried one more target), lucy.ply x0.87; volume ratios within 0.015
+#: (``benchmarks/results/cages/ab_hybrid_7754140.json``, ``ab_lucy_hybrid_7754140.json``).
+HYBRID_MIN_CONTACTS = 5000
+HYBRID_NEAR = 0.5
+
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a
 #: Newton step is cut below this fraction (CCD bound and backtracking) or a reverse step's |F - target|
 #: has not halved in :data:`GN_PATIENCE` iterations; the switched step gets a fresh stall window.
@@ -169,6 +183,8 @@ class _Problem:
         """SPD Newton matrix of the barrier at ``X`` (see :data:`BARRIER_HESSIAN`) on the DOFs ``idx``
         it returns: the cage DOFs, then (``fine_moves``) the fine DOFs of the vertices in contact."""
         nc3 = 3 * self.nc
+        if self.hessian_kind == "ipctk" and len(col) >= HYBRID_MIN_CONTACTS:
+            return self._hybrid_hessian(col, X, fine_moves)
         if self.hessian_kind == "ipctk":
             HB = self.barrier.hessian(col, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()
             # the DOFs of some contact: the rows with entries (12x12 blocks: a symmetric pattern), found
@@ -181,6 +197,25 @@ class _Problem:
         verts = verts[verts >= self.nc]
         idx = np.r_[np.arange(nc3), (3 * verts[:, None] + np.arange(3)).ravel()]
         return gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx), idx
+
+    def _hybrid_hessian(self, col: ipctk.NormalCollisions, X: np.ndarray, fine_moves: bool
+                        ) -> tuple[sp.csr_matrix, np.ndarray]:
+        """ipctk's projected Hessian of the contacts closer than ``HYBRID_NEAR * dhat`` plus the
+        Gauss-Newton matrix of the others (:data:`HYBRID_MIN_CONTACTS`), on the DOFs ``idx`` it returns."""
+        nc3 = 3 * self.nc
+        ca = contact_arrays(col, self.pair.mesh)
+        verts = np.unique(ca.ids) if fine_moves else np.zeros(0, dtype=np.int64)
+        verts = verts[verts >= self.nc]
+        idx = np.r_[np.arange(nc3), (3 * verts[:, None] + np.arange(3)).ravel()]
+        grads = contact_gradients(X, ca, self.rest)
+        far = grads[0] >= HYBRID_NEAR * self.dhat
+        H = gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx, grads=grads, mask=far)
+        if not far.all():
+            near = self.pair.collisions(X, HYBRID_NEAR * self.dhat)  # the same pairs, found again (cheap)
+            if len(near):
+                HB = self.barrier.hessian(near, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()
+                H = H + HB[idx][:, idx]
+        return H, idx
 
     def _collisions(self, X: np.ndarray) -> ipctk.NormalCollisions:
         # the accepted line-search point is the next Newton point: reuse its collision set

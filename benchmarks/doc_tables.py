@@ -33,7 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_ab2b914_merged.json"
+CORPUS = "corpus/zoo_36a31a7_merged.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
@@ -583,9 +583,10 @@ CAGES_LUCY_LASTSNAP = "cages/ab_lucy_lastsnap_2137b50.json"
 CAGES_LUCY_SNAPALL = "cages/ab_lucy_snapall_2137b50.json"
 
 
-def _ab_one_run(path: str, lucy: str) -> str:
+def _ab_one_run(path: str, lucy: str, slowest: bool = False) -> str:
     """One ``cages_ab.py`` run over the meshes both trees certified: total CPU seconds after / before, the
-    largest changes, volume ratios; then lucy.ply's CPU seconds from its own run."""
+    largest changes (``slowest``: the largest slow-down too), volume ratios; then lucy.ply's CPU seconds
+    from its own run."""
     runs = {m: r for m, r in load(path)["meshes"].items() if r["before"]["ok"] and r["after"]["ok"]}
     cpu = lambda m, side: runs[m][side]["cpu_seconds"]  # noqa: E731
     total = sum(cpu(m, "after") for m in runs) / sum(cpu(m, "before") for m in runs)
@@ -594,7 +595,8 @@ def _ab_one_run(path: str, lucy: str) -> str:
               for lb, la in zip(r["before"]["layers"], r["after"]["layers"]))
     lu = load(lucy)["meshes"]["lucy.ply"]
     return (f"CPU seconds x{total:.2f} in all over {len(runs)} meshes (one run), "
-            + ", ".join(f"{m} x{cpu(m, 'after') / cpu(m, 'before'):.2f}" for m in order[:2])
+            + ", ".join(f"{m} x{cpu(m, 'after') / cpu(m, 'before'):.2f}"
+                        for m in order[:2] + (order[-1:] if slowest else []))
             + f", volume ratios within {100 * vol:.1f}%; lucy.ply {lu['before']['cpu_seconds']:.0f} -> "
             f"{lu['after']['cpu_seconds']:.0f} CPU s")
 
@@ -609,6 +611,16 @@ def cages_lastsnap() -> str:
 def cages_snapall() -> str:
     """Every reverse step's snap from 0.1 ``dhat`` at 2137b50 (:func:`_ab_one_run`)."""
     return _ab_one_run(CAGES_AB_SNAPALL, CAGES_LUCY_SNAPALL)
+
+
+CAGES_AB_HYBRID = "cages/ab_hybrid_7754140.json"
+CAGES_LUCY_HYBRID = "cages/ab_lucy_hybrid_7754140.json"
+
+
+@generator("cages.hybrid", CAGES_AB_HYBRID, CAGES_LUCY_HYBRID)
+def cages_hybrid() -> str:
+    """The hybrid Newton matrix of large contact sets at 36a31a7 (:func:`_ab_one_run`)."""
+    return _ab_one_run(CAGES_AB_HYBRID, CAGES_LUCY_HYBRID, slowest=True)
 
 
 SLOW_MODE = "corpus/slow_mode_65e1832.json"

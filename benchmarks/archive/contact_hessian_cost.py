@@ -5,8 +5,10 @@ Issue 27, item 2: is a compiled copy of ipctk's PSD-projected barrier Hessian wo
 wrapped: at the first ``--sets`` Newton iterations with more than ``--min-contacts`` contacts it times, on
 that collision set, ipctk's barrier gradient, its Hessian unprojected and projected by clamping (the
 default), and the numpy Gauss-Newton matrix (contact arrays read from ipctk's collision objects, then the
-matrix), each ``--repeats`` times, in CPU and wall microseconds per contact (ipctk runs on its own TBB
-threads: CPU over wall is its parallelism). Also the cost of numpy's batched ``eigh`` of random symmetric
+matrix), and the hybrid matrix of large sets (``_Problem._hybrid_hessian``, where the checkout has it),
+each ``--repeats`` times, in CPU and wall microseconds per contact (ipctk runs on its own TBB threads: CPU
+over wall is its parallelism), and the contacts' distances over ``dhat`` (10th, 50th, 90th percentile,
+fraction below 0.5). Also the cost of numpy's batched ``eigh`` of random symmetric
 12x12 and 9x9 matrices, the floor of any PSD projection by eigendecomposition from Python. One OpenMP
 thread::
 
@@ -47,7 +49,7 @@ def _per_contact(f, n: int, repeats: int) -> dict:
 
 def measure_set(prob, col, X: np.ndarray, fine_moves: bool, repeats: int) -> dict:
     """The four costs on one collision set of the re-inflation problem ``prob``."""
-    from cagegen.nested.contact_hessian import contact_arrays, gauss_newton_hessian
+    from cagegen.nested.contact_hessian import contact_arrays, contact_gradients, gauss_newton_hessian
 
     mesh, n, nc = prob.pair.mesh, len(col), prob.nc
     idx = np.arange(3 * nc)
@@ -64,6 +66,11 @@ def measure_set(prob, col, X: np.ndarray, fine_moves: bool, repeats: int) -> dic
         row[name] = _per_contact(lambda: prob.barrier.hessian(col, mesh, X, proj), n, repeats)
     row["contact_arrays"] = _per_contact(lambda: contact_arrays(col, mesh), n, repeats)
     row["gauss_newton_with_arrays"] = _per_contact(gn, n, repeats)
+    if hasattr(prob, "_hybrid_hessian"):  # the default matrix of large sets since 36a31a7
+        row["hybrid"] = _per_contact(lambda: prob._hybrid_hessian(col, X, fine_moves), n, repeats)
+    d = contact_gradients(X, contact_arrays(col, mesh), prob.rest)[0] / prob.dhat
+    row["distance_over_dhat"] = {"p10": float(np.quantile(d, 0.1)), "p50": float(np.median(d)),
+                                 "p90": float(np.quantile(d, 0.9)), "below_half": float(np.mean(d < 0.5))}
     return row
 
 
@@ -112,8 +119,8 @@ def main(argv=None) -> int:
         finally:
             rf._Problem.barrier_hessian = original
         out["meshes"][name] = rows
-        print(name, [(r["contacts"], round(r["ipctk_hessian_clamp"]["cpu_us"], 1),
-                      round(r["gauss_newton_with_arrays"]["cpu_us"], 1)) for r in rows], flush=True)
+        print(name, [(r["contacts"], round(r["ipctk_hessian_clamp"]["wall_us"], 1),
+                      round(r.get("hybrid", {}).get("wall_us", float("nan")), 1)) for r in rows], flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1))
     return 0

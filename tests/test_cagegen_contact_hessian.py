@@ -21,9 +21,11 @@ from cagegen.nested import flow_inside, reinflate
 from cagegen.nested.contact_hessian import (
     ContactArrays,
     barrier_derivatives,
+    collision_lists,
     contact_arrays,
     contact_gradients,
     gauss_newton_hessian,
+    subset,
 )
 from nestmg import shapes
 
@@ -204,6 +206,14 @@ def test_reverse_hessian_ipctk_keeps_ipctk_throughout(contact_state, monkeypatch
     assert set(re) == {"ipctk"} and set(fin) == {"ipctk"}
 
 
+def _between(d: np.ndarray) -> float:
+    """A distance half-way between two consecutive contact distances near the median (no contact sits on
+    the split, where ``d < split`` and ipctk's own build could round differently)."""
+    u = np.unique(d)
+    k = len(u) // 2
+    return 0.5 * float(u[k] + u[k + 1])
+
+
 def test_hybrid_hessian_is_ipctk_near_and_gauss_newton_far(contact_state, monkeypatch):
     """``HYBRID_NEAR`` above every contact: ipctk's projected Hessian; at 0: the Gauss-Newton matrix; in
     between: the sum of the two over the split, on the same DOFs."""
@@ -221,7 +231,7 @@ def test_hybrid_hessian_is_ipctk_near_and_gauss_newton_far(contact_state, monkey
     assert np.array_equal(idx0, idx)
     gn = gauss_newton_hessian(X, ca, rest, dhat, 1e3, dofs=idx)
     assert abs(H0 - gn).max() <= 1e-12 * abs(gn).max()
-    split = float(np.median(d)) / dhat
+    split = _between(d) / dhat
     monkeypatch.setattr(rf, "HYBRID_NEAR", split)
     Hs, _ = prob._hybrid_hessian(col, X, True)
     near = pair.collisions(X, split * dhat)
@@ -251,3 +261,21 @@ def test_large_contact_sets_take_the_hybrid_matrix_and_still_certify(contact_sta
     calls.clear()
     monkeypatch.setattr(rf, "HYBRID_MIN_CONTACTS", 10**9)
     assert reinflate(fl.history, F, U, G, energy="volume").success and not calls
+
+
+def test_subset_of_the_collision_objects_is_the_collision_set_built_closer(contact_state):
+    """The hybrid's near set, picked from the objects already read, is the set ipctk builds at the smaller
+    distance: the same contacts, the same projected Hessian."""
+    *_, pair, X, dhat, col = contact_state
+    lists = collision_lists(col)
+    ca = contact_arrays(col, pair.mesh, lists)
+    d = contact_gradients(X, ca, np.asarray(pair.mesh.rest_positions))[0]
+    split = _between(d)
+    near = subset(lists, d < split)
+    fresh = pair.collisions(X, split)
+    assert 0 < len(near) == len(fresh) < len(col)
+    barrier = ipctk.BarrierPotential(dhat, 1e3)
+    H = barrier.hessian(near, pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP)
+    ref = barrier.hessian(fresh, pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP)
+    assert abs(H - ref).max() <= 1e-12 * abs(ref).max()
+    assert len(subset(lists, np.zeros(len(col), dtype=bool))) == 0

@@ -26,7 +26,8 @@ import scipy.sparse as sp
 
 from ..errors import CageError
 
-__all__ = ["ContactArrays", "barrier_derivatives", "contact_arrays", "contact_gradients", "gauss_newton_hessian"]
+__all__ = ["ContactArrays", "barrier_derivatives", "collision_lists", "contact_arrays", "contact_gradients",
+           "gauss_newton_hessian", "subset"]
 
 
 class ContactArrays:
@@ -53,16 +54,33 @@ class ContactArrays:
         return len(self.kind)
 
 
-def contact_arrays(col: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh) -> ContactArrays:
+def collision_lists(col: ipctk.NormalCollisions) -> tuple[list, list, list, list]:
+    """ipctk's face-vertex, edge-edge, edge-vertex and vertex-vertex collision objects of ``col``, in the
+    order of :class:`ContactArrays` (reading them is most of :func:`contact_arrays`' cost)."""
+    return col.fv_collisions, col.ee_collisions, col.ev_collisions, col.vv_collisions
+
+
+def subset(lists: tuple[list, list, list, list], keep: np.ndarray) -> ipctk.NormalCollisions:
+    """A collision set of the contacts ``keep`` (bool, in :class:`ContactArrays` order) of ``lists``."""
+    out = ipctk.NormalCollisions()
+    o = np.cumsum([0, *map(len, lists)])
+    picked = [[lst[i] for i in np.flatnonzero(keep[o[k]:o[k + 1]])] for k, lst in enumerate(lists)]
+    out.fv_collisions, out.ee_collisions, out.ev_collisions, out.vv_collisions = picked
+    return out
+
+
+def contact_arrays(col: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh,
+                   lists: tuple[list, list, list, list] | None = None) -> ContactArrays:
     """The contacts of ``col`` as index arrays (see :class:`ContactArrays`).
 
     Only the plain IPC collision set without area weighting is supported (face-vertex and edge-edge
     weights are then 1; the edge-vertex and vertex-vertex ones count duplicates and are read).
+    ``lists``: :func:`collision_lists` of ``col`` when the caller has read them already.
     """
     if col.use_area_weighting or col.collision_set_type != ipctk.NormalCollisions.CollisionSetType.IPC:
         raise CageError("contact_arrays: only the IPC collision set without area weighting is supported")
     E, Fm = np.asarray(mesh.edges), np.asarray(mesh.faces)
-    fvl, eel, evl, vvl = col.fv_collisions, col.ee_collisions, col.ev_collisions, col.vv_collisions
+    fvl, eel, evl, vvl = collision_lists(col) if lists is None else lists
     fv_v, fv_f = _ints(fvl, "vertex_id"), _ints(fvl, "face_id")
     ee_a, ee_b = _ints(eel, "edge0_id"), _ints(eel, "edge1_id")
     ev_v, ev_e = _ints(evl, "vertex_id"), _ints(evl, "edge_id")

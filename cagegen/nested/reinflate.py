@@ -30,7 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..collision import PairMesh
-from .contact_hessian import contact_arrays, contact_gradients, gauss_newton_hessian
+from .contact_hessian import collision_lists, contact_arrays, contact_gradients, gauss_newton_hessian, subset
 from .energies import make_energy, signed_volume
 
 _log = logging.getLogger(__name__)
@@ -203,18 +203,18 @@ class _Problem:
         """ipctk's projected Hessian of the contacts closer than ``HYBRID_NEAR * dhat`` plus the
         Gauss-Newton matrix of the others (:data:`HYBRID_MIN_CONTACTS`), on the DOFs ``idx`` it returns."""
         nc3 = 3 * self.nc
-        ca = contact_arrays(col, self.pair.mesh)
+        lists = collision_lists(col)
+        ca = contact_arrays(col, self.pair.mesh, lists)
         verts = np.unique(ca.ids) if fine_moves else np.zeros(0, dtype=np.int64)
         verts = verts[verts >= self.nc]
         idx = np.r_[np.arange(nc3), (3 * verts[:, None] + np.arange(3)).ravel()]
         grads = contact_gradients(X, ca, self.rest)
         far = grads[0] >= HYBRID_NEAR * self.dhat
         H = gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx, grads=grads, mask=far)
-        if not far.all():
-            near = self.pair.collisions(X, HYBRID_NEAR * self.dhat)  # the same pairs, found again (cheap)
-            if len(near):
-                HB = self.barrier.hessian(near, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()
-                H = H + HB[idx][:, idx]
+        if not far.all():  # the near contacts' own collision set, from the objects already read
+            near = subset(lists, ~far)
+            HB = self.barrier.hessian(near, self.pair.mesh, X, ipctk.PSDProjectionMethod.CLAMP).tocsr()
+            H = H + HB[idx][:, idx]
         return H, idx
 
     def _collisions(self, X: np.ndarray) -> ipctk.NormalCollisions:

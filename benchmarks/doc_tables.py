@@ -597,7 +597,7 @@ def _ab_one_run(path: str, lucy: str, slowest: bool = False) -> str:
     return (f"CPU seconds x{total:.2f} in all over {len(runs)} meshes (one run), "
             + ", ".join(f"{m} x{cpu(m, 'after') / cpu(m, 'before'):.2f}"
                         for m in order[:2] + (order[-1:] if slowest else []))
-            + f", volume ratios within {100 * vol:.1f}%; lucy.ply {lu['before']['cpu_seconds']:.0f} -> "
+            + f", volume ratios within {100 * vol:.2g}%; lucy.ply {lu['before']['cpu_seconds']:.0f} -> "
             f"{lu['after']['cpu_seconds']:.0f} CPU s")
 
 
@@ -621,6 +621,16 @@ CAGES_LUCY_HYBRID = "cages/ab_lucy_hybrid_7754140.json"
 def cages_hybrid() -> str:
     """The hybrid Newton matrix of large contact sets at 36a31a7 (:func:`_ab_one_run`)."""
     return _ab_one_run(CAGES_AB_HYBRID, CAGES_LUCY_HYBRID, slowest=True)
+
+
+CAGES_AB_SUBSET = "cages/ab_hybrid_subset_d4d2e4c.json"
+CAGES_LUCY_SUBSET = "cages/ab_lucy_hybrid_subset_d4d2e4c.json"
+
+
+@generator("cages.hybrid_subset", CAGES_AB_SUBSET, CAGES_LUCY_SUBSET)
+def cages_hybrid_subset() -> str:
+    """The hybrid's near set picked from the collision objects read, at 00c13e4 (:func:`_ab_one_run`)."""
+    return _ab_one_run(CAGES_AB_SUBSET, CAGES_LUCY_SUBSET, slowest=True)
 
 
 SLOW_MODE = "corpus/slow_mode_65e1832.json"

@@ -110,14 +110,16 @@ REVERSE_HESSIAN = "ipctk"
 #: With ``"ipctk"``, a collision set of at least this many contacts gets a hybrid Newton matrix: ipctk's
 #: projected Hessian on the contacts closer than :data:`HYBRID_NEAR` ``dhat``, the Gauss-Newton matrix on
 #: the others. After the clearance dilation the whole cage floats within ``dhat`` of F: on homer.obj's
-#: first layer 35k contacts, the median at 0.87 ``dhat``, 1% closer than 0.5 ``dhat``. ipctk took 7.4 us a
-#: contact (two threads), the hybrid 3.5 (most of it reading the contacts into arrays). Far from F,
-#: ``h'(d) -> 0`` and the dropped term ``h'(d) grad^2 d`` is what the PSD projection mostly removes; near
-#: it the distance curvature keeps the direction from running into a contact (Gauss-Newton everywhere
-#: stalled, :data:`GN_BLOCKED_ALPHA`). Small sets keep ipctk's Hessian: there it costs milliseconds.
+#: first layer 35k contacts, the median at 0.87 ``dhat``, 0.6% closer than 0.5 ``dhat``; ipctk took 5.8
+#: wall us a contact (two threads), the hybrid 3.8, half of it reading the contacts into arrays
+#: (``benchmarks/results/cages/contact_hessian_cost_36a31a7.json``). Far from F ``h'(d) -> 0`` and the
+#: dropped term ``h'(d) grad^2 d`` is what the PSD projection mostly removes; near it the distance curvature
+#: keeps the direction from running into a contact (Gauss-Newton everywhere stalled,
+#: :data:`GN_BLOCKED_ALPHA`). Small sets keep ipctk's Hessian: there it costs milliseconds.
 #: ``cages_ab.py`` on 12 zoo meshes: CPU x0.91 in all (bumpy-cube 0.71, fandisk 0.83, pepper 0.85; homer
 #: 1.12: its second layer tried one more target), lucy.ply x0.87; volume ratios within 0.015
-#: (``benchmarks/results/cages/ab_hybrid_7754140.json``, ``ab_lucy_hybrid_7754140.json``).
+#: (``cages/ab_hybrid_7754140.json``, ``ab_lucy_hybrid_7754140.json``); the near set picked from the objects
+#: already read instead of a second broad phase: x0.95 more, lucy x0.93 (``ab_*hybrid_subset_d4d2e4c.json``).
 HYBRID_MIN_CONTACTS = 5000
 HYBRID_NEAR = 0.5
 

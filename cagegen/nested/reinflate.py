@@ -30,7 +30,14 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..collision import PairMesh
-from .contact_hessian import collision_lists, contact_arrays, contact_gradients, gauss_newton_hessian, subset
+from .contact_hessian import (
+    ContactArrays,
+    collision_lists,
+    contact_arrays,
+    contact_gradients,
+    gauss_newton_hessian,
+    subset,
+)
 from .energies import make_energy, signed_volume
 
 _log = logging.getLogger(__name__)
@@ -195,21 +202,22 @@ class _Problem:
             idx = np.r_[np.arange(nc3), dofs[dofs >= nc3]]
             return HB[idx][:, idx], idx
         ca = contact_arrays(col, self.pair.mesh)
+        idx = self._contact_dofs(ca, fine_moves)
+        return gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx), idx
+
+    def _contact_dofs(self, ca: ContactArrays, fine_moves: bool) -> np.ndarray:
+        """The cage DOFs, then (``fine_moves``) the DOFs of the fine vertices of some contact in ``ca``."""
         verts = np.unique(ca.ids) if fine_moves else np.zeros(0, dtype=np.int64)
         verts = verts[verts >= self.nc]
-        idx = np.r_[np.arange(nc3), (3 * verts[:, None] + np.arange(3)).ravel()]
-        return gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx), idx
+        return np.r_[np.arange(3 * self.nc), (3 * verts[:, None] + np.arange(3)).ravel()]
 
     def _hybrid_hessian(self, col: ipctk.NormalCollisions, X: np.ndarray, fine_moves: bool
                         ) -> tuple[sp.csr_matrix, np.ndarray]:
         """ipctk's projected Hessian of the contacts closer than ``HYBRID_NEAR * dhat`` plus the
         Gauss-Newton matrix of the others (:data:`HYBRID_MIN_CONTACTS`), on the DOFs ``idx`` it returns."""
-        nc3 = 3 * self.nc
         lists = collision_lists(col)
         ca = contact_arrays(col, self.pair.mesh, lists)
-        verts = np.unique(ca.ids) if fine_moves else np.zeros(0, dtype=np.int64)
-        verts = verts[verts >= self.nc]
-        idx = np.r_[np.arange(nc3), (3 * verts[:, None] + np.arange(3)).ravel()]
+        idx = self._contact_dofs(ca, fine_moves)
         grads = contact_gradients(X, ca, self.rest)
         far = grads[0] >= HYBRID_NEAR * self.dhat
         H = gauss_newton_hessian(X, ca, self.rest, self.dhat, self.kappa, dofs=idx, grads=grads, mask=far)

@@ -29,6 +29,21 @@ def blas_threads() -> list[int]:
     return counts
 
 
+def record_blas_threads(monkeypatch, owner, name: str) -> list[int]:
+    """Wrap ``owner.name`` so that every call appends the BLAS thread limits it runs with to the returned
+    list (skips, as :func:`blas_threads`, without a reported BLAS library)."""
+    blas_threads()
+    seen: list[int] = []
+    real = getattr(owner, name)
+
+    def spy(*args, **kwargs):
+        seen.extend(blas_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, spy)
+    return seen
+
+
 @pytest.fixture(autouse=True)
 def _isolated_cache(tmp_path_factory, monkeypatch):
     """Every test session writes its cache entries into a temporary folder."""

@@ -29,7 +29,7 @@ from cagegen.nested import (
 )
 from cagegen.collision import PairMesh, min_distance
 from cagegen.nested.energies import signed_volume
-from conftest import blas_threads
+from conftest import blas_threads, record_blas_threads
 from nestmg import shapes
 
 
@@ -652,15 +652,7 @@ def test_target_dilation_tests_only_moved_faces_and_finds_what_the_full_test_fin
 def test_backend_runs_with_one_blas_thread(neck, monkeypatch):
     """The nested backend's BLAS work (Newton-CG dot products) runs on one thread, and the caller's
     thread count is back afterwards (OpenBLAS threads spinning beside ipctk's pool slowed it down)."""
-    blas_threads()  # skips without a reported BLAS library
-    inside = []
-    real = nested_backend_module.reinflate
-
-    def spy(*args, **kwargs):
-        inside.extend(blas_threads())
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(nested_backend_module, "reinflate", spy)
+    inside = record_blas_threads(monkeypatch, nested_backend_module, "reinflate")
     with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
         before = blas_threads()
         V, F = neck

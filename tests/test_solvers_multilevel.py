@@ -29,7 +29,7 @@ from solvers import (
 )
 from solvers.gallery import kuhn_cube_hierarchy, kuhn_cube_mesh, kuhn_interpolation
 
-from conftest import blas_threads
+from conftest import blas_threads, record_blas_threads
 
 N = 16  # 17^3 = 4913 nodes, 3375 interior
 
@@ -880,17 +880,9 @@ def test_pivoted_cholesky_refuses_an_indefinite_operator():
 def test_cycles_run_with_one_blas_thread(cube, monkeypatch):
     """solve() and aspreconditioner() run their cycles on one BLAS thread and give the caller's limit back
     (OpenBLAS threads spinning beside the cycle's short BLAS calls slowed MG-PCG solves down)."""
-    blas_threads()  # skips without a reported BLAS library
     ds, Pf, _ = _dirichlet(cube, 3)
     ml = MultigridSolver(ds.A, Pf)
-    inside = []
-    real = ml._one
-
-    def spy(*args, **kwargs):
-        inside.extend(blas_threads())
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(ml, "_one", spy)
+    inside = record_blas_threads(monkeypatch, ml, "_one")
     with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
         before = blas_threads()
         ml.solve(ds.b, tol=1e-8, accel="cg")

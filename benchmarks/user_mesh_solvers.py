@@ -103,6 +103,9 @@ VARIANTS = {
     "local_probe2": {"local_probe": 2},
     "local_probe1": {"local_probe": 1},
     "local_probe3": {"local_probe": 3},
+    # the default without the exact solve on the finest level's strongly coupled unknowns (the default
+    # before it, solvers.subdomain.strongly_coupled)
+    "no_strong_blocks": {"strong_blocks": None},
 }
 
 #: ``nestmg.setup_problem`` names of the benchmark's problems (``problem_multigrid``: ``Problem.multigrid()``)
@@ -194,6 +197,7 @@ def run_nestmg(A, b, Ps, nullspace, tol, opts, problem=None) -> dict:
             "final_residual": float(np.linalg.norm(b - A @ _) / np.linalg.norm(b)),
             "deflated": [d["vectors"] for d in ml.deflation],
             "local_probe": getattr(ml, "local_probe", None),
+            "strong_blocks": getattr(ml, "strong_blocks", None),
             "operator_complexity": ml.operator_complexity(), "cycle_complexity": ml.cycle_complexity(),
             "level_unknowns": [L.A.shape[0] for L in ml.levels],
             "level_nnz_per_row": [L.A.nnz / L.A.shape[0] for L in ml.levels],
@@ -593,6 +597,69 @@ def _tet_quality(V: np.ndarray, T: np.ndarray, boundary: np.ndarray) -> dict:
             "tets_over_150": float(big.mean())}
 
 
+def _node_quality(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Per node, the worst quality ``6 sqrt(2) V / l_max^3`` (1: regular tet, 0: flat) of its tets."""
+    P = V[T]
+    vol = np.abs(np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0])) / 6
+    lmax = np.max([np.linalg.norm(P[:, a] - P[:, b], axis=1)
+                   for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], axis=0)
+    q = 6 * np.sqrt(2) * vol / lmax ** 3
+    worst = np.full(len(V), np.inf)
+    for k in range(4):
+        np.minimum.at(worst, T[:, k], q)
+    return worst
+
+
+def couplings_case(work: Path, problems, cycles: int) -> dict:
+    """Where the default cycle without the strong-coupling solve leaves its slow error, against the
+    strongly coupled unknowns (:func:`solvers.subdomain.strongly_coupled`) and the tets' shapes."""
+    from nestmg import load_tet_mesh
+    from solvers import MultigridSolver
+    from solvers.fem import boundary_nodes
+    from solvers.subdomain import STRONG_COUPLING, strongly_coupled
+
+    c = load_case(work)
+    V, T = load_tet_mesh(work / "user_mesh.vtu")
+    worst = _node_quality(V, T)
+    on = np.zeros(len(V), bool)
+    on[boundary_nodes(T)] = True
+    out = {"name": c["name"], "label": c["label"], "tets": c["tets"], "theta": STRONG_COUPLING, "problems": {}}
+    for prob in problems:
+        A, _b, Ps, ns = c[prob]
+        ml = MultigridSolver(A, Ps, nullspace=ns, strong_blocks=None)
+        e, factor = _slow_error(ml, cycles)  # the caller's order
+        Au = sp_csr(A)
+        energy = np.abs(e * (Au @ e))
+        energy /= energy.sum()
+        d = Au.diagonal()
+        C = Au.tocoo()
+        off = C.row != C.col
+        smax = np.zeros(Au.shape[0])
+        np.maximum.at(smax, C.row[off], np.abs(C.data[off]) / np.sqrt(d[C.row[off]] * d[C.col[off]]))
+        region = strongly_coupled(Au)
+        region = np.empty(0, int) if region is None else region
+        nodes = np.arange(len(V))  # the mesh node of each unknown: all, or the interior ones (Dirichlet)
+        if prob == "dirichlet":
+            nodes = np.setdiff1d(nodes, boundary_nodes(T))
+        top = np.argsort(-energy)[:200]
+        out["problems"][prob] = {
+            "unknowns": int(Au.shape[0]), "cycles": cycles, "factor": factor,
+            "max_coupling_quantiles": {q: float(np.quantile(smax, float(q))) for q in ("0.5", "0.9", "0.99")},
+            "region": int(region.size), "region_energy": float(energy[region].sum()),
+            "top200_energy": float(energy[top].sum()),
+            "top200_boundary": float(on[nodes[top]].mean()),
+            "top200_worst_quality_median": float(np.median(worst[nodes[top]])),
+            "all_worst_quality_median": float(np.median(worst[nodes])),
+            "top200_max_coupling_median": float(np.median(smax[top])),
+        }
+        print(c["name"], prob, out["problems"][prob], flush=True)
+    return out
+
+
+def couplings(args) -> dict:
+    return {"code": args.label, "cases": [couplings_case(w, args.problems, args.cycles) for w in args.cases]}
+
+
 def diagnose_case(work: Path, tol: float, cycles: int) -> dict:
     """Where the default cycle is slow on one case, and which change of the hierarchy or the cycle helps:
     see :func:`diagnose`."""
@@ -724,10 +791,19 @@ def main(argv=None):
     dg.add_argument("--cycles", type=int, default=25)
     dg.add_argument("--tol", type=float, default=1e-8)
     dg.add_argument("--json", type=Path, default=None)
+    cp = sub.add_parser("couplings", help="the default cycle's slow error against the strongly coupled "
+                        "unknowns and the tets' shapes (one run each)")
+    cp.add_argument("cases", nargs="+", type=Path)
+    cp.add_argument("--problems", nargs="+", default=["dirichlet", "neumann"],
+                    choices=("dirichlet", "neumann", "diffusion"))
+    cp.add_argument("--cycles", type=int, default=3)
+    cp.add_argument("--label", default=None, help="code label stored in the JSON (e.g. the commit)")
+    cp.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "build":
         return build(args)
-    out = {"profile": profile, "cycle": cycle_cost, "run": run, "diagnose": diagnose}[args.cmd](args)
+    out = {"profile": profile, "cycle": cycle_cost, "run": run, "diagnose": diagnose,
+           "couplings": couplings}[args.cmd](args)
     if args.json:
         from nestmg.io import json_default
 

@@ -35,8 +35,8 @@ from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_sprea
 from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
-from .subdomain import (concentrated_region, power_probe, slow_region, subdomain_factor,
-                        with_subdomain_solve)
+from .subdomain import (STRONG_COUPLING, concentrated_region, power_probe, slow_region, strongly_coupled,
+                        subdomain_factor, with_subdomain_solve)
 from .transfer import (
     _as_csr,
     _galerkin_chain,
@@ -321,6 +321,14 @@ class MultigridSolver:
         a factor), more than the solve saved; on TetWild fine levels and Dirichlet problems it took nothing,
         for 0.03-0.06 s (``local_probe2`` in ``benchmarks/user_mesh_solvers.py``; docs/solvers.md). Off by
         default: it pays where one set-up serves several solves.
+    strong_blocks : float or None
+        Threshold ``θ`` of an exact solve on the finest level's strongly coupled unknowns, those with
+        ``|a_ij| >= θ sqrt(a_ii a_jj)`` for some ``j != i`` (:func:`solvers.subdomain.strongly_coupled`), added
+        to the fine smoothers as with ``local_solve`` (default :data:`solvers.subdomain.STRONG_COUPLING`, 0.5;
+        None: off). A point smoother updates such a pair as if it were one unknown; a mesher's flat tets
+        make them (the slivers on a TetGen mesh's boundary). Found in one pass over ``A``, no cycle; skipped
+        when none is strong, when more than :data:`solvers.subdomain.REGION_MAX_FRACTION` of the unknowns
+        are, or when the region's factor would cost more than a sweep (:attr:`strong_blocks`).
     probe_at : {"setup", "stationary"}
         When the finest level's probe (``probe_finest``) runs: at set-up (default), or at the first
         stationary solve (``solve(accel=None)``) or :meth:`probe` call (``nestmg``'s problems). The coarser
@@ -348,6 +356,9 @@ class MultigridSolver:
         The ``local_probe`` search's report: ``cycles``, ``nodes`` of the region (0: none found), and when one
         was: the keep test's ``ratio`` (last probe cycle) and ``ratio_after`` (with the subdomain solve),
         ``kept``; None when it did not run.
+    strong_blocks : dict or None
+        The strong-coupling solve's report: ``theta``, ``nodes`` of the region (0: none, or too many), and
+        ``installed`` (or ``refused_fill`` / ``singular`` as in :attr:`deflation`); None when off.
     setup_seconds : float
 
     Examples
@@ -391,6 +402,7 @@ class MultigridSolver:
         probe_at: str = "setup",
         local_solve: bool = True,
         local_probe: int = 0,
+        strong_blocks: float | None = STRONG_COUPLING,
     ):
         t0 = time.perf_counter()
         #: the cycle of :meth:`solve`, :meth:`aspreconditioner` and :meth:`cycle_complexity` when they are
@@ -432,6 +444,9 @@ class MultigridSolver:
             raise SolverInputError(f"deflate_goal must be in (0, 1), got {deflate_goal!r}")
         self.deflate_goal = float(deflate_goal)
         self.local_solve = bool(local_solve)
+        #: the report of the finest level's strong-coupling solve (``strong_blocks``; see Attributes)
+        fine_lower = (lowers[0], diagonals[0]) if lowers and lowers[0] is not None and diagonals else None
+        self.strong_blocks = self._strong_block_solve(strong_blocks, fine_lower)
         self._schedule_probe(deflate, probe_finest, probe_at)
         #: the report of the finest level's cheap slow-region search (``local_probe``; see Attributes)
         self.local_probe = self._cheap_local_solve(local_probe)
@@ -569,6 +584,24 @@ class MultigridSolver:
                     info.update(vectors=0, factors=[], reverted=True)
             report.append(info)
         return report[::-1]
+
+    def _strong_block_solve(self, theta: float | None, lower=None) -> dict | None:
+        """An exact solve on the finest level's strongly coupled unknowns (``strong_blocks``), added to its
+        smoothers; returns the report, None when off or not applicable (a single level or a non-symmetric
+        operator). ``lower``: the finest level's ``(D + L, diagonal)`` if kept."""
+        if theta is None:
+            return None
+        if isinstance(theta, bool) or not isinstance(theta, (int, float)) or not 0.0 < theta <= 1.0:
+            raise SolverInputError(f"strong_blocks must be None or a threshold in (0, 1], got {theta!r}")
+        if len(self.levels) < 2 or not self.symmetric_cycle:
+            return None
+        report = {"theta": float(theta), "nodes": 0, "installed": False}
+        region = strongly_coupled(self.levels[0].A, float(theta), lower=lower)
+        if region is None:
+            return report
+        report["nodes"] = int(region.size)
+        report["installed"] = self._add_subdomain_solve(0, region, report) is not None
+        return report
 
     def _cheap_local_solve(self, cycles: int) -> dict | None:
         """The ``local_probe``: ``cycles`` V-cycles of the finest level on a random error

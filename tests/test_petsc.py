@@ -580,8 +580,9 @@ def test_cage_hierarchy_one_rank_like_inprocess(sphere_cages, name):
     """PetscMultigrid(A, P) on a real cage hierarchy: same iterations and solution as MultigridSolver(A, P),
     the same coarsest-level safeguards (in-process coarse solver), setup within 2x (+0.5 s for tiny sizes)."""
     pr = _cage_problem(sphere_cages, name)
-    # the plain V(1,1) PCMG runs (the pipeline's default adds boundary-layer and coarse sweeps in-process)
-    ml = pr.multigrid(SolverOptions(local=False), presmoother="symmetric_gauss_seidel")
+    # the plain V(1,1) PCMG runs (the pipeline's default adds boundary-layer and coarse sweeps and the
+    # strong-coupling solve in-process)
+    ml = pr.multigrid(SolverOptions(local=False), presmoother="symmetric_gauss_seidel", strong_blocks=None)
     x_ref, ref = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
     with PetscMultigrid(pr.A, pr.P, nullspace=pr.nullspace, coarse_solver="auto") as mg:
         x, info = mg.solve(pr.b, tol=1e-8)
@@ -602,8 +603,8 @@ def test_cage_hierarchy_two_ranks(tmp_path, sphere_cages):
         path = tmp_path / f"cage{k}.npz"
         save_operators(path, pr.A, pr.P, b=pr.b, neumann=np.array([pr.nullspace == "constant"]))
         paths.append(str(path))
-        refs.append(pr.multigrid(SolverOptions(local=False), presmoother="symmetric_gauss_seidel").solve(
-            pr.b, tol=1e-8, accel="cg", return_info=True))
+        refs.append(pr.multigrid(SolverOptions(local=False), presmoother="symmetric_gauss_seidel",
+                                 strong_blocks=None).solve(pr.b, tol=1e-8, accel="cg", return_info=True))
     out = tmp_path / "x.npz"
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
                OMPI_MCA_rmaps_base_oversubscribe="1", OMP_NUM_THREADS="1")

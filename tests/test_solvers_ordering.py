@@ -10,6 +10,7 @@ import solvers.coarse
 from solvers import MultigridSolver, fem
 from solvers.gallery import kuhn_cube_hierarchy
 from solvers.multilevel import DEFAULT_SMOOTHER, DENSE_LEVEL_ROWS
+from solvers.subdomain import STRONG_COUPLING
 from solvers.ordering import (ORDER_MIN_N, index_spread, locality_order, permute_prolongation, permute_symmetric,
                               permute_symmetric_transpose)
 
@@ -31,9 +32,10 @@ def scattered():
 def test_constructor_defaults_are_the_documented_fast_path():
     """MultigridSolver(A, P) with no options is the cycle docs/usermesh.md measured fastest under CG:
     forward Gauss-Seidel x2 before, backward x2 after (x1 on dense coarse levels), locality ordering,
-    dense coarsest solve, no deflation probe."""
+    dense coarsest solve, no deflation probe, an exact solve on the strongly coupled fine unknowns."""
     params = inspect.signature(MultigridSolver).parameters
     assert params["deflate"].default == 0 and params["probe_finest"].default is False
+    assert params["strong_blocks"].default == STRONG_COUPLING == 0.5 and params["local_probe"].default == 0
     assert DEFAULT_SMOOTHER == ("gauss_seidel", {"sweep": "forward", "iterations": 2})
     assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
     assert params["ordering"].default == "auto" and params["coarse_solver"].default == "auto"
@@ -51,6 +53,7 @@ def test_constructor_defaults_are_the_documented_fast_path():
         assert (post["sweep"], post["iterations"]) == ("backward", 2)
     assert ml.symmetric_cycle and ml._coarse_solver.dense and ml.perm is None  # small: caller's order kept
     assert ml.deflation == []
+    assert ml.strong_blocks == {"theta": 0.5, "nodes": 0, "installed": False}  # a well-shaped mesh: none
     # a dense coarse level (more than DENSE_LEVEL_ROWS times the fine nonzeros per row) gets one sweep
     assert DENSE_LEVEL_ROWS == 2.0
     P0 = sp.csr_matrix(Ps[0])
@@ -82,7 +85,7 @@ def test_default_solver_is_the_documented_cycle_spelled_out(scattered):
     assert [s[1]["iterations"] for s in specs] == [2, 1], rows  # the dense level is exercised
     spelled = MultigridSolver(Ks, Pd, nullspace="constant", presmoother=specs, postsmoother=None,
                               ordering="locality", coarse="galerkin", coarse_solver="auto", deflate=0,
-                              probe_finest=False, cycle="V")
+                              probe_finest=False, cycle="V", strong_blocks=0.5, local_probe=0)
     assert ml.perm is not None and np.array_equal(ml.perm, spelled.perm)
     assert ml.levels[0].presmoother.smooth_residual is not None  # the cheap pre-smoother residual
     v = np.random.default_rng(5).standard_normal(len(b))

@@ -10,8 +10,8 @@ from solvers.errors import SolverInputError
 from solvers.fem import boundary_nodes, stiffness_matrix
 from solvers.gallery import kuhn_cube_hierarchy
 from solvers.smoothing import make_smoother
-from solvers.subdomain import (concentrated_region, power_probe, slow_region, subdomain_factor,
-                               with_subdomain_solve)
+from solvers.subdomain import (concentrated_region, power_probe, slow_region, strongly_coupled,
+                               subdomain_factor, with_subdomain_solve)
 
 from conftest import energy_factor as _factor
 
@@ -85,8 +85,10 @@ def test_local_solve_takes_a_family_too_large_to_deflate(flat_patch):
     """Measured: the patch's family is more than 8 slow modes (nothing deflated) and the V-cycle factor
     0.66; with the subdomain solve on the ~240 patch nodes the probe finds 0.26 and the factor is 0.26."""
     K, Ps, nodes = flat_patch
-    plain = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, local_solve=False)
-    fixed = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True)
+    # the probe's own local solve, without the default strong-coupling solve (which takes the patch too)
+    plain = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, local_solve=False,
+                            strong_blocks=None)
+    fixed = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, strong_blocks=None)
     assert plain.deflation[0]["slow_modes_found"] > 8 and _factor(plain) > 0.6
     assert _factor(fixed) <= 0.3
     local = fixed.deflation[0]["local_solve"]
@@ -98,12 +100,28 @@ def test_local_solve_takes_a_family_too_large_to_deflate(flat_patch):
     assert its[1] <= its[0] - 4, its
 
 
+def test_strong_coupling_solve_finds_the_flat_patch_without_a_probe(flat_patch):
+    """The strong-coupling solve finds the squashed patch from the matrix alone (its z-couplings), no probe.
+    Measured factors: 0.66 without it, 0.60 at the default threshold 0.5 (88 unknowns, a third of the
+    patch: its couplings are near the threshold), 0.30 at 0.3 (169)."""
+    K, Ps, nodes = flat_patch
+    plain = _factor(MultigridSolver(K, Ps, nullspace="constant", strong_blocks=None))
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    report = ml.strong_blocks
+    assert report["installed"] and 0 < report["nodes"] <= 0.1 * K.shape[0]
+    region = strongly_coupled(ml.levels[0].A)
+    assert np.isin(region, nodes).mean() >= 0.9 and np.isin(nodes, region).mean() >= 0.25  # measured 1, 0.33
+    assert plain > 0.6 and _factor(ml) <= plain - 0.04
+    assert _factor(MultigridSolver(K, Ps, nullspace="constant", strong_blocks=0.3)) <= 0.32
+
+
 def test_local_solve_replaces_deflation_of_a_small_family():
     """A smaller patch: 8 modes deflated without the subdomain solve, none with it, and a factor at least
     as good (measured 0.284 and 0.261)."""
     K, Ps, _ = _flat_patch(16, 0.1)
-    plain = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, local_solve=False)
-    fixed = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True)
+    plain = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, local_solve=False,
+                            strong_blocks=None)
+    fixed = MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_finest=True, strong_blocks=None)
     assert plain.deflation[0]["vectors"] == 8 and fixed.deflation[0]["vectors"] == 0
     assert _factor(fixed) <= min(_factor(plain), 0.3)
 

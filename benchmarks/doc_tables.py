@@ -345,6 +345,8 @@ def probe_under_cg() -> str:
 
 #: the 12-case run before the diagonal swaps and unsorted permutations (code f34456f, same saved cases)
 USER_SOLVERS_BEFORE = "user_mesh/solvers_d671587.json"
+#: the run after them (code 3dab0c7, the same saved cases; the cases were rebuilt for USER_SOLVERS since)
+USER_SOLVERS_PREV = "user_mesh/solvers_3dab0c7.json"
 
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)
@@ -354,11 +356,11 @@ def usermesh_setup_before() -> str:
     return f"{rng(cpu, '.2f')}x, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases"
 
 
-@generator("usermesh.before_after", USER_SOLVERS, USER_SOLVERS_BEFORE)
+@generator("usermesh.before_after", USER_SOLVERS_PREV, USER_SOLVERS_BEFORE)
 def usermesh_before_after() -> str:
-    """The defaults' set-up and solve CPU seconds in the last run over those of the run before (the same
+    """The defaults' set-up and solve CPU seconds in the 3dab0c7 run over those of the run before (the same
     saved cases), and the fine SpMV counts of both."""
-    new, old = load(USER_SOLVERS), load(USER_SOLVERS_BEFORE)
+    new, old = load(USER_SOLVERS_PREV), load(USER_SOLVERS_BEFORE)
     probs = _user_problems(new)
     pairs = [(c["problems"][p]["solvers"]["nestmg"], o["problems"][p]["solvers"]["nestmg"])
              for c, o in zip(new["cases"], old["cases"]) for p in probs]
@@ -863,6 +865,60 @@ def usermesh_layer() -> str:
                 parts.append(f"{p} on the {kind} meshes {its} instead of "
                              f"{rng([x['nestmg']['iterations'] for x in s], 'd')} CG iterations, solve CPU "
                              f"time x{ratio}")
+    return "; ".join(parts)
+
+
+@generator("usermesh.strong", USER_SOLVERS)
+def usermesh_strong() -> str:
+    """The default (strong-coupling solve) against variant ``no_strong_blocks`` per mesher: region size,
+    CG iterations, and the medians of per-repeat CPU-time ratios (default over without)."""
+    d = load(USER_SOLVERS)
+    parts = []
+    for kind in ("TetGen", "TetWild"):
+        cells = [(c, c["problems"][p]) for c in d["cases"] if kind in c["label"] for p in _user_problems(d)]
+        if not cells:
+            continue
+        a = [pr["solvers"]["nestmg"] for _, pr in cells]
+        b = [pr["solvers"]["nestmg_no_strong_blocks"] for _, pr in cells]
+        nodes = [x["runs"][0]["strong_blocks"]["nodes"] for x in a]
+        share = [100 * n / pr["unknowns"] for n, (_, pr) in zip(nodes, cells)]
+
+        def ratio(key, a=a, b=b):
+            return [statistics.median(ra[key] / rb[key] for ra, rb in zip(x["runs"], y["runs"]))
+                    for x, y in zip(a, b)]
+        parts.append(f"on the {kind} meshes {rng(nodes, ',d')} unknowns ({rng(share, '.2g')}%), MG-PCG "
+                     f"{rng([y['iterations'] for y in b], 'd')} -> {rng([x['iterations'] for x in a], 'd')} "
+                     f"iterations (fewer in {sum(x['iterations'] < y['iterations'] for x, y in zip(a, b))}, "
+                     f"more in {sum(x['iterations'] > y['iterations'] for x, y in zip(a, b))} of {len(a)}), "
+                     f"solve CPU time x{rng(ratio('solve_cpu_seconds'), '.2f')}, set-up "
+                     f"x{rng(ratio('setup_cpu_seconds'), '.2f')}, set-up + solve "
+                     f"x{rng(ratio('total_cpu_seconds'), '.2f')}")
+    return "; ".join(parts)
+
+
+USER_COUPLINGS = "user_mesh/couplings.json"
+
+
+@generator("usermesh.couplings", USER_COUPLINGS)
+def usermesh_couplings() -> str:
+    """Per mesher and boundary kind: the strongest coupling per row, the slow error's share on the strongly
+    coupled unknowns, and where the 200 unknowns of largest error energy sit."""
+    d = load(USER_COUPLINGS)
+    parts = []
+    for kind in ("TetGen", "TetWild"):
+        for probs, what in ((("neumann", "diffusion"), "natural boundaries"), (("dirichlet",), "Dirichlet")):
+            r = [c["problems"][p] for c in d["cases"] if kind in c["label"] for p in probs if p in c["problems"]]
+            if not r:
+                continue
+            parts.append(
+                f"{kind}, {what}: strongest coupling per row {rng([x['max_coupling_quantiles']['0.5'] for x in r])}"
+                f" (median row) and {rng([x['max_coupling_quantiles']['0.9'] for x in r])} (90th percentile) of "
+                f"the bound; {rng([x['region'] for x in r], ',d')} strongly coupled unknowns carry "
+                f"{rng([100 * x['region_energy'] for x in r], '.2g')}% of the error energy {r[0]['cycles']} "
+                f"cycles leave; its 200 largest-energy unknowns carry {rng([100 * x['top200_energy'] for x in r], '.0f')}%"
+                f", {rng([100 * x['top200_boundary'] for x in r], '.0f')}% of them on the boundary, their tets' "
+                f"worst quality {rng([x['top200_worst_quality_median'] for x in r], '.3f')} (median; all "
+                f"unknowns {rng([x['all_worst_quality_median'] for x in r], '.2f')})")
     return "; ".join(parts)
 
 

@@ -401,6 +401,8 @@ SETUP_PARTS = {
     "smoother set-up": ("multilevel.py", "_make_levels"),
     "coarsest factor (incl. validation solves)": ("coarse.py", "_setup"),
     "deflation probe": ("multilevel.py", "_deflate"),
+    "strong-coupling solve (all)": ("multilevel.py", "_strong_block_solve"),
+    "  strongly coupled unknowns found": ("subdomain.py", "strongly_coupled"),
 }
 
 

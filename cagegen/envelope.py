@@ -181,13 +181,15 @@ def _active_points(V: np.ndarray, F: np.ndarray, r: float, l: float, chunk: int 
     if not pv:
         return np.zeros(0, dtype=np.int64)
     pv, pf = np.concatenate(pv), np.concatenate(pf)
-    # exact prefilter: a triangle within r of p has its centroid within r + its radius of p
-    close = np.einsum("ij,ij->i", V[pv] - cen[pf], V[pv] - cen[pf]) < (r + rad[pf]) ** 2
-    pv, pf = pv[close], pf[close]
+    # the normal filter first (it drops the same-sheet pairs, most of them), then the exact prefilter: a
+    # triangle within r of p has its centroid within r + its radius of p (the same pairs in either order)
     N = igl.per_vertex_normals(V, F)
     FN = igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
     keep = np.einsum("ij,ij->i", N[pv], FN[pf]) < 0.5
     pv, pf = pv[keep], pf[keep]
+    diff = V[pv] - cen[pf]
+    close = np.einsum("ij,ij->i", diff, diff) < (r + rad[pf]) ** 2
+    pv, pf = pv[close], pf[close]
     if len(pv) == 0:
         return np.zeros(0, dtype=np.int64)
     A = (G > 0).astype(np.int8)

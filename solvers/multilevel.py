@@ -35,8 +35,8 @@ from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_sprea
 from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
-from .subdomain import (STRONG_COUPLING, concentrated_region, power_probe, slow_region, strongly_coupled,
-                        subdomain_factor, with_subdomain_solve)
+from .subdomain import (REGION_MAX_FRACTION, STRONG_COUPLING, concentrated_region, power_probe, slow_region,
+                        strongly_coupled, subdomain_factor, with_subdomain_solve)
 from .transfer import (
     _as_csr,
     _galerkin_chain,
@@ -357,8 +357,10 @@ class MultigridSolver:
         was: the keep test's ``ratio`` (last probe cycle) and ``ratio_after`` (with the subdomain solve),
         ``kept``; None when it did not run.
     strong_blocks : dict or None
-        The strong-coupling solve's report: ``theta``, ``nodes`` of the region (0: none, or too many), and
-        ``installed`` (or ``refused_fill`` / ``singular`` as in :attr:`deflation`); None when off.
+        The strong-coupling solve's report: ``theta``, ``nodes`` strongly coupled (0: none), ``installed``,
+        and why not when they are not: ``refused_size`` (more than
+        :data:`solvers.subdomain.REGION_MAX_FRACTION` of the unknowns), ``refused_fill`` / ``singular`` (as in
+        :attr:`deflation`); None when off.
     setup_seconds : float
 
     Examples
@@ -596,10 +598,13 @@ class MultigridSolver:
         if len(self.levels) < 2 or not self.symmetric_cycle:
             return None
         report = {"theta": float(theta), "nodes": 0, "installed": False}
-        region = strongly_coupled(self.levels[0].A, float(theta), lower=lower)
+        region = strongly_coupled(self.levels[0].A, float(theta), max_fraction=1.0, lower=lower)
         if region is None:
             return report
         report["nodes"] = int(region.size)
+        if region.size > REGION_MAX_FRACTION * self.levels[0].A.shape[0]:  # not local: e.g. elasticity's
+            report["refused_size"] = True  # coupled displacement components, an anisotropic operator
+            return report
         report["installed"] = self._add_subdomain_solve(0, region, report) is not None
         return report
 

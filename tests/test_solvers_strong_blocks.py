@@ -99,3 +99,15 @@ def test_strong_blocks_option_is_checked(stiff_pairs):
     for bad in (0.0, 2.0, True, "yes"):
         with pytest.raises(SolverInputError, match="strong_blocks"):
             MultigridSolver(A, Ps, nullspace="constant", strong_blocks=bad)
+
+
+def test_a_strongly_coupled_majority_is_refused_not_factored():
+    """An operator squashed along z everywhere (anisotropic: most unknowns strongly coupled) is not local:
+    the solve is refused and says why (the squashed patch of test_solvers_subdomain.py gets it)."""
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)
+    V, T = meshes[0]
+    K = fem.stiffness_matrix(V * [1.0, 1.0, 0.1], T).tocsr()
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    report = ml.strong_blocks
+    assert not report["installed"] and report.get("refused_size") and report["nodes"] > 0.1 * K.shape[0]
+    assert "subdomain_nodes" not in ml.levels[0].presmoother.params

@@ -754,6 +754,7 @@ class MultigridSolver:
             ("Grid complexity", f"{self.grid_complexity():.3f}"),
             (f"Cycle complexity ({self.cycle})", f"{self.cycle_complexity():.3f} fine SpMVs"),
             ("Deflation", self._deflation_desc()),
+            ("Strong couplings", self._strong_desc()),
         ]
         lines = ["MultigridSolver"] + [f"{k + ':':22s}{v}" for k, v in rows]
         lines.append("  level   unknowns     nonzeros   nnz/row     nnz(P)")
@@ -777,6 +778,19 @@ class MultigridSolver:
             return "; ".join(used)
         return "none" + (f" (probe factors <= {max(d['probe_factor'] for d in self.deflation):.2f})"
                          if self.deflation else "")
+
+    def _strong_desc(self) -> str:
+        sb = self.strong_blocks
+        if sb is None:
+            return "off"
+        head = f"theta {sb['theta']:g}: "
+        if sb["installed"]:
+            return head + f"exact solve on {sb['nodes']} fine unknowns"
+        if not sb["nodes"]:
+            return head + "none"
+        why = ("more than a tenth of the unknowns" if sb.get("refused_size")
+               else "singular block" if sb.get("singular") else "factor dearer than a sweep")
+        return head + f"{sb['nodes']} unknowns, not solved ({why})"
 
     def _smoother_desc(self) -> str:
         if len(self.levels) < 2:

@@ -88,6 +88,8 @@ def test_default_solves_the_stiff_pairs_exactly(stiff_pairs):
         r = b - A @ x
         assert np.linalg.norm(r) <= 1e-8 * np.linalg.norm(b) * 1.01
     assert ml.symmetric_cycle  # the solve sits between pre- and post-smoother: CG stays valid
+    assert f"Strong couplings:     theta 0.5: exact solve on {ends.size} fine unknowns" in repr(ml)
+    assert "Strong couplings:     off" in repr(plain)
     z = np.random.default_rng(3).standard_normal((2, A.shape[0]))
     z -= z.mean(axis=1, keepdims=True)
     M = ml.aspreconditioner()
@@ -111,3 +113,4 @@ def test_a_strongly_coupled_majority_is_refused_not_factored():
     report = ml.strong_blocks
     assert not report["installed"] and report.get("refused_size") and report["nodes"] > 0.1 * K.shape[0]
     assert "subdomain_nodes" not in ml.levels[0].presmoother.params
+    assert f"theta 0.5: {report['nodes']} unknowns, not solved (more than a tenth of the unknowns)" in repr(ml)

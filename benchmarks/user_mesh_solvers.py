@@ -642,7 +642,7 @@ def couplings_case(work: Path, problems, cycles: int) -> dict:
         region = np.empty(0, int) if region is None else region
         nodes = np.arange(len(V))  # the mesh node of each unknown: all, or the interior ones (Dirichlet)
         if prob == "dirichlet":
-            nodes = np.setdiff1d(nodes, boundary_nodes(T))
+            nodes = np.flatnonzero(~on)
         top = np.argsort(-energy)[:200]
         out["problems"][prob] = {
             "unknowns": int(Au.shape[0]), "cycles": cycles, "factor": factor,

@@ -23,7 +23,7 @@ neighbours are the region.
 :func:`strongly_coupled` finds, without any cycle, the unknowns a point smoother updates as if they were one:
 those with a coupling ``|a_ij| >= θ sqrt(a_ii a_jj)`` (:data:`STRONG_COUPLING`). A mesher's flat tets
 (slivers, often on the boundary of a TetGen mesh) give such pairs; on the 1M-tet TetGen user meshes of
-docs/usermesh.md the Neumann cycle's slow error sat on boundary nodes of tets ~20x flatter than the median,
+docs/usermesh.md the Neumann cycle's slow error sat on boundary nodes of tets ~15x flatter than the median,
 and the strongly coupled 2.6% of the unknowns carried two thirds of its energy.
 """
 

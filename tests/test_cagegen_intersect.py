@@ -54,6 +54,40 @@ def test_vectorised_exact_orientation_matches_the_scalar_one():
     assert np.all(orient3d(Ai, Bi, Ci, 0.5 * (Ai + Bi) + [0, 0, 2.0**-20], exact=True) != 0)
 
 
+def test_shared_coordinates_are_exact_zeros_without_integer_arithmetic(monkeypatch):
+    """Four points with one coordinate equal bit for bit (an axis-aligned plane) or two equal points give
+    det 0 exactly (``x - y == 0`` iff ``x == y``): ``orient3d(exact=True)`` and the 2D test certify them
+    without the integer path, which then sees only the other uncertain rows; every sign is the scalar
+    reference's, in a mix with rows 1e-17 off such a plane."""
+    import cagegen.intersect as I
+
+    rng = np.random.default_rng(7)
+    k = 300
+    a, b, c, d = (rng.normal(size=(k, 3)) for _ in range(4))
+    for p in (a, b, c, d):
+        p[:, 2] = 0.3  # an axis-aligned plane: the difference column is exactly zero
+    a[:100] = d[:100] + [0, 1e-17, 0]  # rounds to d's coordinates: a zero row
+    off = d.copy()
+    off[:, 2] += 1e-17 * rng.normal(size=k)  # not exactly in the plane: must reach the exact path
+    A = np.vstack([a, a])
+    B, C, D = np.vstack([b, b]), np.vstack([c, c]), np.vstack([d, off])
+    ref = np.array([I._exact_det3(A[i], B[i], C[i], D[i]) for i in range(2 * k)], dtype=np.int8)
+    seen = []
+    real = I._exact_det3_rows
+    monkeypatch.setattr(I, "_exact_det3_rows", lambda *r: seen.append(len(r[0])) or real(*r))
+    assert np.array_equal(I.orient3d(A, B, C, D, exact=True), ref)
+    assert np.all(ref[:k] == 0) and sum(seen) <= k  # the plane's rows never reach the integer path
+    # 2D: collinear on a shared coordinate, or a repeated point
+    p2, q2 = rng.normal(size=(k, 2)), rng.normal(size=(k, 2))
+    p2[:, 1] = q2[:, 1] = 0.7
+    r2 = np.c_[rng.normal(size=k), np.full(k, 0.7)]
+    assert np.all(I._orient2d(p2, q2, r2, exact=True) == 0)
+    assert np.all(I._orient2d(p2, p2, q2, exact=True) == 0)
+    assert np.array_equal(I._orient2d(p2, q2, r2 + [0, 1e-9], exact=True),
+                          np.sign((p2[:, 0] - r2[:, 0]) * (q2[:, 1] - r2[:, 1] - 1e-9)
+                                  - (p2[:, 1] - r2[:, 1] - 1e-9) * (q2[:, 0] - r2[:, 0])).astype(np.int8))
+
+
 @pytest.mark.parametrize(
     "offset, expected",
     [

@@ -18,7 +18,7 @@ import numpy as np
 
 from ._log import ipctk_to_log, setup_ipctk
 
-__all__ = ["PairMesh", "ipctk_to_log", "min_distance", "self_collision_free_step"]
+__all__ = ["PairMesh", "close_edge_pairs", "ipctk_to_log", "min_distance", "self_collision_free_step"]
 
 setup_ipctk()
 
@@ -122,6 +122,42 @@ def self_collision_free_step(V0: np.ndarray, F: np.ndarray, V1: np.ndarray) -> f
 #: :func:`min_distance`'s first search radius, relative to the bounding-box diagonal (clearances asked
 #: of cages are 0.001-0.01 of it).
 MIN_DISTANCE_START = 1e-3
+
+
+def close_edge_pairs(Vc: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,
+                     radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edges of C closer than ``radius`` to an edge of F (edge-edge pairs; the vertex-face ones are
+    point-mesh distances), with those distances and directions.
+
+    A cage edge passing over a sharp edge of F (a CAD part's convex crease) can be the closest pair of the
+    two surfaces while every vertex of each is farther from the other surface.
+
+    Returns
+    -------
+    edges : (k,2) int array
+        Vertex indices of C.
+    distance : (k,) float array
+    direction : (k,3) float array
+        Unit vector from F's closest point to C's (moving the C edge along it separates the pair).
+    """
+    pm = PairMesh(Vc, Fc, Vf, Ff, cage_fine_only=True)
+    X = pm.stack(Vc, Vf)
+    col = ipctk.NormalCollisions()
+    with ipctk_to_log():
+        col.build(pm.mesh, X, float(radius))
+    E, F = pm.mesh.edges, pm.mesh.faces
+    edges, dist, dirs = [], [], []
+    for c in col.ee_collisions:
+        ids = np.asarray(c.vertex_ids(E, F))
+        dof = c.dof(X, E, F)
+        d = float(np.sqrt(c.compute_distance(dof)))  # ipctk's distances are squared
+        if 0.0 < d < radius:
+            v = np.asarray(c.compute_distance_vector(dof), dtype=float).ravel()  # edge 1 -> edge 0
+            edges.append(ids[ids < pm.nc])
+            dist.append(d)
+            dirs.append(v / d if ids[0] < pm.nc else -v / d)
+    return (np.array(edges, dtype=np.int64).reshape(-1, 2), np.array(dist, dtype=float),
+            np.array(dirs, dtype=float).reshape(-1, 3))
 
 
 def min_distance(Vc: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,

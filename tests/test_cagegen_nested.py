@@ -305,6 +305,37 @@ def test_offset_surface_clears_face_planes(neck):
         assert h.min() >= 0.01 - 1e-12
 
 
+def test_push_out_separates_a_cage_edge_crossing_a_sharp_edge(monkeypatch):
+    """A cage edge passing 0.4 gap over a cube's edge, every vertex of either surface at least 10 gap
+    from the other: the closest pair is edge-edge (:func:`cagegen.collision.close_edge_pairs` finds it,
+    with the direction from the cube's edge to the cage's), and one pass of ``push_out`` clears it. Moved
+    by the point distances alone nothing moves and the passes run out (the repaired box_parts.stl's
+    envelope cage stopped at 0.00185 of 0.0025 so, where a cage edge crossed a part's edge)."""
+    import trimesh
+
+    from cagegen.collision import close_edge_pairs
+
+    box = trimesh.creation.box(extents=(2, 2, 2))
+    Vf, Ff = np.asarray(box.vertices, float), np.asarray(box.faces)
+    gap = 0.05
+    e, t = 0.4 * gap / np.sqrt(2), 0.5
+    pts = np.array([(1 + e + t, 1 + e - t, 0), (1 + e - t, 1 + e + t, 0), (3, 3, 0.3), (3, 3, -0.3)])
+    hull = trimesh.convex.convex_hull(pts)
+    Vc, Fc = np.asarray(hull.vertices, float), np.asarray(hull.faces)
+    assert min_distance(Vc, Fc, Vf, Ff) == pytest.approx(0.4 * gap, rel=1e-9)
+    assert np.sqrt(igl.point_mesh_squared_distance(Vc, Vf, Ff)[0]).min() > 10 * gap
+    assert np.sqrt(igl.point_mesh_squared_distance(Vf, Vc, Fc)[0]).min() > 10 * gap
+    E, d, D = close_edge_pairs(Vc, Fc, Vf, Ff, 1.05 * gap)
+    assert len(E) == 1 and np.allclose(np.sort(pts[:2], 0), np.sort(Vc[E[0]], 0))
+    assert d[0] == pytest.approx(0.4 * gap, rel=1e-9) and np.allclose(D[0], [2 ** -0.5, 2 ** -0.5, 0])
+    C2, info = nested_backend_module.push_out(Vc, Fc, Vf, Ff, gap)
+    assert C2 is not None and info["passes"] == 1 and min_distance(C2, Fc, Vf, Ff) >= gap
+    empty = (np.zeros((0, 2), np.int64), np.zeros(0), np.zeros((0, 3)))
+    monkeypatch.setattr(nested_backend_module, "close_edge_pairs", lambda *a: empty)
+    C3, info = nested_backend_module.push_out(Vc, Fc, Vf, Ff, gap)
+    assert C3 is None and info["distance"] == pytest.approx(0.4 * gap, rel=1e-6)
+
+
 def test_recovery_after_flow_failure(neck, monkeypatch, failing_flow):
     """A failing flow (the paper's 'Ĉ too far from F') is recovered and recorded in info."""
     V, F = neck

@@ -30,7 +30,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .._geometry import normalize
-from ..collision import PairMesh, min_distance, self_collision_free_step
+from ..collision import PairMesh, close_edge_pairs, min_distance, self_collision_free_step
 from ..decimate import decimate_surface
 from ..envelope import build_envelope
 from ..errors import CageError, CageOptionError
@@ -144,7 +144,7 @@ def offset_surface(V: np.ndarray, F: np.ndarray, gap: float) -> np.ndarray:
 
 
 def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap: float,
-             max_iter: int = 8) -> tuple[np.ndarray | None, dict]:
+             max_iter: int = 8, accept: float | None = None) -> tuple[np.ndarray | None, dict]:
     """Move a cage that contains ``(Vf, Ff)`` outward until it keeps ``gap`` from it.
 
     Each pass offsets the cage by the missing clearance (:func:`offset_surface` of the cage itself:
@@ -163,15 +163,19 @@ def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap:
         Absolute clearance wanted.
     max_iter : int
         Passes before giving up.
+    accept : float, optional
+        When the motion is blocked or the passes run out, the cage reached so far is still returned if it
+        keeps at least this distance (default: ``gap``).
 
     Returns
     -------
     C2 : (nc,3) float array or None
-        The pushed cage, or None when the motion was blocked (``info["reason"]``).
+        The pushed cage, or None when the motion was blocked before ``accept`` (``info["reason"]``).
     info : dict
         ``passes``, ``distance`` (achieved), ``reason``.
     """
     C = np.array(C, dtype=float)
+    accept = gap if accept is None else float(accept)
     pair = PairMesh(C, Fc, Vf, Ff)
     d = min_distance(C, Fc, Vf, Ff)
     info: dict = {"passes": 0, "distance_before": d}
@@ -195,15 +199,20 @@ def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap:
         need = np.maximum(need, 0.5 * adj.multiply(need[None, :]).max(axis=1).toarray().ravel())  # soften
         need = np.where(need > 0, need + 0.02 * gap, 0.0)
         target = offset_surface(C, Fc, need)
+        # a cage edge passing close over an edge of F (a sharp crease, where no vertex is close): its ends
+        # also move away from F's edge, along the pair's direction (the vertex normals may run along it)
+        E, de, dirs = close_edge_pairs(C, Fc, Vf, Ff, 1.05 * gap)
+        for k in range(2):
+            target[E[:, k]] += (1.07 * gap - de)[:, None] * dirs
         alpha = pair.stepsize(pair.stack(C, Vf), pair.stack(target, Vf))
         info["passes"] = it + 1
         if alpha <= 1e-3:
             info.update(distance=d, reason=f"blocked by a collision at pass {it + 1} (step {alpha:.2g})")
-            return None, info
+            return (C if d >= accept else None), info
         C = C + min(1.0, alpha) * (target - C)
         d = min_distance(C, Fc, Vf, Ff)
     info.update(distance=d, reason="ok" if d >= gap else f"gap {d:.3g} < {gap:.3g} after {max_iter} passes")
-    return (C, info) if d >= gap else (None, info)
+    return (C, info) if d >= accept else (None, info)
 
 
 #: The flow expands Ĉ where points stay outside for this many iterations (:func:`flow_inside`'s
@@ -569,7 +578,7 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
     d = min_distance(C, G, Vf, Ff)
     if d >= gap / GAP_AIM:
         return C, d, None
-    C2, oinfo = push_out(C, G, Vf, Ff, gap)
+    C2, oinfo = push_out(C, G, Vf, Ff, gap, accept=gap / GAP_AIM)
     if C2 is None:
         return C, d, oinfo
     return C2, min_distance(C2, G, Vf, Ff), oinfo

@@ -330,6 +330,12 @@ def test_push_out_separates_a_cage_edge_crossing_a_sharp_edge(monkeypatch):
     assert d[0] == pytest.approx(0.4 * gap, rel=1e-9) and np.allclose(D[0], [2 ** -0.5, 2 ** -0.5, 0])
     C2, info = nested_backend_module.push_out(Vc, Fc, Vf, Ff, gap)
     assert C2 is not None and info["passes"] == 1 and min_distance(C2, Fc, Vf, Ff) >= gap
+    # the restricted target of a blocked pass moves the violating edge's ends only
+    adj = igl.adjacency_matrix(Fc).tocsr()
+    T = nested_backend_module._push_target(Vc, Fc, Vf, Ff, gap, adj, gap, soften=False)
+    moved = np.flatnonzero(np.abs(T - Vc).max(axis=1) > 0)
+    assert np.array_equal(np.sort(moved), np.sort(E[0]))
+    assert np.allclose(T[moved] - Vc[moved], (1.07 - 0.4) * gap * D[0])
     empty = (np.zeros((0, 2), np.int64), np.zeros(0), np.zeros((0, 3)))
     monkeypatch.setattr(nested_backend_module, "close_edge_pairs", lambda *a: empty)
     C3, info = nested_backend_module.push_out(Vc, Fc, Vf, Ff, gap)

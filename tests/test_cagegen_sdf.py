@@ -206,6 +206,9 @@ def test_constrained_simplify_exact_count_and_stays_outside():
     assert all(tuple(p) in kept for p in env.V[fr].tolist())
     with pytest.raises(ValueError, match="frozen"):
         constrained_simplify(env.V, env.F, Vn, F, 400, env.sdf, margin=0.012, frozen=fr[:-1])
+    # a deadline already past: no batch starts, an error naming the budget option
+    with pytest.raises(CageError, match="cage_time_budget"):
+        constrained_simplify(env.V, env.F, Vn, F, 400, env.sdf, margin=0.012, deadline=time.perf_counter() - 1)
 
 
 def test_neck_blobs_layer_certified_tight_exact(blobs):

@@ -19,6 +19,7 @@ Implementation choices (see ``docs/sdf.md``):
 
 from __future__ import annotations
 
+import time
 from typing import NamedTuple
 
 import numpy as np
@@ -26,7 +27,7 @@ import scipy.sparse as sp
 
 from .._geometry import edge_stats, point_triangle_sqdist, segment_segment_sqdist
 from ..envelope import SDFGrid
-from ..errors import CageOptionError, NestmgError
+from ..errors import CageError, CageOptionError, NestmgError
 from ..intersect import cross_pairs, self_pairs
 from ..split_edges import split_long_edges
 
@@ -180,6 +181,7 @@ def constrained_simplify(
     max_batches: int = 10000,
     edge_clear: float = 0.0,
     frozen: np.ndarray | None = None,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Collapse edges of the cage ``(V, F)`` (outside ``(Vin, Fin)``) down to exactly ``target`` faces.
 
@@ -211,6 +213,8 @@ def constrained_simplify(
     frozen : (n,) bool array, optional
         Vertices that must survive where they are: no edge incident to one is collapsed (the
         tightening pass of :func:`cagegen.sdf.backend.sdf_cage_layer` freezes the vertices it inserted).
+    deadline : float, optional
+        A ``time.perf_counter()`` value: no batch starts after it (:class:`cagegen.CageError`).
 
     Returns
     -------
@@ -222,6 +226,8 @@ def constrained_simplify(
     ------
     SimplifyStuck
         When every remaining collapse is infeasible before ``target`` is reached.
+    CageError
+        Past ``deadline``.
     """
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
@@ -247,6 +253,9 @@ def constrained_simplify(
     n_coll = 0
     batch = 0
     while len(F) > target:
+        if deadline is not None and time.perf_counter() > deadline:
+            raise CageError(f"sdf cage: the simplification ran out of its time budget at {len(F)} faces "
+                            f"(target {target}; cage_time_budget)", reason="time budget")
         batch += 1
         if batch > max_batches:
             raise SimplifyStuck(f"no progress after {max_batches} batches at {len(F)} faces")

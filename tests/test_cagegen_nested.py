@@ -305,6 +305,18 @@ def test_offset_surface_clears_face_planes(neck):
         assert h.min() >= 0.01 - 1e-12
 
 
+def test_offset_surface_moves_a_needle_tip_by_the_fold_factor():
+    """A needle (square pyramid 20x taller than wide): its tip's normal is ~87 degrees from every face's,
+    past the 3x clamp; ``fold_factor`` sets its offset (1: the gap itself, the re-inflation's target)
+    and leaves every other vertex where the clamped rule puts it."""
+    a, h, g = 0.05, 1.0, 0.01
+    V = np.array([[-a, -a, 0], [a, -a, 0], [a, a, 0], [-a, a, 0], [0, 0, h]], dtype=float)
+    F = np.array([[0, 2, 1], [0, 3, 2], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    W3, W1 = offset_surface(V, F, g), offset_surface(V, F, g, fold_factor=1.0)
+    assert np.allclose(W3[4] - V[4], [0, 0, 3 * g]) and np.allclose(W1[4] - V[4], [0, 0, g])
+    assert np.array_equal(W3[:4], W1[:4])
+
+
 def test_push_out_separates_a_cage_edge_crossing_a_sharp_edge(monkeypatch):
     """A cage edge passing 0.4 gap over a cube's edge, every vertex of either surface at least 10 gap
     from the other: the closest pair is edge-edge (:func:`cagegen.collision.close_edge_pairs` finds it,

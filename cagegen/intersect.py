@@ -125,8 +125,9 @@ def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, exact: 
     return s
 
 
-def _zero_column_or_row(ad: np.ndarray, bd: np.ndarray, cd: np.ndarray) -> np.ndarray:
-    """(k,) bool: the matrix ``[ad, bd, cd]`` has a zero column or row, so its determinant is exactly 0.
+def _zero_column_or_row(*rows: np.ndarray) -> np.ndarray:
+    """(k,) bool: the square matrix whose rows are ``rows`` (difference vectors, (k,d) arrays, d of them) has a
+    zero column or row, so its determinant is exactly 0.
 
     ``x - y`` is 0 in floating point iff ``x == y`` (gradual underflow), so a zero difference is exact:
     four points sharing one coordinate bit for bit (a zero column: an axis-aligned plane, as on CAD parts
@@ -134,10 +135,8 @@ def _zero_column_or_row(ad: np.ndarray, bd: np.ndarray, cd: np.ndarray) -> np.nd
     uncertain rows of a boxy assembly's sdf cage (400-750k rows per self-intersection test, 1-3 s each in
     :func:`_exact_det3_rows`'s integer arithmetic).
     """
-    zero = [ad == 0.0, bd == 0.0, cd == 0.0]
-    column = (zero[0] & zero[1] & zero[2]).any(axis=1)
-    row = zero[0].all(axis=1) | zero[1].all(axis=1) | zero[2].all(axis=1)
-    return column | row
+    zero = np.stack([r == 0.0 for r in rows])  # (d, k, d)
+    return zero.all(axis=0).any(axis=1) | zero.all(axis=2).any(axis=0)
 
 
 _O2D_BOUND = 16.0 * (3.0 + 16.0 * _EPS) * _EPS
@@ -151,10 +150,8 @@ def _orient2d(a: np.ndarray, b: np.ndarray, c: np.ndarray, exact: bool = False) 
     s = np.sign(det).astype(np.int8)
     unsure = np.flatnonzero(np.abs(det) <= _O2D_BOUND * (np.abs(l) + np.abs(r)))
     s[unsure] = 0
-    if exact and len(unsure):  # a zero column or row of [a - c, b - c]: exactly 0 (:func:`_zero_column_or_row`)
-        ac, bc = a[unsure] - c[unsure], b[unsure] - c[unsure]
-        zero = ((ac == 0.0) & (bc == 0.0)).any(axis=1) | (ac == 0.0).all(axis=1) | (bc == 0.0).all(axis=1)
-        unsure = unsure[~zero]
+    if exact and len(unsure):  # a zero column or row of [a - c, b - c] is exactly 0
+        unsure = unsure[~_zero_column_or_row(a[unsure] - c[unsure], b[unsure] - c[unsure])]
     for i in unsure if exact else ():  # exact re-evaluation (the inputs are projected input coordinates)
         if np.all(np.isfinite(a[i])) and np.all(np.isfinite(b[i])) and np.all(np.isfinite(c[i])):
             A, B, C = _as_ints(a[i], b[i], c[i])

@@ -344,7 +344,8 @@ def test_push_out_separates_a_cage_edge_crossing_a_sharp_edge(monkeypatch):
     assert C2 is not None and info["passes"] == 1 and min_distance(C2, Fc, Vf, Ff) >= gap
     # the restricted target of a blocked pass moves the violating edge's ends only
     adj = igl.adjacency_matrix(Fc).tocsr()
-    T = nested_backend_module._push_target(Vc, Fc, Vf, Ff, gap, adj, gap, soften=False)
+    near = nested_backend_module._near_parts(Vc, Fc, Vf, Ff, 1.05 * gap)
+    T = nested_backend_module._push_target(Vc, Fc, gap, adj, near, gap, soften=False)
     moved = np.flatnonzero(np.abs(T - Vc).max(axis=1) > 0)
     assert np.array_equal(np.sort(moved), np.sort(E[0]))
     assert np.allclose(T[moved] - Vc[moved], (1.07 - 0.4) * gap * D[0])

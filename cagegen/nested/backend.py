@@ -189,12 +189,13 @@ def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap:
         if d >= gap:
             info.update(distance=d, reason="ok")
             return C, info
-        target = _push_target(C, Fc, Vf, Ff, gap, adj, 1.05 * gap)
+        near = _near_parts(C, Fc, Vf, Ff, 1.05 * gap)
+        target = _push_target(C, Fc, gap, adj, near, 1.05 * gap)
         alpha = pair.stepsize(pair.stack(C, Vf), pair.stack(target, Vf))
         if alpha < 1.0:  # blocked (two cage sheets pushed into each other in a slot, ...): only the parts
             # closer than ``accept`` then move, if that goes farther (box_parts.stl's union: 4 vertices
             # instead of 569, free, where the full push stopped at 0.06 of its way five passes running)
-            t2 = _push_target(C, Fc, Vf, Ff, gap, adj, accept, soften=False)
+            t2 = _push_target(C, Fc, gap, adj, near, accept, soften=False)
             a2 = pair.stepsize(pair.stack(C, Vf), pair.stack(t2, Vf))
             if a2 > alpha:
                 target, alpha = t2, a2
@@ -208,28 +209,35 @@ def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap:
     return (C, info) if d >= accept else (None, info)
 
 
-def _push_target(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap: float, adj,
-                 below: float, soften: bool = True) -> np.ndarray:
-    """:func:`push_out`'s target for one pass: the cage parts closer than ``below`` to F moved out to
-    ``1.05 gap`` (point distances: along the cage's normals; a cage edge passing over an edge of F, a sharp
-    crease where no vertex is close: along that pair's direction, as the vertex normals may run along it).
-    Parts already far stay, so the cage's own creases do not close up; ``soften`` moves the neighbours of a
-    moved vertex half as far."""
+def _near_parts(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, radius: float) -> tuple:
+    """The distances :func:`_push_target` reads, for every threshold up to ``radius``: fine vertices to
+    their nearest cage faces ``(df, I)``, cage vertices to F ``dc``, and the cage edges closer than
+    ``radius`` to an edge of F (:func:`cagegen.collision.close_edge_pairs`)."""
+    d2, I, _ = igl.point_mesh_squared_distance(Vf, C, Fc)
+    dc = np.sqrt(igl.point_mesh_squared_distance(C, Vf, Ff)[0])
+    return np.sqrt(d2), I, dc, close_edge_pairs(C, Fc, Vf, Ff, radius)
+
+
+def _push_target(C: np.ndarray, Fc: np.ndarray, gap: float, adj, near: tuple, below: float,
+                 soften: bool = True) -> np.ndarray:
+    """:func:`push_out`'s target for one pass: the cage parts closer than ``below`` to F (``near``, from
+    :func:`_near_parts` at a radius >= ``below``) moved out to ``1.05 gap`` (point distances: along the cage's
+    normals; a cage edge passing over an edge of F, a sharp crease where no vertex is close: along that pair's
+    direction, as the vertex normals may run along it). Parts already far stay, so the cage's own creases do
+    not close up; ``soften`` moves the neighbours of a moved vertex half as far."""
+    df, I, dc, (E, de, dirs) = near
     need = np.zeros(len(C))
-    d2, I, _ = igl.point_mesh_squared_distance(Vf, C, Fc)  # fine vertices -> nearest cage faces
-    df = np.sqrt(d2)
     short = df < below
     for k in range(3):
         np.maximum.at(need, Fc[I[short], k], 1.05 * gap - df[short])
-    dc = np.sqrt(igl.point_mesh_squared_distance(C, Vf, Ff)[0])
     need = np.maximum(need, np.where(dc < below, 1.05 * gap - dc, 0.0))
     if soften:
         need = np.maximum(need, 0.5 * adj.multiply(need[None, :]).max(axis=1).toarray().ravel())
     need = np.where(need > 0, need + 0.02 * gap, 0.0)  # a little beyond: the offset is on face planes
     target = offset_surface(C, Fc, need)
-    E, de, dirs = close_edge_pairs(C, Fc, Vf, Ff, below)
+    close = de < below
     for k in range(2):
-        target[E[:, k]] += (1.07 * gap - de)[:, None] * dirs
+        target[E[close, k]] += (1.07 * gap - de[close])[:, None] * dirs[close]
     return target
 
 

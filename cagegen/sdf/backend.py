@@ -342,7 +342,7 @@ def _layer_inputs(opts, t0: float) -> tuple:
     o.budget_deadline = None  # the call's own budget, enforced in the simplification (a run's layers have none)
     if o.cage_time_budget is not None:
         o.budget_deadline = t0 + float(o.cage_time_budget)
-        tight_deadline = min(t0 + float(o.cage_time_budget), np.inf if o.deadline is None else o.deadline)
+        tight_deadline = min(o.budget_deadline, np.inf if o.deadline is None else o.deadline)
     if not o.c > 0 or not o.margin >= 0 or not o.spacing >= 0 or not o.dhat > 0 or not o.min_gap >= 0 \
             or not o.pull >= 0:
         raise CageOptionError("c and dhat must be > 0; margin, spacing, pull and min_gap >= 0")

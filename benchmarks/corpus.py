@@ -87,10 +87,13 @@ def _cli_args(command: str, mesh: Path, extra: list[str]):
 
 def case_solve(mesh: Path) -> dict:
     """The default hierarchy of ``nestmg solve`` and the three model problems on it."""
-    from nestmg.cli import _hierarchy, _load, _solve
+    from nestmg.cli import _bodies, _hierarchy, _load, _solve
 
     args = _cli_args("solve", mesh, [])
     V, F, _ = _load(str(mesh))
+    bodies = _bodies(V, F)
+    if bodies:
+        return _case_solve_bodies(V, F, bodies, args)
     t = time.perf_counter()
     h = _hierarchy(V, F, args)
     rec: dict = {"hierarchy_seconds": time.perf_counter() - t, "certified": h.certified,
@@ -121,15 +124,67 @@ def case_solve(mesh: Path) -> dict:
     return rec
 
 
+def _case_solve_bodies(V, F, bodies, args) -> dict:
+    """:func:`case_solve` on an input of several disjoint bodies (``nestmg solve``'s per-body path): per
+    level the tets summed over the bodies that have it; per problem the worst body's factor, the most
+    iterations, the largest operator complexity, summed seconds (:func:`nestmg.bodies.solve_bodies`)."""
+    from nestmg.bodies import file_frame, solve_bodies
+    from nestmg.cli import _body_hierarchies
+
+    t = time.perf_counter()
+    hs = _body_hierarchies(V, F, bodies, args)
+    n_levels = max(h.levels for h in hs)
+
+    def per_level(f):
+        return [sum(f(h)[k] for h in hs if k < h.levels) for k in range(n_levels)]
+
+    stages: dict = {}
+    for h in hs:
+        for k, v in h.timings.items():
+            if isinstance(v, (int, float)):
+                stages[k] = stages.get(k, 0.0) + v
+    rec: dict = {"hierarchy_seconds": time.perf_counter() - t, "certified": all(h.certified for h in hs),
+                 "surfaces_nested": all(h.surfaces_nested for h in hs),
+                 "n_outside": [sum(h.n_outside[k] for h in hs if k < h.levels - 1) for k in range(n_levels - 1)],
+                 "fallbacks": [dict(d, body=b) for b, h in enumerate(hs) for d in h.fallbacks],
+                 "faces": per_level(lambda h: [len(Fk) for _, Fk in h.surfaces]),
+                 "tets": per_level(lambda h: [len(T) for _, T in h.tets]),
+                 "nodes": per_level(lambda h: [len(Vt) for Vt, _ in h.tets]), "levels": n_levels,
+                 "bodies": [{"faces": [len(Fk) for _, Fk in h.surfaces], "tets": [len(T) for _, T in h.tets],
+                             "certified": h.certified} for h in hs],
+                 "stages": stages, "problems": {}}
+    solver, frame = args.solver, file_frame(V)
+    for problem in PROBLEMS:
+        r = solve_bodies(hs, frame, problem, replace(solver, accel=None))
+        c = solve_bodies(hs, frame, problem, replace(solver, accel="cg"))
+        rec["problems"][problem] = {
+            "factor": r["factor"], "cycles": r["iterations"], "converged": r["converged"],
+            "pcg_iterations": c["iterations"], "pcg_converged": c["converged"],
+            "operator_complexity": r["operator_complexity"], "solve_seconds": r["seconds"],
+            "pcg_seconds": c["seconds"], "solve_cpu_seconds": r.get("cpu_seconds"),
+            "pcg_cpu_seconds": c.get("cpu_seconds"),
+        }
+    return rec
+
+
 def case_cages(mesh: Path, method: str) -> dict:
     """``nestmg cages FILE --levels 3 --method M`` (the same function and clearance as ``solve``)."""
     from cagegen.build import fallback_layers
-    from nestmg.cli import _cage_options, _load
+    from nestmg.cli import _bodies, _body_cages, _cage_options, _load
     from nestmg.hierarchy import build_cage_surfaces
 
     args = _cli_args("cages", mesh, ["--method", method])
     V, F, _ = _load(str(mesh))
     t = time.perf_counter()
+    bodies = _bodies(V, F)
+    if bodies:  # `nestmg cages`' per-body path: certified when every body's cages are
+        _, infos = _body_cages(bodies, args.levels, args, mesh.name, method)
+        oks = [bool((i.get("verification") or {}).get("ok")) for i in infos]
+        return {"seconds": time.perf_counter() - t, "certified": all(oks),
+                "faces": [i["faces"] for i in infos], "fallbacks": [dict(d, body=b) for b, i in enumerate(infos)
+                                                                 for d in fallback_layers(i)],
+                "layer_seconds": [i.get("layer_seconds") for i in infos], "bodies": len(bodies),
+                "min_gap": (infos[0].get("cage_options") or {}).get("min_gap")}
     layers, info = build_cage_surfaces(V, F, args.levels, method, meshing=args.meshing, cache=False,
                                        progress=False,
                                        cages=_cage_options(args, method))
@@ -492,7 +547,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r.get('wall_seconds', 0):.1f} s {r.get('error', '')}", file=sys.stderr, flush=True)
             save()
         nested = entry.get("cages:nested") or {}
-        if args.wheel and nested.get("ok"):
+        if args.wheel and nested.get("ok") and not nested.get("bodies"):  # the wheel cages one solid
             counts = [int(n) for n in nested["faces"][1:]]
             entry["wheel"] = earlier.get((entry["mesh"], tuple(counts))) or dict(
                 run_case("wheel", path, ",".join(map(str, counts)), args.timeout), counts=counts)

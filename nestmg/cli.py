@@ -190,6 +190,9 @@ def cmd_cages(args) -> int:
         V, F, _ = boundary_surface(V, F)
     # the same function and clearance as `solve`, layers in the input's coordinates
     n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
+    bodies = _bodies(V, F)
+    if bodies:
+        return _cages_bodies(bodies, n_layers, args, name, out)
     layers, info = build_cage_surfaces(
         V, F, n_layers, args.method, sizing=args.sizing, meshing=args.meshing,
         cages=_cage_options(args, args.method), cache=not args.no_cache,
@@ -213,12 +216,71 @@ def cmd_cages(args) -> int:
     return 0
 
 
+def _body_cages(bodies, n_layers: int, args, name: str, method: str | None = None) -> tuple[list, list]:
+    """Each body's cage layers and info (:func:`nestmg.hierarchy.build_cage_surfaces`: its own clearance and
+    face counts, ``n_layers`` a ceiling)."""
+    import time
+
+    from .hierarchy import build_cage_surfaces
+    from .progress import stage_line
+
+    method = method or args.method
+    if args.face_counts is not None:
+        raise NestmgError(f"--face-counts counts one solid's cage faces; {name} has {len(bodies)} disjoint "
+                          "bodies: give --levels instead (each body gets the levels that fit it)")
+    t0 = time.perf_counter()
+    per_body, infos = [], []
+    for k, (Vb, Fb) in enumerate(bodies):
+        stage_line(f"body {k + 1}/{len(bodies)}: {len(Fb):,} faces", t0)
+        try:
+            layers, info = build_cage_surfaces(Vb, Fb, n_layers, method, sizing=args.sizing,
+                                               meshing=args.meshing, cages=_cage_options(args, method),
+                                               cache=not args.no_cache,
+                                               progress=None if args.quiet is False else False)
+        except NestmgError as exc:  # the same error, naming the body
+            exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
+            raise
+        per_body.append(layers)
+        infos.append({"faces": [len(Fk) for _, Fk in layers], **info})
+    return per_body, infos
+
+
+def _cages_bodies(bodies, n_layers: int, args, name: str, out: Path) -> int:
+    """``nestmg cages`` on several disjoint bodies: layer ``k`` of every body that has it in ``layer_k.obj``."""
+    from cagegen.build import fallback_layers
+
+    from .io import save_mesh
+
+    per_body, infos = _body_cages(bodies, n_layers, args, name)
+    combined = _body_layers(per_body)
+    for k, (Vk, Fk) in enumerate(combined):
+        save_mesh(out / f"layer_{k}.obj", Vk, Fk)
+    oks = [(i.get("verification") or {}).get("ok") for i in infos]
+    ok = None if any(o is None for o in oks) else all(oks)
+    _write_json(out / "report.json", {"mesh": args.mesh, "method": args.method,
+                                      "faces": [len(Fk) for _, Fk in combined], "verification": {"ok": ok},
+                                      "bodies": infos})
+    fb = [f"body {b + 1} layer {d['layer']} by fallback {d['fallback']!r}"
+          for b, i in enumerate(infos) for d in fallback_layers(i)]
+    print(f"{name}: {len(bodies)} bodies, {len(combined)} layers {[len(Fk) for _, Fk in combined]} faces "
+          f"(per body {[i['faces'] for i in infos]}); verifier ok={ok}" + (f"; {', '.join(fb)}" if fb else ""))
+    if args.png:
+        from .render import render_layers
+
+        render_layers(combined, out / "layers.png", title=f"{name}: {args.method}, {len(bodies)} bodies")
+    print(f"wrote {out}/layer_*.obj and report.json")
+    return 0
+
+
 def cmd_solve(args) -> int:
     from .render import plot_convergence
 
     vtu = [Path(args.out) / f"level_{k}.vtu" for k in range(args.levels)] if args.out else []
     _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p] + vtu)
     V, F, name = _load(args.mesh)
+    bodies = _bodies(V, F)
+    if bodies:
+        return _solve_bodies(V, F, bodies, args, name)
     h = _hierarchy(V, F, args)
     r = _solve(h, args, solution=bool(args.out))
     u = r.pop("solution", None)
@@ -242,7 +304,8 @@ def cmd_solve(args) -> int:
         from .usermesh import write_vtu_levels
 
         # elasticity: u is the (n, 3) displacement; the scalar source f is not its load
-        fields = ({} if args.problem.startswith("elasticity") else {"f": default_rhs(h.tets[0][0])}) | (
+        fields = ({} if args.problem.startswith("elasticity") else  # the source the problem was given
+                  {"f": default_rhs(h.tets_in("normalized")[0][0])}) | (
             {"u": u} if u is not None else {})
         files = write_vtu_levels(args.out, h, fields)  # h.tets are in the input's coordinates
         print(f"wrote {', '.join(str(f) for f in files)}")
@@ -256,6 +319,83 @@ def cmd_solve(args) -> int:
         _png_layers(h, png / "layers.png", f"{name}: {args.method}")
         plot_convergence({args.method: r["residuals"]}, png / "convergence.png", title=f"{name}: {args.problem}")
     return 0
+
+
+def _bodies(V, F):
+    """The disjoint bodies of a surface input of several closed pieces (:func:`nestmg.bodies.disjoint_bodies`)."""
+    from .bodies import disjoint_bodies
+
+    return disjoint_bodies(V, F) if F.shape[1] == 3 else None
+
+
+def _body_hierarchies(V, F, bodies, args):
+    from .bodies import build_body_hierarchies
+
+    return build_body_hierarchies(V, F, args.levels, args.method, bodies=bodies, sizing=args.sizing,
+                                  meshing=args.meshing, cages=_cage_options(args, args.method),
+                                  cache=not args.no_cache, progress=None if args.quiet is False else False)
+
+
+def _solve_bodies(V, F, bodies, args, name: str) -> int:
+    """``nestmg solve`` on several disjoint bodies: one hierarchy and one solve per body, files with all."""
+    from .bodies import file_frame, merge_meshes, solve_bodies
+    from .problems import default_rhs
+    from .render import plot_convergence
+
+    if getattr(args, "element", "P1") == "P2":
+        raise NestmgError(f"--element P2 takes one solid; {name} has {len(bodies)} disjoint bodies: split the file")
+    hs = _body_hierarchies(V, F, bodies, args)
+    frame = file_frame(V)
+    r = solve_bodies(hs, frame, args.problem, args.solver, return_solution=bool(args.out))
+    u = r.pop("solution", None)
+    for k, (h, rk) in enumerate(zip(hs, r["bodies"])):
+        _print_solve(f"body {k + 1}", h, rk)
+    status = "DIVERGED" if r["diverged"] else ("converged" if r["converged"] else "not converged")
+    print(f"{len(hs)} bodies: largest factor {r['factor']:.3f} (body {r['worst_body'] + 1}), most cycles "
+          f"{r['iterations']}, {status}")
+    if args.out:  # level k of every body that has it, one file per level; u and f on level_0.vtu
+        from .io import save_tet_mesh
+
+        files = []
+        for k in range(max(h.levels for h in hs)):
+            Vk, Tk, owner = merge_meshes([h.tets[k] for h in hs if k < h.levels])
+            pdata = {}
+            if k == 0 and not args.problem.startswith("elasticity"):
+                pdata["f"] = default_rhs((Vk - frame[0]) / frame[1])  # the source the problems were given
+            if k == 0 and u is not None:
+                pdata["u"] = u
+            body = np.flatnonzero([k < h.levels for h in hs]).astype(np.int32)[owner]
+            files.append(Path(args.out) / f"level_{k}.vtu")
+            save_tet_mesh(files[-1], Vk, Tk, point_data=pdata,
+                          cell_data={"level": np.full(len(Tk), k, dtype=np.int32), "body": body})
+        print(f"wrote {', '.join(str(f) for f in files)}")
+    report = {"mesh": args.mesh, "bodies": [{"hierarchy": h.to_dict(), "solve": rk}
+                                            for h, rk in zip(hs, r.pop("bodies"))], "solve": r}
+    if args.json:
+        _write_json(args.json, report)
+    if args.png:
+        from .render import render_layers
+
+        png = Path(args.png)
+        if not args.json:  # pictures always travel with the report they illustrate
+            _write_json(png / "report.json", report)
+        layers = _body_layers([h.surfaces for h in hs])
+        render_layers(layers, png / "layers.png", title=f"{name}: {args.method}, {len(hs)} bodies")
+        plot_convergence({f"body {k + 1}": b["solve"]["residuals"] for k, b in enumerate(report["bodies"])}, png / "convergence.png",
+                         title=f"{name}: {args.problem}")
+    return 0
+
+
+def _body_layers(surfaces: list) -> list:
+    """Layer ``k`` of every body that has it, as one surface per layer (distinct surfaces only)."""
+    from .bodies import merge_meshes
+
+    per_body = [[S for k, S in enumerate(ss) if k == 0 or S[0] is not ss[k - 1][0]] for ss in surfaces]
+    out = []
+    for k in range(max(len(ls) for ls in per_body)):
+        V, Fk, _ = merge_meshes([ls[k] for ls in per_body if k < len(ls)])
+        out.append((V, Fk))
+    return out
 
 
 def cmd_compare(args) -> int:

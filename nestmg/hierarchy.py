@@ -488,9 +488,8 @@ def _refuse_disjoint_bodies(V: np.ndarray, F: np.ndarray) -> None:
     except cagegen.MeshInputError:
         return  # overlapping or nested pieces: TetWild's solid is their union
     raise cagegen.MeshInputError(
-        f"input: {len(pieces)} disjoint bodies; a hierarchy is built for one solid: split the file "
-        "(cagegen.split_components) and run each piece, or cagegen.build_cages(..., components='separate') "
-        "for cages only")
+        f"input: {len(pieces)} disjoint bodies; a hierarchy is built for one solid: "
+        "nestmg.bodies.build_body_hierarchies builds one per body (as `nestmg solve` and `nestmg cages` do)")
 
 
 def predecimate(V: np.ndarray, F: np.ndarray, edge_length: float, *, edge_ratio: float = 1.0,

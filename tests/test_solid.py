@@ -69,7 +69,7 @@ def test_pipeline_refuses_disjoint_bodies_after_the_repair():
 
     V, F = _two_balls(2.5)  # apart: refused before TetWild runs
     t = time.perf_counter()
-    with pytest.raises(MeshInputError, match=r"2 disjoint bodies; .*split the file"):
+    with pytest.raises(MeshInputError, match=r"2 disjoint bodies; .*build_body_hierarchies"):
         build_cage_surfaces(V, F, 2, "nested", cages=NestedOptions(repair=True), cache=False, progress=False)
     assert time.perf_counter() - t < 5.0
     V, F = _two_balls(2.0)  # touching at a point: TetWild's solid pinches there and comes out as two bodies

@@ -1,0 +1,220 @@
+"""Inputs of several disjoint closed bodies (an assembly exported as one file): one hierarchy per body.
+
+A PDE on disjoint solids decouples into one problem per solid, so ``nestmg solve`` and ``nestmg cages``
+split such an input into its bodies, build one hierarchy per body (:func:`build_body_hierarchies`) and
+solve each body's problem on its own; the files they write hold all bodies. The rules:
+
+* **bodies**: the edge-connected pieces of the input (:func:`cagegen.split_components`) when no two of
+  them intersect and none lies inside another (:func:`cagegen.components.check_components_disjoint`).
+  Pieces that intersect or nest describe one solid: the audit refuses them and ``--repair`` meshes their
+  union (:func:`nestmg.hierarchy.build_hierarchy`).
+* **one resolution for the file**: the fine edge is planned once on the whole input, with the file's
+  budgets (``max_tets``, ``mesh_time_budget`` and the memory check count all bodies' tets;
+  :func:`body_sizings`), and every body is meshed at that edge.
+* **levels**: ``levels`` is a ceiling for each body (a small body gets the levels that fit it).
+* the cage clearance and TetWild's envelope are relative to each body's own bounding box, as they are for
+  a single input; the model problems are posed in the whole file's normalised frame (one centre, one
+  scale: :func:`file_frame`), so every body sees the same right-hand side and ``--lam``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .errors import NestmgInputError
+from .options import MeshingOptions, SizingOptions, typed
+
+__all__ = ["body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "merge_meshes", "solve_bodies"]
+
+
+def disjoint_bodies(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """The bodies of a surface made of several closed pieces that neither intersect nor nest, else None.
+
+    Parameters
+    ----------
+    V : (n,3) float array
+    F : (m,3) int array
+
+    Returns
+    -------
+    list of (V_i, F_i) or None
+        One entry per piece (order of :func:`cagegen.split_components`; new arrays), or None when the
+        input is one piece or its pieces intersect or nest (one solid: the audit or the repair decides).
+    """
+    import cagegen
+    from cagegen.components import check_components_disjoint
+
+    F = np.asarray(F)
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        return None  # not a triangle surface: the single-input path gives the error
+    pieces = cagegen.split_components(V, F)
+    if len(pieces) < 2:
+        return None
+    try:
+        check_components_disjoint(pieces)
+    except cagegen.MeshInputError:
+        return None
+    return pieces
+
+
+def file_frame(V: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(center, scale)`` of the whole input: ``(V - center) / scale`` has a centred unit-diagonal box."""
+    from cagegen import bbox_diagonal
+
+    V = np.asarray(V, dtype=np.float64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    return 0.5 * (lo + hi), float(bbox_diagonal(V))
+
+
+def body_sizings(V: np.ndarray, F: np.ndarray, bodies: list, levels: int,
+                 sizing: SizingOptions | None = None, meshing: MeshingOptions | None = None
+                 ) -> tuple[list[SizingOptions], dict]:
+    """Every body's sizing options: the fine edge planned once on the whole input.
+
+    The whole input (all bodies) is planned as one (:func:`nestmg.sizing.plan_hierarchy`: the enclosed
+    volume and faces of all bodies against ``max_tets``, ``mesh_time_budget`` and the memory), so the
+    budgets are the file's and every body gets the same absolute fine edge, given to it as
+    ``edge_length`` relative to its own bounding-box diagonal.
+
+    Returns
+    -------
+    (list of SizingOptions, dict)
+        One per body, and the whole input's plan (``SizingPlan.to_dict()``).
+
+    Raises
+    ------
+    NestmgInputError
+        Explicit ``face_counts`` (they count one solid's cage faces).
+    nestmg.sizing.SizingError, nestmg.memory.TetMeshMemoryError
+        The whole input does not fit the budget (before any body is built).
+    """
+    from cagegen import bbox_diagonal
+
+    from .hierarchy import _fine_level, _plan
+
+    sizing, meshing = typed(sizing, SizingOptions, "sizing"), typed(meshing, MeshingOptions, "meshing")
+    if sizing.face_counts is not None:
+        raise NestmgInputError(
+            f"face_counts count one solid's cage faces; this input has {len(bodies)} disjoint bodies: give "
+            "levels instead (each body gets the levels that fit it), or split the file")
+    _, refine = _fine_level(levels, sizing, meshing.mesher)
+    center, scale = file_frame(V)
+    plan = _plan((np.asarray(V, dtype=np.float64) - center) / scale, np.asarray(F, dtype=np.int64), levels,
+                 sizing, meshing.mesher, refine)
+    out = [dataclasses.replace(sizing, edge_length=plan.edge_length * scale / float(bbox_diagonal(Vb)),
+                               max_tets=None) for Vb, _ in bodies]
+    return out, plan.to_dict()
+
+
+def build_body_hierarchies(V: np.ndarray, F: np.ndarray, levels: int = 3, method: str = "nested", *,
+                           bodies: list | None = None, sizing: SizingOptions | None = None,
+                           meshing: MeshingOptions | None = None, cages=None, cache: bool = True,
+                           progress: bool | None = None) -> list:
+    """One :class:`nestmg.Hierarchy` per disjoint body of ``(V, F)`` (see the module's rules).
+
+    Parameters
+    ----------
+    V, F
+        The whole input (several closed bodies).
+    levels, method, sizing, meshing, cages, cache, progress
+        As for :func:`nestmg.build_hierarchy`, for each body (``sizing`` planned on the whole input,
+        :func:`body_sizings`).
+    bodies : list of (V_i, F_i), optional
+        :func:`disjoint_bodies` of the input, when already computed.
+
+    Returns
+    -------
+    list of Hierarchy
+        In the order of the bodies, each in the input's coordinates.
+
+    Raises
+    ------
+    NestmgInputError
+        The input is not several disjoint bodies.
+    cagegen.MeshInputError, cagegen.CageError, nestmg.sizing.SizingError
+        As for :func:`nestmg.build_hierarchy`; a body's error names the body.
+    """
+    import time
+
+    import cagegen
+
+    from .hierarchy import build_hierarchy
+    from .progress import stage_line
+
+    t0 = time.perf_counter()
+    bodies = disjoint_bodies(V, F) if bodies is None else bodies
+    if not bodies:
+        raise NestmgInputError("build_body_hierarchies: the input is not several disjoint closed bodies")
+    sizings, plan = body_sizings(V, F, bodies, levels, sizing, meshing)
+    stage_line(f"bodies: {len(bodies)} disjoint bodies ({', '.join(f'{len(Fb):,}' for _, Fb in bodies)} "
+               f"faces): one hierarchy each, fine edge {plan['edge_length']:.3g} of the whole input's "
+               f"diagonal ({plan['rule']}), ~{plan['expected_tets'][0]:,} fine tets in all", t0)
+    out = []
+    for k, ((Vb, Fb), sz) in enumerate(zip(bodies, sizings)):
+        stage_line(f"body {k + 1}/{len(bodies)}: {len(Fb):,} faces", t0)
+        try:
+            out.append(build_hierarchy(Vb, Fb, levels, method, sizing=sz, meshing=meshing, cages=cages,
+                                       cache=cache, progress=progress))
+        except cagegen.NestmgError as exc:  # the same error, naming the body
+            exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
+            raise
+    return out
+
+
+def merge_meshes(meshes: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One mesh from several: ``(V, C, owner)`` with every piece's cells re-indexed and ``owner[i]`` the
+    piece of cell ``i`` (for files that hold all bodies)."""
+    offsets = np.cumsum([0] + [len(Vk) for Vk, _ in meshes])
+    V = np.vstack([np.asarray(Vk, dtype=np.float64) for Vk, _ in meshes])
+    C = np.vstack([np.asarray(Ck, dtype=np.int64) + o for (_, Ck), o in zip(meshes, offsets)])
+    owner = np.repeat(np.arange(len(meshes), dtype=np.int32), [len(Ck) for _, Ck in meshes])
+    return V, C, owner
+
+
+def solve_bodies(hierarchies: list, frame: tuple[np.ndarray, float], problem: str = "poisson-dirichlet",
+                 options=None, *, return_solution: bool = False) -> dict:
+    """Each body's problem on its own hierarchy (:func:`nestmg.solve_on_hierarchy`), posed in one frame.
+
+    Parameters
+    ----------
+    hierarchies : list of Hierarchy
+        :func:`build_body_hierarchies` (input coordinates).
+    frame : (center (3,), scale)
+        The frame the problems are posed in (:func:`file_frame` of the whole input): nodes
+        ``(V - center) / scale``.
+    problem, options, return_solution
+        As for :func:`nestmg.solve_on_hierarchy`.
+
+    Returns
+    -------
+    dict
+        ``bodies``: every body's report. The combined fields: ``converged`` (every body), ``diverged``
+        (some body), ``iterations`` (the most), ``factor`` and ``operator_complexity`` (the largest),
+        ``seconds`` and ``cpu_seconds`` (sums), ``residuals`` (the body with the largest factor's);
+        ``solution`` (``return_solution``): the bodies' solutions one after the other (the nodes of
+        :func:`merge_meshes` of the fine levels).
+    """
+    from .run import solve_on_hierarchy
+
+    center, scale = np.asarray(frame[0], dtype=np.float64), float(frame[1])
+    reports = []
+    for h in hierarchies:
+        tets = [((np.asarray(Vt) - center) / scale, T) for Vt, T in h.tets]
+        reports.append(solve_on_hierarchy(tets, h.P, problem, options, return_solution=return_solution))
+    sols = [r.pop("solution", None) for r in reports]
+    worst = max(range(len(reports)), key=lambda k: reports[k]["factor"])
+    out = dict(reports[worst])
+    out.update(bodies=reports, worst_body=worst, converged=all(r["converged"] for r in reports),
+               diverged=any(r["diverged"] for r in reports), iterations=max(r["iterations"] for r in reports),
+               operator_complexity=max((r.get("operator_complexity") or 0.0) for r in reports) or None)
+    for key in ("seconds", "cpu_seconds"):
+        vals = [r.get(key) for r in reports]
+        if all(isinstance(v, dict) for v in vals):
+            out[key] = {k: sum(v[k] for v in vals) for k in vals[0]}
+        elif all(isinstance(v, (int, float)) for v in vals):
+            out[key] = float(sum(vals))
+    if return_solution:
+        out["solution"] = np.concatenate(sols, axis=0)
+    return out

@@ -1,0 +1,99 @@
+"""Inputs of several disjoint bodies (an assembly in one file): one hierarchy and one solve per body."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+from nestmg import NestmgInputError, SizingOptions, setup_problem
+from nestmg.bodies import body_sizings, build_body_hierarchies, disjoint_bodies, file_frame, solve_bodies
+from nestmg.cli import main
+from nestmg.io import load_mesh, load_tet_mesh, save_mesh
+from nestmg.shapes import SHAPES
+
+
+def _sphere_and_torus(shift: float = 3.0):
+    """A unit sphere (2,312 faces) and a torus (1,344 faces) ``shift`` apart along x: apart for 3."""
+    V1, F1 = SHAPES["sphere"](res=16)
+    V2, F2 = SHAPES["torus"](res=16)
+    return np.vstack([V1, V2 + [shift, 0.0, 0.0]]), np.vstack([F1, F2 + len(V1)])
+
+
+def test_disjoint_bodies_are_pieces_that_neither_cross_nor_nest():
+    V, F = _sphere_and_torus()
+    bodies = disjoint_bodies(V, F)
+    assert [len(Fb) for _, Fb in bodies] == [2312, 1344]
+    assert disjoint_bodies(*SHAPES["sphere"](res=16)) is None  # one piece
+    assert disjoint_bodies(*_sphere_and_torus(2.0)) is None  # the torus crosses the sphere: one solid's job
+    V1, F1 = SHAPES["sphere"](res=16)
+    assert disjoint_bodies(np.vstack([V1, 0.3 * V1]), np.vstack([F1, F1 + len(V1)])) is None  # a cavity
+
+
+def test_body_sizings_give_every_body_the_whole_inputs_edge_and_budget():
+    V, F = _sphere_and_torus()
+    bodies = disjoint_bodies(V, F)
+    sizings, plan = body_sizings(V, F, bodies, 3, SizingOptions(max_tets=30_000))
+    _, scale = file_frame(V)
+    diags = [float(np.linalg.norm(np.ptp(Vb, axis=0))) for Vb, _ in bodies]
+    absolute = [s.edge_length * d for s, d in zip(sizings, diags)]
+    assert absolute == pytest.approx([plan["edge_length"] * scale] * 2, rel=1e-12)
+    assert plan["rule"] == "max_tets" and plan["expected_tets"][0] <= 30_000  # all bodies' tets in one cap
+    with pytest.raises(NestmgInputError, match="2 disjoint bodies"):
+        body_sizings(V, F, bodies, 3, SizingOptions(face_counts=(400,)))
+
+
+def test_each_body_is_solved_in_the_files_frame():
+    """The combined solution is every body's own problem solved: checked against a direct solve."""
+    V, F = _sphere_and_torus()
+    hs = build_body_hierarchies(V, F, 3, "decimate", sizing=SizingOptions(max_tets=20_000), cache=False,
+                                progress=False)
+    assert len(hs) == 2 and all(h.levels == 3 for h in hs)
+    center, scale = frame = file_frame(V)
+    r = solve_bodies(hs, frame, "poisson-dirichlet", return_solution=True)
+    assert r["converged"] and len(r["bodies"]) == 2
+    assert r["iterations"] == max(b["iterations"] for b in r["bodies"])
+    u, start = r["solution"], 0
+    for h in hs:
+        tets = [((Vt - center) / scale, T) for Vt, T in h.tets]
+        p = setup_problem(tets, h.P, "poisson-dirichlet")
+        ref = p.expand(spla.spsolve(p.A.tocsc(), p.b))
+        ub = u[start:start + len(ref)]
+        assert np.abs(ub - ref).max() <= 1e-6 * np.abs(ref).max()
+        start += len(ref)
+    assert start == len(u)
+
+
+def test_cli_solve_and_cages_on_two_bodies(tmp_path, capsys):
+    V, F = _sphere_and_torus()
+    mesh = tmp_path / "two.obj"
+    save_mesh(mesh, V, F)
+    out, js = tmp_path / "out", tmp_path / "r.json"
+    rc = main(["solve", str(mesh), "--method", "decimate", "--levels", "3", "--max-tets", "20000",
+               "--problem", "poisson-neumann", "--out", str(out), "--json", str(js), "--quiet"])
+    assert rc == 0
+    rep = json.loads(js.read_text())
+    assert len(rep["bodies"]) == 2 and rep["solve"]["converged"]
+    assert all(b["solve"]["residuals"][-1] <= 1e-8 * b["solve"]["residuals"][0] for b in rep["bodies"])
+    Vt, T = load_tet_mesh(out / "level_0.vtu")
+    assert len(Vt) == sum(b["hierarchy"]["nodes"][0] for b in rep["bodies"])
+    import meshio
+
+    m = meshio.read(out / "level_0.vtu")
+    assert m.point_data["u"].shape == (len(Vt),) and set(np.unique(m.cell_data["body"][0])) == {0, 1}
+    assert Vt[:, 0].max() > 3.5 and Vt[:, 0].min() < -0.9  # both bodies, in the input's coordinates
+    for k in range(2):  # Neumann: each body's solution has zero mean on its own (its own nullspace)
+        nodes = np.unique(T[m.cell_data["body"][0] == k])
+        assert abs(m.point_data["u"][nodes].mean()) < 0.05 * np.abs(m.point_data["u"][nodes]).max()
+    assert "2 bodies: largest factor" in capsys.readouterr().out
+
+    cages = tmp_path / "cages"
+    assert main(["cages", str(mesh), "--method", "decimate", "--levels", "3", "--out", str(cages), "--quiet"]) == 0
+    rep = json.loads((cages / "report.json").read_text())
+    assert [b["faces"] for b in rep["bodies"]] == [[2312, 578, 144], [1344, 336]]  # levels: a ceiling per body
+    assert rep["faces"] == [3656, 914, 144]
+    assert [len(load_mesh(cages / f"layer_{k}.obj")[1]) for k in range(3)] == rep["faces"]
+    t = time.perf_counter()
+    assert main(["cages", str(mesh), "--face-counts", "500", "--out", str(tmp_path / "c2"), "--quiet"]) == 2
+    assert "2 disjoint bodies" in capsys.readouterr().err and time.perf_counter() - t < 5.0

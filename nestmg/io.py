@@ -16,7 +16,7 @@ import numpy as np
 
 from cagegen.errors import MeshInputError
 
-from .cache import atomic_write_bytes
+from .cache import atomic_write_bytes, publish
 
 __all__ = [
     "TET_FORMATS", "denormalize", "json_default", "load_mesh", "load_tet_mesh", "normalize", "read_cells",
@@ -132,7 +132,7 @@ def _save_igl(path: Path, V: np.ndarray, F: np.ndarray) -> None:
     try:
         binary = path.suffix.lower() == ".ply"  # igl's ASCII PLY keeps 6 digits
         igl.write_triangle_mesh(tmp, V, F, igl.FileEncoding.Binary if binary else igl.FileEncoding.Ascii)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -245,7 +245,7 @@ def save_tet_mesh(path: str | os.PathLike, V: np.ndarray, T: np.ndarray, point_d
     os.close(fd)
     try:
         meshio.write(tmp, mesh)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

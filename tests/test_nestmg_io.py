@@ -35,3 +35,25 @@ def test_saving_an_obj_does_not_import_trimesh(tmp_path):
             f"save_mesh({str(tmp_path / 'm.obj')!r}, np.eye(3), np.array([[0, 1, 2]])); "
             "sys.exit(int('trimesh' in sys.modules))")
     assert subprocess.run([sys.executable, "-c", code], cwd=tmp_path).returncode == 0
+
+
+def test_written_files_get_a_plain_opens_permissions(tmp_path):
+    """Outputs are written through a temporary file (mkstemp: owner-only); the result has 0o666 less the
+    umask, as any program's output, so others the umask allows can read the meshes and reports."""
+    import os
+    import stat
+
+    from nestmg.cache import atomic_write_bytes
+    from nestmg.io import save_tet_mesh
+
+    mask = os.umask(0o022)
+    try:
+        V = np.eye(4, 3)
+        save_mesh(tmp_path / "s.obj", V, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]))
+        save_mesh(tmp_path / "s.ply", V, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]))
+        save_tet_mesh(tmp_path / "t.vtu", V, np.array([[0, 1, 2, 3]]))
+        atomic_write_bytes(tmp_path / "r.json", b"{}")
+    finally:
+        os.umask(mask)
+    for name in ("s.obj", "s.ply", "t.vtu", "r.json"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name

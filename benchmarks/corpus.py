@@ -324,6 +324,8 @@ def cages_row(entry: dict, backends: list[str]) -> str:
     elif w and commits.get("wheel") and commits.get("wheel") != commits.get("cages:nested"):
         ratio += f" (wheel run at {str(commits['wheel'])[:7]}: not the same run)"
     faces = (entry.get("cages:nested") or {}).get("faces")
+    if faces and isinstance(faces[0], list):  # several bodies: one list each
+        faces = f"{len(faces)} bodies, the first {faces[0]}"
     return f"| {entry['mesh']} | {entry['faces']:,} | {faces or '–'} | " + " | ".join(cells) + f" | {ratio} |"
 
 

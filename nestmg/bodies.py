@@ -23,7 +23,7 @@ import dataclasses
 
 import numpy as np
 
-from .errors import NestmgInputError
+from .errors import NestmgError, NestmgInputError
 from .options import MeshingOptions, SizingOptions, typed
 
 __all__ = ["body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "merge_meshes", "solve_bodies"]
@@ -218,3 +218,128 @@ def solve_bodies(hierarchies: list, frame: tuple[np.ndarray, float], problem: st
     if return_solution:
         out["solution"] = np.concatenate(sols, axis=0)
     return out
+
+
+def tet_bodies(T: np.ndarray, n: int) -> list[np.ndarray] | None:
+    """The nodes of every body of a tet mesh (tets sharing a node are one body), or None for one body.
+
+    Parameters
+    ----------
+    T : (t,4) int array
+    n : int
+        Number of nodes (every one used by a tet).
+
+    Returns
+    -------
+    list of int arrays or None
+        Sorted node indices per body, bodies ordered by their smallest node.
+    """
+    labels = tet_components(T, n)
+    k = int(labels.max()) + 1 if n else 0
+    if k < 2:
+        return None
+    order = np.argsort(labels, kind="stable")
+    return np.split(order, np.cumsum(np.bincount(labels, minlength=k))[:-1])
+
+
+def tet_components(T: np.ndarray, n: int) -> np.ndarray:
+    """Body label of every node of a tet mesh (0, 1, ... in the order of their smallest node)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    T = np.asarray(T, dtype=np.int64)
+    rows, cols = np.repeat(T[:, 0], 3), T[:, 1:].ravel()  # three edges span a tet
+    g = sp.coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n, n)).tocsr()
+    _, labels = connected_components(g, directed=False)
+    _, first = np.unique(labels, return_index=True)  # the smallest node of every label
+    rank = np.empty(first.size, dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(first.size)
+    return rank[labels]
+
+
+def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels: int = 3,
+                              method: str = "nested", *, sizing: SizingOptions | None = None, **kwargs):
+    """One :class:`nestmg.Hierarchy` for a tet mesh of several bodies: each body's own hierarchy
+    (:func:`nestmg.hierarchy_from_tets`), stacked block by block.
+
+    Level 0 is ``(V, T)`` itself (the caller's nodes and order). Level ``k >= 1`` holds level ``k`` of every
+    body, one after the other; a body with fewer levels (``levels`` is a ceiling per body) repeats its
+    coarsest level, prolonged by the identity. ``P[0]`` maps each body's coarse nodes to that body's
+    nodes only, so a matrix assembled on ``(V, T)`` and ``H.P`` make one multigrid for all bodies.
+
+    Parameters
+    ----------
+    V, T
+        The caller's tet mesh (checked by :func:`nestmg.usermesh.check_user_tets`).
+    bodies : list of int arrays
+        :func:`tet_bodies` of ``T``.
+    levels, method, sizing, **kwargs
+        As for :func:`nestmg.hierarchy_from_tets`, applied to every body (``sizing.edge_length`` is the
+        whole mesh's fraction: converted to each body's diagonal).
+
+    Returns
+    -------
+    Hierarchy
+        ``cage_info["bodies"]``: every body's cage info and node count; certified when every body is.
+    """
+    import scipy.sparse as sp
+    from cagegen import bbox_diagonal
+
+    from .hierarchy import Hierarchy
+    from .prolongation import ProlongationReport
+    from .progress import stage_line
+    from .usermesh import hierarchy_from_tets
+
+    sizing = typed(sizing, SizingOptions, "sizing")
+    center, scale = file_frame(V)
+    stage_line(f"bodies: the tet mesh has {len(bodies)} disjoint bodies "
+               f"({', '.join(f'{len(b):,}' for b in bodies)} nodes): one hierarchy each")
+    hs = []
+    for k, nodes in enumerate(bodies):
+        local = np.full(len(V), -1, dtype=np.int64)
+        local[nodes] = np.arange(len(nodes))
+        Tb = local[T[np.isin(T[:, 0], nodes)]]
+        sz = sizing if sizing.edge_length is None else dataclasses.replace(
+            sizing, edge_length=sizing.edge_length * scale / float(bbox_diagonal(V[nodes])))
+        stage_line(f"body {k + 1}/{len(bodies)}: {len(Tb):,} tets")
+        try:
+            hs.append(hierarchy_from_tets(V[nodes], Tb, levels, method, sizing=sz, **kwargs))
+        except NestmgError as exc:  # the same error, naming the body
+            exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
+            raise
+    n_levels = max(h.levels for h in hs)
+
+    def at(h, k):  # a body's level k, its coarsest repeated past its own levels
+        return min(k, h.levels - 1)
+
+    tets = [(V, T)] + [merge_meshes([h.tets[at(h, k)] for h in hs])[:2] for k in range(1, n_levels)]
+    surfaces = [merge_meshes([h.surfaces[at(h, k)] for h in hs])[:2] for k in range(n_levels)]
+    P, reports = [], []
+    for k in range(n_levels - 1):
+        blocks = [h.P[k] if k < h.levels - 1 else sp.identity(len(h.tets[at(h, k)][0]), format="csr")
+                  for h in hs]
+        Pk = sp.block_diag(blocks, format="csr")
+        if k == 0:  # rows in the caller's node order
+            rows = np.concatenate(bodies)
+            Pk = Pk[np.argsort(rows)]
+        P.append(sp.csr_matrix(Pk))
+        reps = [h.prolongation_reports[k] for h in hs if k < h.levels - 1]
+        reports.append(ProlongationReport(
+            n_fine=Pk.shape[0], n_coarse=Pk.shape[1], n_outside=sum(r.n_outside for r in reps),
+            n_on_boundary=sum(r.n_on_boundary for r in reps), max_distance=max(r.max_distance for r in reps),
+            max_distance_rel=max(r.max_distance_rel for r in reps), extrapolation=reps[0].extrapolation,
+            seconds=sum(r.seconds for r in reps)))
+    oks = [h.surfaces_nested for h in hs]
+    layers = [dict(d, body=b) for b, h in enumerate(hs) for d in (h.cage_info.get("backend") or {}).get("layers", [])]
+    info = {"bodies": [{"nodes": len(b), "levels": h.levels, **h.cage_info} for b, h in zip(bodies, hs)],
+            "verification": {"ok": None if any(o is None for o in oks) else all(oks)},
+            "backend": {"layers": layers}, "frame": {"center": center.tolist(), "scale": scale}}
+    timings: dict = {}
+    for h in hs:
+        for key, v in h.timings.items():
+            if isinstance(v, (int, float)):
+                timings[key] = timings.get(key, 0.0) + v
+    options = dict(hs[0].options, levels=n_levels, bodies=[h.levels for h in hs])
+    return Hierarchy(surfaces=surfaces, tets=tets, P=P, prolongation_reports=reports, method=method,
+                     cage_info=info, timings=timings, options=options,
+                     frame={"center": center, "scale": scale})

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, mass_matrix, stiffness_matrix
 from solvers.multilevel import restrict_prolongations, sparsified_galerkin_operators
@@ -382,9 +383,10 @@ def setup_problem(
     if f.shape != (n0,):
         raise NestmgInputError(f"f must have shape ({n0},), got {f.shape}")
     m = M0.diagonal()
-    if name == "poisson-neumann":
-        f = f - (m @ f) / m.sum()  # zero mass-weighted mean -> sum(M f) = 0
     K0 = stiffness_matrix(V0, T0, check=False)
+    if name == "poisson-neumann":  # zero mass-weighted mean on every body -> M f sums to 0 on each
+        body = connected_components(K0, directed=False)[1]  # K0's pattern: the mesh's node graph
+        f = f - (np.bincount(body, m * f) / np.bincount(body, m))[body]
     A_full = (lam * K0 + M0).tocsr() if name == "diffusion-neumann" else K0
     b_full = M0 @ f
     dirichlet = name == "poisson-dirichlet"

@@ -172,8 +172,9 @@ def hierarchy_from_tets(
     ----------
     V : (n,3) array_like of float
     T : (t,4) array_like of int
-        The user's tet mesh (one solid piece; every node used by a tet; either tet orientation).
-        ``H.tets[0]`` holds exactly these nodes and tets, in this order.
+        The user's tet mesh (every node used by a tet; either tet orientation). ``H.tets[0]`` holds
+        exactly these nodes and tets, in this order. Several disjoint bodies (no node shared) get one
+        hierarchy each, stacked into this one (:func:`nestmg.bodies.hierarchy_from_tet_bodies`).
     levels : int
         Number of levels, the user's mesh included (>= 2): ``levels - 1`` cages of its boundary. A
         ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps >= 100 faces
@@ -215,6 +216,7 @@ def hierarchy_from_tets(
     cagegen.CageError
         A cage could not be built or certified.
     """
+    from .bodies import hierarchy_from_tet_bodies, tet_bodies
     from .hierarchy import _normalize, build_cage_surfaces, cage_options_for
     from .sizing import plan_levels
 
@@ -233,6 +235,10 @@ def hierarchy_from_tets(
     timer = Timer()
     with timer("boundary"):
         V, T = check_user_tets(V, T)
+        bodies = tet_bodies(T, len(V))
+        if bodies is not None:  # several bodies: one hierarchy each, stacked (nestmg.bodies)
+            return hierarchy_from_tet_bodies(V, T, bodies, levels, method, sizing=sizing, meshing=meshing,
+                                             cages=cages, cache=cache, progress=progress)
         Vn, center, scale = _normalize(V)  # the work is done at unit diagonal, the result is in V's frame
         Vs, Fs, index = boundary_surface(Vn, T)
     # `levels` is a ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps

@@ -97,3 +97,44 @@ def test_cli_solve_and_cages_on_two_bodies(tmp_path, capsys):
     t = time.perf_counter()
     assert main(["cages", str(mesh), "--face-counts", "500", "--out", str(tmp_path / "c2"), "--quiet"]) == 2
     assert "2 disjoint bodies" in capsys.readouterr().err and time.perf_counter() - t < 5.0
+
+
+def test_tet_mesh_of_two_bodies_gets_one_stacked_hierarchy():
+    """A user's tet mesh of two bodies: level 0 node for node, no prolongation couples the bodies, the
+    body with fewer levels repeats its coarsest one, and a pure Neumann problem (one constant per body in
+    the kernel) is consistent and solved."""
+    from solvers.gallery import kuhn_cube_mesh
+
+    from nestmg import hierarchy_from_tets
+    from nestmg.bodies import tet_bodies
+
+    VA, TA = kuhn_cube_mesh(12)  # 1,728 boundary faces: 3 levels
+    VB, TB = kuhn_cube_mesh(8)  # 768: 2 levels (a 192-face cage; a third would have 48 faces)
+    V = np.vstack([0.7 * VB + [2.0, 0.0, 0.0], VA])  # the smaller body first ...
+    T = np.vstack([TA + len(VB), TB])
+    perm = np.random.default_rng(3).permutation(len(V))  # ... its nodes scattered among the other's
+    inv = np.argsort(perm)
+    V, T, inB = V[perm], inv[T], perm < len(VB)
+    assert [len(b) for b in tet_bodies(T, len(V))] == [len(VB), len(VA)][:: 1 if inB[0] else -1]
+    H = hierarchy_from_tets(V, T, 3, cache=False, progress=False)
+    assert H.levels == 3 and sorted(H.options["bodies"]) == [2, 3] and H.certified
+    assert np.array_equal(H.tets[0][0], V) and np.array_equal(H.tets[0][1], T)
+    for P in H.P:
+        assert np.allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0)
+    P0 = H.P[0].tocsr()
+    assert not set(P0[inB].indices) & set(P0[~inB].indices)  # each body prolonged from its own nodes
+    # the prolongation reproduces linear functions body by body: P0 maps coarse nodes to the user's nodes
+    Vc = H.tets[1][0]
+    assert np.abs(P0 @ Vc - V).max() < 1e-9
+    first = 0 if inB[0] else 1  # the smaller body's coarse nodes come first when its nodes do
+    nB1 = len(set(P0[inB].indices))
+    P1 = H.P[1].tocsr()
+    rows = slice(0, nB1) if first == 0 else slice(P1.shape[0] - nB1, None)
+    D = P1[rows].toarray()  # the smaller body's coarsest level, repeated: the identity
+    cols = slice(0, nB1) if first == 0 else slice(P1.shape[1] - nB1, None)
+    assert np.array_equal(D[:, cols], np.eye(nB1)) and np.abs(D).sum() == nB1
+    p = setup_problem(H.tets_in("normalized"), H.P, "poisson-neumann")
+    assert max(abs(p.b[inB].sum()), abs(p.b[~inB].sum())) < 1e-12 * np.abs(p.b).sum()  # consistent per body
+    x, info = p.multigrid().solve(p.b, tol=1e-8, accel="cg", return_info=True)
+    assert info["converged"] and info["iterations"] <= 15
+    assert np.linalg.norm(p.A @ x - p.b) <= 1e-7 * np.linalg.norm(p.b)

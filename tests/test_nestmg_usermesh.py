@@ -84,13 +84,13 @@ def test_bad_user_meshes_are_refused(tmp_path):
         hierarchy_from_tets(np.vstack([V, [[0.5, 0.5, 0]]]), [[0, 1, 2, 3], [0, 1, 2, 4]])
     with pytest.raises(MeshInputError, match="out of range|indices"):
         hierarchy_from_tets(V, [[0, 1, 2, 9]])
-    # two disjoint solids: the boundary has two pieces, named by the audit
+    # a hollow ball (one body whose boundary has two pieces, the cavity's inside the outer one): named by
+    # the audit (disjoint bodies are accepted: tests/test_nestmg_bodies.py)
     Vs, Fs = shapes.sphere(res=12)
-    V1, T1 = tetrahedralize(Vs, Fs, mesher="tetwild", edge_length=0.2)
-    V2 = np.vstack([V1, V1 + [3.0, 0, 0]])
-    T2 = np.vstack([T1, T1 + len(V1)])
+    V1, T1 = tetrahedralize(np.vstack([Vs, 0.5 * Vs]), np.vstack([Fs, Fs[:, ::-1] + len(Vs)]), mesher="tetwild",
+                            edge_length=0.2)
     with pytest.raises(MeshInputError, match="boundary of the tet mesh"):
-        hierarchy_from_tets(V2, T2, levels=2, progress=False)
+        hierarchy_from_tets(V1, T1, levels=2, progress=False)
     # a file with triangles only is not a tet mesh
     import meshio
 

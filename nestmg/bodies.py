@@ -26,7 +26,8 @@ import numpy as np
 from .errors import NestmgError, NestmgInputError
 from .options import MeshingOptions, SizingOptions, typed
 
-__all__ = ["body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "merge_meshes", "solve_bodies"]
+__all__ = ["body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "hierarchy_from_tet_bodies",
+           "merge_meshes", "solve_bodies", "tet_bodies", "tet_components"]
 
 
 def disjoint_bodies(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:

@@ -284,11 +284,12 @@ def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels
         ``cage_info["bodies"]``: every body's cage info and node count; certified when every body is.
     """
     import scipy.sparse as sp
+
     from cagegen import bbox_diagonal
 
     from .hierarchy import Hierarchy
-    from .prolongation import ProlongationReport
     from .progress import stage_line
+    from .prolongation import ProlongationReport
     from .usermesh import hierarchy_from_tets
 
     sizing = typed(sizing, SizingOptions, "sizing")

@@ -103,10 +103,9 @@ def test_tet_mesh_of_two_bodies_gets_one_stacked_hierarchy():
     """A user's tet mesh of two bodies: level 0 node for node, no prolongation couples the bodies, the
     body with fewer levels repeats its coarsest one, and a pure Neumann problem (one constant per body in
     the kernel) is consistent and solved."""
-    from solvers.gallery import kuhn_cube_mesh
-
     from nestmg import hierarchy_from_tets
     from nestmg.bodies import tet_bodies
+    from solvers.gallery import kuhn_cube_mesh
 
     VA, TA = kuhn_cube_mesh(12)  # 1,728 boundary faces: 3 levels
     VB, TB = kuhn_cube_mesh(8)  # 768: 2 levels (a 192-face cage; a third would have 48 faces)

@@ -26,7 +26,7 @@ import numpy as np
 from .errors import NestmgError, NestmgInputError
 from .options import MeshingOptions, SizingOptions, typed
 
-__all__ = ["body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "hierarchy_from_tet_bodies",
+__all__ = ["audit_bodies", "body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "hierarchy_from_tet_bodies",
            "merge_meshes", "solve_bodies", "tet_bodies", "tet_components"]
 
 
@@ -58,6 +58,24 @@ def disjoint_bodies(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.n
     except cagegen.MeshInputError:
         return None
     return pieces
+
+
+def audit_bodies(bodies: list, repair: bool = False) -> None:
+    """Audit every body before any is built, so that a bad last body fails in seconds, not after the others'
+    hierarchies (:func:`cagegen.check_mesh`, the message naming the body). With ``repair`` only what the
+    cheap repairs and TetWild's solid cannot mend is refused here (the rest is mended body by body)."""
+    import cagegen
+    from .solid import UNREPAIRABLE
+
+    for k, (Vb, Fb) in enumerate(bodies):
+        name = f"body {k + 1} of {len(bodies)}"
+        if not repair:
+            cagegen.check_mesh(Vb, Fb, name=name)
+            continue
+        Vr, Fr = cagegen.repair_mesh(Vb, Fb)
+        bad = [p for p in cagegen.audit_mesh(Vr, Fr).problems if p.startswith(UNREPAIRABLE)]
+        if bad:
+            raise cagegen.MeshInputError(f"{name} is not a usable closed surface: {'; '.join(bad)}")
 
 
 def file_frame(V: np.ndarray) -> tuple[np.ndarray, float]:
@@ -149,6 +167,7 @@ def build_body_hierarchies(V: np.ndarray, F: np.ndarray, levels: int = 3, method
     if not bodies:
         raise NestmgInputError("build_body_hierarchies: the input is not several disjoint closed bodies")
     sizings, plan = body_sizings(V, F, bodies, levels, sizing, meshing)
+    audit_bodies(bodies, repair=bool(getattr(cages, "repair", False)))
     stage_line(f"bodies: {len(bodies)} disjoint bodies ({', '.join(f'{len(Fb):,}' for _, Fb in bodies)} "
                f"faces): one hierarchy each, fine edge {plan['edge_length']:.3g} of the whole input's "
                f"diagonal ({plan['rule']}), ~{plan['expected_tets'][0]:,} fine tets in all", t0)
@@ -290,17 +309,21 @@ def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels
     from .hierarchy import Hierarchy
     from .progress import stage_line
     from .prolongation import ProlongationReport
-    from .usermesh import hierarchy_from_tets
+    from .usermesh import boundary_surface, hierarchy_from_tets
 
     sizing = typed(sizing, SizingOptions, "sizing")
     center, scale = file_frame(V)
     stage_line(f"bodies: the tet mesh has {len(bodies)} disjoint bodies "
                f"({', '.join(f'{len(b):,}' for b in bodies)} nodes): one hierarchy each")
-    hs = []
-    for k, nodes in enumerate(bodies):
+    meshes = []
+    for nodes in bodies:
         local = np.full(len(V), -1, dtype=np.int64)
         local[nodes] = np.arange(len(nodes))
-        Tb = local[T[np.isin(T[:, 0], nodes)]]
+        meshes.append((V[nodes], local[T[np.isin(T[:, 0], nodes)]]))
+    audit_bodies([boundary_surface(Vb, Tb)[:2] for Vb, Tb in meshes],  # in seconds, before any is built
+                 repair=bool(getattr(kwargs.get("cages"), "repair", False)))
+    hs = []
+    for k, (nodes, (_, Tb)) in enumerate(zip(bodies, meshes)):
         sz = sizing if sizing.edge_length is None else dataclasses.replace(
             sizing, edge_length=sizing.edge_length * scale / float(bbox_diagonal(V[nodes])))
         stage_line(f"body {k + 1}/{len(bodies)}: {len(Tb):,} tets")

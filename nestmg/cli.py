@@ -228,6 +228,9 @@ def _body_cages(bodies, n_layers: int, args, name: str, method: str | None = Non
     if args.face_counts is not None:
         raise NestmgError(f"--face-counts counts one solid's cage faces; {name} has {len(bodies)} disjoint "
                           "bodies: give --levels instead (each body gets the levels that fit it)")
+    from .bodies import audit_bodies
+
+    audit_bodies(bodies, repair=bool(args.repair))  # a bad last body fails in seconds
     t0 = time.perf_counter()
     per_body, infos = [], []
     for k, (Vb, Fb) in enumerate(bodies):

@@ -137,3 +137,15 @@ def test_tet_mesh_of_two_bodies_gets_one_stacked_hierarchy():
     x, info = p.multigrid().solve(p.b, tol=1e-8, accel="cg", return_info=True)
     assert info["converged"] and info["iterations"] <= 15
     assert np.linalg.norm(p.A @ x - p.b) <= 1e-7 * np.linalg.norm(p.b)
+
+
+def test_a_bad_last_body_fails_in_seconds_naming_it(tmp_path, capsys):
+    """Every body is audited before any hierarchy is built: an open last body stops the run at once."""
+    V, F = _sphere_and_torus()
+    mesh = tmp_path / "two.obj"
+    save_mesh(mesh, V, F[:-1])  # the torus (second body) loses a face: open
+    for cmd in (["solve", str(mesh)], ["cages", str(mesh), "--out", str(tmp_path / "c")]):
+        t = time.perf_counter()
+        assert main([*cmd, "--levels", "3", "--quiet", "--no-cache"]) == 2
+        assert time.perf_counter() - t < 5.0
+        assert "body 2 of 2 is not a usable closed surface" in capsys.readouterr().err

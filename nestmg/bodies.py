@@ -65,6 +65,7 @@ def audit_bodies(bodies: list, repair: bool = False) -> None:
     hierarchies (:func:`cagegen.check_mesh`, the message naming the body). With ``repair`` only what the
     cheap repairs and TetWild's solid cannot mend is refused here (the rest is mended body by body)."""
     import cagegen
+
     from .solid import UNREPAIRABLE
 
     for k, (Vb, Fb) in enumerate(bodies):

@@ -406,6 +406,10 @@ def cmd_compare(args) -> int:
 
     _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p])
     V, F, name = _load(args.mesh)
+    bodies = _bodies(V, F)
+    if bodies:
+        raise NestmgError(f"compare takes one solid; {name} has {len(bodies)} disjoint bodies: split the file, "
+                          "or run `nestmg solve` (one hierarchy per body) once per method")
     report: dict[str, Any] = {"mesh": args.mesh, "problem": args.problem, "methods": {}}
     hists = {}
     for m in args.methods:

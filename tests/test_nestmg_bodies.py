@@ -144,6 +144,9 @@ def test_a_bad_last_body_fails_in_seconds_naming_it(tmp_path, capsys):
     V, F = _sphere_and_torus()
     mesh = tmp_path / "two.obj"
     save_mesh(mesh, V, F[:-1])  # the torus (second body) loses a face: open
+    save_mesh(tmp_path / "ok.obj", V, F)
+    assert main(["compare", str(tmp_path / "ok.obj"), "--methods", "decimate", "--quiet"]) == 2
+    assert "compare takes one solid; ok has 2 disjoint bodies" in capsys.readouterr().err
     for cmd in (["solve", str(mesh)], ["cages", str(mesh), "--out", str(tmp_path / "c")]):
         t = time.perf_counter()
         assert main([*cmd, "--levels", "3", "--quiet", "--no-cache"]) == 2

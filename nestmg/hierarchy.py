@@ -737,6 +737,8 @@ def build_hierarchy(
     """
     import cagegen
 
+    from .small_inputs import cage_fits, refinement_hierarchy
+
     t0 = time.perf_counter()
     sizing, meshing = typed(sizing, SizingOptions, "sizing"), typed(meshing, MeshingOptions, "meshing")
     if levels < 2:
@@ -753,6 +755,10 @@ def build_hierarchy(
     V, F, solid = _solid_input(V, F, cages, meshing, t0)
     if solid is not None:  # the repaired surface is the input from here on (returned as level 0's surface)
         Vn, center, scale = _normalize(V)
+    if sizing.face_counts is None and sizing.same_domain_levels == 0 and not cage_fits(len(F)):
+        # no cage fits a surface this coarse: one coarse mesh of it and red refinements (nestmg.small_inputs)
+        return refinement_hierarchy(V, F, Vn, (center, scale), levels, method, sizing=sizing, meshing=meshing,
+                                    cages=cages, cache=cache, progress=progress, t0=t0, solid=solid)
     # 1. sizes first: milliseconds, before any expensive stage
     plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine)
     levels_asked, levels = levels, plan.n_levels  # --levels is a ceiling: the levels that fit the input

@@ -91,7 +91,7 @@ def case_solve(mesh: Path) -> dict:
 
     args = _cli_args("solve", mesh, [])
     V, F, _ = _load(str(mesh))
-    bodies = _bodies(V, F)
+    V, F, bodies = _bodies(V, F, args.repair)
     if bodies:
         return _case_solve_bodies(V, F, bodies, args)
     t = time.perf_counter()
@@ -176,7 +176,7 @@ def case_cages(mesh: Path, method: str) -> dict:
     args = _cli_args("cages", mesh, ["--method", method])
     V, F, _ = _load(str(mesh))
     t = time.perf_counter()
-    bodies = _bodies(V, F)
+    V, F, bodies = _bodies(V, F, args.repair)
     if bodies:  # `nestmg cages`' per-body path: certified when every body's cages are
         _, infos = _body_cages(bodies, args.levels, args, mesh.name, method)
         oks = [bool((i.get("verification") or {}).get("ok")) for i in infos]

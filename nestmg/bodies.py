@@ -26,7 +26,7 @@ import numpy as np
 from .errors import NestmgError, NestmgInputError
 from .options import MeshingOptions, SizingOptions, typed
 
-__all__ = ["audit_bodies", "body_sizings", "build_body_hierarchies", "disjoint_bodies", "file_frame", "hierarchy_from_tet_bodies",
+__all__ = ["SPECK_FRACTION", "audit_bodies", "body_sizings", "build_body_hierarchies", "disjoint_bodies", "drop_specks", "file_frame", "hierarchy_from_tet_bodies",
            "merge_meshes", "solve_bodies", "tet_bodies", "tet_components"]
 
 
@@ -58,6 +58,31 @@ def disjoint_bodies(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.n
     except cagegen.MeshInputError:
         return None
     return pieces
+
+
+#: A body enclosing less than this fraction of the whole input's volume is a speck (scan debris, a stray
+#: shell of a CAD export): refused, or dropped with ``repair`` (as the repair's solid drops them).
+SPECK_FRACTION = 1e-3
+
+
+def drop_specks(bodies: list, repair: bool = False) -> list:
+    """``bodies`` without the specks (:data:`SPECK_FRACTION`) when ``repair``; without ``repair`` an input with
+    specks is refused (:class:`cagegen.MeshInputError` naming the option), not meshed body by body."""
+    import cagegen
+
+    from .memory import enclosed_volume
+    from .progress import stage_line
+
+    vols = np.array([enclosed_volume(Vb, Fb) for Vb, Fb in bodies])
+    specks = np.flatnonzero(vols < SPECK_FRACTION * vols.sum())
+    if not specks.size:
+        return bodies
+    if not repair:
+        raise cagegen.MeshInputError(
+            f"input: {len(bodies)} disjoint bodies, {specks.size} of them specks (volume under "
+            f"{SPECK_FRACTION:g} of the whole; first: body {specks[0] + 1}); --repair drops them")
+    stage_line(f"bodies: {specks.size} of {len(bodies)} dropped, specks under {SPECK_FRACTION:g} of the volume")
+    return [b for k, b in enumerate(bodies) if k not in set(specks.tolist())]
 
 
 def audit_bodies(bodies: list, repair: bool = False) -> None:

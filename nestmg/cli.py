@@ -190,7 +190,7 @@ def cmd_cages(args) -> int:
         V, F, _ = boundary_surface(V, F)
     # the same function and clearance as `solve`, layers in the input's coordinates
     n_layers = args.levels if args.face_counts is None else len(args.face_counts) + 1
-    bodies = _bodies(V, F)
+    V, F, bodies = _bodies(V, F, args.repair)
     if bodies:
         return _cages_bodies(bodies, n_layers, args, name, out)
     layers, info = build_cage_surfaces(
@@ -281,7 +281,7 @@ def cmd_solve(args) -> int:
     vtu = [Path(args.out) / f"level_{k}.vtu" for k in range(args.levels)] if args.out else []
     _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p] + vtu)
     V, F, name = _load(args.mesh)
-    bodies = _bodies(V, F)
+    V, F, bodies = _bodies(V, F, args.repair)
     if bodies:
         return _solve_bodies(V, F, bodies, args, name)
     h = _hierarchy(V, F, args)
@@ -324,11 +324,18 @@ def cmd_solve(args) -> int:
     return 0
 
 
-def _bodies(V, F):
-    """The disjoint bodies of a surface input of several closed pieces (:func:`nestmg.bodies.disjoint_bodies`)."""
-    from .bodies import disjoint_bodies
+def _bodies(V, F, repair: bool = False):
+    """``(V, F, bodies)``: the disjoint bodies of a surface input of several closed pieces
+    (:func:`nestmg.bodies.disjoint_bodies`; specks refused, or dropped with ``--repair``), else None; ``V, F``
+    the one body left when the others were specks."""
+    from .bodies import disjoint_bodies, drop_specks
 
-    return disjoint_bodies(V, F) if F.shape[1] == 3 else None
+    bodies = disjoint_bodies(V, F) if F.shape[1] == 3 else None
+    if bodies:
+        bodies = drop_specks(bodies, repair)
+        if len(bodies) == 1:
+            return (*bodies[0], None)
+    return V, F, bodies
 
 
 def _body_hierarchies(V, F, bodies, args):
@@ -406,7 +413,7 @@ def cmd_compare(args) -> int:
 
     _refuse_overwriting_input(args.mesh, [Path(p) for p in (args.json,) if p])
     V, F, name = _load(args.mesh)
-    bodies = _bodies(V, F)
+    V, F, bodies = _bodies(V, F, args.repair)
     if bodies:
         raise NestmgError(f"compare takes one solid; {name} has {len(bodies)} disjoint bodies: split the file, "
                           "or run `nestmg solve` (one hierarchy per body) once per method")

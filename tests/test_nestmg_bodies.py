@@ -152,3 +152,19 @@ def test_a_bad_last_body_fails_in_seconds_naming_it(tmp_path, capsys):
         assert main([*cmd, "--levels", "3", "--quiet", "--no-cache"]) == 2
         assert time.perf_counter() - t < 5.0
         assert "body 2 of 2 is not a usable closed surface" in capsys.readouterr().err
+
+
+def test_specks_are_refused_or_dropped_with_repair(tmp_path, capsys):
+    """Scan debris: a body under SPECK_FRACTION of the volume is not meshed as a body of its own."""
+    V1, F1 = SHAPES["sphere"](res=16)
+    V = np.vstack([V1, 0.05 * V1 + [3.0, 0.0, 0.0]])  # a speck: 1.25e-4 of the sphere's volume
+    F = np.vstack([F1, F1 + len(V1)])
+    mesh, js = tmp_path / "speck.obj", tmp_path / "r.json"
+    save_mesh(mesh, V, F)
+    assert main(["solve", str(mesh), "--quiet", "--no-cache"]) == 2
+    err = capsys.readouterr().err
+    assert "2 disjoint bodies, 1 of them specks" in err and "first: body 2); --repair drops them" in err
+    assert main(["solve", str(mesh), "--repair", "--method", "decimate", "--max-tets", "20000", "--quiet",
+                 "--no-cache", "--json", str(js)]) == 0
+    rep = json.loads(js.read_text())
+    assert "bodies" not in rep and rep["hierarchy"]["surface_faces"][0] == len(F1)  # the sphere alone

@@ -312,13 +312,8 @@ def cmd_solve(args) -> int:
             {"u": u} if u is not None else {})
         files = write_vtu_levels(args.out, h, fields)  # h.tets are in the input's coordinates
         print(f"wrote {', '.join(str(f) for f in files)}")
-    report = {"mesh": args.mesh, "hierarchy": h.to_dict(), "solve": r}
-    if args.json:
-        _write_json(args.json, report)
-    if args.png:
-        png = Path(args.png)
-        if not args.json:  # pictures always travel with the report they illustrate
-            _write_json(png / "report.json", report)
+    png = _write_report(args, {"mesh": args.mesh, "hierarchy": h.to_dict(), "solve": r})
+    if png is not None:
         _png_layers(h, png / "layers.png", f"{name}: {args.method}")
         plot_convergence({args.method: r["residuals"]}, png / "convergence.png", title=f"{name}: {args.problem}")
     return 0
@@ -381,19 +376,28 @@ def _solve_bodies(V, F, bodies, args, name: str) -> int:
         print(f"wrote {', '.join(str(f) for f in files)}")
     report = {"mesh": args.mesh, "bodies": [{"hierarchy": h.to_dict(), "solve": rk}
                                             for h, rk in zip(hs, r.pop("bodies"))], "solve": r}
-    if args.json:
-        _write_json(args.json, report)
-    if args.png:
+    png = _write_report(args, report)
+    if png is not None:
         from .render import render_layers
 
-        png = Path(args.png)
-        if not args.json:  # pictures always travel with the report they illustrate
-            _write_json(png / "report.json", report)
         layers = _body_layers([h.surfaces for h in hs])
         render_layers(layers, png / "layers.png", title=f"{name}: {args.method}, {len(hs)} bodies")
-        plot_convergence({f"body {k + 1}": b["solve"]["residuals"] for k, b in enumerate(report["bodies"])}, png / "convergence.png",
-                         title=f"{name}: {args.problem}")
+        plot_convergence({f"body {k + 1}": b["solve"]["residuals"] for k, b in enumerate(report["bodies"])},
+                         png / "convergence.png", title=f"{name}: {args.problem}")
     return 0
+
+
+def _write_report(args, report: dict) -> Path | None:
+    """``--json`` (and, with ``--png`` but no ``--json``, ``report.json`` beside the pictures: pictures always
+    travel with the report they illustrate); returns the ``--png`` folder or None."""
+    if args.json:
+        _write_json(args.json, report)
+    if not args.png:
+        return None
+    png = Path(args.png)
+    if not args.json:
+        _write_json(png / "report.json", report)
+    return png
 
 
 def _body_layers(surfaces: list) -> list:

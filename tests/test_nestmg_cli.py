@@ -78,3 +78,21 @@ def test_cli_cage_time_budget_refuses_at_once(tmp_path, capsys):
     rc = main(["cages", "shape:torus", "--method", "nested", "--cage-time-budget", "1", "--out", str(tmp_path),
                "--quiet"])
     assert rc == 2 and "applies to --method sdf only" in capsys.readouterr().err
+
+
+def test_cli_solve_writes_the_source_the_problem_was_given(tmp_path):
+    """level_0.vtu's ``f`` is the model source at the normalised coordinates the problem is posed in (not
+    at the input's coordinates), next to ``u``."""
+    import meshio
+
+    from nestmg.problems import default_rhs
+
+    out, js = tmp_path / "o", tmp_path / "r.json"
+    assert main(["solve", "shape:sphere", "--method", "decimate", "--max-tets", "20000", "--out", str(out),
+                 "--json", str(js), "--quiet"]) == 0
+    frame = json.loads(js.read_text())["hierarchy"]["frame"]
+    m = meshio.read(out / "level_0.vtu")
+    Vn = (m.points - np.asarray(frame["center"])) / frame["scale"]
+    assert frame["scale"] > 2.0  # the input's frame is not the normalised one
+    assert np.allclose(m.point_data["f"], default_rhs(Vn), rtol=1e-12, atol=1e-12)
+    assert not np.allclose(m.point_data["f"], default_rhs(m.points), rtol=1e-3)

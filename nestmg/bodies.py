@@ -30,13 +30,16 @@ __all__ = ["SPECK_FRACTION", "audit_bodies", "body_sizings", "build_body_hierarc
            "merge_meshes", "solve_bodies", "tet_bodies", "tet_components"]
 
 
-def disjoint_bodies(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
+def disjoint_bodies(V: np.ndarray, F: np.ndarray, why: list | None = None
+                    ) -> list[tuple[np.ndarray, np.ndarray]] | None:
     """The bodies of a surface made of several closed pieces that neither intersect nor nest, else None.
 
     Parameters
     ----------
     V : (n,3) float array
     F : (m,3) int array
+    why : list, optional
+        Receives the reason when the input has several pieces that cross or nest (one line).
 
     Returns
     -------
@@ -55,7 +58,9 @@ def disjoint_bodies(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.n
         return None
     try:
         check_components_disjoint(pieces)
-    except cagegen.MeshInputError:
+    except cagegen.MeshInputError as exc:
+        if why is not None:
+            why.append(str(exc))
         return None
     return pieces
 

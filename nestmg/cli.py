@@ -323,9 +323,15 @@ def _bodies(V, F, repair: bool = False):
     """``(V, F, bodies)``: the disjoint bodies of a surface input of several closed pieces
     (:func:`nestmg.bodies.disjoint_bodies`; specks refused, or dropped with ``--repair``), else None; ``V, F``
     the one body left when the others were specks."""
+    from cagegen import MeshInputError
+
     from .bodies import disjoint_bodies, drop_specks
 
-    bodies = disjoint_bodies(V, F) if F.shape[1] == 3 else None
+    why: list = []
+    bodies = disjoint_bodies(V, F, why) if F.shape[1] == 3 else None
+    if why and not repair:  # pieces that cross or nest: say so, not only "several connected components"
+        raise MeshInputError(f"input: {why[0]} (--repair meshes the solid they enclose with TetWild: crossing "
+                             "pieces become their union, a cavity is filled)")
     if bodies:
         bodies = drop_specks(bodies, repair)
         if len(bodies) == 1:

@@ -451,6 +451,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     if not getattr(cages, "repair", False):
         return V, F, None
     Vn, center, scale = _normalize(V)  # TetWild works in the normalised frame
+    v_in = float(np.einsum("ij,ij->", Vn[F[:, 0]], np.cross(Vn[F[:, 1]], Vn[F[:, 2]]))) / 6.0  # as given
     Vr, Fr = cagegen.repair_mesh(Vn, F)
     problems = cagegen.audit_mesh(Vr, Fr).problems
     if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
@@ -469,8 +470,12 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
             "a hierarchy is built for one solid: split the file (cagegen.split_components) and run each "
             "piece, or cagegen.build_cages(..., components='separate') for cages only")
     dropped, filled = info["volume_dropped"] / info["volume"], info["volume_filled"] / info["volume"]
+    # against the input's own signed volume (a cavity the cheap repair turned outward and TetWild filled,
+    # overlaps counted once): None when the input's orientation gives no volume
+    info["volume_change"] = info["volume"] / (v_in * scale**3) - 1.0 if v_in > 0 else None
+    change = "" if info["volume_change"] is None else f", volume {info['volume_change']:+.2%} against the input's"
     stage_line(f"repair: {', '.join(info['problems'])} -> the boundary of the solid TetWild meshed: "
-               f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%} "
+               f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%}{change} "
                f"({info['seconds']:.1f} s)", t0)
     return W, G, info
 

@@ -62,10 +62,10 @@ def test_balls_touching_at_a_point_are_two_bodies():
 
 
 def test_pipeline_refuses_disjoint_bodies_after_the_repair():
+    import time
+
     from cagegen import NestedOptions
     from nestmg.hierarchy import build_cage_surfaces
-
-    import time
 
     V, F = _two_balls(2.5)  # apart: refused before TetWild runs
     t = time.perf_counter()
@@ -133,3 +133,21 @@ def test_face_counts_that_cannot_be_met_fail_before_the_repair():
         build_cage_surfaces(V, F, 2, "nested", sizing=SizingOptions(face_counts=[5000]),
                             cages=NestedOptions(repair=True), cache=False, progress=False)
     assert time.perf_counter() - t < 1.0
+
+
+def test_the_repair_reports_a_filled_cavity_against_the_inputs_volume():
+    """A hollow ball (inner sphere facing the cavity): the cheap repair turns the inner piece outward and
+    TetWild's solid fills the cavity; the stage figure says so (+1/7 of the input's volume), and the CLI
+    names the cavity before any work without --repair."""
+    from cagegen import options_class
+    from nestmg.cli import _bodies
+    from nestmg.hierarchy import build_cage_surfaces
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    Vs, Fs = np.asarray(s.vertices), np.asarray(s.faces, dtype=np.int64)
+    V, F = np.vstack([Vs, 0.5 * Vs]), np.vstack([Fs, Fs[:, ::-1] + len(Vs)])
+    _, info = build_cage_surfaces(V, F, 2, "decimate", cages=options_class("decimate")(repair=True), cache=False,
+                                  progress=False)
+    assert info["solid"]["volume_change"] == pytest.approx(1 / 7, abs=0.01)
+    with pytest.raises(MeshInputError, match=r"component 1 lies inside component 0 .*a cavity is filled"):
+        _bodies(V, F, repair=False)

@@ -26,8 +26,9 @@ import numpy as np
 from .errors import NestmgError, NestmgInputError
 from .options import MeshingOptions, SizingOptions, typed
 
-__all__ = ["SPECK_FRACTION", "audit_bodies", "body_sizings", "build_body_hierarchies", "disjoint_bodies", "drop_specks", "file_frame", "hierarchy_from_tet_bodies",
-           "merge_meshes", "solve_bodies", "tet_bodies", "tet_components"]
+__all__ = ["SPECK_FRACTION", "audit_bodies", "body_sizings", "build_body_hierarchies", "disjoint_bodies",
+           "drop_specks", "file_frame", "hierarchy_from_tet_bodies", "merge_meshes", "solve_bodies",
+           "tet_bodies", "tet_components"]
 
 
 def disjoint_bodies(V: np.ndarray, F: np.ndarray, why: list | None = None
@@ -333,60 +334,33 @@ def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels
     Hierarchy
         ``cage_info["bodies"]``: every body's cage info and node count; certified when every body is.
     """
-    import scipy.sparse as sp
-
     from cagegen import bbox_diagonal
 
     from .hierarchy import Hierarchy
     from .progress import stage_line
-    from .prolongation import ProlongationReport
     from .usermesh import boundary_surface, hierarchy_from_tets
 
     sizing = typed(sizing, SizingOptions, "sizing")
     center, scale = file_frame(V)
     stage_line(f"bodies: the tet mesh has {len(bodies)} disjoint bodies "
                f"({', '.join(f'{len(b):,}' for b in bodies)} nodes): one hierarchy each")
-    meshes = []
-    for nodes in bodies:
-        local = np.full(len(V), -1, dtype=np.int64)
-        local[nodes] = np.arange(len(nodes))
-        meshes.append((V[nodes], local[T[np.isin(T[:, 0], nodes)]]))
+    meshes = _body_meshes(V, T, bodies)
     audit_bodies([boundary_surface(Vb, Tb)[:2] for Vb, Tb in meshes],  # in seconds, before any is built
                  repair=bool(getattr(kwargs.get("cages"), "repair", False)))
     hs = []
-    for k, (nodes, (_, Tb)) in enumerate(zip(bodies, meshes)):
+    for k, (Vb, Tb) in enumerate(meshes):
         sz = sizing if sizing.edge_length is None else dataclasses.replace(
-            sizing, edge_length=sizing.edge_length * scale / float(bbox_diagonal(V[nodes])))
+            sizing, edge_length=sizing.edge_length * scale / float(bbox_diagonal(Vb)))
         stage_line(f"body {k + 1}/{len(bodies)}: {len(Tb):,} tets")
         try:
-            hs.append(hierarchy_from_tets(V[nodes], Tb, levels, method, sizing=sz, **kwargs))
+            hs.append(hierarchy_from_tets(Vb, Tb, levels, method, sizing=sz, **kwargs))
         except NestmgError as exc:  # the same error, naming the body
             exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
             raise
-    n_levels = max(h.levels for h in hs)
-
-    def at(h, k):  # a body's level k, its coarsest repeated past its own levels
-        return min(k, h.levels - 1)
-
-    tets = [(V, T)] + [merge_meshes([h.tets[at(h, k)] for h in hs])[:2] for k in range(1, n_levels)]
-    surfaces = [merge_meshes([h.surfaces[at(h, k)] for h in hs])[:2] for k in range(n_levels)]
-    P, reports = [], []
-    for k in range(n_levels - 1):
-        blocks = [h.P[k] if k < h.levels - 1 else sp.identity(len(h.tets[at(h, k)][0]), format="csr")
-                  for h in hs]
-        Pk = sp.block_diag(blocks, format="csr")
-        if k == 0:  # rows in the caller's node order
-            rows = np.concatenate(bodies)
-            Pk = Pk[np.argsort(rows)]
-        P.append(sp.csr_matrix(Pk))
-        reps = [h.prolongation_reports[k] for h in hs if k < h.levels - 1]
-        reports.append(ProlongationReport(
-            n_fine=Pk.shape[0], n_coarse=Pk.shape[1], n_outside=sum(r.n_outside for r in reps),
-            n_on_boundary=sum(r.n_on_boundary for r in reps), max_distance=max(r.max_distance for r in reps),
-            max_distance_rel=max(r.max_distance_rel for r in reps), extrapolation=reps[0].extrapolation,
-            seconds=sum(r.seconds for r in reps)))
+    tets, surfaces, P, reports = _stacked_levels(V, T, bodies, hs)
     oks = [h.surfaces_nested for h in hs]
-    layers = [dict(d, body=b) for b, h in enumerate(hs) for d in (h.cage_info.get("backend") or {}).get("layers", [])]
+    layers = [dict(d, body=b) for b, h in enumerate(hs)
+              for d in (h.cage_info.get("backend") or {}).get("layers", [])]  # for fallback_layers
     info = {"bodies": [{"nodes": len(b), "levels": h.levels, **h.cage_info} for b, h in zip(bodies, hs)],
             "verification": {"ok": None if any(o is None for o in oks) else all(oks)},
             "backend": {"layers": layers}, "frame": {"center": center.tolist(), "scale": scale}}
@@ -395,7 +369,46 @@ def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels
         for key, v in h.timings.items():
             if isinstance(v, (int, float)):
                 timings[key] = timings.get(key, 0.0) + v
-    options = dict(hs[0].options, levels=n_levels, bodies=[h.levels for h in hs])
     return Hierarchy(surfaces=surfaces, tets=tets, P=P, prolongation_reports=reports, method=method,
-                     cage_info=info, timings=timings, options=options,
+                     cage_info=info, timings=timings,
+                     options=dict(hs[0].options, levels=len(tets), bodies=[h.levels for h in hs]),
                      frame={"center": center, "scale": scale})
+
+
+def _body_meshes(V: np.ndarray, T: np.ndarray, bodies: list) -> list:
+    """Every body's own tet mesh ``(V_b, T_b)``: its nodes in ``bodies[b]``'s order, its tets in ``T``'s."""
+    label, local = np.empty(len(V), dtype=np.int64), np.empty(len(V), dtype=np.int64)
+    for b, nodes in enumerate(bodies):
+        label[nodes], local[nodes] = b, np.arange(len(nodes))
+    tet_body = label[T[:, 0]]
+    return [(V[nodes], local[T[tet_body == b]]) for b, nodes in enumerate(bodies)]
+
+
+def _stacked_levels(V: np.ndarray, T: np.ndarray, bodies: list, hs: list) -> tuple[list, list, list, list]:
+    """The bodies' levels one after the other: ``(tets, surfaces, P, reports)`` of the stacked hierarchy
+    (level 0 the caller's ``(V, T)``; past its own levels a body repeats its coarsest, by the identity)."""
+    import scipy.sparse as sp
+
+    from .prolongation import ProlongationReport
+
+    n_levels = max(h.levels for h in hs)
+
+    def at(h, k):  # a body's level k, its coarsest past its own levels
+        return min(k, h.levels - 1)
+
+    tets = [(V, T)] + [merge_meshes([h.tets[at(h, k)] for h in hs])[:2] for k in range(1, n_levels)]
+    surfaces = [merge_meshes([h.surfaces[at(h, k)] for h in hs])[:2] for k in range(n_levels)]
+    P, reports = [], []
+    for k in range(n_levels - 1):
+        Pk = sp.block_diag([h.P[k] if k < h.levels - 1 else sp.identity(len(h.tets[at(h, k)][0]), format="csr")
+                            for h in hs], format="csr")
+        if k == 0:  # rows in the caller's node order
+            Pk = Pk[np.argsort(np.concatenate(bodies))]
+        P.append(sp.csr_matrix(Pk))
+        reps = [h.prolongation_reports[k] for h in hs if k < h.levels - 1]
+        reports.append(ProlongationReport(
+            n_fine=Pk.shape[0], n_coarse=Pk.shape[1], n_outside=sum(r.n_outside for r in reps),
+            n_on_boundary=sum(r.n_on_boundary for r in reps), max_distance=max(r.max_distance for r in reps),
+            max_distance_rel=max(r.max_distance_rel for r in reps), extrapolation=reps[0].extrapolation,
+            seconds=sum(r.seconds for r in reps)))
+    return tets, surfaces, P, reports

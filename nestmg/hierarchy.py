@@ -446,7 +446,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     """
     import cagegen
 
-    from .solid import UNREPAIRABLE, solid_surface
+    from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, solid_surface
 
     if not getattr(cages, "repair", False):
         return V, F, None
@@ -457,6 +457,9 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
         return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
     _refuse_disjoint_bodies(Vr, Fr)  # in seconds, before TetWild would find them
+    stage_line(f"repair: {', '.join(p.split(':')[0] for p in problems)}; meshing the solid the {len(Fr):,}-face "
+               f"input encloses with TetWild" + (f" (decimated towards {REPAIR_MAX_FACES:,} faces first, within its "
+                                                 "envelope)" if len(Fr) > REPAIR_MAX_FACES else ""), t0)
     t = time.perf_counter()
     W, G, info = solid_surface(Vr, Fr, epsilon=meshing.epsilon)
     W = W * scale + center
@@ -474,6 +477,9 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     # overlaps counted once): None when the input's orientation gives no volume
     info["volume_change"] = info["volume"] / (v_in * scale**3) - 1.0 if v_in > 0 else None
     change = "" if info["volume_change"] is None else f", volume {info['volume_change']:+.2%} against the input's"
+    dec = info.get("decimated")
+    if dec and dec["faces_out"] < dec["faces_in"]:
+        change += f"; TetWild got it decimated to {dec['faces_out']:,} faces (Hausdorff {dec['hausdorff']:.2g})"
     stage_line(f"repair: {', '.join(info['problems'])} -> the boundary of the solid TetWild meshed: "
                f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%}{change} "
                f"({info['seconds']:.1f} s)", t0)

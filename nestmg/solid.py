@@ -115,6 +115,47 @@ def _fill_voids(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, f
     return W, G, float(-vols[vols < 0].sum()), len(kept)
 
 
+#: A repair input of more faces is decimated first (QEM halvings while the Hausdorff distance stays within
+#: TetWild's envelope ``epsilon``; the solid's boundary is then within ``2 epsilon`` of the input, and the
+#: pipeline's predecimation allows ``max(epsilon, h/4)`` after it anyway): TetWild's time grows with its
+#: input's faces (~1 ms each, nestmg.sizing): a 400k-face scan with self-intersections took 454 s.
+REPAIR_MAX_FACES = 50_000
+
+
+def lighter_input(V: np.ndarray, F: np.ndarray, epsilon: float) -> tuple[np.ndarray, np.ndarray, dict | None]:
+    """``(V, F)`` halved by QEM decimation, again and again down to :data:`REPAIR_MAX_FACES` faces, while the
+    Hausdorff distance to ``(V, F)`` stays within ``epsilon`` (relative to the bounding-box diagonal).
+    The input may self-intersect (TetWild resolves that): only closedness and orientation are checked.
+
+    Returns ``(V, F, info)``: info None when ``F`` has at most :data:`REPAIR_MAX_FACES` faces, else
+    ``faces_in``, ``faces_out``, ``hausdorff`` (relative, of the surface returned) and ``refused`` (the
+    face count and error of the first halving that was not kept, if any).
+    """
+    import igl
+
+    from cagegen import bbox_diagonal
+    from cagegen.decimate import decimate_surface
+
+    if len(F) <= REPAIR_MAX_FACES:
+        return V, F, None
+    diag = float(bbox_diagonal(V))
+    U, G, info = V, F, {"faces_in": len(F), "faces_out": len(F), "hausdorff": 0.0, "refused": None}
+    while len(G) > REPAIR_MAX_FACES:
+        target = max(REPAIR_MAX_FACES, len(G) // 2)
+        try:
+            U2, G2, _ = decimate_surface(U, G, target, check_self=False, keep_genus=False, other_decimator=False)
+        except Exception:  # noqa: BLE001 -- a decimation that fails leaves the last surface kept
+            info["refused"] = {"faces": target, "hausdorff": None}
+            break
+        err = float(igl.hausdorff(V, F, U2, G2)) / diag
+        if err > epsilon:
+            info["refused"] = {"faces": len(G2), "hausdorff": err}
+            break
+        U, G = U2, G2
+        info.update(faces_out=len(G), hausdorff=err)
+    return U, G, info
+
+
 def solid_surface(V: np.ndarray, F: np.ndarray, *, epsilon: float = 1e-3, edge_length: float = 0.05,
                   time_limit: float | str | None = "auto") -> tuple[np.ndarray, np.ndarray, dict]:
     """The boundary of the solid that ``(V, F)`` describes, closed, manifold and outward oriented.
@@ -153,6 +194,7 @@ def solid_surface(V: np.ndarray, F: np.ndarray, *, epsilon: float = 1e-3, edge_l
     from .tetmesh import tetrahedralize
     from .usermesh import boundary_surface
 
+    V, F, lighter = lighter_input(V, F, epsilon)
     Vt, T = tetrahedralize(V, F, edge_length=edge_length, epsilon=epsilon, time_limit=time_limit)
     v0 = float(np.abs(tet_volumes(Vt, T)).sum())
     T, _ = _drop_specks(Vt, T)
@@ -162,5 +204,5 @@ def solid_surface(V: np.ndarray, F: np.ndarray, *, epsilon: float = 1e-3, edge_l
     kept = float(np.abs(tet_volumes(Vt, T)).sum())
     info = {"faces_in": int(len(F)), "faces_out": int(len(G)), "tets": int(len(T)), "bodies": bodies,
             "pinch_rounds": rounds, "volume": kept + filled, "volume_dropped": v0 - kept,
-            "volume_filled": filled + 0.0}
+            "volume_filled": filled + 0.0, "decimated": lighter}
     return W, G, info

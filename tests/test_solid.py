@@ -152,3 +152,19 @@ def test_the_repair_reports_a_filled_cavity_against_the_inputs_volume():
     assert info["solid"]["volume_change"] == pytest.approx(1 / 7, abs=0.01)
     with pytest.raises(MeshInputError, match=r"component 1 lies inside component 0 .*a cavity is filled"):
         _bodies(V, F, repair=False)
+
+
+def test_a_large_repair_input_is_decimated_within_half_the_envelope_first():
+    """TetWild's time grows with its input's faces: above REPAIR_MAX_FACES the repair meshes a QEM
+    decimation whose Hausdorff distance is at most its envelope, or the input when that fails."""
+    from nestmg.solid import REPAIR_MAX_FACES, lighter_input
+
+    s = trimesh.creation.icosphere(subdivisions=6)  # 81,920 faces
+    V, F = np.asarray(s.vertices), np.asarray(s.faces, dtype=np.int64)
+    U, G, info = lighter_input(V, F, epsilon=1e-3)  # 81,920 -> 50,000 in one halving step
+    assert info["refused"] is None and len(G) == REPAIR_MAX_FACES and info["hausdorff"] <= 1e-3
+    assert signed_volume(U, G) == pytest.approx(signed_volume(V, F), rel=1e-3)
+    U, G, info = lighter_input(V, F, epsilon=1e-9)  # no decimation meets that: the input itself
+    assert U is V and G is F and info["refused"]["hausdorff"] > 1e-9 and info["faces_out"] == len(F)
+    small = trimesh.creation.icosphere(subdivisions=2)
+    assert lighter_input(np.asarray(small.vertices), np.asarray(small.faces), 1e-3)[2] is None

@@ -128,7 +128,7 @@ def _case_solve_bodies(V, F, bodies, args) -> dict:
     """:func:`case_solve` on an input of several disjoint bodies (``nestmg solve``'s per-body path): per
     level the tets summed over the bodies that have it; per problem the worst body's factor, the most
     iterations, the largest operator complexity, summed seconds (:func:`nestmg.bodies.solve_bodies`)."""
-    from nestmg.bodies import file_frame, solve_bodies
+    from nestmg.bodies import file_frame, solve_bodies, summed_timings
     from nestmg.cli import _body_hierarchies
 
     t = time.perf_counter()
@@ -138,11 +138,6 @@ def _case_solve_bodies(V, F, bodies, args) -> dict:
     def per_level(f):
         return [sum(f(h)[k] for h in hs if k < h.levels) for k in range(n_levels)]
 
-    stages: dict = {}
-    for h in hs:
-        for k, v in h.timings.items():
-            if isinstance(v, (int, float)):
-                stages[k] = stages.get(k, 0.0) + v
     rec: dict = {"hierarchy_seconds": time.perf_counter() - t, "certified": all(h.certified for h in hs),
                  "surfaces_nested": all(h.surfaces_nested for h in hs),
                  "n_outside": [sum(h.n_outside[k] for h in hs if k < h.levels - 1) for k in range(n_levels - 1)],
@@ -152,7 +147,7 @@ def _case_solve_bodies(V, F, bodies, args) -> dict:
                  "nodes": per_level(lambda h: [len(Vt) for Vt, _ in h.tets]), "levels": n_levels,
                  "bodies": [{"faces": [len(Fk) for _, Fk in h.surfaces], "tets": [len(T) for _, T in h.tets],
                              "certified": h.certified} for h in hs],
-                 "stages": stages, "problems": {}}
+                 "stages": summed_timings(hs), "problems": {}}
     solver, frame = args.solver, file_frame(V)
     for problem in PROBLEMS:
         r = solve_bodies(hs, frame, problem, replace(solver, accel=None))

@@ -20,6 +20,7 @@ solve each body's problem on its own; the files they write hold all bodies. The 
 from __future__ import annotations
 
 import dataclasses
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from .errors import NestmgError, NestmgInputError
 from .options import MeshingOptions, SizingOptions, typed
 
 __all__ = ["SPECK_FRACTION", "audit_bodies", "body_sizings", "build_body_hierarchies", "disjoint_bodies",
-           "drop_specks", "file_frame", "hierarchy_from_tet_bodies", "merge_meshes", "solve_bodies",
+           "drop_specks", "file_frame", "hierarchy_from_tet_bodies", "merge_meshes", "naming_body", "solve_bodies", "summed_timings",
            "tet_bodies", "tet_components"]
 
 
@@ -111,12 +112,32 @@ def audit_bodies(bodies: list, repair: bool = False) -> None:
 
 
 def file_frame(V: np.ndarray) -> tuple[np.ndarray, float]:
-    """``(center, scale)`` of the whole input: ``(V - center) / scale`` has a centred unit-diagonal box."""
-    from cagegen import bbox_diagonal
+    """``(center, scale)`` of the whole input: ``(V - center) / scale`` has a centred unit-diagonal box (the
+    frame :func:`nestmg.build_hierarchy` normalises a single input to)."""
+    from .hierarchy import _normalize
 
-    V = np.asarray(V, dtype=np.float64)
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    return 0.5 * (lo + hi), float(bbox_diagonal(V))
+    _, center, scale = _normalize(np.asarray(V, dtype=np.float64))
+    return center, scale
+
+
+@contextmanager
+def naming_body(k: int, n: int):
+    """Re-raise a :class:`NestmgError` of body ``k`` (0-based) of ``n`` with "body k+1 of n: " in front."""
+    try:
+        yield
+    except NestmgError as exc:
+        exc.args = (f"body {k + 1} of {n}: {exc}", *exc.args[1:])
+        raise
+
+
+def summed_timings(hierarchies: list) -> dict:
+    """The hierarchies' numeric ``timings``, summed key by key (seconds over all bodies)."""
+    out: dict = {}
+    for h in hierarchies:
+        for key, v in h.timings.items():
+            if isinstance(v, (int, float)):
+                out[key] = out.get(key, 0.0) + v
+    return out
 
 
 def body_sizings(V: np.ndarray, F: np.ndarray, bodies: list, levels: int,
@@ -189,8 +210,6 @@ def build_body_hierarchies(V: np.ndarray, F: np.ndarray, levels: int = 3, method
     """
     import time
 
-    import cagegen
-
     from .hierarchy import build_hierarchy
     from .progress import stage_line
 
@@ -206,12 +225,9 @@ def build_body_hierarchies(V: np.ndarray, F: np.ndarray, levels: int = 3, method
     out = []
     for k, ((Vb, Fb), sz) in enumerate(zip(bodies, sizings)):
         stage_line(f"body {k + 1}/{len(bodies)}: {len(Fb):,} faces", t0)
-        try:
+        with naming_body(k, len(bodies)):
             out.append(build_hierarchy(Vb, Fb, levels, method, sizing=sz, meshing=meshing, cages=cages,
                                        cache=cache, progress=progress))
-        except cagegen.NestmgError as exc:  # the same error, naming the body
-            exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
-            raise
     return out
 
 
@@ -352,11 +368,8 @@ def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels
         sz = sizing if sizing.edge_length is None else dataclasses.replace(
             sizing, edge_length=sizing.edge_length * scale / float(bbox_diagonal(Vb)))
         stage_line(f"body {k + 1}/{len(bodies)}: {len(Tb):,} tets")
-        try:
+        with naming_body(k, len(bodies)):
             hs.append(hierarchy_from_tets(Vb, Tb, levels, method, sizing=sz, **kwargs))
-        except NestmgError as exc:  # the same error, naming the body
-            exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
-            raise
     tets, surfaces, P, reports = _stacked_levels(V, T, bodies, hs)
     oks = [h.surfaces_nested for h in hs]
     layers = [dict(d, body=b) for b, h in enumerate(hs)
@@ -364,13 +377,8 @@ def hierarchy_from_tet_bodies(V: np.ndarray, T: np.ndarray, bodies: list, levels
     info = {"bodies": [{"nodes": len(b), "levels": h.levels, **h.cage_info} for b, h in zip(bodies, hs)],
             "verification": {"ok": None if any(o is None for o in oks) else all(oks)},
             "backend": {"layers": layers}, "frame": {"center": center.tolist(), "scale": scale}}
-    timings: dict = {}
-    for h in hs:
-        for key, v in h.timings.items():
-            if isinstance(v, (int, float)):
-                timings[key] = timings.get(key, 0.0) + v
     return Hierarchy(surfaces=surfaces, tets=tets, P=P, prolongation_reports=reports, method=method,
-                     cage_info=info, timings=timings,
+                     cage_info=info, timings=summed_timings(hs),
                      options=dict(hs[0].options, levels=len(tets), bodies=[h.levels for h in hs]),
                      frame={"center": center, "scale": scale})
 

@@ -221,6 +221,7 @@ def _body_cages(bodies, n_layers: int, args, name: str, method: str | None = Non
     face counts, ``n_layers`` a ceiling)."""
     import time
 
+    from .bodies import audit_bodies, naming_body
     from .hierarchy import build_cage_surfaces
     from .progress import stage_line
 
@@ -228,21 +229,16 @@ def _body_cages(bodies, n_layers: int, args, name: str, method: str | None = Non
     if args.face_counts is not None:
         raise NestmgError(f"--face-counts counts one solid's cage faces; {name} has {len(bodies)} disjoint "
                           "bodies: give --levels instead (each body gets the levels that fit it)")
-    from .bodies import audit_bodies
-
     audit_bodies(bodies, repair=bool(args.repair))  # a bad last body fails in seconds
     t0 = time.perf_counter()
     per_body, infos = [], []
     for k, (Vb, Fb) in enumerate(bodies):
         stage_line(f"body {k + 1}/{len(bodies)}: {len(Fb):,} faces", t0)
-        try:
+        with naming_body(k, len(bodies)):
             layers, info = build_cage_surfaces(Vb, Fb, n_layers, method, sizing=args.sizing,
                                                meshing=args.meshing, cages=_cage_options(args, method),
                                                cache=not args.no_cache,
                                                progress=None if args.quiet is False else False)
-        except NestmgError as exc:  # the same error, naming the body
-            exc.args = (f"body {k + 1} of {len(bodies)}: {exc}", *exc.args[1:])
-            raise
         per_body.append(layers)
         infos.append({"faces": [len(Fk) for _, Fk in layers], **info})
     return per_body, infos

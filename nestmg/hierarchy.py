@@ -446,18 +446,20 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     """
     import cagegen
 
+    from .memory import signed_volume
     from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, solid_surface
 
     if not getattr(cages, "repair", False):
         return V, F, None
     Vn, center, scale = _normalize(V)  # TetWild works in the normalised frame
-    v_in = float(np.einsum("ij,ij->", Vn[F[:, 0]], np.cross(Vn[F[:, 1]], Vn[F[:, 2]]))) / 6.0  # as given
+    v_in = signed_volume(Vn, F)  # as given (before the cheap repairs re-orient anything)
     Vr, Fr = cagegen.repair_mesh(Vn, F)
     problems = cagegen.audit_mesh(Vr, Fr).problems
     if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
         return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
     _refuse_disjoint_bodies(Vr, Fr)  # in seconds, before TetWild would find them
-    stage_line(f"repair: {', '.join(p.split(':')[0] for p in problems)}; meshing the solid the {len(Fr):,}-face "
+    names = [p.split(":")[0] for p in problems]
+    stage_line(f"repair: {', '.join(names)}; meshing the solid the {len(Fr):,}-face "
                f"input encloses with TetWild" + (f" (decimated towards {REPAIR_MAX_FACES:,} faces first, within its "
                                                  "envelope)" if len(Fr) > REPAIR_MAX_FACES else ""), t0)
     t = time.perf_counter()
@@ -465,7 +467,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     W = W * scale + center
     info = dict(info, volume=info["volume"] * scale**3, volume_dropped=info["volume_dropped"] * scale**3,
                 volume_filled=info["volume_filled"] * scale**3)
-    info["problems"] = [p.split(":")[0] for p in problems]
+    info["problems"] = names
     info["seconds"] = time.perf_counter() - t
     if info["bodies"] > 1:
         raise cagegen.MeshInputError(

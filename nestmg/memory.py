@@ -48,16 +48,23 @@ class TetMeshMemoryError(TetMeshError, MemoryError):
         self.n_tets, self.needed, self.available = int(n_tets), int(needed), int(available)
 
 
+def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Signed volume of the triangles ``(V, F)`` (divergence theorem, one tet per face to the vertices'
+    mean): the enclosed volume of a closed outward surface, negative for an inward one."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    c = V.mean(axis=0)
+    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
+    return float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
+
+
 def enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
     """Volume enclosed by the closed, outward-oriented surface ``(V, F)`` (divergence theorem).
 
     Falls back to the bounding-box volume when the signed volume is not positive (inward faces).
     """
     V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    c = V.mean(axis=0)
-    a, b, d = V[F[:, 0]] - c, V[F[:, 1]] - c, V[F[:, 2]] - c
-    vol = float(np.einsum("ij,ij->", a, np.cross(b, d)) / 6.0)
+    vol = signed_volume(V, F)
     if not vol > 0:
         vol = float(np.prod(V.max(axis=0) - V.min(axis=0)))
     return vol

@@ -28,6 +28,7 @@ from scipy.sparse.csgraph import connected_components
 from cagegen import MeshInputError
 from solvers.fem import boundary_faces
 
+from .memory import signed_volume
 from .tetmesh import tet_volumes
 
 __all__ = ["UNREPAIRABLE", "solid_surface"]
@@ -103,9 +104,7 @@ def _fill_voids(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, f
     from cagegen import split_components
 
     pieces = split_components(V, F)
-    # enclosed volume of each closed piece: the divergence theorem, one signed tet per face
-    vols = np.array([np.einsum("ij,ij->", W[G[:, 0]], np.cross(W[G[:, 1]], W[G[:, 2]])) / 6.0
-                     for W, G in pieces])
+    vols = np.array([signed_volume(W, G) for W, G in pieces])  # enclosed volume of each closed piece
     kept = [p for p, v in zip(pieces, vols) if v > 0]
     if not kept:
         raise MeshInputError("input: TetWild found no solid inside it")

@@ -438,8 +438,9 @@ def build_cage_surfaces(
 
 def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t0) -> tuple:
     """With ``repair`` on, an input whose audit fails for what TetWild can mend (overlapping bodies,
-    self-intersections, pinches) is replaced by the boundary of its solid
-    (:func:`nestmg.solid.solid_surface`).
+    self-intersections, pinches) is replaced by the boundary of its solid: the exact union of its pieces
+    when they are clean closed parts that overlap (:func:`nestmg.solid.exact_union`), else the boundary of
+    TetWild's solid (:func:`nestmg.solid.solid_surface`).
 
     Returns ``(V, F, info)``: the input itself and None when nothing had to be mended. One stage line
     says what was done; several disjoint bodies are refused with a one-line error.
@@ -447,7 +448,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     import cagegen
 
     from .memory import signed_volume
-    from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, solid_surface
+    from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, exact_union, solid_surface
 
     if not getattr(cages, "repair", False):
         return V, F, None
@@ -459,11 +460,13 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
         return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
     _refuse_disjoint_bodies(Vr, Fr)  # in seconds, before TetWild would find them
     names = [p.split(":")[0] for p in problems]
-    stage_line(f"repair: {', '.join(names)}; meshing the solid the {len(Fr):,}-face "
-               f"input encloses with TetWild" + (f" (decimated towards {REPAIR_MAX_FACES:,} faces first, within its "
-                                                 "envelope)" if len(Fr) > REPAIR_MAX_FACES else ""), t0)
     t = time.perf_counter()
-    W, G, info = solid_surface(Vr, Fr, epsilon=meshing.epsilon)
+    union = exact_union(Vr, Fr)  # clean closed parts that overlap: their exact union, no envelope
+    if union is None:
+        stage_line(f"repair: {', '.join(names)}; meshing the solid the {len(Fr):,}-face input encloses with "
+                   "TetWild" + (f" (decimated towards {REPAIR_MAX_FACES:,} faces first, within its envelope)"
+                                if len(Fr) > REPAIR_MAX_FACES else ""), t0)
+    W, G, info = union or solid_surface(Vr, Fr, epsilon=meshing.epsilon)
     W = W * scale + center
     info = dict(info, volume=info["volume"] * scale**3, volume_dropped=info["volume_dropped"] * scale**3,
                 volume_filled=info["volume_filled"] * scale**3)
@@ -472,8 +475,8 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     if info["bodies"] > 1:
         raise cagegen.MeshInputError(
             f"input: {info['bodies']} separate bodies (after the repair of: {', '.join(info['problems'])}); "
-            "a hierarchy is built for one solid: split the file (cagegen.split_components) and run each "
-            "piece, or cagegen.build_cages(..., components='separate') for cages only")
+            "a hierarchy is built for one solid: nestmg.bodies.build_body_hierarchies builds one per body (as "
+            "`nestmg solve` and `nestmg cages` do)")
     dropped, filled = info["volume_dropped"] / info["volume"], info["volume_filled"] / info["volume"]
     # against the input's own signed volume (a cavity the cheap repair turned outward and TetWild filled,
     # overlaps counted once): None when the input's orientation gives no volume
@@ -482,7 +485,8 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     dec = info.get("decimated")
     if dec and dec["faces_out"] < dec["faces_in"]:
         change += f"; TetWild got it decimated to {dec['faces_out']:,} faces (Hausdorff {dec['hausdorff']:.2g})"
-    stage_line(f"repair: {', '.join(info['problems'])} -> the boundary of the solid TetWild meshed: "
+    how = "the exact union of the overlapping parts" if union else "the boundary of the solid TetWild meshed"
+    stage_line(f"repair: {', '.join(info['problems'])} -> {how}: "
                f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%}{change} "
                f"({info['seconds']:.1f} s)", t0)
     return W, G, info

@@ -73,7 +73,7 @@ def test_pipeline_refuses_disjoint_bodies_after_the_repair():
         build_cage_surfaces(V, F, 2, "nested", cages=NestedOptions(repair=True), cache=False, progress=False)
     assert time.perf_counter() - t < 5.0
     V, F = _two_balls(2.0)  # touching at a point: TetWild's solid pinches there and comes out as two bodies
-    with pytest.raises(MeshInputError, match=r"2 separate bodies \(after the repair of: .*split the file"):
+    with pytest.raises(MeshInputError, match=r"2 separate bodies \(after the repair of: .*build_body_hierarchies"):
         build_cage_surfaces(V, F, 2, "nested", cages=NestedOptions(repair=True), cache=False, progress=False)
 
 
@@ -99,6 +99,7 @@ def test_cli_names_repair_then_cages_the_union(tmp_path, capsys):
     assert src.read_bytes() == before
     rep = json.loads((tmp_path / "b" / "report.json").read_text())
     assert rep["certified"] is True and rep["solid"]["bodies"] == 1
+    assert rep["solid"]["method"] == "union"  # two clean balls: their exact union, no TetWild envelope
     layer0 = trimesh.load(tmp_path / "b" / "layer_0.obj", process=False)
     W, G = np.asarray(layer0.vertices), np.asarray(layer0.faces)
     assert audit_mesh(W, G).ok
@@ -168,3 +169,60 @@ def test_a_large_repair_input_is_decimated_within_half_the_envelope_first():
     assert U is V and G is F and info["refused"]["hausdorff"] > 1e-9 and info["faces_out"] == len(F)
     small = trimesh.creation.icosphere(subdivisions=2)
     assert lighter_input(np.asarray(small.vertices), np.asarray(small.faces), 1e-3)[2] is None
+
+
+def _box(lo, hi):
+    m = trimesh.creation.box(bounds=[lo, hi])
+    return np.asarray(m.vertices, dtype=float), np.asarray(m.faces, dtype=np.int64)
+
+
+def _stack(*meshes):
+    offsets = np.cumsum([0] + [len(V) for V, _ in meshes])
+    return (np.vstack([V for V, _ in meshes]), np.vstack([F + o for (_, F), o in zip(meshes, offsets)]))
+
+
+def test_overlapping_clean_parts_become_their_exact_union():
+    """CAD parts exported together (plates overlapping, faces coplanar): the union is exact, sharp edges and
+    all, with no envelope; a piece that is not clean by itself leaves the repair to TetWild (None)."""
+    from nestmg.solid import exact_union
+
+    a, b = _box([0, 0, 0], [2, 1, 1]), _box([1, 0, 0], [3, 1, 0.5])  # coplanar bottom, front and back faces
+    V, F = _stack(a, b)
+    W, G, info = exact_union(V, F)
+    assert audit_mesh(W, G).ok and info["method"] == "union" and info["bodies"] == 1
+    assert signed_volume(W, G) == pytest.approx(2.5, rel=1e-12)  # 2 + 1 - 0.5 of overlap
+    assert info["volume"] == pytest.approx(2.5, rel=1e-12) and info["volume_filled"] == pytest.approx(0.0, abs=1e-12)
+    corners = np.array([[3, 1, 0.5], [2, 0, 1], [2, 1, 0.5], [0, 0, 0]], dtype=float)
+    assert np.abs(W[:, None, :] - corners[None]).max(axis=2).min(axis=0).max() < 1e-12  # corners kept exactly
+    # every vertex on the input's surface (no envelope, no rounding of the sharp edges)
+    import igl
+
+    d2 = igl.point_mesh_squared_distance(W, V, F)[0]
+    assert np.sqrt(d2.max()) < 1e-12
+    # a third box apart: two bodies
+    W, G, info = exact_union(*_stack(a, b, _box([5, 0, 0], [6, 1, 1])))
+    assert info["bodies"] == 2 and signed_volume(W, G) == pytest.approx(3.5, rel=1e-12)
+    assert exact_union(*a) is None  # one piece: nothing to unite
+    Vb, Fb = b
+    assert exact_union(*_stack(a, (Vb, Fb[:, ::-1]))) is None  # an inward piece (a cavity): TetWild decides
+    m = trimesh.creation.icosphere(subdivisions=2)
+    Vs, Fs = np.array(m.vertices), np.asarray(m.faces, dtype=np.int64)
+    Vs[0] *= -1.5  # one vertex pushed through the ball: its fan crosses the faces opposite
+    assert "self-intersections" in audit_mesh(Vs, Fs).problems[0]
+    assert exact_union(*_stack((Vs, Fs), _box([0.5, 0, 0], [2, 1, 1]))) is None  # not clean: TetWild decides
+
+
+def test_cli_unites_crossing_parts_into_disjoint_bodies(tmp_path, capsys):
+    """With --repair, overlapping parts become their union; when that leaves several bodies, each gets its
+    own hierarchy (the multi-body path), in the user's coordinates."""
+    from nestmg.cli import _bodies
+
+    V, F = _stack(_box([0, 0, 0], [2, 1, 1]), _box([1, 0, 0], [3, 1, 0.5]), _box([5, 0, 0], [6, 1, 1]))
+    V = V * 10.0 + [100.0, 0.0, 0.0]
+    with pytest.raises(MeshInputError, match=r"components 0 and 1 intersect each other.*--repair"):
+        _bodies(V, F, repair=False)
+    W, _, bodies = _bodies(V, F, repair=True)
+    assert len(bodies) == 2
+    vols = sorted(signed_volume(Wb, Gb) for Wb, Gb in bodies)
+    assert vols == pytest.approx([1000.0, 2500.0], rel=1e-12)  # user's units: 10^3 scale
+    assert W.min(axis=0) == pytest.approx([100.0, 0.0, 0.0])

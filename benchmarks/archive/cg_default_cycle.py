@@ -29,6 +29,13 @@ def variants(pr) -> dict:
         "problem_multigrid": lambda: pr.multigrid(),
         "constructor": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace),
         "fast": lambda: pr.multigrid(SolverOptions(smoothing="fast")),
+        # the constructor's cycle plus the boundary layer's one-way sweeps on the fine level (natural
+        # boundaries only: Problem.local_nodes is None on Dirichlet problems)
+        "constructor_layer": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace,
+                                                     local_nodes=pr.local_nodes, local_sweep="one-way",
+                                                     local_levels=1),
+        "constructor_layer_sym": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace,
+                                                         local_nodes=pr.local_nodes, local_levels=1),
     }
 
 

@@ -5,9 +5,10 @@ split such an input into its bodies, build one hierarchy per body (:func:`build_
 solve each body's problem on its own; the files they write hold all bodies. The rules:
 
 * **bodies**: the edge-connected pieces of the input (:func:`cagegen.split_components`) when no two of
-  them intersect and none lies inside another (:func:`cagegen.components.check_components_disjoint`).
-  Pieces that intersect or nest describe one solid: the audit refuses them and ``--repair`` meshes their
-  union (:func:`nestmg.hierarchy.build_hierarchy`).
+  them intersect and none lies inside another (:func:`cagegen.components.check_components_disjoint`); a
+  piece facing inward inside an outward one is a void of that body (:mod:`nestmg.cavities`) and goes with
+  it. Other pieces that intersect or nest describe one solid: the audit refuses them and ``--repair``
+  makes their union (:func:`nestmg.hierarchy.build_hierarchy`).
 * **one resolution for the file**: the fine edge is planned once on the whole input, with the file's
   budgets (``max_tets``, ``mesh_time_budget`` and the memory check count all bodies' tets;
   :func:`body_sizings`), and every body is meshed at that edge.
@@ -55,16 +56,22 @@ def disjoint_bodies(V: np.ndarray, F: np.ndarray, why: list | None = None
     F = np.asarray(F)
     if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
         return None  # not a triangle surface: the single-input path gives the error
+    from .cavities import merge_surfaces, solid_groups
+
     pieces = cagegen.split_components(V, F)
     if len(pieces) < 2:
         return None
+    groups = solid_groups(pieces)  # solids with voids: each outer surface with the voids inside it
+    if groups is not None and len(groups) == 1:
+        return None  # one solid with voids: the single-input path (nestmg.cavities)
+    outers = pieces if groups is None else [outer for outer, _ in groups]
     try:
-        check_components_disjoint(pieces)
+        check_components_disjoint(outers)
     except cagegen.MeshInputError as exc:
         if why is not None:
             why.append(str(exc))
         return None
-    return pieces
+    return pieces if groups is None else [merge_surfaces([outer, *voids]) for outer, voids in groups]
 
 
 #: A body enclosing less than this fraction of the whole input's volume is a speck (scan debris, a stray
@@ -98,12 +105,13 @@ def audit_bodies(bodies: list, repair: bool = False) -> None:
     cheap repairs and TetWild's solid cannot mend is refused here (the rest is mended body by body)."""
     import cagegen
 
+    from .cavities import audit_solid
     from .solid import UNREPAIRABLE
 
     for k, (Vb, Fb) in enumerate(bodies):
         name = f"body {k + 1} of {len(bodies)}"
         if not repair:
-            cagegen.check_mesh(Vb, Fb, name=name)
+            audit_solid(Vb, Fb, name=name)  # a body with voids: its outer surface and each void
             continue
         Vr, Fr = cagegen.repair_mesh(Vb, Fb)
         bad = [p for p in cagegen.audit_mesh(Vr, Fr).problems if p.startswith(UNREPAIRABLE)]

@@ -326,8 +326,14 @@ def _bodies(V, F, repair: bool = False):
     why: list = []
     bodies = disjoint_bodies(V, F, why) if F.shape[1] == 3 else None
     if why and not repair:  # pieces that cross or nest: say so, not only "several connected components"
-        raise MeshInputError(f"input: {why[0]} (--repair replaces crossing pieces by their union, a cavity is "
-                             "filled)")
+        import re
+
+        nested = re.match(r"component (\d+) lies inside component (\d+)", why[0])
+        if nested:  # a void facing outward (inward it would be a solid with a void: nestmg.cavities)
+            raise MeshInputError(f"input: component {nested[1]} lies inside component {nested[2]} and faces "
+                                 "outward: a void's surface must face the void (--repair reads a piece inside an "
+                                 "odd number of others as a void)")
+        raise MeshInputError(f"input: {why[0]} (--repair replaces crossing pieces by their union)")
     if why:  # --repair: clean parts that overlap become their exact union, maybe several bodies
         V, F, bodies = _union_bodies(V, F, bodies)
     if bodies:

@@ -383,6 +383,7 @@ def build_cage_surfaces(
     """
     import cagegen
 
+    from .cavities import merge_surfaces
     from .sizing import plan_levels
 
     sizing, meshing = sizing or SizingOptions(), meshing or MeshingOptions()
@@ -393,6 +394,9 @@ def build_cage_surfaces(
     if face_counts is not None:  # explicit counts that cannot be met fail in microseconds, before any repair
         plan_levels(len(F), levels, face_counts=face_counts)
     V, F, solid = _solid_input(V, F, cages, meshing, t0)
+    V_all, F_all, voids = V, F, _voids(V, F, meshing, t0)
+    if voids is not None:  # a solid with voids: the cages of its outer surface contain it
+        V, F = voids["outer"]
     Vn, center, scale = _normalize(V)
     # `levels` is a ceiling (the levels that fit F's faces, one line when fewer); explicit face counts are
     # checked here, before the audit: both in microseconds
@@ -433,7 +437,31 @@ def build_cage_surfaces(
                 levels=lp.to_dict())
     if solid is not None:
         info["solid"] = solid
+    if voids is not None:  # the input layer is the whole solid, voids included
+        out[0] = (V_all, F_all) if same else merge_surfaces([out[0], voids["voids"]])
+        info["voids"] = {"count": voids["count"], "faces": len(voids["voids"][1])}
     return out, info
+
+
+def _voids(V: np.ndarray, F: np.ndarray, meshing: MeshingOptions, t0) -> dict | None:
+    """A solid with voids (:func:`nestmg.cavities.hollow_solid`): ``outer`` and ``voids`` surfaces (each
+    ``(V, F)``, the voids audited), their ``count``; None for any other input (one stage line when found)."""
+    import cagegen
+
+    from .cavities import hollow_solid, solid_groups
+
+    hollow = hollow_solid(V, F)
+    if hollow is None:
+        return None
+    outer, voids, count = hollow
+    for k, (Vc, Fc) in enumerate(solid_groups(cagegen.split_components(V, F))[0][1]):
+        cagegen.check_mesh(Vc, Fc[:, ::-1], name=f"input (void {k + 1} of {count}, turned outward)")
+    if meshing.mesher != "tetwild":
+        raise NestmgInputError(f"input: a solid with {count} void(s): mesher={meshing.mesher!r} would fill "
+                               "them; mesh it with TetWild (the default), which keeps them")
+    stage_line(f"input: a solid with {count} void(s) ({len(voids[1]):,} faces): cages of its outer surface "
+               f"({len(outer[1]):,} faces), the voids in the levels meshed from the input", t0)
+    return {"outer": outer, "voids": voids, "count": count}
 
 
 def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t0) -> tuple:
@@ -452,6 +480,14 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
 
     if not getattr(cages, "repair", False):
         return V, F, None
+    from .cavities import hollow_solid, orient_by_nesting
+
+    if hollow_solid(V, F) is not None:
+        return V, F, None  # a solid with voids is no defect (the repair would fill them): nestmg.cavities
+    voids = orient_by_nesting(V, F)  # nested pieces facing out: the inner ones read as voids (even-odd)
+    if voids is not None:
+        stage_line("repair: pieces inside an odd number of others are voids: turned to face them", t0)
+        return V, voids, None
     Vn, center, scale = _normalize(V)  # TetWild works in the normalised frame
     v_in = signed_volume(Vn, F)  # as given (before the cheap repairs re-orient anything)
     Vr, Fr = cagegen.repair_mesh(Vn, F)
@@ -754,6 +790,7 @@ def build_hierarchy(
     """
     import cagegen
 
+    from .cavities import merge_surfaces
     from .small_inputs import cage_fits, refinement_hierarchy
 
     t0 = time.perf_counter()
@@ -772,12 +809,18 @@ def build_hierarchy(
     V, F, solid = _solid_input(V, F, cages, meshing, t0)
     if solid is not None:  # the repaired surface is the input from here on (returned as level 0's surface)
         Vn, center, scale = _normalize(V)
+    V_all, F_all, voids = V, F, _voids(V, F, meshing, t0)
+    if voids is not None:  # a solid with voids: cages of its outer surface; the voids in the input's levels
+        V, F = voids["outer"]
+        Vn = (V - center) / scale  # the same frame: the voids lie inside the outer surface
     if sizing.face_counts is None and sizing.same_domain_levels == 0 and not cage_fits(len(F)):
         # no cage fits a surface this coarse: one coarse mesh of it and red refinements (nestmg.small_inputs)
-        return refinement_hierarchy(V, F, Vn, (center, scale), levels, method, sizing=sizing, meshing=meshing,
-                                    cages=cages, cache=cache, progress=progress, t0=t0, solid=solid)
+        return refinement_hierarchy(V_all, F_all, (V_all - center) / scale, (center, scale), levels, method,
+                                    sizing=sizing, meshing=meshing, cages=cages, cache=cache, progress=progress,
+                                    t0=t0, solid=solid, voids=voids)
     # 1. sizes first: milliseconds, before any expensive stage
-    plan = _plan(Vn, F, levels, sizing, meshing.mesher, refine)
+    # the whole solid's volume, faces and wall thickness (voids included) set the sizes
+    plan = _plan((V_all - center) / scale, F_all, levels, sizing, meshing.mesher, refine, cage_input_faces=len(F))
     levels_asked, levels = levels, plan.n_levels  # --levels is a ceiling: the levels that fit the input
     if plan.levels["note"]:
         stage_line(plan.levels["note"], t0)
@@ -800,6 +843,10 @@ def build_hierarchy(
         info["solid"] = solid
     stage_line(f"cages ({method}): faces {[len(Fk) for _, Fk in surfaces_u]}, "
                f"certified {info.get('certified')} ({timer.seconds['cages']:.1f} s)", t0)
+    if voids is not None:  # the levels meshed from the input have the voids; the cages contain them
+        Vv, Fv = voids["voids"]
+        surfaces_u = [merge_surfaces([surfaces_u[0], ((Vv - center) / scale, Fv)]), *surfaces_u[1:]]
+        info["voids"] = {"count": voids["count"], "faces": len(Fv)}
     surfaces_n = [surfaces_u[0]] * n_same + list(surfaces_u)  # same-domain layers first
     # 4. tets and prolongations
     tets_n, Ps, reps, tt = tet_hierarchy(surfaces_n, sizing=sizing, meshing=meshing,
@@ -809,7 +856,7 @@ def build_hierarchy(
         tets_n, Ps, reps, surfaces_n = _refined_fine_level(tets_n, Ps, reps, surfaces_n, tt, plan, timer, t0)
     timings = {**timer.seconds, **tt, "total": time.perf_counter() - t0}
     # 5. back to the user's frame (the input layer is the caller's array itself unless decimated)
-    first = (V, F) if F0 is F else (S0 * scale + center, F0)
+    first = (V_all, F_all) if F0 is F else (surfaces_u[0][0] * scale + center, surfaces_u[0][1])
     n_first = 1 + n_same + int(refine)  # levels whose surface is the meshed input
     surfaces = [first] * n_first + [(Vk * scale + center, Fk) for Vk, Fk in surfaces_n[n_first:]]
     tets = [(Vt * scale + center, T) for Vt, T in tets_n]

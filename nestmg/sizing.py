@@ -300,6 +300,7 @@ def plan_hierarchy(
     meshed_fraction: float = 1.0,
     mesh_edge_factor: float = 1.0,
     surface_faces: int | None = None,
+    cage_input_faces: int | None = None,
     face_counts=None,
     fixed_levels: int = 0,
 ) -> SizingPlan:
@@ -336,6 +337,9 @@ def plan_hierarchy(
     surface_faces : int, optional
         Faces the mesher will really get (when predecimation was refused); default: the input's faces
         or those of its predecimation to the meshed edge, whichever is fewer.
+    cage_input_faces : int, optional
+        Faces of the surface the cages are built around (default ``len(F)``; a solid with voids is caged by
+        its outer surface, :mod:`nestmg.cavities`): the levels that fit are counted from them.
     face_counts : sequence of int, optional
         Explicit cage face counts (validated at once, see :func:`plan_levels`).
     fixed_levels : int
@@ -359,7 +363,8 @@ def plan_hierarchy(
     F = np.asarray(F, dtype=np.int64)
     if mesher not in COUNT_RATIO:
         raise NestmgInputError(f"unknown mesher {mesher!r}; choose from {sorted(COUNT_RATIO)}")
-    lp = plan_levels(len(F), levels, face_counts=face_counts, fixed_levels=fixed_levels)
+    lp = plan_levels(len(F) if cage_input_faces is None else int(cage_input_faces), levels,
+                     face_counts=face_counts, fixed_levels=fixed_levels)
     levels = lp.levels
     from cagegen import bbox_diagonal
 

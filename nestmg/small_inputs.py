@@ -29,7 +29,7 @@ def cage_fits(n_faces: int) -> bool:
 
 
 def refinement_hierarchy(V, F, Vn, frame, levels: int, method: str, *, sizing, meshing, cages, cache: bool,
-                         progress, t0: float, solid=None):
+                         progress, t0: float, solid=None, voids: dict | None = None):
     """The hierarchy of an input with no cage level (module docstring).
 
     Parameters
@@ -42,6 +42,9 @@ def refinement_hierarchy(V, F, Vn, frame, levels: int, method: str, *, sizing, m
         Start of the run (stage lines).
     solid : dict, optional
         The repair's record when ``V, F`` is a repaired input.
+    voids : dict, optional
+        ``V, F`` is a solid with voids (:func:`nestmg.hierarchy._voids`, voids audited): the outer surface is
+        audited, the whole surface meshed.
 
     Returns
     -------
@@ -57,7 +60,10 @@ def refinement_hierarchy(V, F, Vn, frame, levels: int, method: str, *, sizing, m
 
     center, scale = frame
     F_in = F
-    Vn, F = cagegen.check_mesh(Vn, F, repair=bool(getattr(cages, "repair", False)), name="input")
+    if voids is None:
+        Vn, F = cagegen.check_mesh(Vn, F, repair=bool(getattr(cages, "repair", False)), name="input")
+    else:  # the voids were audited one by one; the outer surface here, the whole surface is meshed
+        cagegen.check_mesh((voids["outer"][0] - center) / scale, voids["outer"][1], name="input (outer surface)")
     same = F.shape == F_in.shape and np.array_equal(F, F_in)  # not repaired: level 0's surface is the caller's
     n_ref = levels - 1  # refinements: level L-1 is meshed, levels L-2 .. 0 are refined
     plan = plan_hierarchy(Vn, F, levels, mesher=meshing.mesher, edge_length=sizing.edge_length,

@@ -137,22 +137,24 @@ def test_face_counts_that_cannot_be_met_fail_before_the_repair():
     assert time.perf_counter() - t < 1.0
 
 
-def test_the_repair_reports_a_filled_cavity_against_the_inputs_volume():
-    """A hollow ball (inner sphere facing the cavity): the cheap repair turns the inner piece outward and
-    TetWild's solid fills the cavity; the stage figure says so (+1/7 of the input's volume), and the CLI
-    names the cavity before any work without --repair."""
+def test_a_void_facing_outward_is_named_and_turned_by_the_repair():
+    """A hollow ball whose inner sphere faces outward (an exporter's void): named before any work without
+    --repair; with it the even-odd rule turns the inner sphere into a void, nothing is filled."""
     from cagegen import options_class
     from nestmg.cli import _bodies
     from nestmg.hierarchy import build_cage_surfaces
 
     s = trimesh.creation.icosphere(subdivisions=3)
     Vs, Fs = np.asarray(s.vertices), np.asarray(s.faces, dtype=np.int64)
-    V, F = np.vstack([Vs, 0.5 * Vs]), np.vstack([Fs, Fs[:, ::-1] + len(Vs)])
-    _, info = build_cage_surfaces(V, F, 2, "decimate", cages=options_class("decimate")(repair=True), cache=False,
-                                  progress=False)
-    assert info["solid"]["volume_change"] == pytest.approx(1 / 7, abs=0.01)
-    with pytest.raises(MeshInputError, match=r"component 1 lies inside component 0 .*a cavity is filled"):
+    V, F = np.vstack([Vs, 0.5 * Vs]), np.vstack([Fs, Fs + len(Vs)])
+    with pytest.raises(MeshInputError, match=r"component 1 lies inside component 0 and faces outward.*--repair"):
         _bodies(V, F, repair=False)
+    layers, info = build_cage_surfaces(V, F, 2, "decimate", cages=options_class("decimate")(repair=True),
+                                       cache=False, progress=False)
+    assert info["voids"]["count"] == 1 and "solid" not in info  # no TetWild solid: the void is kept
+    W, G = layers[0]
+    assert signed_volume(W, G) == pytest.approx(signed_volume(Vs, Fs) * (1 - 0.125), rel=1e-12)
+    assert np.array_equal(G[len(Fs):], Fs[:, ::-1] + len(Vs)) and np.array_equal(V, W)
 
 
 def test_a_large_repair_input_is_decimated_within_half_the_envelope_first():

@@ -135,9 +135,12 @@ def orient_by_nesting(V: np.ndarray, F: np.ndarray) -> np.ndarray | None:
     if len(masks) < 2:
         return None
     pieces = [(V, F[m]) for m in masks]  # the caller's vertices, each piece's faces
+    lo = np.array([V[np.unique(G)].min(axis=0) for _, G in pieces])
+    hi = np.array([V[np.unique(G)].max(axis=0) for _, G in pieces])
     for a in range(len(pieces)):
         for b in range(a + 1, len(pieces)):
-            if len(cross_intersection_pairs(*pieces[a], *pieces[b])):
+            if np.all(hi[a] >= lo[b]) and np.all(hi[b] >= lo[a]) and len(
+                    cross_intersection_pairs(*pieces[a], *pieces[b])):
                 return None
     depth = [sum(_inside(pieces[o], V[G[0, 0]]) for o in range(len(pieces)) if o != p)
              for p, (_, G) in enumerate(pieces)]

@@ -32,7 +32,7 @@ import numpy as np
 from ._geometry import as_mesh_arrays, cross_intersection_pairs, vertex_components
 from .errors import MeshInputError
 
-__all__ = ["build_cages_per_component", "check_components_disjoint", "split_components"]
+__all__ = ["build_cages_per_component", "check_components_disjoint", "crossing_pairs", "split_components"]
 
 
 def split_components(V, F) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -61,6 +61,12 @@ def split_components(V, F) -> list[tuple[np.ndarray, np.ndarray]]:
         remap[used] = np.arange(used.size)
         pieces.append((V[used].copy(), remap[Fi]))
     return pieces
+
+
+def crossing_pairs(VA, FA, VB, FB) -> np.ndarray:
+    """``(k, 2)`` pairs (face of A, face of B) that intersect, by the verifier's exact test; empty when the
+    two surfaces neither cross nor touch."""
+    return cross_intersection_pairs(VA, FA, VB, FB)
 
 
 def check_components_disjoint(pieces: list[tuple[np.ndarray, np.ndarray]]) -> None:

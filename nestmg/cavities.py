@@ -43,7 +43,7 @@ def solid_groups(pieces: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[tupl
         outside every outward one or inside several, a void inside a void, two pieces that cross): the
         callers' other checks then name the problem.
     """
-    from cagegen._geometry import cross_intersection_pairs
+    from cagegen.components import crossing_pairs
 
     from .memory import signed_volume
 
@@ -67,7 +67,7 @@ def solid_groups(pieces: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[tupl
         owner[c] = hosts[0]
     for a in range(len(pieces)):  # no two pieces cross (a void must lie strictly inside its solid)
         for b in range(a + 1, len(pieces)):
-            if boxes_meet(a, b) and len(cross_intersection_pairs(*pieces[a], *pieces[b])):
+            if boxes_meet(a, b) and len(crossing_pairs(*pieces[a], *pieces[b])):
                 return None
     return [(pieces[o], [pieces[c] for c in voids if owner[c] == o]) for o in outer]
 
@@ -122,7 +122,7 @@ def orient_by_nesting(V: np.ndarray, F: np.ndarray) -> np.ndarray | None:
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    from cagegen._geometry import cross_intersection_pairs
+    from cagegen.components import crossing_pairs
 
     from .memory import signed_volume
 
@@ -140,7 +140,7 @@ def orient_by_nesting(V: np.ndarray, F: np.ndarray) -> np.ndarray | None:
     for a in range(len(pieces)):
         for b in range(a + 1, len(pieces)):
             if np.all(hi[a] >= lo[b]) and np.all(hi[b] >= lo[a]) and len(
-                    cross_intersection_pairs(*pieces[a], *pieces[b])):
+                    crossing_pairs(*pieces[a], *pieces[b])):
                 return None
     depth = [sum(_inside(pieces[o], V[G[0, 0]]) for o in range(len(pieces)) if o != p)
              for p, (_, G) in enumerate(pieces)]

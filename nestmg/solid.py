@@ -149,8 +149,9 @@ def exact_union(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
     Returns
     -------
     (W, G, info) or None
-        The union's boundary, voids between the pieces filled (one outward surface per disjoint body of the
-        union), and ``info`` as :func:`solid_surface`'s (``method`` "union"); None when the input is one piece,
+        The union's boundary (one outward surface per disjoint body of the union, and an inward one per void
+        the parts enclose), ``info`` as :func:`solid_surface`'s (``method`` "union", ``voids``); None when the
+        input is one piece,
         a piece is not clean by itself (TetWild's solid is then the repair), or the union fails the audit.
     """
     import manifold3d
@@ -170,13 +171,13 @@ def exact_union(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
     G = np.asarray(mesh.tri_verts, dtype=np.int64)
     if len(G) == 0:
         return None
-    W, G, filled, bodies = _fill_voids(W, G)
-    if any(cagegen.audit_mesh(Wb, Gb).problems for Wb, Gb in cagegen.split_components(W, G)):
+    # a void the parts enclose (a sealed box of plates) stays a void: it faces inward (nestmg.cavities)
+    signed = [(Wb, Gb, signed_volume(Wb, Gb)) for Wb, Gb in cagegen.split_components(W, G)]
+    if any(cagegen.audit_mesh(Wb, Gb if v > 0 else Gb[:, ::-1]).problems for Wb, Gb, v in signed):
         return None
-    volume = signed_volume(W, G)
-    info = {"method": "union", "faces_in": len(F), "faces_out": len(G), "tets": 0, "bodies": bodies,
-            "pinch_rounds": 0, "volume": volume + filled, "volume_dropped": 0.0, "volume_filled": filled,
-            "decimated": None}
+    info = {"method": "union", "faces_in": len(F), "faces_out": len(G), "tets": 0,
+            "bodies": sum(v > 0 for *_, v in signed), "voids": sum(v < 0 for *_, v in signed), "pinch_rounds": 0,
+            "volume": signed_volume(W, G), "volume_dropped": 0.0, "volume_filled": 0.0, "decimated": None}
     return W, G, info
 
 

@@ -204,6 +204,17 @@ def test_overlapping_clean_parts_become_their_exact_union():
     # a third box apart: two bodies
     W, G, info = exact_union(*_stack(a, b, _box([5, 0, 0], [6, 1, 1])))
     assert info["bodies"] == 2 and signed_volume(W, G) == pytest.approx(3.5, rel=1e-12)
+    # six overlapping wall plates of a sealed box: one solid with one void (kept: the box's inside is air)
+    plates = [_box([0, 0, 0], [0.5, 3, 3]), _box([2.5, 0, 0], [3, 3, 3]),
+              _box([0.2, -0.1, 0.2], [2.8, 0.5, 2.8]), _box([0.2, 2.5, 0.2], [2.8, 3.1, 2.8]),
+              _box([0.1, 0.1, -0.2], [2.9, 2.9, 0.5]), _box([0.1, 0.1, 2.5], [2.9, 2.9, 3.2])]
+    W, G, info = exact_union(*_stack(*plates))
+    assert info["bodies"] == 1 and info["voids"] == 1
+    from nestmg.cavities import hollow_solid
+
+    outer, void, _ = hollow_solid(W, G)
+    assert signed_volume(*void) == pytest.approx(-8.0, rel=1e-12)  # the box's inside, [0.5, 2.5]^3
+    assert info["volume"] == pytest.approx(signed_volume(*outer) - 8.0, rel=1e-12)
     assert exact_union(*a) is None  # one piece: nothing to unite
     Vb, Fb = b
     assert exact_union(*_stack(a, (Vb, Fb[:, ::-1]))) is None  # an inward piece (a cavity): TetWild decides

@@ -26,6 +26,9 @@ milliseconds.
 
 from __future__ import annotations
 
+import functools
+import operator
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -166,14 +169,18 @@ def exact_union(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
               for W, G in pieces]
     if any(m.status() != manifold3d.Error.NoError for m in solids):
         return None
-    mesh = manifold3d.Manifold.batch_boolean(solids, manifold3d.OpType.Add).to_mesh64()
-    W = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3].copy()
-    G = np.asarray(mesh.tri_verts, dtype=np.int64)
-    if len(G) == 0:
-        return None
-    # a void the parts enclose (a sealed box of plates) stays a void: it faces inward (nestmg.cavities)
-    signed = [(Wb, Gb, signed_volume(Wb, Gb)) for Wb, Gb in cagegen.split_components(W, G)]
-    if any(cagegen.audit_mesh(Wb, Gb if v > 0 else Gb[:, ::-1]).problems for Wb, Gb, v in signed):
+    for union in (lambda: manifold3d.Manifold.batch_boolean(solids, manifold3d.OpType.Add),
+                  lambda: functools.reduce(operator.add, solids)):  # one by one: another triangulation
+        mesh = union().to_mesh64()
+        W = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3].copy()
+        G = np.asarray(mesh.tri_verts, dtype=np.int64)
+        if len(G) == 0:
+            return None
+        # a void the parts enclose (a sealed box of plates) stays a void: it faces inward (nestmg.cavities)
+        signed = [(Wb, Gb, signed_volume(Wb, Gb)) for Wb, Gb in cagegen.split_components(W, G)]
+        if not any(cagegen.audit_mesh(Wb, Gb if v > 0 else Gb[:, ::-1]).problems for Wb, Gb, v in signed):
+            break
+    else:  # coplanar faces triangulated into an overlap both times: TetWild's solid instead
         return None
     info = {"method": "union", "faces_in": len(F), "faces_out": len(G), "tets": 0,
             "bodies": sum(v > 0 for *_, v in signed), "voids": sum(v < 0 for *_, v in signed), "pinch_rounds": 0,

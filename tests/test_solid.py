@@ -215,6 +215,13 @@ def test_overlapping_clean_parts_become_their_exact_union():
     outer, void, _ = hollow_solid(W, G)
     assert signed_volume(*void) == pytest.approx(-8.0, rel=1e-12)  # the box's inside, [0.5, 2.5]^3
     assert info["volume"] == pytest.approx(signed_volume(*outer) - 8.0, rel=1e-12)
+    # flush plates (every outer face coplanar with three others): the batch union triangulates two coplanar
+    # faces into an overlap, the one-by-one union does not
+    flush = [_box([0, 0, 0], [0.5, 3, 3]), _box([2.5, 0, 0], [3, 3, 3]), _box([0, 0, 0], [3, 0.5, 3]),
+             _box([0, 2.5, 0], [3, 3, 3]), _box([0, 0, 0], [3, 3, 0.5]), _box([0, 0, 2.5], [3, 3, 3])]
+    W, G, info = exact_union(*_stack(*flush))
+    assert audit_mesh(*hollow_solid(W, G)[0]).ok and info["voids"] == 1
+    assert signed_volume(W, G) == pytest.approx(27.0 - 8.0, rel=1e-12)
     assert exact_union(*a) is None  # one piece: nothing to unite
     Vb, Fb = b
     assert exact_union(*_stack(a, (Vb, Fb[:, ::-1]))) is None  # an inward piece (a cavity): TetWild decides

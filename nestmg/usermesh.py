@@ -217,6 +217,7 @@ def hierarchy_from_tets(
         A cage could not be built or certified.
     """
     from .bodies import hierarchy_from_tet_bodies, tet_bodies
+    from .cavities import hollow_solid
     from .hierarchy import _normalize, build_cage_surfaces, cage_options_for
     from .sizing import plan_levels
 
@@ -244,7 +245,8 @@ def hierarchy_from_tets(
     # `levels` is a ceiling: a mesh with few boundary faces gets the levels whose smallest cage keeps
     # >= 100 faces (one line says so); explicit face counts that cannot be met fail here, before any work
     fc = None if sizing.face_counts is None else list(sizing.face_counts)
-    lp = plan_levels(len(Fs), levels, face_counts=fc)
+    hollow = hollow_solid(Vs, Fs)  # a solid with voids is caged by its outer boundary (nestmg.cavities)
+    lp = plan_levels(len(Fs if hollow is None else hollow[0][1]), levels, face_counts=fc)
     if lp.note:
         stage_line(lp.note, t0)
     with timer("cages"):

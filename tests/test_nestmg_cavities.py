@@ -100,7 +100,7 @@ def test_a_users_hollow_tet_mesh_keeps_its_nodes_and_void():
     V1, T1 = tetrahedralize(*_hollow_ball(res=12), mesher="tetwild", edge_length=0.1)
     assert hollow_solid(*boundary_surface(V1, T1)[:2]) is not None  # the tet mesh has the void
     H = hierarchy_from_tets(V1, T1, levels=2, progress=False)
-    assert H.certified and H.n_outside == [0]
+    assert H.certified and H.n_outside == [0] and H.options["levels"] == len(H.tets) == 2
     assert np.array_equal(H.tets[0][0], V1) and np.array_equal(H.tets[0][1], T1)
     pr = setup_problem(H.tets, H.P, "poisson-neumann")
     _, info = pr.multigrid().solve(pr.b, tol=1e-8, accel="cg", return_info=True)

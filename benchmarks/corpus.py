@@ -4,7 +4,7 @@
         --md docs/corpus.md
 
 For every closed surface file of ``ZOO_DIR`` (OBJ/OFF/PLY/STL; files with boundary or non-manifold edges
-are listed as skipped, with the reason):
+are listed as skipped, with the reason, unless ``--repair`` is given: it closes a scan's small holes):
 
 * ``solve``: the hierarchy ``nestmg solve FILE --levels 3 --no-cache`` builds by default (nested cages,
   TetWild), then the three model problems (Dirichlet / Neumann Poisson, Neumann diffusion) with the
@@ -415,17 +415,18 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
     main = str(doc.get("commit")).split(" / ")[0]
     for e in doc["meshes"]:  # rows re-run at another commit say so
         e = _at(e, ["solve"], main)
-        if not e["closed"]:
-            skipped.append(f"{e['mesh']} ({e['skipped']})")
-        elif "solve" in e:
+        if "solve" in e:  # an open surface too when it was run with --repair (holes closed)
             lines.append(solve_row(e))
+        elif not e["closed"]:
+            skipped.append(f"{e['mesh']} ({e['skipped']})")
     if b:
         lines += ["", "### `nestmg cages FILE --levels 3 --method M`", "",
                   "Cells: certified, seconds (* a layer by a fallback). Wheel: the reference `nested_cages` "
                   "at the nested face counts, its seconds over ours.", "",
                   "| mesh | faces | nested faces | " + " | ".join(b) + " | wheel |",
                   "|---|---|---|" + "---|" * len(b) + "---|"]
-        lines += [cages_row(_at(e, [f"cages:{m}" for m in b], main), b) for e in doc["meshes"] if e["closed"]]
+        lines += [cages_row(_at(e, [f"cages:{m}" for m in b], main), b) for e in doc["meshes"]
+                  if e["closed"] or any(f"cages:{m}" in e for m in b)]
     if skipped:
         lines += ["", "Not closed (skipped): " + "; ".join(skipped) + "."]
     failures = [f"- {e['mesh']} `{k}`: {_err(r)}" + (f" (last stage: {r['last_stage_lines'][-1]})"
@@ -530,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
             write_markdown(doc, args.md, args.out)
 
     for entry in doc["meshes"]:
-        if not entry["closed"]:
+        if not entry["closed"] and not args.repair:  # --repair closes a scan's small holes: open ones are run
             continue
         path = Path(entry.pop("path"))
         cases = [] if args.no_solve else [("solve", "")]

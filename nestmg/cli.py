@@ -690,8 +690,11 @@ def _repair_hint(exc: BaseException, args) -> str:
     from cagegen import MeshInputError
 
     mendable = ("self-intersections", "non-manifold", "several connected components")
-    if (isinstance(exc, MeshInputError) and not getattr(args, "repair", True)
-            and any(w in str(exc) for w in mendable) and "open boundary" not in str(exc)):
+    if not isinstance(exc, MeshInputError) or getattr(args, "repair", True):
+        return ""
+    if "open boundary" in str(exc):
+        return " (--repair closes small holes: a scan's, up to 5% of the surface's area)"
+    if any(w in str(exc) for w in mendable):
         return " (--repair meshes the solid it encloses with TetWild and uses that boundary)"
     return ""
 

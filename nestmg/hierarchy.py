@@ -476,7 +476,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     import cagegen
 
     from .memory import signed_volume
-    from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, exact_union, solid_surface
+    from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, exact_union, fill_holes, solid_surface
 
     if not getattr(cages, "repair", False):
         return V, F, None
@@ -492,6 +492,19 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     v_in = signed_volume(Vn, F)  # as given (before the cheap repairs re-orient anything)
     Vr, Fr = cagegen.repair_mesh(Vn, F)
     problems = cagegen.audit_mesh(Vr, Fr).problems
+    if [p.split(":")[0] for p in problems] == ["open boundary"]:  # a scan's holes, nothing else: close them
+        t = time.perf_counter()
+        Vr, Fr, holes = fill_holes(Vr, Fr)
+        problems = cagegen.audit_mesh(Vr, Fr).problems
+        stage_line(f"repair: open boundary -> {holes['holes']} hole(s) closed by {holes['patch_faces']:,} faces "
+                   f"({holes['patch_area_fraction']:.2%} of the area; least folding, then least area)"
+                   + (f"; still: {', '.join(p.split(':')[0] for p in problems)}" if problems else ""), t0)
+        if not problems:
+            volume = signed_volume(Vr, Fr) * scale**3
+            return Vr * scale + center, Fr, dict(
+                holes, method="holes", problems=["open boundary"], faces_in=len(F), faces_out=len(Fr), tets=0,
+                bodies=1, pinch_rounds=0, volume=volume, volume_dropped=0.0, volume_filled=0.0, decimated=None,
+                volume_change=None, seconds=time.perf_counter() - t)
     if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
         return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
     _refuse_disjoint_bodies(Vr, Fr)  # in seconds, before TetWild would find them

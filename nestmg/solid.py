@@ -39,7 +39,7 @@ from solvers.fem import boundary_faces
 from .memory import signed_volume
 from .tetmesh import tet_volumes
 
-__all__ = ["UNREPAIRABLE", "exact_union", "solid_surface"]
+__all__ = ["MAX_PATCH_FRACTION", "UNREPAIRABLE", "exact_union", "fill_holes", "solid_surface"]
 
 #: tet groups (connected through faces) below this fraction of the total volume are dropped
 SPECK_FRACTION = 1e-3
@@ -120,6 +120,102 @@ def _fill_voids(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, f
     W = np.concatenate([W for W, _ in kept])
     G = np.concatenate([G + o for (_, G), o in zip(kept, offsets)])
     return W, G, float(-vols[vols < 0].sum()) + 0.0, len(kept)  # + 0.0: no "-0.00%" on the stage line
+
+
+#: Holes are filled only when their patches add at most this fraction of the surface's area: a scan with
+#: holes (a few percent), not an open sheet (whose "hole" is as large as the sheet itself)
+MAX_PATCH_FRACTION = 0.05
+#: Longest boundary loop filled (the triangulation's dynamic programme is cubic in it)
+MAX_HOLE_VERTICES = 2000
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles between unit normals (pi where one is zero: a degenerate triangle)."""
+    ang = np.arccos(np.clip(np.einsum("...j,...j->...", a, b), -1.0, 1.0))
+    return np.where((np.abs(a).sum(axis=-1) == 0) | (np.abs(b).sum(axis=-1) == 0), np.pi, ang)
+
+
+def _hole_patch(P: np.ndarray, Nb: np.ndarray) -> np.ndarray:
+    """Triangles (local indices) closing the polygon ``P`` (n,3): the triangulation of least largest dihedral
+    angle, then least area (Liepa 2003, "Filling holes in meshes", weight (max angle, area) compared
+    lexicographically; angles in 0.01 rad bins), by dynamic programming over the sub-polygons ``i..k``.
+    ``Nb[j]``: unit normal of the surface's face on the hole's edge ``(j, j+1)``."""
+    n = len(P)
+    MA, AR, N = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n, 3))
+    O = np.full((n, n), -1, dtype=np.int64)
+    N[np.arange(n - 1), np.arange(1, n)] = Nb[:-1]
+    area_unit = 1.0 / max(float(np.ptp(P, axis=0).max()) ** 2, 1e-300)
+    for gap in range(2, n):
+        i = np.arange(n - gap)
+        k = i + gap
+        best = np.full(len(i), np.inf)
+        for m in (i + d for d in range(1, gap)):
+            cross = np.cross(P[m] - P[k], P[i] - P[k])  # triangle (k, m, i): the surface's orientation
+            nt = _unit(cross)
+            ma = np.maximum.reduce([MA[i, m], MA[m, k], _angle(nt, N[i, m]), _angle(nt, N[m, k])])
+            if gap == n - 1:  # the last edge (n-1, 0) borders the surface too
+                ma = np.maximum(ma, _angle(nt, Nb[n - 1][None]))
+            ar = AR[i, m] + AR[m, k] + 0.5 * np.linalg.norm(cross, axis=1)
+            key = np.floor(ma / 0.01) * 1e6 + ar * area_unit
+            b = key < best
+            best[b], O[i[b], k[b]], MA[i[b], k[b]], AR[i[b], k[b]], N[i[b], k[b]] = key[b], m[b], ma[b], ar[b], nt[b]
+    tris, stack = [], [(0, n - 1)]
+    while stack:
+        i, k = stack.pop()
+        if k - i >= 2:
+            m = int(O[i, k])
+            tris.append((k, m, i))
+            stack += [(i, m), (m, k)]
+    return np.array(tris, dtype=np.int64)
+
+
+def fill_holes(V: np.ndarray, F: np.ndarray, max_patch_fraction: float = MAX_PATCH_FRACTION
+               ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Close the holes of an open, otherwise clean surface (a scan's missing patches).
+
+    Each boundary loop is closed by :func:`_hole_patch` (no new vertices; the patch's orientation follows
+    the surface's). Returns ``(V, G, info)``: ``G`` is ``F`` followed by the patches; ``info`` holds
+    ``holes``, ``patch_faces`` and ``patch_area_fraction``.
+
+    Raises
+    ------
+    MeshInputError
+        A loop longer than :data:`MAX_HOLE_VERTICES`, or patches above ``max_patch_fraction`` of the
+        surface's area (an open sheet, not a solid with holes).
+    """
+    import igl
+
+    F = np.asarray(F, dtype=np.int64)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    face_of = dict(zip(map(tuple, E.tolist()), np.tile(np.arange(len(F)), 3).tolist()))
+    normals = _unit(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]))
+    patches = []
+    for L in igl.boundary_loop_all(F):
+        L = np.asarray(L, dtype=np.int64)
+        if len(L) > MAX_HOLE_VERTICES:
+            raise MeshInputError(f"input: a hole of {len(L)} boundary vertices (at most {MAX_HOLE_VERTICES} are "
+                                 "filled): close the surface first")
+        if (int(L[0]), int(L[1])) not in face_of:  # walk the loop the way its faces do
+            L = L[::-1]
+        n = len(L)
+        faces = [face_of[(int(L[j]), int(L[(j + 1) % n]))] for j in range(n)]
+        patches.append(L[_hole_patch(V[L], normals[faces])])
+    P = np.vstack(patches)
+
+    def area(G):
+        return 0.5 * float(np.linalg.norm(np.cross(V[G[:, 1]] - V[G[:, 0]], V[G[:, 2]] - V[G[:, 0]]), axis=1).sum())
+
+    fraction = area(P) / max(area(F), 1e-300)
+    if fraction > max_patch_fraction:
+        raise MeshInputError(f"input: an open surface whose {len(patches)} hole(s) would take {fraction:.0%} of its "
+                             f"area to close (at most {max_patch_fraction:.0%}): not a solid with holes")
+    info = {"holes": len(patches), "patch_faces": len(P), "patch_area_fraction": fraction}
+    return V, np.vstack([F, P]), info
 
 
 def _edge_pieces(V: np.ndarray, F: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

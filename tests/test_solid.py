@@ -246,3 +246,49 @@ def test_cli_unites_crossing_parts_into_disjoint_bodies(tmp_path, capsys):
     vols = sorted(signed_volume(Wb, Gb) for Wb, Gb in bodies)
     assert vols == pytest.approx([1000.0, 2500.0], rel=1e-12)  # user's units: 10^3 scale
     assert W.min(axis=0) == pytest.approx([100.0, 0.0, 0.0])
+
+
+def _holed_ball(holes: int = 3, subdivisions: int = 3):
+    """An icosphere with the faces around ``holes`` vertices removed (a scan's missing patches)."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces, dtype=np.int64)
+    centres = [0, 5, 9][:holes]  # icosahedron vertices, far apart
+    F = F[~np.isin(F, centres).any(axis=1)]
+    used, F = np.unique(F, return_inverse=True)
+    return V[used], F.reshape(-1, 3)
+
+
+def test_a_scans_small_holes_are_closed_an_open_sheet_is_refused():
+    """fill_holes: every loop closed without new vertices, orientation following the surface, the patches a
+    few percent of the area; a hemisphere (an open sheet) is refused: its 'hole' is as large as itself."""
+    from nestmg.solid import fill_holes
+
+    V, F = _holed_ball()
+    assert audit_mesh(V, F).problems[0].startswith("open boundary")
+    W, G, info = fill_holes(V, F)
+    assert info["holes"] == 3 and audit_mesh(W, G).ok and np.array_equal(G[:len(F)], F)
+    assert 0.0 < info["patch_area_fraction"] < 0.02  # 3 of 320 faces were 5-triangle fans: ~1.1%
+    full = trimesh.creation.icosphere(subdivisions=3)
+    assert signed_volume(W, G) == pytest.approx(full.volume, rel=2e-3)  # the five-triangle fans, flattened
+    Vh, Fh = np.asarray(full.vertices), np.asarray(full.faces)
+    cap = Fh[(Vh[Fh][:, :, 2] > -1e-9).all(axis=1)]  # the upper half: an open sheet
+    with pytest.raises(MeshInputError, match=r"would take \d+% of its area to close"):
+        fill_holes(Vh, cap)
+
+
+def test_cli_closes_the_holes_with_repair_only(tmp_path, capsys):
+    from nestmg.cli import main
+
+    V, F = _holed_ball()
+    src = tmp_path / "scan.obj"
+    _write_obj(src, 20.0 * V, F)
+    rc = main(["cages", str(src), "--levels", "2", "--out", str(tmp_path / "a"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "open boundary" in err and "--repair closes small holes" in err
+    rc = main(["cages", str(src), "--levels", "2", "--repair", "--out", str(tmp_path / "b"), "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    rep = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert rep["verification"]["ok"] and rep["solid"]["method"] == "holes" and rep["solid"]["holes"] == 3
+    layer0 = trimesh.load(tmp_path / "b" / "layer_0.obj", process=False)
+    assert audit_mesh(np.asarray(layer0.vertices), np.asarray(layer0.faces)).ok
+    assert np.abs(np.asarray(layer0.vertices)).max() == pytest.approx(20.0, rel=1e-9)  # the user's units

@@ -166,8 +166,9 @@ def damaged_meshes(draw, kinds=tuple(DAMAGE)):
 
 
 #: damage that the nestmg pipeline's repair (not cagegen's) may also mend: the input becomes the boundary
-#: of the solid TetWild meshes (nestmg.solid); overlapping parts fuse, disjoint ones are still refused
-SOLID_MENDED = ("spike", "second_part", "duplicate_face")
+#: of the solid TetWild meshes (nestmg.solid); overlapping parts fuse, disjoint ones are still refused;
+#: small holes are closed (nestmg.solid.fill_holes)
+SOLID_MENDED = ("spike", "second_part", "duplicate_face", "hole")
 
 
 def _expectation(kind: str, V: np.ndarray, repair: bool, pipeline: bool = False) -> str:

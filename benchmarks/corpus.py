@@ -218,8 +218,11 @@ def _child(kind: str, mesh: Path, arg: str, result: Path) -> None:
             rec = case_wheel(mesh, [int(c) for c in arg.split(",")])
         rec["ok"] = True
     except Exception as exc:  # noqa: BLE001 -- every failure is a row of the table
+        # the traceback without this machine's paths (the repository's files relative, the interpreter's named)
+        tb = traceback.format_exc().replace(str(Path(__file__).resolve().parents[1]) + os.sep, "")
+        tb = tb.replace(sys.prefix, "PYTHON").replace(str(mesh.parent), "ZOO_DIR")
         rec = {"ok": False, "error": " ".join(f"{type(exc).__name__}: {exc}".split())[:400],
-               "traceback": traceback.format_exc()[-1500:]}
+               "traceback": tb[-1500:]}
     rec["repair"] = bool(os.environ.get(REPAIR_ENV))
     rec["wall_seconds"] = time.perf_counter() - t
     rec["peak_mb"] = _peak_mb()

@@ -105,13 +105,13 @@ def audit_bodies(bodies: list, repair: bool = False) -> None:
     cheap repairs and TetWild's solid cannot mend is refused here (the rest is mended body by body)."""
     import cagegen
 
-    from .cavities import audit_solid
+    from .cavities import audit_voids
     from .solid import UNREPAIRABLE
 
     for k, (Vb, Fb) in enumerate(bodies):
         name = f"body {k + 1} of {len(bodies)}"
         if not repair:
-            audit_solid(Vb, Fb, name=name)  # a body with voids: its outer surface and each void
+            audit_voids(Vb, Fb, name=name)  # a body with voids: its outer surface and each void
             continue
         Vr, Fr = cagegen.repair_mesh(Vb, Fb)
         bad = [p for p in cagegen.audit_mesh(Vr, Fr).problems if p.startswith(UNREPAIRABLE)]

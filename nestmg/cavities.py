@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["hollow_solid", "merge_surfaces", "solid_groups"]
+__all__ = ["audit_voids", "hollow_solid", "merge_surfaces", "orient_by_nesting", "solid_groups"]
 
 
 def _inside(outer: tuple[np.ndarray, np.ndarray], point: np.ndarray) -> bool:
@@ -25,6 +25,16 @@ def _inside(outer: tuple[np.ndarray, np.ndarray], point: np.ndarray) -> bool:
     V, F = outer
     w = float(np.asarray(igl.fast_winding_number(V, F, point[None, :])).ravel()[0])
     return abs(w) > 0.5
+
+
+def _any_crossing(pieces: list[tuple[np.ndarray, np.ndarray]]) -> bool:
+    """Whether two of the pieces intersect (exact test, for pairs whose bounding boxes meet)."""
+    from cagegen.components import crossing_pairs
+
+    boxes = [(V[np.unique(F)].min(axis=0), V[np.unique(F)].max(axis=0)) for V, F in pieces]
+    return any(np.all(boxes[a][1] >= boxes[b][0]) and np.all(boxes[b][1] >= boxes[a][0])
+               and len(crossing_pairs(*pieces[a], *pieces[b]))
+               for a in range(len(pieces)) for b in range(a + 1, len(pieces)))
 
 
 def solid_groups(pieces: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[tuple, list]] | None:
@@ -43,8 +53,6 @@ def solid_groups(pieces: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[tupl
         outside every outward one or inside several, a void inside a void, two pieces that cross): the
         callers' other checks then name the problem.
     """
-    from cagegen.components import crossing_pairs
-
     from .memory import signed_volume
 
     vols = [signed_volume(V, F) for V, F in pieces]
@@ -65,10 +73,8 @@ def solid_groups(pieces: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[tupl
         if len(hosts) != 1 or any(_inside(pieces[d], p) for d in voids if d != c and boxes_meet(d, c)):
             return None
         owner[c] = hosts[0]
-    for a in range(len(pieces)):  # no two pieces cross (a void must lie strictly inside its solid)
-        for b in range(a + 1, len(pieces)):
-            if boxes_meet(a, b) and len(crossing_pairs(*pieces[a], *pieces[b])):
-                return None
+    if _any_crossing(pieces):  # a void must lie strictly inside its solid
+        return None
     return [(pieces[o], [pieces[c] for c in voids if owner[c] == o]) for o in outer]
 
 
@@ -79,9 +85,8 @@ def merge_surfaces(surfaces: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.nd
             np.vstack([np.asarray(F, dtype=np.int64) + o for (_, F), o in zip(surfaces, offsets)]))
 
 
-def hollow_solid(V: np.ndarray, F: np.ndarray) -> tuple[tuple, tuple, int] | None:
-    """``(outer, voids, n_voids)`` of one solid with voids (each a ``(V, F)``; ``voids`` all void surfaces
-    merged), else None (one piece, several solids, or pieces that do not describe a solid with voids)."""
+def _hollow_group(V: np.ndarray, F: np.ndarray) -> tuple[tuple, list] | None:
+    """``(outer, [void, ...])`` of one solid with voids, else None (see :func:`hollow_solid`)."""
     import cagegen
 
     F = np.asarray(F)
@@ -91,27 +96,34 @@ def hollow_solid(V: np.ndarray, F: np.ndarray) -> tuple[tuple, tuple, int] | Non
     if len(pieces) < 2:
         return None
     groups = solid_groups(pieces)
-    if groups is None or len(groups) != 1:
-        return None
-    outer, voids = groups[0]
-    return outer, merge_surfaces(voids), len(voids)
+    return groups[0] if groups is not None and len(groups) == 1 else None
 
 
-def audit_solid(V: np.ndarray, F: np.ndarray, name: str = "input") -> tuple | None:
-    """:func:`cagegen.check_mesh` of a solid that may have voids: the outer surface and each void (turned
-    outward for the audit) one by one when :func:`hollow_solid` finds voids, else ``(V, F)`` as a whole.
-    Returns :func:`hollow_solid`'s result (None without voids); raises :class:`cagegen.MeshInputError`."""
+def hollow_solid(V: np.ndarray, F: np.ndarray) -> tuple[tuple, tuple, int] | None:
+    """``(outer, voids, n_voids)`` of one solid with voids (each a ``(V, F)``; ``voids`` all void surfaces
+    merged), else None (one piece, several solids, or pieces that do not describe a solid with voids)."""
+    group = _hollow_group(V, F)
+    return None if group is None else (group[0], merge_surfaces(group[1]), len(group[1]))
+
+
+def audit_voids(V: np.ndarray, F: np.ndarray, name: str = "input", outer: bool = True) -> tuple | None:
+    """:func:`cagegen.check_mesh` of a solid that may have voids: each void (turned outward for the audit)
+    and, with ``outer``, the outer surface, one by one, when :func:`hollow_solid` finds voids; with
+    ``outer`` and no voids, ``(V, F)`` as a whole. Returns :func:`hollow_solid`'s result (None without
+    voids); raises :class:`cagegen.MeshInputError` naming the piece."""
     import cagegen
 
-    hollow = hollow_solid(V, F)
-    if hollow is None:
-        cagegen.check_mesh(V, F, name=name)
+    group = _hollow_group(V, F)
+    if group is None:
+        if outer:
+            cagegen.check_mesh(V, F, name=name)
         return None
-    (Vo, Fo), _, _ = hollow
-    cagegen.check_mesh(Vo, Fo, name=f"{name} (outer surface)")
-    for k, (Vc, Fc) in enumerate(solid_groups(cagegen.split_components(V, F))[0][1]):
-        cagegen.check_mesh(Vc, Fc[:, ::-1], name=f"{name} (void {k + 1})")
-    return hollow
+    (Vo, Fo), voids = group
+    if outer:
+        cagegen.check_mesh(Vo, Fo, name=f"{name} (outer surface)")
+    for k, (Vc, Fc) in enumerate(voids):
+        cagegen.check_mesh(Vc, Fc[:, ::-1], name=f"{name} (void {k + 1} of {len(voids)}, turned outward)")
+    return (Vo, Fo), merge_surfaces(voids), len(voids)
 
 
 def orient_by_nesting(V: np.ndarray, F: np.ndarray) -> np.ndarray | None:
@@ -121,8 +133,6 @@ def orient_by_nesting(V: np.ndarray, F: np.ndarray) -> np.ndarray | None:
     or the result is not one solid with voids (:func:`hollow_solid`)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
-
-    from cagegen.components import crossing_pairs
 
     from .memory import signed_volume
 
@@ -135,13 +145,8 @@ def orient_by_nesting(V: np.ndarray, F: np.ndarray) -> np.ndarray | None:
     if len(masks) < 2:
         return None
     pieces = [(V, F[m]) for m in masks]  # the caller's vertices, each piece's faces
-    lo = np.array([V[np.unique(G)].min(axis=0) for _, G in pieces])
-    hi = np.array([V[np.unique(G)].max(axis=0) for _, G in pieces])
-    for a in range(len(pieces)):
-        for b in range(a + 1, len(pieces)):
-            if np.all(hi[a] >= lo[b]) and np.all(hi[b] >= lo[a]) and len(
-                    crossing_pairs(*pieces[a], *pieces[b])):
-                return None
+    if _any_crossing(pieces):
+        return None
     depth = [sum(_inside(pieces[o], V[G[0, 0]]) for o in range(len(pieces)) if o != p)
              for p, (_, G) in enumerate(pieces)]
     if not any(d % 2 for d in depth):

@@ -446,16 +446,12 @@ def build_cage_surfaces(
 def _voids(V: np.ndarray, F: np.ndarray, meshing: MeshingOptions, t0) -> dict | None:
     """A solid with voids (:func:`nestmg.cavities.hollow_solid`): ``outer`` and ``voids`` surfaces (each
     ``(V, F)``, the voids audited), their ``count``; None for any other input (one stage line when found)."""
-    import cagegen
+    from .cavities import audit_voids
 
-    from .cavities import hollow_solid, solid_groups
-
-    hollow = hollow_solid(V, F)
+    hollow = audit_voids(V, F, outer=False)  # the outer surface is audited where the pipeline audits inputs
     if hollow is None:
         return None
     outer, voids, count = hollow
-    for k, (Vc, Fc) in enumerate(solid_groups(cagegen.split_components(V, F))[0][1]):
-        cagegen.check_mesh(Vc, Fc[:, ::-1], name=f"input (void {k + 1} of {count}, turned outward)")
     if meshing.mesher != "tetwild":
         raise NestmgInputError(f"input: a solid with {count} void(s): mesher={meshing.mesher!r} would fill "
                                "them; mesh it with TetWild (the default), which keeps them")

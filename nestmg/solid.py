@@ -36,6 +36,7 @@ from scipy.sparse.csgraph import connected_components
 from cagegen import MeshInputError
 from solvers.fem import boundary_faces
 
+from .cavities import merge_surfaces
 from .memory import signed_volume
 from .tetmesh import tet_volumes
 
@@ -116,9 +117,7 @@ def _fill_voids(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, f
     kept = [p for p, v in zip(pieces, vols) if v > 0]
     if not kept:
         raise MeshInputError("input: TetWild found no solid inside it")
-    offsets = np.cumsum([0] + [len(W) for W, _ in kept])
-    W = np.concatenate([W for W, _ in kept])
-    G = np.concatenate([G + o for (_, G), o in zip(kept, offsets)])
+    W, G = merge_surfaces(kept)
     return W, G, float(-vols[vols < 0].sum()) + 0.0, len(kept)  # + 0.0: no "-0.00%" on the stage line
 
 

@@ -93,7 +93,8 @@ def default_face_counts(n_faces: int, levels: int, ratio: float = 4.0, min_faces
     ------
     LevelsError
         If ``levels < 1``, ``ratio <= 1``, or the coarsest layer would have fewer than ``min_faces``
-        faces (the message says how many levels fit).
+        faces (the message says how many levels fit, or, when none does, that ``face_counts`` can ask for
+        smaller cages).
 
     Examples
     --------
@@ -104,6 +105,13 @@ def default_face_counts(n_faces: int, levels: int, ratio: float = 4.0, min_faces
     counts = [_even(n_faces / ratio**k) for k in range(1, int(levels))]
     if counts and counts[-1] < min_faces:
         fit = fitting_levels(n_faces, levels, ratio, min_faces)
+        if fit <= 1:  # "lower levels" cannot help: say what can
+            half = _even(n_faces / 2)
+            raise LevelsError(
+                f"no cage fits a {n_faces}-face input at ratio {ratio:g}: its first cage would have "
+                f"{counts[0]} < min_faces={min_faces} faces; smaller cages only when asked for by face_counts"
+                + (f" (e.g. [{half}])" if half >= 4 else "")
+            )
         raise LevelsError(
             f"cannot build {levels} levels from {n_faces} faces at ratio {ratio:g}: the coarsest cage "
             f"would have {counts[-1]} < min_faces={min_faces} faces; at most {fit} levels fit "

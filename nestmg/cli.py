@@ -677,7 +677,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"nestmg: solver error: {_one_line(exc)}", file=sys.stderr)
         return 3
     except NestmgError as exc:
-        print(f"nestmg: error: {_one_line(exc)}{_repair_hint(exc, args)}", file=sys.stderr)
+        print(f"nestmg: error: {_one_line(exc)}{_repair_hint(exc, args)}{_levels_hint(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:  # an output that cannot be written, e.g. --out naming an existing file
         where = f"{exc.filename}: " if exc.filename else ""
@@ -696,6 +696,15 @@ def _repair_hint(exc: BaseException, args) -> str:
         return " (--repair closes small holes: a scan's, up to 5% of the surface's area)"
     if any(w in str(exc) for w in mendable):
         return " (--repair meshes the solid it encloses with TetWild and uses that boundary)"
+    return ""
+
+
+def _levels_hint(exc: BaseException) -> str:
+    """The command line's name of the library's ``face_counts`` when a message asks for it."""
+    from cagegen import LevelsError
+
+    if isinstance(exc, LevelsError) and "asked for by face_counts" in str(exc):
+        return "; on the command line: --face-counts (`nestmg solve` meshes an input this coarse without a cage)"
     return ""
 
 

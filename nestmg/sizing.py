@@ -186,7 +186,7 @@ def plan_levels(
         raise LevelsError(f"--levels {levels} leaves no cage level (levels >= {fixed + 2} needed here)")
     fit = fitting_levels(int(n_faces), n_surf, ratio, min_faces) if n_faces >= 4 else 1
     # not even one cage fits: keep one, and let cagegen.build_cages refuse it after its audit (a broken
-    # small input is then named as such, a valid one gets "at most 1 levels fit ... pass face_counts")
+    # small input is then named as such, a valid one gets "no cage fits ... asked for by face_counts")
     granted = levels - (n_surf - max(fit, 2))
     note = "" if granted == levels or fit < 2 else (
         f"levels: {granted} of the {levels} asked fit {n_faces:,} faces at ratio {ratio:g} "

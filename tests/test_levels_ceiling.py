@@ -87,7 +87,9 @@ def test_too_small_input_is_audited_first_then_refused():
 
     s = trimesh.creation.icosphere(subdivisions=2)  # 320 faces: a cage of 80 < 100 faces
     V, F = np.asarray(s.vertices), np.asarray(s.faces, dtype=np.int64)
-    with pytest.raises(LevelsError, match=r"cannot build 2 levels from 320 faces.*at most 1 levels fit"):
+    # "lower levels" cannot help there: the message says what can
+    with pytest.raises(LevelsError, match=r"^no cage fits a 320-face input at ratio 4: its first cage would have "
+                                          r"80 < min_faces=100 faces; .*face_counts \(e\.g\. \[160\]\)$"):
         build_cage_surfaces(V, F, 3, cache=False, progress=False)
     with pytest.raises(MeshInputError):  # a broken small input is named as broken, not as too small
         build_cage_surfaces(V, F[:-1], 3, cache=False, progress=False)
@@ -154,7 +156,7 @@ def test_cli_on_a_small_medit_tet_mesh_with_three_levels(small_tets, tmp_path, c
 
     from nestmg.cli import main
 
-    V, T, nb = small_tets
+    V, T, _ = small_tets
     src = tmp_path / "part.mesh"
     meshio.write(str(src), meshio.Mesh(V * 25.0, [("tetra", T)]), file_format="medit")
     rc = main(["solve", str(src), "--levels", "3", "--problem", "poisson-neumann", "--quiet", "--no-cache",
@@ -171,3 +173,25 @@ def test_cli_on_a_small_medit_tet_mesh_with_three_levels(small_tets, tmp_path, c
     assert rc == 2 and time.perf_counter() - t < 1.0
     assert err.startswith("nestmg: error: --face-counts 5000 cannot be met") and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_cli_cages_of_an_input_too_coarse_for_any_cage(tmp_path, capsys):
+    """A 12-face box: no cage of 100 faces fits under it. ``nestmg cages`` says so in one line naming
+    ``--face-counts`` (exit code 2, before any cage work), and builds the cage that option asks for."""
+    import trimesh
+
+    from nestmg.cli import main
+
+    src = tmp_path / "box.stl"
+    trimesh.creation.box(extents=(30.0, 20.0, 10.0)).export(src)
+    t = time.perf_counter()
+    rc = main(["cages", str(src), "--levels", "3", "--out", str(tmp_path / "c"), "--quiet", "--no-cache"])
+    err = capsys.readouterr().err
+    assert rc == 2 and time.perf_counter() - t < 5.0
+    assert err.startswith("nestmg: error: no cage fits a 12-face input at ratio 4") and "Traceback" not in err
+    assert "(e.g. [6]); on the command line: --face-counts" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "c").exists()
+    rc = main(["cages", str(src), "--face-counts", "6", "--out", str(tmp_path / "c"), "--quiet", "--no-cache"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "[12, 6] faces; verifier ok=True" in out.out

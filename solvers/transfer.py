@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from . import _kernels
 from .errors import SolverInputError
 from .fem import node_indices
 from .memory import check_memory, galerkin_bytes
@@ -183,6 +184,8 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
     level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
     ``positions``, ``half_positions``: lists that receive the diagonal entries' positions in ``A`` and in the
     half (None if a row lacks it)."""
+    if _kernels.ENABLED:
+        return _lower_half_compiled(A, positions, half_positions)
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
     diag = np.flatnonzero(A.indices == rows)
@@ -202,6 +205,19 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
     if half_positions is not None:
         half_positions.append(where if diag.size == n else None)
     d = A.data.take(diag) if diag.size == n else A.diagonal()
+    return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
+
+
+def _lower_half_compiled(A: sp.csr_matrix, positions: list | None = None,
+                         half_positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
+    """:func:`_lower_half` by one compiled loop (:func:`solvers._kernels.lower_half`): the same arrays, in one
+    pass over the entries instead of six numpy passes (20 of a 1M-tet user hierarchy's ~230 ms set-up)."""
+    indptr, indices, data, d, pos, hpos, complete = _kernels.lower_half(A.indptr, A.indices, A.data,
+                                                                         bool(A.has_sorted_indices))
+    if positions is not None:
+        positions.append(pos if complete else None)
+    if half_positions is not None:
+        half_positions.append(hpos if complete else None)
     return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
 
 

@@ -60,6 +60,48 @@ def probe_products(indptr, indices, data, x):  # pragma: no cover - compiled
 
 
 @_jit
+def relabelled_transpose(indptr, indices, data, inv, x, probe):  # pragma: no cover - compiled
+    """``Bᵀ`` in canonical CSR form for ``B`` = the rows of ``(indptr, indices, data)`` with their columns
+    relabelled by ``inv`` (a permutation), and, when ``probe``, ``(B x, Bᵀ x, max |b_ij|)`` from the same
+    pass: the relabelling ``take``, scipy's counting transpose and :func:`probe_products` in one (the same
+    arrays as ``_transposed`` of the relabelled matrix).
+
+    Returns ``(indptr, indices, data, Bx, Btx, amax)`` (the vectors empty without ``probe``)."""
+    one = _U(1)
+    n = _U(indptr.size - 1)
+    ncol = _U(inv.size)
+    nxt = np.zeros(ncol + one, indptr.dtype)
+    for q in range(_U(indptr[n])):
+        nxt[_U(inv[_U(indices[q])]) + one] += 1
+    for c in range(ncol):
+        nxt[c + one] += nxt[c]
+    tptr = nxt.copy()
+    tind = np.empty(_U(indptr[n]), indices.dtype)
+    tdat = np.empty(_U(indptr[n]), data.dtype)
+    m = n if probe else _U(0)
+    y = np.zeros(m)
+    yt = np.zeros(ncol if probe else _U(0))
+    amax = 0.0
+    for r in range(n):
+        acc = 0.0
+        xr = x[r] if probe else 0.0
+        for q in range(_U(indptr[r]), _U(indptr[r + one])):
+            c = _U(inv[_U(indices[q])])
+            v = data[q]
+            w = _U(nxt[c])
+            tind[w] = r
+            tdat[w] = v
+            nxt[c] += 1
+            if probe:
+                acc += v * x[c]
+                yt[c] += v * xr
+                amax = max(amax, abs(v))
+        if probe:
+            y[r] = acc
+    return tptr, tind, tdat, y, yt, amax
+
+
+@_jit
 def lower_half(indptr, indices, data, sorted_rows):  # pragma: no cover - compiled
     """The ``L + D/2`` split of :func:`solvers.transfer._lower_half`: the entries with column <= row in ``A``'s
     order, the diagonal ones halved.

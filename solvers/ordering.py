@@ -129,17 +129,19 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
         ``Ap`` (canonical; ``A[p][:, p]`` exactly when ``A`` is exactly symmetric, else within ``rtol`` of
         it when symmetric, and exactly when not) and the symmetry verdict.
     """
-    B = _gathered(A, p, p)
-    Bt = _transposed(B)
+    x = np.random.default_rng(seed).uniform(-1.0, 1.0, A.shape[0]) if probe else None
+    if _kernels.ENABLED:  # the relabelling, the transpose and the probe products in one pass over the rows
+        B = A[p]
+        Bt, Bx, Btx, amax = _relabelled_transpose(B, _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype), x)
+    else:
+        B = _gathered(A, p, p)
+        Bt = _transposed(B)
+        if probe:
+            Bx, Btx = B @ x, Bt @ x
+            # max |a_ij| as max(max a, -min a): two reductions, no O(nnz) temporary
+            amax = max(float(B.data.max()), -float(B.data.min())) if B.nnz else 0.0
     if not probe:
         return Bt, True
-    x = np.random.default_rng(seed).uniform(-1.0, 1.0, B.shape[0])
-    if _kernels.ENABLED:  # both products and max |b_ij| in one pass over B
-        Bx, Btx, amax = _kernels.probe_products(B.indptr, B.indices, B.data, x)
-    else:
-        Bx, Btx = B @ x, Bt @ x
-        # max |a_ij| as max(max a, -min a): two reductions, no O(nnz) temporary
-        amax = max(float(B.data.max()), -float(B.data.min())) if B.nnz else 0.0
     scale = rtol * (amax if B.nnz else 1.0)
     symmetric = float(np.abs(Bx - Btx).max(initial=0.0)) <= scale
     return (Bt, True) if symmetric else (_transposed(Bt), False)
@@ -159,6 +161,18 @@ def _transposed(B: sp.csr_matrix) -> sp.csr_matrix:
     out = sp.csr_matrix((t.data, t.indices, t.indptr), shape=(B.shape[1], B.shape[0]))
     out.has_canonical_format = True
     return out
+
+
+def _relabelled_transpose(B: sp.csr_matrix, inv: np.ndarray, x: np.ndarray | None):
+    """``(Bᵀ, Bx, Bᵀx, max |b_ij|)`` of ``B`` = ``B``'s rows relabelled by ``inv`` (the last three None
+    without ``x``), by :func:`solvers._kernels.relabelled_transpose`: ``Bᵀ`` the same canonical matrix as
+    ``_transposed``'s."""
+    probe = x is not None
+    indptr, indices, data, Bx, Btx, amax = _kernels.relabelled_transpose(
+        B.indptr, B.indices, B.data, inv, x if probe else np.zeros(0), probe)
+    Bt = sp.csr_matrix((data, indices, indptr), shape=(B.shape[1], B.shape[0]))
+    Bt.has_canonical_format = True
+    return (Bt, Bx, Btx, amax) if probe else (Bt, None, None, None)
 
 
 def diagonal_first(A: sp.csr_matrix, positions: np.ndarray, *, in_place: bool = False) -> sp.csr_matrix:

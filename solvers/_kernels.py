@@ -182,3 +182,22 @@ def swap_diagonal_first(indptr, indices, data, positions):  # pragma: no cover -
         v = data[s]
         data[s] = data[q]
         data[q] = v
+
+
+@_jit
+def sort_rows(indptr, indices, data):  # pragma: no cover - compiled
+    """In place: every row's entries sorted by column (insertion sort: for short rows, such as a
+    prolongation's four barycentric weights; a row without duplicate columns has one sorted order)."""
+    one = _U(1)
+    for r in range(_U(indptr.size - 1)):
+        s = _U(indptr[r])
+        for q in range(s + one, _U(indptr[r + one])):
+            c = indices[q]
+            v = data[q]
+            m = q
+            while m > s and indices[m - one] > c:
+                indices[m] = indices[m - one]
+                data[m] = data[m - one]
+                m -= one
+            indices[m] = c
+            data[m] = v

@@ -168,8 +168,9 @@ def _relabelled_transpose(B: sp.csr_matrix, inv: np.ndarray, x: np.ndarray | Non
     without ``x``), by :func:`solvers._kernels.relabelled_transpose`: ``Bᵀ`` the same canonical matrix as
     ``_transposed``'s."""
     probe = x is not None
-    indptr, indices, data, Bx, Btx, amax = _kernels.relabelled_transpose(
-        B.indptr, B.indices, B.data, inv, x if probe else np.zeros(0), probe)
+    indices, data = np.empty(B.nnz, B.indices.dtype), np.empty(B.nnz, B.data.dtype)  # numpy's huge pages
+    indptr, Bx, Btx, amax = _kernels.relabelled_transpose(B.indptr, B.indices, B.data, inv,
+                                                          x if probe else np.zeros(0), probe, indices, data)
     Bt = sp.csr_matrix((data, indices, indptr), shape=(B.shape[1], B.shape[0]))
     Bt.has_canonical_format = True
     return (Bt, Bx, Btx, amax) if probe else (Bt, None, None, None)

@@ -210,10 +210,13 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
 
 def _lower_half_compiled(A: sp.csr_matrix, positions: list | None = None,
                          half_positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
-    """:func:`_lower_half` by one compiled loop (:func:`solvers._kernels.lower_half`): the same arrays, in one
-    pass over the entries instead of six numpy passes (20 of a 1M-tet user hierarchy's ~230 ms set-up)."""
-    indptr, indices, data, d, pos, hpos, complete = _kernels.lower_half(A.indptr, A.indices, A.data,
-                                                                         bool(A.has_sorted_indices))
+    """:func:`_lower_half` by two compiled loops (:func:`solvers._kernels.lower_counts`, ``lower_fill``): the
+    same arrays, in two passes over the entries (the second over the lower ones) instead of six numpy passes."""
+    srt = bool(A.has_sorted_indices)
+    indptr, pos = _kernels.lower_counts(A.indptr, A.indices, srt)
+    indices, data = np.empty(indptr[-1], A.indices.dtype), np.empty(indptr[-1], A.data.dtype)
+    d, hpos = _kernels.lower_fill(A.indptr, A.indices, A.data, srt, indices, data)
+    complete = bool(pos.size == 0 or pos.min() >= 0)
     if positions is not None:
         positions.append(pos if complete else None)
     if half_positions is not None:

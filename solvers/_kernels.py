@@ -203,3 +203,19 @@ def sort_rows(indptr, indices, data):  # pragma: no cover - compiled
                 m -= one
             indices[m] = c
             data[m] = v
+
+
+@_jit
+def row_min(indptr, indices, rank):  # pragma: no cover - compiled
+    """``min(rank[indices[q]] for q in row i)`` for every (non-empty) row: ``np.minimum.reduceat`` of the
+    gathered ranks without the gathered array (7 ms against ~1 on a 1M-tet hierarchy's first prolongation)."""
+    one = _U(1)
+    n = _U(indptr.size - 1)
+    out = np.empty(n, rank.dtype)
+    for r in range(n):
+        s = _U(indptr[r])
+        m = rank[_U(indices[s])]
+        for q in range(s + one, _U(indptr[r + one])):
+            m = min(m, rank[_U(indices[q])])
+        out[r] = m
+    return out

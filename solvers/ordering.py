@@ -98,7 +98,9 @@ def locality_order(Ps) -> list[np.ndarray]:
         if (np.diff(P.indptr) == 0).any():
             raise SolverInputError("locality_order needs prolongations without empty rows")
         rank = _inverse(orders[0])
-        key = np.minimum.reduceat(rank.take(P.indices), P.indptr[:-1])  # lowest-ranked coarse parent per row
+        # lowest-ranked coarse parent per row
+        key = (_kernels.row_min(P.indptr, P.indices, rank) if _kernels.ENABLED
+               else np.minimum.reduceat(rank.take(P.indices), P.indptr[:-1]))
         orders.insert(0, _stable_argsort(key).astype(np.int64))
     return orders
 

@@ -165,3 +165,10 @@ def test_permuted_prolongation_with_four_weights_per_row(compiled):
     (P1, R1), (P0, R0) = compiled(lambda: permute_prolongation(P, pf, pc, with_transpose=True))
     assert _same(P1, P0) and _same(R1, R0) and P1.has_canonical_format
     assert abs(P1 - P[pf][:, pc]).max() == 0.0 and abs(R1 - P1.T).max() == 0.0
+
+
+@needs_numba
+def test_locality_order_is_the_same(compiled, scattered):
+    """The rows' lowest-ranked parents by one loop (:func:`solvers._kernels.row_min`): the same orders."""
+    o1, o0 = compiled(lambda: locality_order(scattered[1]))
+    assert len(o1) == len(o0) == 3 and all(np.array_equal(a, b) for a, b in zip(o1, o0))

@@ -219,3 +219,130 @@ def row_min(indptr, indices, rank):  # pragma: no cover - compiled
             m = min(m, rank[_U(indices[q])])
         out[r] = m
     return out
+
+
+@_jit
+def csr_matmat(aptr, aind, adat, bptr, bind, bdat, k, ncol, oind, odat, counts):  # pragma: no cover - compiled
+    """``C = A B`` into ``oind``, ``odat`` (allocated by the caller at a bound of ``nnz(C)``): scipy's
+    ``csr_matmat`` (the same sums in the same order, exact zeros dropped), each row's entries in the order
+    they were first reached instead of scipy's linked-list order. ``k > 0``: every row of ``B`` holds ``k``
+    entries (``bptr`` unused: a non-nested prolongation's four weights). ``counts``: ``ncol + 1`` zeros that
+    receive the column counts of ``C`` at ``[c + 1]`` (the next transpose skips its counting pass), or empty.
+
+    Returns ``C``'s row pointers (``nnz(C)`` their last)."""
+    one = _U(1)
+    kk = _U(k)
+    n = _U(aptr.size - 1)
+    count = counts.size > 0
+    optr = np.empty(n + one, aptr.dtype)
+    acc = np.zeros(ncol, odat.dtype)
+    mark = np.zeros(ncol, np.uint64)  # 1 + the last row that reached the column
+    w = _U(0)
+    optr[0] = 0
+    for i in range(n):
+        stamp = i + one
+        start = w
+        for m in range(_U(aptr[i]), _U(aptr[i + one])):
+            j = _U(aind[m])
+            v = adat[m]
+            s, e = (kk * j, kk * j + kk) if kk > 0 else (_U(bptr[j]), _U(bptr[j + one]))
+            for q in range(s, e):
+                b = _U(bind[q])
+                if mark[b] != stamp:
+                    mark[b] = stamp
+                    acc[b] = v * bdat[q]
+                    oind[w] = bind[q]
+                    w += one
+                else:
+                    acc[b] += v * bdat[q]
+        keep = start
+        for q in range(start, w):
+            b = _U(oind[q])
+            if acc[b] != 0.0:
+                oind[keep] = oind[q]
+                odat[keep] = acc[b]
+                keep += one
+                if count:
+                    counts[b + one] += 1
+        w = keep
+        optr[i + one] = w
+    return optr
+
+
+@_jit
+def csr_transpose(ptr, ind, dat, ncol, counts, tind, tdat):  # pragma: no cover - compiled
+    """``Bᵀ`` (canonical CSR: each row's entries in increasing column, the counting sort's order) into
+    ``tind``, ``tdat``; ``counts``: :func:`csr_matmat`'s column counts of ``B``, or empty (counted here).
+    Returns the row pointers."""
+    one = _U(1)
+    n = _U(ptr.size - 1)
+    nxt = np.zeros(_U(ncol) + one, ptr.dtype)
+    if counts.size > 0:
+        nxt[:] = counts
+    else:
+        for q in range(_U(ptr[n])):
+            nxt[_U(ind[q]) + one] += 1
+    for c in range(_U(ncol)):
+        nxt[c + one] += nxt[c]
+    tptr = nxt.copy()
+    for r in range(n):
+        for q in range(_U(ptr[r]), _U(ptr[r + one])):
+            c = _U(ind[q])
+            w = _U(nxt[c])
+            tind[w] = r
+            tdat[w] = dat[q]
+            nxt[c] += 1
+    return tptr
+
+
+@_jit
+def symmetric_sum(ptr, ind, dat, tptr, tind, tdat, split, oind, odat, hind, hdat):  # pragma: no cover
+    """``S = B + Bᵀ`` from ``B`` and ``Bᵀ`` in canonical form: one merge of each row pair, exact zeros
+    dropped (scipy's ``csr_plus_csr`` on canonical operands: the same arrays), into ``oind``, ``odat``
+    (allocated at ``nnz(B) + nnz(Bᵀ)``). With ``split`` also :func:`lower_half`'s split of ``S`` into
+    ``hind``, ``hdat`` (same bound): the merge's sorted rows end their lower part with the diagonal.
+
+    Returns ``(indptr, half_indptr, diag, positions, half_positions)``, the split's arrays empty without
+    ``split`` (see :func:`lower_half`)."""
+    one = _U(1)
+    n = _U(ptr.size - 1)
+    optr = np.empty(n + one, ptr.dtype)
+    optr[0] = 0
+    ns = n if split else _U(0)
+    hptr = np.zeros(ns + one, ptr.dtype)
+    diag = np.zeros(ns, odat.dtype)
+    pos = np.full(ns, -1, np.int64)
+    hpos = np.full(ns, -1, np.int64)
+    w = _U(0)
+    h = _U(0)
+    for a in range(n):
+        p, pe = _U(ptr[a]), _U(ptr[a + one])
+        q, qe = _U(tptr[a]), _U(tptr[a + one])
+        while p < pe or q < qe:
+            if q >= qe or (p < pe and ind[p] < tind[q]):
+                c, v = ind[p], dat[p]
+                p += one
+            elif p >= pe or tind[q] < ind[p]:
+                c, v = tind[q], tdat[q]
+                q += one
+            else:
+                c, v = ind[p], dat[p] + tdat[q]
+                p += one
+                q += one
+            if v != 0.0:
+                oind[w] = c
+                odat[w] = v
+                if split and _U(c) <= a:
+                    hind[h] = c
+                    if _U(c) == a:
+                        diag[a] = v
+                        pos[a] = w
+                        hpos[a] = h
+                        v *= 0.5
+                    hdat[h] = v
+                    h += one
+                w += one
+        optr[a + one] = w
+        if split:
+            hptr[a + one] = h
+    return optr, hptr, diag, pos, hpos

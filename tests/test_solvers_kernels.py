@@ -172,3 +172,40 @@ def test_locality_order_is_the_same(compiled, scattered):
     """The rows' lowest-ranked parents by one loop (:func:`solvers._kernels.row_min`): the same orders."""
     o1, o0 = compiled(lambda: locality_order(scattered[1]))
     assert len(o1) == len(o0) == 3 and all(np.array_equal(a, b) for a, b in zip(o1, o0))
+
+
+@needs_numba
+def test_galerkin_products_with_four_weights_per_row(compiled, scattered):
+    """The compiled products, transposes and merge (a prolongation of four weights per row, then the nested
+    ones): the same Galerkin operators as scipy's, and within 1e-12 of the plain triple product."""
+    from solvers import galerkin_operators
+
+    A, Ps = scattered
+    rng = np.random.default_rng(9)
+    n, m = A.shape[0], Ps[0].shape[1]
+    cols = np.sort(rng.random((n, m)).argpartition(4, axis=1)[:, :4], axis=1)  # four distinct columns a row
+    w = rng.uniform(0.1, 1.0, (n, 4))
+    P0 = sp.csr_matrix(((w / w.sum(1, keepdims=True)).ravel(), cols.ravel(), np.arange(0, 4 * n + 1, 4)),
+                       shape=(n, m))
+    ops1, ops0 = compiled(lambda: galerkin_operators(A, [P0, *Ps[1:]], symmetric=True))
+    assert len(ops1) == 3 and all(_same(a, b) for a, b in zip(ops1, ops0))
+    G = A
+    for P, Ac in zip([P0, *Ps[1:]], ops1[1:]):
+        G = sp.csr_matrix(P.T @ G @ P)
+        assert abs(Ac - G).max() <= 1e-12 * abs(G).max() and abs(Ac - Ac.T).max() == 0.0
+        G = Ac
+
+
+@needs_numba
+def test_compiled_product_declines_beyond_the_bound(monkeypatch, scattered):
+    """Past :data:`ONE_PASS_MAX_ENTRIES` the compiled product declines (None) and the scipy path runs."""
+    from solvers import transfer
+
+    A, Ps = scattered
+    half, _ = _lower_half(A)
+    monkeypatch.setattr(transfer, "ONE_PASS_MAX_ENTRIES", 10)
+    assert transfer._symmetric_product_compiled(half, Ps[0], sp.csr_matrix(Ps[0].T), False) is None
+    monkeypatch.setattr(kernels, "ENABLED", True)
+    ops = transfer.galerkin_operators(A, Ps[:1], symmetric=True)
+    G = sp.csr_matrix(Ps[0].T @ A @ Ps[0])
+    assert abs(ops[1] - G).max() <= 1e-12 * abs(G).max()

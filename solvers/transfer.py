@@ -134,13 +134,13 @@ def _galerkin_fits(Ak: sp.csr_matrix, P: sp.csr_matrix, k: int) -> None:
 ONE_PASS_MAX_ENTRIES = 1 << 26
 
 
-def _product_bound(A: sp.csr_matrix, B: sp.csr_matrix) -> int | None:
-    """An upper bound of ``nnz(A B)``: ``nnz(A) max_j |B_j|`` or, when that is large, ``sum_i min(sum_{j in
-    row i of A} |B_j|, n_cols)``; None when it exceeds :data:`ONE_PASS_MAX_ENTRIES`."""
-    n = B.shape[1]
-    bound = min(A.nnz * int(np.diff(B.indptr).max(initial=0)), A.shape[0] * n)  # free: row counts only
+def _product_bound(A: sp.csr_matrix, b_indptr: np.ndarray, n: int) -> int | None:
+    """An upper bound of ``nnz(A B)`` (``B``: row pointers ``b_indptr``, ``n`` columns): ``nnz(A) max_j |B_j|``
+    or, when that is large, ``sum_i min(sum_{j in row i of A} |B_j|, n)``; None when it exceeds
+    :data:`ONE_PASS_MAX_ENTRIES`."""
+    bound = min(A.nnz * int(np.diff(b_indptr).max(initial=0)), A.shape[0] * n)  # free: row counts only
     if bound > ONE_PASS_MAX_ENTRIES:  # the per-row bound (one pass over A's indices)
-        per = np.concatenate(([0], np.cumsum(np.diff(B.indptr)[A.indices], dtype=np.int64)))[A.indptr]
+        per = np.concatenate(([0], np.cumsum(np.diff(b_indptr)[A.indices], dtype=np.int64)))[A.indptr]
         bound = int(np.minimum(np.diff(per), n).sum())
     return None if bound > ONE_PASS_MAX_ENTRIES else bound
 
@@ -167,7 +167,7 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     m, n = A.shape[0], B.shape[1]
     if A.shape[1] != B.shape[0]:
         return sp.csr_matrix(A @ B)  # scipy's error message
-    bound = _product_bound(A, B)
+    bound = _product_bound(A, B.indptr, n)
     if bound is None:
         return sp.csr_matrix(A @ B)
     idx = np.int32 if max(bound, m, n) < np.iinfo(np.int32).max else np.int64
@@ -248,7 +248,7 @@ def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr
     from . import _kernels
 
     m, n = P.shape
-    bound = _product_bound(half, P)
+    bound = _product_bound(half, P.indptr, n)
     if bound is None:
         return None
     k = P.nnz // m if m else 0
@@ -258,14 +258,13 @@ def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr
     none = np.zeros(0, dtype=idx)
     hind, hdat = np.empty(bound, idx), np.empty(bound)  # numpy's allocations: transparent huge pages
     hptr = _kernels.csr_matmat(ints[0], ints[1], half.data, ints[2], ints[3], P.data, k, n, hind, hdat, none)
-    HP = sp.csr_matrix((hdat, hind, hptr), shape=(m, n))
-    bound = _product_bound(R, HP)
+    bound = _product_bound(R, hptr, n)  # H P stays bare arrays: a csr_matrix of a view would copy them
     if bound is None:
         return None
     counts = np.zeros(n + 1, dtype=idx)
     bind, bdat = np.empty(bound, idx), np.empty(bound)
     bptr = _kernels.csr_matmat(ints[4], ints[5], R.data, hptr, hind, hdat, 0, n, bind, bdat, counts)
-    del HP, hind, hdat, hptr
+    del hind, hdat, hptr
     nnz = int(bptr[-1])
     tind, tdat = np.empty(nnz, idx), np.empty(nnz)
     tptr = _kernels.csr_transpose(bptr, bind, bdat, n, counts, tind, tdat)

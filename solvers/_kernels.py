@@ -65,7 +65,7 @@ def relabelled_transpose(indptr, indices, data, inv, x, probe, tind, tdat):  # p
     relabelled by ``inv`` (a permutation), and, when ``probe``, ``(B x, Bᵀ x, max |b_ij|)`` from the same
     pass: the relabelling ``take``, scipy's counting transpose and :func:`probe_products` in one (the same
     arrays as ``_transposed`` of the relabelled matrix). ``tind``, ``tdat``: the output's indices and values,
-    of ``nnz`` entries, allocated by the caller (see :func:`lower_counts`).
+    of ``nnz`` entries, allocated by the caller (see :func:`lower_half`).
 
     Returns ``(indptr, Bx, Btx, amax)`` (the vectors empty without ``probe``)."""
     one = _U(1)
@@ -101,38 +101,20 @@ def relabelled_transpose(indptr, indices, data, inv, x, probe, tind, tdat):  # p
 
 
 @_jit
-def lower_counts(indptr, indices, sorted_rows):  # pragma: no cover - compiled
-    """The row pointers of the ``L + D/2`` split of :func:`solvers.transfer._lower_half` (the entries with
-    column <= row) and the diagonal entries' positions (-1 where a row stores none); with ``sorted_rows`` a
-    row's scan stops after its diagonal. Then :func:`lower_fill` writes the split into arrays of
-    ``indptr[-1]`` entries allocated by numpy: numba's own allocations get no transparent huge pages, and
-    their page faults cost more CPU than the loop saved (10k faults against 7k per 1M-tet set-up)."""
+def lower_half(indptr, indices, data, sorted_rows, hind, hdat):  # pragma: no cover - compiled
+    """The ``L + D/2`` split of :func:`solvers.transfer._lower_half` in one pass: the entries with column <=
+    row in ``A``'s order, the diagonal ones halved, into ``hind``, ``hdat`` (allocated by numpy at ``nnz(A)``
+    entries: numba's own allocations get no transparent huge pages, and their page faults cost more CPU
+    than the loop saved, 10k faults against 7k per 1M-tet set-up). With ``sorted_rows`` a row's scan stops
+    after its diagonal.
+
+    Returns ``(indptr, diag, positions, half_positions)``: ``diag`` zero where a row stores no diagonal
+    entry, the diagonal entries' positions in ``A`` and in the half (-1 where missing)."""
     one = _U(1)
     n = _U(indptr.size - 1)
     hptr = np.empty(n + one, indptr.dtype)
     hptr[0] = 0
     pos = np.full(n, -1, np.int64)
-    w = _U(0)
-    for r in range(n):
-        for q in range(_U(indptr[r]), _U(indptr[r + one])):
-            c = _U(indices[q])
-            if c <= r:
-                w += one
-                if c == r:
-                    pos[r] = q
-            elif sorted_rows:
-                break
-        hptr[r + one] = w
-    return hptr, pos
-
-
-@_jit
-def lower_fill(indptr, indices, data, sorted_rows, hind, hdat):  # pragma: no cover - compiled
-    """Fill :func:`lower_counts`'s split: ``hind``, ``hdat`` receive the entries with column <= row in ``A``'s
-    order, the diagonal ones halved. Returns ``(diag, half_positions)``: ``diag`` zero where a row stores no
-    diagonal entry, the diagonal entries' positions in the half (-1 where missing)."""
-    one = _U(1)
-    n = _U(indptr.size - 1)
     hpos = np.full(n, -1, np.int64)
     diag = np.zeros(n, data.dtype)
     w = _U(0)
@@ -144,13 +126,15 @@ def lower_fill(indptr, indices, data, sorted_rows, hind, hdat):  # pragma: no co
                 v = data[q]
                 if c == r:
                     diag[r] = v
+                    pos[r] = q
                     hpos[r] = w
                     v *= 0.5
                 hdat[w] = v
                 w += one
             elif sorted_rows:
                 break
-    return diag, hpos
+        hptr[r + one] = w
+    return hptr, diag, pos, hpos
 
 
 @_jit

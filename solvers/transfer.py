@@ -220,12 +220,13 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
 
 def _lower_half_compiled(A: sp.csr_matrix, positions: list | None = None,
                          half_positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
-    """:func:`_lower_half` by two compiled loops (:func:`solvers._kernels.lower_counts`, ``lower_fill``): the
-    same arrays, in two passes over the entries (the second over the lower ones) instead of six numpy passes."""
-    srt = bool(A.has_sorted_indices)
-    indptr, pos = _kernels.lower_counts(A.indptr, A.indices, srt)
-    indices, data = np.empty(indptr[-1], A.indices.dtype), np.empty(indptr[-1], A.data.dtype)
-    d, hpos = _kernels.lower_fill(A.indptr, A.indices, A.data, srt, indices, data)
+    """:func:`_lower_half` by one compiled pass (:func:`solvers._kernels.lower_half`): the same arrays, in one
+    pass over the entries instead of six numpy passes."""
+    indices, data = np.empty(A.nnz, A.indices.dtype), np.empty(A.nnz, A.data.dtype)
+    indptr, d, pos, hpos = _kernels.lower_half(A.indptr, A.indices, A.data, bool(A.has_sorted_indices),
+                                               indices, data)
+    indices.resize(int(indptr[-1]), refcheck=False)  # a realloc in place, no copy
+    data.resize(int(indptr[-1]), refcheck=False)
     complete = bool(pos.size == 0 or pos.min() >= 0)
     if positions is not None:
         positions.append(pos if complete else None)

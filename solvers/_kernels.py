@@ -39,31 +39,10 @@ _U = np.uint64
 
 
 @_jit
-def probe_products(indptr, indices, data, x):  # pragma: no cover - compiled
-    """``(B x, Bᵀ x, max |b_ij|)`` of a CSR matrix ``B`` in one pass over its entries (two SpMV and two
-    reductions in scipy/numpy)."""
-    n = _U(indptr.size - 1)
-    y = np.zeros(n)
-    yt = np.zeros(x.size)
-    amax = 0.0
-    for r in range(n):
-        acc = 0.0
-        xr = x[r]
-        for q in range(_U(indptr[r]), _U(indptr[r + _U(1)])):
-            c = _U(indices[q])
-            v = data[q]
-            acc += v * x[c]
-            yt[c] += v * xr
-            amax = max(amax, abs(v))
-        y[r] = acc
-    return y, yt, amax
-
-
-@_jit
 def relabelled_transpose(indptr, indices, data, inv, x, probe, tind, tdat):  # pragma: no cover - compiled
     """``Bᵀ`` in canonical CSR form for ``B`` = the rows of ``(indptr, indices, data)`` with their columns
     relabelled by ``inv`` (a permutation), and, when ``probe``, ``(B x, Bᵀ x, max |b_ij|)`` from the same
-    pass: the relabelling ``take``, scipy's counting transpose and :func:`probe_products` in one (the same
+    pass: the relabelling ``take``, scipy's counting transpose and the two probe products in one (the same
     arrays as ``_transposed`` of the relabelled matrix). ``tind``, ``tdat``: the output's indices and values,
     of ``nnz`` entries, allocated by the caller (see :func:`lower_half`).
 

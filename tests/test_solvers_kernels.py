@@ -81,16 +81,6 @@ def test_lower_half_is_the_numpy_split(compiled, scattered, case):
 
 
 @needs_numba
-def test_probe_products_are_the_two_products():
-    A = _unsorted_with_missing_diagonal()
-    x = np.random.default_rng(4).uniform(-1.0, 1.0, A.shape[0])
-    y, yt, amax = kernels.probe_products(A.indptr, A.indices, A.data, x)
-    assert np.abs(y - A @ x).max() <= 1e-14 * np.abs(A @ x).max()
-    assert np.abs(yt - A.T @ x).max() <= 1e-14 * np.abs(A.T @ x).max()
-    assert amax == np.abs(A.data).max()
-
-
-@needs_numba
 def test_permutation_and_its_symmetry_verdict(compiled, scattered):
     """The same permuted matrix either way, symmetric; an asymmetric entry of 1e-6 is caught either way."""
     A, Ps = scattered

@@ -150,25 +150,6 @@ def swap_diagonal_first(indptr, indices, data, positions):  # pragma: no cover -
 
 
 @_jit
-def sort_rows(indptr, indices, data):  # pragma: no cover - compiled
-    """In place: every row's entries sorted by column (insertion sort: for short rows, such as a
-    prolongation's four barycentric weights; a row without duplicate columns has one sorted order)."""
-    one = _U(1)
-    for r in range(_U(indptr.size - 1)):
-        s = _U(indptr[r])
-        for q in range(s + one, _U(indptr[r + one])):
-            c = indices[q]
-            v = data[q]
-            m = q
-            while m > s and indices[m - one] > c:
-                indices[m] = indices[m - one]
-                data[m] = data[m - one]
-                m -= one
-            indices[m] = c
-            data[m] = v
-
-
-@_jit
 def row_min(indptr, indices, rank):  # pragma: no cover - compiled
     """``min(rank[indices[q]] for q in row i)`` for every (non-empty) row: ``np.minimum.reduceat`` of the
     gathered ranks without the gathered array (7 ms against ~1 on a 1M-tet hierarchy's first prolongation)."""

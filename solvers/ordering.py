@@ -227,10 +227,6 @@ def permute_prolongation(P: sp.csr_matrix, p_fine: np.ndarray, p_coarse: np.ndar
     order before them does not matter, so rows of equal length are gathered as one dense block,
     :func:`_gathered_equal_rows`)."""
     B = _gathered_equal_rows(P, p_fine, p_coarse)
-    if B is not None and _kernels.ENABLED:  # rows of four sorted in place: one transpose instead of two
-        _kernels.sort_rows(B.indptr, B.indices, B.data)
-        B.has_sorted_indices = True
-        return (B, _transposed(B)) if with_transpose else B
     R = _transposed(B if B is not None else _gathered(P, p_fine, p_coarse))
     out = _transposed(R)
     return (out, R) if with_transpose else out

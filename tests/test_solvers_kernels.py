@@ -141,23 +141,6 @@ def test_solver_is_the_same_with_and_without_the_kernels(compiled, scattered, nu
 
 
 @needs_numba
-def test_permuted_prolongation_with_four_weights_per_row(compiled):
-    """A prolongation whose rows all hold four weights (a non-nested level's barycentric rows, here random):
-    sorted in place by the kernel, the same P and R as the two transposes give."""
-    from solvers.ordering import permute_prolongation
-
-    rng = np.random.default_rng(8)
-    n, m = 500, 60
-    cols = np.array([rng.choice(m, 4, replace=False) for _ in range(n)])
-    w = rng.uniform(0.0, 1.0, (n, 4))
-    P = sp.csr_matrix((w.ravel() / w.sum(1).repeat(4), cols.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, m))
-    pf, pc = rng.permutation(n), rng.permutation(m)
-    (P1, R1), (P0, R0) = compiled(lambda: permute_prolongation(P, pf, pc, with_transpose=True))
-    assert _same(P1, P0) and _same(R1, R0) and P1.has_canonical_format
-    assert abs(P1 - P[pf][:, pc]).max() == 0.0 and abs(R1 - P1.T).max() == 0.0
-
-
-@needs_numba
 def test_locality_order_is_the_same(compiled, scattered):
     """The rows' lowest-ranked parents by one loop (:func:`solvers._kernels.row_min`): the same orders."""
     o1, o0 = compiled(lambda: locality_order(scattered[1]))

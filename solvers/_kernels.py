@@ -1,34 +1,57 @@
 """Optional compiled loops (numba) for the set-up's O(nnz) passes; pure numpy/scipy fallbacks elsewhere.
 
-Each kernel here fuses a chain of numpy passes over a matrix's entries (index arrays built by ``np.repeat``,
-``take`` gathers, masks, ``flatnonzero``) into one loop, and returns the very arrays the numpy code it
-replaces returns (tested bit for bit, ``tests/test_solvers_kernels.py``): the numpy code stays as the
-fallback when numba is not installed (``pip install nestmg[fast]``) or ``NESTMG_NUMBA=0``. Measured on a
-1M-tet user hierarchy (docs/usermesh.md): the set-up's split into ``L + D/2``, its permuted fine-matrix
-gather and its strong-coupling scan cost several times one pass over the entries in numpy.
+Each kernel fuses a chain of numpy/scipy passes over a matrix's entries into one loop and returns the very
+arrays the code it replaces returns (its sums in its order; tested bit for bit,
+``tests/test_solvers_kernels.py``), so a set-up gives the same operators either way: the symmetric Galerkin
+level (both products, the two transposes, the merge, the next level's ``L + D/2`` split), the fine matrix's
+relabelling, transpose and symmetry-probe products, the ``L + D/2`` split, the strong-coupling scan, the
+diagonal-first swaps and the locality order's row minima. On the 1M-tet user meshes of docs/usermesh.md the
+set-up took ~0.75x the CPU time of the numpy path (``benchmarks/user_mesh_solvers.py``).
 
-The kernels are compiled on first use and cached on disk (``cache=True``): the first set-up in a fresh
-environment pays the compilation once (about a second per kernel), later processes load the cache.
+Used when numba is installed (``pip install nestmg[fast]``), ``NESTMG_NUMBA`` is not "0", and the matrix has
+at least :data:`MIN_NNZ` entries or numba is already loaded. numba is imported on first use, not with
+``solvers``: loading it and the cached kernels costs ~0.5-1 s of CPU once per process (~7 s the very first
+time, when the kernels are compiled and cached on disk, ``cache=True``), against ~25 ns per matrix entry saved
+on each set-up: a process pays it back after a few dozen set-ups of a 1M-tet matrix, not on one.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import os
 
 import numpy as np
 
-try:  # pragma: no cover - depends on the environment
-    import numba
-except ImportError:  # pragma: no cover
-    numba = None
+#: numba can be imported (not imported yet: see :func:`wanted`)
+AVAILABLE = importlib.util.find_spec("numba") is not None
+#: whether the compiled kernels may be used (numba available and ``NESTMG_NUMBA`` not "0"); tests switch it
+ENABLED = AVAILABLE and os.environ.get("NESTMG_NUMBA", "1") != "0"
+#: the compiled kernels start with a matrix of at least this many entries (then serve every later call)
+MIN_NNZ = 1_000_000
+_state = {"loaded": False}
 
-#: whether the compiled kernels are used (numba importable and ``NESTMG_NUMBA`` not "0"); tests switch it
-ENABLED = numba is not None and os.environ.get("NESTMG_NUMBA", "1") != "0"
+
+def wanted(nnz: int) -> bool:
+    """Whether to run a compiled kernel on a matrix of ``nnz`` entries: :data:`ENABLED` and either numba is
+    loaded already or the matrix is large enough to be worth loading it (:data:`MIN_NNZ`)."""
+    return ENABLED and (_state["loaded"] or nnz >= MIN_NNZ)
 
 
 def _jit(f):
-    """``numba.njit(cache=True, nogil=True)(f)``, or ``f`` itself (never called) without numba."""
-    return f if numba is None else numba.njit(cache=True, nogil=True)(f)
+    """``f`` compiled by ``numba.njit(cache=True, nogil=True)`` on its first call (numba imported then)."""
+    compiled = []
+
+    @functools.wraps(f)
+    def call(*args):
+        if not compiled:
+            import numba
+
+            compiled.append(numba.njit(cache=True, nogil=True)(f))
+            _state["loaded"] = True
+        return compiled[0](*args)
+
+    return call
 
 
 # Every index below is cast to uint64 (``_U``): numba wraps a negative signed index around, a test and a

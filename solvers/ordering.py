@@ -99,7 +99,7 @@ def locality_order(Ps) -> list[np.ndarray]:
             raise SolverInputError("locality_order needs prolongations without empty rows")
         rank = _inverse(orders[0])
         # lowest-ranked coarse parent per row
-        key = (_kernels.row_min(P.indptr, P.indices, rank) if _kernels.ENABLED
+        key = (_kernels.row_min(P.indptr, P.indices, rank) if _kernels.wanted(P.nnz)
                else np.minimum.reduceat(rank.take(P.indices), P.indptr[:-1]))
         orders.insert(0, _stable_argsort(key).astype(np.int64))
     return orders
@@ -132,7 +132,7 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
         it when symmetric, and exactly when not) and the symmetry verdict.
     """
     x = np.random.default_rng(seed).uniform(-1.0, 1.0, A.shape[0]) if probe else None
-    if _kernels.ENABLED:  # the relabelling, the transpose and the probe products in one pass over the rows
+    if _kernels.wanted(A.nnz):  # the relabelling, the transpose and the probe products in one pass
         B = A[p]
         Bt, Bx, Btx, amax = _relabelled_transpose(B, _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype), x)
     else:
@@ -206,9 +206,10 @@ def diagonal_first(A: sp.csr_matrix, positions: np.ndarray, *, in_place: bool = 
     """
     start = A.indptr[:-1]
     data, indices = (A.data, A.indices) if in_place else (A.data.copy(), A.indices.copy())
-    if _kernels.ENABLED:  # one loop over the rows instead of four gathers and scatters per array
+    compiled = _kernels.wanted(A.nnz)
+    if compiled:  # one loop over the rows instead of four gathers and scatters per array
         _kernels.swap_diagonal_first(A.indptr, indices, data, positions)
-    for arr in () if _kernels.ENABLED else (data, indices):
+    for arr in () if compiled else (data, indices):
         first = arr.take(start)
         arr[start] = arr.take(positions)
         arr[positions] = first

@@ -194,7 +194,7 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
     level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
     ``positions``, ``half_positions``: lists that receive the diagonal entries' positions in ``A`` and in the
     half (None if a row lacks it)."""
-    if _kernels.ENABLED:
+    if _kernels.wanted(A.nnz):
         return _lower_half_compiled(A, positions, half_positions)
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
@@ -313,7 +313,7 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
         half, d = _lower_half(Ak, positions, where)
     if diagonals is not None:
         diagonals.append(d)
-    done = (_symmetric_product_compiled(half, P, R, next_halves is not None) if _kernels.ENABLED else None)
+    done = _symmetric_product_compiled(half, P, R, next_halves is not None) if _kernels.wanted(Ak.nnz) else None
     if done is not None:
         Ac, split = done
         if next_halves is not None:

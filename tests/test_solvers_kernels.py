@@ -11,12 +11,14 @@ from solvers.ordering import diagonal_first, locality_order, permute_symmetric_t
 from solvers.subdomain import strongly_coupled
 from solvers.transfer import _lower_half
 
-needs_numba = pytest.mark.skipif(kernels.numba is None, reason="numba not installed (the fallback is tested)")
+needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed (the fallback is tested)")
 
 
 @pytest.fixture
 def compiled(monkeypatch):
     """Run a function with the compiled kernels on and off: ``compiled(f)`` -> ``(f() on, f() off)``."""
+
+    monkeypatch.setattr(kernels, "MIN_NNZ", 0)  # the test matrices are small
 
     def both(f):
         monkeypatch.setattr(kernels, "ENABLED", True)
@@ -176,9 +178,21 @@ def test_compiled_product_declines_beyond_the_bound(monkeypatch, scattered):
 
     A, Ps = scattered
     half, _ = _lower_half(A)
+    monkeypatch.setattr(kernels, "MIN_NNZ", 0)
     monkeypatch.setattr(transfer, "ONE_PASS_MAX_ENTRIES", 10)
     assert transfer._symmetric_product_compiled(half, Ps[0], sp.csr_matrix(Ps[0].T), False) is None
     monkeypatch.setattr(kernels, "ENABLED", True)
     ops = transfer.galerkin_operators(A, Ps[:1], symmetric=True)
     G = sp.csr_matrix(Ps[0].T @ A @ Ps[0])
     assert abs(ops[1] - G).max() <= 1e-12 * abs(G).max()
+
+
+def test_kernels_start_with_a_large_matrix(monkeypatch):
+    """Off, or below :data:`MIN_NNZ` while numba is not loaded: the numpy path; once loaded, every size."""
+    monkeypatch.setattr(kernels, "ENABLED", False)
+    assert not kernels.wanted(10**9)
+    monkeypatch.setattr(kernels, "ENABLED", True)
+    monkeypatch.setitem(kernels._state, "loaded", False)
+    assert kernels.wanted(kernels.MIN_NNZ) and not kernels.wanted(kernels.MIN_NNZ - 1)
+    monkeypatch.setitem(kernels._state, "loaded", True)
+    assert kernels.wanted(1)

@@ -397,6 +397,7 @@ SETUP_PARTS = {
     "Galerkin products (all)": ("transfer.py", "_galerkin_chain"),
     "  lower halves L + D/2": ("transfer.py", "_lower_half"),
     "  sparse products": ("transfer.py", "_one_pass_product"),
+    "  compiled level (products, transposes, merge)": ("transfer.py", "_symmetric_product_compiled"),
     "operator checks": ("multilevel.py", "_check_operators"),
     "smoother set-up": ("multilevel.py", "_make_levels"),
     "coarsest factor (incl. validation solves)": ("coarse.py", "_setup"),

@@ -34,6 +34,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from . import _kernels
 from .coarse import sparse_lu
 from .errors import SolverInputError
 from .smoothing import Smoother, chained
@@ -204,6 +205,9 @@ def strongly_coupled(A: sp.csr_matrix, theta: float = STRONG_COUPLING,
     M, d = (A, A.diagonal()) if lower is None else lower
     n = A.shape[0]
     dp = np.where(d > 0.0, d, np.inf)  # a non-positive diagonal: no strong coupling there
+    if _kernels.wanted(M.nnz):  # one compiled pass instead of ten numpy passes over the entries (same mask)
+        region = np.flatnonzero(_kernels.strong_mask(M.indptr, M.indices, M.data, dp, theta * theta))
+        return region if 0 < region.size <= max_fraction * n else None
     rows = np.repeat(np.arange(n, dtype=M.indices.dtype), np.diff(M.indptr))
     bound = dp.take(rows)
     bound *= dp.take(M.indices)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from . import _kernels
 from .errors import SolverInputError
 from .fem import node_indices
 from .memory import check_memory, galerkin_bytes
@@ -99,9 +100,11 @@ def _galerkin_chain(A: sp.csr_matrix, Ps, symmetric: bool, Rs=None, diagonals=No
     triangle ``D + L`` of those operators (:func:`_symmetric_galerkin`; None on the non-symmetric path)."""
     ops = [A]
     firsts: list | None = [] if diagonal_first else None
+    halves: list = [None]  # each level's L + D/2 split when the level above made it
     for k, P in enumerate(Ps):
         R = None if Rs is None else Rs[k]
-        ops.append(_galerkin_level(ops[-1], P, k, R, symmetric, diagonals, firsts, lowers))
+        ops.append(_galerkin_level(ops[-1], P, k, R, symmetric, diagonals, firsts, lowers, halves[-1],
+                                   halves if k + 1 < len(Ps) else None))
     for k, F in enumerate(firsts or ()):
         if F is not None:
             ops[k] = F
@@ -131,6 +134,17 @@ def _galerkin_fits(Ak: sp.csr_matrix, P: sp.csr_matrix, k: int) -> None:
 ONE_PASS_MAX_ENTRIES = 1 << 26
 
 
+def _product_bound(A: sp.csr_matrix, b_indptr: np.ndarray, n: int) -> int | None:
+    """An upper bound of ``nnz(A B)`` (``B``: row pointers ``b_indptr``, ``n`` columns): ``nnz(A) max_j |B_j|``
+    or, when that is large, ``sum_i min(sum_{j in row i of A} |B_j|, n)``; None when it exceeds
+    :data:`ONE_PASS_MAX_ENTRIES`."""
+    bound = min(A.nnz * int(np.diff(b_indptr).max(initial=0)), A.shape[0] * n)  # free: row counts only
+    if bound > ONE_PASS_MAX_ENTRIES:  # the per-row bound (one pass over A's indices)
+        per = np.concatenate(([0], np.cumsum(np.diff(b_indptr)[A.indices], dtype=np.int64)))[A.indptr]
+        bound = int(np.minimum(np.diff(per), n).sum())
+    return None if bound > ONE_PASS_MAX_ENTRIES else bound
+
+
 def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     """``A @ B`` (CSR, rows unsorted, no duplicates) by scipy's numeric kernel alone.
 
@@ -153,11 +167,8 @@ def _one_pass_product(A: sp.csr_matrix, B: sp.csr_matrix) -> sp.csr_matrix:
     m, n = A.shape[0], B.shape[1]
     if A.shape[1] != B.shape[0]:
         return sp.csr_matrix(A @ B)  # scipy's error message
-    bound = min(A.nnz * int(np.diff(B.indptr).max(initial=0)), m * n)  # free: row counts only
-    if bound > ONE_PASS_MAX_ENTRIES:  # the per-row bound (one pass over A's indices)
-        per = np.concatenate(([0], np.cumsum(np.diff(B.indptr)[A.indices], dtype=np.int64)))[A.indptr]
-        bound = int(np.minimum(np.diff(per), n).sum())
-    if bound > ONE_PASS_MAX_ENTRIES:
+    bound = _product_bound(A, B.indptr, n)
+    if bound is None:
         return sp.csr_matrix(A @ B)
     idx = np.int32 if max(bound, m, n) < np.iinfo(np.int32).max else np.int64
     indptr = np.empty(m + 1, dtype=idx)
@@ -183,6 +194,8 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
     level operator's positive diagonal), that entry ends the row's lower part and gives the row pointers.
     ``positions``, ``half_positions``: lists that receive the diagonal entries' positions in ``A`` and in the
     half (None if a row lacks it)."""
+    if _kernels.wanted(A.nnz):
+        return _lower_half_compiled(A, positions, half_positions)
     n = A.shape[0]
     rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))
     diag = np.flatnonzero(A.indices == rows)
@@ -205,8 +218,78 @@ def _lower_half(A: sp.csr_matrix, positions: list | None = None,
     return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
 
 
+def _lower_half_compiled(A: sp.csr_matrix, positions: list | None = None,
+                         half_positions: list | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
+    """:func:`_lower_half` by one compiled pass (:func:`solvers._kernels.lower_half`): the same arrays, in one
+    pass over the entries instead of six numpy passes."""
+    indices, data = np.empty(A.nnz, A.indices.dtype), np.empty(A.nnz, A.data.dtype)
+    indptr, d, pos, hpos = _kernels.lower_half(A.indptr, A.indices, A.data, bool(A.has_sorted_indices),
+                                               indices, data)
+    indices.resize(int(indptr[-1]), refcheck=False)  # a realloc in place, no copy
+    data.resize(int(indptr[-1]), refcheck=False)
+    complete = bool(pos.size == 0 or pos.min() >= 0)
+    if positions is not None:
+        positions.append(pos if complete else None)
+    if half_positions is not None:
+        half_positions.append(hpos if complete else None)
+    return sp.csr_matrix((data, indices, indptr), shape=A.shape), d
+
+
+def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
+                                split: bool) -> tuple[sp.csr_matrix, tuple | None] | None:
+    """``B + Bᵀ`` with ``B = R (H P)`` (``H = half``) by the compiled kernels: :func:`_symmetric_galerkin`'s
+    products, transposes and merge with the same arrays (scipy's sums in scipy's order), and with ``split``
+    the result's ``L + D/2`` split from the merge's pass, ``(half, diag, positions, half_positions)`` as
+    :func:`_lower_half` gives it. None when a bound exceeds :data:`ONE_PASS_MAX_ENTRIES` (the caller's scipy
+    path then refuses or runs the two-pass product).
+
+    The products' kernel reads a row of four prolongation weights without its row pointers and counts the
+    output's columns for the transpose that follows; the merge writes the next level's split beside the sum.
+    """
+    from . import _kernels
+
+    m, n = P.shape
+    bound = _product_bound(half, P.indptr, n)
+    if bound is None:
+        return None
+    k = P.nnz // m if m else 0
+    k = k if k and P.nnz == k * m and bool(np.all(np.diff(P.indptr) == k)) else 0
+    idx = np.int32 if max(bound, m, n, R.nnz) < np.iinfo(np.int32).max // 4 else np.int64
+    ints = [M.astype(idx, copy=False) for M in (half.indptr, half.indices, P.indptr, P.indices, R.indptr, R.indices)]
+    none = np.zeros(0, dtype=idx)
+    hind, hdat = np.empty(bound, idx), np.empty(bound)  # numpy's allocations: transparent huge pages
+    hptr = _kernels.csr_matmat(ints[0], ints[1], half.data, ints[2], ints[3], P.data, k, n, hind, hdat, none)
+    bound = _product_bound(R, hptr, n)  # H P stays bare arrays: a csr_matrix of a view would copy them
+    if bound is None:
+        return None
+    counts = np.zeros(n + 1, dtype=idx)
+    bind, bdat = np.empty(bound, idx), np.empty(bound)
+    bptr = _kernels.csr_matmat(ints[4], ints[5], R.data, hptr, hind, hdat, 0, n, bind, bdat, counts)
+    del hind, hdat, hptr
+    nnz = int(bptr[-1])
+    tind, tdat = np.empty(nnz, idx), np.empty(nnz)
+    tptr = _kernels.csr_transpose(bptr, bind, bdat, n, counts, tind, tdat)
+    del bind, bdat
+    sind, sdat = np.empty(nnz, idx), np.empty(nnz)
+    sptr = _kernels.csr_transpose(tptr, tind, tdat, n, none, sind, sdat)
+    oind, odat = np.empty(2 * nnz, idx), np.empty(2 * nnz)
+    lind, ldat = (np.empty(2 * nnz, idx), np.empty(2 * nnz)) if split else (none, np.zeros(0))
+    optr, lptr, d, pos, hpos = _kernels.symmetric_sum(sptr, sind, sdat, tptr, tind, tdat, split, oind, odat,
+                                                       lind, ldat)
+    del sind, sdat, tind, tdat
+    for arr, size in ((oind, optr[-1]), (odat, optr[-1])) + (((lind, lptr[-1]), (ldat, lptr[-1])) if split else ()):
+        arr.resize(int(size), refcheck=False)  # a realloc in place, no copy
+    Ac = sp.csr_matrix((odat, oind, optr), shape=(n, n))
+    Ac.has_canonical_format = True
+    if not split:
+        return Ac, None
+    complete = bool(n == 0 or pos.min() >= 0)
+    return Ac, (sp.csr_matrix((ldat, lind, lptr), shape=(n, n)), d, pos if complete else None,
+                hpos if complete else None)
+
+
 def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
-                        diagonals=None, firsts=None, lowers=None) -> sp.csr_matrix:
+                        diagonals=None, firsts=None, lowers=None, halves=None, next_halves=None) -> sp.csr_matrix:
     """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
 
     ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
@@ -219,34 +302,48 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
     lacks its diagonal); ``lowers``: a list that receives ``D + L``, the split with its diagonal restored
     (exactly: halving and doubling are exact), each row's diagonal entry first: a Gauss–Seidel sweep's
     lower triangle, kept instead of split again (:func:`solvers.smoothing.setup_gauss_seidel`'s ``lower``).
+    ``halves``: ``Ak``'s split ``(L + D/2, diag, positions, half_positions)`` if the level above made it;
+    ``next_halves``: a list that receives the result's split (None when not made: the scipy path).
     """
-    positions: list = []
-    where: list = []
-    half, d = _lower_half(Ak, positions, where)
+    if halves is not None:
+        half, d, *split = halves
+        positions, where = split[:1], split[1:]
+    else:
+        positions, where = [], []
+        half, d = _lower_half(Ak, positions, where)
     if diagonals is not None:
         diagonals.append(d)
-    B = _one_pass_product(R, _one_pass_product(half, P))
+    done = _symmetric_product_compiled(half, P, R, next_halves is not None) if _kernels.wanted(Ak.nnz) else None
+    if done is not None:
+        Ac, split = done
+        if next_halves is not None:
+            next_halves.append(split)
+    else:
+        if next_halves is not None:
+            next_halves.append(None)
+        B = _one_pass_product(R, _one_pass_product(half, P))
     if lowers is not None and where[0] is not None:
         half.data[where[0]] *= 2.0
         lowers.append(diagonal_first(half, where[0], in_place=True))
     elif lowers is not None:
         lowers.append(None)
     del half
-    Bt = _transposed(B)  # canonical (a product has no duplicates)
-    del B
-    Bs = _transposed(Bt)  # B with its rows sorted
-    Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
-    Ac.has_canonical_format = True
+    if done is None:
+        Bt = _transposed(B)  # canonical (a product has no duplicates)
+        del B
+        Bs = _transposed(Bt)  # B with its rows sorted
+        Ac = sp.csr_matrix(Bs + Bt)  # scipy's merge of two canonical matrices: canonical, exact zeros dropped
+        Ac.has_canonical_format = True
     if firsts is not None:  # after the products: not held beside them
         firsts.append(None if positions[0] is None else diagonal_first(Ak, positions[0], in_place=True))
     return Ac
 
 
 def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=None,
-                    firsts=None, lowers=None) -> sp.csr_matrix:
+                    firsts=None, lowers=None, halves=None, next_halves=None) -> sp.csr_matrix:
     """``P_kᵀ A_k P_k`` (exactly symmetric when ``symmetric``), after checking the shapes and the memory;
-    ``diagonals``, ``firsts``, ``lowers``: see :func:`_symmetric_galerkin` (the non-symmetric path appends
-    None to ``firsts`` and ``lowers``)."""
+    ``diagonals``, ``firsts``, ``lowers``, ``halves``, ``next_halves``: see :func:`_symmetric_galerkin` (the
+    non-symmetric path appends None to ``firsts``, ``lowers`` and ``next_halves``)."""
     P = sp.csr_matrix(P, dtype=np.float64)
     if P.shape[0] != Ak.shape[0]:
         raise SolverInputError(f"Ps[{k}] has {P.shape[0]} rows but level {k} has {Ak.shape[0]} nodes")
@@ -254,8 +351,8 @@ def _galerkin_level(Ak: sp.csr_matrix, P, k: int, R, symmetric: bool, diagonals=
     _galerkin_fits(Ak, P, k)
     R = sp.csr_matrix(P.T) if R is None else R
     if symmetric:
-        return _symmetric_galerkin(Ak, P, R, diagonals, firsts, lowers)
-    for out in (firsts, lowers):
+        return _symmetric_galerkin(Ak, P, R, diagonals, firsts, lowers, halves, next_halves)
+    for out in (firsts, lowers, next_halves):
         if out is not None:
             out.append(None)
     # no duplicates, rows unsorted

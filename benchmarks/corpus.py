@@ -457,10 +457,10 @@ def survey(folder: Path, names: list[str] | None) -> list[dict]:
         if path.suffix.lower() not in MESH_EXT or (names and path.name not in names):
             continue
         try:
-            V, F = read_surface(path)
+            F = read_surface(path)[1]
             reason = closed_reason(F)
         except Exception as exc:  # noqa: BLE001 -- an unreadable file is a row too
-            V, F, reason = np.zeros((0, 3)), np.zeros((0, 3), int), f"unreadable: {exc}"
+            F, reason = np.zeros((0, 3), int), f"unreadable: {exc}"
         out.append({"mesh": path.name, "path": str(path), "faces": len(F), "closed": not reason,
                     "skipped": reason or None})
     return out

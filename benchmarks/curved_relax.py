@@ -27,7 +27,6 @@ import platform
 import time
 from pathlib import Path
 
-import numpy as np
 
 from curved import _hierarchy, p1_case, p2_case  # benchmarks/ is sys.path[0]
 from exp_common import git_commit, write_json

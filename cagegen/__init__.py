@@ -17,7 +17,7 @@ directory for meshers that write into the current one).
 
 from __future__ import annotations
 
-from . import _log, errors  # _log: the cagegen loggers (NullHandler; ipctk's lines go there)
+from . import _log, errors  # noqa: F401 -- _log: the cagegen loggers (NullHandler; ipctk's lines go there)
 from ._geometry import as_mesh_arrays, bbox_diagonal, normalize
 from ._tempdir import in_temp_dir
 from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh

@@ -413,7 +413,6 @@ class CurvedMesh:
 
     def straight(self) -> CurvedMesh:
         """The same mesh with every edge node at its edge's midpoint (straight P2)."""
-        n = self.n_vertices
         X = np.vstack([self.V, 0.5 * (self.X[self.E[:, 0]] + self.X[self.E[:, 1]])])
         return CurvedMesh(X, self.T, self.T10, self.E, {"straight": True})
 

@@ -8,7 +8,6 @@ import pytest
 from cagegen import build_cages
 from cagegen._geometry import edge_stats, signed_volume
 from cagegen.audit import audit_mesh
-from cagegen import build_cages
 from cagegen.decimate import decimate_surface
 from cagegen.sizes import default_face_counts
 

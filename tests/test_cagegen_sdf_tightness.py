@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from cagegen.sdf.backend import genus
 from cagegen.envelope import build_envelope

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.sparse.linalg as spla
 
 from nestmg import NestmgInputError, setup_problem, shapes
 from nestmg.curved import (

@@ -71,7 +71,6 @@ Options beyond the paper (units and defaults: :class:`cagegen.SdfOptions`):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np

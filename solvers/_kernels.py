@@ -189,7 +189,8 @@ def row_min(indptr, indices, rank):  # pragma: no cover - compiled
 
 
 @_jit
-def csr_matmat(aptr, aind, adat, bptr, bind, bdat, k, ncol, oind, odat, counts):  # pragma: no cover - compiled
+def csr_matmat(aptr, aind, adat, bptr, bind, bdat, k, ncol, oind, odat,
+               counts):  # pragma: no cover - compiled
     """``C = A B`` into ``oind``, ``odat`` (allocated by the caller at a bound of ``nnz(C)``): scipy's
     ``csr_matmat`` (the same sums in the same order, exact zeros dropped), each row's entries in the order
     they were first reached instead of scipy's linked-list order. ``k > 0``: every row of ``B`` holds ``k``

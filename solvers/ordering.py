@@ -134,7 +134,8 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
     x = np.random.default_rng(seed).uniform(-1.0, 1.0, A.shape[0]) if probe else None
     if _kernels.wanted(A.nnz):  # the relabelling, the transpose and the probe products in one pass
         B = A[p]
-        Bt, Bx, Btx, amax = _relabelled_transpose(B, _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype), x)
+        inv = _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype)
+        Bt, Bx, Btx, amax = _relabelled_transpose(B, inv, x)
     else:
         B = _gathered(A, p, p)
         Bt = _transposed(B)

@@ -135,7 +135,8 @@ ONE_PASS_MAX_ENTRIES = 1 << 26
 
 
 def _product_bound(A: sp.csr_matrix, b_indptr: np.ndarray, n: int) -> int | None:
-    """An upper bound of ``nnz(A B)`` (``B``: row pointers ``b_indptr``, ``n`` columns): ``nnz(A) max_j |B_j|``
+    """An upper bound of ``nnz(A B)`` (``B``: row pointers ``b_indptr``, ``n`` columns):
+    ``nnz(A) max_j |B_j|``
     or, when that is large, ``sum_i min(sum_{j in row i of A} |B_j|, n)``; None when it exceeds
     :data:`ONE_PASS_MAX_ENTRIES`."""
     bound = min(A.nnz * int(np.diff(b_indptr).max(initial=0)), A.shape[0] * n)  # free: row counts only
@@ -246,8 +247,6 @@ def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr
     The products' kernel reads a row of four prolongation weights without its row pointers and counts the
     output's columns for the transpose that follows; the merge writes the next level's split beside the sum.
     """
-    from . import _kernels
-
     m, n = P.shape
     bound = _product_bound(half, P.indptr, n)
     if bound is None:
@@ -255,7 +254,8 @@ def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr
     k = P.nnz // m if m else 0
     k = k if k and P.nnz == k * m and bool(np.all(np.diff(P.indptr) == k)) else 0
     idx = np.int32 if max(bound, m, n, R.nnz) < np.iinfo(np.int32).max // 4 else np.int64
-    ints = [M.astype(idx, copy=False) for M in (half.indptr, half.indices, P.indptr, P.indices, R.indptr, R.indices)]
+    ints = [M.astype(idx, copy=False)
+            for M in (half.indptr, half.indices, P.indptr, P.indices, R.indptr, R.indices)]
     none = np.zeros(0, dtype=idx)
     hind, hdat = np.empty(bound, idx), np.empty(bound)  # numpy's allocations: transparent huge pages
     hptr = _kernels.csr_matmat(ints[0], ints[1], half.data, ints[2], ints[3], P.data, k, n, hind, hdat, none)
@@ -277,7 +277,8 @@ def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr
     optr, lptr, d, pos, hpos = _kernels.symmetric_sum(sptr, sind, sdat, tptr, tind, tdat, split, oind, odat,
                                                        lind, ldat)
     del sind, sdat, tind, tdat
-    for arr, size in ((oind, optr[-1]), (odat, optr[-1])) + (((lind, lptr[-1]), (ldat, lptr[-1])) if split else ()):
+    trims = [(oind, optr[-1]), (odat, optr[-1])] + ([(lind, lptr[-1]), (ldat, lptr[-1])] if split else [])
+    for arr, size in trims:
         arr.resize(int(size), refcheck=False)  # a realloc in place, no copy
     Ac = sp.csr_matrix((odat, oind, optr), shape=(n, n))
     Ac.has_canonical_format = True
@@ -289,7 +290,8 @@ def _symmetric_product_compiled(half: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr
 
 
 def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
-                        diagonals=None, firsts=None, lowers=None, halves=None, next_halves=None) -> sp.csr_matrix:
+                        diagonals=None, firsts=None, lowers=None, halves=None,
+                        next_halves=None) -> sp.csr_matrix:
     """``Pᵀ A P`` (canonical CSR) of a symmetric canonical ``A``, as ``B + Bᵀ`` with ``B = Pᵀ (L + D/2) P``.
 
     ``A = (L + D/2) + (L + D/2)ᵀ``, so ``Pᵀ A P = B + Bᵀ``: the products run on half of ``A``'s entries
@@ -313,7 +315,8 @@ def _symmetric_galerkin(Ak: sp.csr_matrix, P: sp.csr_matrix, R: sp.csr_matrix,
         half, d = _lower_half(Ak, positions, where)
     if diagonals is not None:
         diagonals.append(d)
-    done = _symmetric_product_compiled(half, P, R, next_halves is not None) if _kernels.wanted(Ak.nnz) else None
+    done = (_symmetric_product_compiled(half, P, R, next_halves is not None) if _kernels.wanted(Ak.nnz)
+            else None)
     if done is not None:
         Ac, split = done
         if next_halves is not None:

@@ -224,7 +224,6 @@ def test_clearance_covers_a_wider_fine_envelope():
     """``cage_options_for``: 2.5 envelopes by default, ``1.25 (fine + coarse)`` for a wider fine envelope, the
     user's own ``min_gap`` kept."""
     import cagegen
-
     from nestmg import MeshingOptions
     from nestmg.hierarchy import cage_options_for, fine_envelope
 

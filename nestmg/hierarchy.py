@@ -308,15 +308,13 @@ def tet_hierarchy(
     return tets, Ps, reps, timings
 
 
-def cage_options_for(method: str, cages: CageOptions | None, meshing: MeshingOptions,
-                     fine_epsilon: float | None = None) -> CageOptions:
+def cage_options_for(method: str, cages: CageOptions | None, meshing: MeshingOptions) -> CageOptions:
     """The cage options a hierarchy uses: ``cages`` (default: the method's defaults) with its clearance.
 
     With TetWild and a certified method, ``min_gap`` None becomes ``2.5 * meshing.epsilon``: TetWild's
     boundary is only within ``epsilon`` (relative to each layer's bbox diagonal) of its input, outward on
     the fine layer and inward on the cage, so that clearance keeps every fine node inside the coarse tet
-    mesh (tet-level nesting). ``fine_epsilon``: the wider envelope of the levels meshed from the input
-    (:func:`fine_envelope`); the clearance is then ``1.25 (fine_epsilon + epsilon)``, the same sum and margin.
+    mesh (tet-level nesting).
 
     Raises
     ------
@@ -332,24 +330,29 @@ def cage_options_for(method: str, cages: CageOptions | None, meshing: MeshingOpt
         raise cagegen.CageOptionError(f"method {method!r} takes cagegen.{cls.__name__}, got "
                                       f"{type(cages).__name__}")
     if cages.min_gap is None and meshing.mesher == "tetwild" and method not in cagegen.UNCERTIFIED_METHODS:
-        eps = meshing.epsilon
-        wide = fine_epsilon is not None and fine_epsilon > eps
-        cages = dataclasses.replace(cages, min_gap=1.25 * (fine_epsilon + eps) if wide else 2.5 * eps)
+        cages = dataclasses.replace(cages, min_gap=2.5 * meshing.epsilon)
     return cages
 
 
+#: :func:`fine_envelope` is at most this many ``epsilon``: the cages keep ``2.5 epsilon`` from the input, so
+#: the input's level standing ``2 epsilon`` out and a cage level re-meshed at ``epsilon / 4`` (the tet-level
+#: retry) still nest. Widening the clearance instead, to ``1.25 (envelope + epsilon)``, failed lucy.ply's
+#: nested cage at 0.0032 (its thin wings; the sdf fallback then ran for minutes).
+FINE_ENVELOPE_CAP = 2.0
+
+
 def fine_envelope(meshing: MeshingOptions, predecimation: dict) -> float:
-    """TetWild's envelope for the levels meshed from a predecimated input: ``max(epsilon, hausdorff)``.
+    """TetWild's envelope for the levels meshed from a predecimated input: its Hausdorff error, within
+    ``[epsilon, FINE_ENVELOPE_CAP epsilon]``.
 
     The predecimated surface is within its Hausdorff error of the input (:func:`predecimate`, at most
-    ``max(epsilon, h/4)``); holding TetWild to a tighter ``epsilon`` of it makes the tets follow what the
-    predecimation kept of a scan's noise: on an ellipsoid with 0.4% noise (82k faces, predecimated to 27k
-    at Hausdorff 0.0023) the level meshed at ``epsilon = 1e-3`` had 1.84x the planned tets and took 113 s,
-    at 0.0023 189k instead of 219k tets in 62 s (docs/scale.md). An input meshed as it is keeps ``epsilon``.
+    ``max(epsilon, h/4)``); held to a tighter ``epsilon`` of it, TetWild makes tets follow what the
+    predecimation kept of a scan's noise (docs/scale.md). An input meshed as it is keeps ``epsilon``.
     """
+    eps = float(meshing.epsilon)
     if meshing.mesher != "tetwild" or predecimation.get("faces_out", 0) >= predecimation.get("faces_in", 0):
-        return float(meshing.epsilon)
-    return max(float(meshing.epsilon), float(predecimation.get("hausdorff") or 0.0))
+        return eps
+    return min(max(eps, float(predecimation.get("hausdorff") or 0.0)), FINE_ENVELOPE_CAP * eps)
 
 
 def build_cage_surfaces(
@@ -867,10 +870,8 @@ def build_hierarchy(
     # 2. the surface actually meshed
     S0, F0, pre, plan, audit = _predecimated(Vn, F, levels, plan, sizing, meshing, cages, refine, timer, t0)
     eps0 = fine_envelope(meshing, pre)
-    if eps0 > meshing.epsilon:  # the wider envelope of the input's levels, and the clearance that covers it
-        cages = cage_options_for(method, cages_given, meshing, fine_epsilon=eps0)
-        gap = "" if cages.min_gap is None else f", clearance {cages.min_gap:.2g}"
-        stage_line(f"TetWild envelope of the input's levels {eps0:.2g} (the predecimation's error){gap}", t0)
+    if eps0 > meshing.epsilon:
+        stage_line(f"TetWild envelope of the input's levels {eps0:.2g} (the predecimation's error)", t0)
     # 3. cages (normalised frame inside build_cage_surfaces; we keep working normalised here)
     with timer("cages"):
         surfaces_u, info = build_cage_surfaces(S0, F0, n_surf, method, sizing=sizing, meshing=meshing,

@@ -122,6 +122,28 @@ def scale_readme() -> str:
             f"{rng(oc)} and V-cycle factors {rng(fd)} (Dirichlet) and {rng(fn)} (Neumann, diffusion)")
 
 
+#: ``benchmarks/scale.py`` on gargo_86k_noisy at the commit before ``fine_envelope`` and after it
+ENVELOPE = ("scale/noisy_envelope_before_d46e8e5.json", "scale/noisy_envelope_after_dc12449.json")
+
+
+@generator("scale.fine_envelope", *ENVELOPE)
+def scale_fine_envelope() -> str:
+    b, a = (load(p)["summary"][0] for p in ENVELOPE)
+    probs = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
+
+    def fac(r):
+        return " / ".join(f"{r[p]['v11_factor']:.3f}" for p in probs)
+
+    h = load(ENVELOPE[1])["runs"][0]["hierarchy"]
+    return (f"envelope {h['timings']['epsilon'][0]:.2g} instead of 0.001 (Hausdorff error "
+            f"{h['cage_info']['predecimation']['hausdorff']:.2g}); the input meshed at `2 h_0` {b['tets'][1]:,} -> "
+            f"{a['tets'][1]:,} tets (planned {h['options']['plan']['expected_tets'][1]:,}) in {b['tet_seconds'][1]:.0f} -> "
+            f"{a['tet_seconds'][1]:.0f} s, "
+            f"the fine level {b['tets'][0]:,} -> {a['tets'][0]:,} tets, to Neumann 1e-8 {b['end_to_end_neumann_s']:.0f} -> "
+            f"{a['end_to_end_neumann_s']:.0f} s, peak RSS {b['peak_rss_gb']:.2f} -> {a['peak_rss_gb']:.2f} GB, V-cycle "
+            f"factors D / N / diffusion {fac(b)} -> {fac(a)}, n_outside {a['n_outside']}")
+
+
 @generator("scale.end_to_end", "scale/scale_v3.json")
 def scale_end_to_end() -> str:
     rows = []

@@ -833,7 +833,7 @@ def build_hierarchy(
     sizing, meshing = typed(sizing, SizingOptions, "sizing"), typed(meshing, MeshingOptions, "meshing")
     if levels < 2:
         raise NestmgInputError(f"levels must be >= 2, got {levels}")
-    cages_given, cages = cages, cage_options_for(method, cages, meshing)
+    cages = cage_options_for(method, cages, meshing)
     if meshing.tet_retries is None:
         meshing = dataclasses.replace(meshing, tet_retries=0 if method in cagegen.UNCERTIFIED_METHODS else 2)
     fine_level, refine = _fine_level(levels, sizing, meshing.mesher)

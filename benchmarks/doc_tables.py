@@ -128,14 +128,15 @@ ENVELOPE = ("scale/noisy_envelope_before_d46e8e5.json", "scale/noisy_envelope_af
 
 @generator("scale.fine_envelope", *ENVELOPE)
 def scale_fine_envelope() -> str:
-    b, a = (load(p)["summary"][0] for p in ENVELOPE)
+    before, after = (load(p) for p in ENVELOPE)
+    b, a = before["summary"][0], after["summary"][0]
     probs = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
     def fac(r):
         return " / ".join(f"{r[p]['v11_factor']:.3f}" for p in probs)
 
-    h = load(ENVELOPE[1])["runs"][0]["hierarchy"]
-    return (f"envelope {h['timings']['epsilon'][0]:.2g} instead of 0.001 (Hausdorff error "
+    h, h0 = after["runs"][0]["hierarchy"], before["runs"][0]["hierarchy"]
+    return (f"envelope {h['timings']['epsilon'][0]:.2g} instead of {h0['timings']['epsilon'][0]:.2g} (Hausdorff error "
             f"{h['cage_info']['predecimation']['hausdorff']:.2g}); the input meshed at `2 h_0` {b['tets'][1]:,} -> "
             f"{a['tets'][1]:,} tets (planned {h['options']['plan']['expected_tets'][1]:,}) in {b['tet_seconds'][1]:.0f} -> "
             f"{a['tet_seconds'][1]:.0f} s, "

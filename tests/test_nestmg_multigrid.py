@@ -188,14 +188,17 @@ def test_pipeline_cycle_probes_every_level(torus_iso_tets):
 
 
 def test_each_problem_deflates_down_to_its_own_goal(torus_iso_tets):
-    """Problem.multigrid() probes against the problem's goal (FACTOR_GOALS: Dirichlet 0.2, else 0.3)."""
-    from nestmg.problems import FACTOR_GOALS
+    """Problem.multigrid() probes against the problem's goal (FACTOR_GOALS: Dirichlet 0.2, else 0.3) with a
+    margin (PROBE_MARGIN): a probe just under the goal let the measured factor land on either side of it."""
+    from nestmg.problems import FACTOR_GOALS, PROBE_MARGIN
 
+    assert 0.8 <= PROBE_MARGIN < 1.0
     _, tets, P, _ = torus_iso_tets
-    for name, goal in FACTOR_GOALS.items():
+    for name, acceptance in FACTOR_GOALS.items():
         pr = setup_problem(tets, P, name)
         ml = pr.multigrid()
-        assert ml.deflate_goal == goal
+        goal = ml.deflate_goal
+        assert goal == pytest.approx(PROBE_MARGIN * acceptance, rel=1e-12)
         _, info = ml.solve(pr.b, tol=1e-10, maxiter=60, return_info=True)
         slow = [d for d in ml.deflation if d["probe_factor"] > goal]
         # each slow level deflates, or solves locally where its slow modes live (solvers.subdomain), or its
@@ -205,7 +208,7 @@ def test_each_problem_deflates_down_to_its_own_goal(torus_iso_tets):
                    or d.get("slow_modes_found", 0) > 8
                    or d.get("not_orthonormal") or d.get("broken_ritz_value") for d in slow)
         if name == "poisson-dirichlet":
-            assert info["factor"] <= goal, info["factor"]
+            assert info["factor"] <= acceptance, info["factor"]
 
 
 def test_pipeline_probe_serves_stationary_solves_only(torus_iso_tets):

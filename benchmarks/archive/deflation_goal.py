@@ -41,15 +41,18 @@ def _measure(p, goal: float) -> dict:
 def one_run(mesh: str, problems: list[str], goals: dict[str, list[float]]) -> dict:
     from corpus import _cli_args  # the corpus' own `nestmg solve` arguments: the defaults
 
+    from nestmg.bodies import file_frame
     from nestmg.cli import _hierarchy, _load
     from nestmg.problems import setup_problem
 
     args = _cli_args("solve", Path(mesh), [])
     V, F, _ = _load(mesh)
     h = _hierarchy(V, F, args)
+    center, scale = file_frame(V)  # posed as `nestmg solve` poses them (diffusion's lambda is not scale-free)
+    tets = [((Vt - center) / scale, T) for Vt, T in h.tets]
     rec = {"tets": [len(T) for _, T in h.tets], "certified": h.certified, "problems": {}}
     for name in problems:
-        p = setup_problem(h.tets, h.P, name)
+        p = setup_problem(tets, h.P, name)
         rec["problems"][name] = [_measure(p, g) for g in goals[name]]
     return rec
 

@@ -206,7 +206,6 @@ def case_wheel(mesh: Path, counts: list[int]) -> dict:
 def _child(kind: str, mesh: Path, arg: str, result: Path) -> None:
     from nestmg.progress import enable_stage_lines
 
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     enable_stage_lines(sys.stderr)  # the parent keeps the last lines of a case it had to stop
     t = time.perf_counter()
     try:
@@ -236,7 +235,11 @@ def run_case(kind: str, mesh: Path, arg: str, timeout: float) -> dict:
         result = Path(tmp) / "r.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--case", kind, str(mesh), arg, str(result)]
         t = time.perf_counter()
-        proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        # one BLAS thread unless the caller says otherwise, set before the child imports numpy (a limit set
+        # after the import left OpenBLAS with its threads: set-ups 6x slower on a loaded machine)
+        env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+        proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                env=env)
         try:
             _, err = proc.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:

@@ -5,12 +5,21 @@ triangular solves (a few thousand unknowns). OpenBLAS's threads gain nothing the
 spin beside other work: on a 1M-tet Neumann problem (2 cores) the MG-PCG solve took 0.217 s with two BLAS
 threads against 0.185 s with one on an idle machine, and 0.569 against 0.272 s beside a BLAS job
 (``benchmarks/results/user_mesh/blas_threads_ff45427.json``).
-The limit is set and restored around each solve and each preconditioner application (about 10 us).
+The limit is set and restored around each solve and each preconditioner application (about 10 us), and
+around the set-up (:class:`solvers.MultigridSolver`'s construction and its deferred probe): the deflation
+probe's Lanczos steps are tall-skinny products (n x 24) beside cycles, and with two BLAS threads beside other
+work lucy.ply's Neumann set-up with the probe took 5.2 s against 2.9 s with one (ad hoc; CHANGELOG).
 """
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import TypeVar
+
 from threadpoolctl import ThreadpoolController
+
+F = TypeVar("F", bound=Callable)
 
 _controller: ThreadpoolController | None = None
 
@@ -21,3 +30,14 @@ def one_blas_thread():
     if _controller is None:  # lazily: the libraries loaded by then (numpy's, scipy's) are the ones limited
         _controller = ThreadpoolController()
     return _controller.limit(limits=1, user_api="blas")
+
+
+def under_one_blas_thread(fn: F) -> F:
+    """Decorator: ``fn`` runs under :func:`one_blas_thread`."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with one_blas_thread():
+            return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]

@@ -26,22 +26,37 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ._threads import one_blas_thread
+from ._threads import one_blas_thread, under_one_blas_thread
 from .coarse import _CoarseSolver
 from .deflation import DEFLATION_GOAL, _kernel_projector, slow_modes, with_deflation
-from .ordering import (ORDER_MIN_N, ORDER_MIN_SPREAD, SPREAD_STRIDE, index_spread, locality_order,
-                       permute_prolongation, permute_symmetric,
-                       permute_symmetric_transpose)
-from .krylov import STALL_ITERATIONS
 from .errors import DivergenceError, IncompatibleRHSError, SolverError, SolverInputError
+from .krylov import STALL_ITERATIONS
+from .ordering import (
+    ORDER_MIN_N,
+    ORDER_MIN_SPREAD,
+    SPREAD_STRIDE,
+    index_spread,
+    locality_order,
+    permute_prolongation,
+    permute_symmetric,
+    permute_symmetric_transpose,
+)
 from .smoothing import Smoother, local_rows, make_smoother, with_local_sweeps
-from .subdomain import (REGION_MAX_FRACTION, STRONG_COUPLING, concentrated_region, power_probe, slow_region,
-                        strongly_coupled, subdomain_factor, with_subdomain_solve)
+from .subdomain import (
+    REGION_MAX_FRACTION,
+    STRONG_COUPLING,
+    concentrated_region,
+    power_probe,
+    slow_region,
+    strongly_coupled,
+    subdomain_factor,
+    with_subdomain_solve,
+)
 from .transfer import (
     _as_csr,
+    _drop_unreached_columns,
     _galerkin_chain,
     _is_symmetric,
-    _drop_unreached_columns,
     galerkin_operators,
     prune_prolongations,
     reroute_to_pattern,
@@ -379,6 +394,7 @@ class MultigridSolver:
     (True, True)
     """
 
+    @under_one_blas_thread  # the set-up's dense work is small: BLAS threads only spin (solvers._threads)
     def __init__(
         self,
         A,
@@ -536,6 +552,7 @@ class MultigridSolver:
         self._pending_probe = int(max_vectors) if defer else None
         self.deflation: list[dict] = self._deflate(max_vectors, probe_finest and not defer)
 
+    @under_one_blas_thread
     def probe(self) -> list[dict]:
         """Run the finest level's probe deferred by ``probe_at="stationary"`` (once; later calls, and a
         probe run at set-up, do nothing) and return :attr:`deflation`. ``solve(accel=None)`` calls it."""

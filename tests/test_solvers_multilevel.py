@@ -877,6 +877,26 @@ def test_pivoted_cholesky_refuses_an_indefinite_operator():
     assert np.linalg.norm(A @ auto(b) - b) < 1e-8 * np.linalg.norm(b)
 
 
+def test_setup_and_deferred_probe_run_with_one_blas_thread(cube, monkeypatch):
+    """The set-up (operators, factor, coarse probes) and the deferred finest probe run on one BLAS thread
+    and give the caller's limit back: the probe's tall-skinny products beside its cycles gained nothing from
+    OpenBLAS's threads and lost to their spinning (lucy.ply's Neumann set-up 5.2 s against 2.9 s, loaded)."""
+    import solvers.multilevel as multilevel
+
+    ds, Pf, _ = _dirichlet(cube, 3)
+    checks = record_blas_threads(monkeypatch, multilevel, "_check_operators")
+    probes = record_blas_threads(monkeypatch, multilevel, "slow_modes")
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        ml = MultigridSolver(ds.A, Pf, deflate=8, probe_finest=True, probe_at="stationary")
+        coarse_probes = len(probes)
+        ml.probe()
+        after = blas_threads()
+    assert checks and set(checks) == {1}
+    assert coarse_probes >= 1 and len(probes) > coarse_probes and set(probes) == {1}
+    assert after == before == [2] * len(before)
+
+
 def test_cycles_run_with_one_blas_thread(cube, monkeypatch):
     """solve() and aspreconditioner() run their cycles on one BLAS thread and give the caller's limit back
     (OpenBLAS threads spinning beside the cycle's short BLAS calls slowed MG-PCG solves down)."""

@@ -48,8 +48,9 @@ PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 FACTOR_GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
 
 #: The probe's goal is this fraction of the problem's :data:`FACTOR_GOALS` (``deflate_goal``). A probe
-#: estimate just under the goal let the measured factor land on either side of it: on lucy.ply's Neumann
-#: problem the finest probe read 0.294 and the cycle measured 0.266-0.306 over TetWild's runs (issue 27).
+#: estimate just under the goal left the measured factor at the goal: homer.obj's and cheburashka.obj's
+#: Neumann probes read 0.298 / 0.293, their factors 0.296 / 0.299 (corpus zoo_cb3e803_merged.json); on three
+#: lucy.ply hierarchies the margin took Neumann 0.268-0.283 to 0.232-0.259 (lucy_probe_margin_43baf99.json).
 PROBE_MARGIN = 0.9
 
 def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coarse_nu: int | None = None) -> list:

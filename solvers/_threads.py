@@ -7,8 +7,9 @@ threads against 0.185 s with one on an idle machine, and 0.569 against 0.272 s b
 (``benchmarks/results/user_mesh/blas_threads_ff45427.json``).
 The limit is set and restored around each solve and each preconditioner application (about 10 us), and
 around the set-up (:class:`solvers.MultigridSolver`'s construction and its deferred probe): the deflation
-probe's Lanczos steps are tall-skinny products (n x 24) beside cycles, and with two BLAS threads beside other
-work lucy.ply's Neumann set-up with the probe took 5.2 s against 2.9 s with one (ad hoc; CHANGELOG).
+probe's Lanczos steps are tall-skinny products (n x 24) beside cycles: lucy.ply's Neumann set-up with the
+probe took 10.8 s with two BLAS threads against 4.7 s with one beside two other processes, and as long either
+way on an idle machine (``benchmarks/results/setup_cost/setup_blas_threads_{loaded,idle}.json``).
 """
 
 from __future__ import annotations

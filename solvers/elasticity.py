@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ._threads import under_one_blas_thread
 from .errors import IncompatibleRHSError, SolverError, SolverInputError
 from .fem import check_tet_mesh
 from .multilevel import MultigridSolver
@@ -384,6 +385,7 @@ class NullspaceMultigridSolver(MultigridSolver):
         Orthonormal bases of the kernels, finest first.
     """
 
+    @under_one_blas_thread  # its probe runs after MultigridSolver's set-up returns: limited here too
     def __init__(self, A, Ps, nullspaces, *, coarse_solver: str = "regularized", deflate: int = 0,
                  probe_finest: bool = False, probe_at: str = "setup", **kwargs):
         t0 = time.perf_counter()

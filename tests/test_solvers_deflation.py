@@ -197,6 +197,24 @@ def test_rigid_modes_kept_out_of_the_probe(elastic_piece):
     assert np.allclose(Z.T @ (K @ Z), np.eye(Z.shape[1]), atol=1e-8)  # A-orthonormal
 
 
+def test_nullspace_solver_probes_on_one_blas_thread(elastic_piece, monkeypatch):
+    """NullspaceMultigridSolver probes after MultigridSolver's set-up has returned (its projected coarse solve
+    first): that probe runs on one BLAS thread too, and the caller's limits come back."""
+    import threadpoolctl
+    from conftest import blas_threads, record_blas_threads
+
+    from solvers import multilevel
+
+    K, Pb, Zs = elastic_piece
+    probes = record_blas_threads(monkeypatch, multilevel, "slow_modes")
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        NullspaceMultigridSolver(K, Pb, Zs, deflate=8)
+        after = blas_threads()
+    assert probes and set(probes) == {1}
+    assert after == before
+
+
 def test_elasticity_deflation_cuts_mg_pcg_iterations(elastic_piece):
     """Measured: 21 MG-PCG iterations without deflation, 12 with the finest level's 12 slowest modes
     (probe 0.90 -> 0.51) and level 1's 9 deflated; the solution stays orthogonal to the rigid modes."""

@@ -964,6 +964,7 @@ class MultigridSolver:
                 check_compatible(b)
         return b
 
+    @under_one_blas_thread  # the cycles' BLAS calls are short: threads only spin (solvers._threads)
     def solve(
         self,
         b,
@@ -1016,11 +1017,6 @@ class MultigridSolver:
         IncompatibleRHSError
             Neumann problem with ``sum(b) != 0`` and ``project=False``.
         """
-        with one_blas_thread():
-            return self._solve(b, x0, tol, maxiter, cycle, accel, residuals, project, divtol, return_info)
-
-    def _solve(self, b, x0, tol, maxiter, cycle, accel, residuals, project, divtol, return_info):
-        """:meth:`solve`'s body, run under one BLAS thread (:mod:`solvers._threads`)."""
         cycle = self._check_cycle(self.cycle if cycle is None else cycle)
         if accel not in (None, "cg"):
             raise SolverInputError(f"accel must be None or 'cg', got {accel!r}")

@@ -120,8 +120,34 @@ def case_solve(mesh: Path) -> dict:
             "pcg_seconds": c["seconds"], "deflation": r.get("deflation"),
             "solve_cpu_seconds": r.get("cpu_seconds"), "pcg_cpu_seconds": c.get("cpu_seconds"),
             "coarsest": c.get("coarsest"),
+            "constructor": constructor_pcg(h, problem, args.solver),
         }
     return rec
+
+
+def constructor_pcg(h, problem: str, solver) -> dict:
+    """MG-PCG to 1e-8 with ``MultigridSolver(A, P)``'s defaults (the problem's coarse operators and null
+    space only) on the problem ``nestmg solve`` poses, and with ``deflate=0`` (no coarse-level probe):
+    CG iterations, set-up and solve CPU seconds, the ``deflate`` used and the probe's levels."""
+    from nestmg.problems import setup_problem
+    from solvers import MultigridSolver
+
+    pr = setup_problem(h.tets_in("normalized"), h.P, problem, coarse=solver.coarse, lam=solver.lam)
+    out = {}
+    for name, kw in (("default", {}), ("no_probe", {"deflate": 0})):
+        t = time.process_time()
+        ml = MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace, **kw)
+        setup = time.process_time() - t
+        t = time.process_time()
+        _, info = ml.solve(pr.b, tol=solver.tol, accel="cg", return_info=True)
+        out[name] = {"pcg_iterations": info["iterations"], "converged": bool(info["converged"]),
+                     "setup_cpu_seconds": setup, "solve_cpu_seconds": time.process_time() - t,
+                     "deflate": int(ml.deflate), "operator_complexity": ml.operator_complexity(),
+                     "probe": [{"level": d["level"], "probe_factor": d["probe_factor"], "vectors": d["vectors"],
+                                "local_solve": (d.get("local_solve") or {}).get("nodes")
+                                if (d.get("local_solve") or {}).get("kept") else None}
+                               for d in ml.deflation]}
+    return out
 
 
 def _case_solve_bodies(V, F, bodies, args) -> dict:

@@ -302,12 +302,12 @@ def solve_row(entry: dict) -> str:
     """One markdown row of the solve table."""
     s = entry.get("solve") or {}
     if not s:
-        return f"| {entry['mesh']} | {entry['faces']:,} | not run | | | | | | | |"
+        return f"| {entry['mesh']} | {entry['faces']:,} | not run | | | | | | | | |"
     if not s.get("ok"):
         mended = " with `--repair`" if s.get("repair") else ""
         took = _f(s.get("wall_seconds"), "{:.0f}")
         return (f"| {entry['mesh']} | {entry['faces']:,} | **failed**{mended} ({took} s): {_err(s)} "
-                "| | | | | | | |")
+                "| | | | | | | | |")
     st = s["stages"]
     probs = s["problems"]
     cells = []
@@ -315,13 +315,18 @@ def solve_row(entry: dict) -> str:
         r = probs[p]
         cells.append(f"{r['factor']:.3f}{_mark(r['factor'] <= GOALS[p])} / {r['pcg_iterations']}"
                      f"{_mark(r['pcg_iterations'] <= GOALS['pcg'])}")
+    ctor = [probs[p].get("constructor") for p in PROBLEMS]
+    ctor_cell = " / ".join(
+        "–" if not c else f"{c['default']['pcg_iterations']}{_mark(c['default']['pcg_iterations'] <= GOALS['pcg'])}"
+        + (f" ({c['no_probe']['pcg_iterations']})"
+           if c['no_probe']['pcg_iterations'] != c['default']['pcg_iterations'] else "") for c in ctor)
     oc = max(r["operator_complexity"] or 0 for r in probs.values())
     tets = " / ".join(f"{n / 1000:.0f}k" if n >= 1000 else str(n) for n in s["tets"])
     cert = ("yes" if s["certified"] else "**no**") + (" (`--repair`)" if s.get("repair") else "")
     fb = f" (fallback {[d['fallback'] for d in s['fallbacks']]})" if s.get("fallbacks") else ""
     return (f"| {entry['mesh']} | {entry['faces']:,} | {cert}{fb} | {tets} | {_f(st.get('cages'), '{:.0f}')} / "
             f"{_f(st.get('tets'), '{:.0f}')} / {s['wall_seconds']:.0f} | " + " | ".join(cells)
-            + f" | {oc:.2f}{_mark(oc <= GOALS['complexity'])} | {s['peak_mb'] / 1024:.1f} |")
+            + f" | {ctor_cell} | {oc:.2f}{_mark(oc <= GOALS['complexity'])} | {s['peak_mb'] / 1024:.1f} |")
 
 
 def cages_row(entry: dict, backends: list[str]) -> str:
@@ -440,9 +445,12 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
              "Cells: V-cycle factor / MG-PCG iterations to 1e-8 (✗: above the goal "
              f"{GOALS['poisson-dirichlet']} Dirichlet, {GOALS['poisson-neumann']} Neumann and diffusion, "
              f"{GOALS['pcg']} iterations, operator complexity {GOALS['complexity']}). Seconds: cages / tets / "
-             "whole case (hierarchy + 6 solves).", "",
-             "| mesh | faces | certified | tets per level | seconds | Dirichlet | Neumann | diffusion | op. cx | "
-             "peak GB |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "whole case (hierarchy + 6 solves). `MultigridSolver(A, P)`: MG-PCG iterations to 1e-8 with the "
+             "constructor's defaults (the problem's coarse operators and null space only) for Dirichlet / Neumann / "
+             "diffusion, in brackets without its coarse-level probe (`deflate=0`) where that differs (–: not "
+             "recorded, e.g. multi-body files).", "",
+             "| mesh | faces | certified | tets per level | seconds | Dirichlet | Neumann | diffusion | "
+             "`MultigridSolver(A, P)` | op. cx | peak GB |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     skipped = []
     main = str(doc.get("commit")).split(" / ")[0]
     for e in doc["meshes"]:  # rows re-run at another commit say so

@@ -85,3 +85,27 @@ def test_derived_inputs_recipe():
     assert 0.1 * mean_edge < move.max() <= 0.25 * mean_edge + 1e-12
     assert np.array_equal(Vn, derived_inputs.derive(V, F, 1, 0.25)[0])
     assert set(derived_inputs.DERIVED) == {"gargo_21k.obj", "gargo_342k.obj", "bunny_111k.obj", "gargo_86k_noisy.obj"}
+
+
+def test_constructor_record_and_its_table_cell():
+    """The corpus records ``MultigridSolver(A, P)``'s MG-PCG with its defaults and without the coarse probe, and
+    the solve table shows both iteration counts (the bracket only where they differ)."""
+    from types import SimpleNamespace
+
+    from solvers.gallery import kuhn_cube_hierarchy
+
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)
+    h = SimpleNamespace(tets_in=lambda frame: meshes, P=Ps)
+    rec = corpus.constructor_pcg(h, "poisson-neumann", SolverOptions())
+    d, n = rec["default"], rec["no_probe"]
+    assert d["converged"] and n["converged"] and 3 <= d["pcg_iterations"] <= 12
+    assert d["deflate"] == 8 and [p["level"] for p in d["probe"]] == [1]  # nested: cheap coarse levels probed
+    assert n["deflate"] == 0 and n["probe"] == [] and d["operator_complexity"] < 1.5
+    probs = {p: {"factor": 0.1, "pcg_iterations": 7, "operator_complexity": 1.2,
+                 "constructor": {"default": {"pcg_iterations": 10}, "no_probe": {"pcg_iterations": k}}}
+             for p, k in zip(corpus.PROBLEMS, (10, 14, 10))}
+    entry = {"mesh": "m.off", "faces": 100, "solve": {"ok": True, "stages": {"cages": 1, "tets": 2}, "problems": probs,
+                                                     "tets": [8000, 1000], "certified": True, "wall_seconds": 3,
+                                                     "peak_mb": 100}}
+    row = corpus.solve_row(entry)
+    assert "| 10 / 10 (14) / 10 |" in row and row.count("|") == 12

@@ -127,16 +127,22 @@ def case_solve(mesh: Path) -> dict:
 
 def constructor_pcg(h, problem: str, solver) -> dict:
     """MG-PCG to 1e-8 with ``MultigridSolver(A, P)``'s defaults (the problem's coarse operators and null
-    space only) on the problem ``nestmg solve`` poses, and with the coarse levels' deflation probe
-    (``deflate=DEFAULT_DEFLATE``, as ``Problem.multigrid()`` runs it at set-up): CG iterations, set-up and
-    solve CPU seconds, operator complexity, the probe's levels."""
+    space only) on the problem ``nestmg solve`` poses (``default``), with the coarse levels' deflation probe
+    (``coarse_probe``: ``deflate=DEFAULT_DEFLATE``, as ``Problem.multigrid()`` runs it at set-up) and, on the
+    problems with a boundary layer (natural boundaries), with one-way sweeps over it on the fine level
+    (``layer``, ``layer_probe``: the problem's ``local_nodes``, as ``smoothing="fast"``): CG iterations,
+    set-up and solve CPU seconds, operator complexity, the probe's levels."""
     from nestmg.problems import setup_problem
     from solvers import MultigridSolver
     from solvers.multilevel import DEFAULT_DEFLATE
 
     pr = setup_problem(h.tets_in("normalized"), h.P, problem, coarse=solver.coarse, lam=solver.lam)
     out = {}
-    for name, kw in (("default", {}), ("coarse_probe", {"deflate": DEFAULT_DEFLATE})):
+    variants = [("default", {}), ("coarse_probe", {"deflate": DEFAULT_DEFLATE})]
+    if pr.local_nodes is not None:
+        layer = {"local_nodes": pr.local_nodes, "local_sweep": "one-way", "local_levels": 1}
+        variants += [("layer", layer), ("layer_probe", {**layer, "deflate": DEFAULT_DEFLATE})]
+    for name, kw in variants:
         t = time.process_time()
         ml = MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace, **kw)
         setup = time.process_time() - t

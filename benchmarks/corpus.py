@@ -127,22 +127,17 @@ def case_solve(mesh: Path) -> dict:
 
 def constructor_pcg(h, problem: str, solver) -> dict:
     """MG-PCG to 1e-8 with ``MultigridSolver(A, P)``'s defaults (the problem's coarse operators and null
-    space only) on the problem ``nestmg solve`` poses (``default``), with the coarse levels' deflation probe
-    (``coarse_probe``: ``deflate=DEFAULT_DEFLATE``, as ``Problem.multigrid()`` runs it at set-up) and, on the
-    problems with a boundary layer (natural boundaries), with one-way sweeps over it on the fine level
-    (``layer``, ``layer_probe``: the problem's ``local_nodes``, as ``smoothing="fast"``): CG iterations,
-    set-up and solve CPU seconds, operator complexity, the probe's levels."""
+    space only) on the problem ``nestmg solve`` poses (``default``: ``deflate="auto"``, the coarse levels'
+    probe within ``AUTO_PROBE_MAX_COMPLEXITY``) and with ``deflate=0`` (``no_probe``): CG iterations, set-up
+    and solve CPU seconds, the ``deflate`` used, operator complexity, the probe's levels. (The run at
+    e9b70b9, when the default was ``deflate=0``, recorded ``default`` and ``coarse_probe``, ``deflate=8``,
+    plus one-way boundary-layer sweeps, ``layer`` and ``layer_probe``.)"""
     from nestmg.problems import setup_problem
     from solvers import MultigridSolver
-    from solvers.multilevel import DEFAULT_DEFLATE
 
     pr = setup_problem(h.tets_in("normalized"), h.P, problem, coarse=solver.coarse, lam=solver.lam)
     out = {}
-    variants = [("default", {}), ("coarse_probe", {"deflate": DEFAULT_DEFLATE})]
-    if pr.local_nodes is not None:
-        layer = {"local_nodes": pr.local_nodes, "local_sweep": "one-way", "local_levels": 1}
-        variants += [("layer", layer), ("layer_probe", {**layer, "deflate": DEFAULT_DEFLATE})]
-    for name, kw in variants:
+    for name, kw in (("default", {}), ("no_probe", {"deflate": 0})):
         t = time.process_time()
         ml = MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace, **kw)
         setup = time.process_time() - t
@@ -150,12 +145,21 @@ def constructor_pcg(h, problem: str, solver) -> dict:
         _, info = ml.solve(pr.b, tol=solver.tol, accel="cg", return_info=True)
         out[name] = {"pcg_iterations": info["iterations"], "converged": bool(info["converged"]),
                      "setup_cpu_seconds": setup, "solve_cpu_seconds": time.process_time() - t,
-                     "deflate": int(kw.get("deflate", 0)), "operator_complexity": ml.operator_complexity(),
+                     "deflate": int(ml.deflate), "operator_complexity": ml.operator_complexity(),
                      "probe": [{"level": d["level"], "probe_factor": d["probe_factor"], "vectors": d["vectors"],
                                 "local_solve": (d.get("local_solve") or {}).get("nodes")
                                 if (d.get("local_solve") or {}).get("kept") else None}
                                for d in ml.deflation]}
     return out
+
+
+def _ctor_iterations(c: dict) -> tuple[int, int]:
+    """(MG-PCG iterations with the coarse probe, without it) of a :func:`constructor_pcg` record, whichever
+    of the two was the default when it was recorded (each variant records its ``deflate``)."""
+    plain = [v for k, v in c.items() if k in ("default", "no_probe", "coarse_probe")]
+    probe = next(v for v in plain if v["deflate"])
+    none = next(v for v in plain if not v["deflate"])
+    return probe["pcg_iterations"], none["pcg_iterations"]
 
 
 def _case_solve_bodies(V, F, bodies, args) -> dict:
@@ -323,11 +327,9 @@ def solve_row(entry: dict) -> str:
         r = probs[p]
         cells.append(f"{r['factor']:.3f}{_mark(r['factor'] <= GOALS[p])} / {r['pcg_iterations']}"
                      f"{_mark(r['pcg_iterations'] <= GOALS['pcg'])}")
-    ctor = [probs[p].get("constructor") for p in PROBLEMS]
-    ctor_cell = " / ".join(
-        "–" if not c else f"{c['default']['pcg_iterations']}{_mark(c['default']['pcg_iterations'] <= GOALS['pcg'])}"
-        + (f" ({c['coarse_probe']['pcg_iterations']})"
-           if c['coarse_probe']['pcg_iterations'] != c['default']['pcg_iterations'] else "") for c in ctor)
+    ctor = [_ctor_iterations(c) if c else None for c in (probs[p].get("constructor") for p in PROBLEMS)]
+    ctor_cell = " / ".join("–" if c is None else f"{c[0]}{_mark(c[0] <= GOALS['pcg'])}"
+                           + (f" ({c[1]})" if c[1] != c[0] else "") for c in ctor)
     oc = max(r["operator_complexity"] or 0 for r in probs.values())
     tets = " / ".join(f"{n / 1000:.0f}k" if n >= 1000 else str(n) for n in s["tets"])
     cert = ("yes" if s["certified"] else "**no**") + (" (`--repair`)" if s.get("repair") else "")
@@ -454,8 +456,9 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
              f"{GOALS['poisson-dirichlet']} Dirichlet, {GOALS['poisson-neumann']} Neumann and diffusion, "
              f"{GOALS['pcg']} iterations, operator complexity {GOALS['complexity']}). Seconds: cages / tets / "
              "whole case (hierarchy + 6 solves). `MultigridSolver(A, P)`: MG-PCG iterations to 1e-8 with the "
-             "constructor's defaults (the problem's coarse operators and null space only) for Dirichlet / Neumann / "
-             "diffusion, in brackets with the coarse levels' deflation probe (`deflate=8`) where that differs (–: not "
+             "constructor's defaults (the problem's coarse operators and null space only; `deflate=\"auto\"` "
+             "probes the coarse levels of these hierarchies, operator complexity at most 1.5) for Dirichlet / "
+             "Neumann / diffusion, in brackets without the probe (`deflate=0`) where that differs (–: not "
              "recorded, e.g. multi-body files).", "",
              "| mesh | faces | certified | tets per level | seconds | Dirichlet | Neumann | diffusion | "
              "`MultigridSolver(A, P)` | op. cx | peak GB |", "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -417,6 +417,7 @@ class NullspaceMultigridSolver(MultigridSolver):
             self.nullspace_bases.append(Q)
         self._coarse_solver = _ProjectedCoarseSolve(self._coarse_solver, self.nullspace_bases[-1])
         # Krylov vectors kept off nullspace_bases[k]
+        self.deflate = deflate  # no "auto" here: elasticity probes only when asked
         self._schedule_probe(deflate, probe_finest, probe_at)
         self.setup_seconds = time.perf_counter() - t0
 

@@ -65,6 +65,7 @@ from .transfer import (
 )
 
 __all__ = [
+    "AUTO_PROBE_MAX_COMPLEXITY",
     "DEFAULT_DEFLATE",
     "DEFAULT_MAXITER",
     "DEFAULT_SMOOTHER",
@@ -102,10 +103,22 @@ DENSE_LEVEL_ROWS = 2.0
 DEFAULT_MAXITER = 100
 
 #: Cap on the slow modes deflated per level that :meth:`nestmg.problems.Problem.multigrid` passes as
-#: ``MultigridSolver(deflate=)``. The bare constructor's default is 0 (no probe): on the 1M-tet user
-#: hierarchies of docs/usermesh.md the probe saved no CG iteration and only added set-up time
-#: (``nestmg_deflate8`` in ``benchmarks/results/user_mesh/solvers.json``).
+#: ``MultigridSolver(deflate=)``, and that the constructor's ``deflate="auto"`` uses on the coarse levels of
+#: a hierarchy within :data:`AUTO_PROBE_MAX_COMPLEXITY`.
 DEFAULT_DEFLATE = 8
+
+#: ``MultigridSolver(deflate="auto")`` (the default) probes the coarse levels (:data:`DEFAULT_DEFLATE`
+#: modes, not the finest level) when the operator complexity is at most this, and not at all above it. The
+#: probe runs a few dozen cycles of each coarse level, so its cost in fine cycles grows with the coarse
+#: levels' share of the nonzeros, ``1 - 1/complexity``. nestmg's own hierarchies are at 1.17-1.45: on the
+#: zoo's 26 single-body meshes x 3 problems it brought MG-PCG to at most 10 iterations in 77 of 78 cases
+#: (69 without it: the Neumann and diffusion problems of lucy.ply, cow.obj and three CAD parts took 11-15)
+#: for a set-up + solve CPU time x1.22 of the cycle without it (median; x0.98-2.44), still x0.89 of
+#: ``Problem.multigrid()``'s (``benchmarks/results/corpus/zoo_f122700_*.json``). The 1M-tet user hierarchies
+#: are at 1.71-1.83 (``user_mesh/auto_probe.json``), where the probe found only bulk modes, saved no CG
+#: iteration and cost 1.5-2.2x the set-up (``nestmg_deflate8`` in ``user_mesh/solvers.json``). 1.5 is also
+#: the pipeline's own complexity goal.
+AUTO_PROBE_MAX_COMPLEXITY = 1.5
 
 
 class ConvergenceWarning(UserWarning):
@@ -303,9 +316,11 @@ class MultigridSolver:
         sums of :class:`solvers.shifted.ShiftedGalerkin`, symmetric by construction), which skips the
         symmetry tests (~40 ms per level visit of a 2.5M-nonzero operator, a third of a time step's
         set-up in ``benchmarks/reuse_diffusion.py``). ``None`` (default): tested (relative 1e-10).
-    deflate : int
-        At most this many slow modes deflated per level (default 0: off; ``nestmg``'s problems pass
-        :data:`DEFAULT_DEFLATE`). Every level between the finest and the
+    deflate : int or "auto"
+        At most this many slow modes deflated per level (0: off; ``nestmg``'s problems pass
+        :data:`DEFAULT_DEFLATE`). ``"auto"`` (default): :data:`DEFAULT_DEFLATE` when the operator
+        complexity is at most :data:`AUTO_PROBE_MAX_COMPLEXITY` (cheap coarse levels), else 0; the value used
+        is :attr:`deflate`. Every level between the finest and the
         coarsest is probed at setup with :data:`solvers.deflation.PROBE_CYCLES` cycles of its own (about
         one fine cycle in all on a hierarchy coarsening 8x per level); where the error survives them
         (factor above ``deflate_goal``), the slowest modes are found by a few more
@@ -376,6 +391,8 @@ class MultigridSolver:
         and why not when they are not: ``refused_size`` (more than
         :data:`solvers.subdomain.REGION_MAX_FRACTION` of the unknowns), ``refused_fill`` / ``singular`` (as in
         :attr:`deflation`); None when off.
+    deflate : int
+        The ``deflate`` used (``"auto"`` resolved).
     setup_seconds : float
 
     Examples
@@ -413,7 +430,7 @@ class MultigridSolver:
         local_sweep: str = "symmetric",
         ordering: str | None = "auto",
         symmetric: bool | None = None,
-        deflate: int = 0,
+        deflate: int | str = "auto",
         probe_finest: bool = False,
         cycle: str = "V",
         deflate_goal: float = DEFLATION_GOAL,
@@ -465,7 +482,9 @@ class MultigridSolver:
         #: the report of the finest level's strong-coupling solve (``strong_blocks``; see Attributes)
         fine_lower = (lowers[0], diagonals[0]) if lowers and lowers[0] is not None and diagonals else None
         self.strong_blocks = self._strong_block_solve(strong_blocks, fine_lower)
-        self._schedule_probe(deflate, probe_finest, probe_at)
+        #: the ``deflate`` used (``"auto"`` resolved, :data:`AUTO_PROBE_MAX_COMPLEXITY`)
+        self.deflate = self._auto_deflate(deflate)
+        self._schedule_probe(self.deflate, probe_finest, probe_at)
         #: the report of the finest level's cheap slow-region search (``local_probe``; see Attributes)
         self.local_probe = self._cheap_local_solve(local_probe)
         self.setup_seconds = time.perf_counter() - t0
@@ -541,6 +560,15 @@ class MultigridSolver:
                 lvl = Level(Ak)
             levels.append(lvl)
         return levels
+
+    def _auto_deflate(self, deflate) -> int:
+        """``deflate`` with ``"auto"`` resolved: :data:`DEFAULT_DEFLATE` within
+        :data:`AUTO_PROBE_MAX_COMPLEXITY`, else 0 (other values are checked by :meth:`_deflate`)."""
+        if isinstance(deflate, str):
+            if deflate != "auto":
+                raise SolverInputError(f"deflate must be a non-negative integer or 'auto', got {deflate!r}")
+            return DEFAULT_DEFLATE if self.operator_complexity() <= AUTO_PROBE_MAX_COMPLEXITY else 0
+        return deflate
 
     def _schedule_probe(self, max_vectors: int, probe_finest: bool, probe_at: str) -> None:
         """Probe the coarser levels now, and the finest (``probe_finest``) now (``probe_at="setup"``) or at

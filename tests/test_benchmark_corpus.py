@@ -88,8 +88,9 @@ def test_derived_inputs_recipe():
 
 
 def test_constructor_record_and_its_table_cell():
-    """The corpus records ``MultigridSolver(A, P)``'s MG-PCG with its defaults (no probe) and with the coarse
-    levels' probe, and the solve table shows both iteration counts (the bracket only where they differ)."""
+    """The corpus records ``MultigridSolver(A, P)``'s MG-PCG with its defaults (the coarse probe on a nested
+    hierarchy) and without the probe, and the solve table shows both iteration counts (the bracket only where
+    they differ), from a record of either layout (the default was ``deflate=0`` when the older ones ran)."""
     from types import SimpleNamespace
 
     from solvers.gallery import kuhn_cube_hierarchy
@@ -97,12 +98,17 @@ def test_constructor_record_and_its_table_cell():
     meshes, Ps = kuhn_cube_hierarchy(8, 3)
     h = SimpleNamespace(tets_in=lambda frame: meshes, P=Ps)
     rec = corpus.constructor_pcg(h, "poisson-neumann", SolverOptions())
-    d, c = rec["default"], rec["coarse_probe"]
-    assert d["converged"] and c["converged"] and 3 <= d["pcg_iterations"] <= 12
-    assert d["deflate"] == 0 and d["probe"] == [] and d["operator_complexity"] < 1.5
-    assert c["deflate"] == 8 and [p["level"] for p in c["probe"]] == [1]  # level 1 of 3: the only one probed
+    d, n = rec["default"], rec["no_probe"]
+    assert d["converged"] and n["converged"] and 3 <= d["pcg_iterations"] <= 12
+    assert d["deflate"] == 8 and [p["level"] for p in d["probe"]] == [1]  # nested: cheap coarse levels probed
+    assert n["deflate"] == 0 and n["probe"] == [] and d["operator_complexity"] < 1.5
+    assert corpus._ctor_iterations(rec) == (d["pcg_iterations"], n["pcg_iterations"])
+    older = {"default": {"pcg_iterations": 14, "deflate": 0}, "coarse_probe": {"pcg_iterations": 10, "deflate": 8},
+             "layer": {"pcg_iterations": 13, "deflate": 0}}
+    assert corpus._ctor_iterations(older) == (10, 14)
     probs = {p: {"factor": 0.1, "pcg_iterations": 7, "operator_complexity": 1.2,
-                 "constructor": {"default": {"pcg_iterations": 10}, "coarse_probe": {"pcg_iterations": k}}}
+                 "constructor": {"default": {"pcg_iterations": 10, "deflate": 8},
+                                 "no_probe": {"pcg_iterations": k, "deflate": 0}}}
              for p, k in zip(corpus.PROBLEMS, (10, 14, 10))}
     entry = {"mesh": "m.off", "faces": 100, "solve": {"ok": True, "stages": {"cages": 1, "tets": 2}, "problems": probs,
                                                      "tets": [8000, 1000], "certified": True, "wall_seconds": 3,

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+import solvers
 import solvers.coarse
 from solvers import MultigridSolver, fem
 from solvers.gallery import kuhn_cube_hierarchy
-from solvers.multilevel import DEFAULT_SMOOTHER, DENSE_LEVEL_ROWS
+from solvers.multilevel import AUTO_PROBE_MAX_COMPLEXITY, DEFAULT_DEFLATE, DEFAULT_SMOOTHER, DENSE_LEVEL_ROWS
 from solvers.subdomain import STRONG_COUPLING
 from solvers.ordering import (ORDER_MIN_N, index_spread, locality_order, permute_prolongation, permute_symmetric,
                               permute_symmetric_transpose)
@@ -32,9 +33,11 @@ def scattered():
 def test_constructor_defaults_are_the_documented_fast_path():
     """MultigridSolver(A, P) with no options is the cycle docs/usermesh.md measured fastest under CG:
     forward Gauss-Seidel x2 before, backward x2 after (x1 on dense coarse levels), locality ordering,
-    dense coarsest solve, no deflation probe, an exact solve on the strongly coupled fine unknowns."""
+    dense coarsest solve, the coarse levels probed only within AUTO_PROBE_MAX_COMPLEXITY, an exact solve on
+    the strongly coupled fine unknowns."""
     params = inspect.signature(MultigridSolver).parameters
-    assert params["deflate"].default == 0 and params["probe_finest"].default is False
+    assert params["deflate"].default == "auto" and params["probe_finest"].default is False
+    assert AUTO_PROBE_MAX_COMPLEXITY == 1.5 and DEFAULT_DEFLATE == 8
     assert params["strong_blocks"].default == STRONG_COUPLING == 0.5 and params["local_probe"].default == 0
     assert DEFAULT_SMOOTHER == ("gauss_seidel", {"sweep": "forward", "iterations": 2})
     assert params["presmoother"].default == DEFAULT_SMOOTHER and params["postsmoother"].default is None
@@ -52,7 +55,10 @@ def test_constructor_defaults_are_the_documented_fast_path():
         assert (pre["sweep"], pre["iterations"]) == ("forward", 2)
         assert (post["sweep"], post["iterations"]) == ("backward", 2)
     assert ml.symmetric_cycle and ml._coarse_solver.dense and ml.perm is None  # small: caller's order kept
-    assert ml.deflation == []
+    # a nested hierarchy's coarse levels are cheap: level 1 probed (here it is fast: nothing deflated)
+    assert ml.operator_complexity() < 1.2 and ml.deflate == 8
+    assert [d["level"] for d in ml.deflation] == [1] and ml.deflation[0]["vectors"] == 0
+    assert ml.deflation[0]["probe_factor"] < 0.3
     assert ml.strong_blocks == {"theta": 0.5, "nodes": 0, "installed": False}  # a well-shaped mesh: none
     # a dense coarse level (more than DENSE_LEVEL_ROWS times the fine nonzeros per row) gets one sweep
     assert DENSE_LEVEL_ROWS == 2.0
@@ -67,10 +73,35 @@ def test_constructor_defaults_are_the_documented_fast_path():
     assert md.levels[1].presmoother.params["iterations"] == 1, rows
 
 
+def test_auto_probe_only_within_the_complexity_bound(monkeypatch):
+    """``deflate="auto"`` probes the coarse levels (DEFAULT_DEFLATE modes, never the finest level) of a cheap
+    hierarchy and not those of one whose coarse levels hold a large share of the nonzeros (a smoothed P, as
+    a user's non-nested first level); the bound is AUTO_PROBE_MAX_COMPLEXITY, read at set-up."""
+    from solvers import multilevel
+
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)
+    V, T = meshes[0]
+    K = fem.stiffness_matrix(V, T)
+    S = sp.identity(K.shape[0]) - (2.0 / 3.0) * sp.diags(1.0 / K.diagonal()) @ K
+    dense = [sp.csr_matrix(S @ (S @ Ps[0]))] + list(Ps[1:])  # rows still sum to 1: S 1 = 1
+    md = MultigridSolver(K, dense, nullspace="constant")
+    assert md.operator_complexity() > 1.6 and md.deflate == 0 and md.deflation == []
+    ml = MultigridSolver(K, Ps, nullspace="constant")
+    assert ml.operator_complexity() < 1.2 and ml.deflate == DEFAULT_DEFLATE
+    assert [d["level"] for d in ml.deflation] == [1]
+    assert MultigridSolver(K, Ps, nullspace="constant", deflate=0).deflation == []
+    monkeypatch.setattr(multilevel, "AUTO_PROBE_MAX_COMPLEXITY", 1.1)
+    low = MultigridSolver(K, Ps, nullspace="constant")
+    assert low.deflate == 0 and low.deflation == []
+    with pytest.raises(solvers.SolverInputError, match="deflate"):
+        MultigridSolver(K, Ps, nullspace="constant", deflate="yes")
+
+
 def test_default_solver_is_the_documented_cycle_spelled_out(scattered):
     """``MultigridSolver(A, P)`` with no options and with the documented fast path written out (V-cycle,
     forward Gauss-Seidel x2 / backward x2, x1 on levels denser than DENSE_LEVEL_ROWS times the fine one,
-    locality order, Galerkin operators, "auto" coarsest solve, no deflation) apply the same preconditioner
+    locality order, Galerkin operators, "auto" coarsest solve, the coarse probe only within
+    AUTO_PROBE_MAX_COMPLEXITY) apply the same preconditioner
     and take the same CG steps, on a scattered Neumann problem whose first coarse level is dense."""
     _K, Ks, Ps, b, _q, _T = scattered
     P0 = sp.csr_matrix(Ps[0])
@@ -84,7 +115,8 @@ def test_default_solver_is_the_documented_cycle_spelled_out(scattered):
              for k in range(len(Pd))]
     assert [s[1]["iterations"] for s in specs] == [2, 1], rows  # the dense level is exercised
     spelled = MultigridSolver(Ks, Pd, nullspace="constant", presmoother=specs, postsmoother=None,
-                              ordering="locality", coarse="galerkin", coarse_solver="auto", deflate=0,
+                              ordering="locality", coarse="galerkin", coarse_solver="auto",
+                              deflate=DEFAULT_DEFLATE if ml.operator_complexity() <= 1.5 else 0,
                               probe_finest=False, cycle="V", strong_blocks=0.5, local_probe=0)
     assert ml.perm is not None and np.array_equal(ml.perm, spelled.perm)
     assert ml.levels[0].presmoother.smooth_residual is not None  # the cheap pre-smoother residual

@@ -315,71 +315,62 @@ def min_edge_edge_distance(
 
     Candidate pairs come from k-d trees on edge midpoints: two segments with midpoints ``m_a, m_b``
     and half-lengths ``h_a, h_b`` are at least ``|m_a - m_b| - h_a - h_b`` apart, so only pairs with
-    ``|m_a - m_b| < bound + h_a + max(h_b)`` can beat ``bound``. The stored edges are grouped by
-    half-length (factors of :data:`EDGE_LENGTH_CLASS_RATIO`), one tree per group, so that a few long
-    edges do not widen every query ball (lucy.ply against its first cage: 12 s in one tree, the longest
-    edge 13x the median). Distances are evaluated vectorised in chunks of at most ``chunk`` pairs.
+    ``|m_a - m_b| < bound + h_a + h_b`` can beat ``bound``. The edges of each mesh are grouped by
+    half-length (factors of :data:`EDGE_LENGTH_CLASS_RATIO`), one tree per group, and every pair of groups is
+    searched with its own radius (the groups' longest half-lengths), so that a few long edges do not widen
+    every query ball (lucy.ply against its first cage: 12 s in one tree, the longest edge 13x the median);
+    the pairs of two trees come out as arrays (``cKDTree.sparse_distance_matrix``), not as per-edge lists:
+    homer.obj's and pepper.ply's first cage pairs 1.3-1.5x faster than per-edge ball queries. Distances are
+    evaluated vectorised in chunks of at most ``chunk`` pairs.
 
     Returns
     -------
     float
         ``min(bound, smallest edge-edge distance)``.
     """
-    def unique_edges(F):
-        E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-        return np.unique(E, axis=0)
+    from scipy.spatial import cKDTree
 
-    EA, EB = unique_edges(FA), unique_edges(FB)
-    A0, A1 = VA[EA[:, 0]], VA[EA[:, 1]]
-    B0, B1 = VB[EB[:, 0]], VB[EB[:, 1]]
-    hA = 0.5 * np.linalg.norm(A1 - A0, axis=1)
-    hB = 0.5 * np.linalg.norm(B1 - B0, axis=1)
-    if hB.max() > hA.max():  # query with the long edges, store the short ones: smaller balls
-        A0, A1, B0, B1, hA, hB = B0, B1, A0, A1, hB, hA
+    def edge_groups(V, F):
+        E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        E = np.unique(E, axis=0)
+        P0, P1 = V[E[:, 0]], V[E[:, 1]]
+        h = 0.5 * np.linalg.norm(P1 - P0, axis=1)
+        # length classes: [0, 2 median], then doubling
+        edges = 2.0 * max(float(np.median(h)), 1e-300) * EDGE_LENGTH_CLASS_RATIO ** np.arange(64)
+        cls = np.searchsorted(edges, h)
+        groups = []
+        for c in np.unique(cls):
+            sel = np.flatnonzero(cls == c)
+            groups.append((P0[sel], P1[sel], h[sel], cKDTree(0.5 * (P0[sel] + P1[sel]))))
+        return groups
+
     best = float(bound) ** 2
-    # length classes of the stored edges: [0, 2 median], then doubling
-    edges = 2.0 * max(float(np.median(hB)), 1e-300) * EDGE_LENGTH_CLASS_RATIO ** np.arange(64)
-    cls = np.searchsorted(edges, hB)
-    for c in np.unique(cls):
-        sel = np.flatnonzero(cls == c)
-        best = _min_ee_class((A0, A1, hA), (B0[sel], B1[sel], hB[sel]), bound, best, chunk)
+    groups_b = edge_groups(VB, FB)
+    for A in edge_groups(VA, FA):
+        for B in groups_b:
+            best = _min_ee_groups(A, B, best, chunk)
     return float(np.sqrt(best))
 
 
-#: Stored edges of :func:`min_edge_edge_distance` are grouped by half-length within this factor.
+#: Edges of :func:`min_edge_edge_distance` are grouped by half-length within this factor.
 EDGE_LENGTH_CLASS_RATIO = 2.0
 
 
-def _min_ee_class(A: tuple, B: tuple, bound: float, best: float, chunk: int) -> float:
-    """Smallest squared edge-edge distance between the query edges ``A`` and the stored edges ``B``
-    (each ``(P0, P1, half_length)``), if below ``best`` (squared; returned otherwise)."""
-    from scipy.spatial import cKDTree
-
-    A0, A1, hA = A
-    B0, B1, hB = B
-    mA, mB = 0.5 * (A0 + A1), 0.5 * (B0 + B1)
-    tree = cKDTree(mB)
-    radius = min(float(bound), np.sqrt(best)) + hA + hB.max()
-    counts = tree.query_ball_point(mA, r=radius, return_length=True)
-    start = 0
-    ends = np.cumsum(counts)
-    while start < len(A0):
-        # largest block of A-edges whose candidate lists fit in one chunk (at least one edge)
-        base = ends[start - 1] if start else 0
-        stop = max(start + 1, int(np.searchsorted(ends, base + chunk, side="right")))
-        if ends[stop - 1] > base:
-            lists = tree.query_ball_point(mA[start:stop], r=radius[start:stop])
-            lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-            ia = np.repeat(np.arange(start, stop), lens)
-            ib = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
-            # the same lower bound per pair, against the best distance so far: most pairs go here
-            dm = np.linalg.norm(mA[ia] - mB[ib], axis=1)
-            near = dm < np.sqrt(best) + hA[ia] + hB[ib]
-            ia, ib = ia[near], ib[near]
-            if len(ia):
-                d2 = segment_segment_sqdist(A0[ia], A1[ia], B0[ib], B1[ib])
-                best = min(best, float(d2.min()))
-        start = stop
+def _min_ee_groups(A: tuple, B: tuple, best: float, chunk: int) -> float:
+    """Smallest squared edge-edge distance between two groups of edges (each ``(P0, P1, half_length,
+    midpoint tree)``), if below ``best`` (squared; returned otherwise)."""
+    A0, A1, hA, tA = A
+    B0, B1, hB, tB = B
+    radius = np.sqrt(best) + float(hA.max()) + float(hB.max())
+    pairs = tA.sparse_distance_matrix(tB, radius, output_type="ndarray")
+    if not len(pairs):
+        return best
+    ia, ib, dm = pairs["i"], pairs["j"], pairs["v"]
+    near = dm < np.sqrt(best) + hA[ia] + hB[ib]  # the lower bound per pair: most pairs go here
+    ia, ib = ia[near], ib[near]
+    for s in range(0, len(ia), chunk):
+        a, b = ia[s:s + chunk], ib[s:s + chunk]
+        best = min(best, float(segment_segment_sqdist(A0[a], A1[a], B0[b], B1[b]).min()))
     return best
 
 

@@ -299,3 +299,27 @@ def test_winding_numbers_one_vertex_per_piece(monkeypatch):
     crossing = verify_nesting([a, _ico(3, 0.3, (0.2, 0.0, 0.0))])
     assert not crossing.ok and crossing.pairs[0].n_intersecting_pairs > 0
     assert calls == [("igl", len(a[0])), ("igl", len(_ico(3, 0.3)[0]))]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_edge_edge_distance_matches_brute_force(seed):
+    """The verifier's edge-edge search (length groups on both meshes, pairs of k-d trees) returns the minimum
+    over every pair of edges, or ``bound`` when none is closer, on perturbed spheres of unequal edge lengths."""
+    from cagegen._geometry import min_edge_edge_distance, segment_segment_sqdist
+
+    rng = np.random.default_rng(seed)
+    VA, FA = _ico(2, 1.0)
+    VB, FB = _ico(1, 1.05 + 0.1 * rng.random(), rng.normal(0.0, 0.02, 3))
+    VA = VA + rng.normal(0.0, 0.004, VA.shape)
+    VB[rng.integers(len(VB))] *= 1.3  # a few long edges: more than one length group
+
+    def edges(F):
+        return np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+
+    EA, EB = edges(FA), edges(FB)
+    i, j = (g.ravel() for g in np.meshgrid(np.arange(len(EA)), np.arange(len(EB)), indexing="ij"))
+    brute = float(np.sqrt(segment_segment_sqdist(VA[EA[i, 0]], VA[EA[i, 1]], VB[EB[j, 0]], VB[EB[j, 1]]).min()))
+    for bound in (0.5 * brute, 1.5 * brute, 10.0):
+        got = min_edge_edge_distance(VA, FA, VB, FB, bound)
+        assert got == pytest.approx(min(bound, brute), rel=1e-14, abs=0.0), (bound, brute)
+    assert min_edge_edge_distance(VA, FA, VB, FB, 10.0, chunk=7) == pytest.approx(brute, rel=1e-14)

@@ -39,7 +39,7 @@ def main() -> None:
                          "operator_complexity": ml.operator_complexity(), "deflate": int(ml.deflate),
                          "probed_levels": [d["level"] for d in ml.deflation]})
             print(rows[-1], flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False).stdout.strip()
     args.out.write_text(json.dumps({"command": "OMP_NUM_THREADS=1 python benchmarks/archive/auto_probe_user_meshes.py "
                                     "WORK/bunny-tetgen WORK/spot-tetgen WORK/bunny-tetwild WORK/spot-tetwild --out FILE",
                                     "commit": commit, "bound": AUTO_PROBE_MAX_COMPLEXITY, "rows": rows}, indent=1))

@@ -18,10 +18,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from user_mesh_solvers import load_case  # noqa: E402
+from user_mesh_solvers import load_case
 
-from solvers import MultigridSolver  # noqa: E402
-from solvers.multilevel import AUTO_PROBE_MAX_COMPLEXITY  # noqa: E402
+from solvers import MultigridSolver
+from solvers.multilevel import AUTO_PROBE_MAX_COMPLEXITY
 
 
 def main() -> None:

@@ -10,6 +10,7 @@ import solvers.deflation as slow_modes_module
 from solvers.deflation import DEFLATION_GOAL, LANCZOS_CYCLES, PROBE_CYCLES, slow_modes
 from solvers.errors import SolverInputError
 from solvers.fem import stiffness_matrix
+from solvers.multilevel import AUTO_PROBE_MAX_COMPLEXITY
 from solvers.gallery import kuhn_cube_hierarchy
 
 from conftest import energy_factor as _factor
@@ -105,10 +106,13 @@ def test_deflation_fixes_weakly_attached_pieces(pieces):
         assert info["converged"]
         its.append(info["iterations"])
     assert its[1] <= its[0] - 3, its
-    # without probe_finest the finest level is not probed (its probe costs about one solve), and the bare
-    # constructor probes nothing by default (measured not to pay on user hierarchies: docs/usermesh.md)
-    assert all(d["level"] > 0 for d in MultigridSolver(K, Ps, nullspace="constant", deflate=8).deflation)
-    assert MultigridSolver(K, Ps, nullspace="constant").deflation == []
+    # without probe_finest the finest level is not probed (its probe costs about one solve); the bare
+    # constructor probes the coarse levels by default only within AUTO_PROBE_MAX_COMPLEXITY (deflate="auto")
+    coarse = MultigridSolver(K, Ps, nullspace="constant", deflate=8)
+    assert coarse.deflation and all(d["level"] > 0 for d in coarse.deflation)
+    bare = MultigridSolver(K, Ps, nullspace="constant")
+    assert bare.deflate == (8 if bare.operator_complexity() <= AUTO_PROBE_MAX_COMPLEXITY else 0)
+    assert [d["level"] for d in bare.deflation] == ([d["level"] for d in coarse.deflation] if bare.deflate else [])
 
 
 def test_no_deflation_where_the_cycle_is_fast():

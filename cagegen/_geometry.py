@@ -320,7 +320,8 @@ def min_edge_edge_distance(
     searched with its own radius (the groups' longest half-lengths), so that a few long edges do not widen
     every query ball (lucy.ply against its first cage: 12 s in one tree, the longest edge 13x the median);
     the pairs of two trees come out as arrays (``cKDTree.sparse_distance_matrix``), not as per-edge lists:
-    homer.obj's and pepper.ply's first cage pairs 1.3-1.5x faster than per-edge ball queries. Distances are
+    1.70-1.75x faster than per-edge ball queries on homer.obj's and pepper.ply's first cage pairs, 1.30-1.48x
+    on their second (CPU medians of 5, ``benchmarks/results/audit/edge_edge_search.json``). Distances are
     evaluated vectorised in chunks of at most ``chunk`` pairs.
 
     Returns

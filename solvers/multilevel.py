@@ -110,14 +110,15 @@ DEFAULT_DEFLATE = 8
 #: ``MultigridSolver(deflate="auto")`` (the default) probes the coarse levels (:data:`DEFAULT_DEFLATE`
 #: modes, not the finest level) when the operator complexity is at most this, and not at all above it. The
 #: probe runs a few dozen cycles of each coarse level, so its cost in fine cycles grows with the coarse
-#: levels' share of the nonzeros, ``1 - 1/complexity``. nestmg's own hierarchies are at 1.17-1.45: on the
+#: levels' share of the nonzeros, ``1 - 1/complexity``. nestmg's own hierarchies are at 1.17-1.44: on the
 #: zoo's 26 single-body meshes x 3 problems it brought MG-PCG to at most 10 iterations in 77 of 78 cases
-#: (69 without it: the Neumann and diffusion problems of lucy.ply, cow.obj and three CAD parts took 11-15)
-#: for a set-up + solve CPU time x1.22 of the cycle without it (median; x0.98-2.44), still x0.89 of
-#: ``Problem.multigrid()``'s (``benchmarks/results/corpus/zoo_f122700_*.json``). The 1M-tet user hierarchies
-#: are at 1.71-1.83 (``user_mesh/auto_probe.json``), where the probe found only bulk modes, saved no CG
-#: iteration and cost 1.5-2.2x the set-up (``nestmg_deflate8`` in ``user_mesh/solvers.json``). 1.5 is also
-#: the pipeline's own complexity goal.
+#: (66 without it: Neumann or diffusion problems of lucy.ply, cow.obj, decimated-knight.off, cheburashka.obj
+#: and three CAD parts took 11-15) for a set-up + solve CPU time x1.26 of the cycle without it (median;
+#: x0.84-2.24), still x0.90 of ``Problem.multigrid()``'s (``benchmarks/results/corpus/zoo_e9b70b9_*.json``,
+#: the docs' corpus; the run at f122700, ``zoo_f122700_*.json``, gave 77 / 69 of 78, x1.22, x0.89). The 1M-tet
+#: user hierarchies are at 1.71-1.83 (``user_mesh/auto_probe.json``), where the probe found only bulk modes,
+#: saved no CG iteration and cost 1.5-2.2x the set-up (``nestmg_deflate8`` in ``user_mesh/solvers.json``).
+#: 1.5 is also the pipeline's own complexity goal.
 AUTO_PROBE_MAX_COMPLEXITY = 1.5
 
 

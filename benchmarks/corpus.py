@@ -232,13 +232,32 @@ def case_wheel(mesh: Path, counts: list[int]) -> dict:
     """The reference wheel at our face counts, on the normalised surface (unit diagonal, centred)."""
     import nested_cages
 
-    V, F = read_surface(mesh)
+    V, F = _wheel_input(mesh)
     V = (V - 0.5 * (V.min(0) + V.max(0))) / float(np.linalg.norm(V.max(0) - V.min(0)))
     t = time.perf_counter()
     out = nested_cages.nested_cages(np.asfortranarray(V), np.asfortranarray(F, dtype=np.int32),
                                     num_faces=list(counts), quad_order=2, energy_expansion="None",
                                     energy_final="Volume", regular=[True] * len(counts))
     return {"seconds": time.perf_counter() - t, "faces": [len(Fk) for _, Fk in out]}
+
+
+def _wheel_input(mesh: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The surface the wheel gets: the file's, or with ``--repair`` the one ``nestmg cages --repair`` cages
+    (the same repairs in the same order: the union of crossing pieces, the hole filling or TetWild's solid,
+    the cheap repairs), so both get one closed, clean solid at the same face counts."""
+    if not os.environ.get(REPAIR_ENV):
+        return read_surface(mesh)
+    import cagegen
+    from nestmg.cli import _bodies, _cage_options, _load
+    from nestmg.hierarchy import _solid_input
+
+    args = _cli_args("cages", mesh, ["--method", "nested"])
+    V, F, bodies = _bodies(*_load(str(mesh))[:2], True)
+    if bodies:
+        raise ValueError(f"{len(bodies)} bodies after the repair: the wheel cages one solid")
+    V, F, _ = _solid_input(V, F, _cage_options(args, "nested"), args.meshing, None)
+    V, F = cagegen.check_mesh(V, F, repair=True, name="input")
+    return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
 
 
 def _child(kind: str, mesh: Path, arg: str, result: Path) -> None:

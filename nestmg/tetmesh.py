@@ -49,6 +49,7 @@ __all__ = [
     "TetMeshTimeoutError",
     "mesh_time_limit",
     "orient_tets",
+    "spatial_order",
     "tet_quality",
     "tet_volumes",
     "tetrahedralize",
@@ -402,6 +403,46 @@ OUTER_BOX_RATIO = 8.0
 SIZING_GRID_NODES = 1_000_000
 
 
+def _spread_bits(q: np.ndarray) -> np.ndarray:
+    """The 21 low bits of each uint64 of ``q`` spread to every third bit (Morton code of one axis)."""
+    x = q & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def _morton_keys(P: np.ndarray, lo: np.ndarray, span: float) -> np.ndarray:
+    q = np.clip((P - lo) / span * (2**21 - 1), 0, 2**21 - 1).astype(np.uint64)
+    return _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | (_spread_bits(q[:, 2]) << np.uint64(2))
+
+
+def spatial_order(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same surface renumbered along a Morton (Z-order) curve: vertices by position, faces by centroid.
+
+    fTetWild's time depends on the order of its input, not only on its shape: cheburashka.obj, whose
+    faces come in random order (consecutive centroids 28 mean edges apart), took 172 s at an edge of 0.05
+    of the diagonal and 20 s renumbered; homer.obj took 17 s as given and 146 s shuffled
+    (``benchmarks/tetwild_order.py``, ``benchmarks/results/tetwild/tetwild_order.json``). Each face keeps
+    its vertices' cyclic order (its orientation).
+
+    Returns
+    -------
+    V2 : (n,3) float array
+    F2 : (m,3) int array
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    lo = V.min(axis=0)
+    span = max(float(np.ptp(V, axis=0).max()), 1e-300)
+    order = np.argsort(_morton_keys(V, lo, span), kind="stable")
+    rank = np.empty(len(V), dtype=np.int64)
+    rank[order] = np.arange(len(V))
+    G = rank[F]
+    G = G[np.argsort(_morton_keys(V[F].mean(axis=1), lo, span), kind="stable")]
+    return V[order], G
+
+
 def box_ratio(V: np.ndarray, F: np.ndarray) -> float:
     """Volume of fTetWild's working box (the bounding box grown by 1/15 of its diagonal on every side)
     over the solid's enclosed volume: how much of fTetWild's work a uniform box spends outside."""
@@ -628,13 +669,14 @@ def tetrahedralize(
         if mesher == "tetwild":
             # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
             Vn, c, _ = normalize(V, diag)
+            Vn, Fn = spatial_order(Vn, F)  # fTetWild runs up to ~9x slower on a randomly ordered input
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen),
                     "simplify": bool(simplify)}
-            if outer_edge_factor > 1.0 and box_ratio(Vn, F) >= OUTER_BOX_RATIO:
-                opts.update(outer_sizing_field(Vn, F, h / diag, float(outer_edge_factor)))
+            if outer_edge_factor > 1.0 and box_ratio(Vn, Fn) >= OUTER_BOX_RATIO:
+                opts.update(outer_sizing_field(Vn, Fn, h / diag, float(outer_edge_factor)))
             try:
-                Vt, T = _mesher_call("tetwild", Vn, F, opts, deadline)
+                Vt, T = _mesher_call("tetwild", Vn, Fn, opts, deadline)
             except TetMeshTimeoutError as exc:
                 raise TetMeshTimeoutError(f"{exc}; {_limit_hint(limit)}; or give a larger edge length") from None
             Vt = Vt * diag + c

@@ -105,7 +105,10 @@ def case_solve(mesh: Path) -> dict:
                  "cage_layer_seconds": h.cage_info.get("layer_seconds"),
                  "predecimation": {k: h.cage_info.get("predecimation", {}).get(k)
                                    for k in ("faces_in", "faces_out", "hausdorff")},
-                 "sizing_rule": h.options.get("plan", {}).get("rule"), "problems": {}}
+                 "sizing_rule": h.options.get("plan", {}).get("rule"),
+                 # the sizing's estimate of the fine level's meshing against each level's measured seconds
+                 "planned_mesh_seconds": h.options.get("plan", {}).get("expected_seconds"),
+                 "tet_seconds": h.timings.get("tet_seconds"), "problems": {}}
     solver = args.solver
     for problem in PROBLEMS:
         args.problem = problem

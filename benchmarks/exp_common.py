@@ -239,6 +239,29 @@ def mesh_study_main(script: str, description: str, measure, argv=None) -> None:
     args.out.write_text(json.dumps({"command": script, "clock": "process_time", "runs": runs}, indent=1))
 
 
+def mesh_rows_main(script: str, description: str, measure, option: tuple, argv=None) -> None:
+    """Command line of a per-mesh study with one numeric option: ``MESH [MESH ...] --NAME X --out FILE.json``.
+
+    ``option`` is ``(name, default, help)``; ``measure(mesh, value)`` returns one row. Writes ``{"command",
+    "meshes_given", "commit", "environment", "rows"}``, rewritten after each mesh (the command names the
+    meshes' files, not this machine's paths)."""
+    import argparse
+
+    name, default, help_ = option
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("meshes", nargs="+", type=Path, help="closed surface files")
+    ap.add_argument(f"--{name}", type=float, default=default, help=help_)
+    ap.add_argument("--out", type=Path, required=True, help="JSON to write (rewritten after each mesh)")
+    a = ap.parse_args(argv)
+    value = getattr(a, name)
+    out = {"command": f"python benchmarks/{script} " + " ".join(f"ZOO_DIR/{m.name}" for m in a.meshes)
+           + f" --{name} {value} --out OUT/{a.out.name}", "meshes_given": [m.name for m in a.meshes],
+           "commit": git_commit(), "environment": environment(), "rows": []}
+    for m in a.meshes:
+        out["rows"].append(measure(m, value))
+        write_json(out, a.out)
+
+
 def figure(rows: int, cols: int, **kwargs):
     """``(fig, axes)`` of ``matplotlib.pyplot.subplots(rows, cols, **kwargs)`` drawn off-screen (Agg)."""
     import matplotlib

@@ -12,14 +12,13 @@ centroids in mean edge lengths.
 
 from __future__ import annotations
 
-import argparse
 import resource
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import environment, git_commit, read_mesh, write_json
+from exp_common import mesh_rows_main, read_mesh
 
 ORDERS = ("given", "shuffled", "spatial")
 
@@ -80,17 +79,8 @@ def measure(path: Path, edge: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("meshes", nargs="+", type=Path, help="closed surface files")
-    ap.add_argument("--edge", type=float, default=0.05, help="target edge, fraction of the bounding-box diagonal")
-    ap.add_argument("--out", type=Path, required=True, help="JSON to write (rewritten after each mesh)")
-    a = ap.parse_args(argv)
-    out = {"command": "python benchmarks/tetwild_order.py " + " ".join(f"ZOO_DIR/{m.name}" for m in a.meshes)
-           + f" --edge {a.edge} --out OUT/{a.out.name}", "commit": git_commit(), "environment": environment(),
-           "rows": []}
-    for m in a.meshes:
-        out["rows"].append(measure(m, a.edge))
-        write_json(out, a.out)
+    mesh_rows_main("tetwild_order.py", __doc__.splitlines()[0], measure,
+                   ("edge", 0.05, "target edge, fraction of the bounding-box diagonal"), argv)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ tets and the box / solid volume ratio go to the JSON (``benchmarks/results/tetwi
 
 from __future__ import annotations
 
-import argparse
 import resource
 import sys
 import time
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from exp_common import environment, git_commit, read_mesh, write_json
+from exp_common import mesh_rows_main, read_mesh
 
 
 def _cpu() -> float:
@@ -72,17 +71,8 @@ def measure(path: Path, factor: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("meshes", nargs="+", type=Path, help="closed surface files")
-    ap.add_argument("--factor", type=float, default=3.0, help="outer_edge_factor of the graded run")
-    ap.add_argument("--out", type=Path, required=True, help="JSON to write (rewritten after each mesh)")
-    a = ap.parse_args(argv)
-    out = {"command": "python benchmarks/tetwild_outside.py " + " ".join(
-        ["MESHES..."] + [f"--factor {a.factor}"]), "meshes_given": [p.name for p in a.meshes],
-        "commit": git_commit(), "environment": environment(), "rows": []}
-    for p in a.meshes:
-        out["rows"].append(measure(p, a.factor))
-        write_json(out, a.out)
+    mesh_rows_main("tetwild_outside.py", __doc__.splitlines()[0], measure,
+                   ("factor", 3.0, "outer_edge_factor of the graded run"), argv)
 
 
 if __name__ == "__main__":

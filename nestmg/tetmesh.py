@@ -421,8 +421,8 @@ def spatial_order(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     """The same surface renumbered along a Morton (Z-order) curve: vertices by position, faces by centroid.
 
     fTetWild's time depends on the order of its input, not only on its shape: cheburashka.obj, whose
-    faces come in random order (consecutive centroids 28 mean edges apart), took 172 s at an edge of 0.05
-    of the diagonal and 20 s renumbered; homer.obj took 17 s as given and 146 s shuffled
+    faces come in random order (consecutive centroids 28 mean edges apart), took 166.8 s at an edge of 0.05
+    of the diagonal and 12.7 s renumbered; homer.obj took 16.7 s as given and 143.6 s shuffled
     (``benchmarks/tetwild_order.py``, ``benchmarks/results/tetwild/tetwild_order.json``). Each face keeps
     its vertices' cyclic order (its orientation).
 
@@ -669,7 +669,7 @@ def tetrahedralize(
         if mesher == "tetwild":
             # pytetwild segfaults on small inputs (diagonal 1e-9): mesh a unit-diagonal copy, map back
             Vn, c, _ = normalize(V, diag)
-            Vn, Fn = spatial_order(Vn, F)  # fTetWild runs up to ~9x slower on a randomly ordered input
+            Vn, Fn = spatial_order(Vn, F)  # fTetWild ran 9-13x slower on randomly ordered inputs
             opts = {"edge_length_abs": h / diag, "epsilon": epsilon, "num_threads": threads, "quiet": True,
                     "stop_energy": float(stop_energy), "num_opt_iter": int(max_opt_iter), "coarsen": bool(coarsen),
                     "simplify": bool(simplify)}

@@ -239,6 +239,12 @@ def mesh_study_main(script: str, description: str, measure, argv=None) -> None:
     args.out.write_text(json.dumps({"command": script, "clock": "process_time", "runs": runs}, indent=1))
 
 
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process so far (all its threads: fTetWild's and ipctk's too)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def mesh_rows_main(script: str, description: str, measure, option: tuple, argv=None) -> None:
     """Command line of a per-mesh study with one numeric option: ``MESH [MESH ...] --NAME X --out FILE.json``.
 

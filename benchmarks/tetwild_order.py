@@ -12,20 +12,14 @@ centroids in mean edge lengths.
 
 from __future__ import annotations
 
-import resource
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from exp_common import mesh_rows_main, read_mesh
+from exp_common import cpu_seconds, mesh_rows_main, read_mesh
 
 ORDERS = ("given", "shuffled", "spatial")
-
-
-def _cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
 
 
 def face_jump(V: np.ndarray, F: np.ndarray) -> float:
@@ -56,10 +50,10 @@ def timed(V: np.ndarray, F: np.ndarray, edge: float) -> dict:
 
     opts = {"edge_length_abs": edge, "epsilon": 1e-3, "num_threads": 0, "quiet": True, "stop_energy": 10.0,
             "num_opt_iter": 80, "coarsen": False, "simplify": True}
-    c, t = _cpu(), time.perf_counter()
+    c, t = cpu_seconds(), time.perf_counter()
     with in_temp_dir():  # fTetWild writes scratch files in the working directory
         _, T = run_job("tetwild", V, F, opts)
-    return {"wall_seconds": time.perf_counter() - t, "cpu_seconds": _cpu() - c, "tets": len(T)}
+    return {"wall_seconds": time.perf_counter() - t, "cpu_seconds": cpu_seconds() - c, "tets": len(T)}
 
 
 def measure(path: Path, edge: float) -> dict:

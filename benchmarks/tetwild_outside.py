@@ -12,19 +12,13 @@ tets and the box / solid volume ratio go to the JSON (``benchmarks/results/tetwi
 
 from __future__ import annotations
 
-import resource
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from exp_common import mesh_rows_main, read_mesh
-
-
-def _cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+from exp_common import cpu_seconds, mesh_rows_main, read_mesh
 
 
 def _meshed_surface(path: Path) -> tuple[np.ndarray, np.ndarray, float, dict]:
@@ -46,10 +40,10 @@ def timed_mesh(S: np.ndarray, G: np.ndarray, h: float, label: str, **options) ->
     after ``label``)."""
     from nestmg.tetmesh import tet_quality, tetrahedralize
 
-    c, t = _cpu(), time.perf_counter()
+    c, t = cpu_seconds(), time.perf_counter()
     Vt, T = tetrahedralize(S, G, edge_length_abs=h, threads=1, time_limit=None, **options)
     q = tet_quality(Vt, T)
-    row = {"cpu_seconds": _cpu() - c, "wall_seconds": time.perf_counter() - t, "tets": int(len(T)),
+    row = {"cpu_seconds": cpu_seconds() - c, "wall_seconds": time.perf_counter() - t, "tets": int(len(T)),
            "min_dihedral_deg": float(q.get("min_dihedral_deg", np.nan))}
     print(f"{label}: {row['cpu_seconds']:.1f} CPU s, {row['tets']:,} tets", flush=True)
     return row

@@ -32,9 +32,11 @@ __all__ = ["DEFAULT_CYCLE", "DEFAULT_NU", "DEFAULT_SMOOTHER", "ELASTICITY_COARSE
            "ELASTICITY_NU", "ELASTICITY_SMOOTHER", "MeshingOptions", "OptionError", "SizingOptions",
            "SolverOptions", "THREE_SWEEP_POISSON_RATIO", "add_arguments", "from_arguments"]
 
-#: The cycle, fine-level sweeps and smoother of the scalar problems (:meth:`SolverOptions.resolved`): the
-#: pipeline's variable V-cycle, one symmetric Gauss–Seidel sweep on the fine level (two below).
-DEFAULT_CYCLE, DEFAULT_NU, DEFAULT_SMOOTHER = "V", 1, "symmetric_gauss_seidel"
+#: The cycle, fine-level sweeps and smoother of the scalar problems (:meth:`SolverOptions.resolved`):
+#: ``MultigridSolver``'s default cycle (:data:`solvers.multilevel.DEFAULT_SMOOTHER`), two forward Gauss–Seidel
+#: sweeps before the coarse correction and two backward after it on the fine level, four on coarse levels as
+#: sparse as the fine one, one on dense ones (``coarse_nu`` not set).
+DEFAULT_CYCLE, DEFAULT_NU, DEFAULT_SMOOTHER = "V", 2, "gauss_seidel"
 #: The same for the elasticity problems (issue 32 item 2): the F-cycle, ``nu`` forward Gauss–Seidel sweeps
 #: before the coarse correction and as many backward ones after it on the fine level (two, three from
 #: ν = :data:`THREE_SWEEP_POISSON_RATIO`), four on the coarser levels (:data:`ELASTICITY_COARSE_NU`).
@@ -140,12 +142,13 @@ class SolverOptions:
     coarse: str = field_spec("galerkin", "coarse operators", choices=tuple(COARSE), expert=True)
     smoothing: str = field_spec("robust", "preset: robust (smoother / nu / coarse_nu below, boundary-layer "
                                           "sweeps) or fast (textbook V(1,1))", choices=SMOOTHING, expert=True)
-    smoother: str | None = field_spec(None, "smoother (robust preset; default symmetric_gauss_seidel, "
-                                            "gauss_seidel for elasticity)",
+    smoother: str | None = field_spec(None, "smoother (robust preset; default gauss_seidel: forward before, "
+                                            "backward after the coarse correction)",
                                       choices=(*sorted(SMOOTHERS), None), expert=True)
     nu: int | None = field_spec(None, "pre/post smoothing sweeps on the fine level (robust preset; default "
-                                      "1; elasticity 2, 3 at ν >= 0.4)", low=1, kind=int, expert=True)
-    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu; elasticity 4)",
+                                      "2; elasticity 3 at ν >= 0.4)", low=1, kind=int, expert=True)
+    coarse_nu: int | None = field_spec(None, "sweeps on the coarser levels (default 2 nu, 1 on dense levels of "
+                                             "the default cycle; elasticity 4)",
                                        low=1, kind=int, expert=True)
     local: bool = field_spec(True, "extra sweeps on the boundary layer of Neumann and diffusion problems",
                              expert=True)
@@ -162,7 +165,7 @@ class SolverOptions:
 
     def __post_init__(self) -> None:
         _check(self)
-        given = self.smoother not in (None, DEFAULT_SMOOTHER) or self.nu not in (None, 1)
+        given = self.smoother not in (None, DEFAULT_SMOOTHER) or self.nu not in (None, DEFAULT_NU)
         if self.smoothing == "fast" and (given or self.coarse_nu is not None):
             raise OptionError("SolverOptions", "smoothing", "'fast' is a preset: leave smoother, nu and "
                                                             "coarse_nu at their defaults")
@@ -171,7 +174,8 @@ class SolverOptions:
         """These options with ``smoother``, ``nu`` and ``cycle`` set for ``problem`` (given fields are kept).
 
         Not set, they are :data:`DEFAULT_SMOOTHER`, :data:`DEFAULT_NU` and :data:`DEFAULT_CYCLE` (the
-        V-cycle, one symmetric Gauss–Seidel sweep on the fine level, ``2 nu`` below), except for an
+        V-cycle, two forward / backward Gauss–Seidel sweeps on the fine level; ``coarse_nu`` stays None:
+        ``MultigridSolver``'s default rule below), except for an
         elasticity problem under the ``"robust"`` preset: :data:`ELASTICITY_SMOOTHER`,
         :data:`ELASTICITY_CYCLE`, ``nu`` = :data:`ELASTICITY_NU` (two forward sweeps before the coarse
         correction, two backward after it), three from ν = :data:`THREE_SWEEP_POISSON_RATIO`, and

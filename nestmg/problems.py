@@ -53,8 +53,9 @@ FACTOR_GOALS = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neu
 #: lucy.ply hierarchies the margin took Neumann 0.268-0.283 to 0.232-0.259 (lucy_probe_margin_43baf99.json).
 PROBE_MARGIN = 0.9
 
-def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coarse_nu: int | None = None) -> list:
-    """Per-level smoother specs of the pipeline's variable V-cycle, finest level first.
+def cycle_smoothers(smoother: str = "gauss_seidel", nu: int = 2, coarse_nu: int | None = None) -> list:
+    """Per-level smoother specs of a variable V-cycle, finest level first (the default: the pipeline's cycle,
+    ``MultigridSolver``'s default, on a hierarchy whose coarse levels are as sparse as its finest).
 
     ``nu`` sweeps of ``smoother`` on the fine level and ``coarse_nu`` (default ``2 * nu``) on every
     coarser one (``MultigridSolver(presmoother=...)``).
@@ -63,9 +64,11 @@ def cycle_smoothers(smoother: str = "symmetric_gauss_seidel", nu: int = 1, coars
     return [(smoother, {"iterations": nu}), (smoother, {"iterations": cnu})]
 
 
-#: The pipeline's smoothers, finest level first: one symmetric Gauss–Seidel sweep on the fine level,
-#: two on the coarser ones (a variable V-cycle; the coarse levels are ~8x smaller, so the extra sweeps
-#: cost ~0.5 fine SpMV per cycle). Measured in docs/scale.md ("Smoothing").
+#: The pipeline's smoothers written out, finest level first: two forward Gauss–Seidel sweeps before the
+#: coarse correction (and two backward after it) on the fine level, four on the coarser ones (a variable
+#: V-cycle; the coarse levels are ~8x smaller, so the extra sweeps cost ~0.5 fine SpMV per cycle): the
+#: default cycle of ``MultigridSolver`` (:data:`solvers.multilevel.DEFAULT_SMOOTHER`), which the pipeline
+#: uses, on a hierarchy without dense coarse levels (:data:`solvers.multilevel.DENSE_LEVEL_ROWS`).
 DEFAULT_SMOOTHERS = cycle_smoothers()
 
 #: The textbook V(1,1) cycle: one forward Gauss–Seidel sweep before the coarse-grid correction and one
@@ -144,11 +147,15 @@ class Problem:
             Its smoothing fields are used (``coarse``, ``lam``, ``poisson_ratio`` were the problem's,
             :func:`setup_problem`; the solve's are :meth:`solvers.MultigridSolver.solve`'s):
 
-            * ``smoothing="robust"`` (default): ``nu`` sweeps of ``smoother`` on the fine level and
-              ``coarse_nu`` (default ``2 nu``) on the coarser ones (:func:`cycle_smoothers`; the defaults
-              are :data:`DEFAULT_SMOOTHERS`, the variable V-cycle), plus with ``local`` one extra
-              symmetric Gauss–Seidel sweep on :attr:`local_nodes` per smoothing step (best factor per
-              cycle, for stationary cycling and hard Neumann problems);
+            * ``smoothing="robust"`` (default): ``MultigridSolver``'s default cycle
+              (:data:`solvers.multilevel.DEFAULT_SMOOTHER`; written out on nestmg's hierarchies:
+              :data:`DEFAULT_SMOOTHERS`), or with ``smoother``, ``nu`` or ``coarse_nu`` given ``nu`` sweeps
+              of ``smoother`` on the fine level and ``coarse_nu`` (default ``2 nu``) on the coarser ones
+              (:func:`cycle_smoothers`); plus with ``local`` one extra symmetric Gauss–Seidel sweep on
+              :attr:`local_nodes` per smoothing step (the problem's boundary layer: for stationary cycling
+              and hard Neumann problems). The one default of the bare constructor, ``Problem.multigrid()``
+              and ``aspreconditioner()``: what the problem adds is its null space, boundary layer, factor
+              goal and the finest level's probe for stationary cycling;
             * ``smoothing="fast"``: the textbook V(1,1) of :data:`FAST_SMOOTHERS` without local sweeps
               (about half the cost per cycle, a few more CG iterations; the faster MG-PCG in wall time),
               except on pure Neumann problems (``nullspace="constant"``), where it is
@@ -158,9 +165,10 @@ class Problem:
               operators (they are not energy projections; docs/coarse.md), None with Galerkin ones.
             * every level, the finest included (``probe_finest=True``), is probed for a few slow modes,
               which are then deflated (:mod:`solvers.deflation`; ``deflate=0`` turns it off) when the
-              probe is above :data:`PROBE_MARGIN` times the problem's goal (:data:`FACTOR_GOALS`); the
-              probe runs at the first stationary solve (``probe_at="stationary"``): ``solve(accel="cg")``
-              and ``aspreconditioner()`` skip it;
+              probe is above :data:`PROBE_MARGIN` times the problem's goal (:data:`FACTOR_GOALS`), as
+              ``MultigridSolver``'s ``deflate="auto"`` decides (within its operator complexity bound); the
+              finest level's probe runs at the first stationary solve (``probe_at="stationary"``):
+              ``solve(accel="cg")`` and ``aspreconditioner()`` skip it;
             * ``cycle`` (default V) becomes the solver's :attr:`~solvers.MultigridSolver.cycle`, the one its
               ``solve`` and ``aspreconditioner`` run when given none.
 
@@ -174,9 +182,9 @@ class Problem:
         solvers.MultigridSolver
         """
         from solvers import MultigridSolver
-        from solvers.multilevel import DEFAULT_DEFLATE
+        from solvers.multilevel import DEFAULT_SMOOTHER as SOLVER_DEFAULT
 
-        from .options import SolverOptions, typed
+        from .options import DEFAULT_NU, DEFAULT_SMOOTHER, SolverOptions, typed
 
         o = typed(options, SolverOptions, "options").resolved(self.name)  # V, nu = 1 unless given
         coarse_scaling = o.coarse_scaling
@@ -188,10 +196,11 @@ class Problem:
             kwargs.setdefault("local_nodes", self.local_nodes)
             kwargs.setdefault("local_sweep", "one-way")
             kwargs.setdefault("local_levels", 1)
-        robust = cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
+        # the solver's own default (its rule for dense coarse levels) unless the sweeps were chosen
+        default = (o.smoother, o.nu, o.coarse_nu) == (DEFAULT_SMOOTHER, DEFAULT_NU, None)
+        robust = SOLVER_DEFAULT if default else cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
-        kwargs.setdefault("deflate", DEFAULT_DEFLATE)  # the bare MultigridSolver's default is 0
         if self.name in FACTOR_GOALS:
             kwargs.setdefault("deflate_goal", PROBE_MARGIN * FACTOR_GOALS[self.name])
         kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run

@@ -68,6 +68,7 @@ __all__ = [
     "AUTO_PROBE_MAX_COMPLEXITY",
     "DEFAULT_DEFLATE",
     "DEFAULT_MAXITER",
+    "COARSE_SWEEPS",
     "DEFAULT_SMOOTHER",
     "DENSE_LEVEL_ROWS",
     "Level",
@@ -82,7 +83,8 @@ __all__ = [
 
 #: The default cycle of ``MultigridSolver(A, Ps)``: two forward Gauss–Seidel sweeps before the coarse-grid
 #: correction and, as the adjoint post-smoother, two backward sweeps after it (a symmetric V(2,2) that
-#: preconditions CG), except on dense coarse levels (:data:`DENSE_LEVEL_ROWS`), which get one sweep each.
+#: preconditions CG) on the finest level; on the coarser levels :data:`COARSE_SWEEPS` of each where the level is
+#: as sparse as the finest, one where it is dense (:data:`DENSE_LEVEL_ROWS`).
 #: Chosen as the fastest MG-PCG among symmetric GS V(1,1), forward/backward GS V(1,1), V(2,2) and V(3,3),
 #: V(2,2) with one or three coarse sweeps, and Chebyshev of degree 2 and 3 on 1M-tet user hierarchies
 #: (TetGen bunny and spot, Dirichlet and Neumann; exploratory runs, the final figures in docs/usermesh.md):
@@ -90,11 +92,19 @@ __all__ = [
 #: took 8-9 / 12-14.
 DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
 
+#: Sweeps before (and after) the coarse correction of the default cycle on a coarse level as sparse as the
+#: finest: twice the finest level's (a variable V-cycle; such a level has ~1/8 of the finest's unknowns, so
+#: they cost ~0.25 fine SpMV per cycle). nestmg's own hierarchies (a red refinement on top) have one; with
+#: two sweeps there lucy.ply's pure Neumann problem took 13-14 MG-PCG iterations and its stationary factor was
+#: 0.54, with four 9 and 0.27 (as the pipeline's former cycle, symmetric Gauss–Seidel twice on the coarse
+#: levels: ``benchmarks/results/solvers/one_default.json``).
+COARSE_SWEEPS = 4
+
 #: With the default smoother, a coarse level whose operator has more than this many times the nonzeros per
 #: row of the finest one (Galerkin levels of a non-nested hierarchy: 40-90 against 15) gets one sweep
 #: instead of two: on the 1M-tet user hierarchies that cut 10-20% of a cycle's time at equal CG iterations.
-#: Levels as sparse as the finest keep two: on nested hierarchies (Kuhn cube) one coarse sweep made the
-#: stationary factor grow with the number of levels (0.20 / 0.28 / 0.30 for 2 / 3 / 4 levels).
+#: Levels as sparse as the finest get :data:`COARSE_SWEEPS`: on nested hierarchies (Kuhn cube) one coarse
+#: sweep made the stationary factor grow with the number of levels (0.20 / 0.28 / 0.30 for 2 / 3 / 4 levels).
 DENSE_LEVEL_ROWS = 2.0
 
 #: Default cap on cycles (stationary) or CG iterations (``accel="cg"``) of every multigrid solve:
@@ -256,9 +266,10 @@ class MultigridSolver:
         See :func:`solvers.smoothing.make_smoother`. A list gives one spec per level, finest first,
         the last one repeated on deeper levels (e.g. more sweeps on the cheap coarse levels: the
         variable V-cycle). Default :data:`DEFAULT_SMOOTHER`: two forward Gauss–Seidel sweeps, and two
-        backward ones after the correction (V(2,2)); one of each on coarse levels denser than
-        :data:`DENSE_LEVEL_ROWS` times the finest (only for the default itself: an equal spec passed
-        explicitly gives two sweeps on every level). ``postsmoother=None`` (default) means the adjoint of
+        backward ones after the correction (V(2,2)) on the finest level; :data:`COARSE_SWEEPS` of each on
+        the coarse levels as sparse as the finest, one on those denser than :data:`DENSE_LEVEL_ROWS` times
+        the finest (only for the default itself: an equal spec passed explicitly gives two sweeps on every
+        level). ``postsmoother=None`` (default) means the adjoint of
         the presmoother: the same smoother,
         with a forward Gauss–Seidel sweep turned into a backward one, so the cycle is symmetric and can
         precondition CG. An explicit non-adjoint pair (e.g. forward GS on both sides) is allowed for
@@ -535,7 +546,7 @@ class MultigridSolver:
         :func:`solvers.smoothing.make_smoother`), when the Galerkin products kept them."""
         pre_specs = _level_specs(presmoother, len(Ps))
         if presmoother is DEFAULT_SMOOTHER:
-            pre_specs = _dense_level_specs(ops, pre_specs)
+            pre_specs = _default_level_specs(ops, pre_specs)
         post_specs = ([_adjoint_spec(s) for s in pre_specs] if postsmoother is None
                       else _level_specs(postsmoother, len(Ps)))
         local = _local_sets(_permuted_nodes(local_nodes, self.perm), Ps, local_levels, ops[0].shape[0])
@@ -1228,11 +1239,16 @@ def _local_sets(nodes, Ps, levels, n0) -> list:
     return out
 
 
-def _dense_level_specs(ops, specs) -> list:
-    """The default cycle's specs with one sweep on dense coarse levels (see :data:`DENSE_LEVEL_ROWS`)."""
+def _default_level_specs(ops, specs) -> list:
+    """The default cycle's specs: :data:`COARSE_SWEEPS` sweeps on the coarse levels as sparse as the finest,
+    one on the dense ones (see :data:`DENSE_LEVEL_ROWS`)."""
     fine = ops[0].nnz / max(ops[0].shape[0], 1)
-    one = (DEFAULT_SMOOTHER[0], dict(DEFAULT_SMOOTHER[1], iterations=1))
-    return [one if k and ops[k].nnz / max(ops[k].shape[0], 1) > DENSE_LEVEL_ROWS * fine else spec
+
+    def sweeps(n):
+        return (DEFAULT_SMOOTHER[0], dict(DEFAULT_SMOOTHER[1], iterations=n))
+
+    return [spec if k == 0 else sweeps(1 if ops[k].nnz / max(ops[k].shape[0], 1) > DENSE_LEVEL_ROWS * fine
+                                       else COARSE_SWEEPS)
             for k, spec in enumerate(specs)]
 
 

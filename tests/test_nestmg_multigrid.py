@@ -7,6 +7,7 @@ import scipy.sparse as sp
 from nestmg import SolverOptions
 from nestmg.problems import setup_problem
 from nestmg.run import solve_on_hierarchy
+from solvers.gallery import kuhn_cube_hierarchy
 
 
 def test_tet_layers_are_nested(torus_iso_tets):
@@ -109,7 +110,10 @@ def test_w_and_f_cycles_at_least_as_fast_as_v(torus_iso_tets, problem, coarse):
     diffusion/re-discretised V 0.649, W 0.641, F 0.641.
     """
     _, tets, P, _ = torus_iso_tets
-    pr, ml = _mg(tets, P, problem, coarse)
+    # the cycles compared with the smoother they were measured with (the default cycle is stronger here:
+    # V 0.161, W 0.168 on Neumann/Galerkin, where one sweep on the dense coarse levels is all W repeats)
+    pr = setup_problem(tets, P, problem, coarse=coarse)
+    ml = pr.multigrid(SolverOptions(coarse_scaling=None, smoother="symmetric_gauss_seidel", nu=1), deflate=0)
     f = {}
     for c in "VWF":
         _, info = ml.solve(pr.b, tol=1e-10, maxiter=100, cycle=c, return_info=True)
@@ -179,12 +183,20 @@ def test_fast_preset_on_pure_neumann_uses_boundary_layer_sweeps(torus_iso_tets):
 
 
 def test_pipeline_cycle_probes_every_level(torus_iso_tets):
-    """Problem.multigrid() probes the finest level too (probe_finest=True), and the report says so."""
+    """Problem.multigrid() probes the finest level too (probe_finest=True), and the report says so; by
+    default only within MultigridSolver's complexity bound (deflate="auto"), which this dense TetGen
+    hierarchy exceeds."""
+    from solvers.multilevel import AUTO_PROBE_MAX_COMPLEXITY
+
     _, tets, P, _ = torus_iso_tets
-    ml = setup_problem(tets, P, "poisson-neumann").multigrid()
+    pr = setup_problem(tets, P, "poisson-neumann")
+    ml = pr.multigrid(deflate=8)
     ml.probe()  # deferred to the first stationary solve (probe_at="stationary")
     assert [d["level"] for d in ml.deflation] == list(range(len(ml.levels) - 1))
     assert all(0.0 < d["probe_factor"] < 1.0 for d in ml.deflation)
+    plain = pr.multigrid()
+    assert plain.operator_complexity() > AUTO_PROBE_MAX_COMPLEXITY and plain.deflate == 0
+    assert plain.probe() == []
 
 
 def test_each_problem_deflates_down_to_its_own_goal(torus_iso_tets):
@@ -196,7 +208,7 @@ def test_each_problem_deflates_down_to_its_own_goal(torus_iso_tets):
     _, tets, P, _ = torus_iso_tets
     for name, acceptance in FACTOR_GOALS.items():
         pr = setup_problem(tets, P, name)
-        ml = pr.multigrid()
+        ml = pr.multigrid(deflate=8)  # probed although denser than the default's bound
         goal = ml.deflate_goal
         assert goal == pytest.approx(PROBE_MARGIN * acceptance, rel=1e-12)
         _, info = ml.solve(pr.b, tol=1e-10, maxiter=60, return_info=True)
@@ -216,14 +228,44 @@ def test_pipeline_probe_serves_stationary_solves_only(torus_iso_tets):
     MG-PCG never runs it, a stationary solve does; solve_on_hierarchy reports it for stationary cycles."""
     _, tets, P, _ = torus_iso_tets
     pr = setup_problem(tets, P, "poisson-neumann")
-    ml = pr.multigrid()
+    ml = pr.multigrid(deflate=8)
     coarse = list(range(1, len(ml.levels) - 1))
     _, info = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)
     assert info["converged"] and [d["level"] for d in ml.deflation] == coarse
     ml.solve(pr.b, tol=1e-8)
     assert [d["level"] for d in ml.deflation] == [0, *coarse]
-    stationary = solve_on_hierarchy(tets, P, "poisson-neumann", SolverOptions())
-    pcg = solve_on_hierarchy(tets, P, "poisson-neumann", SolverOptions(accel="cg"))
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)  # nested: within the default's complexity bound
+    stationary = solve_on_hierarchy(meshes, Ps, "poisson-neumann", SolverOptions())
+    pcg = solve_on_hierarchy(meshes, Ps, "poisson-neumann", SolverOptions(accel="cg"))
+    coarse = list(range(1, len(stationary["levels"]) - 1))
     assert [d["level"] for d in stationary["deflation"]] == [0, *coarse]
     assert [d["level"] for d in pcg["deflation"]] == coarse
     assert pcg["converged"] and pcg["iterations"] <= 10
+
+
+def test_pipeline_cycle_is_the_constructors_default_plus_the_problems_data():
+    """One default (issue 31): Problem.multigrid() is MultigridSolver(A, P)'s default cycle with what the
+    problem knows passed in (null space, boundary-layer nodes, factor goal, finest probe for stationary
+    cycling): the same smoothers, the same preconditioner and the same CG steps."""
+    from nestmg.problems import PROBLEMS
+    from solvers import MultigridSolver
+
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)
+    for name in PROBLEMS:
+        pr = setup_problem(meshes, Ps, name)
+        ml = pr.multigrid()
+        bare = MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace, local_nodes=pr.local_nodes,
+                               deflate_goal=ml.deflate_goal)
+        assert (pr.local_nodes is None) == (name == "poisson-dirichlet")
+        assert ml.deflate == bare.deflate == 8 and ml.deflate_goal < 0.3
+        sweeps = [(L.presmoother.params.get("sweep"), L.presmoother.params.get("iterations"),
+                   L.postsmoother.params.get("sweep")) for L in ml.levels[:-1]]
+        assert sweeps == [("forward", 2, "backward"), ("forward", 4, "backward")], sweeps
+        v = np.random.default_rng(1).standard_normal(pr.A.shape[0])
+        if pr.nullspace:
+            v -= v.mean()
+        z, zb = ml.aspreconditioner() @ v, bare.aspreconditioner() @ v
+        assert np.linalg.norm(z - zb) <= 1e-13 * np.linalg.norm(zb), name
+        r = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)[1]["residuals"]
+        rb = bare.solve(pr.b, tol=1e-8, accel="cg", return_info=True)[1]["residuals"]
+        assert len(r) == len(rb) <= 10 and np.allclose(r, rb, rtol=1e-10, atol=0), name

@@ -212,21 +212,22 @@ def test_cli_builds_the_same_objects():
     assert _cage_options(args, "sdf") == SdfOptions(repair=True, cage_time_budget=60.0)
 
 
-#: SolverOptions() before smoother, nu and cycle had a "not set" value (issue 32): what the scalar problems
-#: resolve to
-_OLD_SOLVER_DEFAULTS = {"coarse": "galerkin", "smoothing": "robust", "smoother": "symmetric_gauss_seidel",
-                        "nu": 1, "coarse_nu": None, "local": True, "coarse_scaling": "auto", "cycle": "V",
+#: What the scalar problems resolve to: MultigridSolver's default cycle (forward / backward Gauss-Seidel, two
+#: sweeps on the fine level, coarse_nu left to the solver's rule; issue 31, one default)
+_SCALAR_SOLVER_DEFAULTS = {"coarse": "galerkin", "smoothing": "robust", "smoother": "gauss_seidel",
+                        "nu": 2, "coarse_nu": None, "local": True, "coarse_scaling": "auto", "cycle": "V",
                         "accel": None, "tol": 1e-8, "maxiter": 100, "lam": 1e-2, "poisson_ratio": 0.3}
 
 
 @pytest.mark.parametrize("problem", [None, "poisson-dirichlet", "poisson-neumann", "diffusion-neumann"])
 def test_solver_defaults_resolve_to_the_old_ones_for_scalar_problems(problem):
-    """The V-cycle with one symmetric Gauss–Seidel sweep on the fine level, whatever the Poisson ratio."""
+    """The V-cycle with two forward / backward Gauss–Seidel sweeps on the fine level, whatever the Poisson
+    ratio."""
     o = SolverOptions()
     assert (o.smoother, o.nu, o.cycle) == (None, None, None)  # not set
-    assert dataclasses.asdict(o.resolved(problem)) == _OLD_SOLVER_DEFAULTS
+    assert dataclasses.asdict(o.resolved(problem)) == _SCALAR_SOLVER_DEFAULTS
     assert dataclasses.asdict(SolverOptions(poisson_ratio=0.45).resolved(problem, 0.45)) == {
-        **_OLD_SOLVER_DEFAULTS, "poisson_ratio": 0.45}
+        **_SCALAR_SOLVER_DEFAULTS, "poisson_ratio": 0.45}
     done = SolverOptions(smoother="jacobi", nu=2, cycle="W")
     assert done.resolved(problem) is done
 
@@ -238,7 +239,7 @@ def test_elasticity_resolves_to_the_f_cycle_with_forward_sweeps(problem):
     keep elasticity's defaults; the fast preset is the fast one."""
     for ratio, nu in ((0.3, 2), (0.39, 2), (0.4, 3), (0.45, 3)):  # the threshold is inclusive
         r = SolverOptions(poisson_ratio=ratio).resolved(problem)
-        assert dataclasses.asdict(r) == {**_OLD_SOLVER_DEFAULTS, "smoother": "gauss_seidel", "nu": nu,
+        assert dataclasses.asdict(r) == {**_SCALAR_SOLVER_DEFAULTS, "nu": nu,
                                          "coarse_nu": 4, "cycle": "F", "poisson_ratio": ratio}
         assert SolverOptions().resolved(problem, ratio).nu == nu  # the problem's ν wins over the field's
     assert SolverOptions().resolved(problem, np.array([0.3, 0.45, 0.2])).nu == 3
@@ -248,15 +249,15 @@ def test_elasticity_resolves_to_the_f_cycle_with_forward_sweeps(problem):
                         ({"smoother": "symmetric_gauss_seidel"}, ("symmetric_gauss_seidel", 3, 4, "F")),
                         ({"smoother": "symmetric_gauss_seidel", "nu": 1, "cycle": "V"},
                          ("symmetric_gauss_seidel", 1, 4, "V")),
-                        ({"smoothing": "fast"}, ("symmetric_gauss_seidel", 1, None, "V"))):
+                        ({"smoothing": "fast"}, ("gauss_seidel", 2, None, "V"))):
         r = SolverOptions(**given).resolved(problem, 0.45)
         assert (r.smoother, r.nu, r.coarse_nu, r.cycle) == want, given
     done = SolverOptions(smoother="jacobi", nu=2, coarse_nu=4, cycle="V")
     assert done.resolved(problem, 0.45) is done
     with pytest.raises(OptionError, match="preset"):
-        SolverOptions(smoothing="fast", nu=2)
+        SolverOptions(smoothing="fast", nu=1)
     with pytest.raises(OptionError, match="preset"):
-        SolverOptions(smoothing="fast", smoother="gauss_seidel")
+        SolverOptions(smoothing="fast", smoother="symmetric_gauss_seidel")
 
 
 def test_solvers_without_elasticity_keep_the_v_cycle_bit_for_bit():

@@ -1,8 +1,13 @@
-"""Which cycle the pipeline's problems should run under MG-PCG (issue 31 item 2): ``Problem.multigrid()``
-(the robust smoothing: symmetric Gauss–Seidel, ``2 nu`` sweeps below the finest, boundary-layer sweeps on
-Neumann problems, coarse-level deflation probes) against the bare constructor's default cycle
-(``MultigridSolver(A, P)`` on the same operators: two forward / backward Gauss–Seidel sweeps, one on dense
-coarse levels, no probe) and ``smoothing="fast"``.
+"""Which cycle the pipeline's problems should run under MG-PCG (issue 31 item 2, one default).
+
+Since the pipeline and the bare constructor share one default cycle, ``Problem.multigrid()`` is
+``MultigridSolver(A, P)``'s default (two forward / backward Gauss–Seidel sweeps on the fine level, four on
+coarse levels as sparse as the finest, one on dense ones) plus the problem's boundary-layer sweeps, factor goal
+and finest-level probe for stationary cycling. Compared here with the two defaults it replaced, spelled out:
+the pipeline's former cycle (symmetric Gauss–Seidel once on the fine level, twice below, the same layer
+sweeps, every level probed) and the constructor's former one (two sweeps on sparse coarse levels).
+(The run at 9043a15, ``cg_default_cycle_9043a15.json``, compared the former ``Problem.multigrid()`` with the
+constructor, ``smoothing="fast"`` and the constructor with one-way or symmetric layer sweeps.)
 
 For each mesh: the default hierarchy (``build_hierarchy(V, F, levels=3)``, cached), then for the three model
 problems each variant set up and run by MG-PCG to 1e-8 (CPU seconds, iterations; alternating, twice each)
@@ -18,9 +23,13 @@ from pathlib import Path
 
 from nestmg import SolverOptions
 from solvers import MultigridSolver
+from solvers.multilevel import DEFAULT_SMOOTHER
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from exp_common import mesh_study_main, model_problems, timed_pcg  # noqa: E402
+
+#: the pipeline's cycle before the one default: symmetric Gauss-Seidel, once on the fine level, twice below
+FORMER_PIPELINE = SolverOptions(smoother="symmetric_gauss_seidel", nu=1)
 
 
 def variants(pr) -> dict:
@@ -28,14 +37,11 @@ def variants(pr) -> dict:
     return {
         "problem_multigrid": lambda: pr.multigrid(),
         "constructor": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace),
-        "fast": lambda: pr.multigrid(SolverOptions(smoothing="fast")),
-        # the constructor's cycle plus the boundary layer's one-way sweeps on the fine level (natural
-        # boundaries only: Problem.local_nodes is None on Dirichlet problems)
-        "constructor_layer": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace,
-                                                     local_nodes=pr.local_nodes, local_sweep="one-way",
-                                                     local_levels=1),
-        "constructor_layer_sym": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace,
-                                                         local_nodes=pr.local_nodes, local_levels=1),
+        # every level probed with 8 modes, whatever the operator complexity (the former pipeline default)
+        "former_problem_multigrid": lambda: pr.multigrid(FORMER_PIPELINE, deflate=8),
+        # two sweeps on every smoothed level (these 3-level hierarchies have one coarse smoothed level, sparse)
+        "former_constructor": lambda: MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace,
+                                                      presmoother=[DEFAULT_SMOOTHER, DEFAULT_SMOOTHER]),
     }
 
 

@@ -366,6 +366,54 @@ def probe_under_cg() -> str:
             f"{len(gains)} cases)")
 
 
+#: the pipeline's cycle against the constructor's and the two former defaults on 22 zoo hierarchies
+ONE_DEFAULT = "setup_cost/cg_default_cycle_3416f2e.json"
+
+
+def _one_default_cases() -> list[dict]:
+    """Per mesh and problem of :data:`ONE_DEFAULT`: per variant the MG-PCG iterations (most over the repeats),
+    the stationary factor and the median set-up + solve CPU seconds."""
+    cases = []
+    for run in load(ONE_DEFAULT)["runs"]:
+        for prob in PROBLEMS:
+            rows = [r for r in run["rows"] if r["problem"] == prob]
+            case = {"problem": prob}
+            for v in sorted({r["variant"] for r in rows}):
+                rv = [r for r in rows if r["variant"] == v]
+                case[v] = {"it": max(r["it"] for r in rv),
+                           "factor": next(r["stationary_factor"] for r in rv if "stationary_factor" in r),
+                           "cpu": statistics.median(r["setup"] + r["solve"] for r in rv)}
+            cases.append(case)
+    return cases
+
+
+@generator("probe.one_default", ONE_DEFAULT)
+def probe_one_default() -> str:
+    """The one default against the former two: iterations, factors against the goals, CPU ratios."""
+    goals = {"poisson-dirichlet": 0.2, "poisson-neumann": 0.3, "diffusion-neumann": 0.3}
+    cs = _one_default_cases()
+
+    def it(v):
+        return max(c[v]["it"] for c in cs)
+
+    def over(v):
+        return sum(c[v]["factor"] > goals[c["problem"]] for c in cs)
+
+    def ratio(v, w):
+        r = [c[v]["cpu"] / c[w]["cpu"] for c in cs]
+        return f"x{statistics.median(r):.2f} (x{min(r):.2f}–{max(r):.2f})"
+
+    pm, fpm, ct, fct = "problem_multigrid", "former_problem_multigrid", "constructor", "former_constructor"
+    worst = max(c[pm]["factor"] for c in cs)
+    return (f"{len(cs)} problems on {len(cs) // 3} zoo meshes: `Problem.multigrid()` at most {it(pm)} MG-PCG "
+            f"iterations (before: {it(fpm)}), stationary factors within the goals in {len(cs) - over(pm)} of "
+            f"{len(cs)} (at most {worst:.3f}; before: {len(cs) - over(fpm)}), set-up + solve CPU {ratio(pm, fpm)} of "
+            f"the former cycle's; the bare `MultigridSolver(A, P)` at most {it(ct)} iterations (before: {it(fct)}), "
+            f"{ratio(ct, fct)} of its former default's CPU time and {ratio(ct, pm)} of `Problem.multigrid()`'s "
+            f"(the boundary-layer sweeps), its stationary factor above the goal in {over(ct)} of {len(cs)} "
+            f"(before: {over(fct)})")
+
+
 #: the 12-case run before the diagonal swaps and unsorted permutations (code f34456f, same saved cases)
 USER_SOLVERS_BEFORE = "user_mesh/solvers_d671587.json"
 #: the run after them (code 3dab0c7, the same saved cases; the cases were rebuilt for USER_SOLVERS since)

@@ -214,14 +214,17 @@ MODEL_PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
 
 
 def model_problems(mesh: Path) -> tuple[dict, list]:
-    """The default hierarchy of ``mesh`` (``build_hierarchy(V, F, levels=3)``, cached) and its model problems:
-    ``({"mesh", "tets", "rows": []}, [(name, Problem), ...])`` for :data:`MODEL_PROBLEMS`."""
+    """The default hierarchy of ``mesh`` (``build_hierarchy(V, F, levels=3)``, cached) and its model problems
+    in the normalised frame, as ``nestmg solve`` poses them (diffusion's ``λ`` is relative to it; before
+    3416f2e they were set up in the file's coordinates, where a large model made the diffusion problem a mass
+    matrix): ``({"mesh", "tets", "rows": []}, [(name, Problem), ...])`` for :data:`MODEL_PROBLEMS`."""
     from nestmg import build_hierarchy, load_mesh, setup_problem
 
     V, F = load_mesh(mesh)[:2]
     H = build_hierarchy(V, F, levels=3, progress=False)
     head = {"mesh": mesh.name, "tets": [len(t) for _, t in H.tets], "rows": []}
-    return head, [(name, setup_problem(H.tets, H.P, name)) for name in MODEL_PROBLEMS]
+    tets = H.tets_in("normalized")
+    return head, [(name, setup_problem(tets, H.P, name)) for name in MODEL_PROBLEMS]
 
 
 def mesh_study_main(script: str, description: str, measure, argv=None) -> None:

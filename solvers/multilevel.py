@@ -66,9 +66,9 @@ from .transfer import (
 
 __all__ = [
     "AUTO_PROBE_MAX_COMPLEXITY",
+    "COARSE_SWEEPS",
     "DEFAULT_DEFLATE",
     "DEFAULT_MAXITER",
-    "COARSE_SWEEPS",
     "DEFAULT_SMOOTHER",
     "DENSE_LEVEL_ROWS",
     "Level",
@@ -94,10 +94,11 @@ DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
 
 #: Sweeps before (and after) the coarse correction of the default cycle on a coarse level as sparse as the
 #: finest: twice the finest level's (a variable V-cycle; such a level has ~1/8 of the finest's unknowns, so
-#: they cost ~0.25 fine SpMV per cycle). nestmg's own hierarchies (a red refinement on top) have one; with
-#: two sweeps there lucy.ply's pure Neumann problem took 13-14 MG-PCG iterations and its stationary factor was
-#: 0.54, with four 9 and 0.27 (as the pipeline's former cycle, symmetric Gauss–Seidel twice on the coarse
-#: levels: ``benchmarks/results/solvers/one_default.json``).
+#: the two extra each way cost ~0.5 fine SpMV per cycle). nestmg's own hierarchies (a red refinement on top)
+#: have one. With two sweeps there lucy.ply's pure Neumann problem took 14 MG-PCG iterations (stationary
+#: factor 0.54), with four 10 (0.31); over 66 zoo problems at most 14 became at most 10, for x0.95 the CPU
+#: time (median;
+#: ``benchmarks/results/setup_cost/cg_default_cycle_3416f2e.json``, docs/solvers.md).
 COARSE_SWEEPS = 4
 
 #: With the default smoother, a coarse level whose operator has more than this many times the nonzeros per

@@ -36,7 +36,7 @@ CASES = [
     (["solve", "shape:torus", "--face-counts", "-10", "-20"], "--face-counts"),
     (["solve", "shape:torus", "--epsilon", "0"], "argument --epsilon: must be > 0"),
     (["solve", "shape:torus", "--mesh-time-budget", "-1"], "argument --mesh-time-budget: must be >= 0"),
-    (["solve", "shape:torus", "--smoothing", "fast", "--nu", "2"],
+    (["solve", "shape:torus", "--smoothing", "fast", "--nu", "1"],
      "argument --smoothing: 'fast' is a preset"),
     (["solve", "shape:torus", "--coarsening", "0.5"], "argument --coarsening: must be > 1"),
     (["cages", "shape:torus", "--out", "{tmp}/o", "--method", "sdf", "--cage-time-budget", "-5"],

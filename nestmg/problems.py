@@ -151,11 +151,14 @@ class Problem:
               (:data:`solvers.multilevel.DEFAULT_SMOOTHER`; written out on nestmg's hierarchies:
               :data:`DEFAULT_SMOOTHERS`), or with ``smoother``, ``nu`` or ``coarse_nu`` given ``nu`` sweeps
               of ``smoother`` on the fine level and ``coarse_nu`` (default ``2 nu``) on the coarser ones
-              (:func:`cycle_smoothers`); plus with ``local`` one extra symmetric Gauss–Seidel sweep on
-              :attr:`local_nodes` per smoothing step (the problem's boundary layer: for stationary cycling
-              and hard Neumann problems). The one default of the bare constructor, ``Problem.multigrid()``
-              and ``aspreconditioner()``: what the problem adds is its null space, boundary layer, factor
-              goal and the finest level's probe for stationary cycling;
+              (:func:`cycle_smoothers`); plus with ``local`` sweeps over :attr:`local_nodes` (the
+              problem's boundary layer, natural-boundary problems only): with the default sweeps one forward
+              sweep before the coarse correction and one backward after it on the fine level
+              (``local_sweep="one-way"``, ``local_levels=1``), with chosen ones one extra symmetric sweep
+              per smoothing step on every level (the cycle before issue 31's one default). The one default
+              of the bare constructor, ``Problem.multigrid()`` and ``aspreconditioner()``: what the problem
+              adds is its null space, boundary layer, factor goal and the finest level's probe for
+              stationary cycling;
             * ``smoothing="fast"``: the textbook V(1,1) of :data:`FAST_SMOOTHERS` without local sweeps
               (about half the cost per cycle, a few more CG iterations; the faster MG-PCG in wall time),
               except on pure Neumann problems (``nullspace="constant"``), where it is
@@ -201,6 +204,9 @@ class Problem:
         robust = SOLVER_DEFAULT if default else cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
         kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
         kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
+        if default and not fast:  # the layer as docs/usermesh.md tells a user with a mesh to pass it
+            kwargs.setdefault("local_sweep", "one-way")
+            kwargs.setdefault("local_levels", 1)
         if self.name in FACTOR_GOALS:
             kwargs.setdefault("deflate_goal", PROBE_MARGIN * FACTOR_GOALS[self.name])
         kwargs.setdefault("probe_finest", True)  # the probe costs about one solve: small in a pipeline run

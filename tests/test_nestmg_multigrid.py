@@ -245,8 +245,9 @@ def test_pipeline_probe_serves_stationary_solves_only(torus_iso_tets):
 
 def test_pipeline_cycle_is_the_constructors_default_plus_the_problems_data():
     """One default (issue 31): Problem.multigrid() is MultigridSolver(A, P)'s default cycle with what the
-    problem knows passed in (null space, boundary-layer nodes, factor goal, finest probe for stationary
-    cycling): the same smoothers, the same preconditioner and the same CG steps."""
+    problem knows passed in (null space, one-way sweeps over the fine boundary layer as docs/usermesh.md
+    tells a user with a mesh to pass them, factor goal, finest probe for stationary cycling): the same
+    smoothers, the same preconditioner and the same CG steps."""
     from nestmg.problems import PROBLEMS
     from solvers import MultigridSolver
 
@@ -255,7 +256,7 @@ def test_pipeline_cycle_is_the_constructors_default_plus_the_problems_data():
         pr = setup_problem(meshes, Ps, name)
         ml = pr.multigrid()
         bare = MultigridSolver(pr.A, pr.P, coarse=pr.coarse, nullspace=pr.nullspace, local_nodes=pr.local_nodes,
-                               deflate_goal=ml.deflate_goal)
+                               local_sweep="one-way", local_levels=1, deflate_goal=ml.deflate_goal)
         assert (pr.local_nodes is None) == (name == "poisson-dirichlet")
         assert ml.deflate == bare.deflate == 8 and ml.deflate_goal < 0.3
         sweeps = [(L.presmoother.params.get("sweep"), L.presmoother.params.get("iterations"),

@@ -96,9 +96,8 @@ DEFAULT_SMOOTHER = ("gauss_seidel", {"sweep": "forward", "iterations": 2})
 #: finest: twice the finest level's (a variable V-cycle; such a level has ~1/8 of the finest's unknowns, so
 #: the two extra each way cost ~0.5 fine SpMV per cycle). nestmg's own hierarchies (a red refinement on top)
 #: have one. With two sweeps there lucy.ply's pure Neumann problem took 14 MG-PCG iterations (stationary
-#: factor 0.54), with four 10 (0.31); over 66 zoo problems at most 14 became at most 10, for x0.95 the CPU
-#: time (median;
-#: ``benchmarks/results/setup_cost/cg_default_cycle_3416f2e.json``, docs/solvers.md).
+#: factor 0.54), with four 10 (0.31); over 66 zoo problems at most 14 became at most 10, for x0.96 the CPU
+#: time (median; ``benchmarks/results/setup_cost/cg_default_cycle_744b745.json``, docs/solvers.md).
 COARSE_SWEEPS = 4
 
 #: With the default smoother, a coarse level whose operator has more than this many times the nonzeros per

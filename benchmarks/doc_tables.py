@@ -347,6 +347,22 @@ def usermesh_setup() -> str:
             f"{len(cpu)} cases")
 
 
+#: the docs' run before the one default (cases of 818e414, a corpus run beside it)
+USER_SOLVERS_9043 = "user_mesh/solvers_9043a15.json"
+
+
+@generator("usermesh.setup_load", USER_SOLVERS, USER_SOLVERS_9043)
+def usermesh_setup_load() -> str:
+    """Both runs' set-up CPU seconds, SA's and the defaults': the ratio moves with the machine's load."""
+    def span(rel, name):
+        d = load(rel)
+        return rng([c["problems"][p]["solvers"][name]["setup_cpu_seconds"] for c in d["cases"]
+                    for p in _user_problems(d)], ".2f")
+    return (f"SA's set-up took {span(USER_SOLVERS, 'pyamg_sa')} CPU s in this run against "
+            f"{span(USER_SOLVERS_9043, 'pyamg_sa')} in the run before (`solvers_9043a15.json`), the defaults' "
+            f"{span(USER_SOLVERS, 'nestmg')} against {span(USER_SOLVERS_9043, 'nestmg')}")
+
+
 PROBE_UNDER_CG = "setup_cost/probe_under_cg.json"
 
 
@@ -471,7 +487,10 @@ def usermesh_fine3() -> str:
                      f"x{rng([x['nestmg_fine3']['solve_ratio_vs_first'] for x in s], '.2f')}")
     f3 = [c["problems"][p]["solvers"]["nestmg_fine3"] for c in d["cases"] for p in _user_problems(d)]
     both = sum(x["iterations"] <= 10 and x["solve_spmv"] <= 100 for x in f3)
-    return "; ".join(parts) + f"; at most 10 iterations and 100 fine SpMV in {both} of {len(f3)} cases"
+    ratios = [x["solve_ratio_vs_first"] for x in f3]
+    slower = sum(r > 1.0 for r in ratios)
+    return ("; ".join(parts) + f"; at most 10 iterations and 100 fine SpMV in {both} of {len(f3)} cases; the solve "
+            f"slower in {slower} of {len(f3)} (median x{statistics.median(ratios):.2f})")
 
 
 @generator("usermesh.pipeline_ratio", USER_SOLVERS)
@@ -881,16 +900,20 @@ def usermesh_goal() -> str:
             f"at most 100 fine SpMV in {sum(m <= 100 for m in spmv)}, both in {both}")
 
 
-@generator("usermesh.speedup", USER_SOLVERS)
+@generator("usermesh.speedup", USER_SOLVERS, USER_SOLVERS_9043)
 def usermesh_speedup() -> str:
-    d = load(USER_SOLVERS)
-    probs = _user_problems(d)
-    sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in probs]
-    gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in probs]
-    tets = [c["tets"] for c in d["cases"]]
-    return (f"{rng(sa, '.2f')}x faster (set-up + solve, CPU time) than pyamg SA and {rng(gamg, '.2f')}x than "
-            f"PETSc GAMG "
-            f"at {kilo(min(tets))}–{kilo(max(tets))} tets")
+    def spans(rel):
+        d = load(rel)
+        probs = _user_problems(d)
+        sa = [c["problems"][p]["speedup_vs_pyamg_sa"] for c in d["cases"] for p in probs]
+        gamg = [c["problems"][p]["speedup_vs_petsc_gamg"] for c in d["cases"] for p in probs]
+        return rng(sa, ".2f"), rng(gamg, ".2f"), [c["tets"] for c in d["cases"]]
+
+    sa, gamg, tets = spans(USER_SOLVERS)
+    sa0, gamg0, _ = spans(USER_SOLVERS_9043)
+    return (f"{sa}x faster (set-up + solve, CPU time) than pyamg SA and {gamg}x than PETSc GAMG at "
+            f"{kilo(min(tets))}–{kilo(max(tets))} tets, one run on a loaded machine that slowed the AMG set-ups "
+            f"most (the run before, on a lighter load: {sa0}x and {gamg0}x)")
 
 
 def _user_nestmg(key: str, problems=("dirichlet", "neumann"), solver: str = "nestmg") -> list:

@@ -33,7 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_4da396d_merged.json"
+CORPUS = "corpus/zoo_744b745_merged.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
@@ -1813,6 +1813,21 @@ def _corpus() -> dict:
 def corpus_source() -> str:
     """The corpus JSON the tables read and the date of its latest run."""
     return f"`benchmarks/results/{CORPUS}` (latest run {_corpus()['date']})"
+
+
+@generator("corpus.constructor", CORPUS)
+def corpus_constructor() -> str:
+    """MG-PCG iterations of ``MultigridSolver(A, P)``'s defaults on the docs' corpus (its ``constructor`` record)."""
+    with_probe, without = [], []
+    for m in load(CORPUS)["meshes"]:
+        for r in ((m.get("solve") or {}).get("problems") or {}).values():
+            c = r.get("constructor")
+            if c:
+                with_probe.append(c["default"]["pcg_iterations"])
+                without.append(c["no_probe"]["pcg_iterations"])
+    n = len(with_probe)
+    return (f"at most 10 iterations in {sum(i <= 10 for i in with_probe)} of {n} cases (most {max(with_probe)}), "
+            f"{sum(i <= 10 for i in without)} of {n} without the probe (most {max(without)})")
 
 
 @generator("corpus.stages", CORPUS)

@@ -132,11 +132,14 @@ def test_incompatible_neumann_rhs_raises_or_projects(cube):
 @pytest.mark.parametrize("problem", ["dirichlet", "neumann"])
 def test_w_and_f_cycles_at_least_as_fast_as_v(cube, problem):
     _meshes, Ps, K, _M = cube
+    # two sweeps on every level, the cycle measured below: with the default's four on the coarse levels the
+    # V-cycle is as good as W and F here (Dirichlet V 0.204, W 0.202)
+    two = [solvers.multilevel.DEFAULT_SMOOTHER] * 2
     if problem == "dirichlet":
         ds, Pf, _ = _dirichlet(cube, 4)
-        ml, b = MultigridSolver(ds.A, Pf), _random_rhs(ds.A.shape[0], 1)
+        ml, b = MultigridSolver(ds.A, Pf, presmoother=two), _random_rhs(ds.A.shape[0], 1)
     else:
-        ml = MultigridSolver(K, Ps, nullspace="constant")
+        ml = MultigridSolver(K, Ps, nullspace="constant", presmoother=two)
         b = fem.project_rhs(_random_rhs(K.shape[0], 1))
     fv, _ = _factor(ml, b, "V")
     fw, _ = _factor(ml, b, "W")

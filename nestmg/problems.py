@@ -189,7 +189,7 @@ class Problem:
 
         from .options import DEFAULT_NU, DEFAULT_SMOOTHER, SolverOptions, typed
 
-        o = typed(options, SolverOptions, "options").resolved(self.name)  # V, nu = 1 unless given
+        o = typed(options, SolverOptions, "options").resolved(self.name)  # V, nu = 2 unless given
         coarse_scaling = o.coarse_scaling
         if coarse_scaling == "auto":
             coarse_scaling = None if isinstance(self.coarse, str) else "energy"

@@ -194,17 +194,13 @@ class Problem:
         if coarse_scaling == "auto":
             coarse_scaling = None if isinstance(self.coarse, str) else "energy"
         fast = o.smoothing == "fast"
-        if fast and o.local and self.nullspace == "constant" and self.local_nodes is not None:
-            kwargs.setdefault("presmoother", FAST_NEUMANN_SMOOTHERS)
-            kwargs.setdefault("local_nodes", self.local_nodes)
-            kwargs.setdefault("local_sweep", "one-way")
-            kwargs.setdefault("local_levels", 1)
+        fast_layer = fast and o.local and self.nullspace == "constant" and self.local_nodes is not None
         # the solver's own default (its rule for dense coarse levels) unless the sweeps were chosen
         default = (o.smoother, o.nu, o.coarse_nu) == (DEFAULT_SMOOTHER, DEFAULT_NU, None)
         robust = SOLVER_DEFAULT if default else cycle_smoothers(o.smoother, o.nu, o.coarse_nu)
-        kwargs.setdefault("presmoother", FAST_SMOOTHERS if fast else robust)
-        kwargs.setdefault("local_nodes", self.local_nodes if o.local and not fast else None)
-        if default and not fast:  # the layer as docs/usermesh.md tells a user with a mesh to pass it
+        kwargs.setdefault("presmoother", FAST_NEUMANN_SMOOTHERS if fast_layer else FAST_SMOOTHERS if fast else robust)
+        kwargs.setdefault("local_nodes", self.local_nodes if o.local and (fast_layer or not fast) else None)
+        if fast_layer or (default and not fast):  # one-way fine-level layer sweeps, as docs/usermesh.md advises
             kwargs.setdefault("local_sweep", "one-way")
             kwargs.setdefault("local_levels", 1)
         if self.name in FACTOR_GOALS:

@@ -347,8 +347,31 @@ def summarize(c: dict, prob: str, solvers: list, raw: dict) -> dict:
     return pd
 
 
+def kernels_info() -> dict:
+    """Which set-up path ran: numba's compiled kernels (``pip install "nestmg[fast]"``) or numpy/scipy alone
+    (``--kernels numpy`` or ``NESTMG_NUMBA=0``; the plain install has no numba). Call after the runs:
+    ``loaded`` says whether a kernel was compiled or loaded in this process."""
+    from solvers import _kernels
+
+    version = None
+    if _kernels.AVAILABLE:
+        from importlib.metadata import version as _version
+
+        version = _version("numba")
+    return {"numba": version, "enabled": bool(_kernels.ENABLED), "loaded": bool(_kernels._state["loaded"])}
+
+
+def _set_kernels(choice: str) -> None:
+    """``--kernels numpy``: the set-up's numpy/scipy path even when numba is installed."""
+    if choice == "numpy":
+        from solvers import _kernels
+
+        _kernels.ENABLED = False
+
+
 def run(args) -> dict:
     """Interleaved repeats over cases x problems x solvers; medians and within-run ratios."""
+    _set_kernels(args.kernels)
     solvers = [f"nestmg_{v}" if v != "default" else "nestmg" for v in args.variants]
     solvers += ["problem_multigrid"] * args.problem_multigrid
     solvers += [f"problem_multigrid_{v}" for v in args.problem_variants if args.problem_multigrid]
@@ -370,7 +393,7 @@ def run(args) -> dict:
                           f"{r['setup_cpu_seconds']:.3f} + {r['solve_cpu_seconds']:.3f}) it {r['iterations']}",
                           flush=True)
     out = {"code": args.label, "tol": args.tol, "repeats": args.repeats,
-           "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+           "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "kernels": kernels_info(),
            "solvers": solvers, "cases": []}
     for c in cases:
         cd = {k: c[k] for k in ("name", "label", "tets", "nodes", "level_tets", "n_outside", "build")}
@@ -428,6 +451,7 @@ def profile(args) -> dict:
 
     from solvers import MultigridSolver
 
+    _set_kernels(args.kernels)
     c = load_case(Path(args.case))
     out: dict = {"case": c["name"], "tets": c["tets"], "code": args.label, "profile_clock": "process_time",
                  "has_locality_ordering": importlib.util.find_spec("solvers.ordering") is not None,
@@ -469,6 +493,7 @@ def profile(args) -> dict:
         print(f"{prob}: setup {np.median(t_mg):.3f} s vs SA {np.median(t_sa):.3f} s (CPU ratio "
               f"{np.median(np.array(c_mg) / np.array(c_sa)):.2f}); top: "
               + ", ".join(f"{f} {tt:.3f}" for tt, _, f in rows[:5]), flush=True)
+    out["kernels"] = kernels_info()
     return out
 
 
@@ -773,6 +798,8 @@ def main(argv=None):
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--tol", type=float, default=1e-8)
     r.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
+    r.add_argument("--kernels", choices=("auto", "numpy"), default="auto",
+                   help="set-up path: numba's kernels when installed (auto) or numpy/scipy alone")
     r.add_argument("--json", type=Path, default=None)
     pr = sub.add_parser("profile", help="cProfile of the MultigridSolver set-up on one case")
     pr.add_argument("case", type=Path)
@@ -780,6 +807,8 @@ def main(argv=None):
                     choices=("dirichlet", "neumann", "diffusion"))
     pr.add_argument("--repeats", type=int, default=3)
     pr.add_argument("--label", default="this tree", help="what code is on PYTHONPATH (recorded in the JSON)")
+    pr.add_argument("--kernels", choices=("auto", "numpy"), default="auto",
+                    help="set-up path: numba's kernels when installed (auto) or numpy/scipy alone")
     pr.add_argument("--json", type=Path, default=None)
     cc = sub.add_parser("cycle",
                         help="one V-cycle's CPU time with and without the cheap pre-smoother residual")

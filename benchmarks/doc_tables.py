@@ -347,20 +347,34 @@ def usermesh_setup() -> str:
             f"{len(cpu)} cases")
 
 
-#: the docs' run before the one default (cases of 818e414, a corpus run beside it)
-USER_SOLVERS_9043 = "user_mesh/solvers_9043a15.json"
+#: the run at 744b745 (numba's kernels loaded, a corpus run and the test suite beside it)
+USER_SOLVERS_744 = "user_mesh/solvers_744b745.json"
+#: this run's twin with numba's compiled set-up kernels (``--kernels auto``, numba installed)
+USER_SOLVERS_NUMBA = "user_mesh/numba/solvers_numba_3899589.json"
 
 
-@generator("usermesh.setup_load", USER_SOLVERS, USER_SOLVERS_9043)
-def usermesh_setup_load() -> str:
-    """Both runs' set-up CPU seconds, SA's and the defaults': the ratio moves with the machine's load."""
-    def span(rel, name):
-        d = load(rel)
-        return rng([c["problems"][p]["solvers"][name]["setup_cpu_seconds"] for c in d["cases"]
-                    for p in _user_problems(d)], ".2f")
-    return (f"SA's set-up took {span(USER_SOLVERS, 'pyamg_sa')} CPU s in this run against "
-            f"{span(USER_SOLVERS_9043, 'pyamg_sa')} in the run before (`solvers_9043a15.json`), the defaults' "
-            f"{span(USER_SOLVERS, 'nestmg')} against {span(USER_SOLVERS_9043, 'nestmg')}")
+def _setup_ratios(rel: str) -> list:
+    d = load(rel)
+    return [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in _user_problems(d)]
+
+
+@generator("usermesh.setup_numba", USER_SOLVERS_NUMBA, USER_SOLVERS_744)
+def usermesh_setup_numba() -> str:
+    """The set-up over SA's with numba's kernels (this run's twin), the process's first set-up (numba loaded
+    then), and the 744b745 run's ratios, which had the kernels too."""
+    d = load(USER_SOLVERS_NUMBA)
+    if not d["kernels"]["loaded"]:
+        raise ValueError(f"{USER_SOLVERS_NUMBA}: numba's kernels did not run")
+    cpu = _setup_ratios(USER_SOLVERS_NUMBA)
+    first = d["cases"][0]["problems"][_user_problems(d)[0]]["solvers"]["nestmg"]
+    later = [r["setup_cpu_seconds"] for r in first["runs"][1:]]
+    old = _setup_ratios(USER_SOLVERS_744)
+    return (f"{rng(cpu, '.2f')}x in CPU time, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases; the "
+            f"process's first set-up, which loads numba and its cached kernels, took "
+            f"{first['runs'][0]['setup_cpu_seconds']:.2f} CPU s against {rng(later, '.2f')} for the same matrix "
+            f"later (`numba/solvers_numba_3899589.json`). The run at 744b745 (`solvers_744b745.json`: "
+            f"{rng(old, '.2f')}x, at most 0.4x in {sum(x <= 0.4 for x in old)} of {len(old)}) had numba's kernels "
+            f"too, its first set-up {load(USER_SOLVERS_744)['cases'][0]['problems']['dirichlet']['solvers']['nestmg']['runs'][0]['setup_cpu_seconds']:.2f} CPU s")
 
 
 PROBE_UNDER_CG = "setup_cost/probe_under_cg.json"
@@ -900,7 +914,7 @@ def usermesh_goal() -> str:
             f"at most 100 fine SpMV in {sum(m <= 100 for m in spmv)}, both in {both}")
 
 
-@generator("usermesh.speedup", USER_SOLVERS, USER_SOLVERS_9043)
+@generator("usermesh.speedup", USER_SOLVERS, USER_SOLVERS_744)
 def usermesh_speedup() -> str:
     def spans(rel):
         d = load(rel)
@@ -910,10 +924,11 @@ def usermesh_speedup() -> str:
         return rng(sa, ".2f"), rng(gamg, ".2f"), [c["tets"] for c in d["cases"]]
 
     sa, gamg, tets = spans(USER_SOLVERS)
-    sa0, gamg0, _ = spans(USER_SOLVERS_9043)
+    sa0, gamg0, _ = spans(USER_SOLVERS_744)
     return (f"{sa}x faster (set-up + solve, CPU time) than pyamg SA and {gamg}x than PETSc GAMG at "
-            f"{kilo(min(tets))}–{kilo(max(tets))} tets, one run on a loaded machine that slowed the AMG set-ups "
-            f"most (the run before, on a lighter load: {sa0}x and {gamg0}x)")
+            f"{kilo(min(tets))}–{kilo(max(tets))} tets, one run on an idle machine with the plain install "
+            f"(the run before, with numba's set-up kernels on a loaded machine that slowed the AMG set-ups most: "
+            f"{sa0}x and {gamg0}x)")
 
 
 def _user_nestmg(key: str, problems=("dirichlet", "neumann"), solver: str = "nestmg") -> list:

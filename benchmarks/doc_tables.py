@@ -1116,6 +1116,26 @@ def usermesh_setup_parts() -> str:
             f"set-up over SA's {rng(ratio[1], '.2f')}x against {rng(ratio[0], '.2f')}x")
 
 
+USER_PARTS_NOW = "user_mesh/setup_profile_parts_fdbd9bd.json"
+
+
+@generator("usermesh.setup_parts_now", USER_PARTS_NOW)
+def usermesh_setup_parts_now() -> str:
+    """The set-up's parts at the current code (numpy path), medians of three profiled set-ups."""
+    d = load(USER_PARTS_NOW)
+    probs = [p for p in _USER_PROBLEMS if p in d["problems"]]
+
+    def ms(part):
+        return rng([1e3 * d["problems"][p]["parts"][part] for p in probs], ".0f")
+
+    ratio = [d["problems"][p]["setup_cpu_ratio_vs_sa_median"] for p in probs]
+    total = ms("total under cProfile")
+    return (f"set-up over SA's {rng(ratio, '.2f')}x; of {total} ms under the profiler the Galerkin products took "
+            f"{ms('Galerkin products (all)')} (the sparse products {ms('  sparse products')}), the reordering "
+            f"{ms('reordering (all)')}, the strong-coupling scan {ms('strong-coupling solve (all)')}, the coarsest "
+            f"factor {ms('coarsest factor (incl. validation solves)')}")
+
+
 def setup_parts_table() -> str:
     """The table of ``USER_PARTS`` per part (docs/history/usermesh.md keeps it as rendered at f4c9e17)."""
     before, after = (load(rel) for rel in USER_PARTS)

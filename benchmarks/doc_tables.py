@@ -336,12 +336,21 @@ def usermesh_solvers() -> str:
     return table(["user mesh (fine tets)", "solver"] + heads, rows)
 
 
+def _setup_ratios(rel: str, key: str = "setup_cpu_ratio_vs_pyamg_sa") -> list:
+    """The defaults' set-up over SA's (``key``: CPU or wall) per case and problem of a user-mesh run."""
+    d = load(rel)
+    return [c["problems"][p][key] for c in d["cases"] for p in _user_problems(d)]
+
+
+def _first_setup_cpu(d: dict) -> float:
+    """CPU seconds of the defaults' first set-up in a user-mesh run's process (its first case and problem)."""
+    return d["cases"][0]["problems"][_user_problems(d)[0]]["solvers"]["nestmg"]["runs"][0]["setup_cpu_seconds"]
+
+
 @generator("usermesh.setup", USER_SOLVERS)
 def usermesh_setup() -> str:
-    d = load(USER_SOLVERS)
-    probs = _user_problems(d)
-    r = [c["problems"][p]["setup_ratio_vs_pyamg_sa"] for c in d["cases"] for p in probs]
-    cpu = [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in probs]
+    r = _setup_ratios(USER_SOLVERS, "setup_ratio_vs_pyamg_sa")
+    cpu = _setup_ratios(USER_SOLVERS)
     met = sum(x <= 0.4 for x in cpu)
     return (f"{rng(cpu, '.2f')}x in CPU time ({rng(r, '.2f')}x in wall time); at most 0.4x in {met} of "
             f"{len(cpu)} cases")
@@ -351,11 +360,6 @@ def usermesh_setup() -> str:
 USER_SOLVERS_744 = "user_mesh/solvers_744b745.json"
 #: this run's twin with numba's compiled set-up kernels (``--kernels auto``, numba installed)
 USER_SOLVERS_NUMBA = "user_mesh/numba/solvers_numba_3899589.json"
-
-
-def _setup_ratios(rel: str) -> list:
-    d = load(rel)
-    return [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in _user_problems(d)]
 
 
 @generator("usermesh.setup_numba", USER_SOLVERS_NUMBA, USER_SOLVERS_744)
@@ -369,12 +373,13 @@ def usermesh_setup_numba() -> str:
     first = d["cases"][0]["problems"][_user_problems(d)[0]]["solvers"]["nestmg"]
     later = [r["setup_cpu_seconds"] for r in first["runs"][1:]]
     old = _setup_ratios(USER_SOLVERS_744)
+    numba_json, old_json = (Path(rel).relative_to("user_mesh") for rel in (USER_SOLVERS_NUMBA, USER_SOLVERS_744))
     return (f"{rng(cpu, '.2f')}x in CPU time, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases; the "
             f"process's first set-up, which loads numba and its cached kernels, took "
-            f"{first['runs'][0]['setup_cpu_seconds']:.2f} CPU s against {rng(later, '.2f')} for the same matrix "
-            f"later (`numba/solvers_numba_3899589.json`). The run at 744b745 (`solvers_744b745.json`: "
+            f"{_first_setup_cpu(d):.2f} CPU s against {rng(later, '.2f')} for the same matrix "
+            f"later (`{numba_json}`). The run at 744b745 (`{old_json}`: "
             f"{rng(old, '.2f')}x, at most 0.4x in {sum(x <= 0.4 for x in old)} of {len(old)}) had numba's kernels "
-            f"too, its first set-up {load(USER_SOLVERS_744)['cases'][0]['problems']['dirichlet']['solvers']['nestmg']['runs'][0]['setup_cpu_seconds']:.2f} CPU s")
+            f"too, its first set-up {_first_setup_cpu(load(USER_SOLVERS_744)):.2f} CPU s")
 
 
 PROBE_UNDER_CG = "setup_cost/probe_under_cg.json"
@@ -452,8 +457,7 @@ USER_SOLVERS_PREV = "user_mesh/solvers_3dab0c7.json"
 
 @generator("usermesh.setup_before", USER_SOLVERS_BEFORE)
 def usermesh_setup_before() -> str:
-    d = load(USER_SOLVERS_BEFORE)
-    cpu = [c["problems"][p]["setup_cpu_ratio_vs_pyamg_sa"] for c in d["cases"] for p in _user_problems(d)]
+    cpu = _setup_ratios(USER_SOLVERS_BEFORE)
     return f"{rng(cpu, '.2f')}x, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases"
 
 

@@ -508,7 +508,9 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
              "each backend, each case in its own process under a time limit (a hang or a crash is a row, not the "
              "end of the run), plus the reference `nested_cages` wheel at the same face counts (extra `bench`). "
              "Timings are wall seconds of one run on a 2-core machine; when the run was split over the two cores "
-             "(one process per core, `--merge`), each case had one core and the other was busy.", "",
+             "(one process per core, `--merge`), each case had one core and the other was busy. Since 449909b a "
+             "cages or wheel case first runs once, untimed, on a 536-face sphere in its process (imports and first "
+             "calls outside the clock on both sides).", "",
              *_provenance(doc), "", "### `nestmg solve FILE --levels 3` (defaults: nested cages, TetWild)", "",
              "Cells: V-cycle factor / MG-PCG iterations to 1e-8 (✗: above the goal "
              f"{GOALS['poisson-dirichlet']} Dirichlet, {GOALS['poisson-neumann']} Neumann and diffusion, "

@@ -64,7 +64,8 @@ def write_parts(out: Path) -> list[Path]:
     paths = []
     for name, solid in _parts().items():
         mesh = solid.to_mesh()
-        V, F = np.asarray(mesh.vert_properties, dtype=float)[:, :3], np.asarray(mesh.tri_verts, dtype=np.int64)
+        V = np.asarray(mesh.vert_properties, dtype=float)[:, :3]
+        F = np.asarray(mesh.tri_verts, dtype=np.int64)
         paths.append(out / f"{name}.stl")
         save_mesh(paths[-1], V, F)
         print(f"{paths[-1].name}: {len(F)} faces, genus {solid.genus()}")

@@ -511,7 +511,8 @@ def write_markdown(doc: dict, path: Path, source: Path) -> None:
              "(one process per core, `--merge`), each case had one core and the other was busy. Since 449909b a "
              "cages or wheel case first runs once, untimed, on a 536-face sphere in its process (imports and first "
              "calls outside the clock on both sides).", "",
-             *_provenance(doc), "", "### `nestmg solve FILE --levels 3` (defaults: nested cages, TetWild)", "",
+             *_provenance(doc), *(["", doc["summary"]] if doc.get("summary") else []), "",
+             "### `nestmg solve FILE --levels 3` (defaults: nested cages, TetWild)", "",
              "Cells: V-cycle factor / MG-PCG iterations to 1e-8 (✗: above the goal "
              f"{GOALS['poisson-dirichlet']} Dirichlet, {GOALS['poisson-neumann']} Neumann and diffusion, "
              f"{GOALS['pcg']} iterations, operator complexity {GOALS['complexity']}). Seconds: cages / tets / "

@@ -290,7 +290,10 @@ def _warm_up(kind: str, arg: str) -> float | None:
         path = Path(tmp) / "warm_up_sphere.obj"
         save_mesh(path, V, F)
         try:
-            case_cages(path, arg) if kind == "cages" else case_wheel(path, [len(F) // 4])
+            if kind == "cages":
+                case_cages(path, arg)
+            else:
+                case_wheel(path, [len(F) // 4])
         except Exception as exc:  # noqa: BLE001 -- the imports happened; the timed case reports its own failure
             print(f"[corpus] warm-up failed: {type(exc).__name__}: {exc}", file=sys.stderr)
     return time.perf_counter() - t

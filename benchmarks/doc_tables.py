@@ -342,9 +342,14 @@ def _setup_ratios(rel: str, key: str = "setup_cpu_ratio_vs_pyamg_sa") -> list:
     return [c["problems"][p][key] for c in d["cases"] for p in _user_problems(d)]
 
 
+def _first_defaults(d: dict) -> dict:
+    """The defaults' record of a user-mesh run's first case and problem (its first set-up is the process's)."""
+    return d["cases"][0]["problems"][_user_problems(d)[0]]["solvers"]["nestmg"]
+
+
 def _first_setup_cpu(d: dict) -> float:
     """CPU seconds of the defaults' first set-up in a user-mesh run's process (its first case and problem)."""
-    return d["cases"][0]["problems"][_user_problems(d)[0]]["solvers"]["nestmg"]["runs"][0]["setup_cpu_seconds"]
+    return _first_defaults(d)["runs"][0]["setup_cpu_seconds"]
 
 
 @generator("usermesh.setup", USER_SOLVERS)
@@ -370,8 +375,7 @@ def usermesh_setup_numba() -> str:
     if not d["kernels"]["loaded"]:
         raise ValueError(f"{USER_SOLVERS_NUMBA}: numba's kernels did not run")
     cpu = _setup_ratios(USER_SOLVERS_NUMBA)
-    first = d["cases"][0]["problems"][_user_problems(d)[0]]["solvers"]["nestmg"]
-    later = [r["setup_cpu_seconds"] for r in first["runs"][1:]]
+    later = [r["setup_cpu_seconds"] for r in _first_defaults(d)["runs"][1:]]
     old = _setup_ratios(USER_SOLVERS_744)
     numba_json, old_json = (Path(rel).relative_to("user_mesh") for rel in (USER_SOLVERS_NUMBA, USER_SOLVERS_744))
     return (f"{rng(cpu, '.2f')}x in CPU time, at most 0.4x in {sum(x <= 0.4 for x in cpu)} of {len(cpu)} cases; the "
@@ -1108,16 +1112,31 @@ USER_PARTS = ("user_mesh/setup_profile_parts_before.json", "user_mesh/setup_prof
 @generator("usermesh.setup_parts", *USER_PARTS)
 def usermesh_setup_parts() -> str:
     before, after = (load(rel) for rel in USER_PARTS)
-    probs = [p for p in _USER_PROBLEMS if p in after["problems"]]
+    probs = _profile_problems(after)
 
     def ms(d, part):
-        return [1e3 * d["problems"][p]["parts"][part] for p in probs]
+        return rng(_part_ms(d, part, probs), ".0f")
 
     coarse, checks = "coarsest factor (incl. validation solves)", "operator checks"
-    ratio = [[d["problems"][p]["setup_cpu_ratio_vs_sa_median"] for p in probs] for d in (before, after)]
-    return (f"coarsest factor {rng(ms(after, coarse), '.0f')} ms against {rng(ms(before, coarse), '.0f')}, "
-            f"operator checks {rng(ms(after, checks), '.0f')} against {rng(ms(before, checks), '.0f')} ms, "
-            f"set-up over SA's {rng(ratio[1], '.2f')}x against {rng(ratio[0], '.2f')}x")
+    ratio = [rng(_profile_ratios(d, probs), ".2f") for d in (before, after)]
+    return (f"coarsest factor {ms(after, coarse)} ms against {ms(before, coarse)}, "
+            f"operator checks {ms(after, checks)} against {ms(before, checks)} ms, "
+            f"set-up over SA's {ratio[1]}x against {ratio[0]}x")
+
+
+def _profile_problems(d: dict) -> list:
+    """The problems of a set-up profile JSON (``user_mesh_solvers.py profile``), in the docs' order."""
+    return [p for p in _USER_PROBLEMS if p in d["problems"]]
+
+
+def _part_ms(d: dict, part: str, probs: list) -> list:
+    """Milliseconds of one profiled set-up part, per problem of ``probs``."""
+    return [1e3 * d["problems"][p]["parts"][part] for p in probs]
+
+
+def _profile_ratios(d: dict, probs: list) -> list:
+    """Set-up over SA's (median of the per-repeat CPU ratios), per problem of ``probs``."""
+    return [d["problems"][p]["setup_cpu_ratio_vs_sa_median"] for p in probs]
 
 
 USER_PARTS_NOW = "user_mesh/setup_profile_parts_fdbd9bd.json"
@@ -1127,12 +1146,12 @@ USER_PARTS_NOW = "user_mesh/setup_profile_parts_fdbd9bd.json"
 def usermesh_setup_parts_now() -> str:
     """The set-up's parts at the current code (numpy path), medians of three profiled set-ups."""
     d = load(USER_PARTS_NOW)
-    probs = [p for p in _USER_PROBLEMS if p in d["problems"]]
+    probs = _profile_problems(d)
 
     def ms(part):
-        return rng([1e3 * d["problems"][p]["parts"][part] for p in probs], ".0f")
+        return rng(_part_ms(d, part, probs), ".0f")
 
-    ratio = [d["problems"][p]["setup_cpu_ratio_vs_sa_median"] for p in probs]
+    ratio = _profile_ratios(d, probs)
     total = ms("total under cProfile")
     return (f"set-up over SA's {rng(ratio, '.2f')}x; of {total} ms under the profiler the Galerkin products took "
             f"{ms('Galerkin products (all)')} (the sparse products {ms('  sparse products')}), the reordering "

@@ -14,7 +14,7 @@ from cagegen.errors import CageError, LevelsError
 from cagegen.sdf.backend import genus, sdf_cage_layer
 from cagegen.envelope import SDFGrid, active_points, build_envelope
 from cagegen.sdf.optimize import mips
-from cagegen.sdf.simplify import constrained_simplify
+from cagegen.sdf.simplify import constrained_simplify, segments_beyond
 from nestmg import shapes
 
 
@@ -185,6 +185,31 @@ def test_mips_value_and_gradient():
             Wm[i, k] -= eps
             fd = (mips(Wp, F)[0] - mips(Wm, F)[0]) / (2 * eps)
             assert G[0, i, k] == pytest.approx(fd, rel=1e-5, abs=1e-7)
+
+
+def test_segments_beyond_is_conservative_and_certifies_far_segments():
+    """Every segment it certifies is at least ``clear`` from the surface (dense samples), and those clearly
+    farther are certified: the filter in front of the exact edge-clearance test drops nothing it should test."""
+    import igl
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces, dtype=np.int64)
+    rng = np.random.default_rng(0)
+    n = 4000
+    c = rng.normal(size=(n, 3))
+    c *= rng.uniform(1.0, 1.1, (n, 1)) / np.linalg.norm(c, axis=1)[:, None]
+    d = rng.normal(size=(n, 3))
+    d *= rng.uniform(0.0, 0.5, (n, 1)) / np.linalg.norm(d, axis=1)[:, None]
+    P0, P1 = c - d, c + d
+    clear = 0.02
+    ok = segments_beyond(P0, P1, V, F, clear)
+    t = np.linspace(0.0, 1.0, 400)
+    X = (P0[:, None, :] * (1 - t)[None, :, None] + P1[:, None, :] * t[None, :, None]).reshape(-1, 3)
+    dist = np.sqrt(igl.point_mesh_squared_distance(X, V, F)[0]).reshape(n, -1).min(axis=1)
+    assert not (ok & (dist < clear)).any()
+    assert ok[dist > clear + 0.005].all()
+    assert 0.2 * n < ok.sum() < 0.8 * n  # both kinds are present
 
 
 def test_constrained_simplify_exact_count_and_stays_outside():

@@ -162,6 +162,45 @@ def too_close(T: np.ndarray, Vin: np.ndarray, Fin: np.ndarray, vin_tree, clear: 
     return low
 
 
+#: :func:`segments_beyond` halves a segment at most this many times before leaving it to the exact test
+SEGMENT_HALVINGS = 8
+
+
+def segments_beyond(P0: np.ndarray, P1: np.ndarray, V: np.ndarray, F: np.ndarray, clear: float) -> np.ndarray:
+    """Which segments ``P0[k] P1[k]`` are certainly at least ``clear`` from the surface ``(V, F)`` (hence from
+    its edges): a conservative filter in front of exact segment-edge distances.
+
+    The distance to the surface is 1-Lipschitz, so on a segment ``ab`` of length ``l`` with end-point
+    distances ``d_a, d_b`` (exact, libigl's AABB tree) every point is at least ``(d_a + d_b - l) / 2`` away.
+    Pieces where that bound is below ``clear`` are halved (one more exact distance each), at most
+    :data:`SEGMENT_HALVINGS` times; a segment is certified when all its pieces are, and a piece with an end
+    point closer than ``clear`` stops its segment's search (False: left to the exact test).
+
+    Returns
+    -------
+    (k,) bool array
+    """
+    tree = _aabb(V, F)
+    n = len(P0)
+    d = np.sqrt(np.maximum(tree.squared_distance(V, F, np.concatenate([P0, P1]))[0], 0.0))
+    A, B, dA, dB, seg = P0, P1, d[:n], d[n:], np.arange(n)
+    unresolved = np.zeros(n, dtype=bool)  # some piece can be closer than clear
+    tol = 1e-12 * max(float(np.abs(V).max()), 1e-300)  # rounding of the distances
+    for halving in range(SEGMENT_HALVINGS + 1):
+        open_ = 0.5 * (dA + dB - np.linalg.norm(B - A, axis=1)) < clear + tol
+        unresolved[seg[open_ & (np.minimum(dA, dB) < clear + tol)]] = True
+        open_ &= ~unresolved[seg]
+        A, B, dA, dB, seg = A[open_], B[open_], dA[open_], dB[open_], seg[open_]
+        if not len(seg) or halving == SEGMENT_HALVINGS:
+            break
+        M = 0.5 * (A + B)
+        dM = np.sqrt(np.maximum(tree.squared_distance(V, F, M)[0], 0.0))
+        A, B = np.concatenate([A, M]), np.concatenate([M, B])
+        dA, dB, seg = np.concatenate([dA, dM]), np.concatenate([dM, dB]), np.concatenate([seg, seg])
+    unresolved[seg] = True  # pieces still open after the last halving
+    return ~unresolved
+
+
 def _tri_normals(V, F):
     return np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
 
@@ -291,28 +330,23 @@ class _InputIndex(NamedTuple):
     Vin: np.ndarray
     Fin: np.ndarray
     vin_tree: object  # k-d tree of the vertices
-    in_tree: object  # k-d tree of the face centres
-    in_ext: float  # largest face-centre-to-corner distance (+1e-9)
     EI: np.ndarray | None  # (k,2) edges (with edge_clear > 0)
     e_tree: object  # k-d tree of the edge midpoints (with edge_clear > 0)
     e_half: float | None  # half the longest edge (with edge_clear > 0)
 
 
 def _input_index(Vin, Fin, edge_clear: float) -> _InputIndex:
-    """k-d trees of the input's vertices, face centres and (``edge_clear > 0``) edge midpoints."""
+    """k-d trees of the input's vertices and (``edge_clear > 0``) edge midpoints."""
     from scipy.spatial import cKDTree
 
     vin_tree = cKDTree(Vin)
-    cin = Vin[Fin].mean(axis=1)
-    in_ext = float(np.linalg.norm(Vin[Fin] - cin[:, None, :], axis=2).max()) + 1e-9
-    in_tree = cKDTree(cin)
     EI = e_tree = e_half = None
     if edge_clear > 0:
         EI = np.unique(np.sort(np.concatenate([Fin[:, [0, 1]], Fin[:, [1, 2]], Fin[:, [2, 0]]]), axis=1),
                        axis=0)
         e_tree = cKDTree(0.5 * (Vin[EI[:, 0]] + Vin[EI[:, 1]]))
         e_half = 0.5 * float(np.linalg.norm(Vin[EI[:, 0]] - Vin[EI[:, 1]], axis=1).max())
-    return _InputIndex(Vin, Fin, vin_tree, in_tree, in_ext, EI, e_tree, e_half)
+    return _InputIndex(Vin, Fin, vin_tree, EI, e_tree, e_half)
 
 
 def _candidates(V, F, Q, frozen, attempts, changed_at, target):
@@ -492,6 +526,9 @@ def _clearance_test(own_v, nown, bad, inp: _InputIndex, margin, edge_clear, reje
         P1 = np.r_[own_v[live, 1], own_v[live, 2]]
         ow = np.r_[nown[live], nown[live]]
         if len(P0):
+            far = segments_beyond(P0, P1, inp.Vin, inp.Fin, edge_clear)
+            P0, P1, ow = P0[~far], P1[~far], ow[~far]
+        if len(P0):
             lists = inp.e_tree.query_ball_point(
                 0.5 * (P0 + P1), 0.5 * np.linalg.norm(P1 - P0, axis=1) + inp.e_half + edge_clear)
             cnt = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
@@ -509,12 +546,9 @@ def _input_crossing_test(Vc, Fc, nf, nown, bad, inp: _InputIndex, rejected) -> N
     """Test 3 (exact): new triangles that cross or touch the input."""
     chk = ~bad[nown]
     if chk.any():
-        Fq = Fc[nf[chk]]
-        cq = Vc[Fq].mean(axis=1)
-        rq = np.linalg.norm(Vc[Fq] - cq[:, None, :], axis=2).max(axis=1)
-        near_in = inp.in_tree.query_ball_point(cq, rq + inp.in_ext)
-        fin_sel = np.unique(np.concatenate([np.asarray(x, dtype=np.int64) for x in near_in]))
-        pr = cross_pairs(Vc, Fq, inp.Vin, inp.Fin[fin_sel]) if len(fin_sel) else np.zeros((0, 2), int)
+        # the grid broad phase of cross_pairs over the whole input: the same candidate pairs that meet as a
+        # k-d ball search, as arrays (the balls' Python lists cost more than the exact tests, flange.stl)
+        pr = cross_pairs(Vc, Fc[nf[chk]], inp.Vin, inp.Fin)
         if len(pr):
             hit = np.unique(nown[chk][pr[:, 0]])
             rejected["input"] += int(hit.size)
@@ -523,19 +557,13 @@ def _input_crossing_test(Vc, Fc, nf, nown, bad, inp: _InputIndex, rejected) -> N
 
 def _self_crossing_test(Vc, Fc, nf, nown, live_f, bad, rejected) -> None:
     """Test 4 (exact): new triangles that intersect other live cage triangles (local submesh)."""
-    from scipy.spatial import cKDTree
-
     chk = ~bad[nown]
     if chk.any():
         newf = nf[chk]
-        cen = Vc[Fc].mean(axis=1)
-        ext = np.linalg.norm(Vc[Fc] - cen[:, None, :], axis=2).max(axis=1)
-        live_idx = np.flatnonzero(live_f)
-        tree = cKDTree(cen[live_idx])
-        R = ext[live_idx].max() + ext[newf]
-        near = tree.query_ball_point(cen[newf], R)
-        sub = np.unique(np.concatenate([live_idx[np.asarray(x, dtype=np.int64)] for x in near] + [newf]))
-        # only pairs with a new face: the rest of the cage is clean (checked when it was made)
+        # the live cage (new faces are live) through self_pairs' grid broad phase, only pairs with a new face:
+        # the rest of the cage is clean (checked when it was made). A k-d ball search around the new faces
+        # reached as far as the cage's largest face and returned its results as Python lists
+        sub = np.union1d(np.flatnonzero(live_f), newf)
         pr = self_pairs(Vc, Fc[sub], only=np.searchsorted(sub, newf))
         if len(pr):
             pos = -np.ones(len(Fc), dtype=np.int64)

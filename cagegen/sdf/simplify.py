@@ -152,11 +152,17 @@ def too_close(T: np.ndarray, Vin: np.ndarray, Fin: np.ndarray, vin_tree, clear: 
     low = vals.min(axis=1) < clear * clear
     cq = T.mean(axis=1)
     rq = np.linalg.norm(T - cq[:, None, :], axis=2).max(axis=1)
-    near_v = vin_tree.query_ball_point(cq, rq + clear)
+    # every point of a triangle is within rq of its centroid (sample 3), so the surface, hence each of its
+    # vertices, is at least sqrt(vals[:, 3]) - rq from the triangle: only the others are searched
+    tol = 1e-12 * max(float(np.abs(T).max()), 1e-300)  # X[:, 3] and cq round differently
+    look = np.flatnonzero(~low & (np.sqrt(vals[:, 3]) - rq < clear + tol))
+    if not len(look):
+        return low
+    near_v = vin_tree.query_ball_point(cq[look], rq[look] + clear)
     cnt = np.fromiter((len(x) for x in near_v), dtype=np.int64, count=len(near_v))
     if cnt.sum():
         iv = np.concatenate([np.asarray(x, dtype=np.int64) for x in near_v if len(x)])
-        it = np.repeat(np.arange(len(T)), cnt)
+        it = np.repeat(look, cnt)
         d2 = point_triangle_sqdist(Vin[iv], T[it, 0], T[it, 1], T[it, 2])
         low[it[d2 < clear * clear]] = True
     return low

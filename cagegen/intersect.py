@@ -39,9 +39,11 @@ rounding) overlap, found on a uniform grid; everything is vectorised, no Python 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-__all__ = ["cross_pairs", "orient3d", "self_pairs"]
+__all__ = ["FaceGrid", "cross_pairs", "face_grid", "orient3d", "self_pairs"]
 
 _EPS = np.finfo(np.float64).eps / 2  # unit roundoff 2^-53
 #: Shewchuk's orient3d static bound (7 + 56 eps) eps, times a safety factor
@@ -215,10 +217,13 @@ def _segment_hits_triangle(p, q, a, b, c, exact: bool = False) -> np.ndarray:
     return hit
 
 
-def _cells(lo, hi, origin, cell, dims):
-    """Grid cells overlapped by each box: (entries,) face ids and (entries,) int64 cell keys."""
+def _cells(lo, hi, origin, cell, dims, clip: bool = False):
+    """Grid cells overlapped by each box: (entries,) face ids and (entries,) int64 cell keys (``clip``: box
+    parts outside the grid go to its border cells)."""
     i0 = np.floor((lo - origin) / cell).astype(np.int64)
     i1 = np.floor((hi - origin) / cell).astype(np.int64)
+    if clip:
+        i0, i1 = np.clip(i0, 0, dims - 1), np.clip(i1, 0, dims - 1)
     n = i1 - i0 + 1  # (m,3) cells per axis
     tot = n.prod(axis=1)
     ids = np.repeat(np.arange(len(lo)), tot)
@@ -264,6 +269,62 @@ def _candidates(VA, FA, VB, FB, slop):
     return np.stack([ia[keep], ib[keep]], axis=1)
 
 
+class FaceGrid(NamedTuple):
+    """:func:`face_grid`: the uniform-grid broad phase of one mesh, for repeated :func:`cross_pairs` queries."""
+
+    V: np.ndarray
+    F: np.ndarray
+    lo: np.ndarray  # (m,3) face boxes
+    hi: np.ndarray
+    inflate: float  # the cells hold the boxes grown by this much
+    origin: np.ndarray
+    cell: float
+    dims: np.ndarray
+    keys: np.ndarray  # sorted cell keys of the entries
+    ids: np.ndarray  # their faces
+
+
+#: :func:`face_grid` enters boxes grown by this many times the mesh's own slop (:func:`_slop`): a query's
+#: slop (of both meshes) up to it finds the same candidates as :func:`_candidates`
+GRID_SLOP_FACTOR = 4.0
+
+
+def face_grid(V: np.ndarray, F: np.ndarray) -> FaceGrid:
+    """Index the faces of a mesh that :func:`cross_pairs` will test many times (a fixed input against a
+    changing cage): its cells are built once instead of at every query. Cell size: the median face box."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    T = V[F]
+    lo, hi = T.min(axis=1), T.max(axis=1)
+    inflate = GRID_SLOP_FACTOR * _slop(V)
+    origin, top = lo.min(axis=0) - inflate, hi.max(axis=0) + inflate
+    cell = max(float(np.median((hi - lo).max(axis=1))), float((top - origin).max()) / 2.0**18, 1e-300)
+    dims = np.floor((top - origin) / cell).astype(np.int64) + 2
+    ids, keys = _cells(lo - inflate, hi + inflate, origin, cell, dims)
+    order = np.argsort(keys, kind="stable")
+    return FaceGrid(V, F, lo, hi, inflate, origin, cell, dims, keys[order], ids[order])
+
+
+def _grid_candidates(VA, FA, grid: FaceGrid, slop: float) -> np.ndarray:
+    """:func:`_candidates` of ``(VA, FA)`` against the indexed mesh (the same pairs for ``slop`` up to the
+    grid's ``inflate``: every pair of boxes that overlap shares a cell of the grid)."""
+    TA = VA[FA]
+    loA, hiA = TA.min(axis=1) - slop, TA.max(axis=1) + slop
+    idA, keyA = _cells(loA, hiA, grid.origin, grid.cell, grid.dims, clip=True)
+    left = np.searchsorted(grid.keys, keyA, side="left")
+    cnt = np.searchsorted(grid.keys, keyA, side="right") - left
+    total = int(cnt.sum())
+    if total == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    ia = np.repeat(idA, cnt)
+    ib = grid.ids[np.repeat(left, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
+    m = len(grid.F)
+    pair = np.unique(ia * m + ib)
+    ia, ib = pair // m, pair % m
+    keep = ((loA[ia] <= grid.hi[ib] + slop) & (grid.lo[ib] - slop <= hiA[ia])).all(axis=1)
+    return np.stack([ia[keep], ib[keep]], axis=1)
+
+
 def _tri_tri(TA: np.ndarray, TB: np.ndarray, exact: bool = False) -> np.ndarray:
     """(k,) bool: closed triangles ``TA[i]`` and ``TB[i]`` ((k,3,3) arrays) meet (or uncertain)."""
     hit = np.zeros(len(TA), dtype=bool)
@@ -281,7 +342,8 @@ def _slop(*Vs) -> float:
     return 1e-9 * max(ext, 1e-300)
 
 
-def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray) -> np.ndarray:
+def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray,
+                grid: FaceGrid | None = None) -> np.ndarray:
     """Face pairs ``(a, b)`` of two meshes that intersect or touch.
 
     Parameters
@@ -290,6 +352,8 @@ def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray) 
     FA : (mA,3) int array
     VB : (nB,3) float array
     FB : (mB,3) int array
+    grid : FaceGrid, optional
+        :func:`face_grid` of ``(VB, FB)`` (the same arrays): its cells are reused (the same pairs).
 
     Returns
     -------
@@ -308,7 +372,11 @@ def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray) 
     VB = np.asarray(VB, dtype=np.float64)
     FA = np.asarray(FA, dtype=np.int64)
     FB = np.asarray(FB, dtype=np.int64)
-    C = _candidates(VA, FA, VB, FB, _slop(VA, VB))
+    slop = _slop(VA, VB)
+    if grid is not None and slop <= grid.inflate:
+        C = _grid_candidates(VA, FA, grid, slop)
+    else:
+        C = _candidates(VA, FA, VB, FB, slop)
     if not len(C):
         return C
     hit = _tri_tri(VA[FA[C[:, 0]]], VB[FB[C[:, 1]]])

@@ -8,7 +8,7 @@ import trimesh
 
 from cagegen import verify_nesting
 from cagegen._geometry import cross_intersection_pairs, self_intersection_pairs
-from cagegen.intersect import cross_pairs, orient3d, self_pairs
+from cagegen.intersect import cross_pairs, face_grid, orient3d, self_pairs
 
 TRI = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
 F1 = np.array([[0, 1, 2]])
@@ -173,6 +173,27 @@ def test_cross_pairs_match_cgal_on_generic_positions(rng):
         ref = {tuple(p) for p in np.asarray(cgal.intersect_other(V, F, W, F, detect_only=True)[0])
                .reshape(-1, 2).tolist()}
         assert ours == ref and len(ours) > 10
+
+
+def test_cross_pairs_with_a_face_grid_finds_the_same_pairs(rng):
+    """The indexed input (face_grid, cells built once) gives cross_pairs' own pairs: small patches inside
+    the grid, a cage larger than the grid (boxes clipped to its border cells), and touching triangles."""
+    V, F = _ico(4)
+    grid = face_grid(V, F)
+    Vs, Fs = _ico(1)
+    n_hit = 0
+    for _ in range(12):
+        W = Vs * rng.uniform(0.05, 0.5) + rng.uniform(-1.2, 1.2, 3)
+        a, b = cross_pairs(W, Fs, V, F), cross_pairs(W, Fs, V, F, grid=grid)
+        assert np.array_equal(a, b)
+        n_hit += len(a)
+    Vc, Fc = _ico(2)
+    W = Vc * 1.02 + 0.03 * rng.standard_normal(Vc.shape)
+    a, b = cross_pairs(W, Fc, V, F), cross_pairs(W, Fc, V, F, grid=grid)
+    assert np.array_equal(a, b) and len(a) > 10
+    assert n_hit > 0
+    touch = cross_pairs(V[F[0]], F1, V, F, grid=grid)  # a copy of face 0 touches it and its neighbours
+    assert {0} <= set(touch[:, 1].tolist())
 
 
 def test_engines_agree_in_the_verifier():

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from .._geometry import edge_stats, point_triangle_sqdist, segment_segment_sqdist
 from ..envelope import SDFGrid
 from ..errors import CageError, CageOptionError, NestmgError
-from ..intersect import cross_pairs, self_pairs
+from ..intersect import cross_pairs, face_grid, self_pairs
 from ..split_edges import split_long_edges
 
 __all__ = ["SimplifyStuck", "constrained_simplify", "face_quadrics"]
@@ -163,6 +163,13 @@ def too_close(T: np.ndarray, Vin: np.ndarray, Fin: np.ndarray, vin_tree, clear: 
     if cnt.sum():
         iv = np.concatenate([np.asarray(x, dtype=np.int64) for x in near_v if len(x)])
         it = np.repeat(look, cnt)
+        # a vertex's distance to the triangle's plane bounds its distance to the triangle: only those within
+        # clear of the plane get the full test (the surface under a cage triangle lies beyond it)
+        nrm = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1), 1e-300)[:, None]
+        h = np.abs(np.einsum("ij,ij->i", Vin[iv] - T[it, 0], nrm[it]))
+        near = h < clear * (1.0 + 1e-9) + tol
+        iv, it = iv[near], it[near]
         d2 = point_triangle_sqdist(Vin[iv], T[it, 0], T[it, 1], T[it, 2])
         low[it[d2 < clear * clear]] = True
     return low
@@ -336,13 +343,14 @@ class _InputIndex(NamedTuple):
     Vin: np.ndarray
     Fin: np.ndarray
     vin_tree: object  # k-d tree of the vertices
+    grid: object  # cagegen.intersect.face_grid of the faces
     EI: np.ndarray | None  # (k,2) edges (with edge_clear > 0)
     e_tree: object  # k-d tree of the edge midpoints (with edge_clear > 0)
     e_half: float | None  # half the longest edge (with edge_clear > 0)
 
 
 def _input_index(Vin, Fin, edge_clear: float) -> _InputIndex:
-    """k-d trees of the input's vertices and (``edge_clear > 0``) edge midpoints."""
+    """k-d trees of the input's vertices and (``edge_clear > 0``) edge midpoints, the grid of its faces."""
     from scipy.spatial import cKDTree
 
     vin_tree = cKDTree(Vin)
@@ -352,7 +360,7 @@ def _input_index(Vin, Fin, edge_clear: float) -> _InputIndex:
                        axis=0)
         e_tree = cKDTree(0.5 * (Vin[EI[:, 0]] + Vin[EI[:, 1]]))
         e_half = 0.5 * float(np.linalg.norm(Vin[EI[:, 0]] - Vin[EI[:, 1]], axis=1).max())
-    return _InputIndex(Vin, Fin, vin_tree, EI, e_tree, e_half)
+    return _InputIndex(Vin, Fin, vin_tree, face_grid(Vin, Fin), EI, e_tree, e_half)
 
 
 def _candidates(V, F, Q, frozen, attempts, changed_at, target):
@@ -552,9 +560,10 @@ def _input_crossing_test(Vc, Fc, nf, nown, bad, inp: _InputIndex, rejected) -> N
     """Test 3 (exact): new triangles that cross or touch the input."""
     chk = ~bad[nown]
     if chk.any():
-        # the grid broad phase of cross_pairs over the whole input: the same candidate pairs that meet as a
-        # k-d ball search, as arrays (the balls' Python lists cost more than the exact tests, flange.stl)
-        pr = cross_pairs(Vc, Fc[nf[chk]], inp.Vin, inp.Fin)
+        # the grid broad phase of cross_pairs over the whole input, its cells built once: the same candidate
+        # pairs that meet as a k-d ball search, as arrays (the balls' Python lists cost more than the exact
+        # tests, flange.stl)
+        pr = cross_pairs(Vc, Fc[nf[chk]], inp.Vin, inp.Fin, grid=inp.grid)
         if len(pr):
             hit = np.unique(nown[chk][pr[:, 0]])
             rejected["input"] += int(hit.size)

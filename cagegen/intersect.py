@@ -253,18 +253,23 @@ def _candidates(VA, FA, VB, FB, slop):
     idA, keyA = _cells(loA, hiA, origin, cell, dims)
     idB, keyB = _cells(loB, hiB, origin, cell, dims)
     order = np.argsort(keyA, kind="stable")
-    keyA, idA = keyA[order], idA[order]
-    left = np.searchsorted(keyA, keyB, side="left")
-    cnt = np.searchsorted(keyA, keyB, side="right") - left
+    ib, ia = _same_cell(idB, keyB, keyA[order], idA[order])
+    return _overlapping(ia, ib, len(FB), loA, hiA, loB, hiB)
+
+
+def _same_cell(id_q, key_q, keys, ids) -> tuple[np.ndarray, np.ndarray]:
+    """Every (query entry's face, indexed entry's face) pair sharing a cell (``keys`` sorted, ``ids`` alike)."""
+    left = np.searchsorted(keys, key_q, side="left")
+    cnt = np.searchsorted(keys, key_q, side="right") - left
     total = int(cnt.sum())
-    if total == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    ib = np.repeat(idB, cnt)
     pos = np.repeat(left, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-    ia = idA[pos]
-    pair = np.sort(ia * len(FB) + ib)
-    pair = pair[np.concatenate([[True], pair[1:] != pair[:-1]])]
-    ia, ib = pair // len(FB), pair % len(FB)
+    return np.repeat(id_q, cnt), ids[pos]
+
+
+def _overlapping(ia, ib, mB: int, loA, hiA, loB, hiB) -> np.ndarray:
+    """The distinct pairs ``(ia, ib)`` whose boxes overlap, (k,2) sorted by ``(ia, ib)``."""
+    pair = np.unique(ia * mB + ib)
+    ia, ib = pair // mB, pair % mB
     keep = ((loA[ia] <= hiB[ib]) & (loB[ib] <= hiA[ia])).all(axis=1)
     return np.stack([ia[keep], ib[keep]], axis=1)
 
@@ -310,19 +315,8 @@ def _grid_candidates(VA, FA, grid: FaceGrid, slop: float) -> np.ndarray:
     grid's ``inflate``: every pair of boxes that overlap shares a cell of the grid)."""
     TA = VA[FA]
     loA, hiA = TA.min(axis=1) - slop, TA.max(axis=1) + slop
-    idA, keyA = _cells(loA, hiA, grid.origin, grid.cell, grid.dims, clip=True)
-    left = np.searchsorted(grid.keys, keyA, side="left")
-    cnt = np.searchsorted(grid.keys, keyA, side="right") - left
-    total = int(cnt.sum())
-    if total == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    ia = np.repeat(idA, cnt)
-    ib = grid.ids[np.repeat(left, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
-    m = len(grid.F)
-    pair = np.unique(ia * m + ib)
-    ia, ib = pair // m, pair % m
-    keep = ((loA[ia] <= grid.hi[ib] + slop) & (grid.lo[ib] - slop <= hiA[ia])).all(axis=1)
-    return np.stack([ia[keep], ib[keep]], axis=1)
+    ia, ib = _same_cell(*_cells(loA, hiA, grid.origin, grid.cell, grid.dims, clip=True), grid.keys, grid.ids)
+    return _overlapping(ia, ib, len(grid.F), loA, hiA, grid.lo - slop, grid.hi + slop)
 
 
 def _tri_tri(TA: np.ndarray, TB: np.ndarray, exact: bool = False) -> np.ndarray:

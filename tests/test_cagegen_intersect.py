@@ -8,7 +8,7 @@ import trimesh
 
 from cagegen import verify_nesting
 from cagegen._geometry import cross_intersection_pairs, self_intersection_pairs
-from cagegen.intersect import cross_pairs, face_grid, orient3d, self_pairs
+from cagegen.intersect import _candidates, _grid_candidates, cross_pairs, face_grid, orient3d, self_pairs
 
 TRI = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
 F1 = np.array([[0, 1, 2]])
@@ -194,6 +194,35 @@ def test_cross_pairs_with_a_face_grid_finds_the_same_pairs(rng):
     assert n_hit > 0
     touch = cross_pairs(V[F[0]], F1, V, F, grid=grid)  # a copy of face 0 touches it and its neighbours
     assert {0} <= set(touch[:, 1].tolist())
+
+
+def _overlapping_boxes(VA, FA, VB, FB, slop):
+    """All (a, b) face pairs whose boxes (grown by ``slop``) overlap, by brute force, sorted."""
+    TA, TB = VA[FA], VB[FB]
+    loA, hiA, loB, hiB = TA.min(1) - slop, TA.max(1) + slop, TB.min(1) - slop, TB.max(1) + slop
+    hit = ((loA[:, None] <= hiB[None]) & (loB[None] <= hiA[:, None])).all(axis=2)
+    return np.argwhere(hit)
+
+
+def test_broad_phase_finds_every_overlapping_pair_once(rng):
+    """The grid broad phase keeps each pair in one shared cell (no duplicate removal): its pairs are exactly
+    the brute-force box overlaps, in order, for two meshes, one mesh against itself (a < b) and the
+    indexed grid; boxes of very different sizes span many cells, and some share their faces' corners."""
+    V, F = _ico(2)
+    Vs, Fs = _ico(1)
+    long = np.array([[0, 1, 2], [3, 4, 5]])
+    for _ in range(6):
+        W = np.vstack([Vs * rng.uniform(0.2, 0.6) + rng.uniform(-0.8, 0.8, 3),
+                       rng.uniform(-1.1, 1.1, (6, 3))])  # two long thin triangles across the sphere
+        G = np.vstack([Fs, long + len(Vs)])
+        want = _overlapping_boxes(W, G, V, F, 1e-9)
+        assert len(want) > 20
+        assert np.array_equal(_candidates(W, G, V, F, 1e-9), want)
+        assert np.array_equal(_grid_candidates(W, G, face_grid(V, F), 1e-9), want)
+        U = np.vstack([V, W])
+        H = np.vstack([F, G + len(V)])
+        both = _overlapping_boxes(U, H, U, H, 1e-9)
+        assert np.array_equal(_candidates(U, H, U, H, 1e-9, upper=True), both[both[:, 0] < both[:, 1]])
 
 
 def test_engines_agree_in_the_verifier():

@@ -51,6 +51,7 @@ GOALS = {**FACTOR_GOALS, "pcg": 10, "complexity": 1.5}
 # ------------------------------------------------------------------------------------------ inputs
 #: set by ``--repair`` for the case processes: every case then runs with ``--repair``
 REPAIR_ENV = "NESTMG_CORPUS_REPAIR"
+BUDGET_ENV = "NESTMG_CORPUS_CAGE_TIME_BUDGET"  # --cage-time-budget for the case processes
 
 def read_surface(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and faces of a surface file, as ``nestmg`` reads it."""
@@ -79,9 +80,11 @@ def _peak_mb() -> float:
 def _cli_args(command: str, mesh: Path, extra: list[str]):
     from nestmg.cli import _typed_options, build_parser
 
-    out = ["--out", tempfile.mkdtemp(prefix="corpus-")] if command == "cages" else []
+    out = ["--out", os.path.join(tempfile.gettempdir(), "corpus-unused")] if command == "cages" else []  # not written
     if os.environ.get(REPAIR_ENV):
         extra = [*extra, "--repair"]
+    if os.environ.get(BUDGET_ENV):
+        extra = [*extra, "--cage-time-budget", os.environ[BUDGET_ENV]]
     args = build_parser().parse_args([command, str(mesh), "--levels", "3", "--no-cache", "--quiet", *out, *extra])
     _typed_options(args)  # args.sizing / .meshing / .solver, as `nestmg` builds them
     return args
@@ -607,6 +610,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per case")
     ap.add_argument("--repair", action="store_true",
                     help="pass --repair to every case (for inputs the defaults refuse; the table marks them)")
+    ap.add_argument("--cage-time-budget", default=None,
+                    help="pass --cage-time-budget to every case (0: no limit; e.g. to time inputs the default refuses)")
     ap.add_argument("--table", type=Path, default=None, help="only rewrite --md from this JSON")
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="merge these JSONs (runs over parts of one folder, e.g. one per core) into --out")
@@ -629,6 +634,8 @@ def main(argv: list[str] | None = None) -> int:
     backends = [b for b in args.backends.split(",") if b]
     if args.repair:
         os.environ[REPAIR_ENV] = "1"  # read by the case processes (_cli_args)
+    if args.cage_time_budget is not None:
+        os.environ[BUDGET_ENV] = str(args.cage_time_budget)
     # the command as anyone would type it: the folder and the output named, not this machine's paths
     named = {str(args.folder): "ZOO_DIR", str(args.out): f"OUT/{args.out.name}"}
     if args.md:

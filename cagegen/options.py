@@ -35,6 +35,7 @@ __all__ = [
 ]
 
 _SDF_TIME_BUDGET = 900.0  # cagegen.sdf.backend.DEFAULT_TIME_BUDGET (not imported: igl / ipctk stay lazy)
+_NESTED_TIME_BUDGET = 900.0  # cagegen.nested.backend.DEFAULT_TIME_BUDGET (likewise)
 
 
 class OptionFieldError(CageOptionError):
@@ -178,6 +179,9 @@ class NestedOptions(CageOptions):
     max_move: float = field_spec(5e-3, "largest vertex move per re-inflation step / diagonal", low=0.0,
                                  strict=True)
     final_iters: int = field_spec(60, "iterations of the final energy", low=0)
+    cage_time_budget: float | None = field_spec(
+        _NESTED_TIME_BUDGET, "wall-clock seconds the nested cages may take, estimated before any work (None: "
+                             "no limit)", low=0.0, kind=float, optional=True)
 
 
 @dataclass(frozen=True)

@@ -66,15 +66,23 @@ def _write_json(path: str | Path, obj: Any) -> None:
 
 def _cage_options(args, method: str):
     """The cage method's options (:func:`cagegen.options_class`) from ``--repair``, ``--min-gap`` and, for
-    ``sdf``, ``--cage-time-budget`` (0: no limit)."""
-    from cagegen import options_class
+    ``nested`` and ``sdf``, ``--cage-time-budget`` (0: no limit)."""
+    import dataclasses
+
+    from cagegen import options_class, registered_backends
 
     opts = {"repair": args.repair, "min_gap": args.min_gap}
     budget = getattr(args, "cage_time_budget", None)
     if budget is not None:
-        if method != "sdf":
-            raise NestmgError(f"--cage-time-budget applies to --method sdf only, not {method!r}")
-        opts[CAGE_FLAGS["--cage-time-budget"][1]] = budget if budget > 0 else None
+        field = CAGE_FLAGS["--cage-time-budget"][1]
+
+        def takes(m: str) -> bool:
+            return field in {f.name for f in dataclasses.fields(options_class(m))}
+
+        if not takes(method):
+            names = " and ".join(m for m in registered_backends() if takes(m))
+            raise NestmgError(f"--cage-time-budget applies to --method {names} only, not {method!r}")
+        opts[field] = budget if budget > 0 else None
     return options_class(method)(**opts)
 
 
@@ -537,7 +545,7 @@ def _number(kind, low, *, strict: bool = False, what: str = ""):
 
 
 #: cage flags that are not a field of :class:`cagegen.CageOptions`: flag -> (options class, field)
-CAGE_FLAGS = {"--cage-time-budget": ("SdfOptions", "cage_time_budget")}
+CAGE_FLAGS = {"--cage-time-budget": (("NestedOptions", "SdfOptions"), "cage_time_budget")}
 
 
 def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
@@ -560,8 +568,8 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     add_arguments(g, CageOptions)
     _expert(g.add_argument(
         "--cage-time-budget", type=_number(float, 0), default=None,
-        help="seconds the sdf cage backend may take, estimated before any work (15 s + 5 ms per input face "
-             "per layer); refused at once above it (default 900; 0: no limit)"))
+        help="seconds the nested or sdf cage backend may take, estimated before any work; refused at once "
+             "above it (default 900; 0: no limit)"))
 
 
 def _solver_opts(p: argparse.ArgumentParser) -> None:

@@ -615,7 +615,7 @@ def test_the_flow_queries_again_only_the_points_that_may_have_come_near_the_targ
 
 def test_newton_systems_large_by_cg_small_by_lu_with_lu_when_cg_fails(monkeypatch):
     """_solve_spd: Jacobi-CG from NEWTON_CG_MIN_SIZE unknowns, sparse LU below it and when CG does not
-    converge; every path solves the SPD system to round-off."""
+    converge, to round-off; above NEWTON_LU_MAX_SIZE an unconverged CG's iterate (truncated Newton)."""
     import importlib
 
     import scipy.sparse as sp
@@ -642,6 +642,14 @@ def test_newton_systems_large_by_cg_small_by_lu_with_lu_when_cg_fails(monkeypatc
     assert rel_residual(Hs, rm._solve_spd(Hs, gs), gs) < 1e-12 and len(calls) == 1  # small: LU only
     monkeypatch.setattr(rm, "NEWTON_CG_MAXITER", 1)
     assert rel_residual(H, rm._solve_spd(H, g), g) < 1e-12 and len(calls) == 2  # CG gave up: LU
+    # above NEWTON_LU_MAX_SIZE: no LU, CG's iterate is the direction, a descent direction of the
+    # quadratic model q(x) = x.Hx/2 - g.x, not the solution
+    monkeypatch.setattr(rm, "NEWTON_CG_MAXITER", 5)
+    monkeypatch.setattr(rm, "NEWTON_LU_MAX_SIZE", H.shape[0] - 1)
+    monkeypatch.setattr(rm.spla, "splu", lambda *a, **k: pytest.fail("SuperLU above NEWTON_LU_MAX_SIZE"))
+    x = rm._solve_spd(H, g)
+    assert len(calls) == 3 and rel_residual(H, x, g) > 1e-3
+    assert g @ x > 0 and 0.5 * x @ (H @ x) - g @ x < 0
 
 
 def test_the_envelope_target_grid_is_refined_when_the_envelope_would_be_coarser_than_the_target(monkeypatch):
@@ -710,3 +718,25 @@ def test_backend_runs_with_one_blas_thread(neck, monkeypatch):
         after = blas_threads()
     assert inside and set(inside) == {1}
     assert after == before
+
+
+def test_nested_refuses_before_any_work_when_its_estimate_exceeds_the_budget(neck):
+    """``cage_time_budget``: an estimate above it raises at once, naming the option (reason "time budget"),
+    the caller's arrays untouched; the default budget admits a 100k-face scan's cages and refuses a
+    342k-face one's (estimate_seconds' calibration: 81 s and 1346 s measured)."""
+    import time
+
+    from cagegen import CageError
+    from cagegen.nested.backend import DEFAULT_TIME_BUDGET, estimate_seconds
+
+    V, F = neck
+    V0, F0 = V.copy(), F.copy()
+    t = time.perf_counter()
+    with pytest.raises(CageError, match=r"cage_time_budget=1 s; pass a larger cage_time_budget") as e:
+        build_cages(V, F, 3, "nested", cage_time_budget=1.0)
+    assert e.value.reason == "time budget" and e.value.layer == 1
+    assert time.perf_counter() - t < 5.0  # the audit only
+    assert np.array_equal(V, V0) and np.array_equal(F, F0)
+    assert estimate_seconds(99_970, [24_992, 6_248]) < 0.25 * DEFAULT_TIME_BUDGET
+    assert estimate_seconds(342_016, [85_504, 21_376]) > DEFAULT_TIME_BUDGET
+    assert estimate_seconds(len(F), [len(F) // 4]) < 10.0

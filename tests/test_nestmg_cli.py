@@ -65,19 +65,22 @@ def test_readme_example_runs():
 
 
 def test_cli_cage_time_budget_refuses_at_once(tmp_path, capsys):
-    """``--cage-time-budget`` reaches the sdf backend: a budget below its estimate fails in well under a
-    second with exit code 2 and a message naming the option; with another method it is refused."""
+    """``--cage-time-budget`` reaches the nested and sdf backends: a budget below their estimate fails in
+    well under a second with exit code 2 and a message naming the option; with another method it is
+    refused."""
     import time
 
-    t = time.perf_counter()
-    rc = main(["cages", "shape:torus", "--method", "sdf", "--cage-time-budget", "1", "--out", str(tmp_path), "--quiet"])
-    assert rc == 2 and time.perf_counter() - t < 5.0
-    err = capsys.readouterr().err
-    assert "exceeds cage_time_budget=1 s" in err and "--cage-time-budget" in err
-    assert not (tmp_path / "layer_1.obj").exists()
-    rc = main(["cages", "shape:torus", "--method", "nested", "--cage-time-budget", "1", "--out", str(tmp_path),
+    for method in ("sdf", "nested"):
+        t = time.perf_counter()
+        rc = main(["cages", "shape:torus", "--method", method, "--cage-time-budget", "1", "--out", str(tmp_path),
+                   "--quiet"])
+        assert rc == 2 and time.perf_counter() - t < 5.0
+        err = capsys.readouterr().err
+        assert "exceeds cage_time_budget=1 s" in err and "--cage-time-budget" in err
+        assert not (tmp_path / "layer_1.obj").exists()
+    rc = main(["cages", "shape:torus", "--method", "decimate", "--cage-time-budget", "1", "--out", str(tmp_path),
                "--quiet"])
-    assert rc == 2 and "applies to --method sdf only" in capsys.readouterr().err
+    assert rc == 2 and "applies to --method nested and sdf only" in capsys.readouterr().err
 
 
 def test_cli_solve_writes_the_source_the_problem_was_given(tmp_path):

@@ -42,7 +42,7 @@ from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signe
 from .flow import flow_inside
 from .reinflate import reinflate
 
-__all__ = ["complete_clearance", "nest_pair", "nested_backend", "offset_surface", "push_out"]
+__all__ = ["complete_clearance", "estimate_seconds", "nest_pair", "nested_backend", "offset_surface", "push_out"]
 
 #: ``kappa`` (the barrier's stiffness while re-inflating) is 1e4, was 1e3: a stiffer barrier keeps the cage
 #: further ahead of the fine surface, with fewer contacts inside ``dhat`` (homer.obj 557k -> 494k over a run)
@@ -783,6 +783,44 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
     return C, G, pinfo
 
 
+#: Default ``cage_time_budget`` of :func:`nested_backend`: estimated seconds above which it refuses, before
+#: any work (as the sdf backend's ``cagegen.sdf.backend.DEFAULT_TIME_BUDGET``).
+DEFAULT_TIME_BUDGET = 900.0
+
+#: :func:`estimate_seconds`' model of one layer built around an ``n``-face surface:
+#: ``LAYER_SECONDS + SECONDS_PER_FACE n (1 + (n / GROWTH_FACES)^2)``.
+LAYER_SECONDS = 5.0
+SECONDS_PER_FACE = 0.54e-3
+GROWTH_FACES = 140_000
+
+
+def estimate_seconds(n_faces: int, face_counts) -> float:
+    """Seconds :func:`nested_backend` is expected to take on one core of the 2-core dev machine for an
+    ``n_faces``-face input and the cages' ``face_counts`` (each layer is built around the previous one).
+
+    Per layer around an ``n``-face surface, ``5 + 0.54 ms n (1 + (n / 140k)^2)``: the re-inflation's
+    contacts and Newton systems grow with the fine surface and so does their count of Newton steps. Fitted
+    on scans and subdivided zoo meshes with the default 4x fewer faces per layer
+    (``benchmarks/results/corpus/nested_scale.json``): stanford-bunny 69k faces 52 s, lucy 100k 81 s, bunny.off
+    subdivided to 111k 109 s, gargo.off subdivided to 342k 1346 s. CAD parts take more per face (featuretype,
+    3.5k faces: 30 s), which the model does not try to follow: it is a guard against starting an hour of
+    work, not a prediction.
+    """
+    sizes = [int(n_faces)] + [int(m) for m in face_counts][:-1]
+    return float(sum(LAYER_SECONDS + SECONDS_PER_FACE * n * (1.0 + (n / GROWTH_FACES) ** 2) for n in sizes))
+
+
+def _budget_check(n_faces: int, face_counts, cage_time_budget: float | None) -> None:
+    """Raise :class:`CageError` (before any work) when :func:`estimate_seconds` exceeds the budget."""
+    est = estimate_seconds(n_faces, face_counts)
+    if cage_time_budget is not None and est > float(cage_time_budget):
+        raise CageError(
+            f"nested cages {list(face_counts)} of a {int(n_faces):,}-face input: estimated {est:.0f} s exceeds "
+            f"cage_time_budget={float(cage_time_budget):.0f} s; pass a larger cage_time_budget (None: no limit; "
+            f"nestmg CLI: --cage-time-budget, 0: no limit), or decimate the input first (nestmg solve and "
+            f"build_hierarchy do: SizingOptions(predecimate=True))", layer=1, reason="time budget")
+
+
 def nested_backend(
     V: np.ndarray,
     F: np.ndarray,
@@ -799,6 +837,7 @@ def nested_backend(
     certify: bool = True,
     fallback: str | None = "sdf",
     target_offset: float | None = None,
+    cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
     **opts,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"nested"``: strictly nested cages by flow and re-inflation (Sacht et al. 2015).
@@ -852,6 +891,9 @@ def nested_backend(
         decimated layer) fails. None (default): :data:`TARGET_OFFSET_GAPS` times ``min_gap``, at least
         :data:`MIN_TARGET_OFFSET`, then, if that fails, :data:`TARGET_OFFSET_EDGE_FRACTION` of the target's
         edge length (a coarse layer closes the holes it cannot follow). 0: only the paper's Ĉ.
+    cage_time_budget : float or None
+        Refuse at once (:class:`CageError`, ``reason="time budget"``) when :func:`estimate_seconds` exceeds
+        this many seconds (default :data:`DEFAULT_TIME_BUDGET`; None: no limit).
     **opts
         Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
         ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
@@ -874,6 +916,7 @@ def nested_backend(
     """
     t_all = time.perf_counter()
     _check_options(energy, decimate_from, opts, fallback)
+    _budget_check(len(F), face_counts, cage_time_budget)
     V = np.array(V, dtype=np.float64)  # private copies
     F = np.array(F, dtype=np.int64)
     face_counts = [int(c) for c in face_counts]

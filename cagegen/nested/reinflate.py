@@ -207,8 +207,12 @@ class _Problem:
 
     def _contact_dofs(self, ca: ContactArrays, fine_moves: bool) -> np.ndarray:
         """The cage DOFs, then (``fine_moves``) the DOFs of the fine vertices of some contact in ``ca``."""
-        verts = np.unique(ca.ids) if fine_moves else np.zeros(0, dtype=np.int64)
-        verts = verts[verts >= self.nc]
+        verts = np.zeros(0, dtype=np.int64)
+        if fine_moves:  # the sorted distinct fine vertices of the contacts (a mask: no sort of every id)
+            ids = ca.ids.ravel()
+            seen = np.zeros(self.nc + self.nf, dtype=bool)
+            seen[ids[ids >= self.nc]] = True
+            verts = np.flatnonzero(seen)
         return np.r_[np.arange(3 * self.nc), (3 * verts[:, None] + np.arange(3)).ravel()]
 
     def _hybrid_hessian(self, col: ipctk.NormalCollisions, X: np.ndarray, fine_moves: bool
@@ -300,18 +304,26 @@ class _Problem:
 NEWTON_CG_RTOL = 1e-10
 NEWTON_CG_MAXITER = 400
 NEWTON_CG_MIN_SIZE = 10_000
+#: Systems with more unknowns never go to SuperLU: when CG stops at :data:`NEWTON_CG_MAXITER` its iterate is
+#: the direction (truncated Newton: CG's iterates from 0 lower the quadratic model, so each one is a descent
+#: direction, Nocedal & Wright, Sec. 7.1; the CCD and the line search bound the step as for an exact one).
+#: SuperLU's fill grows faster than the system: lucy.ply's three unconverged systems (82-90k unknowns,
+#: relative residuals 1e-6-1e-3 after 400 iterations) took it 1.3-2.1 s, but on a 342k-face scan (gargo.off
+#: subdivided three times) one layer-1 system held the process in SuperLU with 8 GB resident until the
+#: 15-minute limit.
+NEWTON_LU_MAX_SIZE = 120_000
 
 
 def _solve_spd(H: sp.spmatrix, g: np.ndarray) -> np.ndarray:
     """Solve the SPD Newton system H d = g: Jacobi-CG when large, sparse LU when small or when CG does
-    not converge."""
+    not converge (up to :data:`NEWTON_LU_MAX_SIZE` unknowns; beyond, CG's last iterate)."""
     if H.shape[0] >= NEWTON_CG_MIN_SIZE:
         Hr = H.tocsr()
         diag = Hr.diagonal()
         if np.all(diag > 0):
             x, info = spla.cg(Hr, g, rtol=NEWTON_CG_RTOL, atol=0.0, maxiter=NEWTON_CG_MAXITER,
                               M=sp.diags(1.0 / diag))
-            if info == 0:
+            if info == 0 or (info > 0 and H.shape[0] > NEWTON_LU_MAX_SIZE and np.all(np.isfinite(x))):
                 return x
     lu = spla.splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                    options={"SymmetricMode": True})

@@ -3,10 +3,11 @@
     python benchmarks/derived_inputs.py ZOO_DIR OUT_DIR
 
 writes ``gargo_21k.obj`` and ``gargo_342k.obj`` (``gargo.off`` loop-subdivided once and three times),
-``bunny_111k.obj`` (``bunny.off`` loop-subdivided twice) and ``gargo_86k_noisy.obj`` (``gargo.off``
+``bunny_111k.obj`` (``bunny.off`` loop-subdivided twice), ``homer_192k.obj`` (``homer.obj`` loop-subdivided
+twice: thin limbs, for the nested backend's time model) and ``gargo_86k_noisy.obj`` (``gargo.off``
 loop-subdivided twice, every vertex moved along its area-weighted normal by a uniform random amount in
 ±0.25 of the mean edge, ``numpy.random.default_rng(0)``: a scan-like noisy surface). Face counts: 21,376,
-342,016, 111,456 and 85,504. Nothing of the zoo is modified.
+342,016, 111,456, 192,000 and 85,504. Nothing of the zoo is modified.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ DERIVED = {
     "gargo_21k.obj": ("gargo.off", 1, 0.0),
     "gargo_342k.obj": ("gargo.off", 3, 0.0),
     "bunny_111k.obj": ("bunny.off", 2, 0.0),
+    "homer_192k.obj": ("homer.obj", 2, 0.0),
     "gargo_86k_noisy.obj": ("gargo.off", 2, 0.25),
 }
 
@@ -44,7 +46,7 @@ def derive(V: np.ndarray, F: np.ndarray, subdivisions: int, noise: float, seed: 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("zoo", type=Path, help="the dev zoo folder (gargo.off, bunny.off)")
+    ap.add_argument("zoo", type=Path, help="the dev zoo folder (gargo.off, bunny.off, homer.obj)")
     ap.add_argument("out", type=Path, help="folder for the derived meshes (created)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)

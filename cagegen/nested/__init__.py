@@ -4,9 +4,10 @@
 * :func:`nest_pair` — one pair: deform a decimation Ĉ into a cage nesting a fine surface.
 * :func:`flow_inside` — signed-distance flow of the fine surface inside Ĉ (Sec. 3.1).
 * :func:`reinflate` — reversed flow with the cage pushed by CCD + barrier (Sec. 3.2).
+* :func:`estimate_seconds` — the time estimate ``cage_time_budget`` is checked against.
 """
 
-from .backend import nest_pair, nested_backend, offset_surface
+from .backend import estimate_seconds, nest_pair, nested_backend, offset_surface
 from .energies import ENERGIES, make_energy
 from .flow import FlowResult, flow_inside
 from .quadrature import quadrature_matrix, quadrature_points, triangle_rule
@@ -16,6 +17,7 @@ __all__ = [
     "ENERGIES",
     "FlowResult",
     "ReinflateResult",
+    "estimate_seconds",
     "flow_inside",
     "make_energy",
     "nest_pair",

@@ -790,21 +790,23 @@ DEFAULT_TIME_BUDGET = 900.0
 #: :func:`estimate_seconds`' model of one layer built around an ``n``-face surface:
 #: ``LAYER_SECONDS + SECONDS_PER_FACE n (1 + (n / GROWTH_FACES)^2)``.
 LAYER_SECONDS = 5.0
-SECONDS_PER_FACE = 0.54e-3
-GROWTH_FACES = 140_000
+SECONDS_PER_FACE = 1.2e-3
+GROWTH_FACES = 100_000
 
 
 def estimate_seconds(n_faces: int, face_counts) -> float:
-    """Seconds :func:`nested_backend` is expected to take on one core of the 2-core dev machine for an
-    ``n_faces``-face input and the cages' ``face_counts`` (each layer is built around the previous one).
+    """Seconds :func:`nested_backend` may take on one core of the 2-core dev machine for an ``n_faces``-face
+    input and the cages' ``face_counts`` (each layer is built around the previous one).
 
-    Per layer around an ``n``-face surface, ``5 + 0.54 ms n (1 + (n / 140k)^2)``: the re-inflation's
-    contacts and Newton systems grow with the fine surface and so does their count of Newton steps. Fitted
-    on scans and subdivided zoo meshes with the default 4x fewer faces per layer
-    (``benchmarks/results/corpus/nested_scale.json``): stanford-bunny 69k faces 52 s, lucy 100k 81 s, bunny.off
-    subdivided to 111k 109 s, gargo.off subdivided to 342k 1346 s. CAD parts take more per face (featuretype,
-    3.5k faces: 30 s), which the model does not try to follow: it is a guard against starting an hour of
-    work, not a prediction.
+    Per layer around an ``n``-face surface, ``5 + 1.2 ms n (1 + (n / 100k)^2)``: the re-inflation's contacts
+    and Newton systems grow with the fine surface, and so does the count of Newton steps; a stalled target
+    (20 Newton steps before the next one) costs most on the largest. An upper envelope of
+    ``nestmg cages --levels 3`` on scans and subdivided zoo meshes (``benchmarks/results/corpus/
+    nested_scale.json``, docs/cagegen.md): stanford-bunny 69k faces 52 s (estimated 156), lucy 100k 81 s
+    (282), bunny.off subdivided to 111k 89 s (346), homer.obj subdivided to 192k 979 s (1161, a stalled first
+    target), gargo.off subdivided to 342k 1395 s (5399). CAD parts cost more per face at a few thousand faces (featuretype, 3.5k faces: 30 s,
+    estimated 15), which it does not follow: it is a guard against starting an hour of work, not a
+    prediction.
     """
     sizes = [int(n_faces)] + [int(m) for m in face_counts][:-1]
     return float(sum(LAYER_SECONDS + SECONDS_PER_FACE * n * (1.0 + (n / GROWTH_FACES) ** 2) for n in sizes))

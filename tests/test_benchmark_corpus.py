@@ -84,7 +84,8 @@ def test_derived_inputs_recipe():
     move = np.linalg.norm(Vn - Vs, axis=1)
     assert 0.1 * mean_edge < move.max() <= 0.25 * mean_edge + 1e-12
     assert np.array_equal(Vn, derived_inputs.derive(V, F, 1, 0.25)[0])
-    assert set(derived_inputs.DERIVED) == {"gargo_21k.obj", "gargo_342k.obj", "bunny_111k.obj", "gargo_86k_noisy.obj"}
+    assert set(derived_inputs.DERIVED) == {"gargo_21k.obj", "gargo_342k.obj", "bunny_111k.obj", "homer_192k.obj",
+                                           "gargo_86k_noisy.obj"}
 
 
 def test_constructor_record_and_its_table_cell():

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import CageOptionError, NestmgError
+from .errors import CageError, CageOptionError, NestmgError
 
 __all__ = [
     "CageOptions",
@@ -36,6 +36,17 @@ __all__ = [
 
 _SDF_TIME_BUDGET = 900.0  # cagegen.sdf.backend.DEFAULT_TIME_BUDGET (not imported: igl / ipctk stay lazy)
 _NESTED_TIME_BUDGET = 900.0  # cagegen.nested.backend.DEFAULT_TIME_BUDGET (likewise)
+
+
+def check_time_budget(estimate: float, budget: float | None, what: str) -> None:
+    """Raise :class:`CageError` (layer 1, reason ``"time budget"``) when a backend's ``estimate`` of its
+    seconds exceeds ``cage_time_budget`` (None: no limit), before any work. ``what`` says what was asked
+    and what was estimated; the message, ``"{what} exceeds cage_time_budget=..."``, names the ways out."""
+    if budget is not None and estimate > float(budget):
+        raise CageError(
+            f"{what} exceeds cage_time_budget={float(budget):.0f} s; pass a larger cage_time_budget (None: no "
+            f"limit; nestmg CLI: --cage-time-budget, 0: no limit), or decimate the input first (nestmg solve and "
+            f"build_hierarchy do: SizingOptions(predecimate=True))", layer=1, reason="time budget")
 
 
 class OptionFieldError(CageOptionError):

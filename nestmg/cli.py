@@ -544,7 +544,8 @@ def _number(kind, low, *, strict: bool = False, what: str = ""):
     return parse
 
 
-#: cage flags that are not a field of :class:`cagegen.CageOptions`: flag -> (options class, field)
+#: cage flags that are not a field of :class:`cagegen.CageOptions`: flag -> (the options classes that have the
+#: field, field); a method whose class lacks it refuses the flag
 CAGE_FLAGS = {"--cage-time-budget": (("NestedOptions", "SdfOptions"), "cage_time_budget")}
 
 

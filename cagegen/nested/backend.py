@@ -36,6 +36,7 @@ from ..envelope import build_envelope
 from ..errors import CageError, CageOptionError
 from ..failures import PairFailure
 from ..fallbacks import FALLBACKS
+from ..options import check_time_budget
 from ..split_edges import split_long_edges
 from ..verify import verify_nesting
 from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signed_volume
@@ -812,17 +813,6 @@ def estimate_seconds(n_faces: int, face_counts) -> float:
     return float(sum(LAYER_SECONDS + SECONDS_PER_FACE * n * (1.0 + (n / GROWTH_FACES) ** 2) for n in sizes))
 
 
-def _budget_check(n_faces: int, face_counts, cage_time_budget: float | None) -> None:
-    """Raise :class:`CageError` (before any work) when :func:`estimate_seconds` exceeds the budget."""
-    est = estimate_seconds(n_faces, face_counts)
-    if cage_time_budget is not None and est > float(cage_time_budget):
-        raise CageError(
-            f"nested cages {list(face_counts)} of a {int(n_faces):,}-face input: estimated {est:.0f} s exceeds "
-            f"cage_time_budget={float(cage_time_budget):.0f} s; pass a larger cage_time_budget (None: no limit; "
-            f"nestmg CLI: --cage-time-budget, 0: no limit), or decimate the input first (nestmg solve and "
-            f"build_hierarchy do: SizingOptions(predecimate=True))", layer=1, reason="time budget")
-
-
 def nested_backend(
     V: np.ndarray,
     F: np.ndarray,
@@ -918,7 +908,9 @@ def nested_backend(
     """
     t_all = time.perf_counter()
     _check_options(energy, decimate_from, opts, fallback)
-    _budget_check(len(F), face_counts, cage_time_budget)
+    est = estimate_seconds(len(F), face_counts)
+    check_time_budget(est, cage_time_budget, f"nested cages {list(face_counts)} of a {len(F):,}-face input: "
+                                             f"estimated {est:.0f} s")
     V = np.array(V, dtype=np.float64)  # private copies
     F = np.array(F, dtype=np.int64)
     face_counts = [int(c) for c in face_counts]

@@ -81,6 +81,7 @@ from .._geometry import signed_volume as _signed_volume
 from ..audit import check_mesh
 from ..decimate import decimate_surface
 from ..errors import CageError, CageOptionError
+from ..options import check_time_budget
 from ..verify import verify_nesting
 from ..envelope import active_points, build_envelope
 from .optimize import _min_angles, mips, optimize_cage
@@ -217,14 +218,9 @@ def estimate_layer_seconds(n_input_faces: int) -> float:
 def _budget_check(n_input: list[int], cage_time_budget: float | None, what: str) -> float:
     """Raise :class:`CageError` (in milliseconds, before any work) when the estimate exceeds the budget."""
     est = float(sum(estimate_layer_seconds(n) for n in n_input))
-    if cage_time_budget is not None and est > float(cage_time_budget):
-        raise CageError(
-            f"{what}: estimated {est:.0f} s for a {n_input[0]:,}-face input ({len(n_input)} layer(s), "
-            f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each) exceeds cage_time_budget="
-            f"{float(cage_time_budget):.0f} s; pass a larger cage_time_budget (None: no limit; nestmg CLI: "
-            f"--cage-time-budget, 0: no limit), or decimate the input "
-            f"first (nestmg.build_hierarchy does: SizingOptions(predecimate=True))", layer=1,
-            reason="time budget")
+    check_time_budget(est, cage_time_budget,
+                      f"{what}: estimated {est:.0f} s for a {n_input[0]:,}-face input ({len(n_input)} layer(s), "
+                      f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each)")
     return est
 
 

@@ -165,9 +165,10 @@ def too_close(T: np.ndarray, Vin: np.ndarray, Fin: np.ndarray, vin_tree, clear: 
         it = np.repeat(look, cnt)
         # a vertex's distance to the triangle's plane bounds its distance to the triangle: only those within
         # clear of the plane get the full test (the surface under a cage triangle lies beyond it)
-        nrm = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+        Tl = T[look]  # the normals of the searched triangles only
+        nrm = np.cross(Tl[:, 1] - Tl[:, 0], Tl[:, 2] - Tl[:, 0])
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1), 1e-300)[:, None]
-        h = np.abs(np.einsum("ij,ij->i", Vin[iv] - T[it, 0], nrm[it]))
+        h = np.abs(np.einsum("ij,ij->i", Vin[iv] - T[it, 0], np.repeat(nrm, cnt, axis=0)))
         near = h < clear * (1.0 + 1e-9) + tol
         iv, it = iv[near], it[near]
         d2 = point_triangle_sqdist(Vin[iv], T[it, 0], T[it, 1], T[it, 2])

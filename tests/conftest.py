@@ -50,8 +50,10 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
     monkeypatch.setenv("NESTMG_CACHE", str(tmp_path_factory.getbasetemp() / "nestmg-cache"))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture
 def rng():
+    """A fresh generator per test: a shared one would make each test's draws depend on which tests ran
+    before it in the same (xdist) worker."""
     return np.random.default_rng(12345)
 
 

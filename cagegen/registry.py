@@ -63,6 +63,11 @@ class BackendSpec:
     schedule : str or callable, optional
         Per-layer backends: the run's plan, ``schedule(V, F, face_counts, *, t0, **opts)`` (the same
         keywords as the layer function) -> one dict per layer of keywords that override them.
+    budget : str or callable, optional
+        The run's time-budget check, ``budget(n_faces, face_counts, **opts) -> estimated seconds``:
+        :func:`cagegen.build_cages` calls it on the input's face count *before* the input audit, whose exact
+        self-intersection test alone takes ~10-30 s on a 342k-face input; it raises :class:`CageError`
+        (``reason="time budget"``) when the estimate exceeds the options' ``cage_time_budget``.
     """
 
     target: str | Callable
@@ -71,6 +76,7 @@ class BackendSpec:
     takes: frozenset = frozenset()
     own_loop: str = ""
     schedule: str | Callable | None = None
+    budget: str | Callable | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.options, type) and issubclass(self.options, CageOptions)):
@@ -84,11 +90,12 @@ _BACKENDS: dict[str, BackendSpec | str | Callable] = {
     "nested": BackendSpec("cagegen.nested:nested_backend", NestedOptions,
                           takes=frozenset({"progress", "min_gap", "certify"}),
                           own_loop="recovery: a failing layer is rebuilt through intermediate layers nested "
-                                   "into each other, then a fallback"),
+                                   "into each other, then a fallback",
+                          budget="cagegen.nested.backend:budget_check"),
     "lazy": BackendSpec("cagegen.copyleft.lazy:lazy_layer", LazyOptions, layer=True,
                         takes=frozenset({"min_gap"})),
     "sdf": BackendSpec("cagegen.sdf:sdf_cage_layer", SdfOptions, layer=True, takes=frozenset({"min_gap"}),
-                       schedule="cagegen.sdf:sdf_schedule"),
+                       schedule="cagegen.sdf:sdf_schedule", budget="cagegen.sdf.backend:budget_check"),
     "skeleton": BackendSpec("cagegen.skeleton:skeleton_backend", SkeletonOptions,
                             takes=frozenset({"progress", "min_gap", "certify"}),
                             own_loop="the finer layers are nested cages; the skeleton cage is inflated "
@@ -112,7 +119,7 @@ def backend_spec(name: str) -> BackendSpec:
 
 def register_backend(name: str, target: str | Callable, options: type[CageOptions] = CageOptions, *,
                      layer: bool = False, takes=(), own_loop: str = "",
-                     schedule: str | Callable | None = None) -> None:
+                     schedule: str | Callable | None = None, budget: str | Callable | None = None) -> None:
     """Register a backend under ``name`` (see the module docstring for the two contracts).
 
     Parameters
@@ -132,9 +139,11 @@ def register_backend(name: str, target: str | Callable, options: type[CageOption
         For a whole-hierarchy function: why it needs its own loop.
     schedule : str or callable, optional
         For a per-layer function: the run's plan (:class:`BackendSpec`).
+    budget : str or callable, optional
+        The run's time-budget check before the input audit (:class:`BackendSpec`).
     """
     _BACKENDS[name] = BackendSpec(target, options, layer=layer, takes=frozenset(takes), own_loop=own_loop,
-                                  schedule=schedule)
+                                  schedule=schedule, budget=budget)
 
 
 def options_class(name: str) -> type[CageOptions]:
@@ -164,6 +173,12 @@ def get_backend(name: str) -> Callable:
 def get_schedule(name: str) -> Callable | None:
     """The per-layer backend's ``schedule`` function (:class:`BackendSpec`), or None."""
     target = backend_spec(name).schedule
+    return None if target is None else _resolve(target, name)
+
+
+def get_budget(name: str) -> Callable | None:
+    """The backend's time-budget check (:class:`BackendSpec` ``budget``), or None."""
+    target = backend_spec(name).budget
     return None if target is None else _resolve(target, name)
 
 

@@ -84,8 +84,12 @@ def test_derived_inputs_recipe():
     move = np.linalg.norm(Vn - Vs, axis=1)
     assert 0.1 * mean_edge < move.max() <= 0.25 * mean_edge + 1e-12
     assert np.array_equal(Vn, derived_inputs.derive(V, F, 1, 0.25)[0])
+    Vf, Ff = derived_inputs.derive(V, F, 1, 0.0, scheme="flat")  # each face in four in its own plane
+    assert len(Ff) == 4 * len(F) and np.allclose(Vf[: len(V)], V)
+    r = np.linalg.norm(Vf - V.mean(axis=0), axis=1)
+    assert r[len(V):].max() < r[: len(V)].min()  # new vertices on the chords, inside the sphere (not smoothed)
     assert set(derived_inputs.DERIVED) == {"gargo_21k.obj", "gargo_342k.obj", "bunny_111k.obj", "homer_192k.obj",
-                                           "gargo_86k_noisy.obj"}
+                                           "gargo_86k_noisy.obj", "fandisk_207k_flat.obj"}
 
 
 def test_constructor_record_and_its_table_cell():

@@ -740,3 +740,33 @@ def test_nested_refuses_before_any_work_when_its_estimate_exceeds_the_budget(nec
     assert estimate_seconds(99_970, [24_992, 6_248]) < 0.5 * DEFAULT_TIME_BUDGET
     assert estimate_seconds(192_000, [48_000, 12_000]) > DEFAULT_TIME_BUDGET
     assert estimate_seconds(len(F), [len(F) // 4]) < 10.0
+
+
+@pytest.mark.parametrize("method", ["nested", "sdf"])
+def test_budget_refuses_before_the_input_audit(method, monkeypatch):
+    """build_cages asks the backend's registry ``budget`` check on the face count as given, before the
+    audit (whose exact self-intersection test took 26 s on a 342k-face input before the refusal): the
+    audit is never called for a run the budget refuses; an input it admits is audited, and a malformed
+    one still gets the audit's own error."""
+    from cagegen import build
+    from cagegen import CageError, MeshInputError
+    from cagegen.registry import get_budget
+
+    V, F = shapes.sphere(8)
+    big = np.tile(F, (600, 1))  # 321,600 faces: no need for a valid surface, the audit must not run
+
+    def no_audit(*a, **k):
+        raise AssertionError("audited before the budget check")
+
+    monkeypatch.setattr(build, "check_mesh", no_audit)
+    with pytest.raises(CageError, match=r"exceeds cage_time_budget=900 s") as e:
+        build_cages(V, big, 3, method)
+    assert e.value.reason == "time budget"
+    # the estimate is the backend's own, on the given face count and the default counts
+    est = get_budget(method)(len(big), [len(big) // 4, len(big) // 16], cage_time_budget=None)
+    assert est > 900.0
+    with pytest.raises(AssertionError, match="audited before"):  # admitted: the audit runs next
+        build_cages(V, F, 3, method)
+    monkeypatch.undo()
+    with pytest.raises(MeshInputError):
+        build_cages(V, big[:, :2], 3, method)

@@ -43,7 +43,7 @@ from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signe
 from .flow import flow_inside
 from .reinflate import reinflate
 
-__all__ = ["complete_clearance", "estimate_seconds", "nest_pair", "nested_backend", "offset_surface", "push_out"]
+__all__ = ["budget_check", "complete_clearance", "estimate_seconds", "nest_pair", "nested_backend", "offset_surface", "push_out"]
 
 #: ``kappa`` (the barrier's stiffness while re-inflating) is 1e4, was 1e3: a stiffer barrier keeps the cage
 #: further ahead of the fine surface, with fewer contacts inside ``dhat`` (homer.obj 557k -> 494k over a run)
@@ -813,6 +813,17 @@ def estimate_seconds(n_faces: int, face_counts) -> float:
     return float(sum(LAYER_SECONDS + SECONDS_PER_FACE * n * (1.0 + (n / GROWTH_FACES) ** 2) for n in sizes))
 
 
+def budget_check(n_faces: int, face_counts, *, cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
+                 **opts) -> float:
+    """:func:`estimate_seconds` of a run, checked against ``cage_time_budget`` (None: no limit): raises
+    :class:`CageError` (``reason="time budget"``) above it. The registry's ``budget`` check of ``"nested"``
+    (:func:`cagegen.build_cages` calls it before the input audit); ``opts``: the backend's other options."""
+    est = estimate_seconds(n_faces, face_counts)
+    check_time_budget(est, cage_time_budget, f"nested cages {[int(c) for c in face_counts]} of a "
+                                             f"{int(n_faces):,}-face input: estimated {est:.0f} s")
+    return est
+
+
 def nested_backend(
     V: np.ndarray,
     F: np.ndarray,
@@ -908,9 +919,7 @@ def nested_backend(
     """
     t_all = time.perf_counter()
     _check_options(energy, decimate_from, opts, fallback)
-    est = estimate_seconds(len(F), face_counts)
-    check_time_budget(est, cage_time_budget, f"nested cages {list(face_counts)} of a {len(F):,}-face input: "
-                                             f"estimated {est:.0f} s")
+    budget_check(len(F), face_counts, cage_time_budget=cage_time_budget)
     V = np.array(V, dtype=np.float64)  # private copies
     F = np.array(F, dtype=np.int64)
     face_counts = [int(c) for c in face_counts]

@@ -88,7 +88,7 @@ from .optimize import _min_angles, mips, optimize_cage
 from .simplify import SimplifyStuck, constrained_simplify
 from .tighten import tighten_cage
 
-__all__ = ["estimate_layer_seconds", "genus", "sdf_cage_layer", "sdf_schedule"]
+__all__ = ["budget_check", "estimate_layer_seconds", "genus", "sdf_cage_layer", "sdf_schedule"]
 
 #: paper defaults (Sec. 4), lengths relative to the unit bounding-box diagonal
 DEFAULTS = {"c": 0.01, "r": 0.025, "l": 0.15, "alpha": 3.0, "beta": 8.0}
@@ -222,6 +222,15 @@ def _budget_check(n_input: list[int], cage_time_budget: float | None, what: str)
                       f"{what}: estimated {est:.0f} s for a {n_input[0]:,}-face input ({len(n_input)} layer(s), "
                       f"~{estimate_layer_seconds(1):.0f} s + 5 ms per input face each)")
     return est
+
+
+def budget_check(n_faces: int, face_counts, *, cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
+                 **opts) -> float:
+    """The estimate of a run of ``"sdf"`` layers (:func:`estimate_layer_seconds` of each layer's input)
+    checked against ``cage_time_budget``: the registry's ``budget`` check (:func:`cagegen.build_cages` calls
+    it before the input audit; :func:`sdf_schedule` checks it again on the audited input)."""
+    counts = [int(m) for m in face_counts]
+    return _budget_check([int(n_faces)] + counts[:-1], cage_time_budget, f"sdf cages {counts}")
 
 
 def _check_target(n_faces) -> int:
@@ -651,7 +660,7 @@ def sdf_schedule(V: np.ndarray, F: np.ndarray, face_counts, *, t0: float,
         ``check_input``).
     """
     counts = [_check_target(m) for m in face_counts]
-    _budget_check([len(F)] + counts[:-1], cage_time_budget, f"sdf cages {counts}")
+    budget_check(len(F), counts, cage_time_budget=cage_time_budget)
     later = [sum(estimate_layer_seconds(n) for n in counts[k:-1]) for k in range(len(counts))]
     # check_input False: build_cages audited the input once, the later layers are certified cages
     return [{"cage_time_budget": None, "check_input": False,

@@ -213,7 +213,7 @@ def _segment_hits_triangle(p, q, a, b, c, exact: bool = False) -> np.ndarray:
         hit[idx] = ~((S > 0).any(axis=1) & (S < 0).any(axis=1))  # no two strict opposite signs
     idx = np.flatnonzero(flat)
     if idx.size:
-        hit[idx] = _segment_hits_triangle_2d(p[idx], q[idx], a[idx], b[idx], c[idx])
+        hit[idx] = _segment_hits_triangle_2d(p[idx], q[idx], a[idx], b[idx], c[idx], exact)
     return hit
 
 
@@ -408,6 +408,114 @@ def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray,
     out = C[hit]
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
+def _separated(R: np.ndarray, P: list, Q: list, directions: list, apex: bool = False) -> np.ndarray:
+    """(k,) bool: some direction ``w`` of ``directions`` ((k,3) arrays) certainly separates the points ``P``
+    from the points ``Q`` (lists of (k,3) arrays) in floating point: their projections ``(X - R) . w`` lie in
+    disjoint intervals farther apart than the rounding error. Projections are linear, so the convex hulls
+    (the triangles) are then disjoint. ``apex``: ``R`` is a point both triangles share and only the rest must
+    be separated: ``P`` strictly above 0, ``Q`` strictly below, or the reverse (the hulls meet at ``R`` only).
+
+    ``fl(x - r) = (x - r)(1 + d)``, ``|d| <= u`` (u = 2^-53), and a 3-term dot product adds ``3u`` of
+    ``sum |d_i w_i|``: each computed projection is within ``5u sum |d_i| |w_i|`` of the exact one for the
+    float ``w``; the margin is 32u times the largest such sum. Any ``w`` gives a sound certificate; a row no
+    direction certifies is left to the exact tests (False here)."""
+    D = [X - R for X in (*P, *Q)]
+    out = np.zeros(len(R), dtype=bool)
+    for w in directions:
+        proj = np.stack([np.einsum("ij,ij->i", d, w) for d in D])
+        err = 32.0 * _EPS * np.max(np.stack([np.einsum("ij,ij->i", np.abs(d), np.abs(w)) for d in D]), axis=0)
+        p, q = proj[: len(P)], proj[len(P):]
+        if apex:
+            out |= ((p.min(0) > err) & (q.max(0) < -err)) | ((p.max(0) < -err) & (q.min(0) > err))
+        else:
+            out |= (p.max(0) + 2.0 * err < q.min(0)) | (q.max(0) + 2.0 * err < p.min(0))
+    return out
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(x, axis=1, keepdims=True)
+    return np.divide(x, n, out=np.zeros_like(x), where=n > 0)
+
+
+def _disjoint_hits(TA: np.ndarray, TB: np.ndarray) -> np.ndarray:
+    """(k,) bool: triangles sharing no vertex meet. A floating-point separation certificate first (the two
+    planes' normals and the in-plane normals of the six edges, the separating axes of coplanar triangles);
+    the exact test only for the rest (on a finely tessellated CAD part, neighbours are nearly coplanar and
+    the exact arithmetic was most of the audit)."""
+    A, B = [TA[:, i] for i in range(3)], [TB[:, i] for i in range(3)]
+    nA, nB = np.cross(A[1] - A[0], A[2] - A[0]), np.cross(B[1] - B[0], B[2] - B[0])
+    n = _unit(nA) + _unit(nB)
+    edges = [A[1] - A[0], A[2] - A[1], A[0] - A[2], B[1] - B[0], B[2] - B[1], B[0] - B[2]]
+    sep = _separated(A[0], A, B, [nA, nB] + [np.cross(n, e) for e in edges])
+    hit = np.zeros(len(TA), dtype=bool)
+    todo = np.flatnonzero(~sep)
+    if todo.size:
+        hit[todo] = _tri_tri(TA[todo], TB[todo], exact=True)
+    return hit
+
+
+def _shared_edge_hits(V: np.ndarray, FA: np.ndarray, FB: np.ndarray, eq: np.ndarray) -> np.ndarray:
+    """(k,) bool: triangles sharing an edge meet beyond it: a fold onto each other (the third vertices on the
+    same side of the edge, then coplanar exactly; the side test first, so a flat region's neighbours, on
+    opposite sides, need no exact test)."""
+    inA = eq.any(axis=2)  # (k,3) which vertices of A are shared
+    inB = eq.any(axis=1)
+    sa = np.sort(np.where(inA, FA, -1), axis=1)[:, 1:]  # the two shared vertex ids
+    ua, ub = FA[~inA], FB[~inB]
+    s, t = V[sa[:, 0]], V[sa[:, 1]]
+    n1 = np.cross(t - s, V[ua] - s)
+    n2 = np.cross(t - s, V[ub] - s)
+    dot = np.einsum("ij,ij->i", n1, n2)
+    same_side = dot > -1e-12 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
+    hit = np.zeros(len(FA), dtype=bool)
+    k = np.flatnonzero(same_side)
+    if k.size:
+        hit[k] = orient3d(s[k], t[k], V[ua[k]], V[ub[k]], exact=True) == 0
+    return hit
+
+
+def _shared_vertex_hits(V: np.ndarray, FA: np.ndarray, FB: np.ndarray, eq: np.ndarray) -> np.ndarray:
+    """(k,) bool: triangles sharing one vertex S meet beyond it. A floating-point certificate first: a plane
+    through S with the rest of A strictly on one side and the rest of B on the other (candidates: bisectors
+    of one edge of each at S, in the mean plane; the difference of the two corners' bisectors). The rest:
+    opposite edges against the other face, in-plane edges against the other's angle at S (exact)."""
+    ia = eq.any(axis=2).argmax(axis=1)  # position of the shared vertex in A
+    ib = eq.any(axis=1).argmax(axis=1)  # ... in B
+    r = np.arange(len(FA))
+    S = V[FA[r, ia]]
+    A1, A2 = V[FA[r, (ia + 1) % 3]], V[FA[r, (ia + 2) % 3]]
+    B1, B2 = V[FB[r, (ib + 1) % 3]], V[FB[r, (ib + 2) % 3]]
+    ua, va, ub, vb = (_unit(X - S) for X in (A1, A2, B1, B2))
+    n = _unit(np.cross(ua, va)) + _unit(np.cross(ub, vb))
+    cands = [np.cross(n, x + y) for x in (ua, va) for y in (ub, vb)] + [ua + va - ub - vb]
+    todo = np.flatnonzero(~_separated(S, [A1, A2], [B1, B2], cands, apex=True))
+    hit = np.zeros(len(FA), dtype=bool)
+    if todo.size:
+        hit[todo] = _shared_vertex_exact(S[todo], A1[todo], A2[todo], B1[todo], B2[todo])
+    return hit
+
+
+def _shared_vertex_exact(S, A1, A2, B1, B2) -> np.ndarray:
+    """The exact test of :func:`_shared_vertex_hits` on triangles ``S A1 A2`` and ``S B1 B2``."""
+    nA = np.cross(A1 - S, A2 - S)
+    nB = np.cross(B1 - S, B2 - S)
+    h = np.zeros(len(S), dtype=bool)
+    # edge S-X lies in the other face's plane (uncertain = yes) and enters its angle at S
+    combos = ((B1, nA, A1, A2), (B2, nA, A1, A2), (A1, nB, B1, B2), (A2, nB, B1, B2))
+    inplane = [orient3d(Y1, Y2, X, S, exact=True) == 0 for X, _, Y1, Y2 in combos]
+    for (X, nX, Y1, Y2), ip in zip(combos, inplane):
+        k = np.flatnonzero(ip)
+        if k.size:
+            h[k] |= _ray_in_angle(X[k] - S[k], Y1[k] - S[k], Y2[k] - S[k], nX[k])
+    # not coplanar: the common part beyond S ends on an opposite edge
+    coplanar = (inplane[0] & inplane[1]) | (inplane[2] & inplane[3])
+    k = np.flatnonzero(~coplanar & ~h)
+    if k.size:
+        h[k] = (_segment_hits_triangle(A1[k], A2[k], S[k], B1[k], B2[k], exact=True)
+                | _segment_hits_triangle(B1[k], B2[k], S[k], A1[k], A2[k], exact=True))
+    return h
+
+
 
 def _ray_in_angle(r, u, v, n) -> np.ndarray:
     """(k,) bool: direction ``r`` lies in the closed planar angle spanned by ``u``, ``v`` (normal ``n``),
@@ -457,57 +565,15 @@ def self_pairs(V: np.ndarray, F: np.ndarray, only=None) -> np.ndarray:
     eq = FA[:, :, None] == FB[:, None, :]  # (k,3,3): vertex i of A is vertex j of B
     n_shared = eq.sum(axis=(1, 2))
     hit = np.zeros(len(C), dtype=bool)
-
-    # disjoint faces: the full test
-    m0 = n_shared == 0
-    if m0.any():
-        hit[m0] = _tri_tri(V[FA[m0]], V[FB[m0]], exact=True)
-
-    # shared edge: a fold onto each other (third vertices coplanar and on the same side of the edge)
+    m0 = np.flatnonzero(n_shared == 0)
+    if m0.size:
+        hit[m0] = _disjoint_hits(V[FA[m0]], V[FB[m0]])
     m2 = np.flatnonzero(n_shared == 2)
     if m2.size:
-        inA = eq[m2].any(axis=2)  # (k,3) which vertices of A are shared
-        inB = eq[m2].any(axis=1)
-        sa = np.sort(np.where(inA, FA[m2], -1), axis=1)[:, 1:]  # the two shared vertex ids
-        ua = FA[m2][~inA]
-        ub = FB[m2][~inB]
-        s, t = V[sa[:, 0]], V[sa[:, 1]]
-        coplanar = orient3d(s, t, V[ua], V[ub], exact=True) == 0
-        n1 = np.cross(t - s, V[ua] - s)
-        n2 = np.cross(t - s, V[ub] - s)
-        dot = np.einsum("ij,ij->i", n1, n2)
-        same_side = dot > -1e-12 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
-        hit[m2] = coplanar & same_side
-
-    # shared vertex: opposite edges against the other face; in-plane edges against the other's angle
+        hit[m2] = _shared_edge_hits(V, FA[m2], FB[m2], eq[m2])
     m1 = np.flatnonzero(n_shared == 1)
     if m1.size:
-        e = eq[m1]
-        ia = e.any(axis=2).argmax(axis=1)  # position of the shared vertex in A
-        ib = e.any(axis=1).argmax(axis=1)  # ... in B
-        r = np.arange(m1.size)
-        A, B = FA[m1], FB[m1]
-        a0 = A[r, ia]
-        a1, a2 = A[r, (ia + 1) % 3], A[r, (ia + 2) % 3]
-        b1, b2 = B[r, (ib + 1) % 3], B[r, (ib + 2) % 3]
-        S, A1, A2, B1, B2 = V[a0], V[a1], V[a2], V[b1], V[b2]
-        nA = np.cross(A1 - S, A2 - S)
-        nB = np.cross(B1 - S, B2 - S)
-        h = np.zeros(m1.size, dtype=bool)
-        # edge S-X lies in the other face's plane (uncertain = yes) and enters its angle at S
-        combos = ((B1, nA, A1, A2), (B2, nA, A1, A2), (A1, nB, B1, B2), (A2, nB, B1, B2))
-        inplane = [orient3d(Y1, Y2, X, S, exact=True) == 0 for X, _, Y1, Y2 in combos]
-        for (X, nX, Y1, Y2), ip in zip(combos, inplane):
-            k = np.flatnonzero(ip)
-            if k.size:
-                h[k] |= _ray_in_angle(X[k] - S[k], Y1[k] - S[k], Y2[k] - S[k], nX[k])
-        # not coplanar: the common part beyond S ends on an opposite edge
-        coplanar = (inplane[0] & inplane[1]) | (inplane[2] & inplane[3])
-        k = np.flatnonzero(~coplanar & ~h)
-        if k.size:
-            h[k] = (_segment_hits_triangle(A1[k], A2[k], S[k], B1[k], B2[k], exact=True)
-                    | _segment_hits_triangle(B1[k], B2[k], S[k], A1[k], A2[k], exact=True))
-        hit[m1] = h
+        hit[m1] = _shared_vertex_hits(V, FA[m1], FB[m1], eq[m1])
     # three shared vertices: a duplicated face
     hit[n_shared == 3] = True
     out = C[hit]

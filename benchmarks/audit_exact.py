@@ -24,7 +24,7 @@ def main(argv=None) -> dict:
     import igl
 
     import cagegen
-    from cagegen import check_mesh
+    from cagegen import MeshInputError, check_mesh
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("zoo", type=Path)
@@ -40,9 +40,13 @@ def main(argv=None) -> dict:
         for _ in range(int(up)):
             V, F = igl.upsample(V, F)
         t = time.process_time()
-        rep = check_mesh(V, F)
+        try:
+            rep = check_mesh(V, F)
+            ok, error = bool(getattr(rep, "ok", True)), None
+        except MeshInputError as exc:  # a refused input is a result too (its time and the first reason)
+            ok, error = False, str(exc).splitlines()[-1].strip(" -")
         rows.append({"mesh": name, "subdiv": int(up), "faces": len(F), "audit_cpu_seconds": time.process_time() - t,
-                     "ok": bool(getattr(rep, "ok", True))})
+                     "ok": ok, "error": error})
         print(json.dumps(rows[-1]), flush=True)
     out = {"cagegen": str(Path(cagegen.__file__).parent), "rows": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)

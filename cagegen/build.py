@@ -239,17 +239,15 @@ def build_cages(
 def _budget_first(method: str, options: CageOptions, F, face_counts, levels: int | None) -> None:
     """The backend's time-budget check (registry ``budget``) on the input's face count as given, before
     the audit: a run the budget refuses fails in milliseconds, not after the exact self-intersection test
-    (26 s on a 342k-face input with coplanar faces). Inputs whose face count or levels are unusable are left
-    to the audit and :func:`_face_counts`, which say what is wrong."""
+    (seconds to a minute at 200-350k faces, ``benchmarks/results/audit``). An unusable ``F`` or face count
+    is left to the audit and :func:`_face_counts`, which say what is wrong."""
     check = get_budget(method)
-    if check is None:
-        return
     try:
         shape = np.shape(F)
-        counts = _face_counts(face_counts, levels, int(shape[0])) if shape[1:] == (3,) else None
+        if check is None or shape[1:] != (3,):
+            return
+        counts = _face_counts(face_counts, levels, int(shape[0]))
     except (ValueError, TypeError):  # LevelsError is a ValueError; a ragged F is the audit's to name
-        return
-    if counts is None:
         return
     check(int(shape[0]), counts, **options.backend_kwargs())
 

@@ -65,8 +65,8 @@ class BackendSpec:
         keywords as the layer function) -> one dict per layer of keywords that override them.
     budget : str or callable, optional
         The run's time-budget check, ``budget(n_faces, face_counts, **opts) -> estimated seconds``:
-        :func:`cagegen.build_cages` calls it on the input's face count *before* the input audit, whose exact
-        self-intersection test alone takes ~10-30 s on a 342k-face input; it raises :class:`CageError`
+        :func:`cagegen.build_cages` calls it on the input's face count *before* the input audit (whose exact
+        self-intersection test takes seconds to a minute at 200-350k faces); it raises :class:`CageError`
         (``reason="time budget"``) when the estimate exceeds the options' ``cage_time_budget``.
     """
 

@@ -43,7 +43,8 @@ from .energies import COPYLEFT_ENERGIES, ENERGIES, check_energy_available, signe
 from .flow import flow_inside
 from .reinflate import reinflate
 
-__all__ = ["budget_check", "complete_clearance", "estimate_seconds", "nest_pair", "nested_backend", "offset_surface", "push_out"]
+__all__ = ["budget_check", "complete_clearance", "estimate_seconds", "nest_pair", "nested_backend", "offset_surface",
+           "push_out"]
 
 #: ``kappa`` (the barrier's stiffness while re-inflating) is 1e4, was 1e3: a stiffer barrier keeps the cage
 #: further ahead of the fine surface, with fewer contacts inside ``dhat`` (homer.obj 557k -> 494k over a run)

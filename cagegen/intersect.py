@@ -417,18 +417,21 @@ def _separated(R: np.ndarray, P: list, Q: list, directions: list, apex: bool = F
 
     ``fl(x - r) = (x - r)(1 + d)``, ``|d| <= u`` (u = 2^-53), and a 3-term dot product adds ``3u`` of
     ``sum |d_i w_i|``: each computed projection is within ``5u sum |d_i| |w_i|`` of the exact one for the
-    float ``w``; the margin is 32u times the largest such sum. Any ``w`` gives a sound certificate; a row no
-    direction certifies is left to the exact tests (False here)."""
+    float ``w``; the margin is 32u times ``max |d| |w|``, a bound of the largest such sum. Any ``w`` gives a
+    sound certificate; a row no direction certifies is left to the exact tests (False here)."""
     D = [X - R for X in (*P, *Q)]
+    # sum |d_i| |w_i| <= |d| |w| (Cauchy-Schwarz): one norm per point instead of one sum per point and direction
+    dmax = np.sqrt(np.maximum.reduce([np.einsum("ij,ij->i", d, d) for d in D]))
     out = np.zeros(len(R), dtype=bool)
     for w in directions:
-        proj = np.stack([np.einsum("ij,ij->i", d, w) for d in D])
-        err = 32.0 * _EPS * np.max(np.stack([np.einsum("ij,ij->i", np.abs(d), np.abs(w)) for d in D]), axis=0)
-        p, q = proj[: len(P)], proj[len(P):]
+        err = 32.0 * _EPS * dmax * np.sqrt(np.einsum("ij,ij->i", w, w))
+        proj = [np.einsum("ij,ij->i", d, w) for d in D]
+        pmin, pmax = np.minimum.reduce(proj[: len(P)]), np.maximum.reduce(proj[: len(P)])
+        qmin, qmax = np.minimum.reduce(proj[len(P):]), np.maximum.reduce(proj[len(P):])
         if apex:
-            out |= ((p.min(0) > err) & (q.max(0) < -err)) | ((p.max(0) < -err) & (q.min(0) > err))
+            out |= ((pmin > err) & (qmax < -err)) | ((pmax < -err) & (qmin > err))
         else:
-            out |= (p.max(0) + 2.0 * err < q.min(0)) | (q.max(0) + 2.0 * err < p.min(0))
+            out |= (pmax + 2.0 * err < qmin) | (qmax + 2.0 * err < pmin)
     return out
 
 

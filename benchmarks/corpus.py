@@ -163,10 +163,11 @@ def constructor_pcg(h, problem: str, solver) -> dict:
 
 def _ctor_iterations(c: dict) -> tuple[int, int]:
     """(MG-PCG iterations with the coarse probe, without it) of a :func:`constructor_pcg` record, whichever
-    of the two was the default when it was recorded (each variant records its ``deflate``)."""
+    of the two was the default when it was recorded (each variant records its ``deflate``). When no variant
+    probed (``deflate="auto"`` skips the probe above its complexity limit), both are the default's."""
     plain = [v for k, v in c.items() if k in ("default", "no_probe", "coarse_probe")]
-    probe = next(v for v in plain if v["deflate"])
     none = next(v for v in plain if not v["deflate"])
+    probe = next((v for v in plain if v["deflate"]), none)
     return probe["pcg_iterations"], none["pcg_iterations"]
 
 

@@ -111,6 +111,8 @@ def test_constructor_record_and_its_table_cell():
     older = {"default": {"pcg_iterations": 14, "deflate": 0}, "coarse_probe": {"pcg_iterations": 10, "deflate": 8},
              "layer": {"pcg_iterations": 13, "deflate": 0}}
     assert corpus._ctor_iterations(older) == (10, 14)
+    unprobed = {"default": {"pcg_iterations": 9, "deflate": 0}, "no_probe": {"pcg_iterations": 9, "deflate": 0}}
+    assert corpus._ctor_iterations(unprobed) == (9, 9)  # "auto" skipped the probe: no crash, one count
     probs = {p: {"factor": 0.1, "pcg_iterations": 7, "operator_complexity": 1.2,
                  "constructor": {"default": {"pcg_iterations": 10, "deflate": 8},
                                  "no_probe": {"pcg_iterations": k, "deflate": 0}}}

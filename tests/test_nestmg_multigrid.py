@@ -270,3 +270,38 @@ def test_pipeline_cycle_is_the_constructors_default_plus_the_problems_data():
         r = ml.solve(pr.b, tol=1e-8, accel="cg", return_info=True)[1]["residuals"]
         rb = bare.solve(pr.b, tol=1e-8, accel="cg", return_info=True)[1]["residuals"]
         assert len(r) == len(rb) <= 10 and np.allclose(r, rb, rtol=1e-10, atol=0), name
+
+
+def test_dirichlet_drops_a_first_coarse_level_made_of_boundary_nodes():
+    """Most first-coarse-level nodes on the Dirichlet boundary (a thin part; here the Kuhn cube of 8 cells,
+    level 1 of 5x5x5 nodes, 98 of 125 on the boundary): those nodes are dropped (the conforming coarse space)
+    and MG-PCG still solves the same system; on the finer cube (level 1: 386 of 729 on the boundary) every
+    reached coarse node stays. A level left no coarser than the one above it goes, with the coarser ones."""
+    from nestmg.problems import _coarsening_levels
+    from solvers.fem import boundary_nodes
+    from solvers.multilevel import restrict_prolongations
+
+    meshes, Ps = kuhn_cube_hierarchy(8, 3)
+    pr = setup_problem(meshes, Ps, "poisson-dirichlet")
+    assert pr.params["dirichlet_coarse_dropped"] == 98
+    assert [P.shape for P in pr.P] == [(343, 27), (27, 15)]  # the 27 interior level-1 nodes
+    V0, T0 = meshes[0]
+    free0 = np.setdiff1d(np.arange(len(V0)), boundary_nodes(T0))
+    kept, _ = restrict_prolongations(Ps, free0, min_column_sum=0.2)
+    assert kept[0].shape == (343, 101)  # without the rule: every level-1 node the free fine nodes reach
+    ml = pr.multigrid()
+    x, info = ml.solve(pr.b, tol=1e-10, accel="cg", return_info=True)
+    assert info["converged"] and info["iterations"] <= 10
+    ref = sp.linalg.spsolve(pr.A.tocsc(), pr.b)
+    assert np.linalg.norm(x - ref) <= 1e-8 * np.linalg.norm(ref)
+    assert ml.operator_complexity() < 1.1
+
+    meshes, Ps = kuhn_cube_hierarchy(16, 3)
+    pr = setup_problem(meshes, Ps, "poisson-dirichlet")
+    assert pr.params["dirichlet_coarse_dropped"] == 0 and len(pr.P) == 2
+    assert pr.P[0].shape[1] > 343  # coarse boundary nodes kept
+    Pr = [sp.random(10, 4, 0.5, format="csr"), sp.random(4, 6, 0.5, format="csr"), sp.random(6, 2, 0.5, format="csr")]
+    free = [np.arange(10), np.arange(4), np.arange(6), np.arange(2)]
+    Pk, fk = _coarsening_levels(Pr, free)
+    assert len(Pk) == 1 and Pk[0] is Pr[0] and len(fk) == 2
+    assert _coarsening_levels(Pr[:1], free[:2]) == (Pr[:1], free[:2])

@@ -473,8 +473,7 @@ def _conforming_first_level(P: list, bnd: np.ndarray) -> tuple[list, int] | None
     column (no renormalisation: the coarse function vanishes on the boundary) leaves the node unreached, and
     :func:`solvers.restrict_prolongations` drops it."""
     P0 = sp.csr_matrix(P[0])
-    rows = P0[bnd]
-    on = np.unique(rows.indices[rows.data >= 1.0 - 1e-12])
+    on = _coarse_at_dirichlet(P0, bnd)
     if on.size == 0 or on.size < CONFORMING_MIN_FRACTION * P0.shape[1]:
         return None
     keep = np.ones(P0.shape[1])
@@ -482,6 +481,12 @@ def _conforming_first_level(P: list, bnd: np.ndarray) -> tuple[list, int] | None
     Q = sp.csr_matrix(P0 @ sp.diags(keep))
     Q.eliminate_zeros()
     return [Q, *P[1:]], int(on.size)
+
+
+def _coarse_at_dirichlet(P0: sp.csr_matrix, bnd: np.ndarray) -> np.ndarray:
+    """The coarse nodes of ``P0`` (columns) that sit at a fine Dirichlet node of ``bnd`` (row ``e_j``)."""
+    rows = P0[bnd]
+    return np.unique(rows.indices[rows.data >= 1.0 - 1e-12])
 
 
 def _coarsening_levels(Pr: list, free: list) -> tuple[list, list]:

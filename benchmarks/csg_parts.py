@@ -1,4 +1,4 @@
-"""Five machined-part surfaces made by constructive solid geometry, written as STL: held-out CAD inputs.
+"""Seven part surfaces made by constructive solid geometry, written as STL: held-out CAD inputs.
 
     python benchmarks/csg_parts.py OUT_DIR
     OMP_NUM_THREADS=1 python benchmarks/corpus.py OUT_DIR --backends nested --out FILE.json --md FILE.md
@@ -11,7 +11,9 @@ flat faces, sharp edges, fans around holes. None of them was used to choose any 
 * ``lbracket``: an L-bracket with a gusset, two slots and a cross hole (genus 3);
 * ``heatsink``: a base plate with twelve thin fins (genus 0, fins 1/40 of the length thick);
 * ``pipetee``: two hollow cylinders crossing (genus 2, thin walls);
-* ``lattice``: a cube pierced by 3x3 square channels along z and 3x3 narrower ones along y, crossing them.
+* ``lattice``: a cube pierced by 3x3 square channels along z and 3x3 narrower ones along y, crossing them;
+* ``cup``: a thin-walled cylinder cup, walls 1% of its height thick (added after the first five were run);
+* ``shell``: a sphere shell 2.7% of its radius thick with a square window (likewise).
 """
 
 from __future__ import annotations
@@ -52,8 +54,10 @@ def _parts() -> dict:
             u, v = 3 + 10 * i, 3 + 10 * j
             lattice -= M.cube((4, 4, 40)).translate((u, v, -5))
             lattice -= M.cube((3, 40, 3)).translate((u + 0.5, -5, v + 0.5))  # no wall shared with the above
+    cup = M.cylinder(40, 20, 20, 96) - M.cylinder(40, 19.6, 19.6, 96).translate((0, 0, 0.4))
+    shell = M.sphere(30, 96) - M.sphere(29.2, 96) - M.cube((20, 20, 20)).translate((20, -10, -10))
     return {"flange": flange, "lbracket": bracket, "heatsink": sink, "pipetee": tee(10, 0) - tee(8, 1),
-            "lattice": lattice}
+            "lattice": lattice, "cup": cup, "shell": shell}
 
 
 def write_parts(out: Path) -> list[Path]:

@@ -7,8 +7,8 @@ Dirichlet nodes (the conforming coarse space) when they are at least
 ``nestmg.problems.CONFORMING_MIN_FRACTION`` of that level. This measures both choices on each default
 hierarchy (``build_hierarchy(V, F, 3)``, the same one for both): the fraction, operator complexity, V-cycle
 factor (stationary, to 1e-10), MG-PCG iterations to 1e-8, set-up and solve CPU seconds (median of
-``--repeats``). Two thin-walled parts made in code (``manifold3d``) are always run: ``cup`` (a cylinder
-cup, wall 1% of its height) and ``shell`` (a sphere shell 2.7% of its radius thick with a square window);
+``--repeats``). The two thin-walled parts of ``csg_parts.py`` are always run: ``cup`` (a cylinder cup,
+wall 1% of its height) and ``shell`` (a sphere shell 2.7% of its radius thick with a square window);
 ``--zoo`` adds files.
 """
 
@@ -26,15 +26,15 @@ import numpy as np
 
 
 def thin_parts() -> dict:
-    """The two thin-walled solids as (V, F) (millimetres)."""
-    from manifold3d import Manifold as M
+    """The thin-walled solids of :mod:`csg_parts` (``cup``, ``shell``) as (V, F) (millimetres)."""
+    from csg_parts import _parts
 
-    cup = M.cylinder(40, 20, 20, 96) - M.cylinder(40, 19.6, 19.6, 96).translate((0, 0, 0.4))
-    shell = M.sphere(30, 96) - M.sphere(29.2, 96) - M.cube((20, 20, 20)).translate((20, -10, -10))
     out = {}
-    for name, solid in (("cup", cup), ("shell", shell)):
-        mesh = solid.to_mesh()
-        out[name] = (np.asarray(mesh.vert_properties, dtype=float)[:, :3], np.asarray(mesh.tri_verts, np.int64))
+    for name, solid in _parts().items():
+        if name in ("cup", "shell"):
+            mesh = solid.to_mesh()
+            out[name] = (np.asarray(mesh.vert_properties, dtype=float)[:, :3],
+                         np.asarray(mesh.tri_verts, np.int64))
     return out
 
 

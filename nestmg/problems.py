@@ -20,6 +20,7 @@ the hierarchy is nested).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -31,6 +32,8 @@ from solvers.fem import boundary_layer_nodes, boundary_nodes, check_tet_mesh, ma
 from solvers.multilevel import restrict_prolongations, sparsified_galerkin_operators
 
 from .errors import NestmgInputError
+
+_log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from .options import SolverOptions
@@ -58,12 +61,12 @@ PROBE_MARGIN = 0.9
 #: same-domain level below a red refinement), those coarse nodes are dropped, i.e. the coarse space is the
 #: conforming ``V_H ∩ V_h,0`` of textbook geometric multigrid instead of every coarse node the free fine
 #: nodes reach. On thin-walled parts most of that level sits on the boundary: a cup with walls 1% of its
-#: height thick (fine level 1.25M tets) kept 49.6k coarse nodes for 115k free fine ones, 93% of them on the
-#: boundary, operator complexity 1.81; without them 1.01, V-cycle factor 0.024 -> 0.067, MG-PCG 4 -> 5
-#: iterations, set-up + solve CPU 0.22 -> 0.07 s (a shell with a window, 82%: 1.54 -> 1.07, 0.047 ->
-#: 0.129). On solid shapes the fraction was 24-60% and the boundary nodes pay for themselves (dropping them:
-#: factors 0.10-0.15 -> 0.14-0.21, one more MG-PCG iteration; all ad hoc, 2026-12-07).
+#: height (93% there) had operator complexity 1.81, without them 1.01, V-cycle factor 0.025 -> 0.065, MG-PCG
+#: 4 -> 5 iterations, set-up + solve CPU 0.267 -> 0.073 s; a sphere shell with a window (83%) 1.55 -> 1.07.
+#: On solid shapes (24-57%) they pay for themselves: dropping them raised the factors to 0.157-0.201 and
+#: cost 1-2 more MG-PCG iterations (``benchmarks/results/dirichlet/dirichlet_coarse_388b75f.json``).
 CONFORMING_MIN_FRACTION = 0.75
+
 
 def cycle_smoothers(smoother: str = "gauss_seidel", nu: int = 2, coarse_nu: int | None = None) -> list:
     """Per-level smoother specs of a variable V-cycle, finest level first (the default: the pipeline's cycle,
@@ -476,6 +479,8 @@ def _conforming_first_level(P: list, bnd: np.ndarray) -> tuple[list, int] | None
     on = _coarse_at_dirichlet(P0, bnd)
     if on.size == 0 or on.size < CONFORMING_MIN_FRACTION * P0.shape[1]:
         return None
+    _log.info("poisson-dirichlet: %d of the first coarse level's %d nodes sit at fine Dirichlet nodes: dropped "
+              "(the conforming coarse space)", on.size, P0.shape[1])
     keep = np.ones(P0.shape[1])
     keep[on] = 0.0
     Q = sp.csr_matrix(P0 @ sp.diags(keep))
@@ -491,10 +496,12 @@ def _coarse_at_dirichlet(P0: sp.csr_matrix, bnd: np.ndarray) -> np.ndarray:
 
 def _coarsening_levels(Pr: list, free: list) -> tuple[list, list]:
     """``(Pr, free)`` without the first coarse level that is not smaller than the one above it and every
-    coarser one (a multigrid level must coarsen; :func:`_conforming_first_level` can leave a first coarse
-    level smaller than the cage level below it)."""
+    coarser one (a multigrid level must coarsen; after :func:`_conforming_first_level` the cage level below
+    the first coarse level can be the larger one)."""
     for k, P in enumerate(Pr):
         if P.shape[1] == 0 or P.shape[1] >= P.shape[0]:
+            _log.info("level %d has %d unknowns for %d on the level above it: the problem uses %d of %d levels",
+                      k + 1, P.shape[1], P.shape[0], k + 1, len(Pr) + 1)
             return Pr[:k], free[:k + 1]
     return Pr, free
 

@@ -438,9 +438,12 @@ def setup_problem(
         Pr, free = [], [free0]
     else:
         conforming = _conforming_first_level(P, bnd) if dirichlet and coarse == "galerkin" else None
-        Pr, free = restrict_prolongations(P if conforming is None else conforming[0], free0,
-                                          min_column_sum=prune)
-        Pr, free = _coarsening_levels(Pr, free)
+        if conforming is not None and conforming[0][0][free0].nnz == 0:
+            Pr, free = [], [free0]  # no coarse node off the boundary (a tiny part): one level, a direct solve
+        else:
+            Pr, free = restrict_prolongations(P if conforming is None else conforming[0], free0,
+                                              min_column_sum=prune)
+            Pr, free = _coarsening_levels(Pr, free)
         if coarse == "sparsified":
             # allowed couplings: the edges of each coarse tet mesh among its kept nodes
             pats = [stiffness_matrix(Vc, Tc)[c][:, c] for (Vc, Tc), c in zip(tets[1:], free[1:])]

@@ -609,7 +609,9 @@ class MultigridSolver:
             raise SolverInputError(f"deflate must be a non-negative integer, got {max_vectors!r}")
         report = []
         last = 0 if probe_finest else 1
-        first = len(self.levels) - 2 if first is None else first
+        # the coarsest level is solved directly (no smoothers, nothing to deflate): a one-level solver has
+        # no level to probe
+        first = len(self.levels) - 2 if first is None else min(first, len(self.levels) - 2)
         linear = self.symmetric_cycle and self.coarse_scaling is None  # Lanczos needs a linear symmetric cycle
         probed = range(first, last - 1, -1) if max_vectors and linear else ()
         for k in probed:

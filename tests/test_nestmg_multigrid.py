@@ -305,3 +305,16 @@ def test_dirichlet_drops_a_first_coarse_level_made_of_boundary_nodes():
     Pk, fk = _coarsening_levels(Pr, free)
     assert len(Pk) == 1 and Pk[0] is Pr[0] and len(fk) == 2
     assert _coarsening_levels(Pr[:1], free[:2]) == (Pr[:1], free[:2])
+
+
+@pytest.mark.parametrize("n, levels, shapes", [(2, 2, []), (4, 3, [(27, 1)])])
+def test_dirichlet_on_a_part_too_small_for_its_coarse_levels(n, levels, shapes):
+    """A part whose coarse levels are (nearly) all boundary: no coarse node off it (one level, a direct solve)
+    or one (the level below, no smaller, is dropped): the stationary and the CG solves equal a direct solve."""
+    meshes, Ps = kuhn_cube_hierarchy(n, levels)
+    pr = setup_problem(meshes, Ps, "poisson-dirichlet")
+    assert [P.shape for P in pr.P] == shapes
+    ref = sp.linalg.spsolve(pr.A.tocsc(), pr.b)
+    for accel in (None, "cg"):
+        x, info = pr.multigrid().solve(pr.b, tol=1e-10, accel=accel, return_info=True)
+        assert info["converged"] and np.abs(x - ref).max() <= 1e-9 * np.abs(ref).max()

@@ -293,3 +293,20 @@ def test_probe_at_must_be_named(pieces):
     K, Ps = pieces
     with pytest.raises(SolverInputError, match="probe_at"):
         MultigridSolver(K, Ps, nullspace="constant", deflate=8, probe_at="later")
+
+
+def test_one_level_solver_with_a_deferred_probe_solves_directly():
+    """A solver of one level (its coarsest, solved directly: no smoother, nothing to probe) with the finest
+    level's probe deferred to stationary solves (``Problem.multigrid()``'s set-up) solves; it raised
+    AttributeError in the probe's cycle before."""
+    from solvers.fem import boundary_nodes
+
+    meshes, _ = kuhn_cube_hierarchy(4, 1)
+    V, T = meshes[0]
+    free = np.setdiff1d(np.arange(len(V)), boundary_nodes(T))
+    A = stiffness_matrix(V, T)[free][:, free].tocsr()
+    b = np.linspace(1.0, 2.0, A.shape[0])
+    ml = MultigridSolver(A, [], deflate=8, probe_finest=True, probe_at="stationary")
+    x, info = ml.solve(b, tol=1e-10, accel=None, return_info=True)
+    assert info["converged"] and info["iterations"] == 1 and ml.deflation == []
+    assert np.linalg.norm(A @ x - b) <= 1e-12 * np.linalg.norm(b)

@@ -61,7 +61,7 @@ PROBE_MARGIN = 0.9
 #: same-domain level below a red refinement), those coarse nodes are dropped, i.e. the coarse space is the
 #: conforming ``V_H ∩ V_h,0`` of textbook geometric multigrid instead of every coarse node the free fine
 #: nodes reach. On thin-walled parts most of that level sits on the boundary: a cup with walls 1% of its
-#: height (93% there) had operator complexity 1.81, without them 1.01, V-cycle factor 0.025 -> 0.065, MG-PCG
+#: height (93% there) had operator complexity 1.80, without them 1.01, V-cycle factor 0.025 -> 0.065, MG-PCG
 #: 4 -> 5 iterations, set-up + solve CPU 0.267 -> 0.073 s; a sphere shell with a window (83%) 1.55 -> 1.07.
 #: On solid shapes (26-57%) they pay for themselves: dropping them raised the factors to 0.157-0.201 and
 #: cost 1-2 more MG-PCG iterations (``benchmarks/results/dirichlet/dirichlet_coarse_388b75f.json``).

@@ -15,9 +15,7 @@ wall 1% of its height) and ``shell`` (a sphere shell 2.7% of its radius thick wi
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -85,17 +83,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
+    from exp_common import git_commit, write_json
+
     from nestmg import load_mesh
     from nestmg.problems import CONFORMING_MIN_FRACTION
 
     inputs = dict(thin_parts())
     for name in a.meshes:
         inputs[name] = tuple(load_mesh(a.zoo / name)[:2])
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            check=False).stdout.strip()
     cmd = "python benchmarks/dirichlet_coarse.py" + (" --zoo ZOO_DIR --meshes " + " ".join(a.meshes)
                                                       if a.meshes else "") + f" --repeats {a.repeats} --out FILE"
-    doc = {"command": cmd, "commit": commit, "rule": CONFORMING_MIN_FRACTION, "cases": {}}
+    doc = {"command": cmd, "commit": git_commit(), "rule": CONFORMING_MIN_FRACTION, "cases": {}}
     for name, (V, F) in inputs.items():
         doc["cases"][name] = rec = measure(V, F, a.repeats)
         k, d = rec["kept"], rec["dropped"]
@@ -104,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{k['factor']:.3f} -> {d['factor']:.3f}, MG-PCG {k['pcg_iterations']} -> {d['pcg_iterations']}, "
               f"CPU {k['setup_cpu_seconds'] + k['solve_cpu_seconds']:.3f} -> "
               f"{d['setup_cpu_seconds'] + d['solve_cpu_seconds']:.3f} s", flush=True)
-        a.out.write_text(json.dumps(doc, indent=1))
+        write_json(doc, a.out)
     return 0
 
 

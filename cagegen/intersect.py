@@ -408,6 +408,7 @@ def cross_pairs(VA: np.ndarray, FA: np.ndarray, VB: np.ndarray, FB: np.ndarray,
     out = C[hit]
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
+
 def _separated(R: np.ndarray, P: list, Q: list, directions: list, apex: bool = False) -> np.ndarray:
     """(k,) bool: some direction ``w`` of ``directions`` ((k,3) arrays) certainly separates the points ``P``
     from the points ``Q`` (lists of (k,3) arrays) in floating point: their projections ``(X - R) . w`` lie in
@@ -517,7 +518,6 @@ def _shared_vertex_exact(S, A1, A2, B1, B2) -> np.ndarray:
         h[k] = (_segment_hits_triangle(A1[k], A2[k], S[k], B1[k], B2[k], exact=True)
                 | _segment_hits_triangle(B1[k], B2[k], S[k], A1[k], A2[k], exact=True))
     return h
-
 
 
 def _ray_in_angle(r, u, v, n) -> np.ndarray:

@@ -36,6 +36,7 @@ def _layers(report: dict) -> list:
             "layer": L.get("layer"), "n_faces": L.get("n_faces"),
             "source": L.get("decimation", {}).get("source"), "offset": L.get("decimation", {}).get("offset"),
             "volume_ratio": L.get("volume_ratio"), "seconds": L.get("seconds", {}).get("total"),
+            "dhat": L.get("reinflate", {}).get("dhat"),  # the reverse steps' (None before 6a00d76)
             "failed_attempts": [{k: f.get(k) for k in ("action", "stage", "reason", "seconds")}
                                 for f in L.get("failed_attempts", [])],
         })

@@ -180,6 +180,26 @@ def test_reinflation_returns_fine_surface_to_rest_and_nests(neck_pair, neck_flow
         assert rr.stats["volume_after_final"] < rr.stats["volume_before_final"]
 
 
+def test_reverse_steps_dhat_at_most_half_the_fine_mean_edge(neck_pair, neck_flow):
+    """dhat and max_move of the reverse steps shrink by one factor to half the fine surface's mean edge
+    (DHAT_PER_EDGE), and only when they exceed it; the cage still nests."""
+    import importlib
+
+    rf = importlib.import_module("cagegen.nested.reinflate")
+    Vn, F, U, G = neck_pair
+    h = float(np.mean([np.linalg.norm(Vn[F[:, i]] - Vn[F[:, (i + 1) % 3]], axis=1).mean() for i in range(3)]))
+    diag = float(np.linalg.norm(np.ptp(Vn, axis=0)))
+    assert rf.DHAT_PER_EDGE == 0.5 and 0.5 * h / diag > 5e-3  # the default dhat is below half an edge here
+    rr = reinflate(neck_flow.history, F, U, G, final_iters=0)
+    assert (rr.stats["dhat"], rr.stats["max_move"]) == (5e-3, 5e-3)
+    rr = reinflate(neck_flow.history, F, U, G, dhat=0.04, max_move=0.02, final_iters=0)
+    assert rr.success, rr.reason
+    assert rr.stats["dhat"] == pytest.approx(0.5 * h / diag, rel=1e-12)
+    assert rr.stats["max_move"] == pytest.approx(0.25 * h / diag, rel=1e-12)
+    assert rr.stats["reverse_steps"] == len(rf.resample_history(neck_flow.history, 0.25 * h)) - 1
+    assert verify_nesting([(Vn, F), (rr.cage, G)]).ok
+
+
 def test_reinflation_snaps_onto_the_rest_pose_from_a_tenth_of_dhat(neck_pair, neck_flow):
     """The last reverse step puts F onto its rest pose once within 0.1 dhat (if the CCD allows; the others
     within 0.01): on the clearance path (rest pose = the offset surface) F still ends at it bit for bit,
@@ -349,6 +369,13 @@ def test_push_out_separates_a_cage_edge_crossing_a_sharp_edge(monkeypatch):
     moved = np.flatnonzero(np.abs(T - Vc).max(axis=1) > 0)
     assert np.array_equal(np.sort(moved), np.sort(E[0]))
     assert np.allclose(T[moved] - Vc[moved], (1.07 - 0.4) * gap * D[0])
+    # complete_clearance: one distance before the push, one after its pass (none measured twice)
+    calls = []
+    real = nested_backend_module.min_distance
+    monkeypatch.setattr(nested_backend_module, "min_distance", lambda *a, **k: calls.append(1) or real(*a, **k))
+    C4, d4, rec = nested_backend_module.complete_clearance(Vc, Fc, Vf, Ff, gap)
+    assert len(calls) == 2 and rec["passes"] == 1 and np.array_equal(C4, C2)
+    assert d4 == real(C4, Fc, Vf, Ff) >= gap
     empty = (np.zeros((0, 2), np.int64), np.zeros(0), np.zeros((0, 3)))
     monkeypatch.setattr(nested_backend_module, "close_edge_pairs", lambda *a: empty)
     C3, info = nested_backend_module.push_out(Vc, Fc, Vf, Ff, gap)

@@ -151,7 +151,8 @@ def offset_surface(V: np.ndarray, F: np.ndarray, gap: float, fold_factor: float 
 
 
 def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap: float,
-             max_iter: int = 8, accept: float | None = None) -> tuple[np.ndarray | None, dict]:
+             max_iter: int = 8, accept: float | None = None, distance: float | None = None
+             ) -> tuple[np.ndarray | None, dict]:
     """Move a cage that contains ``(Vf, Ff)`` outward until it keeps ``gap`` from it.
 
     Each pass offsets the cage by the missing clearance (:func:`offset_surface` of the cage itself:
@@ -173,18 +174,20 @@ def push_out(C: np.ndarray, Fc: np.ndarray, Vf: np.ndarray, Ff: np.ndarray, gap:
     accept : float, optional
         When the motion is blocked or the passes run out, the cage reached so far is still returned if it
         keeps at least this distance (default: ``gap``).
+    distance : float, optional
+        :func:`cagegen.collision.min_distance` of ``C`` to F when the caller has it (not measured again).
 
     Returns
     -------
     C2 : (nc,3) float array or None
         The pushed cage, or None when the motion was blocked before ``accept`` (``info["reason"]``).
     info : dict
-        ``passes``, ``distance`` (achieved), ``reason``.
+        ``passes``, ``distance`` (achieved, of the returned cage when there is one), ``reason``.
     """
     C = np.array(C, dtype=float)
     accept = gap if accept is None else float(accept)
     pair = PairMesh(C, Fc, Vf, Ff)
-    d = min_distance(C, Fc, Vf, Ff)
+    d = min_distance(C, Fc, Vf, Ff) if distance is None else float(distance)
     info: dict = {"passes": 0, "distance_before": d}
     adj = igl.adjacency_matrix(np.asarray(Fc, dtype=np.int64)).tocsr()
     for it in range(max_iter):
@@ -612,10 +615,10 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
     d = min_distance(C, G, Vf, Ff)
     if d >= gap / GAP_AIM:
         return C, d, None
-    C2, oinfo = push_out(C, G, Vf, Ff, gap, accept=gap / GAP_AIM)
+    C2, oinfo = push_out(C, G, Vf, Ff, gap, accept=gap / GAP_AIM, distance=d)
     if C2 is None:
         return C, d, oinfo
-    return C2, min_distance(C2, G, Vf, Ff), oinfo
+    return C2, oinfo["distance"], oinfo
 
 
 #: Facing walls: the wall a ray along F's outward normal hits next faces back within this angle.

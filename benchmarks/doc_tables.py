@@ -33,7 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_388b75f_merged.json"
+CORPUS = "corpus/zoo_6a00d76_merged.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
@@ -538,43 +538,6 @@ def usermesh_residual() -> str:
             f"{len(s)} cases)")
 
 
-CAGES_AB = "cages/ab_48844c4.json"
-CAGES_AB_FLOW = "cages/ab_19cd170.json"
-CAGES_AB_FLOW_REPAIR = "cages/ab_19cd170_repair.json"
-
-
-def _ab_summary(path: str) -> str:
-    """Total CPU seconds before -> after, the three largest speed-ups, the others' ratio range, same cages."""
-    rows = {m: r for m, r in load(path)["meshes"].items() if "cpu_ratio" in r}
-    same = sum(r["same_cages"] for r in rows.values())
-    cpu = {t: sum(r[t]["cpu_seconds"] for r in rows.values()) for t in ("before", "after")}
-    top = sorted(rows.items(), key=lambda kv: -kv[1]["cpu_ratio"])[:3]
-    ratios = sorted(r["cpu_ratio"] for r in rows.values())
-    return (f"{cpu['before']:.0f} -> {cpu['after']:.0f} in all ("
-            + ", ".join(f"{m} {r['before']['cpu_seconds']:.1f} -> {r['after']['cpu_seconds']:.1f}" for m, r in top)
-            + f"; the others x{ratios[0]:.2f}-{ratios[-4]:.2f}, one run each; same cages on {same} of {len(rows)})")
-
-
-@generator("cages_ab.summary", CAGES_AB)
-def cages_ab_summary() -> str:
-    return _ab_summary(CAGES_AB)
-
-
-@generator("cages_ab.flow", CAGES_AB_FLOW, CAGES_AB_FLOW_REPAIR)
-def cages_ab_flow() -> str:
-    rows = load(CAGES_AB_FLOW)["meshes"]
-    vol = [abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in rows.values() if r.get("cpu_ratio")
-           for lb, la in zip(r["before"]["layers"], r["after"]["layers"])]
-    changed = sorted((m, lb["layer"], lb["volume_ratio"], la["volume_ratio"]) for m, r in rows.items()
-                     if r.get("cpu_ratio") for lb, la in zip(r["before"]["layers"], r["after"]["layers"])
-                     if abs(la["volume_ratio"] / lb["volume_ratio"] - 1) > 1e-3)
-    rep = load(CAGES_AB_FLOW_REPAIR)["meshes"]["42400-IDGH.stl"]
-    moved = ", ".join(f"{m} layer {k} {b:.3f} -> {a:.3f}" for m, k, b, a in changed)
-    small = max(v for v in vol if v <= 1e-3) * 100
-    return (_ab_summary(CAGES_AB_FLOW) + "; volume ratios to the previous layer "
-            + (moved + ", every other layer's " if changed else "every layer's ")
-            + f"changed by at most {small:.2g}%; 42400-IDGH.stl with `--repair` "
-            f"{rep['before']['cpu_seconds']:.0f} -> {rep['after']['cpu_seconds']:.0f} CPU s")
 
 
 CAGES_AB_GN = "cages/ab_0eb1630.json"
@@ -745,6 +708,48 @@ CAGES_LUCY_SUBSET = "cages/ab_lucy_hybrid_subset_d4d2e4c.json"
 def cages_hybrid_subset() -> str:
     """The hybrid's near set picked from the collision objects read, at 00c13e4 (:func:`_ab_one_run`)."""
     return _ab_one_run(CAGES_AB_SUBSET, CAGES_LUCY_SUBSET, slowest=True)
+
+
+CAGES_AB_DHAT_EDGE = ("cages/ab_dhat_edge_6a00d76.json", "cages/ab_dhat_edge_repair_6a00d76.json")
+
+
+@generator("cages.dhat_edge", *CAGES_AB_DHAT_EDGE)
+def cages_dhat_edge() -> str:
+    """The reverse steps' ``dhat`` at most half the fine mean edge: total CPU seconds after / before, the
+    largest changes both ways, certification and volume ratios (one ``cages_ab.py`` run per file)."""
+    rows = {}
+    for rel in CAGES_AB_DHAT_EDGE:
+        rows.update(load(rel)["meshes"])
+    both = {m: r for m, r in rows.items() if r["before"]["ok"] and r["after"]["ok"]}
+    cpu = lambda m, side: both[m][side]["cpu_seconds"]  # noqa: E731
+    total = sum(cpu(m, "after") for m in both) / sum(cpu(m, "before") for m in both)
+    order = sorted(both, key=lambda m: cpu(m, "after") / cpu(m, "before"))
+    show = lambda ms: ", ".join(f"{m} {cpu(m, 'before'):.1f} -> {cpu(m, 'after'):.1f}" for m in ms)  # noqa: E731
+    vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in both.values()
+              for lb, la in zip(r["before"]["layers"], r["after"]["layers"]))
+    return (f"CPU seconds x{total:.2f} in all over {len(both)} meshes (one run each, before -> after): "
+            f"{show(order[:4])}; slower: {show(order[-3:][::-1])}; certified by both trees: {len(both)} of "
+            f"{len(rows)}; volume ratios within {100 * vol:.1f}%")
+
+
+WHEEL_6A00D76 = ("corpus/wheel_a_6a00d76.json", "corpus/wheel_b_6a00d76.json",
+                 "corpus/wheel_repair_sb_6a00d76.json")
+
+
+@generator("cages.wheel_limits", *WHEEL_6A00D76)
+def cages_wheel_limits() -> str:
+    """The wheel's seconds over ours at 6a00d76 on the zoo meshes of 5k-100k faces it certifies: those
+    under 10x, then the range of the others."""
+    rows = [r for rel in WHEEL_6A00D76 for r in load(rel)["meshes"]
+            if r.get("wheel", {}).get("ok") and r["cages:nested"].get("certified")]
+    ratio = {r["mesh"] + (" (`--repair`)" if r["wheel"].get("repair") else ""):
+             (r["wheel"]["seconds"] / r["cages:nested"]["seconds"], r["cages:nested"]["seconds"], r["wheel"]["seconds"])
+             for r in rows}
+    low = sorted((m for m in ratio if ratio[m][0] < 10), key=lambda m: ratio[m][0])
+    high = [ratio[m][0] for m in ratio if ratio[m][0] >= 10]
+    down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # noqa: E731 (rounded against us)
+    show = ", ".join(f"{m} {down(ratio[m][0])} ({ratio[m][1]:.1f} s against {ratio[m][2]:.1f} s)" for m in low)
+    return f"{len(high)} of {len(ratio)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); below: {show}"
 
 
 SLOW_MODE = "corpus/slow_mode_65e1832.json"

@@ -133,10 +133,10 @@ HYBRID_NEAR = 0.5
 #: ``dhat`` and ``max_move`` of the reverse steps shrink (by the same factor) to at most this fraction of the
 #: fine surface's mean edge length. The contacts a cage primitive has grow with the fine primitives inside
 #: ``dhat`` of it, and a Newton step costs per contact: on dense inputs the barrier's range spanned edges
-#: by the dozen. stanford-bunny.obj's first layer (mean edge 0.0059 of the diagonal): 119k contacts a
-#: collision build, 2.6 s a Newton iteration. Ad hoc measurements before the benchmark below: reverse phase
-#: 18.3 -> 10.8 s, lucy.ply's 36.4 -> 4.8 s; a fixed ``dhat`` of 3e-3 instead stalled homer.obj's second
-#: layer, whose fine surface is a coarse cage (mean edge 0.024): the rule leaves such layers alone.
+#: by the dozen (stanford-bunny.obj's first layer, mean edge 0.0059 of the diagonal: 119k contacts a collision
+#: build, 2.6 s a Newton iteration; ad hoc). A fixed ``dhat`` of 3e-3 instead stalled homer.obj's second layer,
+#: whose fine surface is a coarse cage (mean edge 0.024): the rule leaves such layers alone. Measured with
+#: ``cages_ab.py``: ``benchmarks/results/cages/ab_dhat_edge_6a00d76.json`` (docs/cagegen.md).
 DHAT_PER_EDGE = 0.5
 
 #: The Gauss-Newton matrix gives way to ipctk's projected Hessian for the rest of a re-inflation when a

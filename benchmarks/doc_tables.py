@@ -721,10 +721,10 @@ def cages_dhat_edge() -> str:
     for rel in CAGES_AB_DHAT_EDGE:
         rows.update(load(rel)["meshes"])
     both = {m: r for m, r in rows.items() if r["before"]["ok"] and r["after"]["ok"]}
-    cpu = lambda m, side: both[m][side]["cpu_seconds"]  # noqa: E731
+    cpu = lambda m, side: both[m][side]["cpu_seconds"]
     total = sum(cpu(m, "after") for m in both) / sum(cpu(m, "before") for m in both)
     order = sorted(both, key=lambda m: cpu(m, "after") / cpu(m, "before"))
-    show = lambda ms: ", ".join(f"{m} {cpu(m, 'before'):.1f} -> {cpu(m, 'after'):.1f}" for m in ms)  # noqa: E731
+    show = lambda ms: ", ".join(f"{m} {cpu(m, 'before'):.1f} -> {cpu(m, 'after'):.1f}" for m in ms)
     vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in both.values()
               for lb, la in zip(r["before"]["layers"], r["after"]["layers"]))
     return (f"CPU seconds x{total:.2f} in all over {len(both)} meshes (one run each, before -> after): "
@@ -747,7 +747,7 @@ def cages_wheel_limits() -> str:
              for r in rows}
     low = sorted((m for m in ratio if ratio[m][0] < 10), key=lambda m: ratio[m][0])
     high = [ratio[m][0] for m in ratio if ratio[m][0] >= 10]
-    down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # noqa: E731 (rounded against us)
+    down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # rounded against us
     show = ", ".join(f"{m} {down(ratio[m][0])} ({ratio[m][1]:.1f} s against {ratio[m][2]:.1f} s)" for m in low)
     return f"{len(high)} of {len(ratio)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); below: {show}"
 

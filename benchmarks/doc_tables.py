@@ -710,7 +710,8 @@ def cages_hybrid_subset() -> str:
     return _ab_one_run(CAGES_AB_SUBSET, CAGES_LUCY_SUBSET, slowest=True)
 
 
-CAGES_AB_DHAT_EDGE = ("cages/ab_dhat_edge_6a00d76.json", "cages/ab_dhat_edge_repair_6a00d76.json")
+CAGES_AB_DHAT_EDGE = ("cages/ab_dhat_edge_6a00d76.json", "cages/ab_dhat_edge_repair_6a00d76.json",
+                      "cages/ab_dhat_edge_scale_6a00d76.json")
 
 
 @generator("cages.dhat_edge", *CAGES_AB_DHAT_EDGE)

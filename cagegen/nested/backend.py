@@ -809,7 +809,8 @@ def estimate_seconds(n_faces: int, face_counts) -> float:
     ``nestmg cages --levels 3`` on scans and subdivided zoo meshes (``benchmarks/results/corpus/
     nested_scale.json``, docs/cagegen.md): stanford-bunny 69k faces 52 s (estimated 156), lucy 100k 81 s
     (282), bunny.off subdivided to 111k 89 s (346), homer.obj subdivided to 192k 979 s (1161, a stalled first
-    target), gargo.off subdivided to 342k 1395 s (5399). CAD parts cost more per face at a few thousand faces (featuretype, 3.5k faces: 30 s,
+    target), gargo.off subdivided to 342k 1395 s (5399); with the reverse steps' ``dhat`` rule (2c7e533,
+    ``nested_scale_*_2c7e533.json``) 747 s and 527 s. CAD parts cost more per face at a few thousand faces (featuretype, 3.5k faces: 30 s,
     estimated 15), which it does not follow: it is a guard against starting an hour of work, not a
     prediction.
     """

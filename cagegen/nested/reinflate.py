@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import igl
 import ipctk
 import numpy as np
 import scipy.sparse as sp
@@ -413,7 +414,7 @@ def reinflate(
     Fc = np.asarray(Fc, dtype=np.int64)
     rest = history[0]
     diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
-    shrink = min(1.0, DHAT_PER_EDGE * _mean_edge(rest, Ff) / (dhat * diag))  # :data:`DHAT_PER_EDGE`
+    shrink = min(1.0, DHAT_PER_EDGE * float(igl.avg_edge_length(rest, Ff)) / (dhat * diag))  # :data:`DHAT_PER_EDGE`
     dhat_abs = dhat * shrink * diag
     path = resample_history(history, max_move * shrink * diag)
     C = np.array(Vc, dtype=float)
@@ -505,11 +506,6 @@ def reinflate(
     stats["t_final"] = time.perf_counter() - t1
     stats.update(_counters(prob, t0))
     return ReinflateResult(X[:nc].copy(), X[nc:].copy(), True, "ok", stats)
-
-
-def _mean_edge(V: np.ndarray, F: np.ndarray) -> float:
-    """Mean length of the edges of the triangles ``F`` (interior edges counted twice)."""
-    return float(np.linalg.norm(V[F] - V[np.roll(F, 1, axis=1)], axis=2).mean())
 
 
 def _counters(prob: _Problem, t0: float) -> dict:

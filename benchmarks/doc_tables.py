@@ -660,16 +660,25 @@ CAGES_LUCY_LASTSNAP = "cages/ab_lucy_lastsnap_2137b50.json"
 CAGES_LUCY_SNAPALL = "cages/ab_lucy_snapall_2137b50.json"
 
 
-def _ab_one_run(path: str, lucy: str, slowest: bool = False) -> str:
-    """One ``cages_ab.py`` run over the meshes both trees certified: total CPU seconds after / before, the
-    largest changes (``slowest``: the largest slow-down too), volume ratios; then lucy.ply's CPU seconds
-    from its own run."""
-    runs = {m: r for m, r in load(path)["meshes"].items() if r["before"]["ok"] and r["after"]["ok"]}
-    cpu = lambda m, side: runs[m][side]["cpu_seconds"]  # noqa: E731
+def _ab_both(meshes: dict) -> tuple[dict, float, list, float]:
+    """``cages_ab.py`` rows of the meshes both trees certified, their total CPU seconds after / before, the
+    meshes from the largest speed-up to the largest slow-down, and the largest relative change of a layer's
+    volume ratio."""
+    runs = {m: r for m, r in meshes.items() if r["before"]["ok"] and r["after"]["ok"]}
+    cpu = lambda m, side: runs[m][side]["cpu_seconds"]
     total = sum(cpu(m, "after") for m in runs) / sum(cpu(m, "before") for m in runs)
     order = sorted(runs, key=lambda m: cpu(m, "after") / cpu(m, "before"))
     vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in runs.values()
               for lb, la in zip(r["before"]["layers"], r["after"]["layers"]))
+    return runs, total, order, vol
+
+
+def _ab_one_run(path: str, lucy: str, slowest: bool = False) -> str:
+    """One ``cages_ab.py`` run over the meshes both trees certified: total CPU seconds after / before, the
+    largest changes (``slowest``: the largest slow-down too), volume ratios; then lucy.ply's CPU seconds
+    from its own run."""
+    runs, total, order, vol = _ab_both(load(path)["meshes"])
+    cpu = lambda m, side: runs[m][side]["cpu_seconds"]  # noqa: E731
     lu = load(lucy)["meshes"]["lucy.ply"]
     return (f"CPU seconds x{total:.2f} in all over {len(runs)} meshes (one run), "
             + ", ".join(f"{m} x{cpu(m, 'after') / cpu(m, 'before'):.2f}"
@@ -721,13 +730,9 @@ def cages_dhat_edge() -> str:
     rows = {}
     for rel in CAGES_AB_DHAT_EDGE:
         rows.update(load(rel)["meshes"])
-    both = {m: r for m, r in rows.items() if r["before"]["ok"] and r["after"]["ok"]}
+    both, total, order, vol = _ab_both(rows)
     cpu = lambda m, side: both[m][side]["cpu_seconds"]
-    total = sum(cpu(m, "after") for m in both) / sum(cpu(m, "before") for m in both)
-    order = sorted(both, key=lambda m: cpu(m, "after") / cpu(m, "before"))
     show = lambda ms: ", ".join(f"{m} {cpu(m, 'before'):.1f} -> {cpu(m, 'after'):.1f}" for m in ms)
-    vol = max(abs(la["volume_ratio"] / lb["volume_ratio"] - 1) for r in both.values()
-              for lb, la in zip(r["before"]["layers"], r["after"]["layers"]))
     return (f"CPU seconds x{total:.2f} in all over {len(both)} meshes (one run each, before -> after): "
             f"{show(order[:4])}; slower: {show(order[-3:][::-1])}; certified by both trees: {len(both)} of "
             f"{len(rows)}; volume ratios within {100 * vol:.1f}%")

@@ -264,7 +264,7 @@ def _wheel_input(mesh: Path) -> tuple[np.ndarray, np.ndarray]:
     V, F, bodies = _bodies(*_load(str(mesh))[:2], True)
     if bodies:
         raise ValueError(f"{len(bodies)} bodies after the repair: the wheel cages one solid")
-    V, F, _ = _solid_input(V, F, _cage_options(args, "nested"), args.meshing, None)
+    V, F = _solid_input(V, F, _cage_options(args, "nested"), args.meshing, None)[:2]
     V, F = cagegen.check_mesh(V, F, repair=True, name="input")
     return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
 

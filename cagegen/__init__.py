@@ -20,7 +20,7 @@ from __future__ import annotations
 from . import _log, errors  # noqa: F401 -- _log: the cagegen loggers (NullHandler; ipctk's lines go there)
 from ._geometry import as_mesh_arrays, bbox_diagonal, normalize
 from ._tempdir import in_temp_dir
-from .audit import MeshAudit, audit_mesh, check_mesh, repair_mesh
+from .audit import MeshAudit, audit_mesh, audit_self_intersections, check_mesh, repair_mesh
 from .build import UNCERTIFIED_METHODS, build_cages
 from .components import build_cages_per_component, split_components
 from .culling import CullingReport, cull_collisions, solids_intersect
@@ -61,6 +61,7 @@ __all__ = [
     "UnknownMethodError",
     "as_mesh_arrays",
     "audit_mesh",
+    "audit_self_intersections",
     "available_backends",
     "bbox_diagonal",
     "build_cages",

@@ -23,6 +23,7 @@ True
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -36,9 +37,9 @@ from ._geometry import (
     self_intersection_pairs,
     signed_volume,
 )
-from .errors import MeshInputError
+from .errors import CageOptionError, MeshInputError
 
-__all__ = ["MeshAudit", "audit_mesh", "check_mesh", "flip_cap_faces", "repair_mesh"]
+__all__ = ["MeshAudit", "audit_mesh", "audit_self_intersections", "check_mesh", "flip_cap_faces", "repair_mesh"]
 
 # Defaults, all relative to the bounding-box diagonal ``d`` of the mesh.
 MERGE_TOL = 1e-10  # vertices closer than MERGE_TOL * d are "coincident"
@@ -211,16 +212,59 @@ def audit_mesh(
     es = _audit_topology(a, F, referenced)
     _audit_volume_genus(a, V, F, d, es, referenced)
     if not self_intersections:
-        a.skipped.append("self-intersections (switched off)")
-    elif d is None or a.n_degenerate_faces:
-        a.skipped.append("self-intersections (non-finite coordinates or degenerate faces)")
+        a.skipped.append(_SI_OFF)
     else:
-        pairs = self_intersection_pairs(V, F)
-        a.n_self_intersections = len(pairs)
-        if len(pairs):
-            a.problems.append(
-                f"self-intersections: {len(pairs)} intersecting face pairs (first: {pairs[0].tolist()})"
-            )
+        _audit_self_intersections(a, V, F, d is not None)
+    return a
+
+
+#: :attr:`MeshAudit.skipped`'s entry of an audit made with ``self_intersections=False``
+_SI_OFF = "self-intersections (switched off)"
+
+
+def _audit_self_intersections(a: MeshAudit, V: np.ndarray, F: np.ndarray, geometric: bool) -> None:
+    """The exact self-intersection test, recorded in ``a`` (skipped without the geometric checks or with
+    degenerate faces)."""
+    if not geometric or a.n_degenerate_faces:
+        a.skipped.append("self-intersections (non-finite coordinates or degenerate faces)")
+        return
+    pairs = self_intersection_pairs(V, F)
+    a.n_self_intersections = len(pairs)
+    if len(pairs):
+        a.problems.append(f"self-intersections: {len(pairs)} intersecting face pairs (first: {pairs[0].tolist()})")
+
+
+def audit_self_intersections(audit: MeshAudit, V, F) -> MeshAudit:
+    """Complete an audit made with ``self_intersections=False``: a copy of ``audit`` with the exact
+    self-intersection test of ``(V, F)`` added, as :func:`audit_mesh` with the test would have it.
+
+    A caller that decides from the cheap checks whether it needs the test at all (a scan whose only
+    problem is an open boundary is mended first, and the mended surface is tested) pays for it once.
+
+    Parameters
+    ----------
+    audit : MeshAudit
+        ``audit_mesh(V, F, self_intersections=False, ...)`` of exactly these arrays.
+    V : (n,3) array_like of float
+    F : (m,3) array_like of int
+
+    Returns
+    -------
+    MeshAudit
+        A new audit (``audit`` is not modified).
+
+    Raises
+    ------
+    CageOptionError
+        If ``audit`` was not made with the test switched off, or is of arrays of another size.
+    """
+    V, F = as_mesh_arrays(V, F, audit.name)
+    if _SI_OFF not in audit.skipped or (audit.n_vertices, audit.n_faces) != (len(V), len(F)):
+        raise CageOptionError(f"audit_self_intersections needs an audit of these {len(V)} vertices and {len(F)} "
+                              f"faces made with self_intersections=False, got {audit!r}")
+    a = dataclasses.replace(audit, problems=list(audit.problems),
+                            skipped=[s for s in audit.skipped if s != _SI_OFF])
+    _audit_self_intersections(a, V, F, not any(s.startswith("geometric checks") for s in a.skipped))
     return a
 
 

@@ -19,7 +19,7 @@ import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -420,11 +420,15 @@ def build_cage_surfaces(
     F = np.ascontiguousarray(F, dtype=np.int64)
     if face_counts is not None:  # explicit counts that cannot be met fail in microseconds, before any repair
         plan_levels(len(F), levels, face_counts=face_counts)
-    V, F, solid = _solid_input(V, F, cages, meshing, t0)
+    V, F, solid, audited = _solid_input(V, F, cages, meshing, t0)
     V_all, F_all, voids = V, F, _voids(V, F, meshing, t0)
     if voids is not None:  # a solid with voids: the cages of its outer surface contain it
         V, F = voids["outer"]
-    Vn, center, scale = _normalize(V)
+        audited = None
+    if audited is not None:  # a scan closed and audited in its normalised frame: the same arrays go on
+        Vn, center, scale, audit = audited
+    else:
+        Vn, center, scale = _normalize(V)
     # `levels` is a ceiling (the levels that fit F's faces, one line when fewer); explicit face counts are
     # checked here, before the audit: both in microseconds
     lp = plan_levels(len(F), levels, face_counts=face_counts)
@@ -446,7 +450,7 @@ def build_cage_surfaces(
             # a terminal: the backend's own bars; a log or a pipe: its per-layer messages as stage lines
             # (silent unless the `nestmg` logger has a handler, which the CLI installs off a terminal)
             cage_progress = True if sys.stderr.isatty() else (lambda msg: stage_line(f"cages ({method}): {msg}", t0))
-        given = audit if audit is not None and np.array_equal(Vn, V) else None
+        given = audit if audit is not None and (audited is not None or np.array_equal(Vn, V)) else None
         surfaces, info = cagegen.build_cages(Vn, F, levels, method=method, face_counts=face_counts,
                                              return_info=True, progress=cage_progress, options=cages,
                                              audit=given)
@@ -487,14 +491,26 @@ def _voids(V: np.ndarray, F: np.ndarray, meshing: MeshingOptions, t0) -> dict | 
     return {"outer": outer, "voids": voids, "count": count}
 
 
-def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t0) -> tuple:
+class _Solid(NamedTuple):
+    """:func:`_solid_input`'s result: the surface to cage (user's coordinates), what was mended (None:
+    nothing) and, for a scan whose holes were closed, ``audited = (Vn, center, scale, audit)``: the
+    normalised surface (``V = Vn * scale + center``) and its passed audit, self-intersection test included."""
+
+    V: np.ndarray
+    F: np.ndarray
+    info: dict | None = None
+    audited: tuple | None = None
+
+
+def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t0) -> _Solid:
     """With ``repair`` on, an input whose audit fails for what TetWild can mend (overlapping bodies,
     self-intersections, pinches) is replaced by the boundary of its solid: the exact union of its pieces
     when they are clean closed parts that overlap (:func:`nestmg.solid.exact_union`), else the boundary of
-    TetWild's solid (:func:`nestmg.solid.solid_surface`).
+    TetWild's solid (:func:`nestmg.solid.solid_surface`); a scan whose only problem is an open boundary gets
+    its holes closed.
 
-    Returns ``(V, F, info)``: the input itself and None when nothing had to be mended. One stage line
-    says what was done; several disjoint bodies are refused with a one-line error.
+    Returns a :class:`_Solid`: the input itself and ``info`` None when nothing had to be mended. One stage
+    line says what was done; several disjoint bodies are refused with a one-line error.
     """
     import cagegen
 
@@ -502,34 +518,39 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     from .solid import REPAIR_MAX_FACES, UNREPAIRABLE, exact_union, fill_holes, solid_surface
 
     if not getattr(cages, "repair", False):
-        return V, F, None
+        return _Solid(V, F)
     from .cavities import hollow_solid, orient_by_nesting
 
     if hollow_solid(V, F) is not None:
-        return V, F, None  # a solid with voids is no defect (the repair would fill them): nestmg.cavities
+        return _Solid(V, F)  # a solid with voids is no defect (the repair would fill them): nestmg.cavities
     voids = orient_by_nesting(V, F)  # nested pieces facing out: the inner ones read as voids (even-odd)
     if voids is not None:
         stage_line("repair: pieces inside an odd number of others are voids: turned to face them", t0)
-        return V, voids, None
+        return _Solid(V, voids)
     Vn, center, scale = _normalize(V)  # TetWild works in the normalised frame
     v_in = signed_volume(Vn, F)  # as given (before the cheap repairs re-orient anything)
     Vr, Fr = cagegen.repair_mesh(Vn, F)
-    problems = cagegen.audit_mesh(Vr, Fr).problems
-    if [p.split(":")[0] for p in problems] == ["open boundary"]:  # a scan's holes, nothing else: close them
+    # the exact self-intersection test (~1 s per 10k faces) once: a scan with holes is tested once closed
+    audit = cagegen.audit_mesh(Vr, Fr, self_intersections=False)
+    if [p.split(":")[0] for p in audit.problems] == ["open boundary"]:  # a scan's holes, nothing else: close them
         t = time.perf_counter()
         Vr, Fr, holes = fill_holes(Vr, Fr)
-        problems = cagegen.audit_mesh(Vr, Fr).problems
+        audit = cagegen.audit_mesh(Vr, Fr)
+        problems = audit.problems
         stage_line(f"repair: open boundary -> {holes['holes']} hole(s) closed by {holes['patch_faces']:,} faces "
                    f"({holes['patch_area_fraction']:.2%} of the area; least folding, then least area)"
                    + (f"; still: {', '.join(p.split(':')[0] for p in problems)}" if problems else ""), t0)
         if not problems:
             volume = signed_volume(Vr, Fr) * scale**3
-            return Vr * scale + center, Fr, dict(
-                holes, method="holes", problems=["open boundary"], faces_in=len(F), faces_out=len(Fr), tets=0,
-                bodies=1, pinch_rounds=0, volume=volume, volume_dropped=0.0, volume_filled=0.0, decimated=None,
-                volume_change=None, seconds=time.perf_counter() - t)
+            info = dict(holes, method="holes", problems=["open boundary"], faces_in=len(F), faces_out=len(Fr),
+                        tets=0, bodies=1, pinch_rounds=0, volume=volume, volume_dropped=0.0, volume_filled=0.0,
+                        decimated=None, volume_change=None, seconds=time.perf_counter() - t)
+            # the audited normalised copy goes on: the cages need no second test of the same surface
+            return _Solid(Vr * scale + center, Fr, info, (Vr, center, scale, audit))
+    else:
+        problems = cagegen.audit_self_intersections(audit, Vr, Fr).problems
     if not problems or any(p.startswith(UNREPAIRABLE) for p in problems):
-        return V, F, None  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
+        return _Solid(V, F)  # clean (the cheap repairs suffice), or nothing TetWild can mend: audited later
     _refuse_disjoint_bodies(Vr, Fr)  # in seconds, before TetWild would find them
     names = [p.split(":")[0] for p in problems]
     t = time.perf_counter()
@@ -561,7 +582,7 @@ def _solid_input(V: np.ndarray, F: np.ndarray, cages, meshing: MeshingOptions, t
     stage_line(f"repair: {', '.join(info['problems'])} -> {how}: "
                f"{len(F):,} -> {len(G):,} faces, volume dropped {dropped:.2%}, voids filled {filled:.2%}{change} "
                f"({info['seconds']:.1f} s)", t0)
-    return W, G, info
+    return _Solid(W, G, info)
 
 
 def _refuse_disjoint_bodies(V: np.ndarray, F: np.ndarray) -> None:
@@ -842,7 +863,7 @@ def build_hierarchy(
     Vn, center, scale = _normalize(V)
     if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or F.min() < 0 or F.max() >= len(V):
         raise cagegen.MeshInputError(f"input: faces must be a non-empty (m,3) array of vertex indices, got {F.shape}")
-    V, F, solid = _solid_input(V, F, cages, meshing, t0)
+    V, F, solid, _ = _solid_input(V, F, cages, meshing, t0)
     if solid is not None:  # the repaired surface is the input from here on (returned as level 0's surface)
         Vn, center, scale = _normalize(V)
     V_all, F_all, voids = V, F, _voids(V, F, meshing, t0)

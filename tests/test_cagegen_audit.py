@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from cagegen.audit import audit_mesh, check_mesh, repair_mesh
-from cagegen.errors import MeshInputError
+from cagegen.audit import audit_mesh, audit_self_intersections, check_mesh, repair_mesh
+from cagegen.errors import CageOptionError, MeshInputError
 
 
 def _ico(sub: int = 2, r: float = 1.0, c=(0.0, 0.0, 0.0)):
@@ -109,6 +109,24 @@ def test_two_components_and_self_intersection():
     assert a.n_self_intersections > 0
     _raises(V, F, "self-intersections", "components")
     assert audit_mesh(V, F, self_intersections=False).n_self_intersections is None
+
+
+@pytest.mark.parametrize("shift", [0.5, 3.0])
+def test_audit_completed_with_the_self_intersection_test_equals_the_full_audit(shift):
+    """audit_self_intersections(audit_mesh(..., self_intersections=False)) is audit_mesh with the test, field
+    for field, on overlapping (shift 0.5) and disjoint copies; the audit it completes is left as it was."""
+    Va, Fa = _ico(2)
+    Vb, Fb = _ico(2, c=(shift, 0, 0))
+    V, F = np.vstack([Va, Vb]), np.vstack([Fa, Fb + len(Va)])
+    cheap = audit_mesh(V, F, self_intersections=False)
+    before = cheap.to_dict()
+    done = audit_self_intersections(cheap, V, F)
+    assert done.to_dict() == audit_mesh(V, F).to_dict()
+    assert (done.n_self_intersections > 0) == (shift < 2) and cheap.to_dict() == before
+    with pytest.raises(CageOptionError, match="self_intersections=False"):
+        audit_self_intersections(done, V, F)  # already tested
+    with pytest.raises(CageOptionError, match="self_intersections=False"):
+        audit_self_intersections(cheap, Va, Fa)  # not an audit of these arrays
 
 
 def test_flipped_orientation_and_repair(ball):

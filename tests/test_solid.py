@@ -276,7 +276,8 @@ def test_a_scans_small_holes_are_closed_an_open_sheet_is_refused():
         fill_holes(Vh, cap)
 
 
-def test_cli_closes_the_holes_with_repair_only(tmp_path, capsys):
+def test_cli_closes_the_holes_with_repair_only(tmp_path, capsys, monkeypatch):
+    import cagegen.audit
     from nestmg.cli import main
 
     V, F = _holed_ball()
@@ -285,10 +286,15 @@ def test_cli_closes_the_holes_with_repair_only(tmp_path, capsys):
     rc = main(["cages", str(src), "--levels", "2", "--out", str(tmp_path / "a"), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 2 and "open boundary" in err and "--repair closes small holes" in err
+    tested = []  # the surfaces the audits run the exact self-intersection test on
+    exact = cagegen.audit.self_intersection_pairs
+    monkeypatch.setattr(cagegen.audit, "self_intersection_pairs", lambda V, F: tested.append(len(F)) or exact(V, F))
     rc = main(["cages", str(src), "--levels", "2", "--repair", "--out", str(tmp_path / "b"), "--quiet"])
     assert rc == 0, capsys.readouterr().err
     rep = json.loads((tmp_path / "b" / "report.json").read_text())
     assert rep["verification"]["ok"] and rep["solid"]["method"] == "holes" and rep["solid"]["holes"] == 3
+    # once, on the closed surface (not on the open scan, nor again by the cages' own audit of the same arrays)
+    assert tested == [rep["faces"][0]] and rep["audit"]["n_self_intersections"] == 0
     layer0 = trimesh.load(tmp_path / "b" / "layer_0.obj", process=False)
     assert audit_mesh(np.asarray(layer0.vertices), np.asarray(layer0.faces)).ok
     assert np.abs(np.asarray(layer0.vertices)).max() == pytest.approx(20.0, rel=1e-9)  # the user's units

@@ -234,6 +234,8 @@ def case_cages(mesh: Path, method: str) -> dict:
     return {"seconds": time.perf_counter() - t, "certified": bool(ver.get("ok")) if ver else None,
             "faces": [len(Fk) for _, Fk in layers], "fallbacks": fallback_layers(info),
             "layer_seconds": info.get("layer_seconds"),
+            # the repair (`--repair`: the surface the wheel is given, outside its timer) within `seconds`
+            "repair_seconds": (info.get("solid") or {}).get("repair_seconds", 0.0),
             "min_gap": (info.get("cage_options") or {}).get("min_gap")}
 
 

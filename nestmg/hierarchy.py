@@ -420,7 +420,9 @@ def build_cage_surfaces(
     F = np.ascontiguousarray(F, dtype=np.int64)
     if face_counts is not None:  # explicit counts that cannot be met fail in microseconds, before any repair
         plan_levels(len(F), levels, face_counts=face_counts)
+    t_repair = time.perf_counter()
     V, F, solid, audited = _solid_input(V, F, cages, meshing, t0)
+    t_repair = time.perf_counter() - t_repair
     V_all, F_all, voids = V, F, _voids(V, F, meshing, t0)
     if voids is not None:  # a solid with voids: the cages of its outer surface contain it
         V, F = voids["outer"]
@@ -467,7 +469,7 @@ def build_cage_surfaces(
     info = dict(info, frame={"center": center.tolist(), "scale": scale}, cage_options=as_dict(cages),
                 levels=lp.to_dict())
     if solid is not None:
-        info["solid"] = solid
+        info["solid"] = dict(solid, repair_seconds=t_repair)  # the whole repair, its audits included
     if voids is not None:  # the input layer is the whole solid, voids included
         out[0] = (V_all, F_all) if same else merge_surfaces([out[0], voids["voids"]])
         info["voids"] = {"count": voids["count"], "faces": len(voids["voids"][1])}

@@ -295,6 +295,7 @@ def test_cli_closes_the_holes_with_repair_only(tmp_path, capsys, monkeypatch):
     assert rep["verification"]["ok"] and rep["solid"]["method"] == "holes" and rep["solid"]["holes"] == 3
     # once, on the closed surface (not on the open scan, nor again by the cages' own audit of the same arrays)
     assert tested == [rep["faces"][0]] and rep["audit"]["n_self_intersections"] == 0
+    assert rep["solid"]["repair_seconds"] >= rep["solid"]["seconds"] > 0  # the whole repair, audits included
     layer0 = trimesh.load(tmp_path / "b" / "layer_0.obj", process=False)
     assert audit_mesh(np.asarray(layer0.vertices), np.asarray(layer0.faces)).ok
     assert np.abs(np.asarray(layer0.vertices)).max() == pytest.approx(20.0, rel=1e-9)  # the user's units

@@ -740,27 +740,52 @@ def cages_dhat_edge() -> str:
 
 WHEEL_6A00D76 = ("corpus/wheel_a_6a00d76.json", "corpus/wheel_b_6a00d76.json",
                  "corpus/wheel_repair_sb_6a00d76.json")
-WHEEL_2C7E533 = "corpus/wheel_a2_2c7e533.json"
+#: one case at a time on an otherwise idle machine: every zoo mesh of 5k-100k faces at 7293b0e, then homer and
+#: stanford-bunny again at efc5d2c (the same nested code; the repair's audits changed, its seconds recorded)
+WHEEL_SEQ = ("corpus/wheel_seq_7293b0e.json", "corpus/wheel_seq_sb_7293b0e.json")
+WHEEL_SEQ_AGAIN = ("corpus/wheel_seq_homer_efc5d2c_r2.json", "corpus/wheel_seq_homer_efc5d2c_r3.json",
+                   *(f"corpus/wheel_seq_sb_efc5d2c_r{k}.json" for k in (1, 2, 3)))
 
 
-@generator("cages.wheel_limits", *WHEEL_6A00D76, WHEEL_2C7E533)
+def _wheel_ratios(rels) -> dict:
+    """mesh -> [(wheel seconds over ours, ours, the wheel's, our repair's seconds or None)] of the certified
+    cases."""
+    out: dict = {}
+    for rel in rels:
+        for r in load(rel)["meshes"]:
+            ours, w = r["cages:nested"], r.get("wheel", {})
+            if w.get("ok") and ours.get("certified"):
+                name = r["mesh"] + (" (`--repair`)" if w.get("repair") else "")
+                out.setdefault(name, []).append((w["seconds"] / ours["seconds"], ours["seconds"], w["seconds"],
+                                                 ours.get("repair_seconds")))  # None: not recorded (older runs)
+    return out
+
+
+@generator("cages.wheel_limits", *WHEEL_6A00D76, *WHEEL_SEQ, *WHEEL_SEQ_AGAIN)
 def cages_wheel_limits() -> str:
-    """The wheel's seconds over ours at 6a00d76 on the zoo meshes of 5k-100k faces it certifies: those
-    under 10x, then the range of the others."""
-    rows = [r for rel in WHEEL_6A00D76 for r in load(rel)["meshes"]
-            if r.get("wheel", {}).get("ok") and r["cages:nested"].get("certified")]
-    ratio = {r["mesh"] + (" (`--repair`)" if r["wheel"].get("repair") else ""):
-             (r["wheel"]["seconds"] / r["cages:nested"]["seconds"], r["cages:nested"]["seconds"], r["wheel"]["seconds"])
-             for r in rows}
-    low = sorted((m for m in ratio if ratio[m][0] < 10), key=lambda m: ratio[m][0])
-    high = [ratio[m][0] for m in ratio if ratio[m][0] >= 10]
+    """The wheel's seconds over ours on the zoo meshes of 5k-100k faces, one case at a time (the meshes
+    under 10x, the range of the others, the repeated ones' medians), then the loaded run at 6a00d76."""
     down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # rounded against us
-    show = ", ".join(f"{m} {down(ratio[m][0])} ({ratio[m][1]:.1f} s against {ratio[m][2]:.1f} s)" for m in low)
-    again = [r for r in load(WHEEL_2C7E533)["meshes"] if r.get("wheel", {}).get("ok")]
-    twice = ", ".join(f"{r['mesh']} {down(r['wheel']['seconds'] / r['cages:nested']['seconds'])}" for r in again)
-    return (f"{len(high)} of {len(ratio)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); below: {show}. "
-            f"The three again at 2c7e533, one case at a time beside a solve run (`corpus/wheel_a2_2c7e533.json`): "
-            f"{twice}")
+    first = {m: v[0] for m, v in _wheel_ratios(WHEEL_SEQ).items()}
+    low = sorted((m for m in first if first[m][0] < 10), key=lambda m: first[m][0])
+    high = [first[m][0] for m in first if first[m][0] >= 10]
+    show = ", ".join(f"{m} {down(first[m][0])} ({first[m][1]:.1f} s against {first[m][2]:.1f} s)" for m in low)
+    again = _wheel_ratios(WHEEL_SEQ_AGAIN)
+    reps = []
+    for m, runs in again.items():
+        runs = [first[m], *runs]
+        med = statistics.median(r[0] for r in runs)
+        timed = [r for r in runs if r[3]]  # the runs that recorded a repair (`--repair`, efc5d2c on)
+        rep = (f"; ours without the repair's {min(r[3] for r in timed):.1f}-{max(r[3] for r in timed):.1f} s, over "
+               f"its {len(timed)} runs that timed it: median "
+               f"{down(statistics.median(r[2] / (r[1] - r[3]) for r in timed))}") if timed else ""
+        reps.append(f"{m} {', '.join(down(r[0]) for r in runs)} (median {down(med)}{rep})")
+    loaded = _wheel_ratios(WHEEL_6A00D76)
+    n_loaded = sum(v[0][0] >= 10 for v in loaded.values())
+    return (f"{len(high)} of {len(first)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); "
+            f"below: {show or 'none'}. Again, the same way (`corpus/wheel_seq_*_efc5d2c_r*.json`): {'; '.join(reps)}. "
+            f"Two or three cases at a time (6a00d76, `corpus/wheel_{{a,b,repair_sb}}_6a00d76.json`) ours slowed more "
+            f"than the wheel's: {n_loaded} of {len(loaded)} at 10x")
 
 
 NESTED_SCALE_NOW = ("corpus/nested_scale_a_2c7e533.json", "corpus/nested_scale_b_2c7e533.json")

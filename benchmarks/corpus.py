@@ -236,7 +236,21 @@ def case_cages(mesh: Path, method: str) -> dict:
             "layer_seconds": info.get("layer_seconds"),
             # the repair (`--repair`: the surface the wheel is given, outside its timer) within `seconds`
             "repair_seconds": (info.get("solid") or {}).get("repair_seconds", 0.0),
+            "layers": _layer_costs(info),
             "min_gap": (info.get("cage_options") or {}).get("min_gap")}
+
+
+def _layer_costs(info: dict) -> list[dict]:
+    """Per cage layer of a backend that reports them (``nested``): seconds, the attempts that failed before
+    the layer was made, and the re-inflation's Newton iterations (reverse steps, final phase): the same
+    command's seconds vary from run to run, and these say whether the work did."""
+    out = []
+    for layer in (info.get("backend") or {}).get("layers") or []:
+        r = layer.get("reinflate") or {}
+        out.append({"seconds": (layer.get("seconds") or {}).get("total"),
+                    "failed_attempts": len(layer.get("failed_attempts") or []),
+                    "newton_iterations": r.get("newton_iterations"), "final_iterations": r.get("final_iterations")})
+    return out
 
 
 def case_wheel(mesh: Path, counts: list[int]) -> dict:

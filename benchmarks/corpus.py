@@ -246,8 +246,8 @@ def _layer_costs(info: dict) -> list[dict]:
     command's seconds vary from run to run, and these say whether the work did."""
     out = []
     for layer in (info.get("backend") or {}).get("layers") or []:
-        r = layer.get("reinflate") or {}
-        out.append({"seconds": (layer.get("seconds") or {}).get("total"),
+        r, sec = layer.get("reinflate") or {}, layer.get("seconds")
+        out.append({"seconds": sec.get("total") if isinstance(sec, dict) else sec,
                     "failed_attempts": len(layer.get("failed_attempts") or []),
                     "newton_iterations": r.get("newton_iterations"), "final_iterations": r.get("final_iterations")})
     return out

@@ -741,9 +741,11 @@ def cages_dhat_edge() -> str:
 WHEEL_6A00D76 = ("corpus/wheel_a_6a00d76.json", "corpus/wheel_b_6a00d76.json",
                  "corpus/wheel_repair_sb_6a00d76.json")
 #: one case at a time on an otherwise idle machine: every zoo mesh of 5k-100k faces at 7293b0e, then homer and
-#: stanford-bunny again at efc5d2c (the same nested code; the repair's audits changed, its seconds recorded)
+#: stanford-bunny again at efc5d2c and 4bc34ef (the same nested code; the repair's audits changed, its seconds
+#: recorded)
 WHEEL_SEQ = ("corpus/wheel_seq_7293b0e.json", "corpus/wheel_seq_sb_7293b0e.json")
 WHEEL_SEQ_AGAIN = ("corpus/wheel_seq_homer_efc5d2c_r2.json", "corpus/wheel_seq_homer_efc5d2c_r3.json",
+                   "corpus/wheel_seq_homer_4bc34ef_r4.json", "corpus/wheel_seq_homer_4bc34ef_r5.json",
                    *(f"corpus/wheel_seq_sb_efc5d2c_r{k}.json" for k in (1, 2, 3)))
 
 
@@ -783,7 +785,7 @@ def cages_wheel_limits() -> str:
     loaded = _wheel_ratios(WHEEL_6A00D76)
     n_loaded = sum(v[0][0] >= 10 for v in loaded.values())
     return (f"{len(high)} of {len(first)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); "
-            f"below: {show or 'none'}. Again, the same way (`corpus/wheel_seq_*_efc5d2c_r*.json`): {'; '.join(reps)}. "
+            f"below: {show or 'none'}. Again, the same way (`corpus/wheel_seq_*_r*.json`): {'; '.join(reps)}. "
             f"Two or three cases at a time (6a00d76, `corpus/wheel_{{a,b,repair_sb}}_6a00d76.json`) ours slowed more "
             f"than the wheel's: {n_loaded} of {len(loaded)} at 10x")
 

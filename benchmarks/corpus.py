@@ -430,13 +430,13 @@ def cages_row(entry: dict, backends: list[str]) -> str:
         elif r.get("ok"):
             fb = "*" if r.get("fallbacks") else ""
             mended = " (`--repair`)" if r.get("repair") else ""
-            cells.append(f"{'yes' if r['certified'] else 'no'}{fb} {r['seconds']:.0f} s{mended}")
+            cells.append(f"{'yes' if r['certified'] else 'no'}{fb} {math.ceil(r['seconds'])} s{mended}")  # up: against us
         else:
             mended = " with `--repair`" if r.get("repair") else ""
             cells.append(f"**fails**{mended} {_f(r.get('wall_seconds'), '{:.0f}')} s: {_err(r)[:160]}")
     w, n = entry.get("wheel") or {}, entry.get("cages:nested") or {}
     if w.get("ok") and n.get("ok"):
-        ratio = f"{math.floor(10 * w['seconds'] / n['seconds']) / 10:.1f}x ({w['seconds']:.0f} s)"  # rounded down
+        ratio = f"{math.floor(10 * w['seconds'] / n['seconds']) / 10:.1f}x ({math.floor(w['seconds'])} s)"  # down
     elif w:
         ratio = f"wheel fails ({_f(w.get('wall_seconds'), '{:.0f}')} s): {w.get('error', '')[:80]}"
     else:

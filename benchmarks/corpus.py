@@ -225,7 +225,7 @@ def case_cages(mesh: Path, method: str) -> dict:
         return {"seconds": time.perf_counter() - t, "certified": all(oks),
                 "faces": [i["faces"] for i in infos], "fallbacks": [dict(d, body=b) for b, i in enumerate(infos)
                                                                  for d in fallback_layers(i)],
-                "layer_seconds": [i.get("layer_seconds") for i in infos], "bodies": len(bodies),
+                "layers": [_layer_costs(i) for i in infos], "bodies": len(bodies),
                 "min_gap": (infos[0].get("cage_options") or {}).get("min_gap")}
     layers, info = build_cage_surfaces(V, F, args.levels, method, meshing=args.meshing, cache=False,
                                        progress=False,
@@ -233,7 +233,6 @@ def case_cages(mesh: Path, method: str) -> dict:
     ver = info.get("verification") or {}
     return {"seconds": time.perf_counter() - t, "certified": bool(ver.get("ok")) if ver else None,
             "faces": [len(Fk) for _, Fk in layers], "fallbacks": fallback_layers(info),
-            "layer_seconds": info.get("layer_seconds"),
             # the repair (`--repair`: the surface the wheel is given, outside its timer) within `seconds`
             "repair_seconds": (info.get("solid") or {}).get("repair_seconds", 0.0),
             "layers": _layer_costs(info),

@@ -264,7 +264,8 @@ def audit_self_intersections(audit: MeshAudit, V, F) -> MeshAudit:
                               f"faces made with self_intersections=False, got {audit!r}")
     a = dataclasses.replace(audit, problems=list(audit.problems),
                             skipped=[s for s in audit.skipped if s != _SI_OFF])
-    _audit_self_intersections(a, V, F, not any(s.startswith("geometric checks") for s in a.skipped))
+    # the geometric checks ran when the coordinates were finite and of a sane size (a scratch audit: no copy)
+    _audit_self_intersections(a, V, F, _audit_scale(MeshAudit(a.name, len(V), len(F)), V) is not None)
     return a
 
 

@@ -428,9 +428,10 @@ def build_cage_surfaces(
         V, F = voids["outer"]
         audited = None
     if audited is not None:  # a scan closed and audited in its normalised frame: the same arrays go on
-        Vn, center, scale, audit = audited
+        Vn, center, scale, given = audited
     else:
         Vn, center, scale = _normalize(V)
+        given = audit if audit is not None and np.array_equal(Vn, V) else None
     # `levels` is a ceiling (the levels that fit F's faces, one line when fewer); explicit face counts are
     # checked here, before the audit: both in microseconds
     lp = plan_levels(len(F), levels, face_counts=face_counts)
@@ -452,7 +453,6 @@ def build_cage_surfaces(
             # a terminal: the backend's own bars; a log or a pipe: its per-layer messages as stage lines
             # (silent unless the `nestmg` logger has a handler, which the CLI installs off a terminal)
             cage_progress = True if sys.stderr.isatty() else (lambda msg: stage_line(f"cages ({method}): {msg}", t0))
-        given = audit if audit is not None and (audited is not None or np.array_equal(Vn, V)) else None
         surfaces, info = cagegen.build_cages(Vn, F, levels, method=method, face_counts=face_counts,
                                              return_info=True, progress=cage_progress, options=cages,
                                              audit=given)

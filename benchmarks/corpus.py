@@ -480,7 +480,10 @@ def merge_runs(docs: list[dict]) -> dict:
     # the latest run's commit first: the table marks the columns run at other commits
     return dict(docs[0], runs=runs, command=" ; ".join(dict.fromkeys(r["command"] for r in runs)),
                 commit=" / ".join(dict.fromkeys(str(d.get("commit")) for d in reversed(docs))),
-                date=docs[-1].get("date", docs[0].get("date")), timeout=docs[-1].get("timeout", docs[0].get("timeout")),
+                # the latest run's date (ISO "YYYY-MM-DD HH:MM UTC" sorts as text), not the last file's: a
+                # re-merged older run (one column put back) comes last
+                date=max((str(r["date"]) for r in runs if r.get("date")), default=docs[-1].get("date")),
+                timeout=docs[-1].get("timeout", docs[0].get("timeout")),
                 meshes=[rows[k] for k in sorted(rows)])
 
 

@@ -33,7 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_7293b0e_merged.json"
+CORPUS = "corpus/zoo_25aa234_merged.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)

@@ -53,6 +53,8 @@ def test_merge_replaces_columns_not_rows(tmp_path):
     assert m["commits"] == {"solve": "bbb", "cages:nested": "bbb", "cages:decimate": "aaa"} and m["commit"] is None
     assert n["commits"] == {"solve": "aaa"} and n["commit"] == "aaa"
     assert doc["commit"] == "bbb / aaa" and doc["command"] == "run A ; run B"
+    # the merge is dated by its latest run, also when an older run is merged last (a column put back)
+    assert doc["date"] == "d2" and corpus.merge_runs([new, old])["date"] == "d2"
     # merging the merged document again keeps the per-column commits
     assert corpus.merge_runs([doc])["meshes"][0]["commits"] == m["commits"]
     # the table marks only the columns run elsewhere than the first commit

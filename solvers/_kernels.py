@@ -62,20 +62,19 @@ _U = np.uint64
 
 
 @_jit
-def relabelled_transpose(indptr, indices, data, rows, inv, x, probe, tind, tdat):  # pragma: no cover - compiled
-    """``Bᵀ`` in canonical CSR form for ``B`` = the rows ``rows`` (a permutation) of ``(indptr, indices,
-    data)`` with their columns relabelled by ``inv`` (a permutation), and, when ``probe``, ``(B x, Bᵀ x,
-    max |b_ij|)`` from the same pass: the row gather, the relabelling ``take``, scipy's counting transpose and
-    the two probe products in one (the same arrays as ``_transposed`` of ``A[rows]`` relabelled; reading the
-    rows in place saved the gathered copy, 11-12 ms of a 1M-tet user matrix's set-up). ``tind``, ``tdat``:
-    the output's indices and values, of ``nnz`` entries, allocated by the caller (see :func:`lower_half`).
+def relabelled_transpose(indptr, indices, data, inv, x, probe, tind, tdat):  # pragma: no cover - compiled
+    """``Bᵀ`` in canonical CSR form for ``B`` = the rows of ``(indptr, indices, data)`` with their columns
+    relabelled by ``inv`` (a permutation), and, when ``probe``, ``(B x, Bᵀ x, max |b_ij|)`` from the same
+    pass: the relabelling ``take``, scipy's counting transpose and the two probe products in one (the same
+    arrays as ``_transposed`` of the relabelled matrix). ``tind``, ``tdat``: the output's indices and values,
+    of ``nnz`` entries, allocated by the caller (see :func:`lower_half`).
 
     Returns ``(indptr, Bx, Btx, amax)`` (the vectors empty without ``probe``)."""
     one = _U(1)
-    n = _U(rows.size)
+    n = _U(indptr.size - 1)
     ncol = _U(inv.size)
     nxt = np.zeros(ncol + one, indptr.dtype)
-    for q in range(_U(indptr[_U(indptr.size - 1)])):
+    for q in range(_U(indptr[n])):
         nxt[_U(inv[_U(indices[q])]) + one] += 1
     for c in range(ncol):
         nxt[c + one] += nxt[c]
@@ -87,8 +86,7 @@ def relabelled_transpose(indptr, indices, data, rows, inv, x, probe, tind, tdat)
     for r in range(n):
         acc = 0.0
         xr = x[r] if probe else 0.0
-        s = _U(rows[r])
-        for q in range(_U(indptr[s]), _U(indptr[s + one])):
+        for q in range(_U(indptr[r]), _U(indptr[r + one])):
             c = _U(inv[_U(indices[q])])
             v = data[q]
             w = _U(nxt[c])

@@ -132,8 +132,10 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
         it when symmetric, and exactly when not) and the symmetry verdict.
     """
     x = np.random.default_rng(seed).uniform(-1.0, 1.0, A.shape[0]) if probe else None
-    if _kernels.wanted(A.nnz):  # the row gather, relabelling, transpose and probe products in one pass
-        Bt, Bx, Btx, amax = _relabelled_transpose(A, np.asarray(p, dtype=np.int64), x)
+    if _kernels.wanted(A.nnz):  # the relabelling, the transpose and the probe products in one pass
+        B = A[p]
+        inv = _inverse(np.asarray(p, dtype=np.int64), B.indices.dtype)
+        Bt, Bx, Btx, amax = _relabelled_transpose(B, inv, x)
     else:
         B = _gathered(A, p, p)
         Bt = _transposed(B)
@@ -143,7 +145,7 @@ def permute_symmetric_transpose(A: sp.csr_matrix, p: np.ndarray, *, probe: bool 
             amax = max(float(B.data.max()), -float(B.data.min())) if B.nnz else 0.0
     if not probe:
         return Bt, True
-    scale = rtol * (amax if A.nnz else 1.0)
+    scale = rtol * (amax if B.nnz else 1.0)
     symmetric = float(np.abs(Bx - Btx).max(initial=0.0)) <= scale
     return (Bt, True) if symmetric else (_transposed(Bt), False)
 
@@ -164,16 +166,15 @@ def _transposed(B: sp.csr_matrix) -> sp.csr_matrix:
     return out
 
 
-def _relabelled_transpose(A: sp.csr_matrix, p: np.ndarray, x: np.ndarray | None):
-    """``(Bᵀ, Bx, Bᵀx, max |b_ij|)`` of ``B = A[p][:, p]`` (the last three None without ``x``), by
-    :func:`solvers._kernels.relabelled_transpose` on ``A``'s own arrays: ``Bᵀ`` the same canonical matrix as
-    ``_transposed(_gathered(A, p, p))``'s."""
+def _relabelled_transpose(B: sp.csr_matrix, inv: np.ndarray, x: np.ndarray | None):
+    """``(Bᵀ, Bx, Bᵀx, max |b_ij|)`` of ``B`` = ``B``'s rows relabelled by ``inv`` (the last three None
+    without ``x``), by :func:`solvers._kernels.relabelled_transpose`: ``Bᵀ`` the same canonical matrix as
+    ``_transposed``'s."""
     probe = x is not None
-    inv = _inverse(p, A.indices.dtype)
-    indices, data = np.empty(A.nnz, A.indices.dtype), np.empty(A.nnz, A.data.dtype)  # numpy's huge pages
-    indptr, Bx, Btx, amax = _kernels.relabelled_transpose(A.indptr, A.indices, A.data, p, inv,
+    indices, data = np.empty(B.nnz, B.indices.dtype), np.empty(B.nnz, B.data.dtype)  # numpy's huge pages
+    indptr, Bx, Btx, amax = _kernels.relabelled_transpose(B.indptr, B.indices, B.data, inv,
                                                           x if probe else np.zeros(0), probe, indices, data)
-    Bt = sp.csr_matrix((data, indices, indptr), shape=(A.shape[1], A.shape[0]))
+    Bt = sp.csr_matrix((data, indices, indptr), shape=(B.shape[1], B.shape[0]))
     Bt.has_canonical_format = True
     return (Bt, Bx, Btx, amax) if probe else (Bt, None, None, None)
 

@@ -500,8 +500,9 @@ def _provenance(doc: dict) -> list[str]:
     if len(runs) == 1 or not used:
         return [f"Run: `{doc['command']}` at commit {doc['commit']}, {doc['date']}; "
                 f"{doc['timeout']:.0f} s per case."]
-    lines = [f"Runs whose columns are shown ({doc['timeout']:.0f} s per case; each row names the commit of its "
-             "columns when it differs from the first):", ""]
+    # merged runs had their own time limits: each command's --timeout (default 900 s), not the last file's
+    lines = ["Runs whose columns are shown (time limit per case: the command's `--timeout`, default 900 s; each "
+             "row names the commit of its columns when it differs from the first):", ""]
     lines += [f"- `{r['command']}` at {r.get('commit')}, {r.get('date')}" for r in used]
     mine = {r["command"] for r in used}
     older = len({c for r in runs for c in r["command"].split(" ; ")} - mine)

@@ -64,6 +64,7 @@ def test_merge_replaces_columns_not_rows(tmp_path):
     assert [r["command"] for r in corpus.merge_runs([doc, new])["runs"]] == ["run A", "run B"]
     lines = corpus._provenance(doc)
     assert [ln for ln in lines if ln.startswith("- ")] == ["- `run A` at aaa, d1", "- `run B` at bbb, d2"]
+    assert "600 s per case" not in lines[0] and "`--timeout`" in lines[0]  # runs had their own limits
     older = {k: v for k, v in doc.items() if k != "runs"}  # a merge from before ``runs`` existed
     older.update(command="run 0 ; run A", commit="aaa / zzz")
     lines = corpus._provenance(corpus.merge_runs([older, new]))

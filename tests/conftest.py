@@ -73,6 +73,19 @@ def torus_iso_tets():
 
 
 @pytest.fixture
+def one_ipctk_thread():
+    """ipctk on one thread: its parallel reductions (barrier gradients, potentials) sum in a different
+    order run to run, and the re-inflation's Newton iterations amplify those last bits (1e-10 on a
+    skeleton cage), or a small CAD plate's second layer then sometimes needs the fallback (minutes)."""
+    import ipctk
+
+    n = ipctk.get_num_threads()
+    ipctk.set_num_threads(1)
+    yield
+    ipctk.set_num_threads(n)
+
+
+@pytest.fixture
 def failing_flow():
     """A stand-in for ``cagegen.nested.flow.flow_inside`` that always fails: forces the recovery and
     fallback paths (a flow capped at 0 iterations succeeds when Ĉ, decimated from the envelope,

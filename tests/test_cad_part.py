@@ -121,18 +121,6 @@ def test_envelope_target_is_the_recovery_when_the_papers_flow_fails(monkeypatch,
     assert lay["min_gap_relative"] >= GAP
 
 
-@pytest.fixture
-def one_ipctk_thread():
-    """ipctk on one thread: its parallel reductions make flows differ run to run, and this small plate's
-    second layer then sometimes needs the fallback (minutes); on one thread it certifies in seconds."""
-    import ipctk
-
-    n = ipctk.get_num_threads()
-    ipctk.set_num_threads(1)
-    yield
-    ipctk.set_num_threads(n)
-
-
 def test_later_layers_try_the_envelope_first_once_a_layer_needed_it(monkeypatch, failing_flow,
                                                                     one_ipctk_thread):
     """Layer 1's flow into its decimated layer fails, the envelope target certifies it; layer 2 then starts

@@ -12,6 +12,7 @@ import json
 import igl
 import numpy as np
 import pytest
+import scipy.sparse.linalg as spla
 import threadpoolctl
 
 from cagegen import build_cages, verify_nesting
@@ -126,6 +127,51 @@ def test_volume_energy_is_enclosed_volume(neck_pair):
     vol = igl.volume(np.vstack([Vn, c]), T).sum()
     assert np.isclose(signed_volume(Vn, F), -vol, rtol=1e-10) or np.isclose(signed_volume(Vn, F), vol, rtol=1e-10)
     assert signed_volume(Vn, F) > 0  # outward orientation
+
+
+def test_volume_step_moves_small_and_large_triangles_alike():
+    """The volume energy's unconstrained step is its L2 gradient flow: every vertex of a sphere moves about
+    ``max_move`` along its normal, whatever the size of its triangles. (With the Euclidean metric scaled
+    by the largest gradient, a vertex moved in proportion to its area: on a sphere whose triangles differ
+    10x in area the small ones' vertices moved a tenth as far, and lucy.ply's first cage took 42 final
+    iterations.)"""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(s.vertices, float), np.asarray(s.faces)
+    V = V + [0.0, 0.0, 0.5]  # seen from (0, 0, -0.5): the vertices crowd towards the north pole
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    area = np.bincount(F.ravel(), np.repeat(igl.doublearea(V, F) / 6.0, 3))
+    assert area.max() > 10 * area.min()
+    E = make_energy("volume", V, F)
+    step = -spla.spsolve(E.metric(V).tocsc(), E.gradient(V).ravel()).reshape(-1, 3)
+    length = np.linalg.norm(step, axis=1)
+    assert length.max() == pytest.approx(E.max_move, rel=1e-9)
+    assert length.min() > 0.9 * E.max_move
+    assert np.all(np.einsum("ij,ij->i", step, V) < -0.99 * length)  # inward, along the normal
+
+
+def test_complete_clearance_falls_back_to_the_tightest_clear_looser_cage(monkeypatch):
+    """When ``push_out`` is blocked, :func:`complete_clearance` returns the tightest of the final phase's
+    looser cages that keeps ``gap / GAP_AIM`` (concentric spheres around a unit sphere: radius 1.3 for a
+    clearance of 0.25), by bisection; without looser cages, or when even the loosest is too close, the
+    cage itself and its distance, as before."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    Vf, Ff = np.asarray(s.vertices, float), np.asarray(s.faces)
+    radii = [1.6, 1.5, 1.4, 1.3, 1.2, 1.1]
+    looser = [r * Vf for r in radii]
+    C = 1.02 * Vf
+    gap = 0.25 * nested_backend_module.GAP_AIM
+    monkeypatch.setattr(nested_backend_module, "push_out", lambda *a, **k: (None, {"reason": "blocked"}))
+    C2, d2, rec = nested_backend_module.complete_clearance(C, Ff, Vf, Ff, gap, looser)
+    assert np.array_equal(C2, looser[3]) and d2 == pytest.approx(min_distance(C2, Ff, Vf, Ff), rel=1e-12)
+    assert 0.25 <= d2 < 0.3 and rec["looser_iterate"] == 3 and rec["looser_tried"] <= 4
+    C3, d3, _ = nested_backend_module.complete_clearance(C, Ff, Vf, Ff, gap)
+    assert C3 is C and d3 < 0.25
+    C4, d4, rec4 = nested_backend_module.complete_clearance(C, Ff, Vf, Ff, gap, [1.1 * Vf])
+    assert C4 is C and d4 < 0.25 and "looser_iterate" not in rec4
 
 
 def test_unknown_energy_is_rejected(neck):

@@ -320,6 +320,9 @@ def nest_pair(
         Cage vertices (same triangles ``Fc``).
     info : dict
         ``flow``, ``reinflate`` figures and ``seconds`` per phase.
+    looser : list of (nc,3) float arrays
+        Looser cages of the final phase (:attr:`cagegen.nested.reinflate.ReinflateResult.looser`), for
+        :func:`complete_clearance`.
 
     Raises
     ------
@@ -366,7 +369,7 @@ def nest_pair(
         raise PairFailure("reinflate", rr.reason, info)
     # the re-inflation ends with the fine surface exactly at its rest pose
     info["reinflate"]["fine_at_rest"] = bool(np.array_equal(rr.fine, target))
-    return rr.cage, info
+    return rr.cage, info, rr.looser
 
 
 #: the offset factor of F's folds in the re-inflation's target (:func:`offset_surface`'s ``fold_factor``)
@@ -583,8 +586,9 @@ def _envelope_target(Vf, Ff, n_faces, offset):
 
 
 def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,
-                       gap: float) -> tuple[np.ndarray, float, dict | None]:
-    """The re-inflated cage, pushed out (:func:`push_out`) where it is closer than ``gap / GAP_AIM``.
+                       gap: float, looser: list = ()) -> tuple[np.ndarray, float, dict | None]:
+    """The re-inflated cage, pushed out (:func:`push_out`) where it is closer than ``gap / GAP_AIM``,
+    or else the tightest of its ``looser`` iterates that keeps that clearance.
 
     The re-inflation keeps the cage outside the fine surface's offset (:func:`offset_surface`), which
     is ``gap`` from it on face planes but not at spikes, where the offset factor is clamped, nor in
@@ -602,11 +606,16 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
         The fine surface the cage must clear.
     gap : float
         Wanted clearance, in the units of ``C``.
+    looser : list of (n,3) float arrays
+        Earlier, looser cages on the way to ``C`` (the final phase's iterates, loosest first). When
+        ``push_out`` is blocked, the tightest one at ``gap / GAP_AIM`` or more is taken, found by
+        bisection (the final phase only pulls the cage in, so the distance shrinks along the list).
 
     Returns
     -------
     C : (n,3) float array
-        The cage, pushed out where needed (unchanged when already clear or when ``push_out`` is blocked).
+        The cage, pushed out where needed (unchanged when already clear or when ``push_out`` is
+        blocked and no looser iterate keeps the clearance).
     distance : float
         Its smallest distance to the fine surface.
     record : dict or None
@@ -617,8 +626,27 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
         return C, d, None
     C2, oinfo = push_out(C, G, Vf, Ff, gap, accept=gap / GAP_AIM, distance=d)
     if C2 is None:
-        return C, d, oinfo
+        return _looser_clear(C, d, G, Vf, Ff, gap / GAP_AIM, list(looser), oinfo)
     return C2, oinfo["distance"], oinfo
+
+
+def _looser_clear(C, d, G, Vf, Ff, accept, looser, oinfo) -> tuple[np.ndarray, float, dict]:
+    """The tightest of the ``looser`` cages keeping ``accept`` (bisection), else ``(C, d)``."""
+    if not looser:
+        return C, d, oinfo
+    d0 = min_distance(looser[0], G, Vf, Ff)
+    if d0 < accept:
+        return C, d, dict(oinfo, looser_tried=1)
+    lo, hi, d_lo, tried = 0, len(looser), d0, 1  # looser[lo] keeps it; C (index len) does not
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        dm = min_distance(looser[mid], G, Vf, Ff)
+        tried += 1
+        if dm >= accept:
+            lo, d_lo = mid, dm
+        else:
+            hi = mid
+    return looser[lo], d_lo, dict(oinfo, looser_iterate=lo, looser_of=len(looser), looser_tried=tried)
 
 
 #: Facing walls: the wall a ray along F's outward normal hits next faces back within this angle.
@@ -745,7 +773,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             quick = max(QUICK_FLOW_MIN_ITER, QUICK_FLOW_WORK // max(len(Ff), 1))
             flow_opts["flow_max_iter"] = min(flow_opts["flow_max_iter"], quick)
         try:
-            C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
+            C, pinfo, looser = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **flow_opts)
         except PairFailure as exc:
             failures.append({"action": f"decimate the {what} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
                              "stage": exc.stage, "reason": exc.reason,
@@ -754,7 +782,7 @@ def _build_layer(Vf, Ff, n_faces, opts, gap, rep, depth, max_depth, log, layer_n
             log.append({"layer": layer_no, **failures[-1]})
             rep.say(f"layer {layer_no}: {failures[-1]['action']}: {exc.stage} failed")
             continue
-        C, d, pinfo["clearance_completion"] = complete_clearance(C, G, Vf, Ff, gap)
+        C, d, pinfo["clearance_completion"] = complete_clearance(C, G, Vf, Ff, gap, looser)
         if d < gap / GAP_AIM:
             failures.append({"action": f"decimate the {what} with {dinfo['decimator']} to {dinfo['n_faces']} faces",
                              "stage": "clearance", "reason": f"gap {d:.3g} < {gap / GAP_AIM:.3g}"})
@@ -1072,7 +1100,7 @@ def _layer_from_target(Vf, Ff, Vsrc, Fsrc, m, params, gap, rep, log, k):
     """``decimate_from="input"``: decimate the input, nest it around the previous layer."""
     U, G, dinfo = _decimate(Vsrc, Fsrc, m, params.get("decimator", "qslim"))
     try:
-        C, pinfo = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{kk: params[kk] for kk in _DEFAULTS})
+        C, pinfo, _ = nest_pair(Vf, Ff, U, G, gap=gap, reporter=rep, **{kk: params[kk] for kk in _DEFAULTS})
     except PairFailure as exc:
         log.append({"layer": k, "action": "decimation of the input failed; decimating the previous layer",
                     "stage": exc.stage, "reason": exc.reason})

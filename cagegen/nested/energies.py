@@ -75,10 +75,14 @@ class StepEnergy:
 class VolumeEnergy:
     """E_vol = Vol(C) = ∫ x·n dA / 3 (Eq. 13); ∇E_vol = area-weighted vertex normals / 3.
 
-    The Hessian of the volume is indefinite, so the metric is a proximal identity whose scale makes
-    an unconstrained step move the fastest vertex by ``max_move`` (a fraction of the cage's
-    bounding-box diagonal): preconditioned gradient descent, the barrier Hessian added by the caller
-    slows down the vertices in contact.
+    The Hessian of the volume is indefinite, so the metric is the lumped mass matrix (each vertex's
+    third of its triangles' areas), scaled so that an unconstrained step moves the fastest vertex by
+    ``max_move`` (a fraction of the cage's bounding-box diagonal): the L2 gradient flow, in which
+    every vertex moves along its normal at about the same speed whatever the size of its triangles,
+    the barrier Hessian added by the caller slowing down the vertices in contact. (A scaled identity
+    moved each vertex in proportion to its area: on decimated cages, whose triangles differ in size
+    by orders of magnitude, the small ones crawled and lucy.ply's first cage took 42 final
+    iterations against 16, ending looser; ``benchmarks/results/cages/ab_massmetric_*.json``.)
     """
 
     name = "volume"
@@ -104,8 +108,13 @@ class VolumeEnergy:
         return G / 6.0
 
     def metric(self, C: np.ndarray) -> sp.csr_matrix:
-        gmax = float(np.linalg.norm(self.gradient(C), axis=1).max())
-        return sp.identity(3 * self.n, format="csr") * (max(gmax, 1e-300) / self.max_move)
+        a, b, c = C[self.F[:, 0]], C[self.F[:, 1]], C[self.F[:, 2]]
+        fa = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        area = np.bincount(self.F.ravel(), weights=np.repeat(fa / 3.0, 3), minlength=self.n)
+        area = np.maximum(area, 1e-12 * max(float(area.max()), 1e-300))
+        speed = np.linalg.norm(self.gradient(C), axis=1) / area
+        scale = max(float(speed.max()), 1e-300) / self.max_move
+        return sp.diags(np.repeat(area * scale, 3), format="csr")
 
 
 def _fit_rotations(S: np.ndarray) -> np.ndarray:

@@ -60,6 +60,9 @@ class ReinflateResult:
     reason : str
     stats : dict
         Counters and timings (JSON-serialisable).
+    looser : list of (nc,3) float arrays
+        The cage before the final phase and after each of its iterations but the last (loosest
+        first): every one nests the fine surface at rest, each tighter than the one before.
     """
 
     cage: np.ndarray
@@ -67,6 +70,7 @@ class ReinflateResult:
     success: bool
     reason: str
     stats: dict = field(default_factory=dict)
+    looser: list = field(default_factory=list)
 
 
 #: A reverse step ends when the fine surface is within this fraction of ``dhat`` of its target and the CCD lets
@@ -477,6 +481,7 @@ def reinflate(
     final_energy.begin_step(X[:nc])
     stats["volume_before_final"] = signed_volume(X[:nc], Fc)
     n_final = 0
+    looser = []
     if energy != "step":
         prob.hessian_kind = BARRIER_HESSIAN  # the final phase's blocked steps are the barrier's softness
         prob.energy = final_energy
@@ -486,6 +491,7 @@ def reinflate(
         f_prev = prob.objective(X, None)
         kap = kappa_final
         for _ in range(final_iters):
+            looser.append(X[:nc].copy())
             X, alpha, move = prob.newton_step(X, None)
             n_final += 1
             f = prob.objective(X, None)
@@ -505,7 +511,7 @@ def reinflate(
     stats["volume_after_final"] = signed_volume(X[:nc], Fc)
     stats["t_final"] = time.perf_counter() - t1
     stats.update(_counters(prob, t0))
-    return ReinflateResult(X[:nc].copy(), X[nc:].copy(), True, "ok", stats)
+    return ReinflateResult(X[:nc].copy(), X[nc:].copy(), True, "ok", stats, looser)
 
 
 def _counters(prob: _Problem, t0: float) -> dict:

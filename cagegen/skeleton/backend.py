@@ -678,7 +678,7 @@ def _inflation_step(parts, inner, Vn, F, min_gap, nested_opts):
     # a point deep inside pushed away from the cage gains nothing and stretches the triangles)
     nested_opts.setdefault("flow_active_depth", 0.01)
     try:
-        C, ninfo = nest_pair(Vi, Fi, Vp, Ft, gap=gap, **nested_opts)
+        C, ninfo, _ = nest_pair(Vi, Fi, Vp, Ft, gap=gap, **nested_opts)
     except PairFailure as exc:
         hint = ""
         if exc.stage == "flow":

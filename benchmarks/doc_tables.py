@@ -719,6 +719,29 @@ def cages_hybrid_subset() -> str:
     return _ab_one_run(CAGES_AB_SUBSET, CAGES_LUCY_SUBSET, slowest=True)
 
 
+CAGES_AB_MASS = ("cages/ab_massmetric_2da2eaf.json", "cages/ab_massmetric_2da2eaf_repair.json")
+CAGES_AB_MASS_RUNS = ("cages/ab_massmetric_looser_2da2eaf_run1.json", "cages/ab_massmetric_looser_2da2eaf_run2.json")
+
+
+@generator("cages.massmetric", *CAGES_AB_MASS, *CAGES_AB_MASS_RUNS)
+def cages_massmetric() -> str:
+    """The final phase's lumped-mass metric at 2da2eaf: one run over the zoo, then two over six meshes."""
+    rows = {m: r for rel in CAGES_AB_MASS for m, r in load(rel)["meshes"].items()}
+    runs, total, order, _ = _ab_both(rows)
+    cpu = lambda m, side: runs[m][side]["cpu_seconds"]  # noqa: E731
+    geo = math.exp(statistics.mean(math.log(cpu(m, "after") / cpu(m, "before")) for m in runs))
+    single = {m: r for m, r in runs.items() if r["before"]["layers"]}
+    tighter = sum(all(la["volume_ratio"] <= lb["volume_ratio"] for lb, la in
+                      zip(r["before"]["layers"], r["after"]["layers"])) for r in single.values())
+    lu = [load(rel)["meshes"]["lucy.ply"] for rel in CAGES_AB_MASS_RUNS]
+    return (f"one run over {len(runs)} zoo meshes: CPU seconds x{geo:.2f} (geometric mean), "
+            + ", ".join(f"{m} x{cpu(m, 'after') / cpu(m, 'before'):.2f}" for m in order[:2] + order[-2:])
+            + f"; every layer as tight or tighter in {tighter} of {len(single)} single-body meshes; "
+            f"two more runs of six meshes: " + _ab_runs_summary(CAGES_AB_MASS_RUNS)
+            + f"; lucy.ply {rng([r['before']['cpu_seconds'] for r in lu], '.0f')} -> "
+            f"{rng([r['after']['cpu_seconds'] for r in lu], '.0f')} CPU s")
+
+
 CAGES_AB_DHAT_EDGE = ("cages/ab_dhat_edge_6a00d76.json", "cages/ab_dhat_edge_repair_6a00d76.json",
                       "cages/ab_dhat_edge_scale_6a00d76.json")
 

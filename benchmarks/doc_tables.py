@@ -601,7 +601,7 @@ def _ab_runs_summary(paths: tuple[str, ...]) -> str:
               for lb, la in zip(row["before"]["layers"], row["after"]["layers"]))
     return (f"CPU seconds x{rng(geo, '.3f')} (geometric mean over {len(runs[0])} meshes, "
             f"{len(runs)} run{'s' if len(runs) > 1 else ''}); medians: {show(order[:3])}; "
-            f"slower: {show(order[-3:])}; "
+            f"slower: {show([m for m in order[-3:] if med[m][1] > med[m][0]]) or 'none'}; "
             f"{ok} of {len(runs[0])} certified in every run, volume ratios within {100 * vol:.1f}%")
 
 

@@ -588,7 +588,7 @@ def _envelope_target(Vf, Ff, n_faces, offset):
 def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndarray,
                        gap: float, looser: list = ()) -> tuple[np.ndarray, float, dict | None]:
     """The re-inflated cage, pushed out (:func:`push_out`) where it is closer than ``gap / GAP_AIM``,
-    or else the tightest of its ``looser`` iterates that keeps that clearance.
+    or else a tight one of its ``looser`` iterates that keeps that clearance.
 
     The re-inflation keeps the cage outside the fine surface's offset (:func:`offset_surface`), which
     is ``gap`` from it on face planes but not at spikes, where the offset factor is clamped, nor in
@@ -608,8 +608,9 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
         Wanted clearance, in the units of ``C``.
     looser : list of (n,3) float arrays
         Earlier, looser cages on the way to ``C`` (the final phase's iterates, loosest first). When
-        ``push_out`` is blocked, the tightest one at ``gap / GAP_AIM`` or more is taken, found by
-        bisection (the final phase only pulls the cage in, so the distance shrinks along the list).
+        ``push_out`` is blocked, one at ``gap / GAP_AIM`` or more is taken, found by bisection: the
+        last such one when the distance shrinks along the list (the final phase pulls the cage in),
+        a measured one in any case.
 
     Returns
     -------

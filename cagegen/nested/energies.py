@@ -81,8 +81,8 @@ class VolumeEnergy:
     every vertex moves along its normal at about the same speed whatever the size of its triangles,
     the barrier Hessian added by the caller slowing down the vertices in contact. (A scaled identity
     moved each vertex in proportion to its area: on decimated cages, whose triangles differ in size
-    by orders of magnitude, the small ones crawled and lucy.ply's first cage took 42 final
-    iterations against 16, ending looser; ``benchmarks/results/cages/ab_massmetric_*.json``.)
+    by orders of magnitude, the small ones crawled: lucy.ply's first cage took 42 final iterations
+    against 16 and ended looser, in one run; CPU seconds in ``benchmarks/results/cages/ab_massmetric_*.json``.)
     """
 
     name = "volume"

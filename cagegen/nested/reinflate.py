@@ -62,7 +62,8 @@ class ReinflateResult:
         Counters and timings (JSON-serialisable).
     looser : list of (nc,3) float arrays
         The cage before the final phase and after each of its iterations but the last (loosest
-        first): every one nests the fine surface at rest, each tighter than the one before.
+        first): every one nests the fine surface at rest (each a CCD-certified step from the one
+        before, with a lower objective but after a barrier stiffening).
     """
 
     cage: np.ndarray

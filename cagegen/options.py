@@ -190,6 +190,8 @@ class NestedOptions(CageOptions):
     max_move: float = field_spec(5e-3, "largest vertex move per re-inflation step / diagonal", low=0.0,
                                  strict=True)
     final_iters: int = field_spec(60, "iterations of the final energy", low=0)
+    cage_threads: int | None = field_spec(None, "threads of the contact library (ipctk); 1: the same cages "
+                                                "every run (default: all cores, faster)", low=1, kind=int)
     cage_time_budget: float | None = field_spec(
         _NESTED_TIME_BUDGET, "wall-clock seconds the nested cages may take, estimated before any work (None: "
                              "no limit)", low=0.0, kind=float, optional=True)

@@ -65,24 +65,25 @@ def _write_json(path: str | Path, obj: Any) -> None:
 
 
 def _cage_options(args, method: str):
-    """The cage method's options (:func:`cagegen.options_class`) from ``--repair``, ``--min-gap`` and, for
-    ``nested`` and ``sdf``, ``--cage-time-budget`` (0: no limit)."""
+    """The cage method's options (:func:`cagegen.options_class`) from ``--repair``, ``--min-gap`` and the
+    method-specific :data:`CAGE_FLAGS` (``--cage-time-budget``, 0: no limit; ``--cage-threads``)."""
     import dataclasses
 
     from cagegen import options_class, registered_backends
 
     opts = {"repair": args.repair, "min_gap": args.min_gap}
-    budget = getattr(args, "cage_time_budget", None)
-    if budget is not None:
-        field = CAGE_FLAGS["--cage-time-budget"][1]
+    for flag, (_, field) in CAGE_FLAGS.items():
+        value = getattr(args, field, None)
+        if value is None:
+            continue
 
         def takes(m: str) -> bool:
             return field in {f.name for f in dataclasses.fields(options_class(m))}
 
         if not takes(method):
             names = " and ".join(m for m in registered_backends() if takes(m))
-            raise NestmgError(f"--cage-time-budget applies to --method {names} only, not {method!r}")
-        opts[field] = budget if budget > 0 else None
+            raise NestmgError(f"{flag} applies to --method {names} only, not {method!r}")
+        opts[field] = (value if value > 0 else None) if field == "cage_time_budget" else value
     return options_class(method)(**opts)
 
 
@@ -546,12 +547,13 @@ def _number(kind, low, *, strict: bool = False, what: str = ""):
 
 #: cage flags that are not a field of :class:`cagegen.CageOptions`: flag -> (the options classes that have the
 #: field, field); a method whose class lacks it refuses the flag
-CAGE_FLAGS = {"--cage-time-budget": (("NestedOptions", "SdfOptions"), "cage_time_budget")}
+CAGE_FLAGS = {"--cage-time-budget": (("NestedOptions", "SdfOptions"), "cage_time_budget"),
+              "--cage-threads": (("NestedOptions",), "cage_threads")}
 
 
 def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
     """The hierarchy's flags, one group per stage: sizing (``--levels`` and :class:`nestmg.SizingOptions`),
-    meshing (:class:`nestmg.MeshingOptions`), cages (:class:`cagegen.CageOptions`, ``--cage-time-budget``);
+    meshing (:class:`nestmg.MeshingOptions`), cages (:class:`cagegen.CageOptions`, :data:`CAGE_FLAGS`);
     ``--no-cache``, ``--quiet`` and ``--help-all`` beside the command's own flags."""
     from cagegen import CageOptions
 
@@ -571,6 +573,10 @@ def _common(p: argparse.ArgumentParser, *, levels: int = 3) -> None:
         "--cage-time-budget", type=_number(float, 0), default=None,
         help="seconds the nested or sdf cage backend may take, estimated before any work; refused at once "
              "above it (default 900; 0: no limit)"))
+    _expert(g.add_argument(
+        "--cage-threads", type=_number(int, 1), default=None,
+        help="threads of the nested backend's contact library (ipctk); 1: the same cages every run "
+             "(default: all cores, faster)"))
 
 
 def _solver_opts(p: argparse.ArgumentParser) -> None:

@@ -793,6 +793,31 @@ def test_backend_runs_with_one_blas_thread(neck, monkeypatch):
     assert after == before
 
 
+def test_cage_threads_one_gives_the_same_cages_every_run(neck, monkeypatch):
+    """``cage_threads=1``: ipctk runs on one thread while the cages are built (its parallel sums differ run
+    to run), the caller's thread count is back afterwards, and two runs give the same bytes."""
+    import ipctk
+
+    seen = []
+    real = nested_backend_module.nest_pair
+
+    def recorded(*a, **k):
+        seen.append(ipctk.get_num_threads())
+        return real(*a, **k)
+
+    monkeypatch.setattr(nested_backend_module, "nest_pair", recorded)
+    V, F = neck
+    before = ipctk.get_num_threads()
+    runs = [build_cages(V, F, 3, "nested", cage_threads=1) for _ in range(2)]
+    assert seen and set(seen) == {1} and ipctk.get_num_threads() == before
+    assert len(runs[0]) == 3
+    for (Va, Fa), (Vb, Fb) in zip(runs[0], runs[1]):
+        assert np.array_equal(Va, Vb) and np.array_equal(Fa, Fb)
+    seen.clear()
+    build_cages(V, F, 2, "nested")
+    assert set(seen) == {before}  # the default leaves ipctk's own
+
+
 def test_nested_refuses_before_any_work_when_its_estimate_exceeds_the_budget(neck):
     """``cage_time_budget``: an estimate above it raises at once, naming the option (reason "time budget"),
     the caller's arrays untouched; the default budget admits a 100k-face scan's cages and refuses a

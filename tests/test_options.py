@@ -148,11 +148,11 @@ def test_cli_flags_are_the_option_fields():
             want = f"--no-{f.name.replace('_', '-')}" if f.default is True else flag(f.name)
             assert a.option_strings == [want], (f.name, a.option_strings)
             assert a.default == f.default, (f.name, a.default, f.default)
-    owners, field = CAGE_FLAGS["--cage-time-budget"]
-    for owner in owners:
-        assert field in {f.name for f in dataclasses.fields(getattr(cagegen, owner))}
+    for owners, field in CAGE_FLAGS.values():
+        for owner in owners:
+            assert field in {f.name for f in dataclasses.fields(getattr(cagegen, owner))}
     others = {"help", "help_all", "problem", "method", "element", "quality", "sj_floor", "relax", "json", "png",
-              "out", "levels", "cage_time_budget", "no_cache", "quiet"}
+              "out", "levels", "cage_time_budget", "cage_threads", "no_cache", "quiet"}
     assert set(actions) == others, set(actions) ^ others
 
 
@@ -177,7 +177,7 @@ def _listed(command: str, option: str, capsys) -> tuple[set[str], str]:
 @pytest.mark.parametrize("command", ["solve", "cages", "demo", "compare"])
 def test_help_lists_everyday_flags_and_help_all_every_flag(command, capsys):
     """``--help`` lists the everyday flags, ``--help-all`` every flag grouped by stage; the expert ones are
-    the options fields marked ``expert`` (and ``--quality``, ``--cage-time-budget``)."""
+    the options fields marked ``expert`` (and ``--quality``, ``--cage-time-budget``, ``--cage-threads``)."""
     actions = _flags(command)
     every = {a.option_strings[0] for a in actions.values()}
     expert = {a.option_strings[0] for a in actions.values() if getattr(a, "expert", False)}
@@ -193,10 +193,10 @@ def test_help_lists_everyday_flags_and_help_all_every_flag(command, capsys):
                 assert actions[f.name].expert is f.metadata["expert"], f.name
     if command == "solve":
         assert short - {"-h", "--help-all"} == EVERYDAY
-        assert len(every - {"-h", "--help-all"}) == 46 and len(expert) == 27
+        assert len(every - {"-h", "--help-all"}) == 47 and len(expert) == 28
     if command == "cages":
         assert short - {"-h", "--help-all"} == EVERYDAY & every
-        assert len(every - {"-h", "--help-all"}) == 27 and len(expert) == 16
+        assert len(every - {"-h", "--help-all"}) == 28 and len(expert) == 17
 
 
 def test_cli_builds_the_same_objects():

@@ -30,7 +30,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .._geometry import normalize
-from ..collision import PairMesh, close_edge_pairs, min_distance, self_collision_free_step
+from ..collision import PairMesh, close_edge_pairs, ipctk_threads, min_distance, self_collision_free_step
 from ..decimate import decimate_surface
 from ..envelope import build_envelope
 from ..errors import CageError, CageOptionError
@@ -875,6 +875,7 @@ def nested_backend(
     fallback: str | None = "sdf",
     target_offset: float | None = None,
     cage_time_budget: float | None = DEFAULT_TIME_BUDGET,
+    cage_threads: int | None = None,
     **opts,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
     """Cage backend ``"nested"``: strictly nested cages by flow and re-inflation (Sacht et al. 2015).
@@ -931,6 +932,10 @@ def nested_backend(
     cage_time_budget : float or None
         Refuse at once (:class:`CageError`, ``reason="time budget"``) when :func:`estimate_seconds` exceeds
         this many seconds (default :data:`DEFAULT_TIME_BUDGET`; None: no limit).
+    cage_threads : int, optional
+        ipctk's threads while the cages are built (:func:`cagegen.collision.ipctk_threads`): 1 gives the
+        same cages, byte for byte, every run; None (default) leaves ipctk's (all cores), whose parallel
+        sums make a run's cages differ from another's beyond round-off on some inputs.
     **opts
         Advanced: ``flow_step``, ``flow_max_iter``, ``dhat``, ``kappa``, ``dhat_final``,
         ``kappa_final``, ``max_move``, ``final_iters`` (see :func:`nest_pair`).
@@ -991,7 +996,7 @@ def nested_backend(
     # one BLAS thread: the backend's BLAS work is dot products of Newton-CG vectors (~20k entries), too
     # short to share, and OpenBLAS's spinning threads beside ipctk's TBB pool cost homer.obj's cages
     # 1.1x wall on an idle machine and up to 30x per CG solve on a loaded one (2 cores; ad hoc)
-    with _Reporter(progress) as rep, threadpool_limits(limits=1, user_api="blas"):
+    with _Reporter(progress) as rep, threadpool_limits(limits=1, user_api="blas"), ipctk_threads(cage_threads):
         rep.layers(len(face_counts))
         for k, m in enumerate(face_counts, start=1):
             t_layer = time.perf_counter()

@@ -33,7 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {ROOT / "docs" / "corpus.md"}
 PROBLEMS = ("poisson-dirichlet", "poisson-neumann", "diffusion-neumann")
-CORPUS = "corpus/zoo_25aa234_merged.json"
+CORPUS = "corpus/zoo_5fa2610_merged.json"
 
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /table -->)", re.S)
 INLINE = re.compile(r"(<!-- n: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /n -->)", re.S)
@@ -761,6 +761,24 @@ def cages_dhat_edge() -> str:
             f"{len(rows)}; volume ratios within {100 * vol:.1f}%")
 
 
+CAGES_AB_THREADS = ("cages/ab_cage_threads_5fa2610_run1.json", "cages/ab_cage_threads_5fa2610_run2.json")
+
+
+@generator("cages.threads", *CAGES_AB_THREADS)
+def cages_threads() -> str:
+    """``cage_threads=1`` against ipctk's default threads: the same bytes over two runs, and the wall time."""
+    runs = [load(rel)["meshes"] for rel in CAGES_AB_THREADS]
+    meshes = list(runs[0])
+    same = {side: sum(len({tuple(r[m][side]["layer_sha1"]) for r in runs}) == 1 for m in meshes)
+            for side in ("before", "after")}
+    wall = [r[m]["after"]["wall_seconds"] / r[m]["before"]["wall_seconds"] for r in runs for m in meshes]
+    ft = [round(r["featuretype.stl"]["before"]["layers"][-1]["volume_ratio"], 3) for r in runs]
+    return (f"over two runs of {len(meshes)} meshes (`cages_ab.py`, `{CAGES_AB_THREADS[0][:-9]}run{{1,2}}.json`) "
+            f"the same layer bytes in both runs: {same['after']} of {len(meshes)} with one thread, "
+            f"{same['before']} of {len(meshes)} with ipctk's default (featuretype.stl's second cage: volume "
+            f"ratio {' and '.join(map(str, ft))}); wall time x{rng(wall)}")
+
+
 WHEEL_6A00D76 = ("corpus/wheel_a_6a00d76.json", "corpus/wheel_b_6a00d76.json",
                  "corpus/wheel_repair_sb_6a00d76.json")
 #: one case at a time on an otherwise idle machine: every zoo mesh of 5k-100k faces at 7293b0e, then homer and
@@ -786,7 +804,11 @@ def _wheel_ratios(rels) -> dict:
     return out
 
 
-@generator("cages.wheel_limits", *WHEEL_6A00D76, *WHEEL_SEQ, *WHEEL_SEQ_AGAIN)
+#: the same, once, after the final phase's L2 gradient flow (8743554; 5fa2610 adds an option only)
+WHEEL_SEQ_NOW = ("corpus/wheel_seq_5fa2610.json", "corpus/wheel_seq_sb_5fa2610.json")
+
+
+@generator("cages.wheel_limits", *WHEEL_6A00D76, *WHEEL_SEQ, *WHEEL_SEQ_AGAIN, *WHEEL_SEQ_NOW)
 def cages_wheel_limits() -> str:
     """The wheel's seconds over ours on the zoo meshes of 5k-100k faces, one case at a time (the meshes
     under 10x, the range of the others, the repeated ones' medians), then the loaded run at 6a00d76."""
@@ -805,11 +827,16 @@ def cages_wheel_limits() -> str:
                f"its {len(timed)} runs that timed it: median "
                f"{down(statistics.median(r[2] / (r[1] - r[3]) for r in timed))}") if timed else ""
         reps.append(f"{m} {', '.join(down(r[0]) for r in runs)} (median {down(med)}{rep})")
+    now = {m: v[0] for m, v in _wheel_ratios(WHEEL_SEQ_NOW).items()}
+    below = sorted((m for m in now if now[m][0] < 10), key=lambda m: now[m][0])
+    now_text = (f"At 5fa2610 (`corpus/wheel_seq{{,_sb}}_5fa2610.json`, once): {len(now) - len(below)} of {len(now)} "
+                f"at 10x or more; below: " + ", ".join(f"{m} {down(now[m][0])} ({now[m][1]:.1f} s against "
+                                                        f"{now[m][2]:.1f} s)" for m in below) + ". ")
     loaded = _wheel_ratios(WHEEL_6A00D76)
     n_loaded = sum(v[0][0] >= 10 for v in loaded.values())
     return (f"{len(high)} of {len(first)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); "
             f"below: {show or 'none'}. Again, the same way (`corpus/wheel_seq_*_r*.json`): {'; '.join(reps)}. "
-            f"Two or three cases at a time (6a00d76, `corpus/wheel_{{a,b,repair_sb}}_6a00d76.json`) ours slowed more "
+            + now_text + f"Two or three cases at a time (6a00d76, `corpus/wheel_{{a,b,repair_sb}}_6a00d76.json`) ours slowed more "
             f"than the wheel's: {n_loaded} of {len(loaded)} at 10x")
 
 

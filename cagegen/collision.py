@@ -33,8 +33,9 @@ def ipctk_threads(n: int | None) -> Iterator[None]:
 
     ipctk sums barrier potentials, gradients and Hessians in parallel (TBB), in an order that differs run
     to run; the re-inflation's Newton iterations and the flows amplify those last bits into other outcomes
-    (featuretype.stl's second cage: volume ratio 1.421 or 1.335 over three runs of the same command). On one
-    thread the cages are the same bytes every run.
+    (featuretype.stl's second cage: volume ratio 1.317 and 1.421 over two runs of the same command,
+    ``benchmarks/results/cages/ab_cage_threads_5fa2610_run*.json``). On one thread the cages are the same bytes
+    every run (6 of 6 meshes there), 1.08-1.32x the wall time on 2 cores.
     """
     if n is None:
         yield

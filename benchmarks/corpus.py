@@ -585,6 +585,30 @@ def _git_head() -> str | None:
         return None
 
 
+def _tree_state() -> dict:
+    """The commit the case processes will import and whether tracked files differ from it (each case imports
+    the source tree anew: a commit or an edit during a run changes the code of the cases after it)."""
+    try:
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", ".", ":!benchmarks/results"],
+                               cwd=Path(__file__).resolve().parents[1], timeout=10, check=False).returncode == 1
+    except Exception:  # noqa: BLE001 -- not a git checkout
+        dirty = False
+    return {"commit": _git_head(), "dirty": dirty}
+
+
+def _note_tree(doc: dict, entry: dict, key: str, before: dict) -> None:
+    """Record, on the case ``entry[key]``, the source trees seen before and after it when either is not the
+    run's clean starting commit (its process may have imported either)."""
+    clean = {"commit": doc.get("commit"), "dirty": False}
+    after = _tree_state()
+    if before != clean or after != clean:
+        entry[key]["tree"] = {"before": before, "after": after}
+        print(f"[corpus] warning: {entry['mesh']} {key} ran while the source tree was "
+              f"{before['commit']}{' (edited)' if before['dirty'] else ''} -> "
+              f"{after['commit']}{' (edited)' if after['dirty'] else ''}, not the run's {doc.get('commit')}: "
+              "run benchmarks from a clone", file=sys.stderr, flush=True)
+
+
 def survey(folder: Path, names: list[str] | None) -> list[dict]:
     """One entry per surface file: name, faces, closed or the reason it is skipped."""
     out = []
@@ -681,7 +705,9 @@ def main(argv: list[str] | None = None) -> int:
         for kind, arg in cases:
             key = kind if kind == "solve" else f"cages:{arg}"
             print(f"[corpus] {entry['mesh']} {key} ...", file=sys.stderr, flush=True)
+            before = _tree_state()
             entry[key] = run_case(kind, path, arg, args.timeout)
+            _note_tree(doc, entry, key, before)
             r = entry[key]
             print(f"[corpus] {entry['mesh']} {key}: ok={r.get('ok')} certified={r.get('certified')} "
                   f"{r.get('wall_seconds', 0):.1f} s {r.get('error', '')}", file=sys.stderr, flush=True)
@@ -689,8 +715,11 @@ def main(argv: list[str] | None = None) -> int:
         nested = entry.get("cages:nested") or {}
         if args.wheel and nested.get("ok") and not nested.get("bodies"):  # the wheel cages one solid
             counts = [int(n) for n in nested["faces"][1:]]
+            before = _tree_state()
             entry["wheel"] = earlier.get((entry["mesh"], tuple(counts))) or dict(
                 run_case("wheel", path, ",".join(map(str, counts)), args.timeout), counts=counts)
+            if (entry["mesh"], tuple(counts)) not in earlier:
+                _note_tree(doc, entry, "wheel", before)
             save()
     for entry in doc["meshes"]:
         entry.pop("path", None)

@@ -37,6 +37,25 @@ def test_cages_case_runs_and_certifies(torus_file):
     assert rec["faces"][1] < rec["faces"][0] and rec["seconds"] > 0
 
 
+def test_a_case_run_on_another_tree_than_the_runs_is_recorded(monkeypatch, capsys):
+    """Each case process imports the source tree anew: a case that ran while the tree was edited, or after a
+    commit made during the run, records both states and warns; a clean case records nothing."""
+    doc, entry = {"commit": "aaa1111"}, {"mesh": "m.off", "solve": {"ok": True}}
+    states = iter([{"commit": "aaa1111", "dirty": True}])
+    monkeypatch.setattr(corpus, "_tree_state", lambda: next(states))
+    corpus._note_tree(doc, entry, "solve", {"commit": "aaa1111", "dirty": False})
+    assert entry["solve"]["tree"] == {"before": {"commit": "aaa1111", "dirty": False},
+                                      "after": {"commit": "aaa1111", "dirty": True}}
+    assert "run benchmarks from a clone" in capsys.readouterr().err
+    clean = {"mesh": "m.off", "solve": {"ok": True}}
+    monkeypatch.setattr(corpus, "_tree_state", lambda: {"commit": "aaa1111", "dirty": False})
+    corpus._note_tree(doc, clean, "solve", {"commit": "aaa1111", "dirty": False})
+    assert "tree" not in clean["solve"]
+    monkeypatch.undo()
+    real = corpus._tree_state()
+    assert set(real) == {"commit", "dirty"} and isinstance(real["dirty"], bool)
+
+
 def test_merge_replaces_columns_not_rows(tmp_path):
     """A later run of one column (solve) keeps the earlier run's other columns and says which commit made each."""
     old = {"command": "run A", "commit": "aaa", "date": "d1", "timeout": 600, "backends": ["nested", "decimate"],

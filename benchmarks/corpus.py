@@ -715,10 +715,13 @@ def main(argv: list[str] | None = None) -> int:
         nested = entry.get("cages:nested") or {}
         if args.wheel and nested.get("ok") and not nested.get("bodies"):  # the wheel cages one solid
             counts = [int(n) for n in nested["faces"][1:]]
-            before = _tree_state()
-            entry["wheel"] = earlier.get((entry["mesh"], tuple(counts))) or dict(
-                run_case("wheel", path, ",".join(map(str, counts)), args.timeout), counts=counts)
-            if (entry["mesh"], tuple(counts)) not in earlier:
+            known = earlier.get((entry["mesh"], tuple(counts)))
+            if known:
+                entry["wheel"] = known
+            else:
+                before = _tree_state()
+                entry["wheel"] = dict(run_case("wheel", path, ",".join(map(str, counts)), args.timeout),
+                                      counts=counts)
                 _note_tree(doc, entry, "wheel", before)
             save()
     for entry in doc["meshes"]:

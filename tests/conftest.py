@@ -77,12 +77,10 @@ def one_ipctk_thread():
     """ipctk on one thread: its parallel reductions (barrier gradients, potentials) sum in a different
     order run to run, and the re-inflation's Newton iterations amplify those last bits (1e-10 on a
     skeleton cage), or a small CAD plate's second layer then sometimes needs the fallback (minutes)."""
-    import ipctk
+    from cagegen.collision import ipctk_threads
 
-    n = ipctk.get_num_threads()
-    ipctk.set_num_threads(1)
-    yield
-    ipctk.set_num_threads(n)
+    with ipctk_threads(1):
+        yield
 
 
 @pytest.fixture

@@ -627,12 +627,13 @@ def complete_clearance(C: np.ndarray, G: np.ndarray, Vf: np.ndarray, Ff: np.ndar
         return C, d, None
     C2, oinfo = push_out(C, G, Vf, Ff, gap, accept=gap / GAP_AIM, distance=d)
     if C2 is None:
-        return _looser_clear(C, d, G, Vf, Ff, gap / GAP_AIM, list(looser), oinfo)
+        return _looser_clear(C, d, G, Vf, Ff, gap / GAP_AIM, looser, oinfo)
     return C2, oinfo["distance"], oinfo
 
 
 def _looser_clear(C, d, G, Vf, Ff, accept, looser, oinfo) -> tuple[np.ndarray, float, dict]:
-    """The tightest of the ``looser`` cages keeping ``accept`` (bisection), else ``(C, d)``."""
+    """A ``looser`` cage keeping ``accept``, found by bisection (the last one when the distance shrinks along
+    them), with its distance; ``(C, d)`` when the loosest does not keep it either."""
     if not looser:
         return C, d, oinfo
     d0 = min_distance(looser[0], G, Vf, Ff)

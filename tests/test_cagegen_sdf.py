@@ -116,17 +116,9 @@ def test_coarse_active_points_cover_the_full_ones_near_the_gap():
     """coarse_active_points on a surface above ``max_faces``: found on a QEM copy, carried back to the
     vertices within one copy edge; they cover the active vertices found on the surface itself and stay near
     the gap between the two boxes. Up to ``max_faces`` it is active_points itself; a sphere has none."""
-    import trimesh
-
     from cagegen.envelope import coarse_active_points
 
-    boxes = []
-    for shift in ((0.0, 0.0, 0.0), (0.12, 0.15, 0.32)):
-        box = trimesh.creation.box(extents=(0.3, 0.3, 0.3)).subdivide().subdivide().subdivide()
-        box.apply_translation(shift)
-        boxes.append(box)
-    V = np.vstack([b.vertices for b in boxes])
-    F = np.vstack([boxes[0].faces, boxes[1].faces + len(boxes[0].vertices)]).astype(np.int64)
+    V, F = _two_boxes(3)
     full = active_points(V, F, 0.025, 0.15)
     assert len(full) > 20 and np.all(np.abs(V[full, 2] - 0.16) < 0.05)  # around the 0.02 gap
     coarse = coarse_active_points(V, F, 0.025, 0.15, max_faces=len(F) // 4)
@@ -136,6 +128,71 @@ def test_coarse_active_points_cover_the_full_ones_near_the_gap():
     assert np.array_equal(coarse_active_points(V, F, 0.025, 0.15, max_faces=len(F)), full)
     S, G = shapes.sphere(res=40)
     assert len(coarse_active_points(_unit(S), G, 0.025, 0.15, max_faces=len(G) // 4)) == 0
+
+
+def _two_boxes(subdivisions: int):
+    import trimesh
+
+    boxes = []
+    for shift in ((0.0, 0.0, 0.0), (0.12, 0.15, 0.32)):
+        box = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+        for _ in range(subdivisions):
+            box = box.subdivide()
+        box.apply_translation(shift)
+        boxes.append(box)
+    V = np.vstack([b.vertices for b in boxes])
+    return V, np.vstack([boxes[0].faces, boxes[1].faces + len(boxes[0].vertices)]).astype(np.int64)
+
+
+def _thin_plate():
+    import trimesh
+
+    plate = trimesh.creation.box(extents=(0.3, 0.3, 0.02))
+    for _ in range(3):
+        plate = plate.subdivide()
+    return np.asarray(plate.vertices), np.asarray(plate.faces, dtype=np.int64)
+
+
+def _brute_force_active(V, F, r, l):
+    """Every (vertex, triangle) pair, all-pairs graph distances, the filters of ``_active_points``."""
+    import igl
+    from scipy.sparse.csgraph import dijkstra
+
+    from cagegen._geometry import point_triangle_sqdist
+    from cagegen.envelope import _edge_graph
+
+    pv, pf = np.divmod(np.arange(len(V) * len(F)), len(F))
+    X = V[F[pf]]
+    close = point_triangle_sqdist(V[pv], X[:, 0], X[:, 1], X[:, 2]) < r * r
+    N, FN = igl.per_vertex_normals(V, F), igl.per_face_normals(V, F, np.array([0.0, 0.0, 1.0]))
+    close &= np.einsum("ij,ij->i", N[pv], FN[pf]) < 0.5
+    G = _edge_graph(V, F)
+    ring = (dijkstra((G > 0).astype(float), directed=False)[pv[:, None], F[pf]] <= 2).any(axis=1)
+    far = close & ~ring & (dijkstra(G, directed=False)[pv[:, None], F[pf]] > l).all(axis=1)
+    return np.union1d(pv[far], F[pf[far]].ravel())
+
+
+def test_active_points_match_a_brute_force_search(monkeypatch):
+    """The candidate buckets and the two Dijkstra rounds of ``_active_points`` (any chunk size) find what
+    testing every (vertex, triangle) pair with all-pairs graph distances finds. On the thin plate both
+    rounds decide pairs (its two sides are within r; near the rim they are near along the surface)."""
+    import cagegen.envelope as env
+
+    r, l = 0.025, 0.15
+    V, F = _thin_plate()
+    G = env._edge_graph(V, F)
+    pv, pf = env._close_pairs(V, F, G, r)
+    first, second = (env._reached(G, F, pv, pf, lim, 256).sum() for lim in (env.ACTIVE_SHORT_SEARCH * r, l))
+    assert 0 < first < second < len(pv)
+    for V, F in (_thin_plate(), _two_boxes(2)):
+        expected = _brute_force_active(V, F, r, l)
+        assert len(expected) > 20
+        with monkeypatch.context() as m:
+            assert np.array_equal(env._active_points(V, F, r, l), expected)
+            assert np.array_equal(env._active_points(V, F, r, l, chunk=7), expected)
+            m.setattr(env, "ACTIVE_SHORT_SEARCH", 1e9)  # one round, to l
+            m.setattr(env, "ACTIVE_RADIUS_QUANTILES", ())  # one bucket
+            assert np.array_equal(env._active_points(V, F, r, l, chunk=5), expected)
 
 
 def test_flip_pass_never_makes_an_edge_twice(monkeypatch):

@@ -79,6 +79,7 @@ def decimate_surface(
     check_self: bool = True,
     keep_genus: bool = True,
     other_decimator: bool = True,
+    inspect: Callable[[np.ndarray, np.ndarray], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Decimate a closed surface to about ``n_faces`` faces, checking the result is still a solid.
 
@@ -102,6 +103,10 @@ def decimate_surface(
         Retry with the other decimator (True, default) or only with the intersection-blocking variant
         of ``decimator`` (False: shortest-edge collapses with midpoint placement cut deep into sharp
         CAD features, where QEM with blocking keeps them).
+    inspect : callable, optional
+        ``inspect(U, G)`` on every attempt's surface before its checks; an exception it raises ends the
+        decimation (a caller's test of a property the attempts share, e.g. vertices in the slots of the
+        surface decimated: no need to wait for a self-intersection-free attempt).
 
     Returns
     -------
@@ -145,6 +150,8 @@ def decimate_surface(
             remap = np.full(U.shape[0], -1, dtype=np.int64)
             remap[used] = np.arange(used.size)
             U, G = U[used], remap[G]
+        if inspect is not None:
+            inspect(U, G)
         problem = _surface_problem(U, G, genus, check_self) if G.shape[0] else "empty result"
         attempts.append([alg, block, problem])
         if not problem:

@@ -628,18 +628,37 @@ def test_a_quick_flow_stops_when_it_makes_no_progress():
 def test_a_layer_target_in_a_slot_narrower_than_the_clearance_goes_behind_the_envelopes():
     """_build_layer's order: a decimated layer with a vertex in a slot narrower than twice the clearance
     is tried after the envelope targets, once; without an envelope after it, or without a clearance,
-    it keeps its place."""
-    defer = nested_backend_module._defer_slotted
+    it keeps its place (no probe)."""
+    probe = nested_backend_module._slot_probe
     V, F = _two_boxes(0.0, 0.02)
-    U = np.array([[0.1, 0.2, 0.01]])
+    U, G = np.array([[0.1, 0.2, 0.01]]), np.zeros((0, 3), dtype=np.int64)
     sources = [("layer", "qslim", None), ("envelope", "qslim", 0.05), ("layer", "shortest_edge", None)]
-    deferred: set = set()
-    assert defer(U, V, F, 0.015, sources, 0, deferred) == 1
-    assert sources[-1] == ("layer", "qslim", None) and len(sources) == 4
-    assert defer(U, V, F, 0.015, sources, 3, deferred) == 0  # moved once only
-    assert defer(U, V, F, 0.0, list(sources), 0, set()) == 0  # no clearance asked
-    assert defer(U, V, F, 0.015, sources[:1] + sources[2:3], 0, set()) == 0  # no envelope follows
-    assert defer(U, V, F, 0.005, list(sources), 0, set()) == 0  # the slot is wider than 2 x 0.005
+    with pytest.raises(nested_backend_module._Slotted, match="1 vertex"):
+        probe(V, F, 0.015, sources, 0, set())(U, G)
+    assert probe(V, F, 0.005, sources, 0, set())(U, G) is None  # the slot is wider than 2 x 0.005
+    assert probe(V, F, 0.015, sources, 0, {sources[0]}) is None  # moved once only
+    assert probe(V, F, 0.0, sources, 0, set()) is None  # no clearance asked
+    assert probe(V, F, 0.015, sources[:1] + sources[2:3], 0, set()) is None  # no envelope follows
+    assert probe(V, F, 0.015, sources, 1, set()) is None  # an envelope target is never deferred
+
+
+def test_decimation_stops_at_the_first_attempt_its_inspection_rejects():
+    """decimate_surface(inspect=): called on every attempt before the attempt's checks; its exception ends
+    the decimation (the slot test above needs no self-intersection-free attempt)."""
+    from cagegen.decimate import decimate_surface
+
+    V, F = shapes.sphere(res=24)
+    seen = []
+
+    def reject(U, G):
+        seen.append(len(G))
+        raise KeyError("slotted")
+
+    with pytest.raises(KeyError, match="slotted"):
+        decimate_surface(V, F, 200, inspect=reject)
+    assert seen == [200]
+    U, G, info = decimate_surface(V, F, 200, inspect=lambda U, G: seen.append(len(G)))
+    assert len(G) == 200 and seen == [200, 200] and len(info["attempts"]) == 1
 
 
 def test_the_flow_queries_again_only_the_points_that_may_have_come_near_the_target(monkeypatch):

@@ -779,6 +779,23 @@ def cages_threads() -> str:
             f"ratio {' and '.join(map(str, ft))}); wall time x{rng(wall)}")
 
 
+CAGES_AB_SLOTPROBE = "cages/ab_slotprobe_578713e.json"
+
+
+@generator("cages.slotprobe", CAGES_AB_SLOTPROBE)
+def cages_slotprobe() -> str:
+    """The slot test on every decimation attempt and the faster active-point search (ca4d9ec -> 578713e):
+    CPU seconds per mesh, the failed attempts' stages that changed."""
+    runs, total, order, vol = _ab_both(load(CAGES_AB_SLOTPROBE)["meshes"])
+    cpu = lambda m, side: runs[m][side]["cpu_seconds"]  # noqa: E731
+    stages = lambda m, side: [f["stage"] for L in runs[m][side]["layers"] for f in L["failed_attempts"]]  # noqa: E731
+    changed = [f"{m} ({', '.join(stages(m, 'before'))} -> {', '.join(stages(m, 'after'))})"
+               for m in runs if stages(m, "before") != stages(m, "after")]
+    return (f"one run of {len(runs)} meshes: CPU seconds x{total:.2f} in all, "
+            + ", ".join(f"{m} {cpu(m, 'before'):.1f} -> {cpu(m, 'after'):.1f}" for m in order)
+            + f"; failed attempts changed on {'; '.join(changed) or 'none'}; volume ratios within {100 * vol:.1f}%")
+
+
 WHEEL_6A00D76 = ("corpus/wheel_a_6a00d76.json", "corpus/wheel_b_6a00d76.json",
                  "corpus/wheel_repair_sb_6a00d76.json")
 #: one case at a time on an otherwise idle machine: every zoo mesh of 5k-100k faces at 7293b0e, then homer and

@@ -868,6 +868,24 @@ def cages_wheel_limits() -> str:
             f"than the wheel's: {n_loaded} of {len(loaded)} at 10x")
 
 
+#: homer and stanford-bunny one case at a time after the slot test on every decimation attempt (fd6c741; the
+#: wheel took 103-111 s on homer here, 60-76 s in the runs above: a slower machine, both sides)
+WHEEL_SEQ_SLOTPROBE = (*(f"corpus/wheel_seq_homer_fd6c741_r{k}.json" for k in (1, 2, 3)),
+                       *(f"corpus/wheel_seq_sb_fd6c741_r{k}.json" for k in (1, 2)))
+
+
+@generator("cages.wheel_slotprobe", *WHEEL_SEQ_SLOTPROBE)
+def cages_wheel_slotprobe() -> str:
+    """The wheel's seconds over ours per run, their median, and both sides' seconds (rounded against us)."""
+    down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # noqa: E731
+    out = []
+    for m, runs in _wheel_ratios(WHEEL_SEQ_SLOTPROBE).items():
+        out.append(f"{m} {', '.join(down(r[0]) for r in runs)} (median {down(statistics.median(r[0] for r in runs))}; "
+                   f"ours {min(r[1] for r in runs):.1f}-{max(r[1] for r in runs):.1f} s, the wheel "
+                   f"{min(r[2] for r in runs):.1f}-{max(r[2] for r in runs):.1f} s)")
+    return "; ".join(out)
+
+
 NESTED_SCALE_NOW = ("corpus/nested_scale_a_2c7e533.json", "corpus/nested_scale_b_2c7e533.json")
 NESTED_SCALE_BEFORE = "corpus/nested_scale_a_before_d0b0d83.json"
 

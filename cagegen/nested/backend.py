@@ -719,7 +719,8 @@ class _Slotted(Exception):
         self.n_vertices = n_vertices
 
 
-def _slot_probe(Vf, Ff, gap: float, sources: list, i: int, deferred: set):
+def _slot_probe(Vf, Ff, gap: float, sources: list, i: int, deferred: set
+                ) -> Callable[[np.ndarray, np.ndarray], None] | None:
     """The test :func:`_decimate` runs on every attempt at ``sources[i]``, a layer target: vertices in
     slots of F narrower than ``2 gap`` (:func:`narrow_slot_vertices`) raise :class:`_Slotted`, and the
     target goes behind the envelope targets (None: nothing to defer it behind, or deferred already).
@@ -727,9 +728,9 @@ def _slot_probe(Vf, Ff, gap: float, sources: list, i: int, deferred: set):
     Its clearance step cannot pass there: cheburashka.obj's first layer flowed inside, then its
     re-inflation stalled in the last reverse step (50 s) before the envelope certified in 6 s. Moved
     once, when an envelope target follows; it is still tried, last. The test runs on each decimation
-    attempt, not on the accepted one only: lucy.ply's first attempt (QEM) has 20 slot vertices and
-    self-intersections, so did the next (shortest edge); the blocking QEM that passed had the same 20,
-    after 8 s in all against 2.5 s to the first (ad hoc).
+    attempt, not on the accepted one only: lucy.ply's first attempt (QEM) had 20 slot vertices and
+    self-intersections; the third, accepted one (blocking QEM, after a self-intersecting shortest-edge
+    attempt) had the same 20, after 8 s in all against 2.5 s to the first (ad hoc).
     """
     src = sources[i]
     if src[0] != "layer" or gap <= 0 or src in deferred or all(s[0] != "envelope" for s in sources[i + 1:]):

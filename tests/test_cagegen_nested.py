@@ -151,6 +151,33 @@ def test_volume_step_moves_small_and_large_triangles_alike():
     assert np.all(np.einsum("ij,ij->i", step, V) < -0.99 * length)  # inward, along the normal
 
 
+def test_a_snap_smaller_than_half_the_gap_needs_no_ccd():
+    """The reverse steps' snap (the fine surface alone onto its target) skips the CCD when every fine vertex
+    moves less than half the smallest pair distance within dhat (concentric spheres 0.1 apart, dhat 0.2);
+    a longer motion runs it, and is counted."""
+    import importlib
+
+    import trimesh
+
+    from cagegen.collision import PairMesh
+
+    R = importlib.import_module("cagegen.nested.reinflate")  # the package re-exports the function's name
+    s = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(s.vertices, float), np.asarray(s.faces)
+    pair = PairMesh(1.1 * V, F, V, F)
+    prob = R._Problem(pair, make_energy("step", 1.1 * V, F), 0.2, 1e4, 1e3)
+    X = pair.stack(1.1 * V, V)
+    gap = float(np.sqrt(prob._collisions(X).compute_minimum_distance(pair.mesh, X)))
+    assert 0.09 < gap <= 0.1
+    near = X.copy()
+    near[pair.nc:] *= 1 + 0.45 * gap  # every fine vertex moves 0.45 gap outwards
+    far = X.copy()
+    far[pair.nc:] *= 1 + 0.55 * gap
+    assert prob.snap_is_free(X, near) and prob.n_ccd == 0 and prob.n_snap_free == 1
+    assert not prob.snap_is_free(X, far) and prob.n_ccd == 1
+    assert pair.stepsize(X, far) == 1.0  # free in fact, but the bound cannot tell: the CCD decides
+
+
 def test_complete_clearance_falls_back_to_the_tightest_clear_looser_cage(monkeypatch):
     """When ``push_out`` is blocked, :func:`complete_clearance` returns the tightest of the final phase's
     looser cages that keeps ``gap / GAP_AIM`` (concentric spheres around a unit sphere: radius 1.3 for a

@@ -807,6 +807,18 @@ WHEEL_SEQ_AGAIN = ("corpus/wheel_seq_homer_efc5d2c_r2.json", "corpus/wheel_seq_h
                    *(f"corpus/wheel_seq_sb_efc5d2c_r{k}.json" for k in (1, 2, 3)))
 
 
+def _down(x: float) -> str:
+    """A wheel ratio rounded down to 0.1 (against us)."""
+    return f"{math.floor(10 * x) / 10:.1f}x"
+
+
+def _wheel_runs(m: str, runs: list) -> str:
+    """``m``'s wheel ratio per run (:func:`_wheel_ratios` rows), their median and both sides' seconds."""
+    return (f"{m} {', '.join(_down(r[0]) for r in runs)} (median {_down(statistics.median(r[0] for r in runs))}; "
+            f"ours {min(r[1] for r in runs):.1f}-{max(r[1] for r in runs):.1f} s, the wheel "
+            f"{min(r[2] for r in runs):.1f}-{max(r[2] for r in runs):.1f} s)")
+
+
 def _wheel_ratios(rels) -> dict:
     """mesh -> [(wheel seconds over ours, ours, the wheel's, our repair's seconds or None)] of the certified
     cases."""
@@ -832,11 +844,10 @@ WHEEL_SEQ_NOW_AGAIN = ("corpus/wheel_seq_homer_258c089_r2.json", "corpus/wheel_s
 def cages_wheel_limits() -> str:
     """The wheel's seconds over ours on the zoo meshes of 5k-100k faces, one case at a time (the meshes
     under 10x, the range of the others, the repeated ones' medians), then the loaded run at 6a00d76."""
-    down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # rounded against us
     first = {m: v[0] for m, v in _wheel_ratios(WHEEL_SEQ).items()}
     low = sorted((m for m in first if first[m][0] < 10), key=lambda m: first[m][0])
     high = [first[m][0] for m in first if first[m][0] >= 10]
-    show = ", ".join(f"{m} {down(first[m][0])} ({first[m][1]:.1f} s against {first[m][2]:.1f} s)" for m in low)
+    show = ", ".join(f"{m} {_down(first[m][0])} ({first[m][1]:.1f} s against {first[m][2]:.1f} s)" for m in low)
     again = _wheel_ratios(WHEEL_SEQ_AGAIN)
     reps = []
     for m, runs in again.items():
@@ -845,24 +856,18 @@ def cages_wheel_limits() -> str:
         timed = [r for r in runs if r[3]]  # the runs that recorded a repair (`--repair`, efc5d2c on)
         rep = (f"; ours without the repair's {min(r[3] for r in timed):.1f}-{max(r[3] for r in timed):.1f} s, over "
                f"its {len(timed)} runs that timed it: median "
-               f"{down(statistics.median(r[2] / (r[1] - r[3]) for r in timed))}") if timed else ""
-        reps.append(f"{m} {', '.join(down(r[0]) for r in runs)} (median {down(med)}{rep})")
+               f"{_down(statistics.median(r[2] / (r[1] - r[3]) for r in timed))}") if timed else ""
+        reps.append(f"{m} {', '.join(_down(r[0]) for r in runs)} (median {_down(med)}{rep})")
     now = {m: v[0] for m, v in _wheel_ratios(WHEEL_SEQ_NOW).items()}
     below = sorted((m for m in now if now[m][0] < 10), key=lambda m: now[m][0])
     now_again = _wheel_ratios(WHEEL_SEQ_NOW_AGAIN)
-    now_reps = []
-    for m in below:
-        runs = [now[m], *now_again.get(m, [])]
-        now_reps.append(f"{m} {', '.join(down(r[0]) for r in runs)} (median "
-                        f"{down(statistics.median(r[0] for r in runs))}; ours {min(r[1] for r in runs):.1f}-"
-                        f"{max(r[1] for r in runs):.1f} s, the wheel {min(r[2] for r in runs):.1f}-"
-                        f"{max(r[2] for r in runs):.1f} s)")
+    now_reps = [_wheel_runs(m, [now[m], *now_again.get(m, [])]) for m in below]
     now_text = (f"After the final phase's change (5fa2610, `corpus/wheel_seq{{,_sb}}_5fa2610.json`; again at 258c089, "
                 f"`corpus/wheel_seq_*_258c089_r*.json`): {len(now) - len(below)} of {len(now)} at 10x or more; "
                 f"below: {'; '.join(now_reps)}. ")
     loaded = _wheel_ratios(WHEEL_6A00D76)
     n_loaded = sum(v[0][0] >= 10 for v in loaded.values())
-    return (f"{len(high)} of {len(first)} meshes at 10x or more ({down(min(high))}-{max(high):.1f}x); "
+    return (f"{len(high)} of {len(first)} meshes at 10x or more ({_down(min(high))}-{max(high):.1f}x); "
             f"below: {show or 'none'}. Again, the same way (`corpus/wheel_seq_*_r*.json`): {'; '.join(reps)}. "
             + now_text + f"Two or three cases at a time (6a00d76, `corpus/wheel_{{a,b,repair_sb}}_6a00d76.json`) ours slowed more "
             f"than the wheel's: {n_loaded} of {len(loaded)} at 10x")
@@ -877,13 +882,7 @@ WHEEL_SEQ_SLOTPROBE = (*(f"corpus/wheel_seq_homer_fd6c741_r{k}.json" for k in (1
 @generator("cages.wheel_slotprobe", *WHEEL_SEQ_SLOTPROBE)
 def cages_wheel_slotprobe() -> str:
     """The wheel's seconds over ours per run, their median, and both sides' seconds (rounded against us)."""
-    down = lambda x: f"{math.floor(10 * x) / 10:.1f}x"  # noqa: E731
-    out = []
-    for m, runs in _wheel_ratios(WHEEL_SEQ_SLOTPROBE).items():
-        out.append(f"{m} {', '.join(down(r[0]) for r in runs)} (median {down(statistics.median(r[0] for r in runs))}; "
-                   f"ours {min(r[1] for r in runs):.1f}-{max(r[1] for r in runs):.1f} s, the wheel "
-                   f"{min(r[2] for r in runs):.1f}-{max(r[2] for r in runs):.1f} s)")
-    return "; ".join(out)
+    return "; ".join(_wheel_runs(m, runs) for m, runs in _wheel_ratios(WHEEL_SEQ_SLOTPROBE).items())
 
 
 NESTED_SCALE_NOW = ("corpus/nested_scale_a_2c7e533.json", "corpus/nested_scale_b_2c7e533.json")

@@ -13,8 +13,9 @@ intersection-free) and the barrier B of Li et al. (IPC) with activation distance
 spring k_F plays the role of the fine mesh's "infinite mass": the barrier's reaction moves the cage,
 the fine surface follows its prescribed path. When F is within ``snap_tol`` of its target, it is
 snapped *exactly* onto it (after a CCD check, or none when F moves less than half the smallest pair
-distance: :meth:`_Problem.snap_is_free`), so after the last step F equals its rest positions bit for bit. As in the paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol)
-only once F is at rest, with F fixed.
+distance: :meth:`_Problem.snap_is_free`), so after the last step F equals its rest positions bit for
+bit. As in the paper, E_step is minimised while re-inflating and the final energy (e.g. E_vol) only
+once F is at rest, with F fixed.
 """
 
 from __future__ import annotations
